@@ -1,0 +1,13 @@
+"""The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
+
+from psfkit.bench.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.bench.sensor import SensorModel
+from psfkit.bench.simulate import (
+    GroundTruth,
+    grid_monitor_positions,
+    read_ground_truth,
+    simulate_grid,
+)
+
+__all__ = ["BenchConfig", "GroundTruth", "PsfPatch", "SensorModel", "VirtualCamera",
+           "grid_monitor_positions", "place_patch", "read_ground_truth", "simulate_grid"]

@@ -1,0 +1,8 @@
+"""Input and output at the boundary: images, PSF grids, atomic writes."""
+
+from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.io.grid import GridPosition, GridWriter, PsfGrid, read_grid
+from psfkit.io.images import read_image, write_image
+
+__all__ = ["GridPosition", "GridWriter", "PsfGrid", "atomic_directory", "atomic_file",
+           "read_grid", "read_image", "write_image"]

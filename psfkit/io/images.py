@@ -1,0 +1,131 @@
+"""Reading and writing single images (TIFF, PNG, NumPy) at the I/O boundary.
+
+On disk images are ``(H, W)`` or ``(H, W, C)`` (``C`` = 1 or 3, RGB order; planar TIFFs
+``(C, H, W)`` are recognised from their metadata). In memory the toolkit uses ``(C, H, W)``.
+Only this module converts between the two.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from psfkit.errors import InvalidInputError
+from psfkit.io.atomic import atomic_file
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
+
+
+def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.ndarray:
+    if array.ndim == 2:
+        return array[None]
+    if array.ndim != 3:
+        raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {array.shape}")
+    chw = np.moveaxis(array, -1, 0) if channels_last else array
+    if chw.shape[0] not in (1, 3):
+        raise InvalidInputError(
+            f"{path}: has {chw.shape[0]} channels; expected 1 (mono) or 3 (RGB)")
+    return chw
+
+
+def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
+    """Read one image file as a ``(C, H, W)`` array in its stored dtype.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.tif``/``.tiff`` (tifffile), ``.png`` (OpenCV, 8 or 16 bit) or ``.npy``.
+    channel_order : {"RGB", "BGR"}
+        Order of the channels as stored in ``.npy`` and TIFF files; ``"BGR"`` files (e.g.
+        written with OpenCV, like the DiffuserCam Mirflickr data) are converted to RGB.
+        PNG files are always decoded to RGB.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(C, H, W)`` with ``C`` in {1, 3}, dtype as stored.
+
+    Raises
+    ------
+    InvalidInputError
+        Missing file, unknown extension, or content that is not a 1- or 3-channel image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if channel_order not in ("RGB", "BGR"):
+        raise InvalidInputError(f"channel_order must be 'RGB' or 'BGR', got {channel_order!r}")
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                series = tif.series[0]
+                array = series.asarray()
+                axes = series.axes
+            channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
+            chw = _to_chw(array, path, channels_last)
+        elif suffix == ".png":
+            import cv2
+
+            array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if array is None:
+                raise ValueError("OpenCV could not decode it")
+            if array.ndim == 3 and array.shape[2] == 3:
+                array = array[..., ::-1]
+            chw = _to_chw(array, path)
+            channel_order = "RGB"
+        elif suffix == ".npy":
+            array = np.load(path, allow_pickle=False)
+            chw = _to_chw(array, path)
+        else:
+            raise InvalidInputError(
+                f"{path}: unsupported image type '{suffix}' (use {', '.join(IMAGE_SUFFIXES)})")
+    except InvalidInputError:
+        raise
+    except Exception as exc:  # any decoder failure means "not an image we can read"
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InvalidInputError(f"{path}: not a readable image ({reason})") from None
+    if not (np.issubdtype(chw.dtype, np.integer) or np.issubdtype(chw.dtype, np.floating)):
+        raise InvalidInputError(f"{path}: unsupported pixel type {chw.dtype}")
+    if channel_order == "BGR" and chw.shape[0] == 3:
+        chw = chw[::-1]
+    return np.ascontiguousarray(chw)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write a ``(C, H, W)`` array atomically as TIFF, PNG or ``.npy`` (stored ``(H, W[, C])``).
+
+    PNG accepts uint8/uint16 only; TIFF and ``.npy`` keep the dtype.
+    """
+    path = Path(path)
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[0] not in (1, 3):
+        raise InvalidInputError(f"{path}: expected a (C, H, W) array with C in (1, 3), "
+                                f"got shape {image.shape}")
+    hwc = image[0] if image.shape[0] == 1 else np.moveaxis(image, 0, -1)
+    suffix = path.suffix.lower()
+    with atomic_file(path) as tmp:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            photometric = "rgb" if hwc.ndim == 3 else "minisblack"
+            tifffile.imwrite(tmp, np.ascontiguousarray(hwc), photometric=photometric)
+        elif suffix == ".png":
+            import cv2
+
+            if hwc.dtype not in (np.uint8, np.uint16):
+                raise InvalidInputError(f"{path}: PNG needs uint8 or uint16 data, got {hwc.dtype}")
+            data = hwc[..., ::-1] if hwc.ndim == 3 else hwc
+            if not cv2.imwrite(str(tmp), np.ascontiguousarray(data)):
+                raise InvalidInputError(f"{path}: OpenCV failed to encode the PNG")
+        elif suffix == ".npy":
+            with open(tmp, "wb") as fh:
+                np.save(fh, np.ascontiguousarray(hwc), allow_pickle=False)
+        else:
+            raise InvalidInputError(
+                f"{path}: unsupported image type '{suffix}' (use {', '.join(IMAGE_SUFFIXES)})")
+    return path

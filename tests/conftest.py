@@ -1,0 +1,34 @@
+"""Shared fixtures: small virtual-bench cameras and grids (seconds to build)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from psfkit.bench import BenchConfig, simulate_grid
+
+REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
+                              Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def small_config() -> BenchConfig:
+    """The default camera binned 8×: 135 × 180 pixels of 27.6 µm."""
+    return BenchConfig(downsample=8)
+
+
+@pytest.fixture(scope="session")
+def grid_3x3(tmp_path_factory: pytest.TempPathFactory, small_config: BenchConfig) -> Path:
+    """A simulated 3 × 3 RGB grid with dark frame and ground truth (read-only for tests)."""
+    out = tmp_path_factory.mktemp("grids") / "grid_3x3"
+    return simulate_grid(out, small_config, grid_shape=(3, 3), progress=False)
+
+
+def real_data(*parts: str) -> Path:
+    """Path under ``../shared/data``; skips the test when the shared data are absent."""
+    path = REAL_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real data not available: {path}")
+    return path

@@ -1,0 +1,86 @@
+"""The psfkit command line: works first time, fails with one clear line."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from psfkit.cli import main
+
+
+def test_simulate_grid_then_info(tmp_path, capsys):
+    out = tmp_path / "grid"
+    assert main(["simulate-grid", "--out", str(out), "--downsample", "8", "--rows", "3",
+                 "--cols", "5", "--seed", "2", "--quiet"]) == 0
+    assert main(["info", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "positions: 3 x 5 (15 images" in text
+    assert "135 x 180 x 3 (R/G/B), uint16, 12-bit data" in text
+    assert "centre:    (1, 2)" in text
+    truth = json.loads((out / "ground_truth" / "truth.json").read_text())
+    assert truth["config"]["seed"] == 2
+
+
+def test_simulate_grid_mono_npy_with_bench_config(tmp_path, capsys):
+    cfg = tmp_path / "bench.json"
+    cfg.write_text(json.dumps({"diffusion_angle_deg": 0.5, "downsample": 8}))
+    out = tmp_path / "grid"
+    assert main(["simulate-grid", "--out", str(out), "--bench-config", str(cfg), "--mono",
+                 "--format", "npy", "--rows", "1", "--cols", "3", "--no-dark", "--quiet"]) == 0
+    assert sorted(p.name for p in out.glob("*.npy")) == [
+        "psf_r00_c00.npy", "psf_r00_c01.npy", "psf_r00_c02.npy"]
+    truth = json.loads((out / "ground_truth" / "truth.json").read_text())
+    assert truth["config"]["diffusion_angle_deg"] == 0.5
+    assert truth["channels"] == ["L"]
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["info", "{tmp}/missing"], "missing: no such grid folder"),
+    (["simulate-grid", "--out", "{tmp}/g", "--downsample", "0", "--quiet"],
+     "downsample must be an integer >= 1"),
+    (["simulate-grid", "--out", "{tmp}/g", "--bench-config", "{tmp}/nope.json"],
+     "nope.json: no such file"),
+    (["simulate-grid", "--out", "{tmp}/g", "--rows", "0", "--quiet"],
+     "grid shape must be positive"),
+])
+def test_errors_are_one_line_with_nonzero_exit(tmp_path, capsys, argv, message):
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert err[0].startswith("psfkit: error: ")
+    assert message in err[0]
+    assert not (tmp_path / "g").exists()
+
+
+def test_console_script_reports_bad_grid_without_traceback(tmp_path):
+    bad = tmp_path / "grid"
+    bad.mkdir()
+    (bad / "manifest.json").write_text("{not json")
+    result = subprocess.run([sys.executable, "-m", "psfkit.cli.main", "info", str(bad)],
+                            capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip().endswith("manifest.json: invalid JSON at line 1: "
+                                          "Expecting property name enclosed in double quotes")
+
+
+def test_demo_runs_on_the_embedded_default(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "virtual bench: 9 x 9 PSFs of 135 x 180 x 3" in text
+    assert (out / "grid" / "manifest.json").is_file()
+    assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 2
+    assert "not empty" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", ["psfkit", "ekdun"])
+def test_console_scripts_are_installed(script):
+    from pathlib import Path
+
+    exe = Path(sys.executable).parent / script
+    result = subprocess.run([str(exe), "--version"], capture_output=True, text=True)
+    assert result.returncode == 0
+    assert result.stdout.startswith(f"{script} 0.")
