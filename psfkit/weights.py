@@ -1,0 +1,175 @@
+r"""Weight maps of eigen-kernel forward models.
+
+An eigen-kernel model writes the shift-variant PSF as a weighted sum of a few kernels,
+
+.. math::
+
+    h(u) = \Big(1 - \sum_{j\ge1}\varphi_j\Big) K_0 + \sum_{j\ge1} \varphi_j K_j
+         = K_0 + \sum_{j\ge1}\varphi_j\,(K_j - K_0),
+
+with fixed weight functions :math:`\varphi_j` of normalized coordinates. The paper's model
+(EK-DUN, Eq. 7) is the basis ``"paper"``: :math:`\varphi_v = W_v = \tfrac12\sin^2(\tfrac\pi2
+v_\mathrm{norm})`, :math:`\varphi_h = W_h = \tfrac12\sin^2(\tfrac\pi2 u_\mathrm{norm})`, kernels
+``(base, v, h)``. The weights of all kernels sum to 1 at every pixel.
+
+Richer bases add terms (``get_basis`` parses ``"paper+odd+cross"``, ``"poly:3"``, ...):
+
+``odd``
+    :math:`\tfrac12\sin(\tfrac\pi2 v_n)`, :math:`\tfrac12\sin(\tfrac\pi2 u_n)`: variation that
+    differs between the two sides of the axis (sin² is even and cannot see it).
+``cross``
+    :math:`\tfrac12\sin(\tfrac\pi2 u_n)\sin(\tfrac\pi2 v_n)`: the diagonal component of
+    tangential astigmatism, whose stretch tensor at azimuth φ has a ``sin φ cos φ`` part.
+``poly:N``
+    all monomials :math:`u_n^a v_n^b`, :math:`1 \le a+b \le N` (a generic Taylor basis).
+``si``
+    no terms: the shift-invariant model (one kernel, weight 1).
+
+Coordinates (``shared/design.md``): ``u`` = column, ``v`` = row of the sensor grid
+``(H', W')``; :math:`u_n = (u-u_c)/(W'/2)`, :math:`v_n = (v-v_c)/(H'/2)`, optical centre
+``(v_c, u_c)`` defaulting to ``((H'-1)/2, (W'-1)/2)``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from psfkit.errors import ConfigurationError
+
+WeightFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _half_sin2(x: np.ndarray) -> np.ndarray:
+    return 0.5 * np.sin(0.5 * np.pi * x) ** 2
+
+
+def _half_sin(x: np.ndarray) -> np.ndarray:
+    return 0.5 * np.sin(0.5 * np.pi * x)
+
+
+_GROUPS: dict[str, tuple[tuple[str, WeightFunction], ...]] = {
+    "paper": (("v", lambda u, v: _half_sin2(v)), ("h", lambda u, v: _half_sin2(u))),
+    "odd": (("v_odd", lambda u, v: _half_sin(v)), ("h_odd", lambda u, v: _half_sin(u))),
+    "cross": (("hv", lambda u, v: 2.0 * _half_sin(u) * _half_sin(v)),),
+}
+
+
+def _poly_terms(order: int) -> tuple[tuple[str, WeightFunction], ...]:
+    terms = []
+    for degree in range(1, order + 1):
+        for a in range(degree, -1, -1):
+            b = degree - a
+            terms.append((f"u{a}v{b}", lambda u, v, a=a, b=b: u**a * v**b))
+    return tuple(terms)
+
+
+@dataclass(frozen=True)
+class WeightBasis:
+    """A named set of weight functions ``φ_j(u_n, v_n)`` (the base kernel's weight is implied).
+
+    Attributes
+    ----------
+    name : str
+        Canonical name, e.g. ``"paper"`` or ``"paper+odd"``.
+    terms : tuple of (str, callable)
+        ``(kernel name, φ)`` of each correction term.
+    """
+
+    name: str
+    terms: tuple[tuple[str, WeightFunction], ...]
+
+    @property
+    def kernel_names(self) -> tuple[str, ...]:
+        """``("base", <term names>...)``, the order of kernels in a kernel file."""
+        return ("base", *(name for name, _ in self.terms))
+
+    @property
+    def n_kernels(self) -> int:
+        return 1 + len(self.terms)
+
+    def evaluate(self, u_norm: np.ndarray, v_norm: np.ndarray) -> np.ndarray:
+        """Weights of all kernels at normalized coordinates, ``(K, *broadcast shape)``.
+
+        The first entry is the base weight ``1 − Σ φ_j``; all entries sum to 1.
+        """
+        u_norm, v_norm = np.broadcast_arrays(np.asarray(u_norm, dtype=np.float64),
+                                             np.asarray(v_norm, dtype=np.float64))
+        phis = [np.broadcast_to(f(u_norm, v_norm), u_norm.shape) for _, f in self.terms]
+        base = 1.0 - np.sum(phis, axis=0) if phis else np.ones_like(u_norm)
+        return np.stack([base, *phis])
+
+    def maps(self, sensor_shape: tuple[int, int],
+             optical_center: tuple[float, float] | None = None) -> np.ndarray:
+        """Weight maps on the sensor grid, ``(K, H', W')`` float64 (sensor-side convention)."""
+        u_norm, v_norm = normalized_coordinates(sensor_shape, optical_center)
+        return self.evaluate(u_norm, v_norm)
+
+    def scene_maps(self, sensor_shape: tuple[int, int], padding: int = 2,
+                   optical_center: tuple[float, float] | None = None) -> np.ndarray:
+        """Weight maps on the padded scene grid, ``(K, P·H', P·W')`` (source-side convention).
+
+        A scene pixel is placed at the sensor position where the forward model puts its PSF
+        origin; coordinates beyond the sensor (``|u_n|, |v_n| > 1``) are clamped to ±1, i.e.
+        the weights are held constant outside the measured field.
+        """
+        h, w = sensor_shape
+        u_norm, v_norm = normalized_coordinates(sensor_shape, optical_center,
+                                                extent=(padding * h, padding * w))
+        return self.evaluate(np.clip(u_norm, -1.0, 1.0), np.clip(v_norm, -1.0, 1.0))
+
+
+def normalized_coordinates(sensor_shape: tuple[int, int],
+                           optical_center: tuple[float, float] | None = None,
+                           extent: tuple[int, int] | None = None,
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized coordinates ``(u_n, v_n)``, each ``(H, W)``, reaching ±1 at the sensor edges.
+
+    Parameters
+    ----------
+    sensor_shape : (int, int)
+        ``(H', W')`` sensor grid that defines the normalization.
+    optical_center : (float, float), optional
+        ``(v_c, u_c)`` in sensor pixels; default the sensor centre.
+    extent : (int, int), optional
+        Evaluate on a larger grid ``(H, W)`` centred on the sensor (e.g. the padded scene
+        grid of the forward model); default the sensor grid itself.
+    """
+    h, w = sensor_shape
+    v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
+    eh, ew = extent if extent is not None else (h, w)
+    v = np.arange(eh) - (eh - h) // 2
+    u = np.arange(ew) - (ew - w) // 2
+    u_norm = np.broadcast_to(((u - u_c) / (w / 2))[None, :], (eh, ew))
+    v_norm = np.broadcast_to(((v - v_c) / (h / 2))[:, None], (eh, ew))
+    return u_norm, v_norm
+
+
+_BASIS_RE = re.compile(r"^(si|poly:[1-9]|paper(\+odd)?(\+cross)?)$")
+
+
+def get_basis(name: str) -> WeightBasis:
+    """The :class:`WeightBasis` called ``name``.
+
+    Accepted names: ``si``, ``paper``, ``paper+odd``, ``paper+cross``, ``paper+odd+cross``,
+    ``poly:N`` (N = 1..9).
+    """
+    if not isinstance(name, str) or not _BASIS_RE.match(name):
+        raise ConfigurationError(
+            f"unknown weight basis {name!r} (use si, paper, paper+odd, paper+cross, "
+            "paper+odd+cross or poly:N)")
+    if name == "si":
+        return WeightBasis("si", ())
+    if name.startswith("poly:"):
+        return WeightBasis(name, _poly_terms(int(name.split(":")[1])))
+    terms: tuple[tuple[str, WeightFunction], ...] = ()
+    for group in name.split("+"):
+        terms += _GROUPS[group]
+    return WeightBasis(name, terms)
+
+
+BASIS_NAMES = ("si", "paper", "paper+odd", "paper+cross", "paper+odd+cross", "poly:1",
+               "poly:2", "poly:3")
