@@ -10,14 +10,16 @@ One ``.npz`` file (NumPy, no pickles) holds
     a JSON string: ``format`` (``"ekdun-kernels"``), ``version``, ``basis`` (weight basis name,
     see :mod:`psfkit.weights`), ``convention`` (``"sensor"``: weights multiply each kernel's
     image on the sensor, Eq. 7; ``"source"``: weights multiply the scene before each
-    convolution), ``kernel_names``, ``channels``, ``sensor_shape`` ``[H', W']`` (the grid on which
-    the weights are defined and the measurement size), ``optical_center`` ``[v_c, u_c]``,
-    ``scene_padding`` (the scene grid is ``scene_padding × sensor_shape``), ``normalization``
-    (how the kernels were scaled), and free-form ``provenance``.
+    convolution), ``kernel_names``, ``channels``, ``sensor_shape`` ``[H', W']`` (measurement
+    size, and the grid on which the weights are defined), ``optical_center`` ``[v_c, u_c]``,
+    ``scene_padding`` (the convolution runs on a ``scene_padding × sensor_shape`` grid),
+    ``normalization`` (how the kernels were scaled), and free-form ``provenance``.
 
-Forward model (``shared/design.md``): ``y = crop(Σ_k W_k ⊙ (K_k * x))`` for the sensor-side
-convention, ``y = crop(Σ_k K_k * (W_k ⊙ x))`` for the source-side one, with ``x`` on the padded
-scene grid and ``crop`` keeping the central ``H' × W'``.
+Forward model (``shared/design.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
+``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` for the sensor-side convention and
+``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` for the source-side one, where ``pad`` zero-fills ``x`` into
+the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A kernel is at most
+``H' × W'``, so with ``scene_padding = 2`` the circular FFT convolution is an exact linear one.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ class KernelModel:
     optical_center : (float, float) or None
         ``(v_c, u_c)``; ``None`` is the sensor centre.
     scene_padding : int
-        Scene grid size as a multiple of the sensor size (2 by default).
+        Size of the convolution grid as a multiple of the sensor size (>= 2; 2 by default).
     normalization : str
         Description of the kernels' scale (e.g. ``"base kernel sums to 1 per channel"``).
     provenance : dict
@@ -93,17 +95,15 @@ class KernelModel:
         return self.weight_basis.kernel_names
 
     @property
-    def scene_shape(self) -> tuple[int, int]:
+    def padded_shape(self) -> tuple[int, int]:
+        """Size of the grid on which the convolutions run."""
         return (self.scene_padding * self.sensor_shape[0],
                 self.scene_padding * self.sensor_shape[1])
 
     def weight_maps(self) -> np.ndarray:
-        """``(K, H, W)`` weights: on the sensor grid (sensor convention) or on the padded
-        scene grid (source convention)."""
-        if self.convention == "sensor":
-            return self.weight_basis.maps(self.sensor_shape, self.optical_center)
-        return self.weight_basis.scene_maps(self.sensor_shape, self.scene_padding,
-                                            self.optical_center)
+        """``(K, H', W')`` float64 weights (of the sensor pixels or of the scene pixels,
+        depending on ``convention``; both arrays have the sensor's size)."""
+        return self.weight_basis.maps(self.sensor_shape, self.optical_center)
 
     @classmethod
     def shift_invariant(cls, psf: np.ndarray, **kwargs: Any) -> KernelModel:
@@ -139,11 +139,11 @@ def validate_model(kernels: np.ndarray, basis_name: str, convention: str,
     if len(sensor_shape) != 2 or min(sensor_shape) < 2:
         raise ModelFileError(f"{where}: sensor_shape {list(sensor_shape)} is not a valid size")
     h, w = sensor_shape
-    if not isinstance(scene_padding, int) or scene_padding < 1:
-        raise ModelFileError(f"{where}: scene_padding must be an integer >= 1")
-    if k.shape[2] > scene_padding * h or k.shape[3] > scene_padding * w:
+    if not isinstance(scene_padding, int) or scene_padding < 2:
+        raise ModelFileError(f"{where}: scene_padding must be an integer >= 2")
+    if k.shape[2] > h or k.shape[3] > w:
         raise ModelFileError(f"{where}: kernels {k.shape[2]}x{k.shape[3]} are larger than the "
-                             f"scene grid {scene_padding * h}x{scene_padding * w}")
+                             f"sensor {h}x{w}")
     if not np.all(np.isfinite(k)):
         raise ModelFileError(f"{where}: kernels contain NaN/Inf values")
 

@@ -104,22 +104,14 @@ class WeightBasis:
 
     def maps(self, sensor_shape: tuple[int, int],
              optical_center: tuple[float, float] | None = None) -> np.ndarray:
-        """Weight maps on the sensor grid, ``(K, H', W')`` float64 (sensor-side convention)."""
+        """Weight maps on the ``(H', W')`` grid, ``(K, H', W')`` float64.
+
+        With the sensor-side convention they multiply each kernel's image on the sensor; with
+        the source-side one they multiply the scene, whose array has the sensor's size and
+        coordinates (``y = crop(K * pad(x))``).
+        """
         u_norm, v_norm = normalized_coordinates(sensor_shape, optical_center)
         return self.evaluate(u_norm, v_norm)
-
-    def scene_maps(self, sensor_shape: tuple[int, int], padding: int = 2,
-                   optical_center: tuple[float, float] | None = None) -> np.ndarray:
-        """Weight maps on the padded scene grid, ``(K, P·H', P·W')`` (source-side convention).
-
-        A scene pixel is placed at the sensor position where the forward model puts its PSF
-        origin; coordinates beyond the sensor (``|u_n|, |v_n| > 1``) are clamped to ±1, i.e.
-        the weights are held constant outside the measured field.
-        """
-        h, w = sensor_shape
-        u_norm, v_norm = normalized_coordinates(sensor_shape, optical_center,
-                                                extent=(padding * h, padding * w))
-        return self.evaluate(np.clip(u_norm, -1.0, 1.0), np.clip(v_norm, -1.0, 1.0))
 
 
 def normalized_coordinates(sensor_shape: tuple[int, int],

@@ -49,12 +49,6 @@ def test_odd_terms_see_left_right_asymmetry_that_sin2_cannot():
     assert get_basis("poly:2").kernel_names == ("base", "u1v0", "u0v1", "u2v0", "u1v1", "u0v2")
 
 
-def test_source_side_maps_are_clamped_outside_the_sensor():
-    maps = get_basis("paper").scene_maps((4, 6), padding=2)
-    assert maps.shape == (3, 8, 12)
-    assert np.allclose(maps[2][:, :3], 0.5)  # |u_n| >= 1 left of the sensor: Wh held at ½
-
-
 def test_unknown_basis():
     with pytest.raises(ConfigurationError, match="unknown weight basis 'papr'"):
         get_basis("papr")
@@ -94,7 +88,7 @@ def _rewrite(path, kernels=None, **meta_changes):
     (dict(basis="paper+odd"), "basis 'paper\\+odd' needs 5 kernels"),
     (dict(convention="lens"), "convention must be 'sensor' or 'source'"),
     (dict(channels=["L"]), "kernels have 3 channel\\(s\\) but channels are \\['L'\\]"),
-    (dict(kernels=np.zeros((3, 3, 40, 10), np.float32)), "larger than the scene grid"),
+    (dict(kernels=np.zeros((3, 3, 9, 10), np.float32)), "larger than the sensor 8x10"),
     (dict(kernels=np.full((3, 3, 8, 10), np.nan, np.float32)), "NaN/Inf"),
     (dict(kernel_names=["base", "h", "v"]), "kernel_names .* do not match"),
 ])
