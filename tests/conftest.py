@@ -26,9 +26,24 @@ def grid_3x3(tmp_path_factory: pytest.TempPathFactory, small_config: BenchConfig
     return simulate_grid(out, small_config, grid_shape=(3, 3), progress=False)
 
 
-def real_data(*parts: str) -> Path:
-    """Path under ``../shared/data``; skips the test when the shared data are absent."""
-    path = REAL_DATA.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"real data not available: {path}")
-    return path
+@pytest.fixture(scope="session")
+def real_data():
+    """``real_data(*parts)``: a path under ``../shared/data`` (or ``$PSFKIT_SHARED_DATA``);
+    skips the test, saying why, when the shared data are absent."""
+
+    def locate(*parts: str) -> Path:
+        path = REAL_DATA.joinpath(*parts)
+        if not path.exists():
+            pytest.skip(f"real data not available: {path}")
+        return path
+
+    return locate
+
+
+@pytest.fixture(scope="session")
+def bench_grid_ds2(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 5 × 5 RGB grid binned 2× (540 × 720 px) spanning 80 % of the field of view, with
+    realistic noise: fine enough pixels for sub-pixel warp statistics (about 20 s)."""
+    out = tmp_path_factory.mktemp("grids") / "grid_5x5_ds2"
+    return simulate_grid(out, BenchConfig(downsample=2), grid_shape=(5, 5), extent=0.8,
+                         progress=False)

@@ -1,0 +1,441 @@
+"""One pass over a PSF grid: registration, gain, MAE and warp against the centre PSF.
+
+``characterize_grid`` reads one PSF at a time (a full-resolution 9 × 9 RGB grid never sits in
+memory), preprocesses it (:mod:`psfkit.preprocess`), registers it to the centre PSF
+(:mod:`psfkit.registration`), aligns it, and measures what each requested step needs. The
+result keeps the per-position numbers plus small images for the figures.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.gain import GainFit, fit_gain, overlap_gain
+from psfkit.io.grid import GridPosition, PsfGrid
+from psfkit.mae import mean_absolute_error
+from psfkit.preprocess import (
+    GridCalibration,
+    PreprocessOptions,
+    luminance,
+    normalization_scale,
+)
+from psfkit.registration import (
+    ShiftMapFit,
+    bin_image,
+    fit_shift_map,
+    high_frequency_fraction,
+    normalized_cross_correlation,
+    register_shift,
+    shift_image,
+)
+from psfkit.warp import (
+    FLOW_METHODS,
+    GrowthFit,
+    fit_growth,
+    geometric_anisotropy,
+    split_rms,
+    transport_anisotropy,
+    warp_field,
+)
+
+STEPS = ("register", "gain", "mae", "warp")
+MIN_OVERLAP = 0.05       # below this fraction of the sensor, a position cannot be compared
+RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
+                         # reliable (its deformation biases a translation-only registration)
+THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
+QUIVER_CELLS = 24        # arrows along the longest side of a stored residual flow
+
+
+@dataclass(frozen=True)
+class CharacterizeOptions:
+    """Options of :func:`characterize_grid`.
+
+    Attributes
+    ----------
+    preprocess : PreprocessOptions
+    steps : tuple of str
+        Subset of ``("register", "gain", "mae", "warp")`` (registration always runs).
+    upsample : int
+        Registration precision is ``1/upsample`` px.
+    flow_method : str
+        Dense-flow method of the warp residual (``"dis"``, ``"farneback"``, ``"ilk"``,
+        ``"tvl1"``).
+    per_channel : bool
+        Also register every colour channel on its own (lateral colour).
+    mae_smoothing_px : float
+        Gaussian σ (px) applied to both PSFs before the MAE, so that sensor noise does not
+        swamp the model error near the axis (0: raw pixels).
+    """
+
+    preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
+    steps: tuple[str, ...] = STEPS
+    upsample: int = 100
+    flow_method: str = "dis"
+    per_channel: bool = False
+    mae_smoothing_px: float = 1.0
+
+    def __post_init__(self) -> None:
+        unknown = set(self.steps) - set(STEPS)
+        if unknown:
+            raise ConfigurationError(f"unknown step(s) {sorted(unknown)}; choose from {STEPS}")
+        if self.flow_method not in FLOW_METHODS:
+            raise ConfigurationError(f"flow_method must be one of {FLOW_METHODS}")
+        if self.upsample < 1:
+            raise ConfigurationError("upsample must be >= 1")
+        if self.mae_smoothing_px < 0:
+            raise ConfigurationError("mae_smoothing_px must be >= 0")
+
+
+@dataclass
+class PositionResult:
+    """Measurements at one grid position (NaN where a step did not run)."""
+
+    row: int
+    col: int
+    file: str
+    field_deg: tuple[float, float] | None
+    monitor_px: tuple[float, float] | None
+    shift: tuple[float, float]
+    quality: float
+    overlap: float
+    n_saturated: int
+    saturated_fraction: float
+    snr: float
+    channel_shifts: list[tuple[float, float]] | None = None
+    gain: float = float("nan")
+    mae: float = float("nan")
+    mae_gain_compensated: float = float("nan")
+    warp: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in self.__dict__.items()}
+        out["shift_px"] = list(out.pop("shift"))
+        return out
+
+
+@dataclass
+class GridCharacterization:
+    """Everything :func:`characterize_grid` measured, plus images for the figures."""
+
+    grid_root: str
+    grid_shape: tuple[int, int]
+    image_shape: tuple[int, int, int]
+    channels: tuple[str, ...]
+    center: tuple[int, int]
+    options: CharacterizeOptions
+    positions: list[PositionResult]
+    field_units: str
+    shift_fit: ShiftMapFit | None = None
+    gain_fit: GainFit | None = None
+    warp_growth: GrowthFit | None = None
+    warp_anisotropy: dict[str, float] | None = None
+    reference: np.ndarray | None = field(default=None, repr=False)
+    examples: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, repr=False)   # (aligned image, valid mask) for Fig. 2
+    thumbnails: np.ndarray | None = field(default=None, repr=False)
+    flows: dict[tuple[int, int], np.ndarray] = field(default_factory=dict, repr=False)
+
+    def table(self, key: str) -> np.ndarray:
+        """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity."""
+        n, m = self.grid_shape
+        values = [getattr(p, key) for p in self.positions]
+        return np.array(values, dtype=np.float64).reshape(n, m, *np.shape(values[0]))
+
+    def warp_table(self, key: str) -> np.ndarray:
+        """``(N, M)`` array of a warp statistic (NaN where no warp was measured)."""
+        n, m = self.grid_shape
+        return np.array([p.warp[key] if p.warp else np.nan for p in self.positions],
+                        dtype=np.float64).reshape(n, m)
+
+    def field_coordinates(self) -> np.ndarray:
+        """``(N, M, 2)`` field positions in :attr:`field_units`."""
+        n, m = self.grid_shape
+        if self.field_units == "monitor px":
+            return np.array([p.monitor_px for p in self.positions]).reshape(n, m, 2)
+        if self.field_units == "tan(field angle)":
+            return np.tan(np.deg2rad(np.array([p.field_deg for p in self.positions])
+                                     )).reshape(n, m, 2)
+        rows, cols = np.mgrid[0:n, 0:m]
+        return np.stack([cols - self.center[1], rows - self.center[0]], axis=-1).astype(float)
+
+    def field_angle_deg(self) -> np.ndarray | None:
+        """``(N, M)`` total field angle θ, or ``None`` without field angles."""
+        if any(p.field_deg is None for p in self.positions):
+            return None
+        t = np.tan(np.deg2rad(np.array([p.field_deg for p in self.positions])))
+        return np.rad2deg(np.arctan(np.hypot(t[:, 0], t[:, 1]))).reshape(self.grid_shape)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary and per-position numbers."""
+        opts = self.options
+        return {
+            "grid": self.grid_root, "grid_shape": list(self.grid_shape),
+            "image_shape": list(self.image_shape), "channels": list(self.channels),
+            "center": list(self.center),
+            "conventions": {
+                "shift": "(du, dv) displacement of each PSF relative to the centre PSF, sensor "
+                         "px; u = column, v = row; a source at +x gives du < 0",
+                "normalization": f"PSFs divided by the centre PSF's {opts.preprocess.normalization}"
+                                 " (all channels), so gains are relative to the centre",
+                "mae": "mean |PSF − centre| over the registered overlap, all channels, "
+                       "saturated pixels excluded, after a Gaussian of σ = "
+                       f"{opts.mae_smoothing_px:g} px on both",
+                "warp": "moving(x + d(x)) ≈ centre(x); affine part by ECC about the image "
+                        "centre, residual by dense flow; tangential = along the PSF shift",
+            },
+            "options": {"steps": list(opts.steps), "upsample": opts.upsample,
+                        "flow_method": opts.flow_method, "per_channel": opts.per_channel,
+                        "mae_smoothing_px": opts.mae_smoothing_px,
+                        "preprocess": dict(opts.preprocess.__dict__)},
+            "field_units": self.field_units,
+            "shift_map": self.shift_fit.to_dict() if self.shift_fit else None,
+            "gain_fit": self.gain_fit.to_dict() if self.gain_fit else None,
+            "warp_growth": self.warp_growth.to_dict() if self.warp_growth else None,
+            "warp_anisotropy": self.warp_anisotropy,
+            "reliable_overlap": RELIABLE_OVERLAP,
+            "positions": [p.to_dict() for p in self.positions],
+        }
+
+
+def _field_units(grid: PsfGrid) -> str:
+    if grid.monitor_px() is not None:
+        return "monitor px"
+    if grid.field_deg() is not None:
+        return "tan(field angle)"
+    return "grid steps"
+
+
+def _fig2_positions(grid_shape: tuple[int, int], center: tuple[int, int]) -> list[tuple[int, int]]:
+    """Off-axis positions B and C of Fig. 2: halfway to the farther edge and at that edge,
+    along the vertical through the centre as in the paper (horizontal for a one-row grid)."""
+    n, m = grid_shape
+    r0, c0 = center
+    if n > 1:
+        far = 0 if r0 >= n - 1 - r0 else n - 1
+        return [((r0 + far) // 2, c0), (far, c0)]
+    far = 0 if c0 >= m - 1 - c0 else m - 1
+    return [(r0, (c0 + far) // 2), (r0, far)]
+
+
+def _smooth(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of every channel of a ``(C, H, W)`` image (identity for σ = 0)."""
+    if sigma <= 0:
+        return image
+    return np.stack([cv2.GaussianBlur(channel, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+                     for channel in image])
+
+
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    factor = max(1, int(np.ceil(max(image.shape) / THUMBNAIL_SIZE)))
+    return bin_image(image, factor) / factor**2
+
+
+def _coarse_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Block-average a ``(2, H, W)`` flow over the masked pixels to ``(3, h, w)``:
+    ``(d_u, d_v, fraction of masked pixels)`` for quiver plots."""
+    factor = max(1, int(np.ceil(max(flow.shape[1:]) / QUIVER_CELLS)))
+    weight = bin_image(mask.astype(np.float64), factor)
+    du = bin_image(np.where(mask, flow[0], 0.0), factor) / np.maximum(weight, 1)
+    dv = bin_image(np.where(mask, flow[1], 0.0), factor) / np.maximum(weight, 1)
+    return np.stack([du, dv, weight / factor**2]).astype(np.float32)
+
+
+def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
+                      progress: bool = False, workers: int | None = None
+                      ) -> GridCharacterization:
+    """Register every PSF of ``grid`` to its centre PSF and measure gain, MAE and warp.
+
+    Parameters
+    ----------
+    grid : PsfGrid
+        From :func:`psfkit.io.read_grid`.
+    options : CharacterizeOptions
+    progress : bool
+        Show a progress bar.
+    workers : int, optional
+        Positions processed concurrently (default: 2, or 1 on a single core).
+
+    Raises
+    ------
+    GridFormatError
+        The grid has no centre position.
+    InvalidInputError
+        A PSF is empty, too saturated, or does not overlap the centre PSF (message names the
+        file).
+    """
+    options = options or CharacterizeOptions()
+    center = grid.require_center()
+    calib = GridCalibration.from_grid(grid, options.preprocess)
+    ref_prep = calib.prepare(grid, *center, options.preprocess)
+    scale = normalization_scale(ref_prep.image, options.preprocess.normalization)
+    reference = ref_prep.image / np.float32(scale)
+    ref_lum = ref_prep.luminance / np.float32(scale)
+    ref_total = reference.sum(axis=0)
+    ref_smooth = _smooth(reference, options.mae_smoothing_px)
+    allow_binning = high_frequency_fraction(ref_lum) < 0.01
+    ref_unsaturated = ~ref_prep.saturated
+    steps = set(options.steps)
+    fig2 = set(_fig2_positions(grid.grid_shape, center))
+    thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
+
+    result = GridCharacterization(
+        grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
+        channels=grid.channels, center=center, options=options, positions=[],
+        field_units=_field_units(grid), reference=reference)
+
+    def measure(pos: GridPosition) -> tuple[PositionResult, dict[str, Any]]:
+        name = str(grid.root / pos.file)
+        here = (pos.row, pos.col)
+        prep = ref_prep if here == center else calib.prepare(grid, pos.row, pos.col,
+                                                              options.preprocess)
+        image = prep.image / np.float32(scale)
+        lum = prep.luminance / np.float32(scale)
+        extras: dict[str, Any] = {"thumbnail": _thumbnail(lum)}
+        if here == center:
+            shift = (0.0, 0.0)
+        else:
+            try:
+                shift = register_shift(ref_lum, lum, upsample=options.upsample,
+                                       allow_binning=allow_binning)
+            except InvalidInputError as exc:
+                raise InvalidInputError(f"{name}: cannot register to the centre PSF ({exc})"
+                                        ) from None
+        aligned, valid = shift_image(image, shift)
+        if prep.n_saturated:
+            sat_aligned, _ = shift_image(prep.saturated.astype(np.float32), shift)
+            valid &= sat_aligned < 0.5
+        valid &= ref_unsaturated
+        overlap = float(valid.mean())
+        if overlap < MIN_OVERLAP:
+            raise InvalidInputError(f"{name}: overlaps the centre PSF on only "
+                                    f"{100 * overlap:.1f}% of the sensor after registration; "
+                                    "cannot compare")
+        al_lum = luminance(aligned)
+        record = PositionResult(
+            row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
+            monitor_px=pos.monitor_px, shift=shift,
+            quality=normalized_cross_correlation(ref_lum, al_lum, valid), overlap=overlap,
+            n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
+            snr=prep.snr)
+        if options.per_channel and image.shape[0] > 1:
+            record.channel_shifts = [
+                (0.0, 0.0) if here == center else
+                register_shift(reference[c], image[c], upsample=options.upsample,
+                               allow_binning=allow_binning)
+                for c in range(image.shape[0])]
+        gain = overlap_gain(ref_total, aligned.sum(axis=0), valid)
+        if "gain" in steps:
+            record.gain = gain
+        if "mae" in steps:
+            al_smooth = _smooth(aligned, options.mae_smoothing_px)
+            record.mae = mean_absolute_error(ref_smooth, al_smooth, valid)
+            record.mae_gain_compensated = mean_absolute_error(ref_smooth, al_smooth, valid, gain)
+        if here in fig2:
+            extras["example"] = (aligned, valid)
+        if "warp" in steps and here != center:
+            warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain), valid,
+                                                    shift, options.flow_method)
+            record.warp = warp
+            extras["flow"] = _coarse_flow(residual, mask)
+        return record, extras
+
+    records: list[PositionResult | None] = [None] * len(grid.positions)
+    bar: Any = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(grid.positions), desc="characterizing PSFs", unit="psf")
+    def collect(index: int, record: PositionResult, extras: dict[str, Any]) -> None:
+        records[index] = record
+        here = (record.row, record.col)
+        thumbnails[here] = extras["thumbnail"]
+        if "example" in extras:
+            result.examples[here] = extras["example"]
+        if "flow" in extras:
+            result.flows[here] = extras["flow"]
+        if bar is not None:
+            bar.update()
+
+    n_workers = max(1, workers if workers is not None else min(2, os.cpu_count() or 1))
+    try:
+        if n_workers == 1:
+            for index, pos in enumerate(grid.positions):
+                collect(index, *measure(pos))
+        else:
+            # FFTs, OpenCV and large numpy operations release the GIL
+            with ThreadPoolExecutor(max_workers=n_workers) as pool:
+                futures = {pool.submit(measure, pos): i for i, pos in enumerate(grid.positions)}
+                try:
+                    for future in as_completed(futures):
+                        collect(futures[future], *future.result())
+                except BaseException:
+                    for future in futures:
+                        future.cancel()
+                    raise
+    finally:
+        if bar is not None:
+            bar.close()
+    result.positions = [r for r in records if r is not None]
+
+    result.thumbnails = thumbnails
+    coords = result.field_coordinates()
+    overlaps = result.table("overlap")
+    result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
+                                     weights=overlaps) if min(grid.grid_shape) > 1 else None
+    if "gain" in steps:
+        result.gain_fit = fit_gain(result.table("gain"), grid.field_deg(), coords,
+                                   weights=overlaps)
+    if "warp" in steps:
+        _summarise_warp(result)
+    return result
+
+
+def _summarise_warp(result: GridCharacterization) -> None:
+    """Grid-level warp summary over the positions mostly on the sensor: growth of the residual
+    with field angle, and the tangential/sagittal anisotropy against geometric optics."""
+    theta = result.field_angle_deg()
+    if theta is None:
+        return
+    reliable = result.table("overlap") >= RELIABLE_OVERLAP
+    residual = np.where(reliable, result.warp_table("residual_rms"), np.nan)
+    result.warp_growth = fit_growth(theta, residual)
+    anisotropy = result.warp_table("anisotropy")
+    # far enough off axis for the astigmatic displacement to dominate the flow's error floor
+    strong = reliable & np.isfinite(anisotropy) & (theta >= 0.4 * np.nanmax(theta))
+    if strong.any():
+        ratio = anisotropy[strong] / geometric_anisotropy(theta[strong])
+        result.warp_anisotropy = {
+            "positions": int(strong.sum()),
+            "median_measured": float(np.median(anisotropy[strong])),
+            "median_geometric": float(np.median(geometric_anisotropy(theta[strong]))),
+            "median_ratio_to_geometric": float(np.median(ratio)),
+            "fraction_tangential": float(np.mean(anisotropy[strong] > 1.0)),
+        }
+
+
+def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
+                   shift: tuple[float, float], method: str
+                   ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
+    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures."""
+    warp = warp_field(ref_lum, al_lum, valid, method)
+    # tangential = direction of the PSF's shift (radial on the sensor)
+    azimuth = float(np.arctan2(shift[1], shift[0]))
+    m = warp.mask
+    residual_rms = float(np.sqrt(np.mean(np.sum(warp.residual[:, m] ** 2, axis=0))))
+    anisotropy = transport_anisotropy(ref_lum, warp.compensated, m, azimuth)
+    rms_t, rms_s = split_rms(residual_rms, anisotropy)
+    stats = {
+        "affine": warp.affine.to_dict(azimuth), "ecc": warp.ecc,
+        "azimuth_deg": float(np.degrees(azimuth)),
+        "residual_rms": residual_rms, "anisotropy": anisotropy,
+        "rms_tangential": rms_t, "rms_sagittal": rms_s,
+        "mask_fraction": float(m.mean()),
+    }
+    return stats, (warp.residual, m)

@@ -1,0 +1,276 @@
+"""Writing a grid characterization: JSON and CSV numbers, figures, one self-contained HTML page.
+
+``write_report`` creates its output folder atomically (nothing appears until everything is
+written)::
+
+    OUT/
+      report.html        figures embedded, readable offline
+      results.json       every number, with the conventions and options used
+      positions.csv      one row per grid position
+      figures/*.png|pdf  publication-quality figures
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from psfkit import __version__
+from psfkit.characterize import RELIABLE_OVERLAP, GridCharacterization
+from psfkit.errors import InvalidInputError
+from psfkit.io.atomic import atomic_directory, atomic_file
+
+CSV_COLUMNS = (
+    "row", "col", "file", "field_x_deg", "field_y_deg", "monitor_x_px", "monitor_y_px",
+    "shift_du_px", "shift_dv_px", "shift_residual_du_px", "shift_residual_dv_px", "quality",
+    "overlap", "gain", "mae", "mae_gain_compensated", "n_saturated", "warp_residual_rms_px",
+    "warp_rms_tangential_px", "warp_rms_sagittal_px", "warp_anisotropy", "affine_scale_u",
+    "affine_scale_v", "affine_shear", "affine_rotation_deg", "affine_scale_tangential",
+    "affine_scale_sagittal")
+
+
+def jsonable(value: Any) -> Any:
+    """Plain-JSON version of nested results (NaN/Inf → null, numpy → Python)."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
+    """One dictionary per position with the :data:`CSV_COLUMNS`."""
+    residuals = result.shift_fit.residuals if result.shift_fit is not None else None
+    rows = []
+    for p in result.positions:
+        warp = p.warp or {}
+        affine = warp.get("affine", {})
+        fx, fy = p.field_deg if p.field_deg is not None else (None, None)
+        mx, my = p.monitor_px if p.monitor_px is not None else (None, None)
+        res = residuals[p.row, p.col] if residuals is not None else (None, None)
+        rows.append(jsonable({
+            "row": p.row, "col": p.col, "file": p.file, "field_x_deg": fx, "field_y_deg": fy,
+            "monitor_x_px": mx, "monitor_y_px": my, "shift_du_px": p.shift[0],
+            "shift_dv_px": p.shift[1], "shift_residual_du_px": res[0],
+            "shift_residual_dv_px": res[1], "quality": p.quality, "overlap": p.overlap,
+            "gain": p.gain, "mae": p.mae, "mae_gain_compensated": p.mae_gain_compensated,
+            "n_saturated": p.n_saturated, "warp_residual_rms_px": warp.get("residual_rms"),
+            "warp_rms_tangential_px": warp.get("rms_tangential"),
+            "warp_rms_sagittal_px": warp.get("rms_sagittal"),
+            "warp_anisotropy": warp.get("anisotropy"),
+            "affine_scale_u": affine.get("scale_u"), "affine_scale_v": affine.get("scale_v"),
+            "affine_shear": affine.get("shear"), "affine_rotation_deg": affine.get("rotation_deg"),
+            "affine_scale_tangential": affine.get("scale_tangential"),
+            "affine_scale_sagittal": affine.get("scale_sagittal")}))
+    return rows
+
+
+def _write_csv(path: Path, result: GridCharacterization) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for row in csv_rows(result):
+            writer.writerow({k: "" if v is None else v for k, v in row.items()})
+
+
+def results_document(result: GridCharacterization) -> dict[str, Any]:
+    """The JSON document: results plus software version and warnings."""
+    doc = result.to_dict()
+    doc["software"] = {"psfkit": __version__}
+    doc["warnings"] = warnings_for(result)
+    return jsonable(doc)
+
+
+def check_numbers_path(path: str | os.PathLike) -> Path:
+    """Validate an output path for :func:`write_numbers` before any work is done."""
+    path = Path(path)
+    if path.suffix not in (".json", ".csv"):
+        raise InvalidInputError(f"{path}: output must end in .json or .csv")
+    if path.is_dir():
+        raise InvalidInputError(f"{path}: is a directory, expected a file name")
+    return path
+
+
+def write_numbers(result: GridCharacterization, path: str | os.PathLike) -> Path:
+    """Write the numbers alone, as JSON (``.json``) or per-position CSV (``.csv``)."""
+    path = check_numbers_path(path)
+    with atomic_file(path) as tmp:
+        if path.suffix == ".json":
+            tmp.write_text(json.dumps(results_document(result), indent=1) + "\n",
+                           encoding="utf-8")
+        else:
+            _write_csv(tmp, result)
+    return path
+
+
+def warnings_for(result: GridCharacterization) -> list[str]:
+    """Plain-language warnings a lab should read before trusting the numbers."""
+    out = []
+    saturated = [p for p in result.positions if p.n_saturated]
+    if saturated:
+        worst = max(saturated, key=lambda p: p.saturated_fraction)
+        out.append(f"{len(saturated)} PSF(s) have saturated pixels (worst: {worst.file}, "
+                   f"{worst.n_saturated} px, {100 * worst.saturated_fraction:.2f}% of the bright "
+                   "PSF); they are excluded from the comparisons. Lower the exposure if you can.")
+    partial = [p for p in result.positions if p.overlap < RELIABLE_OVERLAP]
+    if partial:
+        out.append(f"{len(partial)} position(s) overlap the centre PSF on less than "
+                   f"{100 * RELIABLE_OVERLAP:.0f}% of the sensor: only part of their PSF is "
+                   "seen, and as the PSF also deforms off axis, their shift is uncertain by up "
+                   "to a few tenths of a pixel and their warp statistics are less reliable.")
+    weak = [p for p in result.positions if p.quality < 0.5]
+    if weak:
+        out.append(f"{len(weak)} position(s) register poorly (correlation < 0.5): "
+                   + ", ".join(p.file for p in weak[:5]))
+    return out
+
+
+FIGURES = (
+    ("fig2_shift_variance", "Fig. 2: breakdown of shift invariance", "figure_shift_variance"),
+    ("maps", "Maps: MAE, gain, registration quality, overlap, shift-map residual",
+     "figure_maps"),
+    ("warp_summary", "Warp: residual displacement and tangential/sagittal anisotropy",
+     "figure_warp_summary"),
+    ("warp_fields", "Warp fields at the outermost reliable positions", "figure_warp"),
+    ("montage", "The PSF grid", "figure_montage"),
+)
+
+
+def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
+                 overwrite: bool = False) -> Path:
+    """Write figures, JSON, CSV and the HTML report into ``out_dir`` (atomically)."""
+    from psfkit import figures as fig_module
+
+    out_dir = Path(out_dir)
+    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+        fig_dir = tmp / "figures"
+        fig_dir.mkdir()
+        embedded = []
+        for stem, caption, fn_name in FIGURES:
+            if fn_name == "figure_warp" and not result.flows:
+                continue
+            if fn_name == "figure_warp_summary" and not result.flows:
+                continue
+            fig = getattr(fig_module, fn_name)(result)
+            fig_module.save_figure(fig, fig_dir / stem)
+            buffer = io.BytesIO()
+            with fig_module.publication_style():
+                fig.savefig(buffer, format="png", dpi=150)
+            embedded.append((stem, caption, base64.b64encode(buffer.getvalue()).decode()))
+        doc = results_document(result)
+        (tmp / "results.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        _write_csv(tmp / "positions.csv", result)
+        (tmp / "report.html").write_text(_html(result, doc, embedded), encoding="utf-8")
+    return out_dir
+
+
+def _fmt(value: Any, spec: str = ".4g") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    if isinstance(value, float):
+        return format(value, spec)
+    return html.escape(str(value))
+
+
+def _table(rows: list[tuple[str, Any]]) -> str:
+    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>" for k, v in rows)
+    return f"<table class='kv'>{cells}</table>"
+
+
+def _html(result: GridCharacterization, doc: dict[str, Any],
+          figures: list[tuple[str, str, str]]) -> str:
+    c, h, w = result.image_shape
+    shift = doc.get("shift_map") or {}
+    gain = doc.get("gain_fit") or {}
+    growth = doc.get("warp_growth") or {}
+    anis = doc.get("warp_anisotropy") or {}
+    summary = _table([
+        ("grid", result.grid_root),
+        ("positions", f"{result.grid_shape[0]} × {result.grid_shape[1]}"),
+        ("images", f"{h} × {w} × {c} ({'/'.join(result.channels)})"),
+        ("centre (row, col)", str(result.center)),
+        ("normalization", doc["conventions"]["normalization"]),
+        ("field coordinates", result.field_units),
+    ])
+    registration = _table([
+        ("magnification (px per field unit)", shift.get("magnification")),
+        ("magnification u / v", f"{_fmt(shift.get('magnification_u'))} / "
+                                f"{_fmt(shift.get('magnification_v'))}"),
+        ("rotation (deg; 180 = inverted image)", shift.get("rotation_deg")),
+        ("shear", shift.get("shear")),
+        ("offset (du, dv) px", str([_fmt(v) for v in shift.get("offset_px", [])])),
+        ("rms residual distortion (px)", shift.get("rms_residual_px")),
+    ])
+    gains = _table([
+        ("cosⁿ law exponent n", gain.get("cos_exponent")),
+        ("cosⁿ fit rms residual", gain.get("cos_rms_residual")),
+        ("quadratic fit rms residual", gain.get("poly_rms_residual")),
+    ])
+    warp = _table([
+        ("residual growth exponent (θ^p)", growth.get("exponent")),
+        ("  ± (1σ)", growth.get("exponent_std")),
+        ("residual at 10° (px)", growth.get("scale_10deg")),
+        ("flow noise floor (px)", growth.get("floor")),
+        ("tangential/sagittal, measured (median)", anis.get("median_measured")),
+        ("tangential/sagittal, geometric optics", anis.get("median_geometric")),
+        ("positions in the comparison", anis.get("positions")),
+    ])
+    warnings = "".join(f"<li>{html.escape(m)}</li>" for m in doc["warnings"]) or \
+        "<li>none</li>"
+    figs = "".join(
+        f"<figure id='{stem}'><img alt='{html.escape(caption)}' "
+        f"src='data:image/png;base64,{data}'><figcaption>{html.escape(caption)} "
+        f"(<a href='figures/{stem}.pdf'>PDF</a>, <a href='figures/{stem}.png'>PNG</a>)"
+        f"</figcaption></figure>" for stem, caption, data in figures)
+    head = ("file", "row", "col", "shift_du_px", "shift_dv_px", "quality", "overlap", "gain",
+            "mae", "warp_residual_rms_px", "warp_anisotropy")
+    body = "".join("<tr>" + "".join(f"<td>{_fmt(r[k])}</td>" for k in head) + "</tr>"
+                   for r in csv_rows(result))
+    positions = (f"<table class='grid'><tr>{''.join(f'<th>{k}</th>' for k in head)}</tr>"
+                 f"{body}</table>")
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>PSF grid report</title>
+<style>
+body {{ font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }}
+h1 {{ font-size: 1.5em; }} h2 {{ font-size: 1.2em; border-bottom: 1px solid #ccc; }}
+table {{ border-collapse: collapse; font-size: 0.85em; }}
+th, td {{ padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }}
+table.grid td {{ text-align: right; }}
+figure {{ margin: 1em 0; }} img {{ max-width: 100%; }}
+figcaption {{ font-size: 0.85em; color: #555; }}
+.warn {{ background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }}
+</style></head><body>
+<h1>PSF grid report</h1>
+<p>psfkit {html.escape(__version__)}. Numbers: <a href="results.json">results.json</a>,
+<a href="positions.csv">positions.csv</a>. Shifts are the displacement (du, dv) of each PSF
+relative to the centre PSF, in sensor pixels (u = column, v = row).</p>
+{summary}
+<div class="warn"><b>Warnings</b><ul>{warnings}</ul></div>
+<h2>Registration and shift map</h2>{registration}
+<h2>Gain (relative illumination)</h2>{gains}
+<h2>Warp: distortion and oblique-incidence astigmatism</h2>
+<p>The affine part of each warp is what magnification and distortion cause; the residual is
+what oblique-incidence astigmatism causes. Its tangential/sagittal split comes from the
+angular spectrum of the intensity change (transport of intensity), because per-pixel flow
+components mix the two directions on caustic lines.</p>{warp}
+{figs}
+<h2>Positions</h2>{positions}
+</body></html>
+"""
