@@ -8,32 +8,24 @@ result keeps the per-position numbers plus small images for the figures.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
-from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.alignment import GridAligner
+from psfkit.errors import ConfigurationError
 from psfkit.gain import GainFit, fit_gain, overlap_gain
 from psfkit.io.grid import GridPosition, PsfGrid
 from psfkit.mae import mean_absolute_error
-from psfkit.preprocess import (
-    GridCalibration,
-    PreprocessOptions,
-    luminance,
-    normalization_scale,
-)
+from psfkit.parallel import bounded_map
+from psfkit.preprocess import PreprocessOptions
 from psfkit.registration import (
     ShiftMapFit,
     bin_image,
     fit_shift_map,
-    high_frequency_fraction,
     normalized_cross_correlation,
-    register_shift,
-    shift_image,
 )
 from psfkit.warp import (
     FLOW_METHODS,
@@ -46,7 +38,6 @@ from psfkit.warp import (
 )
 
 STEPS = ("register", "gain", "mae", "warp")
-MIN_OVERLAP = 0.05       # below this fraction of the sensor, a position cannot be compared
 RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
                          # reliable (its deformation biases a translation-only registration)
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
@@ -271,16 +262,11 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         file).
     """
     options = options or CharacterizeOptions()
-    center = grid.require_center()
-    calib = GridCalibration.from_grid(grid, options.preprocess)
-    ref_prep = calib.prepare(grid, *center, options.preprocess)
-    scale = normalization_scale(ref_prep.image, options.preprocess.normalization)
-    reference = ref_prep.image / np.float32(scale)
-    ref_lum = ref_prep.luminance / np.float32(scale)
+    aligner = GridAligner(grid, options.preprocess, options.upsample)
+    center = aligner.center
+    reference, ref_lum = aligner.reference, aligner.reference_luminance
     ref_total = reference.sum(axis=0)
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
-    allow_binning = high_frequency_fraction(ref_lum) < 0.01
-    ref_unsaturated = ~ref_prep.saturated
     steps = set(options.steps)
     fig2 = set(_fig2_positions(grid.grid_shape, center))
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
@@ -291,44 +277,22 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         field_units=_field_units(grid), reference=reference)
 
     def measure(pos: GridPosition) -> tuple[PositionResult, dict[str, Any]]:
-        name = str(grid.root / pos.file)
         here = (pos.row, pos.col)
-        prep = ref_prep if here == center else calib.prepare(grid, pos.row, pos.col,
-                                                              options.preprocess)
-        image = prep.image / np.float32(scale)
-        lum = prep.luminance / np.float32(scale)
-        extras: dict[str, Any] = {"thumbnail": _thumbnail(lum)}
-        if here == center:
-            shift = (0.0, 0.0)
-        else:
-            try:
-                shift = register_shift(ref_lum, lum, upsample=options.upsample,
-                                       allow_binning=allow_binning)
-            except InvalidInputError as exc:
-                raise InvalidInputError(f"{name}: cannot register to the centre PSF ({exc})"
-                                        ) from None
-        aligned, valid = shift_image(image, shift)
-        if prep.n_saturated:
-            sat_aligned, _ = shift_image(prep.saturated.astype(np.float32), shift)
-            valid &= sat_aligned < 0.5
-        valid &= ref_unsaturated
-        overlap = float(valid.mean())
-        if overlap < MIN_OVERLAP:
-            raise InvalidInputError(f"{name}: overlaps the centre PSF on only "
-                                    f"{100 * overlap:.1f}% of the sensor after registration; "
-                                    "cannot compare")
-        al_lum = luminance(aligned)
+        item = aligner.align(pos)
+        aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
+        extras: dict[str, Any] = {"thumbnail": _thumbnail(prep.luminance / np.float32(
+            aligner.scale))}
+        al_lum = item.luminance
         record = PositionResult(
             row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
             monitor_px=pos.monitor_px, shift=shift,
-            quality=normalized_cross_correlation(ref_lum, al_lum, valid), overlap=overlap,
+            quality=normalized_cross_correlation(ref_lum, al_lum, valid), overlap=item.overlap,
             n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
             snr=prep.snr)
-        if options.per_channel and image.shape[0] > 1:
+        if options.per_channel and aligned.shape[0] > 1:
+            image = prep.image / np.float32(aligner.scale)
             record.channel_shifts = [
-                (0.0, 0.0) if here == center else
-                register_shift(reference[c], image[c], upsample=options.upsample,
-                               allow_binning=allow_binning)
+                (0.0, 0.0) if here == center else aligner.register(reference[c], image[c])
                 for c in range(image.shape[0])]
         gain = overlap_gain(ref_total, aligned.sum(axis=0), valid)
         if "gain" in steps:
@@ -363,22 +327,9 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         if bar is not None:
             bar.update()
 
-    n_workers = max(1, workers if workers is not None else min(2, os.cpu_count() or 1))
     try:
-        if n_workers == 1:
-            for index, pos in enumerate(grid.positions):
-                collect(index, *measure(pos))
-        else:
-            # FFTs, OpenCV and large numpy operations release the GIL
-            with ThreadPoolExecutor(max_workers=n_workers) as pool:
-                futures = {pool.submit(measure, pos): i for i, pos in enumerate(grid.positions)}
-                try:
-                    for future in as_completed(futures):
-                        collect(futures[future], *future.result())
-                except BaseException:
-                    for future in futures:
-                        future.cancel()
-                    raise
+        for index, (record, extras) in bounded_map(measure, grid.positions, workers):
+            collect(index, record, extras)
     finally:
         if bar is not None:
             bar.close()

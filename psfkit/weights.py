@@ -94,13 +94,20 @@ class WeightBasis:
     def evaluate(self, u_norm: np.ndarray, v_norm: np.ndarray) -> np.ndarray:
         """Weights of all kernels at normalized coordinates, ``(K, *broadcast shape)``.
 
-        The first entry is the base weight ``1 − Σ φ_j``; all entries sum to 1.
+        The first entry is the base weight ``1 − Σ φ_j``; all entries sum to 1. Pass
+        separable coordinates (``u`` of shape ``(1, W)``, ``v`` of shape ``(H, 1)``) to evaluate
+        the one-dimensional terms on a row and a column only.
         """
-        u_norm, v_norm = np.broadcast_arrays(np.asarray(u_norm, dtype=np.float64),
-                                             np.asarray(v_norm, dtype=np.float64))
-        phis = [np.broadcast_to(f(u_norm, v_norm), u_norm.shape) for _, f in self.terms]
-        base = 1.0 - np.sum(phis, axis=0) if phis else np.ones_like(u_norm)
-        return np.stack([base, *phis])
+        u_norm = np.asarray(u_norm, dtype=np.float64)
+        v_norm = np.asarray(v_norm, dtype=np.float64)
+        shape = np.broadcast_shapes(u_norm.shape, v_norm.shape)
+        phis = [np.broadcast_to(f(u_norm, v_norm), shape) for _, f in self.terms]
+        out = np.empty((1 + len(phis), *shape))
+        out[0] = 1.0
+        for k, phi in enumerate(phis, start=1):
+            out[k] = phi
+            out[0] -= phi
+        return out
 
     def maps(self, sensor_shape: tuple[int, int],
              optical_center: tuple[float, float] | None = None) -> np.ndarray:
@@ -138,6 +145,16 @@ def normalized_coordinates(sensor_shape: tuple[int, int],
     u_norm = np.broadcast_to(((u - u_c) / (w / 2))[None, :], (eh, ew))
     v_norm = np.broadcast_to(((v - v_c) / (h / 2))[:, None], (eh, ew))
     return u_norm, v_norm
+
+
+def separable_coordinates(sensor_shape: tuple[int, int],
+                          optical_center: tuple[float, float] | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized coordinates as a ``(1, W)`` row and a ``(H, 1)`` column (see
+    :func:`normalized_coordinates`), for cheap evaluation of separable weights."""
+    h, w = sensor_shape
+    v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
+    return ((np.arange(w) - u_c) / (w / 2))[None, :], ((np.arange(h) - v_c) / (h / 2))[:, None]
 
 
 _BASIS_RE = re.compile(r"^(si|poly:[1-9]|paper(\+odd)?(\+cross)?)$")

@@ -86,3 +86,9 @@ def test_shift_map_needs_a_two_dimensional_grid():
     positions = np.stack([np.arange(5.0), np.zeros(5)], axis=-1)[None]
     with pytest.raises(InvalidInputError, match="do not span two directions"):
         fit_shift_map(positions, positions, "grid steps")
+
+
+def test_a_constant_background_does_not_pin_the_shift(caustic):
+    moving = _moved(caustic, -180.4, 129.6) + 1000.0
+    du, dv = register_shift(caustic + 1000.0, moving)
+    assert (du, dv) == pytest.approx((-180.4, 129.6), abs=0.05)

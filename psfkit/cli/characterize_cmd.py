@@ -13,40 +13,24 @@ from psfkit.characterize import (
     GridCharacterization,
     characterize_grid,
 )
+from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
 from psfkit.io import read_grid
-from psfkit.preprocess import PreprocessOptions
 from psfkit.report import check_numbers_path, warnings_for, write_numbers, write_report
 from psfkit.warp import FLOW_METHODS
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("grid", help="PSF-grid folder (manifest.json or manifest.csv + images)")
-    g = p.add_argument_group("preprocessing")
-    g.add_argument("--normalization", choices=("max", "sum"), default="max",
-                   help="scale PSFs by the centre PSF's peak (max) or total (sum); "
-                        "default max")
-    g.add_argument("--saturation-level", type=float, default=None, metavar="VALUE",
-                   help="raw value at which the sensor clips (default: from dtype/bit_depth)")
-    g.add_argument("--allow-saturated", action="store_true",
-                   help="mask heavily saturated PSFs instead of refusing them")
-    g.add_argument("--hot-pixel-sigma", type=float, default=8.0,
-                   help="dark-frame outlier threshold in robust std (default 8)")
-    g.add_argument("--upsample", type=int, default=100,
-                   help="registration precision is 1/UPSAMPLE px (default 100)")
-    g.add_argument("--per-channel", action="store_true",
+    add_grid_options(p)
+    p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour)")
-    g.add_argument("--workers", type=int, default=None,
+    p.add_argument("--workers", type=int, default=None,
                    help="positions processed concurrently (default 2)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
-    pre = PreprocessOptions(normalization=args.normalization,
-                            hot_pixel_sigma=args.hot_pixel_sigma,
-                            saturation_level=args.saturation_level,
-                            allow_saturated=args.allow_saturated)
-    return CharacterizeOptions(preprocess=pre, steps=steps, upsample=args.upsample,
+    return CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
+                               upsample=args.upsample,
                                flow_method=getattr(args, "method", "dis"),
                                per_channel=args.per_channel,
                                mae_smoothing_px=getattr(args, "mae_smoothing", 1.0))

@@ -1,0 +1,302 @@
+r"""Eigen-kernel fits of a registered PSF grid (paper, Eq. 7), in closed form.
+
+Model. The PSF of the point source at grid position ``p``, whose image is displaced by ``s_p``
+relative to the centre PSF, is written with the weight basis of :mod:`psfkit.weights`
+
+- *sensor-side* weights (Eq. 7 as written: the weights are functions of the sensor pixel)
+  :math:`h_p(u) = \sum_k W_k(u)\,K_k(u - s_p)`;
+- *source-side* weights (functions of the source position)
+  :math:`h_p(u) = \sum_k W_k(s_p)\,K_k(u - s_p)`.
+
+In the frame of the centre PSF (``v = u − s_p``, where the aligned PSFs of
+:mod:`psfkit.alignment` live) both become, at every kernel pixel ``v`` separately, a linear
+model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
+:math:`W(s_p)` (source). The least-squares kernels therefore solve a K × K system per pixel,
+:math:`\big(\sum_p m_p w_p w_p^\top + \lambda R\big) K(v) = \sum_p m_p w_p a_p(v)` (``m_p`` the
+valid-pixel mask), accumulated one PSF at a time and solved for all pixels at once. The small
+ridge ``λR`` pulls the correction kernels towards the base kernel
+(:math:`R = \sum_{k\ge1}(e_k - e_0)(e_k - e_0)^\top`) where the data do not constrain them.
+Both conventions are linear with exact adjoints in :mod:`ekdun.physics`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from psfkit.alignment import AlignedPsf
+from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.kernelfile import CONVENTIONS
+from psfkit.registration import bin_image
+from psfkit.weights import WeightBasis, get_basis, separable_coordinates
+
+
+def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
+                     shift: tuple[float, float], convention: str,
+                     optical_center: tuple[float, float] | None = None) -> np.ndarray:
+    """Weights of the K kernels for the PSF displaced by ``shift``, in its aligned frame.
+
+    Returns ``(K, H, W)`` (sensor-side: :math:`W_k(v + s)`) or ``(K, 1, 1)`` (source-side:
+    :math:`W_k(s)`, the source at the sensor pixel where its PSF origin lands).
+    """
+    du, dv = shift
+    h, w = sensor_shape
+    if convention == "sensor":
+        u_n, v_n = separable_coordinates(sensor_shape, optical_center)
+        return basis.evaluate(u_n + du / (w / 2.0), v_n + dv / (h / 2.0))
+    if convention == "source":
+        v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
+        u_n = (w // 2 + du - u_c) / (w / 2.0)
+        v_n = (h // 2 + dv - v_c) / (h / 2.0)
+        return basis.evaluate(np.array([[u_n]]), np.array([[v_n]]))
+    raise ConfigurationError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+
+
+def _difference_prior(n_kernels: int) -> np.ndarray:
+    r = np.zeros((n_kernels, n_kernels))
+    for k in range(1, n_kernels):
+        e = np.zeros(n_kernels)
+        e[0], e[k] = -1.0, 1.0
+        r += np.outer(e, e)
+    return r
+
+
+class NormalEquations:
+    """Per-pixel normal equations of an eigen-kernel fit, accumulated one PSF at a time.
+
+    Parameters
+    ----------
+    basis : WeightBasis
+    convention : {"sensor", "source"}
+    image_shape : (int, int, int)
+        ``(C, H, W)`` of the PSFs (H, W is also the sensor grid of the weights).
+    optical_center : (float, float), optional
+    """
+
+    def __init__(self, basis: WeightBasis, convention: str, image_shape: tuple[int, int, int],
+                 optical_center: tuple[float, float] | None = None) -> None:
+        self.basis, self.convention = basis, convention
+        self.channels, self.h, self.w = image_shape
+        self.optical_center = optical_center
+        k = basis.n_kernels
+        self._iu = np.triu_indices(k)
+        self.gram = np.zeros((len(self._iu[0]), self.h, self.w))          # upper triangle
+        self.rhs = np.zeros((self.channels, k, self.h, self.w))
+        self.count = 0
+
+    def add(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float]) -> None:
+        """Add one aligned ``(C, H, W)`` PSF with its ``(H, W)`` valid mask and shift.
+
+        Products are formed in the image's own precision (float32 for grid data: half the
+        memory traffic) and accumulated in float64.
+        """
+        dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float64
+        weights = position_weights(self.basis, (self.h, self.w), shift, self.convention,
+                                   self.optical_center).astype(dtype)
+        mask = valid.astype(dtype)
+        mw = weights * mask                   # (K, H, W); source-side weights broadcast
+        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+            self.gram[index] += mw[i] * weights[j]
+        for c in range(self.channels):
+            masked = image[c] * mask
+            for k in range(self.basis.n_kernels):
+                self.rhs[c, k] += weights[k] * masked
+        self.count += 1
+
+    def minus(self, other: NormalEquations) -> NormalEquations:
+        """The equations of this set of PSFs without those of ``other`` (a subset)."""
+        out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
+                              self.optical_center)
+        out.gram = self.gram - other.gram
+        out.rhs = self.rhs - other.rhs
+        out.count = self.count - other.count
+        return out
+
+    def __iadd__(self, other: NormalEquations) -> NormalEquations:
+        self.gram += other.gram
+        self.rhs += other.rhs
+        self.count += other.count
+        return self
+
+    def solve(self, ridge: float = 1e-9, conditioning: bool = True
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Kernels ``(K, C, H, W)`` and (if ``conditioning``) the per-pixel smallest
+        eigenvalue of the normalized Gram matrix ``(H, W)`` (0 where a kernel pixel is not
+        constrained by the data)."""
+        k = self.basis.n_kernels
+        gram = np.zeros((self.h * self.w, k, k))
+        flat = self.gram.reshape(len(self._iu[0]), -1).T
+        gram[:, self._iu[0], self._iu[1]] = flat
+        gram[:, self._iu[1], self._iu[0]] = flat
+        scale = np.maximum(np.trace(gram, axis1=1, axis2=2) / k, 1e-300)
+        normalized = gram / scale[:, None, None]
+        smallest = np.linalg.eigvalsh(normalized)[:, 0].reshape(self.h, self.w) \
+            if conditioning else None
+        system = normalized + ridge * _difference_prior(k) + 1e-12 * np.eye(k)
+        rhs = self.rhs.reshape(self.channels, k, -1).transpose(2, 1, 0) / scale[:, None, None]
+        solution = np.linalg.solve(system, rhs)                       # (N, K, C)
+        kernels = np.moveaxis(solution, 0, -1).reshape(k, self.channels, self.h, self.w)
+        return kernels, smallest
+
+
+def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
+                    convention: str, optical_center: tuple[float, float] | None = None
+                    ) -> np.ndarray:
+    """The model's PSF for a source displaced by ``shift``, in the aligned frame, ``(C,H,W)``."""
+    weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center)
+    return np.einsum("khw,kchw->chw", np.broadcast_to(weights, (len(kernels), *kernels.shape[-2:])),
+                     kernels)
+
+
+def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int, int],
+                 where: str) -> None:
+    """Refuse a basis that the grid positions cannot determine.
+
+    Raises
+    ------
+    InvalidInputError
+        Fewer positions than kernels, or a weight term that does not vary independently over
+        the positions (e.g. all positions on one row).
+    """
+    shifts = np.asarray(shifts, dtype=np.float64).reshape(-1, 2)
+    if len(shifts) < basis.n_kernels:
+        raise InvalidInputError(f"{where}: basis {basis.name!r} has {basis.n_kernels} kernels "
+                                f"but the grid has only {len(shifts)} positions")
+    design = np.concatenate([position_weights(basis, sensor_shape, tuple(s), "source")[:, 0, 0][
+        None] for s in shifts])
+    for k, name in enumerate(basis.kernel_names[1:], start=1):
+        column = design[:, k]
+        if np.ptp(column) <= 1e-9 * (1.0 + np.abs(column).max()):
+            raise InvalidInputError(
+                f"{where}: singular design: the weight of kernel {name!r} of basis "
+                f"{basis.name!r} does not vary over the grid positions, so the kernel is not "
+                "determined (are all positions on one row or column?)")
+    if np.linalg.matrix_rank(design, tol=1e-9 * np.abs(design).max()) < basis.n_kernels:
+        raise InvalidInputError(
+            f"{where}: singular design: the weights of the {basis.n_kernels} kernels of basis "
+            f"{basis.name!r} are linearly dependent over the grid positions; use a grid that "
+            "spans both directions or a smaller basis")
+
+
+def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) -> float:
+    """``‖pred − data‖ / ‖data‖`` over the valid pixels of all channels."""
+    diff = np.sum((prediction - data) ** 2, axis=0)[valid].sum()
+    norm = np.sum(data**2, axis=0)[valid].sum()
+    return float(math.sqrt(diff / norm)) if norm > 0 else float("nan")
+
+
+@dataclass
+class WorkingStack:
+    """The aligned grid binned by ``factor`` (kept in memory for residuals, CV and PCA).
+
+    ``images`` ``(P, C, h, w)``, ``valid`` ``(P, h, w)``, ``shifts`` ``(P, 2)`` in binned
+    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)``.
+    """
+
+    factor: int
+    images: np.ndarray
+    valid: np.ndarray
+    shifts: np.ndarray
+    index: np.ndarray
+    overlap: np.ndarray
+    gains: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int, image_shape: tuple[int, int, int], factor: int) -> WorkingStack:
+        c, h, w = image_shape
+        shape = (h // factor, w // factor)
+        return cls(factor=factor, images=np.zeros((n, c, *shape), np.float32),
+                   valid=np.zeros((n, *shape), bool), shifts=np.zeros((n, 2)),
+                   index=np.zeros((n, 2), int), overlap=np.zeros(n), gains=np.zeros(n))
+
+    def put(self, p: int, aligned: AlignedPsf, image: np.ndarray, gain: float) -> None:
+        """Store position ``p`` binned (``image`` may be the gain-compensated version)."""
+        f = self.factor
+        self.images[p] = np.stack([bin_image(ch, f) / f**2 for ch in image])
+        self.valid[p] = bin_image(aligned.valid.astype(np.float32), f) > f**2 - 0.5
+        self.shifts[p] = np.asarray(aligned.shift) / f
+        self.index[p] = (aligned.position.row, aligned.position.col)
+        self.overlap[p] = aligned.overlap
+        self.gains[p] = gain
+
+
+def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
+              members: np.ndarray | None = None, ridge: float = 1e-9
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack,
+    and the per-pixel conditioning of the design."""
+    members = np.ones(len(stack.images), bool) if members is None else members
+    equations = NormalEquations(basis, convention, stack.images.shape[1:])
+    for p in np.flatnonzero(members):
+        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+    kernels, conditioning = equations.solve(ridge)
+    assert conditioning is not None
+    return kernels, conditioning
+
+
+def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis,
+                    convention: str) -> np.ndarray:
+    """In-sample relative error ``(P,)`` of a model on every position of a working stack."""
+    return np.array([relative_error(predict_aligned(kernels, basis, tuple(stack.shifts[p]),
+                                                    convention), stack.images[p], stack.valid[p])
+                     for p in range(len(stack.images))])
+
+
+def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str, ...],
+                   center_row: int, folds: int = 9, seed: int = 0) -> dict[str, Any]:
+    """Leave-positions-out cross-validation of eigen-kernel models.
+
+    Positions other than the centre are split into ``folds`` random groups; each model is
+    fitted without one group (the centre is always kept: it defines the frame) and predicts
+    it. The normal equations are accumulated once per group, so a fold's training system is the
+    total minus its group. Returns the held-out relative error (``‖pred − data‖/‖data‖``
+    pooled over the held-out positions) of every ``basis/convention`` and of the centre PSF
+    alone (every position predicted by the centre PSF, shifted), and the best model.
+    """
+    n = len(stack.images)
+    others = np.array([p for p in range(n) if p != center_row])
+    rng = np.random.default_rng(seed)
+    groups = np.array_split(rng.permutation(others), min(folds, len(others)))
+    training_size = n - max(len(g) for g in groups)
+    centre = stack.images[center_row]
+    errors = {"centre PSF only": _pooled_error(
+        stack, [(p, centre) for group in groups for p in group])}
+    for name in bases:
+        basis = get_basis(name)
+        if training_size < basis.n_kernels:
+            continue                       # too few training positions for this basis
+        for convention in conventions:
+            shape = stack.images.shape[1:]
+            per_group = []
+            for group in groups:
+                eq = NormalEquations(basis, convention, shape)
+                for p in group:
+                    eq.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+                per_group.append(eq)
+            total = NormalEquations(basis, convention, shape)
+            total.add(stack.images[center_row], stack.valid[center_row],
+                      tuple(stack.shifts[center_row]))
+            for eq in per_group:
+                total += eq
+            predictions = []
+            for group, eq in zip(groups, per_group, strict=True):
+                kernels = total.minus(eq).solve(conditioning=False)[0]
+                predictions += [(p, predict_aligned(kernels, basis, tuple(stack.shifts[p]),
+                                                    convention)) for p in group]
+            errors[f"{name}/{convention}"] = _pooled_error(stack, predictions)
+    best = min((k for k in errors if k != "centre PSF only"), key=errors.__getitem__,
+               default=None)
+    return {"held_out_relative_error": errors, "best": best, "folds": len(groups)}
+
+
+def _pooled_error(stack: WorkingStack, predictions: list[tuple[int, np.ndarray]]) -> float:
+    """``sqrt(Σ‖pred − data‖² / Σ‖data‖²)`` over the valid pixels of the listed positions."""
+    num = den = 0.0
+    for p, prediction in predictions:
+        v = stack.valid[p]
+        num += float(np.sum((prediction - stack.images[p]) ** 2, axis=0)[v].sum())
+        den += float(np.sum(stack.images[p] ** 2, axis=0)[v].sum())
+    return math.sqrt(num / den)

@@ -1,0 +1,246 @@
+"""Fit eigen-kernel models to a measured PSF grid (``psfkit fit-eigen``).
+
+One pass over the grid (:class:`~psfkit.alignment.GridAligner`) accumulates the per-pixel
+normal equations of the chosen basis for both weight conventions at full resolution
+(:mod:`psfkit.eigen`) and keeps a binned working copy of the aligned PSFs, on which the
+per-position residuals, the leave-positions-out cross-validation of candidate bases and the
+PCA (:mod:`psfkit.pca`) are computed. The result becomes a kernel file for ekdun.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from psfkit.alignment import GridAligner
+from psfkit.eigen import (
+    NormalEquations,
+    WorkingStack,
+    check_design,
+    cross_validate,
+    fit_stack,
+    stack_residuals,
+)
+from psfkit.errors import ConfigurationError
+from psfkit.gain import overlap_gain
+from psfkit.io.grid import PsfGrid
+from psfkit.kernelfile import CONVENTIONS, KernelModel
+from psfkit.parallel import bounded_map
+from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
+from psfkit.preprocess import PreprocessOptions
+from psfkit.registration import bin_image
+from psfkit.weights import get_basis
+
+CV_BASES = ("si", "paper")                 # compared by default (with the fitted basis)
+CV_BASES_ALL = ("si", "paper", "paper+odd", "paper+cross", "paper+odd+cross", "poly:2")
+RELIABLE_OVERLAP = 0.5
+
+
+@dataclass(frozen=True)
+class EigenFitOptions:
+    """Options of :func:`fit_eigen_grid`.
+
+    Attributes
+    ----------
+    basis : str
+        Weight basis of the fitted model (:func:`psfkit.weights.get_basis`).
+    convention : {"sensor", "source", "auto"}
+        Convention fitted at full resolution and written to the kernel file: ``"sensor"``
+        (Eq. 7 as written, the default), ``"source"``, or ``"auto"`` (both, and the one with
+        the lower cross-validated error is written). Both are always compared on the working
+        copy.
+    gain_compensate : bool
+        Divide every PSF by its gain before fitting (kernels then describe shape only); by
+        default the gains stay in the kernels, as the forward model needs them.
+    cv_bases : tuple of str
+        Bases compared by leave-positions-out cross-validation (empty: no CV).
+    folds : int
+        Cross-validation groups of positions.
+    working_size : int
+        Longest side (px) of the binned working copy used for CV, residuals and PCA.
+    ridge : float
+        Relative weight of the prior pulling correction kernels towards the base kernel.
+    """
+
+    basis: str = "paper"
+    convention: str = "sensor"
+    gain_compensate: bool = False
+    cv_bases: tuple[str, ...] = CV_BASES
+    folds: int = 9
+    working_size: int = 256
+    ridge: float = 1e-9
+    upsample: int = 100
+    preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
+
+    def __post_init__(self) -> None:
+        get_basis(self.basis)
+        for name in self.cv_bases:
+            get_basis(name)
+        if self.convention not in (*CONVENTIONS, "auto"):
+            raise ConfigurationError(f"convention must be one of {CONVENTIONS} or 'auto'")
+        if self.folds < 2 or self.working_size < 32:
+            raise ConfigurationError("folds must be >= 2 and working_size >= 32")
+
+
+@dataclass
+class GridEigenResult:
+    """Everything :func:`fit_eigen_grid` measured."""
+
+    grid_root: str
+    grid_shape: tuple[int, int]
+    image_shape: tuple[int, int, int]
+    channels: tuple[str, ...]
+    center: tuple[int, int]
+    options: EigenFitOptions
+    convention: str
+    full_kernels: dict[str, np.ndarray] = field(repr=False)       # convention → (K, C, H, W)
+    residuals: dict[str, np.ndarray] = field(repr=False)          # convention → (N, M)
+    conditioning: dict[str, np.ndarray] = field(repr=False)       # convention → (h, w)
+    shifts: np.ndarray = field(repr=False)
+    stack: WorkingStack = field(repr=False)
+    kernel_scale: float = 1.0
+    cv: dict[str, Any] | None = None
+    pca: PcaResult | None = None
+    angles_deg: np.ndarray | None = None
+
+    @property
+    def kernels(self) -> np.ndarray:
+        """Kernels ``(K, C, H, W)`` of the chosen convention, in kernel-file scale."""
+        return self.full_kernels[self.convention] / self.kernel_scale
+
+    def kernel_model(self) -> KernelModel:
+        """The kernel file content (see :mod:`psfkit.kernelfile`)."""
+        return KernelModel(
+            kernels=self.kernels, basis=self.options.basis, convention=self.convention,
+            sensor_shape=self.image_shape[1:], channels=self.channels,
+            normalization="kernels divided by the mean over channels of Kbase's channel sum "
+                          "(Kbase sums to about 1 per channel; colour balance and gains kept"
+                          + (", PSFs gain-compensated before the fit" if
+                             self.options.gain_compensate else "") + ")",
+            provenance={"source": "psfkit fit-eigen", "grid": self.grid_root,
+                        "fit": self.summary()})
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready numbers of the fit."""
+        out: dict[str, Any] = {
+            "basis": self.options.basis, "convention": self.convention,
+            "kernel_names": list(get_basis(self.options.basis).kernel_names),
+            "gain_compensated": self.options.gain_compensate,
+            "working_binning": self.stack.factor,
+            "in_sample_relative_error": {
+                conv: {"median": float(np.nanmedian(res)), "max": float(np.nanmax(res))}
+                for conv, res in self.residuals.items()},
+            "unconstrained_pixel_fraction": {
+                conv: float(np.mean(cond < 1e-6)) for conv, cond in self.conditioning.items()},
+        }
+        if self.cv is not None:
+            out["cross_validation"] = self.cv
+        if self.pca is not None:
+            out["pca"] = self.pca.to_dict()
+        if self.angles_deg is not None:
+            out["principal_angles_deg_eigen_vs_pca"] = self.angles_deg.tolist()
+        return out
+
+
+def _binning_factor(shape: tuple[int, int], working_size: int) -> int:
+    return max(1, math.ceil(max(shape) / working_size))
+
+
+def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
+                   progress: bool = False, workers: int | None = None) -> GridEigenResult:
+    """Fit the eigen-kernel model of ``options.basis`` to a PSF grid, both conventions.
+
+    ``workers`` threads register and align PSFs (default 2 on two cores).
+
+    Raises
+    ------
+    GridFormatError
+        The grid has no centre.
+    InvalidInputError
+        Too few positions or a singular design for the basis, or an unusable PSF.
+    """
+    options = options or EigenFitOptions()
+    basis = get_basis(options.basis)
+    n_rows, n_cols = grid.grid_shape
+    c, h, w = grid.image_shape
+    center = grid.require_center()
+    # refuse an undeterminable basis before any image is read (grid indices as a proxy for
+    # the shifts), and again with the measured shifts below
+    rows, cols = np.mgrid[0:n_rows, 0:n_cols]
+    proxy = np.stack([(cols - center[1]) * w / max(n_cols, 2),
+                      (rows - center[0]) * h / max(n_rows, 2)], axis=-1)
+    check_design(basis, proxy, (h, w), str(grid.root))
+
+    aligner = GridAligner(grid, options.preprocess, options.upsample)
+    full_res = CONVENTIONS if options.convention == "auto" else (options.convention,)
+    equations = {conv: NormalEquations(basis, conv, (c, h, w)) for conv in full_res}
+    stack = WorkingStack.empty(len(grid.positions), (c, h, w),
+                               _binning_factor((h, w), options.working_size))
+    reference_total = aligner.reference.sum(axis=0)
+    bar: Any = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(grid.positions), desc="fitting eigen-kernels", unit="psf")
+    # registration and alignment in worker threads; the accumulation (not thread-safe) here
+    try:
+        for p, aligned in bounded_map(aligner.align, grid.positions, workers):
+            gain = overlap_gain(reference_total, aligned.image.sum(axis=0), aligned.valid)
+            image = aligned.image / np.float32(gain) if options.gain_compensate \
+                else aligned.image
+            for eq in equations.values():
+                eq.add(image, aligned.valid, aligned.shift)
+            stack.put(p, aligned, image, gain)
+            del aligned, image
+            if bar is not None:
+                bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
+    factor = stack.factor
+    shifts = (stack.shifts * factor).reshape(n_rows, n_cols, 2)
+    check_design(basis, shifts, (h, w), str(grid.root))
+
+    full_kernels = {conv: eq.solve(options.ridge, conditioning=False)[0]
+                    for conv, eq in equations.items()}
+    del equations
+    residuals, conditioning = {}, {}
+    for conv in CONVENTIONS:             # both conventions, compared on the working copy
+        kernels, conditioning[conv] = fit_stack(stack, basis, conv, ridge=options.ridge)
+        residuals[conv] = stack_residuals(stack, kernels, basis, conv).reshape(n_rows, n_cols)
+    center_row = center[0] * n_cols + center[1]
+    cv = cross_validate(stack, list(dict.fromkeys([options.basis, *options.cv_bases])),
+                        CONVENTIONS, center_row, options.folds) if options.cv_bases else None
+    if options.convention != "auto":
+        convention = options.convention
+    elif cv is not None:
+        errs = cv["held_out_relative_error"]
+        convention = min(CONVENTIONS, key=lambda conv: errs.get(f"{options.basis}/{conv}",
+                                                                math.inf))
+    else:
+        convention = min(CONVENTIONS, key=lambda conv: float(np.median(residuals[conv])))
+    base_sums = full_kernels[convention][0].sum(axis=(1, 2))
+    kernel_scale = float(np.mean(base_sums)) or 1.0
+
+    result = GridEigenResult(
+        grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
+        channels=grid.channels, center=center, options=options, convention=convention,
+        full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
+        kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv)
+    reliable = stack.overlap >= RELIABLE_OVERLAP
+    if reliable.sum() >= 2:
+        result.pca = stack_pca(stack.images, stack.valid, reliable)
+        region = result.pca.region
+        k = basis.n_kernels
+        binned_kernels = _bin_kernels(full_kernels[convention], factor)
+        result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
+                                                 result.pca.components[:k][:, :, region])
+    return result
+
+
+def _bin_kernels(kernels: np.ndarray, factor: int) -> np.ndarray:
+    """``(K, C, H, W)`` kernels averaged over ``factor × factor`` blocks (the working grid)."""
+    return np.stack([np.stack([bin_image(ch, factor) / factor**2 for ch in k]) for k in kernels])

@@ -1,0 +1,51 @@
+"""A bounded, order-free parallel map for per-position work on large images."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from typing import TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def default_workers() -> int:
+    """Two threads where two cores exist (numpy, scipy.fft and OpenCV release the GIL)."""
+    return min(2, os.cpu_count() or 1)
+
+
+def bounded_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None
+                ) -> Iterator[tuple[int, R]]:
+    """Yield ``(index, fn(item))`` as results complete, with at most ``workers + 1`` items in
+    flight, so that a full-resolution image per item never piles up in memory. With one
+    worker everything runs in the calling thread. An exception cancels what is pending and
+    propagates."""
+    workers = default_workers() if workers is None else max(1, workers)
+    if workers == 1:
+        for index, item in enumerate(items):
+            yield index, fn(item)
+        return
+    iterator = enumerate(items)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: dict[Future[R], int] = {}
+        try:
+            for index, item in iterator:
+                pending[pool.submit(fn, item)] = index
+                if len(pending) > workers:
+                    break
+            while pending:
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    index = pending.pop(future)
+                    result = future.result()
+                    del future
+                    for next_index, item in iterator:   # refill one slot
+                        pending[pool.submit(fn, item)] = next_index
+                        break
+                    yield index, result
+                    del result
+        finally:
+            for future in pending:
+                future.cancel()

@@ -1,0 +1,160 @@
+"""Eigen-kernel fits: exact recovery of known kernels, both conventions, CV, PCA, refusals."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from psfkit.eigen import NormalEquations, check_design, position_weights, predict_aligned
+from psfkit.errors import InvalidInputError
+from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.io import GridWriter, read_grid
+from psfkit.pca import principal_angles_deg, stack_pca
+from psfkit.weights import get_basis
+
+SHAPE = (3, 40, 48)
+
+
+def _kernels(n_kernels, seed=0, variation=0.15):
+    """Smooth, PSF-like kernels (support in the middle): a base kernel and corrections that
+    differ from it by ``variation`` (as measured eigen-kernels do)."""
+    rng = np.random.default_rng(seed)
+    c, h, w = SHAPE
+    # compact support (central 16 × 20 px) so that every shifted PSF stays on the sensor
+    window = np.zeros((h, w))
+    window[12:28, 14:34] = np.hanning(16)[:, None] * np.hanning(20)[None]
+
+    def smooth():
+        return ndimage.gaussian_filter(rng.random((c, h, w)), (0, 2, 2)) * window
+
+    base = smooth()
+    return np.stack([base] + [base + variation * smooth() for _ in range(n_kernels - 1)])
+
+
+def _grid_shifts(n=5, step=(6, 5)):
+    offsets = np.arange(n) - n // 2
+    vv, uu = np.meshgrid(offsets * step[1], offsets * step[0], indexing="ij")
+    return np.stack([uu, vv], axis=-1).reshape(-1, 2).astype(float)
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+@pytest.mark.parametrize("basis_name", ["paper", "paper+odd+cross"])
+def test_known_kernels_are_recovered_to_machine_precision(convention, basis_name):
+    basis = get_basis(basis_name)
+    truth = _kernels(basis.n_kernels)
+    eq = NormalEquations(basis, convention, SHAPE)
+    rng = np.random.default_rng(1)
+    for shift in _grid_shifts():
+        aligned = predict_aligned(truth, basis, tuple(shift), convention)
+        valid = rng.random(SHAPE[1:]) > 0.05            # some pixels missing everywhere
+        eq.add(aligned, valid, tuple(shift))
+    kernels, conditioning = eq.solve(ridge=0.0)
+    constrained = conditioning > 1e-6
+    err = np.abs(kernels - truth)[..., constrained].max() / np.abs(truth).max()
+    assert err < 1e-9
+
+
+def test_the_other_convention_does_not_fit_exactly():
+    basis = get_basis("paper")
+    truth = _kernels(3)
+    shifts = _grid_shifts()
+    residual = {}
+    for fit_convention in ("sensor", "source"):
+        eq = NormalEquations(basis, fit_convention, SHAPE)
+        data = [predict_aligned(truth, basis, tuple(s), "sensor") for s in shifts]
+        for s, a in zip(shifts, data, strict=True):
+            eq.add(a, np.ones(SHAPE[1:], bool), tuple(s))
+        kernels = eq.solve(ridge=0.0)[0]
+        residual[fit_convention] = max(
+            np.linalg.norm(predict_aligned(kernels, basis, tuple(s), fit_convention) - a)
+            / np.linalg.norm(a) for s, a in zip(shifts, data, strict=True))
+    assert residual["sensor"] < 1e-9
+    assert residual["source"] > 1e-3
+
+
+def test_sensor_and_source_weights_live_where_they_should():
+    basis = get_basis("paper")
+    w_sensor = position_weights(basis, (40, 48), (6.0, -5.0), "sensor")
+    w_source = position_weights(basis, (40, 48), (6.0, -5.0), "source")
+    assert w_sensor.shape == (3, 40, 48) and w_source.shape == (3, 1, 1)
+    # the sensor-side weight at aligned pixel v is the weight map at sensor pixel v + s
+    maps = basis.maps((40, 48))
+    np.testing.assert_allclose(w_sensor[:, 10, 10], maps[:, 10 - 5, 10 + 6], atol=1e-12)
+    # the source-side weight is the map at the source's own pixel (kernel origin + s)
+    np.testing.assert_allclose(w_source[:, 0, 0], maps[:, 20 - 5, 24 + 6], atol=1e-12)
+
+
+def test_design_refusals():
+    basis = get_basis("paper")
+    row = np.stack([np.arange(-2, 3) * 6.0, np.zeros(5)], axis=-1)
+    with pytest.raises(InvalidInputError, match=r"singular design: the weight of kernel 'v'"):
+        check_design(basis, row, (40, 48), "grid")
+    with pytest.raises(InvalidInputError, match="has 10 kernels but the grid has only 9"):
+        check_design(get_basis("poly:3"), _grid_shifts(3), (40, 48), "grid")
+    check_design(basis, _grid_shifts(3), (40, 48), "grid")
+
+
+def _write_synthetic_grid(path, truth, basis, convention, shifts, n):
+    _, h, w = SHAPE
+    with GridWriter(path, (n, n), suffix=".npy") as writer:
+        for index, s in enumerate(shifts):
+            aligned = predict_aligned(truth, basis, tuple(s), convention)
+            image = np.zeros(SHAPE)
+            du, dv = int(s[0]), int(s[1])            # integer shifts: exact, no interpolation
+            src = aligned[:, max(0, -dv):h - max(0, dv), max(0, -du):w - max(0, du)]
+            image[:, max(0, dv):max(0, dv) + src.shape[1],
+                  max(0, du):max(0, du) + src.shape[2]] = src
+            writer.add(index // n, index % n, (image * 1000).astype(np.float32),
+                       monitor_px=(-s[0] / 6 * 10, -s[1] / 5 * 10))
+
+
+def test_fit_eigen_grid_end_to_end_on_a_synthetic_grid(tmp_path):
+    basis = get_basis("paper")
+    truth = _kernels(3, seed=3)
+    shifts = _grid_shifts()
+    _write_synthetic_grid(tmp_path / "g", truth, basis, "sensor", shifts, 5)
+    result = fit_eigen_grid(read_grid(tmp_path / "g"),
+                            EigenFitOptions(convention="sensor", working_size=64))
+    np.testing.assert_allclose(result.shifts.reshape(-1, 2), shifts, atol=0.1)
+    # kernels are in the grid's normalization (centre PSF peak = 1): compare shapes
+    fitted = result.full_kernels["sensor"]
+    inner = (slice(None), slice(None), slice(8, -8), slice(8, -8))
+    diff = (fitted / fitted[0].max() - truth / truth[0].max())[inner]
+    # registration of PSFs that differ from the centre one is good to ~0.05 px, which bounds
+    # the end-to-end accuracy (the solver alone is exact: see the machine-precision test)
+    assert np.linalg.norm(diff) / np.linalg.norm((truth / truth[0].max())[inner]) < 0.05
+    assert np.abs(diff).max() < 0.08
+    cv = result.cv["held_out_relative_error"]
+    assert cv["paper/sensor"] < 0.3 * cv["centre PSF only"]
+    model = result.kernel_model()
+    assert model.kernels.shape == (3, 3, 40, 48) and model.basis == "paper"
+    assert model.kernels[0].sum(axis=(1, 2)).mean() == pytest.approx(1.0, rel=1e-6)
+
+
+def test_pca_and_principal_angles():
+    rng = np.random.default_rng(0)
+    basis_images = rng.normal(size=(3, 1, 10, 12))
+    coefficients = rng.normal(size=(20, 3))
+    images = np.einsum("pk,kchw->pchw", coefficients, basis_images)
+    valid = np.ones((20, 10, 12), bool)
+    result = stack_pca(images, valid)
+    assert result.explained[2] == pytest.approx(1.0, abs=1e-12)
+    assert result.explained[1] < 0.999
+    angles = principal_angles_deg(basis_images, result.components[:3])
+    assert np.all(angles < 1e-5)
+    other = rng.normal(size=(3, 1, 10, 12))
+    assert principal_angles_deg(basis_images, other).max() > 30
+
+
+def test_bench_grid_eigen_kernels_predict_held_out_positions_better(bench_grid_ds2):
+    """On the virtual bench the fitted model beats the centre PSF and one shift-invariant
+    kernel on positions it never saw, and the kernels carry the grid's real variation."""
+    result = fit_eigen_grid(read_grid(bench_grid_ds2), EigenFitOptions(folds=6))
+    cv = result.cv["held_out_relative_error"]
+    for convention in ("sensor", "source"):
+        assert cv[f"paper/{convention}"] < 0.8 * cv["centre PSF only"]
+        assert cv[f"paper/{convention}"] < cv[f"si/{convention}"]
+    kernels = result.kernels
+    difference = np.linalg.norm(kernels[1] - kernels[0]) / np.linalg.norm(kernels[0])
+    assert 1e-3 < difference < 0.5
+    assert result.pca.explained[0] > 0.9                # the mean PSF dominates
+    assert result.angles_deg[0] < 5.0                   # Kbase ≈ the first PCA direction
