@@ -155,9 +155,13 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     Raises
     ------
     InvalidInputError
-        Too much of the PSF is saturated, or there is no point-source signal above the noise.
+        NaN/Inf values, too much of the PSF saturated, or no point-source signal above the noise
+        (an all-zero frame included).
     """
     options = options or PreprocessOptions()
+    if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):
+        raise InvalidInputError(f"{name}: contains {int(np.count_nonzero(~np.isfinite(raw)))} "
+                                "NaN/Inf pixel value(s)")
     image = raw.astype(np.float32)
     level = options.saturation_level if options.saturation_level is not None \
         else saturation_level

@@ -37,7 +37,7 @@ def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOp
 
 
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
-    grid = read_grid(args.grid, progress=not args.quiet)
+    grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
     return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
                              workers=args.workers)
 

@@ -67,7 +67,7 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
     figures = Path(args.figures) if args.figures else None
     if figures is not None and figures.exists() and any(figures.iterdir()):
         raise InvalidInputError(f"{figures}: output folder exists and is not empty")
-    grid = read_grid(args.grid, progress=not args.quiet)
+    grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
     basis = args.basis
     if basis == "auto":
         # cross-validate every basis first (the chosen one is then fitted in a second pass)

@@ -3,6 +3,7 @@
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.grid import GridPosition, GridWriter, PsfGrid, read_grid
 from psfkit.io.images import read_image, write_image
+from psfkit.io.pairs import PairSet, read_pairs
 
-__all__ = ["GridPosition", "GridWriter", "PsfGrid", "atomic_directory", "atomic_file",
-           "read_grid", "read_image", "write_image"]
+__all__ = ["GridPosition", "GridWriter", "PairSet", "PsfGrid", "atomic_directory",
+           "atomic_file", "read_grid", "read_image", "read_pairs", "write_image"]

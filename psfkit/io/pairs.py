@@ -1,0 +1,176 @@
+"""Folders of (scene, measurement) image pairs.
+
+A pairs folder holds two sub-folders whose files pair up by name (stem)::
+
+    pairs/
+      pairs.json            optional: which sub-folders, channel order, flips
+      scene/ im1.png ...    ground truth (what was displayed / seen through a lens)
+      measurement/ im1.png  what the lensless camera recorded
+
+Sub-folder names are recognised without a manifest: ``scene|scenes|gt|ground_truth|lensed``
+and ``measurement|measurements|meas|raw|diffuser``. The DiffuserCam Lensless Mirflickr layout
+(``lensed/`` + ``diffuser/``, ``.npy`` in OpenCV's BGR order) is recognised and read as RGB.
+``pairs.json`` may set ``scene_dir``, ``measurement_dir``, ``channel_order`` (``"RGB"`` or
+``"BGR"``) and ``flip`` of the scene (``"none"``, ``"ud"``, ``"lr"``, ``"both"``) when a dataset
+stores it mirrored relative to the forward model ``y = crop(K * pad(x))``, which needs scenes
+and measurements of the same size.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from psfkit.errors import InvalidInputError
+from psfkit.io.images import IMAGE_SUFFIXES, read_image
+
+SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
+MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")
+FLIPS = ("none", "ud", "lr", "both")
+MANIFEST = "pairs.json"
+
+
+@dataclass(frozen=True)
+class PairSet:
+    """A validated pairs folder; images are read on demand as ``(C, H, W)`` float32 (RGB)."""
+
+    root: Path
+    scene_dir: str
+    measurement_dir: str
+    names: tuple[str, ...]
+    scene_files: tuple[str, ...]
+    measurement_files: tuple[str, ...]
+    channel_order: str
+    flip: str
+    shape: tuple[int, int, int]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(scene, measurement)`` of pair ``index``, ``(C, H, W)`` float32 each."""
+        scene = read_image(self.root / self.scene_dir / self.scene_files[index],
+                           self.channel_order).astype(np.float32)
+        measurement = read_image(self.root / self.measurement_dir / self.measurement_files[index],
+                                 self.channel_order).astype(np.float32)
+        if self.flip in ("ud", "both"):
+            scene = scene[:, ::-1]
+        if self.flip in ("lr", "both"):
+            scene = scene[:, :, ::-1]
+        return np.ascontiguousarray(scene), measurement
+
+    def load_all(self) -> tuple[np.ndarray, np.ndarray]:
+        """All pairs as two ``(N, C, H, W)`` float32 arrays."""
+        pairs = [self.load(i) for i in range(len(self))]
+        return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+
+
+def _images(folder: Path) -> dict[str, str]:
+    files = {}
+    for f in sorted(folder.iterdir()):
+        if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES:
+            if f.stem in files:
+                raise InvalidInputError(f"{folder}: two images named {f.stem!r} "
+                                        f"({files[f.stem]}, {f.name})")
+            files[f.stem] = f.name
+    return files
+
+
+def _pick(root: Path, choices: tuple[str, ...], what: str) -> str:
+    found = [name for name in choices if (root / name).is_dir()]
+    if not found:
+        raise InvalidInputError(f"{root}: no {what} folder (expected one of "
+                                f"{', '.join(choices)}, or name it in {MANIFEST})")
+    if len(found) > 1:
+        raise InvalidInputError(f"{root}: several {what} folders ({', '.join(found)}); name the "
+                                f"right one in {MANIFEST}")
+    return found[0]
+
+
+def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
+               check_pixels: bool = True) -> PairSet:
+    """Read and validate a pairs folder.
+
+    Parameters
+    ----------
+    root : path-like
+        The folder.
+    channel_order : {"RGB", "BGR"}, optional
+        Overrides ``pairs.json`` and the layout's default.
+    check_pixels : bool
+        Read every image to refuse NaN/Inf values and mismatched shapes.
+
+    Raises
+    ------
+    InvalidInputError
+        Missing or ambiguous sub-folders, no pairs, files without a partner, images of
+        different sizes (scene and measurement must have the sensor's size), NaN/Inf values.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InvalidInputError(f"{root}: no such pairs folder")
+    manifest: dict = {}
+    if (root / MANIFEST).is_file():
+        try:
+            manifest = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InvalidInputError(f"{root / MANIFEST}: invalid JSON ({exc})") from None
+        if not isinstance(manifest, dict):
+            raise InvalidInputError(f"{root / MANIFEST}: must be a JSON object")
+    scene_dir = manifest.get("scene_dir") or _pick(root, SCENE_DIRS, "scene")
+    measurement_dir = manifest.get("measurement_dir") or _pick(root, MEASUREMENT_DIRS,
+                                                               "measurement")
+    for name in (scene_dir, measurement_dir):
+        if not (root / name).is_dir():
+            raise InvalidInputError(f"{root / name}: no such folder")
+    dlmd = scene_dir == "lensed" and measurement_dir == "diffuser"
+    order = channel_order or manifest.get("channel_order") or ("BGR" if dlmd else "RGB")
+    if order not in ("RGB", "BGR"):
+        raise InvalidInputError(f"{root}: channel_order must be RGB or BGR, got {order!r}")
+    flip = manifest.get("flip", "none")
+    if flip not in FLIPS:
+        raise InvalidInputError(f"{root / MANIFEST}: flip must be one of {FLIPS}")
+
+    scenes, measurements = _images(root / scene_dir), _images(root / measurement_dir)
+    if not scenes and not measurements:
+        raise InvalidInputError(f"{root}: empty pairs folder (no images in {scene_dir}/ or "
+                                f"{measurement_dir}/)")
+    unpaired = sorted(set(scenes) ^ set(measurements))
+    if unpaired:
+        where = [f"{scene_dir}/{scenes[n]}" if n in scenes else
+                 f"{measurement_dir}/{measurements[n]}" for n in unpaired[:4]]
+        raise InvalidInputError(f"{root}: unpaired file(s) {', '.join(where)}"
+                                + (f" and {len(unpaired) - 4} more" if len(unpaired) > 4 else ""))
+    names = tuple(sorted(scenes))
+    pairs = PairSet(root=root, scene_dir=scene_dir, measurement_dir=measurement_dir,
+                    names=names, scene_files=tuple(scenes[n] for n in names),
+                    measurement_files=tuple(measurements[n] for n in names),
+                    channel_order=order, flip=flip, shape=(0, 0, 0))
+    shape = None
+    for i in range(len(names) if check_pixels else 1):
+        scene, measurement = pairs.load(i)
+        for what, image in (("scene", scene), ("measurement", measurement)):
+            path = root / (scene_dir if what == "scene" else measurement_dir) / (
+                pairs.scene_files[i] if what == "scene" else pairs.measurement_files[i])
+            if not np.all(np.isfinite(image)):
+                raise InvalidInputError(f"{path}: contains NaN/Inf values")
+        if scene.shape != measurement.shape:
+            raise InvalidInputError(
+                f"{root / scene_dir / pairs.scene_files[i]}: scene {scene.shape[1]}×"
+                f"{scene.shape[2]}×{scene.shape[0]} differs from its measurement "
+                f"{measurement.shape[1]}×{measurement.shape[2]}×{measurement.shape[0]}; the "
+                "forward model needs scenes at the sensor's size (resample them first)")
+        if shape is None:
+            shape = scene.shape
+        elif scene.shape != shape:
+            raise InvalidInputError(f"{root / scene_dir / pairs.scene_files[i]}: size "
+                                    f"{scene.shape} differs from {names[0]} ({shape})")
+    assert shape is not None
+    return PairSet(root=root, scene_dir=scene_dir, measurement_dir=measurement_dir,
+                   names=names, scene_files=pairs.scene_files,
+                   measurement_files=pairs.measurement_files, channel_order=order, flip=flip,
+                   shape=shape)  # type: ignore[arg-type]
