@@ -1,0 +1,229 @@
+r"""Pure FFT kernels of the lensless forward model and its exact adjoint.
+
+Conventions (``shared/design.md``)
+----------------------------------
+The scene ``x`` and the measurement ``y`` are both ``(B, C, H', W')`` (the sensor's size). The
+convolution runs on a padded grid ``(P·H', P·W')`` (``P = scene_padding >= 2``):
+
+.. math::
+
+    y = \mathrm{crop}\big(K \circledast \mathrm{pad}(x)\big),
+
+where :func:`pad` zero-fills ``x`` into the centre of the padded grid (rows
+``[(P·H'−H')//2, (P·H'−H')//2 + H')``, likewise for columns), ``⊛`` is the circular
+convolution computed with ``rfft2``/``irfft2`` on that grid, and :func:`crop` keeps the same
+central block. :func:`crop` and :func:`pad` are exact adjoints of each other, so
+
+.. math::
+
+    A^\top y = \mathrm{crop}\big(K \star \mathrm{pad}(y)\big),
+
+with ``⋆`` the circular cross-correlation (multiplication by the conjugate spectrum).
+
+A kernel is an array of at most ``H' × W'`` whose origin is its centre pixel
+``(Hk//2, Wk//2)``, the way a PSF image looks; :func:`embed_kernel` moves that origin to index
+``(0, 0)`` of the padded grid. A point source at the scene's centre pixel ``(H'//2, W'//2)``
+therefore images to the kernel itself (for an ``H' × W'`` kernel), and the linear convolution of
+an ``H'``-row scene with an ``Hk <= H'``-row kernel has ``H' + Hk − 1 < P·H'`` rows, so the
+circular convolution never wraps: the model is exactly the linear convolution
+``scipy.signal.convolve(x, K, mode="full")`` shifted by the kernel origin and cropped.
+
+Eigen-kernel models (Eq. 7 of the paper) sum ``K`` such convolutions with weight maps ``W_k``
+``(K, H', W')``; see :func:`eigen_kernel_forward`. All FFTs go through :func:`rfft2` and
+:func:`irfft2` (thin wrappers of :mod:`torch.fft`), which keeps the FFT count of every operator
+easy to audit. Every function here is differentiable and works for float32 and float64 on any
+device.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+CONVENTIONS = ("sensor", "source")
+
+
+def padded_shape(sensor_shape: tuple[int, int], scene_padding: int = 2) -> tuple[int, int]:
+    """Size ``(P·H', P·W')`` of the grid on which the convolutions run."""
+    return (scene_padding * sensor_shape[0], scene_padding * sensor_shape[1])
+
+
+def centre_offset(sensor_shape: tuple[int, int],
+                  grid_shape: tuple[int, int]) -> tuple[int, int]:
+    """``(top, left)`` index of the sensor-sized block in the centre of ``grid_shape``."""
+    return ((grid_shape[0] - sensor_shape[0]) // 2, (grid_shape[1] - sensor_shape[1]) // 2)
+
+
+def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Zero-fill ``x`` ``(..., H', W')`` into the centre of a ``grid_shape`` array.
+
+    The adjoint of :func:`crop` (``crop_adjoint``).
+
+    Parameters
+    ----------
+    x : Tensor
+        ``(..., H', W')``.
+    grid_shape : (int, int)
+        ``(PH, PW)`` with ``PH >= H'`` and ``PW >= W'``.
+
+    Returns
+    -------
+    Tensor
+        ``(..., PH, PW)``, zero outside rows ``[top, top + H')`` and columns
+        ``[left, left + W')`` (:func:`centre_offset`).
+    """
+    h, w = x.shape[-2:]
+    top, left = centre_offset((h, w), grid_shape)
+    return F.pad(x, (left, grid_shape[1] - w - left, top, grid_shape[0] - h - top))
+
+
+def crop(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """The central ``sensor_shape`` block of ``z`` ``(..., PH, PW)`` (a view, no copy).
+
+    The adjoint of :func:`pad` (``pad_adjoint``).
+    """
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return z[..., top:top + sensor_shape[0], left:left + sensor_shape[1]]
+
+
+# The adjoint pairs spelled out, for readers of the operators.
+crop_adjoint = pad
+pad_adjoint = crop
+
+
+def rfft2(z: Tensor) -> Tensor:
+    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken)."""
+    return torch.fft.rfft2(z)
+
+
+def irfft2(spectrum: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
+
+    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
+    """
+    return torch.fft.irfft2(spectrum, s=grid_shape)
+
+
+def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Place centred kernels on the padded grid with their origin at index ``(0, 0)``.
+
+    Parameters
+    ----------
+    kernels : Tensor
+        ``(..., Hk, Wk)`` with the origin at ``(Hk//2, Wk//2)``; ``Hk <= PH``, ``Wk <= PW``.
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+
+    Returns
+    -------
+    Tensor
+        ``(..., PH, PW)``: ``out[(i − Hk//2) mod PH, (j − Wk//2) mod PW] = kernels[i, j]``.
+    """
+    hk, wk = kernels.shape[-2:]
+    grown = F.pad(kernels, (0, grid_shape[1] - wk, 0, grid_shape[0] - hk))
+    return torch.roll(grown, shifts=(-(hk // 2), -(wk // 2)), dims=(-2, -1))
+
+
+def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Half spectra ``rfft2(embed_kernel(kernels))``, ``(..., PH, PW//2 + 1)`` complex.
+
+    Computed once per network forward pass (trainable kernels) or cached (fixed kernels) and
+    passed to :func:`eigen_kernel_forward` / :func:`eigen_kernel_adjoint`.
+    """
+    return rfft2(embed_kernel(kernels, grid_shape))
+
+
+def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
+             conjugate: bool) -> Tensor:
+    r"""``Σ_k W_k ⊙ crop(irfft2(X̂ · Ŝ_k))`` with ``X̂ = rfft2(pad(x))``: 1 FFT, K inverse FFTs.
+
+    With ``conjugate`` the spectra are conjugated (correlation instead of convolution).
+    """
+    sensor_shape = (x.shape[-2], x.shape[-1])
+    x_hat = rfft2(pad(x, grid_shape))
+    out: Tensor | None = None
+    for k in range(spectra.shape[0]):
+        s_k = spectra[k].conj() if conjugate else spectra[k]
+        image = crop(irfft2(x_hat * s_k, grid_shape), sensor_shape)
+        if weights is None:
+            out = image if out is None else out + image
+        else:
+            out = image * weights[k] if out is None else torch.addcmul(out, image, weights[k])
+    assert out is not None  # at least one kernel (checked by the operators)
+    return out
+
+
+def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
+            conjugate: bool) -> Tensor:
+    r"""``crop(irfft2(Σ_k Ŝ_k · rfft2(pad(W_k ⊙ y))))``: K FFTs, 1 inverse FFT.
+
+    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices.
+    """
+    sensor_shape = (y.shape[-2], y.shape[-1])
+    acc: Tensor | None = None
+    for k in range(spectra.shape[0]):
+        s_k = spectra[k].conj() if conjugate else spectra[k]
+        weighted = y if weights is None else y * weights[k]
+        term = rfft2(pad(weighted, grid_shape)) * s_k
+        acc = term if acc is None else acc + term
+    assert acc is not None
+    return crop(irfft2(acc, grid_shape), sensor_shape)
+
+
+def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""Apply the eigen-kernel forward model ``A`` (Eq. 7).
+
+    .. math::
+
+        \text{sensor:}\quad y = \sum_k W_k \odot \mathrm{crop}\big(K_k \circledast
+        \mathrm{pad}(x)\big), \qquad
+        \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
+        \mathrm{pad}(W_k \odot x)\Big).
+
+    The sensor side takes 1 FFT and K inverse FFTs, the source side K FFTs and 1 inverse FFT
+    (each call transforms all ``B × C`` planes at once).
+
+    Parameters
+    ----------
+    x : Tensor
+        Scene ``(B, C, H', W')``, real.
+    spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` complex, from :func:`kernel_spectra`; its dtype matches ``x``.
+    weights : Tensor or None
+        ``(K, H', W')`` weight maps, or ``None`` for a single kernel with weight 1
+        (the shift-invariant model).
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+    convention : {"sensor", "source"}
+        Whether the weights multiply each kernel's image (sensor) or the scene (source).
+
+    Returns
+    -------
+    Tensor
+        Measurement ``(B, C, H', W')``.
+    """
+    if convention == "sensor" or weights is None:
+        return _fan_out(x, spectra, weights, grid_shape, conjugate=False)
+    return _fan_in(x, spectra, weights, grid_shape, conjugate=False)
+
+
+def eigen_kernel_adjoint(y: Tensor, spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""Apply the exact adjoint ``Aᵀ`` of :func:`eigen_kernel_forward`.
+
+    .. math::
+
+        \text{sensor:}\quad A^\top y = \mathrm{crop}\Big(\sum_k K_k \star
+        \mathrm{pad}(W_k \odot y)\Big), \qquad
+        \text{source:}\quad A^\top y = \sum_k W_k \odot \mathrm{crop}\big(K_k \star
+        \mathrm{pad}(y)\big):
+
+    weight, correlate, sum. The sensor side takes K FFTs and 1 inverse FFT, the source side
+    1 FFT and K inverse FFTs. Shapes as in :func:`eigen_kernel_forward` (``y`` is the
+    measurement, the result a scene).
+    """
+    if convention == "sensor" and weights is not None:
+        return _fan_in(y, spectra, weights, grid_shape, conjugate=True)
+    return _fan_out(y, spectra, weights, grid_shape, conjugate=True)
