@@ -254,8 +254,8 @@ def test_gradcheck_wrt_scene_and_trainable_kernels(kind):
         spectra = Fn.kernel_spectra(k, op.grid_shape)
         return (Fn.eigen_kernel_forward(x.detach(), spectra, weights, op.grid_shape,
                                         op.convention)
-                + Fn.eigen_kernel_adjoint(x.detach(), spectra, weights, op.grid_shape,
-                                          op.convention))
+                + Fn.eigen_kernel_adjoint(x.detach(), spectra.conj(), weights,
+                                          op.grid_shape, op.convention))
 
     assert torch.autograd.gradcheck(through_kernels, (kernels,))
     # the module's kernels are a Parameter that receives gradients

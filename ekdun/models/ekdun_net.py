@@ -81,14 +81,14 @@ class EKDUN(UnrolledNetwork):
         return self.eigen_initial or any(self.eigen_schedule)
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
-        # One kernel FFT batch per forward pass, reused by every iteration.
+        # One kernel FFT batch per forward pass, reused by every iteration; the base model
+        # shares the eigen-kernel model's spectra (and their conjugates).
         if self.uses_eigen_kernels:
-            spectra = self.physics.spectra()
-            eigen = self.physics.prepare(spectra)
+            eigen = self.physics.prepare(self.physics.spectra())
+            base = self.physics.prepare_base(eigen.spectra, eigen.conj_spectra)
         else:
-            spectra = self.physics.spectra(first=1)
             eigen = None
-        base = self.physics.prepare_base(spectra)
+            base = self.physics.prepare_base(self.physics.spectra(first=1))
         base.check(y, "measurement")
         return {"y": y, "base": base, "eigen": eigen}
 

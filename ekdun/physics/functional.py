@@ -92,17 +92,24 @@ crop_adjoint = pad
 pad_adjoint = crop
 
 
-def rfft2(z: Tensor) -> Tensor:
-    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken)."""
-    return torch.fft.rfft2(z)
+def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
+    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken).
+
+    With ``grid_shape``, ``z`` is zero-padded at the end of each axis to that size first (inside
+    the FFT call: no explicit padded copy).
+    """
+    return torch.fft.rfft2(z) if grid_shape is None else torch.fft.rfft2(z, s=grid_shape)
 
 
-def irfft2(spectrum: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+def irfft2(spectrum: Tensor, grid_shape: tuple[int, int], out: Tensor | None = None) -> Tensor:
     """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
 
-    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
+    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths;
+    ``out`` optionally receives the result (a reused buffer, outside autograd).
     """
-    return torch.fft.irfft2(spectrum, s=grid_shape)
+    if out is None:
+        return torch.fft.irfft2(spectrum, s=grid_shape)
+    return torch.fft.irfft2(spectrum, s=grid_shape, out=out)
 
 
 def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
@@ -134,41 +141,72 @@ def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     return rfft2(embed_kernel(kernels, grid_shape))
 
 
-def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
-             conjugate: bool) -> Tensor:
+def _records_graph(*tensors: Tensor) -> bool:
+    """Whether autograd records operations on ``tensors`` (else buffers may be reused)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int]
+             ) -> Tensor:
     r"""``Σ_k W_k ⊙ crop(irfft2(X̂ · Ŝ_k))`` with ``X̂ = rfft2(pad(x))``: 1 FFT, K inverse FFTs.
 
-    With ``conjugate`` the spectra are conjugated (correlation instead of convolution).
+    Implementation: ``x`` is zero-padded at the end of the grid (inside the FFT) and the
+    top-left ``H' × W'`` block is kept. This is the centred ``crop ∘ (K ⊛ ·) ∘ pad`` exactly:
+    centring is a circular shift by :func:`centre_offset`, which commutes with the circular
+    convolution and cancels between ``pad`` and ``crop``. Outside autograd, the spectrum
+    product and the inverse FFT reuse buffers (large allocations dominate elementwise costs).
     """
-    sensor_shape = (x.shape[-2], x.shape[-1])
-    x_hat = rfft2(pad(x, grid_shape))
+    h, w = x.shape[-2], x.shape[-1]
+    x_hat = rfft2(x, grid_shape)
+    graph = _records_graph(x, spectra) or (weights is not None and weights.requires_grad)
+    n_kernels = spectra.shape[0]
+    product: Tensor | None = None
+    image_buffer: Tensor | None = None
     out: Tensor | None = None
-    for k in range(spectra.shape[0]):
-        s_k = spectra[k].conj() if conjugate else spectra[k]
-        image = crop(irfft2(x_hat * s_k, grid_shape), sensor_shape)
+    for k in range(n_kernels):
+        if graph:
+            image = irfft2(x_hat * spectra[k], grid_shape)[..., :h, :w]
+        else:
+            if n_kernels == 1:
+                product = x_hat.mul_(spectra[k])       # x_hat is not needed any more
+            else:
+                product = torch.mul(x_hat, spectra[k], out=product)
+            image_buffer = irfft2(product, grid_shape, out=image_buffer)
+            image = image_buffer[..., :h, :w]
         if weights is None:
             out = image if out is None else out + image
+        elif out is None:
+            out = image * weights[k]
+        elif graph:
+            out = torch.addcmul(out, image, weights[k])
         else:
-            out = image * weights[k] if out is None else torch.addcmul(out, image, weights[k])
+            out.addcmul_(image, weights[k])
     assert out is not None  # at least one kernel (checked by the operators)
     return out
 
 
-def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
-            conjugate: bool) -> Tensor:
+def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int]
+            ) -> Tensor:
     r"""``crop(irfft2(Σ_k Ŝ_k · rfft2(pad(W_k ⊙ y))))``: K FFTs, 1 inverse FFT.
 
-    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices.
+    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
+    (padding and cropping as in :func:`_fan_out`).
     """
-    sensor_shape = (y.shape[-2], y.shape[-1])
+    h, w = y.shape[-2], y.shape[-1]
+    graph = _records_graph(y, spectra) or (weights is not None and weights.requires_grad)
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
-        s_k = spectra[k].conj() if conjugate else spectra[k]
         weighted = y if weights is None else y * weights[k]
-        term = rfft2(pad(weighted, grid_shape)) * s_k
-        acc = term if acc is None else acc + term
+        y_hat = rfft2(weighted, grid_shape)
+        if graph:
+            term = y_hat * spectra[k]
+            acc = term if acc is None else acc + term
+        elif acc is None:
+            acc = y_hat.mul_(spectra[k])
+        else:
+            acc.addcmul_(y_hat, spectra[k])
     assert acc is not None
-    return crop(irfft2(acc, grid_shape), sensor_shape)
+    return irfft2(acc, grid_shape)[..., :h, :w]
 
 
 def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
@@ -205,11 +243,11 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
         Measurement ``(B, C, H', W')``.
     """
     if convention == "sensor" or weights is None:
-        return _fan_out(x, spectra, weights, grid_shape, conjugate=False)
-    return _fan_in(x, spectra, weights, grid_shape, conjugate=False)
+        return _fan_out(x, spectra, weights, grid_shape)
+    return _fan_in(x, spectra, weights, grid_shape)
 
 
-def eigen_kernel_adjoint(y: Tensor, spectra: Tensor, weights: Tensor | None,
+def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
                          grid_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
     r"""Apply the exact adjoint ``Aᵀ`` of :func:`eigen_kernel_forward`.
 
@@ -222,8 +260,10 @@ def eigen_kernel_adjoint(y: Tensor, spectra: Tensor, weights: Tensor | None,
 
     weight, correlate, sum. The sensor side takes K FFTs and 1 inverse FFT, the source side
     1 FFT and K inverse FFTs. Shapes as in :func:`eigen_kernel_forward` (``y`` is the
-    measurement, the result a scene).
+    measurement, the result a scene), except that ``conj_spectra`` are the **conjugated**
+    kernel spectra (``spectra.conj().resolve_conj()``: multiplying by a lazy conjugate view
+    costs an extra copy in every call, so callers conjugate once per forward pass).
     """
     if convention == "sensor" and weights is not None:
-        return _fan_in(y, spectra, weights, grid_shape, conjugate=True)
-    return _fan_out(y, spectra, weights, grid_shape, conjugate=True)
+        return _fan_in(y, conj_spectra, weights, grid_shape)
+    return _fan_out(y, conj_spectra, weights, grid_shape)

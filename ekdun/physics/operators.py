@@ -68,13 +68,17 @@ class PreparedOperator:
         ``(PH, PW)``, the padded grid of the spectra.
     convention : {"sensor", "source"}
         Where the weights act.
+    conj_spectra : Tensor, optional
+        ``spectra.conj()`` materialised (taken lazily, once, when not given).
     """
 
     def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
-                 grid_shape: tuple[int, int], convention: str = "sensor") -> None:
+                 grid_shape: tuple[int, int], convention: str = "sensor",
+                 conj_spectra: Tensor | None = None) -> None:
         if weights is None and spectra.shape[0] != 1:
             raise KernelShapeError(f"{spectra.shape[0]} kernels need weight maps")
         self.spectra = spectra
+        self._conj_spectra = conj_spectra
         self.weights = weights
         self.sensor_shape = (int(sensor_shape[0]), int(sensor_shape[1]))
         self.grid_shape = (int(grid_shape[0]), int(grid_shape[1]))
@@ -86,6 +90,14 @@ class PreparedOperator:
     def n_kernels(self) -> int:
         """Number of kernels ``K`` (1 for the shift-invariant model)."""
         return int(self.spectra.shape[0])
+
+    @property
+    def conj_spectra(self) -> Tensor:
+        """Conjugate spectra for the adjoint, materialised once (a lazy ``conj()`` view would
+        cost a copy in every product)."""
+        if self._conj_spectra is None:
+            self._conj_spectra = self.spectra.conj().resolve_conj()
+        return self._conj_spectra
 
     def check(self, t: Tensor, what: str) -> None:
         """Raise :class:`~ekdun.errors.TensorShapeError` unless ``t`` fits this operator."""
@@ -111,7 +123,7 @@ class PreparedOperator:
     def A_adjoint(self, y: Tensor) -> Tensor:
         """Exact adjoint ``x = Aᵀ y``, ``(B, C, H', W') → (B, C, H', W')``."""
         self.check(y, "measurement")
-        return Fn.eigen_kernel_adjoint(y, self.spectra, self.weights, self.grid_shape,
+        return Fn.eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                        self.convention)
 
     __call__ = A
@@ -176,6 +188,7 @@ class FFTConvolutionOperator(nn.Module):
         self.register_buffer("weights", weights)
         # Derived from the kernels: never saved, recomputed in the module's dtype/device.
         self.register_buffer("_spectra_cache", None, persistent=False)
+        self.register_buffer("_conj_spectra_cache", None, persistent=False)
         self.register_load_state_dict_post_hook(lambda module, _keys: module.refresh_spectra())
         self.refresh_spectra()
 
@@ -197,15 +210,16 @@ class FFTConvolutionOperator(nn.Module):
     def refresh_spectra(self) -> None:
         """Recompute the cached spectra of fixed kernels (after changing them in place)."""
         if self.kernels.requires_grad:
-            self._spectra_cache = None
+            self._spectra_cache = self._conj_spectra_cache = None
         else:
             with torch.no_grad():
                 self._spectra_cache = Fn.kernel_spectra(self.kernels, self.grid_shape)
+                self._conj_spectra_cache = self._spectra_cache.conj().resolve_conj()
 
     def _apply(self, fn: Any, recurse: bool = True) -> FFTConvolutionOperator:
         # Module.to(float64) would cast the complex cache to real (dropping the imaginary
         # part): drop it first and recompute it from the converted kernels.
-        self._spectra_cache = None
+        self._spectra_cache = self._conj_spectra_cache = None
         module = super()._apply(fn, recurse)
         self.refresh_spectra()
         return module
@@ -222,10 +236,21 @@ class FFTConvolutionOperator(nn.Module):
             return cache[:n]
         return Fn.kernel_spectra(self.kernels[:n], self.grid_shape)
 
-    def prepare(self, spectra: Tensor | None = None) -> PreparedOperator:
-        """This operator bound to ``spectra`` (default :meth:`spectra`)."""
-        return PreparedOperator(self.spectra() if spectra is None else spectra, self.weights,
-                                self.sensor_shape, self.grid_shape, self.convention)
+    def _cached_conj(self, first: int | None = None) -> Tensor | None:
+        cache = self._conj_spectra_cache
+        if cache is None or self.kernels.requires_grad:
+            return None
+        return cache if first is None else cache[:first]
+
+    def prepare(self, spectra: Tensor | None = None,
+                conj_spectra: Tensor | None = None) -> PreparedOperator:
+        """This operator bound to ``spectra`` (default :meth:`spectra`) and optionally their
+        materialised conjugates (else taken once, when the adjoint first needs them)."""
+        if spectra is None:
+            return PreparedOperator(self.spectra(), self.weights, self.sensor_shape,
+                                    self.grid_shape, self.convention, self._cached_conj())
+        return PreparedOperator(spectra, self.weights, self.sensor_shape, self.grid_shape,
+                                self.convention, conj_spectra)
 
     def lipschitz_bound(self) -> float:
         r"""``max_{k,c,ω} |K̂_k(ω)|²``, an estimate of ``‖AᵀA‖``.
@@ -376,13 +401,18 @@ class EigenKernelOperator(FFTConvolutionOperator):
                               convention=convention, scene_padding=scene_padding,
                               trainable=trainable)
 
-    def prepare_base(self, spectra: Tensor | None = None) -> PreparedOperator:
+    def prepare_base(self, spectra: Tensor | None = None,
+                     conj_spectra: Tensor | None = None) -> PreparedOperator:
         """The shift-invariant model of the first (base) kernel alone, weight 1 everywhere.
 
-        ``spectra`` may hold all kernels' spectra (only the first is used) or just the first.
+        ``spectra`` (and ``conj_spectra``) may hold all kernels' spectra (only the first is
+        used) or just the first.
         """
-        s = self.spectra(first=1) if spectra is None else spectra[:1]
-        return PreparedOperator(s, None, self.sensor_shape, self.grid_shape)
+        if spectra is None:
+            return PreparedOperator(self.spectra(first=1), None, self.sensor_shape,
+                                    self.grid_shape, conj_spectra=self._cached_conj(first=1))
+        return PreparedOperator(spectra[:1], None, self.sensor_shape, self.grid_shape,
+                                conj_spectra=None if conj_spectra is None else conj_spectra[:1])
 
 
 class MultiPSFOperator(FFTConvolutionOperator):
