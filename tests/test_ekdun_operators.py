@@ -22,6 +22,15 @@ KINDS = ("si", "ek-sensor", "ek-source", "multi")
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_intra_op_thread():
+    """Tiny tensors: extra threads only contend with the other pytest-xdist worker."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 def make_operator(kind: str, sensor: tuple[int, int], colours: int, dtype: torch.dtype,
                   kernel_shape: tuple[int, int] | None = None, trainable: bool = False,
                   basis: str = "paper", seed: int = 0):
@@ -311,3 +320,16 @@ def test_bad_inputs_raise_one_line_errors():
     assert issubclass(TensorShapeError, InvalidInputError)
     for exc in (TensorShapeError("a"), KernelShapeError("b")):
         assert "\n" not in str(exc)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_buffer_reusing_path_equals_the_autograd_path(kind):
+    """Outside autograd the kernels reuse buffers in place; results must not change."""
+    op = make_operator(kind, (9, 12), 3, torch.float64, (5, 7), seed=8)
+    x = torch.rand(2, op.channels, 9, 12, dtype=torch.float64)
+    with torch.no_grad():
+        forward, adjoint = op.A(x), op.A_adjoint(x)
+    tracked = x.clone().requires_grad_(True)
+    torch.testing.assert_close(op.A(tracked).detach(), forward, rtol=0, atol=1e-13)
+    torch.testing.assert_close(op.A_adjoint(tracked).detach(), adjoint, rtol=0, atol=1e-13)
+    assert op.A(tracked).requires_grad

