@@ -19,13 +19,14 @@ from collections.abc import Callable
 import torch
 
 from ekdun.physics import EigenKernelOperator, PreparedOperator, ShiftInvariantOperator
+from ekdun.physics import functional as Fn
 from ekdun.physics.synthetic import caustic_psf
 
 
 def count_ffts(fn: Callable[[], object]) -> tuple[int, int]:
-    """``(rfft2 calls, irfft2 calls)`` made by ``fn``."""
+    """``(forward, inverse)`` 2-D FFT calls (``Fn.rfft2``, ``Fn.irfft2``) made by ``fn``."""
     counts = [0, 0]
-    rfft2, irfft2 = torch.fft.rfft2, torch.fft.irfft2
+    rfft2, irfft2 = Fn.rfft2, Fn.irfft2
 
     def counted_rfft2(*args, **kwargs):
         counts[0] += 1
@@ -35,11 +36,11 @@ def count_ffts(fn: Callable[[], object]) -> tuple[int, int]:
         counts[1] += 1
         return irfft2(*args, **kwargs)
 
-    torch.fft.rfft2, torch.fft.irfft2 = counted_rfft2, counted_irfft2
+    Fn.rfft2, Fn.irfft2 = counted_rfft2, counted_irfft2
     try:
         fn()
     finally:
-        torch.fft.rfft2, torch.fft.irfft2 = rfft2, irfft2
+        Fn.rfft2, Fn.irfft2 = rfft2, irfft2
     return counts[0], counts[1]
 
 
@@ -62,7 +63,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=9)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     dtype = getattr(torch, args.dtype)
     sensor = tuple(args.size)

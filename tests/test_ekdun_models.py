@@ -24,6 +24,7 @@ from ekdun.models import (
 from ekdun.models.le_admm_u import finite_differences, finite_differences_adjoint
 from ekdun.models.updn import interleave_copies
 from ekdun.physics import PreparedOperator, ShiftInvariantOperator
+from ekdun.physics import functional as Fn
 from ekdun.physics.synthetic import caustic_psf
 from psfkit.kernelfile import KernelModel, save_kernels
 
@@ -162,7 +163,7 @@ def test_schedule_decides_which_model_each_iteration_calls(monkeypatch, psf, sch
         return adjoint(self, x)
 
     counts = [0, 0]
-    rfft2, irfft2 = torch.fft.rfft2, torch.fft.irfft2
+    rfft2, irfft2 = Fn.rfft2, Fn.irfft2
 
     def counted_rfft2(*args, **kwargs):
         counts[0] += 1
@@ -174,8 +175,8 @@ def test_schedule_decides_which_model_each_iteration_calls(monkeypatch, psf, sch
 
     monkeypatch.setattr(PreparedOperator, "A", logged_forward)
     monkeypatch.setattr(PreparedOperator, "A_adjoint", logged_adjoint)
-    monkeypatch.setattr(torch.fft, "rfft2", counted_rfft2)
-    monkeypatch.setattr(torch.fft, "irfft2", counted_irfft2)
+    monkeypatch.setattr(Fn, "rfft2", counted_rfft2)
+    monkeypatch.setattr(Fn, "irfft2", counted_irfft2)
     model(y)
     assert calls["A"] == forward_log          # one A per iteration, in order
     assert calls["At"] == adjoint_log         # f⁰ = Aᵀy, then one Aᵀ per iteration

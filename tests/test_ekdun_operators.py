@@ -184,11 +184,12 @@ def test_eigen_kernel_with_equal_kernels_equals_shift_invariant(convention):
 
 
 class FFTCounter:
-    """Counts calls of torch.fft.rfft2 / irfft2 (each call transforms all B×C planes)."""
+    """Counts calls of the FFT entry points ``Fn.rfft2`` / ``Fn.irfft2`` (each call
+    transforms all B×C planes)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
         self.forward = self.inverse = 0
-        rfft2, irfft2 = torch.fft.rfft2, torch.fft.irfft2
+        rfft2, irfft2 = Fn.rfft2, Fn.irfft2
 
         def counted_rfft2(*args, **kwargs):
             self.forward += 1
@@ -198,13 +199,20 @@ class FFTCounter:
             self.inverse += 1
             return irfft2(*args, **kwargs)
 
-        monkeypatch.setattr(torch.fft, "rfft2", counted_rfft2)
-        monkeypatch.setattr(torch.fft, "irfft2", counted_irfft2)
+        monkeypatch.setattr(Fn, "rfft2", counted_rfft2)
+        monkeypatch.setattr(Fn, "irfft2", counted_irfft2)
 
     def take(self) -> tuple[int, int]:
         counts = (self.forward, self.inverse)
         self.forward = self.inverse = 0
         return counts
+
+
+def test_cropped_inverse_fft_equals_full_inverse_then_crop():
+    spectrum = torch.fft.rfft2(torch.rand(2, 3, 10, 13, dtype=torch.float64))
+    full = torch.fft.irfft2(spectrum, s=(10, 13))
+    torch.testing.assert_close(Fn.irfft2(spectrum, (10, 13), (5, 6)), full[..., :5, :6])
+    torch.testing.assert_close(Fn.irfft2(spectrum, (10, 13)), full)
 
 
 @pytest.mark.parametrize("kind,basis,forward,adjoint", [

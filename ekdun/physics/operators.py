@@ -85,6 +85,7 @@ class PreparedOperator:
         self.convention = convention
         self.channels = int(spectra.shape[1])
         self.dtype = _REAL_DTYPE[spectra.dtype]
+        self._workspace: Tensor | None = None
 
     @property
     def n_kernels(self) -> int:
@@ -114,17 +115,32 @@ class PreparedOperator:
             raise TensorShapeError(f"{what} is {t.dtype} but the operator is {self.dtype} "
                                    "(convert the operator with .to(dtype) or the input)")
 
+    def workspace(self, like: Tensor) -> Tensor:
+        """Zero-padding workspace for inputs shaped like ``like``, kept across calls (it stays
+        zero outside the corner that each call overwrites; only used outside autograd)."""
+        ws = self._workspace
+        if (ws is None or ws.shape[:-2] != like.shape[:-2] or ws.dtype != like.dtype
+                or ws.device != like.device):
+            ws = self._workspace = Fn.zero_workspace(like, self.grid_shape)
+        return ws
+
     def A(self, x: Tensor) -> Tensor:
         """Forward model ``y = A x``, ``(B, C, H', W') → (B, C, H', W')``."""
         self.check(x, "scene")
         return Fn.eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
-                                       self.convention)
+                                       self.convention, self._workspace_for(x))
 
     def A_adjoint(self, y: Tensor) -> Tensor:
         """Exact adjoint ``x = Aᵀ y``, ``(B, C, H', W') → (B, C, H', W')``."""
         self.check(y, "measurement")
         return Fn.eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
-                                       self.convention)
+                                       self.convention, self._workspace_for(y))
+
+    def _workspace_for(self, t: Tensor) -> Tensor | None:
+        # Autograd needs fresh padded inputs; without it, one zero-padded array is reused.
+        if torch.is_grad_enabled() and (t.requires_grad or self.spectra.requires_grad):
+            return None
+        return self.workspace(t)
 
     __call__ = A
 
