@@ -1,0 +1,194 @@
+"""Benchmark: inference time and peak memory of EK-DUN (3 schedules), Le-ADMM-U and UPDN.
+
+Targets (issue 5, paper size 1080x1440x3, batch 1): EK-DUN last-2 <= 1.05x EK-DUN base-only
+(paper: 1.03x) and <= 0.75x UPDN (paper: 0.187 s vs 0.257 s on an A100).
+
+All models are built from one synthetic caustic PSF with the preset's architectures and run
+under ``torch.inference_mode()``, in one run of this script:
+
+1. Peak memory: each model in a fresh subprocess runs one inference. On CPU the peak is the
+   resident-set high-water mark (``VmHWM``, reset through ``/proc/self/clear_refs`` just
+   before the inference, so it covers the inference alone; ``ru_maxrss`` where the reset is
+   unavailable), reported as the increase over the resident set before the inference and as
+   the absolute peak; on CUDA ``torch.cuda.max_memory_allocated``.
+2. Time: one fresh subprocess builds all models, runs one warm-up inference of each, then
+   ``--repeat`` rounds in which every model runs once (round-robin, so that a change of load
+   on the machine hits all models alike); the median per model and the ratios are printed.
+
+    python benchmarks/bench_ekdun_inference.py                      # paper size, CPU
+    python benchmarks/bench_ekdun_inference.py --size 256 320       # smaller
+    python benchmarks/bench_ekdun_inference.py --device cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+MODELS = {  # label: (model name, configuration overrides)
+    "ekdun-base": ("ekdun", {"schedule": "base"}),
+    "ekdun-last-2": ("ekdun", {"schedule": "last-k", "eigen_last": 2}),
+    "ekdun-all": ("ekdun", {"schedule": "all"}),
+    "le-admm-u": ("le-admm-u", {}),
+    "updn": ("updn", {}),
+}
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _reset_peak_rss() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_bytes(reset_worked: bool) -> int:
+    if reset_worked:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _build(label: str, args: argparse.Namespace) -> tuple[Callable[[], None], int]:
+    """``(inference closure, parameter count)`` of model ``label``."""
+    import torch
+
+    from ekdun.models import build_model
+    from ekdun.physics.synthetic import caustic_psf
+
+    device = torch.device(args.device)
+    name, overrides = MODELS[label]
+    sensor = tuple(args.size)
+    model = build_model(name, caustic_psf(sensor, 3, seed=0), args.preset, **overrides)
+    model = model.to(device).eval()
+    y = torch.rand(1, 3, *sensor, generator=torch.Generator().manual_seed(0)).to(device)
+
+    def infer() -> None:
+        with torch.inference_mode():
+            model(y)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    return infer, model.parameter_count()
+
+
+def measure_memory(args: argparse.Namespace) -> None:
+    """Child: one inference of ``args.child``, its peak memory and time (JSON line)."""
+    import torch
+
+    device = torch.device(args.device)
+    infer, params = _build(args.child, args)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        before = torch.cuda.memory_allocated(device)
+        start = time.perf_counter()
+        infer()
+        seconds = time.perf_counter() - start
+        peak, kind = torch.cuda.max_memory_allocated(device), "cuda max_memory_allocated"
+    else:
+        before = _rss_bytes()
+        reset = _reset_peak_rss()
+        start = time.perf_counter()
+        infer()
+        seconds = time.perf_counter() - start
+        peak = _peak_rss_bytes(reset)
+        kind = "VmHWM after clear_refs" if reset else "ru_maxrss"
+    print(json.dumps({"model": args.child, "params": params, "first_s": seconds,
+                      "peak_increase_gib": (peak - before) / 2**30, "peak_gib": peak / 2**30,
+                      "memory_kind": kind}))
+
+
+def measure_times(args: argparse.Namespace) -> None:
+    """Child: all models, warm-up, then round-robin timing (JSON line)."""
+    import torch
+
+    closures = {label: _build(label, args)[0] for label in args.models}
+    for infer in closures.values():
+        infer()
+    times: dict[str, list[float]] = {label: [] for label in closures}
+    for _ in range(args.repeat):
+        for label, infer in closures.items():
+            start = time.perf_counter()
+            infer()
+            times[label].append(time.perf_counter() - start)
+    print(json.dumps({"times_s": times, "threads": torch.get_num_threads()}))
+
+
+def _child(args: argparse.Namespace, role: str, label: str = "") -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--role", role, "--child", label,
+           "--size", *map(str, args.size), "--preset", args.preset, "--models", *args.models,
+           "--repeat", str(args.repeat), "--device", args.device, "--threads", str(args.threads)]
+    env = dict(os.environ)
+    if args.threads:
+        env["OMP_NUM_THREADS"] = str(args.threads)
+    proc = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, nargs=2, default=(1080, 1440), metavar=("H", "W"),
+                        help="sensor size (default 1080 1440, the paper's)")
+    parser.add_argument("--preset", default="paper", help="architecture preset (paper, tiny)")
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=list(MODELS))
+    parser.add_argument("--repeat", type=int, default=3, help="timed rounds")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    parser.add_argument("--role", choices=("memory", "time"), help=argparse.SUPPRESS)
+    parser.add_argument("--child", default="", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.role is not None:
+        import torch
+
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        (measure_memory if args.role == "memory" else measure_times)(args)
+        return
+
+    h, w = args.size
+    print(f"inference 1x3x{h}x{w} float32, preset {args.preset}, device {args.device}",
+          flush=True)
+    print("peak memory (one inference per fresh process):", flush=True)
+    for label in args.models:
+        res = _child(args, "memory", label)
+        print(f"  {label:13s} peak +{res['peak_increase_gib']:.2f} GiB over the resident set "
+              f"before the inference (absolute {res['peak_gib']:.2f} GiB, "
+              f"{res['memory_kind']}); that inference took {res['first_s']:.3f} s; "
+              f"{res['params']:,} parameters", flush=True)
+    timing = _child(args, "time")
+    where = f" ({timing['threads']} threads)" if args.device == "cpu" else ""
+    print(f"time, median of {args.repeat} round-robin rounds after one warm-up{where}:")
+    median = {}
+    for label, runs in timing["times_s"].items():
+        median[label] = statistics.median(runs)
+        print(f"  {label:13s} {median[label]:8.3f} s  (runs "
+              f"{', '.join(f'{t:.3f}' for t in runs)})")
+    if "ekdun-last-2" in median and "ekdun-base" in median:
+        print(f"ratio last-2/base: {median['ekdun-last-2'] / median['ekdun-base']:.3f} "
+              "(target <= 1.05; paper 1.03)")
+    if "ekdun-all" in median and "ekdun-base" in median:
+        print(f"ratio all/base:    {median['ekdun-all'] / median['ekdun-base']:.3f} "
+              "(paper 1.36)")
+    if "ekdun-last-2" in median and "updn" in median:
+        print(f"ratio last-2/UPDN: {median['ekdun-last-2'] / median['updn']:.3f} "
+              "(target <= 0.75; paper 0.73)")
+
+
+if __name__ == "__main__":
+    main()

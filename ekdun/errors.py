@@ -1,0 +1,19 @@
+"""Exceptions raised by ekdun.
+
+They subclass the toolkit's :mod:`psfkit.errors` classes, so the command-line interfaces (which
+catch :class:`~psfkit.errors.PsfkitError`) print them as one line without a traceback.
+"""
+
+from __future__ import annotations
+
+from psfkit.errors import ConfigurationError, InvalidInputError
+
+__all__ = ["ConfigurationError", "InvalidInputError", "KernelShapeError", "TensorShapeError"]
+
+
+class TensorShapeError(InvalidInputError):
+    """A scene or measurement tensor has the wrong rank, size, channel count or dtype."""
+
+
+class KernelShapeError(InvalidInputError):
+    """Kernels or weight maps are malformed (wrong rank, larger than the sensor, ...)."""

@@ -1,0 +1,159 @@
+"""Architecture configurations and the ``tiny`` / ``paper`` presets.
+
+Both presets use the paper's architectures (Sec. 5.2): EK-DUN with 10 iterations and a 3-level
+U-Net prior (32 → 64 → 128 channels) per iteration, Le-ADMM-U with 5 iterations, UPDN with 10
+iterations and 5 PSFs per colour. They differ only in the sensor size they are meant for:
+``tiny`` is 128 × 128 (CPU experiments, tests of the full architecture), ``paper`` the
+prototype's 1080 × 1440. The sensor size of a built model comes from its kernel file or PSF; the
+preset's ``sensor_shape`` is what benchmarks and synthetic examples use.
+
+Baseline denoisers (documented choices, see ``NOTES-issue5.md``):
+
+* Le-ADMM-U: a 5-level U-Net of widths ``(24, 64, 128, 256, 512)``, the encoder widths of
+  Monakhova et al.'s U-Net, built from the shared block (two Conv-ReLU per level, transposed
+  convolution up; their batch normalisation and bilinear upsampling are not reproduced).
+* UPDN: a 5-level U-Net of widths ``(15, 30, 60, 120, 240)``, the ``init_features = 3·5``
+  U-Net of Kingshott et al.'s colour model, input the 15 primal channels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ekdun.errors import ConfigurationError
+
+SCHEDULES = ("base", "last-k", "all")
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """See :class:`ekdun.models.unet.UNet`."""
+
+    widths: tuple[int, ...] = (32, 64, 128)
+    residual: bool = True
+    zero_init_output: bool = True
+
+
+@dataclass(frozen=True)
+class EKDUNConfig:
+    """EK-DUN (Eqs. 4–6 with the eigen-kernel model of Eq. 7).
+
+    Attributes
+    ----------
+    iterations : int
+        Unrolled iterations ``I`` (paper: 10).
+    schedule : {"base", "last-k", "all"}
+        Forward model per iteration: base kernel only; eigen-kernel model in the last
+        ``eigen_last`` iterations; eigen-kernel model everywhere (also for ``f⁰ = Aᵀy``).
+        ``"last-2"`` etc. are accepted as shorthand for ``"last-k"`` with that ``k``.
+    eigen_last : int
+        ``k`` of ``"last-k"`` (paper: 2).
+    prior : UNetConfig
+        Prior network ``P⁽ⁱ⁾`` of every iteration.
+    basis : str
+        Weight basis when the model is built from a single PSF (``Kv = Kh = Kbase = PSF``).
+    step_scale : float
+        Initial ``ε⁽ⁱ⁾ = step_scale / L`` with ``L = max |K̂|² ≈ ‖AᵀA‖``.
+    penalty_scale : float
+        Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
+    kappa_init : float
+        Initial dual step ``κ⁽ⁱ⁾``.
+    """
+
+    iterations: int = 10
+    schedule: str = "last-k"
+    eigen_last: int = 2
+    prior: UNetConfig = field(default_factory=UNetConfig)
+    basis: str = "paper"
+    step_scale: float = 1.0
+    penalty_scale: float = 0.5
+    kappa_init: float = 1.0
+
+
+@dataclass(frozen=True)
+class LeADMMUConfig:
+    """Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM, then a U-Net.
+
+    Initial values are relative to ``L = max |K̂|²``: ``μ1 = mu1_init`` (data units),
+    ``μ2 = mu2_scale·L`` (TV split), ``μ3 = mu3_scale·L`` (non-negativity split) and
+    ``τ = tau_scale·μ2`` (so the TV soft threshold ``τ/μ2`` is ``tau_scale`` in scene units).
+    """
+
+    iterations: int = 5
+    denoiser: UNetConfig = field(default_factory=lambda: UNetConfig(
+        widths=(24, 64, 128, 256, 512)))
+    mu1_init: float = 1.0
+    mu2_scale: float = 0.25
+    mu3_scale: float = 1.0
+    tau_scale: float = 1e-2
+
+
+@dataclass(frozen=True)
+class UPDNConfig:
+    """UPDN (Kingshott et al. 2022): unrolled primal-dual with learned PSFs, then a U-Net.
+
+    ``copies`` PSFs per colour (paper: 5, i.e. 15 channels for RGB), each initialised from the
+    measured PSF; ``hidden_factor`` scales the width of the 3×3 grouped convolutions of the
+    primal and dual updates relative to their input (1 as in the reference code).
+    """
+
+    iterations: int = 10
+    copies: int = 5
+    hidden_factor: int = 1
+    denoiser: UNetConfig = field(default_factory=lambda: UNetConfig(
+        widths=(15, 30, 60, 120, 240)))
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Configurations of the three models and the sensor size they are meant for."""
+
+    name: str
+    sensor_shape: tuple[int, int]
+    channels: int = 3
+    scene_padding: int = 2
+    ekdun: EKDUNConfig = field(default_factory=EKDUNConfig)
+    le_admm_u: LeADMMUConfig = field(default_factory=LeADMMUConfig)
+    updn: UPDNConfig = field(default_factory=UPDNConfig)
+
+
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset("tiny", (128, 128)),
+    "paper": Preset("paper", (1080, 1440)),
+}
+
+
+def get_preset(preset: str | Preset) -> Preset:
+    """The preset called ``preset`` (``"tiny"`` or ``"paper"``), or ``preset`` itself."""
+    if isinstance(preset, Preset):
+        return preset
+    if preset not in PRESETS:
+        raise ConfigurationError(f"unknown preset {preset!r} (use {', '.join(PRESETS)})")
+    return PRESETS[preset]
+
+
+def parse_schedule(schedule: str, iterations: int,
+                   eigen_last: int = 2) -> tuple[bool, tuple[bool, ...]]:
+    """Which forward model EK-DUN uses, as ``(eigen for f⁰, eigen for iteration i)``.
+
+    Examples
+    --------
+    >>> parse_schedule("last-k", 4, 2)
+    (False, (False, False, True, True))
+    >>> parse_schedule("all", 2)
+    (True, (True, True))
+    """
+    if iterations < 1:
+        raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
+    if schedule.startswith("last-") and schedule[5:].isdigit():
+        eigen_last, schedule = int(schedule[5:]), "last-k"
+    if schedule == "base":
+        return False, (False,) * iterations
+    if schedule == "all":
+        return True, (True,) * iterations
+    if schedule == "last-k":
+        if not 0 <= eigen_last <= iterations:
+            raise ConfigurationError(f"eigen_last must be in [0, {iterations}], got "
+                                     f"{eigen_last}")
+        return False, (False,) * (iterations - eigen_last) + (True,) * eigen_last
+    raise ConfigurationError(f"unknown schedule {schedule!r} (use base, last-k, last-N or all)")

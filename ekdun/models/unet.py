@@ -1,0 +1,106 @@
+"""The U-Net shared by all reconstruction networks (EK-DUN's prior, the baselines' denoisers).
+
+Layout for ``widths = (w_0, …, w_{L-1})`` (EK-DUN: ``(32, 64, 128)``, i.e. 3 levels, 32 base
+channels doubling per level, two max-pools):
+
+* encoder level ``l``: two ``Conv3×3 (padding 1) → ReLU`` at width ``w_l``; a 2×2 max-pool
+  between levels;
+* decoder level ``l < L-1``: ``ConvTranspose2d(w_{l+1} → w_l, 2×2, stride 2)``, concatenation
+  with the encoder's level-``l`` features (skip connection), two ``Conv3×3 → ReLU`` at ``w_l``;
+* a final ``1×1`` convolution to ``out_channels``.
+
+Residual output (the default): ``out = x[:, :out_channels] + body(x)``, so the network learns a
+correction of its input. With ``zero_init_output`` (default) the final ``1×1`` convolution starts
+at zero, so a fresh residual U-Net is the identity and a fresh unrolled network is exactly its
+physics-only iteration (a stable gradient method); training moves away from there.
+
+Sizes need not be multiples of ``2^(L-1)``: where a max-pool floors an odd size, the upsampled
+features are zero-padded by one row/column at the bottom/right to match the skip connection.
+
+Convolutions run in the channels-last memory layout (:func:`channels_last`); input and output
+are ordinary contiguous ``(B, C, H, W)`` tensors. On CPU (oneDNN) this made a full-resolution
+1080×1440 U-Net 1.8× faster; it is also the layout tensor cores prefer on CUDA.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ekdun.errors import ConfigurationError
+
+
+def channels_last(module: nn.Module, x: Tensor) -> Tensor:
+    """``module(x)`` computed in the channels-last layout, returned contiguous (NCHW)."""
+    return module(x.contiguous(memory_format=torch.channels_last)).contiguous()
+
+
+def conv_block(in_channels: int, out_channels: int) -> nn.Sequential:
+    """Two ``Conv3×3 → ReLU`` layers."""
+    return nn.Sequential(
+        nn.Conv2d(in_channels, out_channels, 3, padding=1), nn.ReLU(inplace=True),
+        nn.Conv2d(out_channels, out_channels, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class UNet(nn.Module):
+    """U-Net with max-pool down, transposed-convolution up and skip connections.
+
+    Parameters
+    ----------
+    in_channels, out_channels : int
+        Channels of the input ``(B, in_channels, H, W)`` and of the output.
+    widths : tuple of int
+        Feature width of each level, top first (its length is the number of levels).
+    residual : bool
+        Add the first ``out_channels`` input channels to the output (needs
+        ``in_channels >= out_channels``).
+    zero_init_output : bool
+        Start the final ``1×1`` convolution at zero.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int,
+                 widths: tuple[int, ...] = (32, 64, 128), residual: bool = True,
+                 zero_init_output: bool = True) -> None:
+        super().__init__()
+        if len(widths) < 1 or min(widths) < 1:
+            raise ConfigurationError(f"U-Net widths must be positive, got {widths}")
+        if residual and in_channels < out_channels:
+            raise ConfigurationError(f"a residual U-Net needs in_channels >= out_channels, got "
+                                     f"{in_channels} < {out_channels}")
+        self.widths = tuple(int(w) for w in widths)
+        self.residual = residual
+        self.out_channels = out_channels
+        ins = (in_channels, *self.widths[:-1])
+        self.encoders = nn.ModuleList(conv_block(i, w) for i, w in zip(ins, self.widths,
+                                                                       strict=True))
+        self.upsamplers = nn.ModuleList(
+            nn.ConvTranspose2d(self.widths[level + 1], self.widths[level], 2, stride=2)
+            for level in range(len(self.widths) - 1))
+        self.decoders = nn.ModuleList(conv_block(2 * w, w) for w in self.widths[:-1])
+        self.head = nn.Conv2d(self.widths[0], out_channels, 1)
+        if zero_init_output:
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``(B, in_channels, H, W) → (B, out_channels, H, W)``."""
+        skips = []
+        features = x.contiguous(memory_format=torch.channels_last)
+        for level, encoder in enumerate(self.encoders):
+            if level > 0:
+                features = F.max_pool2d(features, 2)
+            features = encoder(features)
+            skips.append(features)
+        for level in range(len(self.decoders) - 1, -1, -1):
+            up = self.upsamplers[level](features)
+            skip = skips[level]
+            # an odd size was floored by the max-pool: pad the bottom/right row/column back
+            dh, dw = skip.shape[-2] - up.shape[-2], skip.shape[-1] - up.shape[-1]
+            if dh or dw:
+                up = F.pad(up, (0, dw, 0, dh))
+            features = self.decoders[level](torch.cat([up, skip], dim=1))
+        out = self.head(features).contiguous()
+        if self.residual:
+            out = x[:, :self.out_channels] + out
+        return out

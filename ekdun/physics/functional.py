@@ -1,0 +1,300 @@
+r"""Pure FFT kernels of the lensless forward model and its exact adjoint.
+
+Conventions (``shared/design.md``)
+----------------------------------
+The scene ``x`` and the measurement ``y`` are both ``(B, C, H', W')`` (the sensor's size). The
+convolution runs on a padded grid ``(P·H', P·W')`` (``P = scene_padding >= 2``):
+
+.. math::
+
+    y = \mathrm{crop}\big(K \circledast \mathrm{pad}(x)\big),
+
+where :func:`pad` zero-fills ``x`` into the centre of the padded grid (rows
+``[(P·H'−H')//2, (P·H'−H')//2 + H')``, likewise for columns), ``⊛`` is the circular
+convolution computed with ``rfft2``/``irfft2`` on that grid, and :func:`crop` keeps the same
+central block. :func:`crop` and :func:`pad` are exact adjoints of each other, so
+
+.. math::
+
+    A^\top y = \mathrm{crop}\big(K \star \mathrm{pad}(y)\big),
+
+with ``⋆`` the circular cross-correlation (multiplication by the conjugate spectrum).
+
+A kernel is an array of at most ``H' × W'`` whose origin is its centre pixel
+``(Hk//2, Wk//2)``, the way a PSF image looks; :func:`embed_kernel` moves that origin to index
+``(0, 0)`` of the padded grid. A point source at the scene's centre pixel ``(H'//2, W'//2)``
+therefore images to the kernel itself (for an ``H' × W'`` kernel), and the linear convolution of
+an ``H'``-row scene with an ``Hk <= H'``-row kernel has ``H' + Hk − 1 < P·H'`` rows, so the
+circular convolution never wraps: the model is exactly the linear convolution
+``scipy.signal.convolve(x, K, mode="full")`` shifted by the kernel origin and cropped.
+
+Eigen-kernel models (Eq. 7 of the paper) sum ``K`` such convolutions with weight maps ``W_k``
+``(K, H', W')``; see :func:`eigen_kernel_forward`. Every 2-D FFT goes through :func:`rfft2`
+and every inverse through :func:`irfft2` (wrappers of :mod:`torch.fft`), which keeps the FFT
+count of every operator easy to audit (the tests count calls of these two functions). Every
+function here is differentiable and works for float32 and float64 on any device.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+CONVENTIONS = ("sensor", "source")
+
+
+def padded_shape(sensor_shape: tuple[int, int], scene_padding: int = 2) -> tuple[int, int]:
+    """Size ``(P·H', P·W')`` of the grid on which the convolutions run."""
+    return (scene_padding * sensor_shape[0], scene_padding * sensor_shape[1])
+
+
+def centre_offset(sensor_shape: tuple[int, int],
+                  grid_shape: tuple[int, int]) -> tuple[int, int]:
+    """``(top, left)`` index of the sensor-sized block in the centre of ``grid_shape``."""
+    return ((grid_shape[0] - sensor_shape[0]) // 2, (grid_shape[1] - sensor_shape[1]) // 2)
+
+
+def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Zero-fill ``x`` ``(..., H', W')`` into the centre of a ``grid_shape`` array.
+
+    The adjoint of :func:`crop` (``crop_adjoint``).
+
+    Parameters
+    ----------
+    x : Tensor
+        ``(..., H', W')``.
+    grid_shape : (int, int)
+        ``(PH, PW)`` with ``PH >= H'`` and ``PW >= W'``.
+
+    Returns
+    -------
+    Tensor
+        ``(..., PH, PW)``, zero outside rows ``[top, top + H')`` and columns
+        ``[left, left + W')`` (:func:`centre_offset`).
+    """
+    h, w = x.shape[-2:]
+    top, left = centre_offset((h, w), grid_shape)
+    return F.pad(x, (left, grid_shape[1] - w - left, top, grid_shape[0] - h - top))
+
+
+def crop(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """The central ``sensor_shape`` block of ``z`` ``(..., PH, PW)`` (a view, no copy).
+
+    The adjoint of :func:`pad` (``pad_adjoint``).
+    """
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return z[..., top:top + sensor_shape[0], left:left + sensor_shape[1]]
+
+
+# The adjoint pairs spelled out, for readers of the operators.
+crop_adjoint = pad
+pad_adjoint = crop
+
+
+def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
+    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken).
+
+    With ``grid_shape``, ``z`` is zero-padded at the end of each axis to that size first (inside
+    the FFT call: no explicit padded copy).
+    """
+    return torch.fft.rfft2(z) if grid_shape is None else torch.fft.rfft2(z, s=grid_shape)
+
+
+def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
+           crop_shape: tuple[int, int] | None = None) -> Tensor:
+    """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
+
+    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
+    With ``crop_shape`` only the top-left ``crop_shape`` block is returned, and only computed:
+    the complex inverse along the columns runs on the whole grid, but the real inverse along
+    the rows only on the rows kept (the same numbers as ``irfft2`` then slicing, for about
+    three quarters of the work).
+    """
+    if crop_shape is None:
+        return torch.fft.irfft2(spectrum, s=grid_shape)
+    columns = torch.fft.ifft(spectrum, dim=-2)
+    rows = torch.fft.irfft(columns[..., :crop_shape[0], :], n=grid_shape[1], dim=-1)
+    return rows[..., :crop_shape[1]]
+
+
+def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Place centred kernels on the padded grid with their origin at index ``(0, 0)``.
+
+    Parameters
+    ----------
+    kernels : Tensor
+        ``(..., Hk, Wk)`` with the origin at ``(Hk//2, Wk//2)``; ``Hk <= PH``, ``Wk <= PW``.
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+
+    Returns
+    -------
+    Tensor
+        ``(..., PH, PW)``: ``out[(i − Hk//2) mod PH, (j − Wk//2) mod PW] = kernels[i, j]``.
+    """
+    hk, wk = kernels.shape[-2:]
+    grown = F.pad(kernels, (0, grid_shape[1] - wk, 0, grid_shape[0] - hk))
+    return torch.roll(grown, shifts=(-(hk // 2), -(wk // 2)), dims=(-2, -1))
+
+
+def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """Half spectra ``rfft2(embed_kernel(kernels))``, ``(..., PH, PW//2 + 1)`` complex.
+
+    Computed once per network forward pass (trainable kernels) or cached (fixed kernels) and
+    passed to :func:`eigen_kernel_forward` / :func:`eigen_kernel_adjoint`.
+    """
+    return rfft2(embed_kernel(kernels, grid_shape))
+
+
+def _spectrum_of_corner(z: Tensor, grid_shape: tuple[int, int], workspace: Tensor | None,
+                        weight: Tensor | None = None) -> Tensor:
+    """``rfft2`` of ``z`` (times ``weight``) zero-padded at the end of the grid.
+
+    With a ``workspace`` (a ``(..., PH, PW)`` array that is zero outside its top-left block,
+    reused outside autograd) the input is written into that block and the whole array is
+    transformed: cheaper than letting ``rfft2`` allocate and zero a padded copy on each call.
+    """
+    if workspace is None:
+        return rfft2(z if weight is None else z * weight, grid_shape)
+    corner = workspace[..., :z.shape[-2], :z.shape[-1]]
+    if weight is None:
+        corner.copy_(z)
+    else:
+        torch.mul(z, weight, out=corner)
+    return rfft2(workspace)
+
+
+def _records_graph(*tensors: Tensor) -> bool:
+    """Whether autograd records operations on ``tensors`` (else buffers may be reused)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
+             workspace: Tensor | None = None) -> Tensor:
+    r"""``Σ_k W_k ⊙ crop(irfft2(X̂ · Ŝ_k))`` with ``X̂ = rfft2(pad(x))``: 1 FFT, K inverse FFTs.
+
+    Implementation: ``x`` is zero-padded at the end of the grid (inside the FFT) and the
+    top-left ``H' × W'`` block is kept. This is the centred ``crop ∘ (K ⊛ ·) ∘ pad`` exactly:
+    centring is a circular shift by :func:`centre_offset`, which commutes with the circular
+    convolution and cancels between ``pad`` and ``crop``. Outside autograd the spectrum
+    products reuse one buffer (allocating large arrays costs more than multiplying them).
+    """
+    sensor = (x.shape[-2], x.shape[-1])
+    graph = _records_graph(x, spectra) or (weights is not None and weights.requires_grad)
+    x_hat = _spectrum_of_corner(x, grid_shape, None if graph else workspace)
+    n_kernels = spectra.shape[0]
+    product: Tensor | None = None
+    out: Tensor | None = None
+    for k in range(n_kernels):
+        if graph:
+            product = x_hat * spectra[k]
+        elif n_kernels == 1:
+            product = x_hat.mul_(spectra[k])           # x_hat is not needed any more
+        else:
+            product = torch.mul(x_hat, spectra[k], out=product)
+        image = irfft2(product, grid_shape, sensor)
+        if weights is None:
+            out = image if out is None else out + image
+        elif out is None:
+            out = image * weights[k]
+        elif graph:
+            out = torch.addcmul(out, image, weights[k])
+        else:
+            out.addcmul_(image, weights[k])
+    assert out is not None  # at least one kernel (checked by the operators)
+    return out
+
+
+def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
+            workspace: Tensor | None = None) -> Tensor:
+    r"""``crop(irfft2(Σ_k Ŝ_k · rfft2(pad(W_k ⊙ y))))``: K FFTs, 1 inverse FFT.
+
+    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
+    (padding and cropping as in :func:`_fan_out`).
+    """
+    h, w = y.shape[-2], y.shape[-1]
+    graph = _records_graph(y, spectra) or (weights is not None and weights.requires_grad)
+    acc: Tensor | None = None
+    for k in range(spectra.shape[0]):
+        y_hat = _spectrum_of_corner(y, grid_shape, None if graph else workspace,
+                                    None if weights is None else weights[k])
+        if graph:
+            term = y_hat * spectra[k]
+            acc = term if acc is None else acc + term
+        elif acc is None:
+            acc = y_hat.mul_(spectra[k])
+        else:
+            acc.addcmul_(y_hat, spectra[k])
+    assert acc is not None
+    return irfft2(acc, grid_shape, (h, w))
+
+
+def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor",
+                         workspace: Tensor | None = None) -> Tensor:
+    r"""Apply the eigen-kernel forward model ``A`` (Eq. 7).
+
+    .. math::
+
+        \text{sensor:}\quad y = \sum_k W_k \odot \mathrm{crop}\big(K_k \circledast
+        \mathrm{pad}(x)\big), \qquad
+        \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
+        \mathrm{pad}(W_k \odot x)\Big).
+
+    The sensor side takes 1 FFT and K inverse FFTs, the source side K FFTs and 1 inverse FFT
+    (each call transforms all ``B × C`` planes at once).
+
+    Parameters
+    ----------
+    x : Tensor
+        Scene ``(B, C, H', W')``, real.
+    spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` complex, from :func:`kernel_spectra`; its dtype matches ``x``.
+    weights : Tensor or None
+        ``(K, H', W')`` weight maps, or ``None`` for a single kernel with weight 1
+        (the shift-invariant model).
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+    convention : {"sensor", "source"}
+        Whether the weights multiply each kernel's image (sensor) or the scene (source).
+    workspace : Tensor, optional
+        ``(B, C, PH, PW)`` array, zero outside its top-left ``H' × W'`` block, reused for the
+        zero-padded FFT inputs when autograd is not recording (see :func:`zero_workspace`).
+
+    Returns
+    -------
+    Tensor
+        Measurement ``(B, C, H', W')``.
+    """
+    if convention == "sensor" or weights is None:
+        return _fan_out(x, spectra, weights, grid_shape, workspace)
+    return _fan_in(x, spectra, weights, grid_shape, workspace)
+
+
+def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor",
+                         workspace: Tensor | None = None) -> Tensor:
+    r"""Apply the exact adjoint ``Aᵀ`` of :func:`eigen_kernel_forward`.
+
+    .. math::
+
+        \text{sensor:}\quad A^\top y = \mathrm{crop}\Big(\sum_k K_k \star
+        \mathrm{pad}(W_k \odot y)\Big), \qquad
+        \text{source:}\quad A^\top y = \sum_k W_k \odot \mathrm{crop}\big(K_k \star
+        \mathrm{pad}(y)\big):
+
+    weight, correlate, sum. The sensor side takes K FFTs and 1 inverse FFT, the source side
+    1 FFT and K inverse FFTs. Shapes as in :func:`eigen_kernel_forward` (``y`` is the
+    measurement, the result a scene), except that ``conj_spectra`` are the **conjugated**
+    kernel spectra (``spectra.conj().resolve_conj()``: multiplying by a lazy conjugate view
+    costs an extra copy in every call, so callers conjugate once per forward pass).
+    """
+    if convention == "sensor" and weights is not None:
+        return _fan_in(y, conj_spectra, weights, grid_shape, workspace)
+    return _fan_out(y, conj_spectra, weights, grid_shape, workspace)
+
+
+def zero_workspace(like: Tensor, grid_shape: tuple[int, int]) -> Tensor:
+    """A zero ``(..., PH, PW)`` workspace for inputs shaped like ``like`` ``(..., H', W')``."""
+    return like.new_zeros((*like.shape[:-2], *grid_shape))

@@ -1,0 +1,510 @@
+r"""Forward operators of the lensless camera with exact adjoints (``A`` and ``A_adjoint``).
+
+``A`` maps a scene ``(B, C, H', W')`` to a measurement of the same size, ``A_adjoint`` back; both
+are linear, run on the padded grid of :mod:`ekdun.physics.functional` with real FFTs, and are
+exact adjoints (``<A x, y> = <x, Aᵀ y>`` to rounding).
+
+Operators
+---------
+:class:`ShiftInvariantOperator`
+    ``y = crop(K * pad(x))``: one PSF ``(C, Hk, Wk)``.
+:class:`EigenKernelOperator`
+    Eq. 7, ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` (sensor side, default) or
+    ``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` (source side), kernels ``(K, C, Hk, Wk)`` and weight
+    maps ``(K, H', W')`` from :mod:`psfkit.weights` (any basis; the paper's ``base, v, h`` by
+    default).
+:class:`MultiPSFOperator`
+    ``N`` PSFs per colour acting channel-wise on ``N·C`` channels (UPDN's learned PSFs).
+
+Kernel spectra
+--------------
+Every FFT of a kernel is taken by :meth:`FFTConvolutionOperator.spectra`. With fixed kernels
+the spectra are cached in a (non-persistent) buffer, recomputed after ``.to(device/dtype)`` and
+``load_state_dict``. With trainable kernels they are recomputed on each call of
+:meth:`~FFTConvolutionOperator.spectra`, so a network calls it **once per forward pass** and
+binds the result with :meth:`~FFTConvolutionOperator.prepare`; the returned
+:class:`PreparedOperator` applies ``A``/``Aᵀ`` with no kernel FFT at all::
+
+    op = physics.prepare()          # kernel FFTs here, once
+    for i in range(iterations):
+        r = op.A(f) - y             # 1 + K (inverse) FFTs of the iterate only
+        f = f - eps * op.A_adjoint(r)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
+from ekdun.physics import functional as Fn
+from psfkit.kernelfile import KernelModel
+from psfkit.weights import get_basis
+
+_REAL_DTYPE = {torch.complex64: torch.float32, torch.complex128: torch.float64}
+
+
+class PreparedOperator:
+    """An eigen-kernel operator bound to precomputed kernel spectra.
+
+    Cheap to build (no copies), so unrolled networks build one per forward pass, or several
+    sharing spectra (EK-DUN's base-kernel model uses the first kernel's spectrum of its
+    eigen-kernel model).
+
+    Parameters
+    ----------
+    spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` complex kernel spectra.
+    weights : Tensor or None
+        ``(K, H', W')`` weight maps (real, same precision as ``spectra``), or ``None`` for one
+        kernel with weight 1.
+    sensor_shape : (int, int)
+        ``(H', W')``.
+    grid_shape : (int, int)
+        ``(PH, PW)``, the padded grid of the spectra.
+    convention : {"sensor", "source"}
+        Where the weights act.
+    conj_spectra : Tensor, optional
+        ``spectra.conj()`` materialised (taken lazily, once, when not given).
+    """
+
+    def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
+                 grid_shape: tuple[int, int], convention: str = "sensor",
+                 conj_spectra: Tensor | None = None) -> None:
+        if weights is None and spectra.shape[0] != 1:
+            raise KernelShapeError(f"{spectra.shape[0]} kernels need weight maps")
+        self.spectra = spectra
+        self._conj_spectra = conj_spectra
+        self.weights = weights
+        self.sensor_shape = (int(sensor_shape[0]), int(sensor_shape[1]))
+        self.grid_shape = (int(grid_shape[0]), int(grid_shape[1]))
+        self.convention = convention
+        self.channels = int(spectra.shape[1])
+        self.dtype = _REAL_DTYPE[spectra.dtype]
+        self._workspace: Tensor | None = None
+
+    @property
+    def n_kernels(self) -> int:
+        """Number of kernels ``K`` (1 for the shift-invariant model)."""
+        return int(self.spectra.shape[0])
+
+    @property
+    def conj_spectra(self) -> Tensor:
+        """Conjugate spectra for the adjoint, materialised once (a lazy ``conj()`` view would
+        cost a copy in every product)."""
+        if self._conj_spectra is None:
+            self._conj_spectra = self.spectra.conj().resolve_conj()
+        return self._conj_spectra
+
+    def check(self, t: Tensor, what: str) -> None:
+        """Raise :class:`~ekdun.errors.TensorShapeError` unless ``t`` fits this operator."""
+        if t.ndim != 4:
+            raise TensorShapeError(f"{what} must be (B, C, H, W), got shape {tuple(t.shape)}")
+        h, w = int(t.shape[-2]), int(t.shape[-1])
+        if (h, w) != self.sensor_shape:
+            raise TensorShapeError(f"{what} is {h}x{w} but the operator's sensor is "
+                                   f"{self.sensor_shape[0]}x{self.sensor_shape[1]}")
+        if int(t.shape[1]) != self.channels:
+            raise TensorShapeError(f"{what} has {int(t.shape[1])} channel(s) but the operator "
+                                   f"has {self.channels}")
+        if t.dtype != self.dtype:
+            raise TensorShapeError(f"{what} is {t.dtype} but the operator is {self.dtype} "
+                                   "(convert the operator with .to(dtype) or the input)")
+
+    def workspace(self, like: Tensor) -> Tensor:
+        """Zero-padding workspace for inputs shaped like ``like``, kept across calls (it stays
+        zero outside the corner that each call overwrites; only used outside autograd)."""
+        ws = self._workspace
+        if (ws is None or ws.shape[:-2] != like.shape[:-2] or ws.dtype != like.dtype
+                or ws.device != like.device):
+            ws = self._workspace = Fn.zero_workspace(like, self.grid_shape)
+        return ws
+
+    def A(self, x: Tensor) -> Tensor:
+        """Forward model ``y = A x``, ``(B, C, H', W') → (B, C, H', W')``."""
+        self.check(x, "scene")
+        return Fn.eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
+                                       self.convention, self._workspace_for(x))
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Exact adjoint ``x = Aᵀ y``, ``(B, C, H', W') → (B, C, H', W')``."""
+        self.check(y, "measurement")
+        return Fn.eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
+                                       self.convention, self._workspace_for(y))
+
+    def _workspace_for(self, t: Tensor) -> Tensor | None:
+        # Autograd needs fresh padded inputs; without it, one zero-padded array is reused.
+        if torch.is_grad_enabled() and (t.requires_grad or self.spectra.requires_grad):
+            return None
+        return self.workspace(t)
+
+    __call__ = A
+
+
+def _as_tensor(array: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
+    if isinstance(array, Tensor):
+        return array.detach().to(dtype=dtype if dtype is not None else array.dtype)
+    return torch.as_tensor(np.asarray(array), dtype=dtype if dtype is not None
+                           else torch.float32)
+
+
+class FFTConvolutionOperator(nn.Module):
+    """Common base of the FFT convolution operators: kernels, weights and spectra cache.
+
+    Parameters
+    ----------
+    kernels : Tensor
+        ``(K, C, Hk, Wk)`` real kernels, origins at ``(Hk//2, Wk//2)``, ``Hk <= H'``,
+        ``Wk <= W'``.
+    weights : Tensor or None
+        ``(K, H', W')`` weight maps, or ``None`` (then ``K`` must be 1: weight 1 everywhere).
+    sensor_shape : (int, int)
+        ``(H', W')``.
+    convention : {"sensor", "source"}
+        Where the weights act (ignored without weights).
+    scene_padding : int
+        ``P >= 2``: the convolution grid is ``(P·H', P·W')``.
+    trainable : bool
+        Kernels are an :class:`~torch.nn.Parameter` (else a buffer, with cached spectra).
+    """
+
+    def __init__(self, kernels: Tensor, weights: Tensor | None, sensor_shape: Sequence[int],
+                 convention: str = "sensor", scene_padding: int = 2,
+                 trainable: bool = False) -> None:
+        super().__init__()
+        sensor = _check_sensor_shape(sensor_shape)
+        if not isinstance(scene_padding, int) or scene_padding < 2:
+            raise ConfigurationError(f"scene_padding must be an integer >= 2, got "
+                                     f"{scene_padding!r}")
+        if convention not in Fn.CONVENTIONS:
+            raise ConfigurationError(f"convention must be 'sensor' or 'source', got "
+                                     f"{convention!r}")
+        _check_kernels(kernels, sensor)
+        if weights is not None:
+            if weights.ndim != 3 or tuple(weights.shape) != (kernels.shape[0], *sensor):
+                raise KernelShapeError(
+                    f"weight maps must be (K, H', W') = ({kernels.shape[0]}, {sensor[0]}, "
+                    f"{sensor[1]}), got {tuple(weights.shape)}")
+            weights = weights.to(kernels.dtype)
+        elif kernels.shape[0] != 1:
+            raise KernelShapeError(f"{kernels.shape[0]} kernels need weight maps")
+        self.sensor_shape = sensor
+        self.scene_padding = scene_padding
+        self.grid_shape = Fn.padded_shape(sensor, scene_padding)
+        self.convention = convention
+        kernels = kernels.detach().clone()
+        if trainable:
+            self.kernels = nn.Parameter(kernels)
+        else:
+            self.register_buffer("kernels", kernels)
+        self.register_buffer("weights", weights)
+        # Derived from the kernels: never saved, recomputed in the module's dtype/device.
+        self.register_buffer("_spectra_cache", None, persistent=False)
+        self.register_buffer("_conj_spectra_cache", None, persistent=False)
+        self.register_load_state_dict_post_hook(lambda module, _keys: module.refresh_spectra())
+        self.refresh_spectra()
+
+    @property
+    def n_kernels(self) -> int:
+        """Number of kernels ``K``."""
+        return int(self.kernels.shape[0])
+
+    @property
+    def channels(self) -> int:
+        """Number of channels ``C`` the operator acts on."""
+        return int(self.kernels.shape[1])
+
+    @property
+    def trainable(self) -> bool:
+        """Whether the kernels receive gradients (then spectra are never cached)."""
+        return bool(self.kernels.requires_grad)
+
+    def refresh_spectra(self) -> None:
+        """Recompute the cached spectra of fixed kernels (after changing them in place)."""
+        if self.kernels.requires_grad:
+            self._spectra_cache = self._conj_spectra_cache = None
+        else:
+            with torch.no_grad():
+                self._spectra_cache = Fn.kernel_spectra(self.kernels, self.grid_shape)
+                self._conj_spectra_cache = self._spectra_cache.conj().resolve_conj()
+
+    def _apply(self, fn: Any, recurse: bool = True) -> FFTConvolutionOperator:
+        # Module.to(float64) would cast the complex cache to real (dropping the imaginary
+        # part): drop it first and recompute it from the converted kernels.
+        self._spectra_cache = self._conj_spectra_cache = None
+        module = super()._apply(fn, recurse)
+        self.refresh_spectra()
+        return module
+
+    def spectra(self, first: int | None = None) -> Tensor:
+        """Kernel spectra ``(K, C, PH, PW//2 + 1)`` complex (the first ``first`` kernels).
+
+        Cached for fixed kernels; for trainable kernels this takes one FFT per kernel, so call
+        it once per network forward pass and bind the result with :meth:`prepare`.
+        """
+        n = self.n_kernels if first is None else first
+        cache = self._spectra_cache
+        if cache is not None and not self.kernels.requires_grad:
+            return cache[:n]
+        return Fn.kernel_spectra(self.kernels[:n], self.grid_shape)
+
+    def _cached_conj(self, first: int | None = None) -> Tensor | None:
+        cache = self._conj_spectra_cache
+        if cache is None or self.kernels.requires_grad:
+            return None
+        return cache if first is None else cache[:first]
+
+    def prepare(self, spectra: Tensor | None = None,
+                conj_spectra: Tensor | None = None) -> PreparedOperator:
+        """This operator bound to ``spectra`` (default :meth:`spectra`) and optionally their
+        materialised conjugates (else taken once, when the adjoint first needs them)."""
+        if spectra is None:
+            return PreparedOperator(self.spectra(), self.weights, self.sensor_shape,
+                                    self.grid_shape, self.convention, self._cached_conj())
+        return PreparedOperator(spectra, self.weights, self.sensor_shape, self.grid_shape,
+                                self.convention, conj_spectra)
+
+    def lipschitz_bound(self) -> float:
+        r"""``max_{k,c,ω} |K̂_k(ω)|²``, an estimate of ``‖AᵀA‖``.
+
+        An upper bound for one kernel (crop and pad have norm 1); with convex weights and
+        similar kernels, as in eigen-kernel models, ``‖AᵀA‖`` is close to it. Used to scale
+        initial step sizes.
+        """
+        with torch.no_grad():
+            return float(self.spectra().abs().amax().item() ** 2)
+
+    def A(self, x: Tensor) -> Tensor:
+        """Forward model ``y = A x`` (takes the kernel FFTs when the kernels are trainable)."""
+        return self.prepare().A(x)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Exact adjoint ``Aᵀ y``."""
+        return self.prepare().A_adjoint(y)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Same as :meth:`A`."""
+        return self.A(x)
+
+    def extra_repr(self) -> str:
+        return (f"kernels={tuple(self.kernels.shape)}, sensor={self.sensor_shape}, "
+                f"padding={self.scene_padding}, convention={self.convention!r}, "
+                f"trainable={self.trainable}")
+
+
+class ShiftInvariantOperator(FFTConvolutionOperator):
+    r"""Shift-invariant lensless model ``y = crop(K * pad(x))``, ``Aᵀy = crop(K ⋆ pad(y))``.
+
+    The eigen-kernel model with one kernel and weight 1 (basis ``"si"``).
+
+    Parameters
+    ----------
+    psf : Tensor
+        ``(C, Hk, Wk)`` kernel, origin at its centre.
+    sensor_shape : (int, int), optional
+        ``(H', W')``; default the PSF's size.
+    scene_padding : int
+        Padding factor ``P >= 2``.
+    trainable : bool
+        Whether the PSF is learned.
+    """
+
+    def __init__(self, psf: Tensor, sensor_shape: Sequence[int] | None = None,
+                 scene_padding: int = 2, trainable: bool = False) -> None:
+        if psf.ndim != 3:
+            raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(psf.shape)}")
+        sensor = tuple(psf.shape[-2:]) if sensor_shape is None else sensor_shape
+        super().__init__(psf[None], None, sensor, "sensor", scene_padding, trainable)
+
+    @property
+    def psf(self) -> Tensor:
+        """``(C, Hk, Wk)`` kernel."""
+        return self.kernels[0]
+
+    @classmethod
+    def from_psf(cls, psf: np.ndarray | Tensor, sensor_shape: Sequence[int] | None = None,
+                 scene_padding: int = 2, trainable: bool = False,
+                 dtype: torch.dtype | None = None) -> ShiftInvariantOperator:
+        """From a measured PSF array ``(C, H, W)`` or ``(H, W)`` (mono), origin at its centre."""
+        t = _as_tensor(psf, dtype)
+        if t.ndim == 2:
+            t = t[None]
+        return cls(t, sensor_shape, scene_padding, trainable)
+
+
+class EigenKernelOperator(FFTConvolutionOperator):
+    r"""Eigen-kernel forward model (Eq. 7 and its generalisations) with exact adjoint.
+
+    Sensor side (default)::
+
+        A x  = Σ_k W_k ⊙ crop(K_k * pad(x))          1 FFT + K inverse FFTs
+        Aᵀ y = crop(Σ_k K_k ⋆ pad(W_k ⊙ y))          K FFTs + 1 inverse FFT
+
+    Source side::
+
+        A x  = crop(Σ_k K_k * pad(W_k ⊙ x))          K FFTs + 1 inverse FFT
+        Aᵀ y = Σ_k W_k ⊙ crop(K_k ⋆ pad(y))          1 FFT + K inverse FFTs
+
+    For the paper's basis ``K = 3``: ``(K_base, K_v, K_h)`` with weights
+    ``(1 − W_h − W_v, W_v, W_h)``.
+
+    Parameters
+    ----------
+    kernels : Tensor
+        ``(K, C, Hk, Wk)``.
+    weights : Tensor
+        ``(K, H', W')`` weight maps (of the sensor pixels or of the scene pixels).
+    convention : {"sensor", "source"}
+    scene_padding : int
+    trainable : bool
+    kernel_names : sequence of str, optional
+        Names of the kernels (from the weight basis), for reports.
+    """
+
+    def __init__(self, kernels: Tensor, weights: Tensor, convention: str = "sensor",
+                 scene_padding: int = 2, trainable: bool = False,
+                 kernel_names: Sequence[str] | None = None) -> None:
+        if weights is None or weights.ndim != 3:
+            raise KernelShapeError("an eigen-kernel operator needs (K, H', W') weight maps")
+        super().__init__(kernels, weights, tuple(weights.shape[-2:]), convention,
+                         scene_padding, trainable)
+        names = tuple(kernel_names) if kernel_names is not None else tuple(
+            f"k{i}" for i in range(self.n_kernels))
+        if len(names) != self.n_kernels:
+            raise KernelShapeError(f"{len(names)} kernel names for {self.n_kernels} kernels")
+        self.kernel_names = names
+
+    @classmethod
+    def from_basis(cls, kernels: np.ndarray | Tensor, basis: str = "paper",
+                   sensor_shape: Sequence[int] | None = None,
+                   optical_center: tuple[float, float] | None = None,
+                   convention: str = "sensor", scene_padding: int = 2, trainable: bool = False,
+                   dtype: torch.dtype | None = None) -> EigenKernelOperator:
+        """From kernels ``(K, C, Hk, Wk)`` and a :mod:`psfkit.weights` basis name."""
+        k = _as_tensor(kernels, dtype)
+        sensor = _check_sensor_shape(tuple(k.shape[-2:]) if sensor_shape is None
+                                     else sensor_shape)
+        weight_basis = get_basis(basis)
+        maps = torch.as_tensor(weight_basis.maps(sensor, optical_center), dtype=k.dtype)
+        return cls(k, maps, convention, scene_padding, trainable, weight_basis.kernel_names)
+
+    @classmethod
+    def from_kernel_model(cls, model: KernelModel, trainable: bool = False,
+                          dtype: torch.dtype = torch.float32) -> EigenKernelOperator:
+        """From a psfkit kernel file's :class:`~psfkit.kernelfile.KernelModel`."""
+        kernels = torch.as_tensor(model.kernels, dtype=dtype)
+        maps = torch.as_tensor(model.weight_maps(), dtype=dtype)
+        return cls(kernels, maps, model.convention, model.scene_padding, trainable,
+                   model.kernel_names)
+
+    @classmethod
+    def from_psf(cls, psf: np.ndarray | Tensor, basis: str = "paper",
+                 sensor_shape: Sequence[int] | None = None, convention: str = "sensor",
+                 scene_padding: int = 2, trainable: bool = False,
+                 dtype: torch.dtype | None = None) -> EigenKernelOperator:
+        """Every kernel a copy of one measured PSF ``(C, H, W)`` (equals the SI model)."""
+        t = _as_tensor(psf, dtype)
+        if t.ndim == 2:
+            t = t[None]
+        if t.ndim != 3:
+            raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(t.shape)}")
+        n = get_basis(basis).n_kernels
+        return cls.from_basis(t[None].repeat(n, 1, 1, 1), basis, sensor_shape,
+                              convention=convention, scene_padding=scene_padding,
+                              trainable=trainable)
+
+    def prepare_base(self, spectra: Tensor | None = None,
+                     conj_spectra: Tensor | None = None) -> PreparedOperator:
+        """The shift-invariant model of the first (base) kernel alone, weight 1 everywhere.
+
+        ``spectra`` (and ``conj_spectra``) may hold all kernels' spectra (only the first is
+        used) or just the first.
+        """
+        if spectra is None:
+            return PreparedOperator(self.spectra(first=1), None, self.sensor_shape,
+                                    self.grid_shape, conj_spectra=self._cached_conj(first=1))
+        return PreparedOperator(spectra[:1], None, self.sensor_shape, self.grid_shape,
+                                conj_spectra=None if conj_spectra is None else conj_spectra[:1])
+
+
+class MultiPSFOperator(FFTConvolutionOperator):
+    r"""``N`` PSFs per colour, each convolving its own channel (UPDN's learned PSF stack).
+
+    Channel ``n·C + c`` of the ``(B, N·C, H', W')`` input is convolved with ``psfs[n, c]``:
+    ``y_{n,c} = crop(K_{n,c} * pad(x_{n,c}))`` and ``Aᵀ`` correlates channel-wise. It is the
+    shift-invariant model on ``N·C`` channels; :meth:`tile` makes the ``N``-fold copy of an
+    RGB measurement that UPDN compares with.
+
+    Parameters
+    ----------
+    psfs : Tensor
+        ``(N, C, Hk, Wk)``.
+    sensor_shape : (int, int), optional
+        Default the PSFs' size.
+    scene_padding : int
+    trainable : bool
+    """
+
+    def __init__(self, psfs: Tensor, sensor_shape: Sequence[int] | None = None,
+                 scene_padding: int = 2, trainable: bool = True) -> None:
+        if psfs.ndim != 4:
+            raise KernelShapeError(f"a PSF stack must be (N, C, H, W), got shape "
+                                   f"{tuple(psfs.shape)}")
+        sensor = tuple(psfs.shape[-2:]) if sensor_shape is None else sensor_shape
+        self.copies = int(psfs.shape[0])
+        self.colours = int(psfs.shape[1])
+        flat = psfs.reshape(1, self.copies * self.colours, *psfs.shape[-2:])
+        super().__init__(flat, None, sensor, "sensor", scene_padding, trainable)
+
+    @property
+    def psfs(self) -> Tensor:
+        """``(N, C, Hk, Wk)`` view of the PSF stack."""
+        return self.kernels.reshape(self.copies, self.colours, *self.kernels.shape[-2:])
+
+    @classmethod
+    def from_psf(cls, psf: np.ndarray | Tensor, copies: int = 5,
+                 sensor_shape: Sequence[int] | None = None, scene_padding: int = 2,
+                 trainable: bool = True, dtype: torch.dtype | None = None) -> MultiPSFOperator:
+        """``copies`` identical copies of a measured PSF ``(C, H, W)``."""
+        if copies < 1:
+            raise ConfigurationError(f"copies must be >= 1, got {copies}")
+        t = _as_tensor(psf, dtype)
+        if t.ndim == 2:
+            t = t[None]
+        if t.ndim != 3:
+            raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(t.shape)}")
+        return cls(t[None].repeat(copies, 1, 1, 1), sensor_shape, scene_padding, trainable)
+
+    def tile(self, y: Tensor) -> Tensor:
+        """``(B, C, H', W') → (B, N·C, H', W')``: the measurement once per PSF copy."""
+        if y.ndim != 4 or int(y.shape[1]) != self.colours:
+            raise TensorShapeError(f"measurement must be (B, {self.colours}, H, W), got shape "
+                                   f"{tuple(y.shape)}")
+        return y.repeat(1, self.copies, 1, 1)
+
+
+def _check_sensor_shape(sensor_shape: Sequence[int]) -> tuple[int, int]:
+    if len(sensor_shape) != 2 or min(int(s) for s in sensor_shape) < 2:
+        raise KernelShapeError(f"sensor_shape {list(sensor_shape)} is not a valid size")
+    return (int(sensor_shape[0]), int(sensor_shape[1]))
+
+
+def _check_kernels(kernels: Tensor, sensor: tuple[int, int]) -> None:
+    if kernels.ndim != 4:
+        raise KernelShapeError(f"kernels must be (K, C, H, W), got shape "
+                               f"{tuple(kernels.shape)}")
+    if kernels.shape[0] < 1 or kernels.shape[1] < 1:
+        raise KernelShapeError(f"kernels must have at least one kernel and channel, got shape "
+                               f"{tuple(kernels.shape)}")
+    if not kernels.is_floating_point():
+        raise KernelShapeError(f"kernels must be float32 or float64, got {kernels.dtype}")
+    hk, wk = int(kernels.shape[-2]), int(kernels.shape[-1])
+    if hk > sensor[0] or wk > sensor[1]:
+        raise KernelShapeError(f"kernels {hk}x{wk} are larger than the sensor "
+                               f"{sensor[0]}x{sensor[1]}")
+    if not bool(torch.isfinite(kernels).all()):
+        raise KernelShapeError("kernels contain NaN/Inf values")
