@@ -64,8 +64,8 @@ class PairFitOptions:
 
     basis: str = "si"
     convention: str = "sensor"
-    tikhonov: float = 1e-3
-    difference: float = 1e-2
+    tikhonov: float = 1e-2
+    difference: float = 1.0
     iterations: int = 60
     tolerance: float = 1e-4
     fit_scale: bool = True
@@ -198,9 +198,29 @@ class PairFit:
                            provenance=provenance or {})
 
 
+def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements
+    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch."""
+    if factor == 1:
+        return scenes, measurements
+
+    def binned(a: np.ndarray) -> np.ndarray:
+        n, c, h, w = a.shape
+        hh, ww = h // factor, w // factor
+        if hh < 4 or ww < 4:
+            raise InvalidInputError(f"downsampling {h}x{w} pairs by {factor} leaves too few "
+                                    "pixels")
+        blocks = a[:, :, :hh * factor, :ww * factor].reshape(n, c, hh, factor, ww, factor)
+        return blocks.mean(axis=(3, 5), dtype=np.float64).astype(np.float32)
+
+    return binned(scenes), binned(measurements)
+
+
 def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
               options: PairFitOptions | None = None, initial: np.ndarray | None = None,
-              dtype: torch.dtype = torch.float32, device: str = "cpu") -> PairFit:
+              dtype: torch.dtype = torch.float32, device: str = "cpu",
+              progress: bool = False) -> PairFit:
     """Fit a forward model to ``(N, C, H, W)`` scenes and measurements.
 
     Parameters
@@ -229,7 +249,14 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     kernels = torch.zeros((n_kernels, c, *kernel_shape), dtype=dtype, device=device) \
         if initial is None else torch.as_tensor(initial, dtype=dtype, device=device).clone()
     history: list[dict[str, Any]] = []
-    for round_index in range(options.rounds if options.fit_scale else 1):
+    rounds = options.rounds if options.fit_scale else 1
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=rounds * options.iterations, unit="it", leave=False,
+                   desc=f"fit {options.basis}")
+    for round_index in range(rounds):
         op = KernelSpaceOperator(x * scales[:, None, None, None], options.basis,
                                  options.convention, kernel_shape, options.scene_padding)
         reference = float(op.power.mean())
@@ -244,7 +271,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         rhs = op.adjoint(y)
         kernels, info = _conjugate_gradients(normal, rhs, kernels,
                                              lambda r, op=op, lam=lam: op.precondition(r, lam),
-                                             options.iterations, options.tolerance)
+                                             options.iterations, options.tolerance, bar)
         info["round"] = round_index
         history.append(info)
         if not options.fit_scale:
@@ -259,6 +286,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
             scales = new
             break
         scales = new
+    if bar is not None:
+        bar.close()
     final = KernelSpaceOperator(x * scales[:, None, None, None], options.basis,
                                 options.convention, kernel_shape, options.scene_padding)
     residual = final.forward(kernels) - y
@@ -269,7 +298,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
 
 
 def _conjugate_gradients(apply: Any, rhs: Tensor, start: Tensor, precondition: Any,
-                         iterations: int, tolerance: float) -> tuple[Tensor, dict[str, Any]]:
+                         iterations: int, tolerance: float, bar: Any = None
+                         ) -> tuple[Tensor, dict[str, Any]]:
     """Preconditioned CG, independent per colour channel (per-channel step sizes)."""
     x = start.clone()
     r = rhs - apply(x)
@@ -286,6 +316,8 @@ def _conjugate_gradients(apply: Any, rhs: Tensor, start: Tensor, precondition: A
         x += alpha[None, :, None, None] * p
         r -= alpha[None, :, None, None] * ap
         relative = float((_per_channel_dot(r, r).sqrt() / norm_rhs).max())
+        if bar is not None:
+            bar.update(1)
         if relative < tolerance:
             break
         z = precondition(r)

@@ -1,0 +1,115 @@
+"""``psfkit fit-pairs`` and ``psfkit eval-model`` end to end, and their bad-input errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psfkit.cli import main
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.pairs_fit import predict
+
+
+def _write_pairs(root: Path, scenes: np.ndarray, measurements: np.ndarray) -> Path:
+    (root / "scene").mkdir(parents=True)
+    (root / "measurement").mkdir()
+    for i, (x, y) in enumerate(zip(scenes, measurements, strict=True)):
+        np.save(root / "scene" / f"im{i}.npy", np.moveaxis(x, 0, -1))
+        np.save(root / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
+    return root
+
+
+@pytest.fixture(scope="module")
+def eigen_pairs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, KernelModel]:
+    """Two pairs folders (fit / held out) measured through a known eigen-kernel camera."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(7)
+    h, w = 16, 24
+    base = rng.random((1, 3, h, w)) ** 6
+    kernels = np.concatenate([base, base + 0.4 * rng.random((2, 3, h, w)) ** 6])
+    kernels /= kernels[0].sum(axis=(-2, -1), keepdims=True)
+    model = KernelModel(kernels=kernels.astype(np.float32), basis="paper", convention="sensor",
+                        sensor_shape=(h, w), channels=("R", "G", "B"))
+    x = np.stack([[gaussian_filter(c, 0.8) for c in im] for im in rng.random((8, 3, h, w))])
+    x = x.astype(np.float32)
+    y = predict(model, x)
+    root = tmp_path_factory.mktemp("pairs")
+    return (_write_pairs(root / "fit", x[:6], y[:6]), _write_pairs(root / "held", x[6:], y[6:]),
+            model)
+
+
+def test_fit_pairs_then_eval_model_on_unseen_pairs(eigen_pairs, tmp_path: Path, capsys) -> None:
+    fit_dir, held_dir, _ = eigen_pairs
+    results = {}
+    for name in ("si", "ek"):
+        out = tmp_path / f"{name}.npz"
+        assert main(["fit-pairs", str(fit_dir), "--model", name, "--out", str(out),
+                     "--no-scale", "--tikhonov", "1e-8", "--difference", "0",
+                     "--iterations", "300", "--quiet",
+                     "--report", str(tmp_path / f"{name}.json")]) == 0
+        model = load_kernels(out)
+        assert model.basis == ("si" if name == "si" else "paper")
+        assert model.provenance["source"] == "psfkit fit-pairs"
+        report = json.loads((tmp_path / f"{name}.json").read_text())
+        assert len(report["training_error"]) == 6
+        errors = tmp_path / f"{name}-eval.json"
+        assert main(["eval-model", str(out), str(held_dir), "--out", str(errors)]) == 0
+        results[name] = json.loads(errors.read_text())
+    assert set(results["ek"]["per_pair"]) == {"im0", "im1"}
+    assert results["ek"]["mean_raw"] < 0.05
+    assert results["ek"]["mean_raw"] < 0.3 * results["si"]["mean_raw"]
+    printed = capsys.readouterr().out
+    assert "mean" in printed and "im1" in printed
+
+
+def test_fit_pairs_downsample_is_remembered_by_eval_model(eigen_pairs, tmp_path: Path,
+                                                         capsys) -> None:
+    fit_dir, held_dir, _ = eigen_pairs
+    out = tmp_path / "si2.npz"
+    assert main(["fit-pairs", str(fit_dir), "--out", str(out), "--downsample", "2",
+                 "--iterations", "20", "--quiet"]) == 0
+    assert load_kernels(out).sensor_shape == (8, 12)
+    assert main(["eval-model", str(out), str(held_dir)]) == 0
+    # a model of the wrong size is refused, naming both sizes
+    capsys.readouterr()
+    assert main(["eval-model", str(out), str(held_dir), "--downsample", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "16x24" in err and "8x12" in err
+
+
+def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Path,
+                                                        capsys) -> None:
+    fit_dir, _, model = eigen_pairs
+    out = tmp_path / "k.npz"
+    cases = [
+        (["fit-pairs", str(tmp_path / "missing"), "--out", str(out)], "no such pairs folder"),
+        (["fit-pairs", str(fit_dir), "--model", "zernike", "--out", str(out)], "zernike"),
+        (["fit-pairs", str(fit_dir), "--out", str(tmp_path / "k.txt")], ".npz"),
+        (["fit-pairs", str(fit_dir), "--out", str(out), "--downsample", "0"], "downsample"),
+        (["eval-model", str(tmp_path / "none.npz"), str(fit_dir)], "none.npz"),
+    ]
+    unpaired = tmp_path / "unpaired"
+    _write_pairs(unpaired, np.zeros((1, 3, 16, 24), np.float32),
+                 np.ones((1, 3, 16, 24), np.float32))
+    np.save(unpaired / "scene" / "extra.npy", np.zeros((16, 24, 3), np.float32))
+    cases.append((["fit-pairs", str(unpaired), "--out", str(out)], "extra"))
+    wrong_version = tmp_path / "v9.npz"
+    save_kernels(wrong_version, model)
+    with np.load(wrong_version) as z:
+        arrays = dict(z)
+    meta = json.loads(str(arrays["metadata"]))
+    meta["version"] = 9
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(wrong_version, **arrays)
+    cases.append((["eval-model", str(wrong_version), str(fit_dir)], "version"))
+    for argv, words in cases:
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and words in err, (argv, err)
+        assert "Traceback" not in err
+    assert not out.exists()
