@@ -51,13 +51,15 @@ class PairFitOptions:
     difference : float
         ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
     iterations : int
-        Conjugate-gradient iterations per round.
+        Conjugate-gradient iterations of the final solve (scales fixed).
+    scale_iterations : int
+        Conjugate-gradient iterations of each earlier round that re-estimates the scales.
     tolerance : float
         Stop when the relative residual of the normal equations falls below this.
     fit_scale : bool
         Estimate one scale per pair (per-image normalised ground truth).
     rounds : int
-        Alternations between kernels and scales.
+        Kernel solves in all when scales are fitted (``rounds − 1`` scale updates).
     scene_padding : int
         Convolution grid as a multiple of the sensor size.
     """
@@ -67,6 +69,7 @@ class PairFitOptions:
     tikhonov: float = 1e-2
     difference: float = 1.0
     iterations: int = 60
+    scale_iterations: int = 20
     tolerance: float = 1e-4
     fit_scale: bool = True
     rounds: int = 3
@@ -78,7 +81,8 @@ class PairFitOptions:
             raise ConfigurationError(f"convention must be one of {CONVENTIONS}")
         if self.tikhonov < 0 or self.difference < 0:
             raise ConfigurationError("tikhonov and difference must be >= 0")
-        if self.iterations < 1 or self.rounds < 1 or self.scene_padding < 2:
+        if min(self.iterations, self.scale_iterations, self.rounds) < 1 \
+                or self.scene_padding < 2:
             raise ConfigurationError("iterations and rounds must be >= 1, scene_padding >= 2")
 
 
@@ -249,14 +253,18 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     kernels = torch.zeros((n_kernels, c, *kernel_shape), dtype=dtype, device=device) \
         if initial is None else torch.as_tensor(initial, dtype=dtype, device=device).clone()
     history: list[dict[str, Any]] = []
-    rounds = options.rounds if options.fit_scale else 1
+    # Scale rounds need only a rough kernel estimate (warm-started each time); the final solve
+    # with the scales fixed gets the full iteration count.
+    scale_rounds = options.rounds - 1 if options.fit_scale else 0
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=rounds * options.iterations, unit="it", leave=False,
-                   desc=f"fit {options.basis}")
-    for round_index in range(rounds):
+        bar = tqdm(total=scale_rounds * options.scale_iterations + options.iterations,
+                   unit="it", leave=False, desc=f"fit {options.basis}")
+    round_index = 0
+    while True:
+        final_round = round_index >= scale_rounds
         op = KernelSpaceOperator(x * scales[:, None, None, None], options.basis,
                                  options.convention, kernel_shape, options.scene_padding)
         reference = float(op.power.mean())
@@ -269,28 +277,27 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
             return out + mu * _difference_prior(k) if n_kernels > 1 else out
 
         rhs = op.adjoint(y)
-        kernels, info = _conjugate_gradients(normal, rhs, kernels,
-                                             lambda r, op=op, lam=lam: op.precondition(r, lam),
-                                             options.iterations, options.tolerance, bar)
+        kernels, info = _conjugate_gradients(
+            normal, rhs, kernels, lambda r, op=op, lam=lam: op.precondition(r, lam),
+            options.iterations if final_round else options.scale_iterations,
+            options.tolerance, bar)
         info["round"] = round_index
         history.append(info)
-        if not options.fit_scale:
+        if final_round:
             break
-        prediction = KernelSpaceOperator(x, options.basis, options.convention, kernel_shape,
-                                         options.scene_padding).forward(kernels)
+        # the model is linear in the scene: the unscaled prediction is the scaled one / scale
+        prediction = op.forward(kernels) / scales[:, None, None, None]
         num = (prediction * y).sum(dim=(1, 2, 3))
         den = (prediction * prediction).sum(dim=(1, 2, 3)).clamp_min(1e-30)
         new = num / den
         new = new / new.mean()                       # the overall scale stays in the kernels
         if float((new - scales).abs().max()) < 1e-4:
-            scales = new
-            break
+            scale_rounds = round_index + 1           # converged: go to the final solve
         scales = new
+        round_index += 1
     if bar is not None:
         bar.close()
-    final = KernelSpaceOperator(x * scales[:, None, None, None], options.basis,
-                                options.convention, kernel_shape, options.scene_padding)
-    residual = final.forward(kernels) - y
+    residual = op.forward(kernels) - y
     errors = residual.pow(2).sum(dim=(1, 2, 3)).sqrt() / y.pow(2).sum(dim=(1, 2, 3)).sqrt()
     return PairFit(kernels=kernels.cpu().numpy(), basis=options.basis,
                    convention=options.convention, scales=scales.cpu().numpy(),
