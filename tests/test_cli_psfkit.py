@@ -72,6 +72,12 @@ def test_demo_runs_on_the_embedded_default(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "virtual bench: 9 x 9 PSFs of 135 x 180 x 3" in text
     assert (out / "grid" / "manifest.json").is_file()
+    from psfkit.kernelfile import load_kernels
+
+    kernels = load_kernels(out / "kernels.npz")
+    assert kernels.basis == "paper" and kernels.sensor_shape == (135, 180)
+    assert (out / "kernels-figures" / "fig7_kernels.png").is_file()
+    assert "held-out relative error" in text
     assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 2
     assert "not empty" in capsys.readouterr().err
 
