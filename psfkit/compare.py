@@ -72,6 +72,8 @@ from psfkit.weights import get_basis
 ASPECT_TOLERANCE = 0.02
 #: kernel names whose displacement a warp along one sensor axis predicts
 WARP_AXES = {"v": "v", "h": "u"}
+#: fraction of the largest Σ ΔW² below which a warp-predicted displacement is not defined
+MIN_WEIGHT_CHANGE = 0.25
 
 
 @dataclass(frozen=True)
@@ -389,7 +391,8 @@ def _measured_warp(aligner: GridAligner, name: str, basis_name: str, convention:
     a map for sensor-side ones) and ``K_k(x + D(x)) ≈ Kbase(x)`` linearised, the warp of
     position p is ``ΔW_k · D``. ``D`` is the least-squares solution over the two sides,
     ``Σ ΔW·warp / Σ ΔW²`` (the average of ``warp / w`` for source-side weights), kept where
-    ``Σ ΔW² >= 0.05²``.
+    ``Σ ΔW²`` is at least :data:`MIN_WEIGHT_CHANGE` of its maximum (elsewhere the warp says
+    little about ``D`` and dividing by a small ``ΔW`` amplifies the flow's noise).
     """
     grid = aligner.grid
     k = get_basis(basis_name).kernel_names.index(name)
@@ -424,7 +427,7 @@ def _measured_warp(aligner: GridAligner, name: str, basis_name: str, convention:
         return None, used, notes
     if len(used) == 1:
         notes.append(f"warp {name}: only one side of the axis is usable; not symmetrised")
-    defined = den >= 0.05**2
+    defined = (den >= MIN_WEIGHT_CHANGE * den.max()) & (den > 0)
     field_ = np.where(defined, num / np.maximum(den, 1e-12), 0).astype(np.float32)
     return DisplacementMap(field_, defined), used, notes
 
