@@ -15,8 +15,11 @@ import html
 import io
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from matplotlib.figure import Figure
 
 from psfkit import __version__
 from psfkit.compare import KernelComparison
@@ -122,9 +125,13 @@ def comparison_figures(comparison: KernelComparison) -> list[tuple[str, str, Any
 
 
 def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
-                     overwrite: bool = False) -> Path:
+                     overwrite: bool = False,
+                     extra_figures: Sequence[tuple[str, Figure]] = ()) -> Path:
     """Write figures (PNG + PDF), ``compare.json`` and ``compare.html`` into ``out_dir``
-    (atomically: nothing appears unless everything was written)."""
+    (atomically: nothing appears unless everything was written).
+
+    ``extra_figures`` are ``(stem, figure)`` pairs also saved under ``figures/`` (e.g. the
+    paper's Fig. 7 of the learned kernels alone)."""
     from psfkit.figures.style import publication_style, save_figure
 
     out_dir = Path(out_dir)
@@ -138,6 +145,8 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
             with publication_style():
                 fig.savefig(buffer, format="png", dpi=120)
             embedded.append((stem, caption, base64.b64encode(buffer.getvalue()).decode()))
+        for stem, fig in extra_figures:
+            save_figure(fig, fig_dir / stem)
         doc = comparison.to_dict()
         doc["software"] = {"psfkit": __version__}
         (tmp / "compare.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
