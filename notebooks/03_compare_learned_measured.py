@@ -113,4 +113,5 @@ display(figure_displacements(comparison))
 
 # %%
 folder = write_comparison(comparison, OUT / "comparison", overwrite=True)
-print(sorted(p.name for p in folder.iterdir()), sorted(p.name for p in (folder / "figures").iterdir()))
+print(sorted(p.name for p in folder.iterdir()))
+print(sorted(p.name for p in (folder / "figures").iterdir()))
