@@ -98,6 +98,11 @@ class CompareOptions:
     n_pca : int
         Number of measured PCA modes whose span the learned kernels are compared with (the
         number of kernels by default, 0 = that number).
+    warp_positions : {"axes", "all"}
+        Measured warps from the outermost reliable positions on each kernel's axis (``v``,
+        ``h`` only; default), or from every reliable position, solved jointly for all
+        correction kernels (covers more pixels with sensor-side weights, but diagonal
+        positions add changes the basis cannot describe; see docs/compare.md).
     align : bool
         Register the learned ``Kbase`` to the measured one by a global sub-pixel shift first.
     fit : EigenFitOptions or None
@@ -114,6 +119,7 @@ class CompareOptions:
     mask_dilate: int = 3
     min_displacement_px: float = 0.02
     n_pca: int = 0
+    warp_positions: str = "axes"
     align: bool = True
     fit: EigenFitOptions | None = None
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
@@ -122,6 +128,9 @@ class CompareOptions:
         if self.flow_method not in FLOW_METHODS:
             raise ConfigurationError(f"unknown flow method {self.flow_method!r} "
                                      f"(use {', '.join(FLOW_METHODS)})")
+        if self.warp_positions not in ("all", "axes"):
+            raise ConfigurationError(f"warp_positions must be 'all' or 'axes', got "
+                                     f"{self.warp_positions!r}")
         if self.smooth_px < 0 or self.min_displacement_px < 0 or self.n_pca < 0:
             raise ConfigurationError("smooth_px, min_displacement_px and n_pca must be >= 0")
 
@@ -432,6 +441,73 @@ def _measured_warp(aligner: GridAligner, name: str, basis_name: str, convention:
     return DisplacementMap(field_, defined), used, notes
 
 
+def _measured_warps_joint(aligner: GridAligner, basis_name: str, convention: str,
+                          image_shape: tuple[int, int], sensor_shape: tuple[int, int],
+                          mask: np.ndarray, options: CompareOptions
+                          ) -> tuple[dict[str, DisplacementMap], list[dict[str, Any]],
+                                     list[str]]:
+    """Predicted displacements of every correction kernel from the warps of all reliable
+    positions at once.
+
+    At every pixel ``x``, ``warp_p(x) ≈ Σ_k ΔW_{k,p}(x) · D_k(x)`` over the positions p that
+    overlap the centre PSF on at least half the sensor; the ``D_k`` are the per-pixel
+    least-squares solution (kept where the smallest eigenvalue of the per-pixel normal matrix
+    is at least :data:`MIN_WEIGHT_CHANGE` of its largest value over the image). With the
+    paper's even weights, positions on opposite sides enter with the same ``ΔW``: the fit
+    averages them (the symmetrisation).
+    """
+    grid = aligner.grid
+    basis = get_basis(basis_name)
+    names = basis.kernel_names[1:]
+    n = len(names)
+    reference = resample(aligner.reference_luminance, sensor_shape)
+    gram = np.zeros((*sensor_shape, n, n), np.float64)
+    rhs = np.zeros((*sensor_shape, n, 2), np.float64)
+    used, notes = [], []
+    centre = grid.require_center()
+    for pos in grid.positions:
+        if (pos.row, pos.col) == centre:
+            continue
+        aligned = aligner.align(pos)
+        if aligned.overlap < RELIABLE_OVERLAP:
+            continue
+        changes = np.stack([_weight_change(basis_name, convention, k, image_shape,
+                                           aligned.shift, sensor_shape)
+                            for k in range(1, n + 1)])                       # (n, H, W)
+        # the flow is unreliable within a patch of the edge of the data
+        valid = ndimage.binary_erosion(
+            resample(aligned.valid.astype(np.float32), sensor_shape) > 0.999,
+            iterations=max(options.mask_border, 1), border_value=0)
+        here = mask & valid
+        if not here.any():
+            continue
+        disp = displacement_map(reference, resample(aligned.luminance, sensor_shape), here,
+                                options.flow_method, options.smooth_px)
+        weighted = changes * here                                            # (n, H, W)
+        gram += np.einsum("ihw,jhw->hwij", weighted, changes)
+        rhs += np.einsum("ihw,chw->hwic", weighted, disp.field)
+        used.append({"row": pos.row, "col": pos.col, "shift_px": list(aligned.shift),
+                     "overlap": aligned.overlap, "warp_rms_px": disp.rms(),
+                     "mean_weight_change": {name: float(np.mean(changes[i][here]))
+                                            for i, name in enumerate(names)}})
+    if not used:
+        notes.append(f"no position overlaps the centre PSF on >= {100 * RELIABLE_OVERLAP:.0f}% "
+                     "of the sensor; no measured warp")
+        return {}, used, notes
+    smallest = np.linalg.eigvalsh(gram)[..., 0]
+    defined = smallest >= MIN_WEIGHT_CHANGE * smallest.max()
+    if not defined.any() or smallest.max() <= 0:
+        notes.append("the grid's positions do not determine the warp of every correction "
+                     "kernel (too few positions off the axes?); no measured warp")
+        return {}, used, notes
+    solution = np.zeros_like(rhs)
+    solution[defined] = np.linalg.solve(gram[defined], rhs[defined])          # (m, n, 2)
+    warps = {name: DisplacementMap(np.moveaxis(solution[:, :, i, :], -1, 0).astype(np.float32)
+                                   * defined, defined)
+             for i, name in enumerate(names)}
+    return warps, used, notes
+
+
 def load_grid(measured: PsfGrid | str | os.PathLike) -> PsfGrid:
     """A :class:`PsfGrid` from a grid or a grid folder (validated, pixels checked lazily)."""
     if isinstance(measured, PsfGrid):
@@ -486,7 +562,12 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
     mask = comparison_mask(base_lum, options)
     aligner = GridAligner(grid, fit_options.preprocess, fit_options.upsample)
     warps, positions = {}, {}
-    for name in get_basis(basis).kernel_names[1:]:
+    if options.warp_positions == "all":
+        warps, used, more = _measured_warps_joint(aligner, basis, convention, (h, w),
+                                                  tuple(sensor_shape), mask, options)
+        notes.extend(more)
+        positions = {"all": used}
+    for name in get_basis(basis).kernel_names[1:] if options.warp_positions == "axes" else ():
         if name not in WARP_AXES:
             notes.append(f"kernel {name!r}: no single-axis warp predicts it; kernel and PCA "
                          "comparisons only")
@@ -637,6 +718,7 @@ class KernelComparison:
             "options": {"flow_method": self.options.flow_method,
                         "smooth_px": self.options.smooth_px,
                         "min_displacement_px": self.options.min_displacement_px,
+                        "warp_positions": self.options.warp_positions,
                         "mask_level": self.options.mask_level, "align": self.options.align},
             "notes": self.notes})
 

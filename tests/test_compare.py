@@ -158,6 +158,16 @@ def test_sensor_convention_grid_fit_agrees_with_its_warps(grid_inner):
     assert result.measured_kernels_vs_warp["v"]["corr"] > 0.2
 
 
+def test_joint_warps_from_all_positions(grid_inner):
+    """warp_positions="all": every reliable position, all correction kernels at once."""
+    grid = read_grid(grid_inner)
+    options = CompareOptions(warp_positions="all")
+    modes = measure_modes(grid, "paper", "source", grid.image_shape[1:], options)
+    assert set(modes.warps) == {"v", "h"} and len(modes.warp_positions["all"]) >= 4
+    result = compare_kernels(modes.model, modes, options=options)
+    assert result.measured_kernels_vs_warp["h"]["corr"] > 0.5
+
+
 def test_coarser_learned_file_and_smaller_kernels(grid_inner, modes):
     """A kernel file at 1/3 of the grid's resolution with kernels smaller than its sensor:
     the grid is resampled and the kernels padded (and the notes say so)."""

@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--smooth", type=float, default=3.0, metavar="PX",
                    help="sigma of the masked Gaussian smoothing of displacement maps (px, "
                         "default 3)")
+    p.add_argument("--warp-positions", choices=("axes", "all"), default="axes",
+                   help="measured warps from the outermost positions on each kernel's axis "
+                        "(default) or from every reliable position, fitted jointly")
     p.add_argument("--no-align", action="store_true",
                    help="do not register the learned Kbase to the measured one first")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
@@ -62,7 +65,8 @@ def run_compare(args: argparse.Namespace) -> int:
     initial = load_kernels(args.initial) if args.initial else None
     grid = load_grid(args.grid)
     options = CompareOptions(flow_method=args.method, smooth_px=args.smooth,
-                             align=not args.no_align, preprocess=preprocess_options(args))
+                             warp_positions=args.warp_positions, align=not args.no_align,
+                             preprocess=preprocess_options(args))
     comparison = compare_kernels(learned, grid, initial=initial, options=options,
                                  progress=not args.quiet)
     write_comparison(comparison, out, overwrite=args.overwrite)
