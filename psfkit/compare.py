@@ -11,12 +11,15 @@ Measured side (:func:`measure_modes`), from a PSF grid:
 - the top PCA modes of the registered grid (:mod:`psfkit.pca`);
 - warp fields: the dense flow from the centre PSF to the (shift-registered, gain-matched) PSFs
   at the outermost reliable positions on the centre column (``v = ±edge, u = 0``) and centre
-  row (``v = 0, u = ±edge``). The paper's weights are even in ``u`` and ``v``, so a kernel
-  ``Kv`` can only describe the *even* part of the change: the two opposite warps are
-  averaged (symmetrised). Linearising ``PSF_edge ≈ (1 − w) Kbase + w Kv`` with
-  ``Kv(x + D(x)) ≈ Kbase(x)`` gives ``warp ≈ w · D``, so each warp is divided by the weight
-  ``w`` of that kernel at that position: the result is the displacement ``D`` that ``Kv``
-  (``Kh``) should show relative to ``Kbase`` ("predicted kernel displacement").
+  row (``v = 0, u = ±edge``). For the model, ``PSF_p − PSF_0 = Σ_k ΔW_k (K_k − Kbase)``
+  (``ΔW_k``: change of kernel k's weight between the centre and position p; a constant for
+  source-side weights, a map for the paper's sensor-side ones). Linearising with
+  ``Kv(x + D(x)) ≈ Kbase(x)`` gives ``warp_p ≈ ΔW_v · D``; the least-squares ``D`` over the
+  two opposite positions is the displacement ``Kv`` (``Kh``) should show relative to
+  ``Kbase`` ("predicted kernel displacement"). The paper's weights are even in ``u`` and
+  ``v``, so ``Kv`` can only describe the *even* part of the change: using both sides is the
+  symmetrisation. (``CompareOptions.warp_positions="all"``: every reliable position, all
+  correction kernels solved jointly.)
 
 Learned side: the kernels of a kernel file (after training), padded to the sensor size and
 registered to the measured ``Kbase`` by one global sub-pixel shift.
@@ -331,11 +334,12 @@ class MeasuredModes:
     sensor_shape : (int, int)
         The comparison grid ``(H, W)`` (the learned file's sensor size).
     warps : dict
-        Kernel name (``"v"``, ``"h"``) → :class:`DisplacementMap`: the symmetrised warp field
-        divided by the kernel's weight at the edge positions (predicted displacement of that
-        kernel relative to ``Kbase``).
+        Kernel name (``"v"``, ``"h"``) → :class:`DisplacementMap`: the displacement of that
+        kernel relative to ``Kbase`` predicted by the measured warps (see the module
+        docstring).
     warp_positions : dict
-        Kernel name → list of ``{"row", "col", "weight", "overlap", "rms_px"}`` used.
+        Kernel name (or ``"all"``) → list of ``{"row", "col", "shift_px",
+        "mean_weight_change", "overlap", "warp_rms_px"}`` of the positions used.
     pca_components : numpy.ndarray or None
         ``(r, C, h, w)`` top uncentred PCA modes on the fit's binned working grid.
     pca_region : numpy.ndarray or None
