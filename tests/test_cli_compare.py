@@ -92,3 +92,19 @@ def test_compare_refuses_a_non_empty_output_folder(setup, tmp_path, capsys):
     assert main(["compare", str(fitted), str(grid), "--out", str(out), "--quiet"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+
+def test_grid_without_reliable_edge_positions_is_reported_not_fatal(grid_3x3, tmp_path, capsys):
+    """A grid spanning the whole field: its edge PSFs overlap the centre one too little for a
+    warp or a PCA; the comparison still runs and says so."""
+    fitted = tmp_path / "k.npz"
+    assert main(["fit-eigen", str(grid_3x3), "--out", str(fitted), "--cv-bases", "none",
+                 "--quiet"]) == 0
+    out = tmp_path / "cmp"
+    assert main(["compare", str(fitted), str(grid_3x3), "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "no measured warp" in text and "too few reliable positions" in text
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["learned"]["metrics"]["v"]["vs_measured_warp"] is None
+    assert doc["learned"]["principal_angles_deg_vs_measured_pca"] is None
+    assert (out / "figures" / "displacements.png").is_file()
