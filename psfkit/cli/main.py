@@ -38,7 +38,14 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from psfkit.cli import characterize_cmd, fit_cmd, inspect_cmd, pairs_cmd, simulate_cmd
+    from psfkit.cli import (
+        characterize_cmd,
+        compare_cmd,
+        fit_cmd,
+        inspect_cmd,
+        pairs_cmd,
+        simulate_cmd,
+    )
 
     parser = argparse.ArgumentParser(
         prog="psfkit",
@@ -50,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     characterize_cmd.register(sub)
     fit_cmd.register(sub)
     pairs_cmd.register(sub)
+    compare_cmd.register(sub)
     return parser
 
 

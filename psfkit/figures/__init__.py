@@ -1,5 +1,6 @@
 """Publication-quality figures (matplotlib, PNG + PDF)."""
 
+from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
 from psfkit.figures.eigen_figures import (
     figure_eigen_diagnostics,
     figure_kernels,
@@ -15,7 +16,8 @@ from psfkit.figures.grid_figures import (
 from psfkit.figures.style import new_figure, publication_style, save_figure
 
 __all__ = [
-    "figure_eigen_diagnostics", "figure_kernels", "figure_maps", "figure_montage",
+    "figure_displacements", "figure_eigen_diagnostics", "figure_kernels",
+    "figure_learned_vs_measured", "figure_maps", "figure_montage",
     "figure_shift_variance", "figure_warp", "figure_warp_summary", "figure_weight_maps",
     "new_figure", "publication_style", "save_figure",
 ]

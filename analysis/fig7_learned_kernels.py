@@ -1,0 +1,61 @@
+"""Fig. 7 of the paper (learned Kbase, Kv, Kh and Kv − Kbase, Kh − Kbase), with the
+learned-vs-measured comparison the paper only shows.
+
+Usage::
+
+    python analysis/fig7_learned_kernels.py LEARNED.npz GRID --out DIR [--initial K.npz]
+
+Writes ``DIR/figures/fig7.png|pdf`` (the paper's layout, learned kernels alone; ``fig7_zoom``
+the central part of the caustic), and the comparison of :func:`psfkit.compare.compare_kernels`
+(as ``psfkit compare``): ``DIR/compare.json``, ``DIR/compare.html``, ``DIR/figures/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import run
+
+from psfkit.compare import check_learned, compare_kernels, load_grid
+from psfkit.compare_report import write_comparison
+from psfkit.figures import figure_kernels
+from psfkit.kernelfile import load_kernels
+
+
+def main(args: argparse.Namespace) -> int:
+    learned = load_kernels(args.learned)
+    check_learned(learned, args.learned)
+    initial = load_kernels(args.initial) if args.initial else None
+    grid = load_grid(args.grid)
+    comparison = compare_kernels(learned, grid, initial=initial, progress=not args.quiet)
+    names = list(learned.kernel_names)
+    # the paper's figure: the learned kernels alone
+    paper = [("fig7", figure_kernels(learned.kernels, names, "learned eigen-kernels")),
+             ("fig7_zoom", figure_kernels(learned.kernels, names,
+                                          "learned eigen-kernels (zoom)", zoom=0.3))]
+    out = write_comparison(comparison, args.out, overwrite=args.overwrite,
+                           extra_figures=paper)
+    for label, row in comparison.headline().items():
+        print(f"{label}: " + ", ".join(f"{k} {v:.3f}" if v == v else f"{k} n/a"
+                                       for k, v in row.items()))
+    print(f"wrote {out}")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("learned", help="kernel file of the trained model")
+    p.add_argument("grid", help="PSF-grid folder of the same camera")
+    p.add_argument("--initial", help="kernel file before training")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+if __name__ == "__main__":
+    sys.exit(run(parser(), main))

@@ -1,0 +1,134 @@
+"""Figures of a learned-vs-measured kernel comparison (:mod:`psfkit.compare`): Fig. 7 for the
+learned kernels next to the measured ones, and the displacement maps."""
+
+from __future__ import annotations
+
+import matplotlib
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
+
+from psfkit.compare import DisplacementMap, KernelComparison
+from psfkit.figures.eigen_figures import _crop_box
+from psfkit.figures.style import PAGE_IN, new_figure, publication_style
+from psfkit.preprocess import luminance
+
+
+def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
+    rows = [("learned", comparison.learned.kernels)]
+    if comparison.initial is not None:
+        rows.append(("initial", comparison.initial.kernels))
+    rows.append(("measured (grid fit)", comparison.measured.model.kernels))
+    return rows
+
+
+def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None = None
+                               ) -> Figure:
+    """Fig. 7 layout (``K_base``, ``K_k`` ..., ``K_k − K_base`` ...) for the learned kernels,
+    the initial ones (if given) and the kernels fitted to the grid, one row each, on one crop.
+
+    Parameters
+    ----------
+    comparison : KernelComparison
+    zoom : float, optional
+        Show only the central ``zoom`` fraction of the caustic's bounding box.
+    """
+    names = comparison.kernel_names
+    rows = [(label, np.stack([luminance(k) for k in kernels]))
+            for label, kernels in _rows(comparison)]
+    box = _crop_box(rows[-1][1][0])
+    if zoom is not None:
+        (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
+        hr, hc = int((r1 - r0) * zoom / 2), int((c1 - c0) * zoom / 2)
+        mr, mc = (r0 + r1) // 2, (c0 + c1) // 2
+        box = (slice(mr - hr, mr + hr), slice(mc - hc, mc + hc))
+    k = len(names)
+    cols = 2 * k - 1
+    with publication_style():
+        fig = new_figure(PAGE_IN, 1.45 * len(rows) + 0.35)
+        axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
+        cmap = matplotlib.colormaps["RdBu_r"]
+        for r, (label, lum) in enumerate(rows):
+            lum = lum[:, box[0], box[1]]
+            # each row on its own scale: learned kernels may be normalised differently
+            peak = float(lum.max()) or 1.0
+            diffs = (lum[1:] - lum[0]) / peak
+            limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
+            for i in range(k):
+                ax = axes[r, i]
+                ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
+                ax.set_title(f"K_{names[i]}" if r == 0 else "")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if i == 0:
+                    ax.set_ylabel(label)
+            for i in range(1, k):
+                ax = axes[r, k + i - 1]
+                im = ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
+                ax.set_title(f"K_{names[i]} − K_{names[0]}" if r == 0 else "")
+                ax.set_axis_off()
+            fig.colorbar(im, ax=list(axes[r, k:]), shrink=0.8, label="diff. / peak")
+        fig.suptitle("learned vs measured eigen-kernels (Fig. 7 layout)"
+                     + (" – zoom" if zoom else ""))
+    return fig
+
+
+def _quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax: float,
+                  title: str, step: int) -> AxesImage:
+    field = disp.field[:, box[0], box[1]]
+    mask = disp.mask[box[0], box[1]]
+    magnitude = np.where(mask, np.hypot(field[0], field[1]), np.nan)
+    im = ax.imshow(magnitude, cmap="viridis", vmin=0, vmax=vmax)
+    rows, cols = np.mgrid[step // 2:mask.shape[0]:step, step // 2:mask.shape[1]:step]
+    keep = mask[rows, cols]
+    if keep.any():
+        # image axes: v grows downwards, so the arrow's v component is drawn as is with
+        # angles="xy" on an inverted y axis
+        ax.quiver(cols[keep], rows[keep], field[0][rows, cols][keep],
+                  field[1][rows, cols][keep], color="w", angles="xy", scale_units="xy",
+                  scale=vmax / (1.5 * step), width=0.005,
+                  headwidth=4)
+    ax.set_title(title)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    return im
+
+
+def figure_displacements(comparison: KernelComparison, arrows: int = 14) -> Figure:
+    """Displacement maps of ``K_k`` relative to ``K_base`` (colour: length in px; arrows:
+    direction, ``u`` right, ``v`` down), one row per correction kernel: learned, initial (if
+    given), measured eigen-kernels, and the displacement predicted by the measured warps."""
+    names = list(comparison.kernel_names[1:])
+    box = _crop_box(np.where(comparison.mask, 1.0, 0.0), level=0.5, margin=2)
+    span = max(box[0].stop - box[0].start, box[1].stop - box[1].start)
+    step = max(2, span // arrows)
+    columns = ["learned"] + (["initial"] if comparison.initial is not None else []) + [
+        "measured kernels", "measured warp"]
+    with publication_style():
+        fig = new_figure(PAGE_IN, 1.75 * len(names) + 0.4)
+        axes = np.atleast_2d(fig.subplots(len(names), len(columns), squeeze=False))
+        for r, name in enumerate(names):
+            maps: list[tuple[str, DisplacementMap | None]] = [
+                ("learned", comparison.learned.displacements.get(name))]
+            if comparison.initial is not None:
+                maps.append(("initial", comparison.initial.displacements.get(name)))
+            maps.append(("measured kernels", comparison.measured_displacements.get(name)))
+            maps.append(("measured warp", comparison.measured.warps.get(name)))
+            values = [np.hypot(*d.field[:, d.mask]) for _, d in maps
+                      if d is not None and d.mask.any()]
+            # robust colour scale: a few large flow errors must not wash out the maps
+            vmax = max((float(np.percentile(v, 95)) for v in values if v.size), default=1.0)
+            vmax = vmax if vmax > 0 else 1.0
+            im = None
+            for c, (label, disp) in enumerate(maps):
+                ax = axes[r, c]
+                if disp is None:
+                    ax.set_axis_off()
+                    ax.set_title(f"{label}: n/a")
+                    continue
+                im = _quiver_panel(ax, disp, box, vmax, f"K_{name}: {label}", step)
+            if im is not None:
+                fig.colorbar(im, ax=list(axes[r]), shrink=0.8, label="|D| (px)")
+        fig.suptitle("local displacement of K_k relative to K_base")
+    return fig

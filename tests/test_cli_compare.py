@@ -1,0 +1,110 @@
+"""psfkit compare from the command line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from psfkit.bench import BenchConfig, simulate_grid
+from psfkit.cli import main
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A 3 × 3 grid over 80 % of the field, its fitted kernel file and a shift-invariant
+    start (Kv = Kh = Kbase) as the 'initial' file."""
+    root = tmp_path_factory.mktemp("compare")
+    grid = simulate_grid(root / "grid", BenchConfig(downsample=8), grid_shape=(3, 3),
+                         extent=0.8, progress=False)
+    fitted = root / "fitted.npz"
+    assert main(["fit-eigen", str(grid), "--out", str(fitted), "--cv-bases", "none",
+                 "--quiet"]) == 0
+    model = load_kernels(fitted)
+    initial = root / "initial.npz"
+    save_kernels(initial, KernelModel(kernels=np.stack([model.kernels[0]] * 3),
+                                      sensor_shape=model.sensor_shape))
+    return grid, fitted, initial, model
+
+
+def test_compare_writes_figures_json_and_html(setup, tmp_path, capsys):
+    grid, fitted, initial, _ = setup
+    out = tmp_path / "cmp"
+    assert main(["compare", str(fitted), str(grid), "--out", str(out), "--initial",
+                 str(initial), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "v_vs_kernels +1.000" in text and "initial" in text and "n/a" in text
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["headline"]["learned"]["h_vs_kernels"] == pytest.approx(1.0)
+    assert doc["headline"]["initial"]["h_vs_kernels"] is None
+    assert doc["learned"]["metrics"]["v"]["vs_measured_warp"]["corr"] is not None
+    assert set(doc["measured"]["warp_positions"]) == {"v", "h"}
+    for stem in ("fig7_learned_vs_measured", "fig7_learned_vs_measured_zoom", "displacements"):
+        for ext in ("png", "pdf"):
+            assert (out / "figures" / f"{stem}.{ext}").stat().st_size > 10_000
+    html = (out / "compare.html").read_text()
+    assert "<section id=\"learned-vs-measured\">" in html and "data:image/png;base64" in html
+
+
+def _bad_version(path, model):
+    meta = {"format": "ekdun-kernels", "version": 99, "basis": "paper"}
+    np.savez(path, kernels=model.kernels, metadata=np.array(json.dumps(meta)))
+
+
+@pytest.mark.parametrize("case,message", [
+    ("version", "kernel file version 99 is not supported"),
+    ("si", "has a single kernel"),
+    ("aspect", "different aspect ratios"),
+    ("not-a-grid", "manifest"),
+    ("missing", "no such kernel file"),
+])
+def test_compare_refusals(setup, tmp_path, capsys, case, message):
+    grid, fitted, _, model = setup
+    learned, grid_arg = tmp_path / "k.npz", str(grid)
+    if case == "version":
+        _bad_version(learned, model)
+    elif case == "si":
+        save_kernels(learned, KernelModel.shift_invariant(model.kernels[0],
+                                                          sensor_shape=model.sensor_shape))
+    elif case == "aspect":
+        save_kernels(learned, KernelModel(kernels=model.kernels[..., :135], basis="paper",
+                                          sensor_shape=(135, 135)))
+    elif case == "not-a-grid":
+        learned = fitted
+        (tmp_path / "nogrid").mkdir()
+        grid_arg = str(tmp_path / "nogrid")
+    else:
+        learned = tmp_path / "absent.npz"
+    out = tmp_path / "cmp"
+    assert main(["compare", str(learned), grid_arg, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    assert not out.exists()
+
+
+def test_compare_refuses_a_non_empty_output_folder(setup, tmp_path, capsys):
+    grid, fitted, _, _ = setup
+    out = tmp_path / "cmp"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    assert main(["compare", str(fitted), str(grid), "--out", str(out), "--quiet"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+
+def test_grid_without_reliable_edge_positions_is_reported_not_fatal(grid_3x3, tmp_path, capsys):
+    """A grid spanning the whole field: its edge PSFs overlap the centre one too little for a
+    warp or a PCA; the comparison still runs and says so."""
+    fitted = tmp_path / "k.npz"
+    assert main(["fit-eigen", str(grid_3x3), "--out", str(fitted), "--cv-bases", "none",
+                 "--quiet"]) == 0
+    out = tmp_path / "cmp"
+    assert main(["compare", str(fitted), str(grid_3x3), "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "no measured warp" in text and "too few reliable positions" in text
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["learned"]["metrics"]["v"]["vs_measured_warp"] is None
+    assert doc["learned"]["principal_angles_deg_vs_measured_pca"] is None
+    assert (out / "figures" / "displacements.png").is_file()

@@ -1,0 +1,67 @@
+"""Every notebook in notebooks/ executes without error (jupytext → nbformat → nbclient).
+
+The kernel is this interpreter (a kernelspec written for the test), so the notebooks run in
+the same environment as the tests, whatever kernels the machine has installed.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+jupytext = pytest.importorskip("jupytext")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("ipykernel")
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.py"))
+KERNEL = "ekdun-tests"
+
+
+@pytest.fixture()
+def kernel_env(tmp_path, monkeypatch):
+    """A kernelspec for this interpreter, notebook outputs under ``tmp_path``."""
+    spec = tmp_path / "jupyter" / "kernels" / KERNEL
+    spec.mkdir(parents=True)
+    (spec / "kernel.json").write_text(json.dumps({
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "ekdun tests", "language": "python"}))
+    monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("EKDUN_NB_OUT", str(tmp_path / "outputs"))
+    monkeypatch.setenv("EKDUN_NB_HELD_OUT", "3")       # notebook 04: 3 of 7 folds in CI
+    return tmp_path
+
+
+def _execute(path: Path, workdir: Path) -> list[str]:
+    """Run a notebook; returns its stdout texts (raises CellExecutionError on any error)."""
+    nb = jupytext.read(path)
+    client = nbclient.NotebookClient(nb, timeout=300, kernel_name=KERNEL,
+                                     resources={"metadata": {"path": str(workdir)}})
+    client.execute()
+    return [out.get("text", "") for cell in nb.cells if cell.cell_type == "code"
+            for out in cell.get("outputs", []) if out.get("name") == "stdout"]
+
+
+def test_there_are_four_notebooks():
+    assert [p.name[:2] for p in NOTEBOOKS] == ["01", "02", "03", "04"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_runs(path, kernel_env):
+    text = "".join(_execute(path, kernel_env))
+    if path.stem.startswith("03"):
+        assert "stand-in" in path.read_text() and "learned {" in text
+    if path.stem.startswith("04") and "not available" not in text:
+        assert "held-out relative error" in text
+
+
+@pytest.mark.slow
+def test_real_data_notebook_stops_cleanly_without_data(kernel_env, monkeypatch):
+    monkeypatch.setenv("EKDUN_SHARED_DATA", str(kernel_env / "absent"))
+    path = next(p for p in NOTEBOOKS if p.stem.startswith("04"))
+    text = "".join(_execute(path, kernel_env))
+    assert "not available" in text and "held-out" not in text
