@@ -49,10 +49,11 @@ def test_fit_pairs_then_eval_model_on_unseen_pairs(eigen_pairs, tmp_path: Path, 
         out = tmp_path / f"{name}.npz"
         assert main(["fit-pairs", str(fit_dir), "--model", name, "--out", str(out),
                      "--no-scale", "--tikhonov", "1e-8", "--difference", "0",
-                     "--iterations", "300", "--quiet",
+                     "--iterations", "300", "--quiet", "--convention", "sensor",
                      "--report", str(tmp_path / f"{name}.json")]) == 0
         model = load_kernels(out)
         assert model.basis == ("si" if name == "si" else "paper")
+        assert model.convention == "sensor"
         assert model.provenance["source"] == "psfkit fit-pairs"
         report = json.loads((tmp_path / f"{name}.json").read_text())
         assert len(report["training_error"]) == 6
@@ -73,6 +74,10 @@ def test_fit_pairs_downsample_is_remembered_by_eval_model(eigen_pairs, tmp_path:
     assert main(["fit-pairs", str(fit_dir), "--out", str(out), "--downsample", "2",
                  "--iterations", "20", "--quiet"]) == 0
     assert load_kernels(out).sensor_shape == (8, 12)
+    ek = tmp_path / "ek2.npz"
+    assert main(["fit-pairs", str(fit_dir), "--model", "ek", "--out", str(ek), "--downsample",
+                 "2", "--iterations", "5", "--quiet"]) == 0
+    assert load_kernels(ek).convention == "source"            # fit-pairs' default
     assert main(["eval-model", str(out), str(held_dir)]) == 0
     # a model of the wrong size is refused, naming both sizes
     capsys.readouterr()
