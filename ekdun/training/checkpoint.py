@@ -97,7 +97,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 
 def rng_state() -> dict[str, Any]:
     """Every RNG state as tensors/ints (``weights_only``-loadable)."""
-    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    _kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 (global state)
     version, internal, gauss = random.getstate()
     state: dict[str, Any] = {
         "torch": torch.get_rng_state(),
@@ -117,8 +117,9 @@ def set_rng_state(state: dict[str, Any]) -> None:
     """Inverse of :func:`rng_state`."""
     torch.set_rng_state(state["torch"].cpu())
     keys = state["numpy_keys"].numpy().astype(np.uint32)
-    np.random.set_state(("MT19937", keys, int(state["numpy_pos"]),
-                         int(state["numpy_has_gauss"]), float(state["numpy_cached"])))
+    numpy_state = ("MT19937", keys, int(state["numpy_pos"]), int(state["numpy_has_gauss"]),
+                   float(state["numpy_cached"]))
+    np.random.set_state(numpy_state)  # noqa: NPY002 (global state)
     internal = tuple(int(v) for v in state["python_internal"].tolist())
     random.setstate((int(state["python_version"]), internal, state["python_gauss"]))
     if "cuda" in state and torch.cuda.is_available():
