@@ -27,6 +27,7 @@ import json
 import os
 import pickle
 import random
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -73,9 +74,13 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     try:
         doc = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise CheckpointError(f"{path}: refused to load (not a plain-tensor checkpoint; "
-                              f"loading it would need to run code: {first[:120]})") from None
+        found = re.search(r"(GLOBAL [\w.]+|Unsupported global: [\w. ]+)", str(exc))
+        if found:
+            raise CheckpointError(f"{path}: refused to load: it contains pickled objects "
+                                  f"({found.group(1).strip()}) whose loading would run code; "
+                                  "not an ekdun checkpoint") from None
+        raise CheckpointError(f"{path}: not a readable checkpoint (corrupt or not a torch "
+                              "file)") from None
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
             AttributeError, TypeError, KeyError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
