@@ -7,43 +7,18 @@ import os
 import pickle
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from ekdun.cli import main as ekdun_main
-from ekdun.data.deadleaves import dead_leaves
 from ekdun.data.pairs import PairsDataset
-from ekdun.physics.operators import EigenKernelOperator
-from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import CheckpointError, TrainOptions, export_kernels, load_checkpoint, train
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.kernelfile import load_kernels
 
 SENSOR = (16, 16)
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory) -> tuple[Path, Path]:
-    """A pairs folder of 8 dead-leaves scenes measured through a 3-kernel model, and the
-    kernel file."""
-    root = tmp_path_factory.mktemp("tiny")
-    psf = caustic_psf(SENSOR, 3, seed=3)
-    kernels = np.stack([psf, 0.8 * np.roll(psf, 1, axis=1), 0.8 * np.roll(psf, 1, axis=2)])
-    kernel_file = save_kernels(root / "k.npz", KernelModel(kernels=kernels,
-                                                           sensor_shape=SENSOR))
-    op = EigenKernelOperator.from_kernel_model(load_kernels(kernel_file))
-    for sub in ("scene", "measurement"):
-        (root / "pairs" / sub).mkdir(parents=True)
-    for i in range(8):
-        x = torch.as_tensor(dead_leaves(SENSOR, i))[None]
-        with torch.no_grad():
-            y = op.A(x)[0].numpy()
-        np.save(root / "pairs" / "scene" / f"im{i}.npy", np.moveaxis(x[0].numpy(), 0, -1))
-        np.save(root / "pairs" / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
-    return root / "pairs", kernel_file
 
 
 def _options(epochs: int) -> TrainOptions:
