@@ -140,8 +140,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                               "(tiny preset, CPU)")
     p.add_argument("out", help="benchmark folder (resumable)")
     p.add_argument("--epochs", type=int)
-    p.add_argument("--n-train", type=int, default=48)
-    p.add_argument("--n-test", type=int, default=16)
+    p.add_argument("--n-train", type=int, default=96)
+    p.add_argument("--n-test", type=int, default=24)
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: fastest on a shared 2-core machine)")
     p.add_argument("--lpips-weights")

@@ -88,8 +88,8 @@ class VirtualBenchSpec:
     """
 
     sensor_shape: tuple[int, int] = (64, 64)
-    n_train: int = 48
-    n_test: int = 16
+    n_train: int = 96
+    n_test: int = 24
     grid_shape: tuple[int, int] = (9, 9)
     half_fov_deg: float = 30.0
     monitor_distance_mm: float = 200.0

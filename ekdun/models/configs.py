@@ -146,7 +146,7 @@ PRESETS: dict[str, Preset] = {
         ekdun=EKDUNConfig(iterations=6, prior=UNetConfig(widths=(8, 16, 32))),
         le_admm_u=LeADMMUConfig(denoiser=UNetConfig(widths=(8, 16, 32, 64))),
         updn=UPDNConfig(iterations=5, denoiser=UNetConfig(widths=(15, 30, 60))),
-        training=TrainingConfig(epochs=8, batch_size=4, lr=2e-3, gamma=0.95)),
+        training=TrainingConfig(epochs=15, batch_size=4, lr=2e-3, gamma=0.95)),
     "paper": Preset("paper", (1080, 1440)),
 }
 
