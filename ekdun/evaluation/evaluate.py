@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import statistics
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -16,36 +14,22 @@ from ekdun.evaluation.metrics import LPIPSMetric, psnr, ssim
 from ekdun.models.unrolled import UnrolledNetwork
 
 
-def _rss_bytes() -> int:
-    try:
-        with open("/proc/self/statm", encoding="ascii") as fh:
-            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError):
-        return 0
+def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
+    """Peak of torch's CPU allocations (bytes) during one forward pass, from the profiler's
+    memory events (an estimate: allocations made and freed inside one operator count at the
+    operator's end)."""
+    from torch.profiler import ProfilerActivity, profile
 
-
-class _PeakRSS:
-    """Peak resident memory above the starting level, sampled every 2 ms (CPU runs)."""
-
-    def __init__(self) -> None:
-        self.base = _rss_bytes()
-        self.peak = self.base
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.peak = max(self.peak, _rss_bytes())
-            time.sleep(0.002)
-
-    def __enter__(self) -> _PeakRSS:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, _rss_bytes())
+    with torch.no_grad(), profile(activities=[ProfilerActivity.CPU],
+                                  profile_memory=True) as prof:
+        model(y)
+    events = sorted(prof.events(), key=lambda e: e.time_range.start if e.name == "[memory]"
+                    else e.time_range.end)
+    current = peak = 0
+    for e in events:
+        current += e.cpu_memory_usage if e.name == "[memory]" else e.self_cpu_memory_usage
+        peak = max(peak, current)
+    return peak
 
 
 @torch.no_grad()
@@ -56,8 +40,8 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
 
     Images are reconstructed one at a time (batch 1); outputs are clipped to ``[0, 1]``
     before the metrics. Runtime is the median wall time per image after ``warmup`` images.
-    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and the sampled peak of the
-    process' resident memory above its level before the run on CPU (an estimate).
+    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and, on CPU, the peak of
+    torch's allocations during one profiled forward pass (:func:`cpu_peak_memory`).
     """
     device = torch.device(device)
     model = model.to(device).eval()
@@ -67,24 +51,23 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         model(dataset[i][1][None].to(device))
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    with _PeakRSS() as mem:
-        for i in range(n):
-            x, y = dataset[i]
-            x, y = x[None].to(device), y[None].to(device)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            t0 = time.perf_counter()
-            out = model(y)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            times.append(time.perf_counter() - t0)
-            out = out.clamp(0, 1)
-            psnrs.append(float(psnr(out, x)[0]))
-            ssims.append(float(ssim(out, x)[0]))
-            if lpips is not None and lpips.available:
-                lpipss.append(float(lpips(out, x)[0]))
+    for i in range(n):
+        x, y = dataset[i]
+        x, y = x[None].to(device), y[None].to(device)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        out = model(y)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - t0)
+        out = out.clamp(0, 1)
+        psnrs.append(float(psnr(out, x)[0]))
+        ssims.append(float(ssim(out, x)[0]))
+        if lpips is not None and lpips.available:
+            lpipss.append(float(lpips(out, x)[0]))
     peak = (torch.cuda.max_memory_allocated(device) if device.type == "cuda"
-            else mem.peak - mem.base)
+            else cpu_peak_memory(model, dataset[0][1][None].to(device)))
     return {
         "label": label, "images": n,
         "psnr": statistics.fmean(psnrs), "ssim": statistics.fmean(ssims),
@@ -93,7 +76,7 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         "runtime_ms_median": 1e3 * statistics.median(times),
         "peak_memory_mib": peak / 2**20,
         "memory_kind": "cuda max allocated" if device.type == "cuda"
-        else "CPU RSS increase (sampled)",
+        else "torch CPU allocations (profiler estimate)",
         "device": str(device),
     }
 
