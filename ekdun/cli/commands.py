@@ -47,8 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "sensor noise. Reused when the manifest matches.")
     p.add_argument("out", help="dataset folder")
     p.add_argument("--sensor", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
-    p.add_argument("--n-train", type=int, default=48)
-    p.add_argument("--n-test", type=int, default=16)
+    p.add_argument("--n-train", type=int, default=96)
+    p.add_argument("--n-test", type=int, default=24)
     p.add_argument("--grid", type=int, nargs=2, default=(9, 9), metavar=("N", "M"),
                    help="PSF grid (and dense-model nodes), default 9 9")
     p.add_argument("--half-fov", type=float, default=30.0,

@@ -112,14 +112,15 @@ class UPDNConfig:
 
 @dataclass(frozen=True)
 class TrainingConfig:
-    """Optimisation settings (paper, Sec. 5.2: MSE, Adam 1e-4, ExponentialLR 0.95 per epoch).
+    """Optimisation settings (paper, Sec. 5.2: MSE, Adam 1e-4, ExponentialLR 0.95 per epoch,
+    200 epochs; the paper does not state the batch size, 4 is our choice).
 
     ``kernel_lr_scale`` multiplies the learning rate of the physics kernels (``Kbase, Kv,
     Kh``, UPDN's PSFs): their pixels are ~1e-4–1e-3 (each kernel sums to about 1), so a
     step of the network's learning rate would wipe them out in a few iterations.
     """
 
-    epochs: int = 100
+    epochs: int = 200
     batch_size: int = 4
     lr: float = 1e-4
     gamma: float = 0.95
