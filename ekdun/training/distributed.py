@@ -89,3 +89,9 @@ def all_mean(value: float, ctx: DistContext) -> float:
 def barrier(ctx: DistContext) -> None:
     if ctx.distributed:
         dist.barrier()
+
+
+def teardown(ctx: DistContext) -> None:
+    """Leave the process group joined by :func:`setup` (torchrun runs)."""
+    if ctx.distributed and dist.is_initialized():
+        dist.destroy_process_group()

@@ -258,6 +258,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
                 learned = replace(learned, provenance={**learned.provenance, "epoch": epoch})
                 save_kernels(run_dir / KERNELS_LEARNED, learned)
         D.barrier(ctx)
+    D.teardown(ctx)
     return {"history": metadata["history"], "run_dir": str(run_dir),
             "parameters": model.parameter_count(),
             "seconds": time.perf_counter() - started, "model": model}
