@@ -53,6 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="PSF grid (and dense-model nodes), default 9 9")
     p.add_argument("--half-fov", type=float, default=30.0,
                    help="field angle (deg) at the sensor edge (default 30)")
+    p.add_argument("--aperture", type=float, default=1.3,
+                   help="side of the square aperture in mm (default 1.3)")
     p.add_argument("--photons", type=float, default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
     p.add_argument("--seed", type=int, default=0)
@@ -154,7 +156,8 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test, grid_shape=tuple(args.grid),
-                            half_fov_deg=args.half_fov, photons=args.photons, seed=args.seed)
+                            half_fov_deg=args.half_fov, aperture_mm=args.aperture,
+                            photons=args.photons, seed=args.seed)
     root = make_virtual_bench(args.out, spec, progress=not args.quiet)
     _say(args, f"dataset: {root}")
     return 0
