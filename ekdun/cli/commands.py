@@ -146,6 +146,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--n-test", type=int, default=24)
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: fastest on a shared 2-core machine)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
     p.add_argument("--lpips-weights")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_benchmark_tiny)
@@ -295,8 +297,9 @@ def run_benchmark_tiny(args: argparse.Namespace) -> int:
     from ekdun.training import TrainOptions
 
     torch.set_num_threads(args.threads)
-    spec = VirtualBenchSpec(n_train=args.n_train, n_test=args.n_test)
-    options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads)
+    spec = VirtualBenchSpec(n_train=args.n_train, n_test=args.n_test, seed=args.seed)
+    options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads,
+                           seed=args.seed)
     result = run_tiny_benchmark(args.out, spec, options, lpips_weights=args.lpips_weights,
                                 progress=not args.quiet,
                                 log=lambda s: _say(args, s))
