@@ -5,10 +5,13 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from psfkit.bench import BenchConfig, simulate_grid
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 
+TINY_SENSOR = (16, 16)
 REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
                               Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -47,3 +50,30 @@ def bench_grid_ds2(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("grids") / "grid_5x5_ds2"
     return simulate_grid(out, BenchConfig(downsample=2), grid_shape=(5, 5), extent=0.8,
                          progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory) -> tuple[Path, Path]:
+    """A pairs folder of 8 dead-leaves scenes measured through a 3-kernel model, and the
+    kernel file."""
+    import torch
+
+    from ekdun.data.deadleaves import dead_leaves
+    from ekdun.physics.operators import EigenKernelOperator
+    from ekdun.physics.synthetic import caustic_psf
+
+    root = tmp_path_factory.mktemp("tiny")
+    psf = caustic_psf(TINY_SENSOR, 3, seed=3)
+    kernels = np.stack([psf, 0.8 * np.roll(psf, 1, axis=1), 0.8 * np.roll(psf, 1, axis=2)])
+    kernel_file = save_kernels(root / "k.npz", KernelModel(kernels=kernels,
+                                                           sensor_shape=TINY_SENSOR))
+    op = EigenKernelOperator.from_kernel_model(load_kernels(kernel_file))
+    for sub in ("scene", "measurement"):
+        (root / "pairs" / sub).mkdir(parents=True)
+    for i in range(8):
+        x = torch.as_tensor(dead_leaves(TINY_SENSOR, i))[None]
+        with torch.no_grad():
+            y = op.A(x)[0].numpy()
+        np.save(root / "pairs" / "scene" / f"im{i}.npy", np.moveaxis(x[0].numpy(), 0, -1))
+        np.save(root / "pairs" / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
+    return root / "pairs", kernel_file

@@ -1,11 +1,17 @@
 """Architecture configurations and the ``tiny`` / ``paper`` presets.
 
-Both presets use the paper's architectures (Sec. 5.2): EK-DUN with 10 iterations and a 3-level
-U-Net prior (32 → 64 → 128 channels) per iteration, Le-ADMM-U with 5 iterations, UPDN with 10
-iterations and 5 PSFs per colour. They differ only in the sensor size they are meant for:
-``tiny`` is 128 × 128 (CPU experiments, tests of the full architecture), ``paper`` the
-prototype's 1080 × 1440. The sensor size of a built model comes from its kernel file or PSF; the
-preset's ``sensor_shape`` is what benchmarks and synthetic examples use.
+``paper`` uses the paper's architectures and training settings (Sec. 5.2): EK-DUN with 10
+iterations and a 3-level U-Net prior (32 → 64 → 128 channels) per iteration, Le-ADMM-U with 5
+iterations, UPDN with 10 iterations and 5 PSFs per colour; sensor 1080 × 1440; Adam with
+learning rate 1e-4, ExponentialLR 0.95 per epoch, MSE loss.
+
+``tiny`` is the CPU preset: a 64 × 64 sensor and reduced widths/iterations so that the whole
+"three models + ablation" benchmark (``ekdun benchmark-tiny``) trains and evaluates on two CPU
+cores in about 20 minutes: EK-DUN with the paper's 10 iterations (eigen-kernel model in the
+last 2) and U-Nets of widths (8, 16, 32); Le-ADMM-U with 5 iterations and a (8, 16, 32, 64)
+U-Net; UPDN with 5 iterations, 5 PSFs per colour and a (15, 30, 60) U-Net; a larger learning
+rate (2e-3) for the few epochs. The sensor size of a built model comes from its kernel file or
+PSF; the preset's ``sensor_shape`` is what benchmarks and synthetic examples use.
 
 Baseline denoisers (documented choices, see ``NOTES-issue5.md``):
 
@@ -105,6 +111,23 @@ class UPDNConfig:
 
 
 @dataclass(frozen=True)
+class TrainingConfig:
+    """Optimisation settings (paper, Sec. 5.2: MSE, Adam 1e-4, ExponentialLR 0.95 per epoch,
+    200 epochs; the paper does not state the batch size, 4 is our choice).
+
+    ``kernel_lr_scale`` multiplies the learning rate of the physics kernels (``Kbase, Kv,
+    Kh``, UPDN's PSFs): their pixels are ~1e-4–1e-3 (each kernel sums to about 1), so a
+    step of the network's learning rate would wipe them out in a few iterations.
+    """
+
+    epochs: int = 200
+    batch_size: int = 4
+    lr: float = 1e-4
+    gamma: float = 0.95
+    kernel_lr_scale: float = 1e-2
+
+
+@dataclass(frozen=True)
 class Preset:
     """Configurations of the three models and the sensor size they are meant for."""
 
@@ -115,10 +138,16 @@ class Preset:
     ekdun: EKDUNConfig = field(default_factory=EKDUNConfig)
     le_admm_u: LeADMMUConfig = field(default_factory=LeADMMUConfig)
     updn: UPDNConfig = field(default_factory=UPDNConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
 
 
 PRESETS: dict[str, Preset] = {
-    "tiny": Preset("tiny", (128, 128)),
+    "tiny": Preset(
+        "tiny", (64, 64),
+        ekdun=EKDUNConfig(iterations=10, prior=UNetConfig(widths=(8, 16, 32))),
+        le_admm_u=LeADMMUConfig(denoiser=UNetConfig(widths=(8, 16, 32, 64))),
+        updn=UPDNConfig(iterations=5, denoiser=UNetConfig(widths=(15, 30, 60))),
+        training=TrainingConfig(epochs=15, batch_size=4, lr=2e-3, gamma=0.95)),
     "paper": Preset("paper", (1080, 1440)),
 }
 

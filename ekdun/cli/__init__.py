@@ -11,12 +11,15 @@ from psfkit.cli import run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ekdun.cli import commands
+
     parser = argparse.ArgumentParser(
         prog="ekdun",
         description="Train, evaluate and run unrolled reconstruction networks (EK-DUN, "
                     "Le-ADMM-U, UPDN) for lensless cameras.")
     parser.add_argument("--version", action="version", version=f"ekdun {__version__}")
-    parser.add_subparsers(title="commands", metavar="COMMAND")
+    sub = parser.add_subparsers(title="commands", metavar="COMMAND")
+    commands.register(sub)
     return parser
 
 

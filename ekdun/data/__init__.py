@@ -1,0 +1,1 @@
+"""Datasets: pairs folders, dead-leaves scenes and the cached virtual-bench dataset."""

@@ -1,0 +1,84 @@
+"""Reconstruct measurements with a trained checkpoint (``ekdun reconstruct``)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ekdun.errors import InvalidInputError, TensorShapeError
+from ekdun.training.builder import network_from_checkpoint
+from psfkit.io.atomic import atomic_directory
+from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
+
+
+def read_measurement(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
+    """A measurement as ``(C, H, W)`` float32 (integer files are scaled to ``[0, 1]``)."""
+    image = read_image(path, channel_order)
+    if np.issubdtype(image.dtype, np.integer):
+        image = image.astype(np.float32) / float(np.iinfo(image.dtype).max)
+    image = image.astype(np.float32)
+    if not np.all(np.isfinite(image)):
+        raise InvalidInputError(f"{path}: contains NaN/Inf values")
+    return image
+
+
+def measurement_files(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+    """Expand folders into their image files (sorted); refuse empty inputs."""
+    files: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir()
+                           if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise InvalidInputError(f"{p}: no measurement images in this folder")
+            files.extend(found)
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InvalidInputError(f"{p}: no such file or folder")
+    if not files:
+        raise InvalidInputError("no measurements given")
+    stems = [f.stem for f in files]
+    if len(set(stems)) != len(stems):
+        raise InvalidInputError("two measurements share a file name; outputs would collide")
+    return files
+
+
+def to_preview(image: np.ndarray) -> np.ndarray:
+    """8-bit preview of a ``(C, H, W)`` image in ``[0, 1]``."""
+    return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+@torch.no_grad()
+def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
+                      out_dir: str | os.PathLike, channel_order: str = "RGB",
+                      device: str = "cpu", overwrite: bool = False) -> list[Path]:
+    """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 and an 8-bit
+    ``NAME.png`` preview). All inputs are checked against the model before anything is
+    written; the output folder appears atomically."""
+    model, _ = network_from_checkpoint(checkpoint)
+    model = model.to(device).eval()
+    sensor = tuple(model.physics.sensor_shape)
+    channels = model.physics.channels
+    files = measurement_files(inputs)
+    images = []
+    for f in files:
+        y = read_measurement(f, channel_order)
+        if tuple(y.shape[-2:]) != sensor or y.shape[0] != channels:
+            raise TensorShapeError(
+                f"{f}: measurement is {y.shape[1]}x{y.shape[2]}x{y.shape[0]} but the model "
+                f"expects {sensor[0]}x{sensor[1]}x{channels}")
+        images.append(y)
+    written = []
+    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+        for f, y in zip(files, images, strict=True):
+            out = model(torch.from_numpy(y)[None].to(device))[0].cpu().numpy()
+            write_image(tmp / f"{f.stem}.npy", out.astype(np.float32))
+            write_image(tmp / f"{f.stem}.png", to_preview(out))
+            written.append(Path(out_dir) / f"{f.stem}.npy")
+    return written

@@ -1,0 +1,131 @@
+"""Training checkpoints: tensors + JSON metadata, written atomically, read without pickles.
+
+A checkpoint is a ``dict`` saved with :func:`torch.save` whose leaves are tensors, strings and
+numbers only, so it loads with ``torch.load(weights_only=True)`` — which never executes code:
+a foreign or malicious file is refused with :class:`CheckpointError`. Keys:
+
+``format``, ``version``
+    ``"ekdun-checkpoint"``, 1.
+``metadata``
+    JSON string: model name, preset, config overrides, sensor shape, kernel-file metadata,
+    epoch, training options, metrics history.
+``model``
+    the network's ``state_dict``.
+``initial_kernels``
+    ``(K, C, Hk, Wk)``: the seed kernel model the network was built from (with the
+    kernel-file metadata, enough to rebuild the network anywhere).
+``optimizer``, ``scheduler``, ``scaler``
+    their ``state_dict`` (absent in exported inference checkpoints).
+``rng``
+    torch CPU RNG state (uint8 tensor), numpy MT19937 state (key array + position),
+    Python ``random`` state (int64 tensor) and the CUDA RNG states when present.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import random
+import re
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ekdun.errors import InvalidInputError
+from psfkit.io.atomic import atomic_file
+
+FORMAT = "ekdun-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(InvalidInputError):
+    """A checkpoint file is missing, corrupt, foreign or unsafe."""
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> Path:
+    """Write ``state`` (plus ``format``/``version``) atomically with :func:`torch.save`."""
+    path = Path(path)
+    doc = {"format": FORMAT, "version": VERSION, **state}
+    if not isinstance(doc.get("metadata"), str):
+        doc["metadata"] = json.dumps(doc.get("metadata", {}))
+    with atomic_file(path) as tmp:
+        torch.save(doc, tmp)
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu"
+                    ) -> dict[str, Any]:
+    """Read a checkpoint with ``weights_only=True`` (no code execution).
+
+    Returns the dict with ``metadata`` decoded from JSON.
+
+    Raises
+    ------
+    CheckpointError
+        Missing file, not a torch file, unsafe content (pickled objects), wrong format.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint")
+    try:
+        doc = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"(GLOBAL [\w.]+|Unsupported global: [\w. ]+)", str(exc))
+        if found:
+            raise CheckpointError(f"{path}: refused to load: it contains pickled objects "
+                                  f"({found.group(1).strip()}) whose loading would run code; "
+                                  "not an ekdun checkpoint") from None
+        raise CheckpointError(f"{path}: not a readable checkpoint (corrupt or not a torch "
+                              "file)") from None
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
+            AttributeError, TypeError, KeyError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint ({first[:120]})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an {FORMAT} file")
+    if doc.get("version") != VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {doc.get('version')!r} is not "
+                              f"supported (this ekdun reads version {VERSION})")
+    for key in ("metadata", "model"):
+        if key not in doc:
+            raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
+    try:
+        doc["metadata"] = json.loads(doc["metadata"])
+    except (TypeError, json.JSONDecodeError):
+        raise CheckpointError(f"{path}: checkpoint metadata is not valid JSON") from None
+    return doc
+
+
+def rng_state() -> dict[str, Any]:
+    """Every RNG state as tensors/ints (``weights_only``-loadable)."""
+    _kind, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 (global state)
+    version, internal, gauss = random.getstate()
+    state: dict[str, Any] = {
+        "torch": torch.get_rng_state(),
+        "numpy_keys": torch.as_tensor(np.asarray(keys, dtype=np.int64)),
+        "numpy_pos": int(pos), "numpy_has_gauss": int(has_gauss),
+        "numpy_cached": float(cached),
+        "python_version": int(version),
+        "python_internal": torch.as_tensor(internal, dtype=torch.int64),
+        "python_gauss": None if gauss is None else float(gauss),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Inverse of :func:`rng_state`."""
+    torch.set_rng_state(state["torch"].cpu())
+    keys = state["numpy_keys"].numpy().astype(np.uint32)
+    numpy_state = ("MT19937", keys, int(state["numpy_pos"]), int(state["numpy_has_gauss"]),
+                   float(state["numpy_cached"]))
+    np.random.set_state(numpy_state)  # noqa: NPY002 (global state)
+    internal = tuple(int(v) for v in state["python_internal"].tolist())
+    random.setstate((int(state["python_version"]), internal, state["python_gauss"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])

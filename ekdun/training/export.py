@@ -1,0 +1,63 @@
+"""Export the learned kernels of an EK-DUN as a psfkit kernel file (hand-off to psfkit)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+from torch import nn
+
+from ekdun.errors import ConfigurationError
+from ekdun.training.builder import kernel_metadata, kernel_model_from, network_from_checkpoint
+from psfkit.kernelfile import KernelModel
+
+
+def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str, Any]
+                   ) -> KernelModel:
+    """The learned ``Kbase, Kv, Kh`` (or any basis) of an EK-DUN as a :class:`KernelModel`.
+
+    Same basis, weight convention, sensor size, optical centre and scene padding as the seed
+    model the network was trained from; ``provenance`` says where the kernels came from.
+    The result can be written with :func:`psfkit.kernelfile.save_kernels` and compared with a
+    measured grid (``psfkit compare``).
+
+    Parameters
+    ----------
+    model_or_checkpoint : EKDUN, checkpoint path or loaded checkpoint dict
+        A network built by :func:`ekdun.training.builder.build_network` (it remembers its
+        seed) or a training checkpoint.
+
+    Raises
+    ------
+    ConfigurationError
+        The network has no eigen-kernel physics (Le-ADMM-U, UPDN).
+    """
+    if isinstance(model_or_checkpoint, nn.Module):
+        model = model_or_checkpoint
+        model = getattr(model, "module", model)         # unwrap DistributedDataParallel
+        epoch = None
+    else:
+        model, doc = network_from_checkpoint(model_or_checkpoint)
+        epoch = doc["metadata"].get("epoch")
+    from ekdun.models.ekdun_net import EKDUN
+
+    if not isinstance(model, EKDUN):
+        raise ConfigurationError(f"only EK-DUN has eigen kernels to export, not "
+                                 f"{type(model).__name__}")
+    seed: KernelModel | None = getattr(model, "seed_kernels", None)
+    kernels = model.physics.kernels.detach().cpu().numpy().astype(np.float32)
+    if seed is None:
+        n = kernels.shape[0]
+        meta = {"basis": "paper" if n == 3 else "si", "convention": model.physics.convention,
+                "sensor_shape": list(model.physics.sensor_shape),
+                "channels": ["R", "G", "B"] if kernels.shape[1] == 3 else ["L"],
+                "optical_center": None, "scene_padding": model.physics.scene_padding,
+                "normalization": "learned", "provenance": {}}
+    else:
+        meta = kernel_metadata(seed)
+    meta["provenance"] = {"source": "ekdun training (learned kernels)",
+                          "epoch": epoch, "seed_provenance": meta.get("provenance", {})}
+    meta["normalization"] = "learned (initialised from: " + str(
+        seed.normalization if seed is not None else "unknown") + ")"
+    return kernel_model_from(kernels, meta)

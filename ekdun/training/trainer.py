@@ -1,0 +1,264 @@
+"""Training loop: MSE, Adam, ExponentialLR per epoch, atomic checkpoints, resume, DDP, AMP.
+
+``train(run_dir, model_name, seed, dataset, preset)`` trains a network and writes into
+``run_dir``:
+
+``checkpoint.pt``
+    after every epoch, atomically (model, optimizer, scheduler, grad scaler, RNG states,
+    metadata; see :mod:`ekdun.training.checkpoint`): a killed run loses at most the epoch in
+    progress, and ``resume=True`` continues exactly where the uninterrupted run would be
+    (the batch order depends only on ``(seed, epoch)``).
+``log.csv``
+    one row per epoch (loss, learning rate, time).
+``kernels_initial.npz`` / ``kernels_learned.npz``
+    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
+    convention and sensor size as the seed), for ``psfkit compare``.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from ekdun.errors import ConfigurationError, InvalidInputError
+from ekdun.models.configs import TrainingConfig, get_preset
+from ekdun.models.unrolled import UnrolledNetwork
+from ekdun.training import distributed as D
+from ekdun.training.builder import (
+    build_network,
+    encode_overrides,
+    kernel_metadata,
+    seed_kernel_model,
+)
+from ekdun.training.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from ekdun.training.export import export_kernels
+from ekdun.training.logs import write_csv_log
+from psfkit.kernelfile import KernelModel, save_kernels
+
+CHECKPOINT = "checkpoint.pt"
+LOG = "log.csv"
+KERNELS_INITIAL = "kernels_initial.npz"
+KERNELS_LEARNED = "kernels_learned.npz"
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """Run options; ``None`` takes the preset's :class:`~ekdun.models.configs.TrainingConfig`.
+
+    ``batch_size`` is the GLOBAL batch (split over ``torchrun`` processes).
+    """
+
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    gamma: float | None = None
+    kernel_lr_scale: float | None = None
+    seed: int = 0
+    amp: bool = True
+    device: str = "auto"
+    progress: bool = True
+    threads: int | None = None
+
+    def resolve(self, preset: str) -> TrainingConfig:
+        base = get_preset(preset).training
+        values = {k: getattr(self, k) for k in asdict(base) if getattr(self, k) is not None}
+        return replace(base, **values)
+
+
+def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
+    kernels, others = [], []
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        (kernels if name.startswith("physics.") else others).append(p)
+    groups = [{"params": others, "lr": lr}]
+    if kernels:
+        groups.append({"params": kernels, "lr": lr * kernel_lr_scale})
+    return groups
+
+
+def _batch(dataset: Dataset, indices: list[int], device: torch.device
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    items = [dataset[i] for i in indices]
+    x = torch.stack([it[0] for it in items]).to(device)
+    y = torch.stack([it[1] for it in items]).to(device)
+    return x, y
+
+
+def _check_dataset(dataset: Dataset, model: UnrolledNetwork) -> None:
+    if len(dataset) == 0:  # type: ignore[arg-type]
+        raise InvalidInputError("the training dataset is empty")
+    x, y = dataset[0]
+    sensor = tuple(model.physics.sensor_shape)
+    if tuple(y.shape[-2:]) != sensor or tuple(x.shape) != tuple(y.shape):
+        raise InvalidInputError(
+            f"training pairs are {y.shape[-2]}x{y.shape[-1]} but the model's sensor is "
+            f"{sensor[0]}x{sensor[1]} (build the model from a kernel file of the data's size)")
+
+
+def train(run_dir: str | os.PathLike, model_name: str,
+          seed: KernelModel | np.ndarray | str | os.PathLike, dataset: Dataset,
+          preset: str = "tiny", overrides: dict[str, Any] | None = None,
+          options: TrainOptions | None = None, resume: bool = False,
+          overwrite: bool = False) -> dict[str, Any]:
+    """Train ``model_name`` on ``dataset`` (pairs ``(scene, measurement)``).
+
+    Parameters
+    ----------
+    run_dir : path-like
+        Output folder (checkpoint, logs, kernel files).
+    model_name : str
+        ``"ekdun"``, ``"le-admm-u"`` or ``"updn"``.
+    seed : KernelModel, array or path
+        Initial kernels: a kernel file (``psfkit fit-eigen`` output) or a measured PSF.
+    dataset : torch Dataset
+        ``(scene, measurement)`` pairs of ``(C, H', W')`` tensors.
+    preset : str
+        Architecture and training settings.
+    overrides : dict
+        Model configuration fields to change (e.g. ``{"schedule": "base"}``); JSON-able.
+    options : TrainOptions
+    resume : bool
+        Continue from ``run_dir/checkpoint.pt``.
+    overwrite : bool
+        Start over even if ``run_dir`` holds a checkpoint.
+
+    Returns
+    -------
+    dict
+        ``{"history": [...], "run_dir": str, "parameters": int, "seconds": float}``.
+    """
+    options = options or TrainOptions()
+    cfg = options.resolve(preset)
+    ctx = D.setup(options.device)
+    if options.threads:
+        torch.set_num_threads(options.threads)
+    run_dir = Path(run_dir)
+    ckpt_path = run_dir / CHECKPOINT
+    overrides = encode_overrides(overrides or {})
+    if resume and not ckpt_path.is_file():
+        raise InvalidInputError(f"{run_dir}: nothing to resume (no {CHECKPOINT})")
+    if not resume and ckpt_path.exists() and not overwrite:
+        raise InvalidInputError(f"{run_dir}: holds a checkpoint already (use --resume to "
+                                "continue or --overwrite to start over)")
+    if cfg.batch_size % ctx.world_size:
+        raise ConfigurationError(f"batch size {cfg.batch_size} is not divisible by the "
+                                 f"{ctx.world_size} processes")
+
+    torch.manual_seed(options.seed)
+    np.random.seed(options.seed % 2**32)  # noqa: NPY002 (global state of user code)
+    random.seed(options.seed)
+    seed_model = seed_kernel_model(seed)
+    model = build_network(model_name, seed_model, preset, overrides)
+    _check_dataset(dataset, model)
+    model.to(ctx.device)
+    optimizer = torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma)
+    use_amp = options.amp and ctx.device.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    metadata: dict[str, Any] = {
+        "model": model_name, "preset": preset, "overrides": overrides,
+        "schedule": getattr(getattr(model, "config", None), "schedule", None),
+        "sensor_shape": list(model.physics.sensor_shape),
+        "kernel_metadata": kernel_metadata(model.seed_kernels),
+        "training": asdict(cfg), "seed": options.seed, "world_size": ctx.world_size,
+        "parameters": model.parameter_count(), "amp": use_amp,
+        "dataset_size": len(dataset),  # type: ignore[arg-type]
+        "epoch": 0, "history": [],
+    }
+    initial_kernels = torch.as_tensor(model.seed_kernels.kernels)
+    start_epoch = 1
+    if resume:
+        doc = load_checkpoint(ckpt_path, map_location=ctx.device)
+        old = doc["metadata"]
+        for key in ("model", "preset", "overrides", "sensor_shape", "seed"):
+            if old.get(key) != metadata[key]:
+                raise CheckpointError(f"{ckpt_path}: was trained with {key}={old.get(key)!r}, "
+                                      f"not {metadata[key]!r}; cannot resume")
+        model.load_state_dict(doc["model"])
+        optimizer.load_state_dict(doc["optimizer"])
+        scheduler.load_state_dict(doc["scheduler"])
+        if "scaler" in doc and use_amp:
+            scaler.load_state_dict(doc["scaler"])
+        set_rng_state(doc["rng"])
+        metadata["history"] = old.get("history", [])
+        metadata["epoch"] = start_epoch - 1 + int(old.get("epoch", 0))
+        start_epoch = int(old.get("epoch", 0)) + 1
+    elif ctx.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if model_name == "ekdun":
+            save_kernels(run_dir / KERNELS_INITIAL, model.seed_kernels)
+
+    net: nn.Module = model
+    if ctx.distributed:
+        net = nn.parallel.DistributedDataParallel(
+            model, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
+            find_unused_parameters=True)
+    started = time.perf_counter()
+    for epoch in range(start_epoch, cfg.epochs + 1):
+        t0 = time.perf_counter()
+        model.train()
+        batches = D.global_batches(len(dataset), cfg.batch_size,  # type: ignore[arg-type]
+                                   options.seed, epoch)
+        iterator: Any = batches
+        bar = None
+        if options.progress and ctx.is_main:
+            from tqdm.auto import tqdm
+
+            iterator = bar = tqdm(batches, desc=f"{model_name} epoch {epoch}/{cfg.epochs}",
+                                  unit="batch", leave=False)
+        total, count = 0.0, 0
+        for batch in iterator:
+            x, y = _batch(dataset, D.local_share(batch, ctx.rank, ctx.world_size), ctx.device)
+            optimizer.zero_grad(set_to_none=True)
+            with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
+                out = net(y)
+            loss = nn.functional.mse_loss(out.float(), x)
+            scaler.scale(loss).backward()
+            scaler.step(optimizer)
+            scaler.update()
+            total += float(loss.detach())
+            count += 1
+            if bar is not None:
+                bar.set_postfix(loss=f"{total / count:.3g}")
+        if bar is not None:
+            bar.close()
+        lr = optimizer.param_groups[0]["lr"]
+        scheduler.step()
+        seconds = time.perf_counter() - t0
+        mean_loss = D.all_mean(total / max(count, 1), ctx)
+        metadata["history"].append({
+            "epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
+            "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)})
+        metadata["epoch"] = epoch
+        if ctx.is_main:
+            save_checkpoint(ckpt_path, {
+                "metadata": metadata, "model": model.state_dict(),
+                "initial_kernels": initial_kernels,
+                "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "scaler": scaler.state_dict(), "rng": rng_state()})
+            write_csv_log(run_dir / LOG, metadata["history"])
+            if model_name == "ekdun":
+                learned = export_kernels(model)
+                learned = replace(learned, provenance={**learned.provenance, "epoch": epoch})
+                save_kernels(run_dir / KERNELS_LEARNED, learned)
+        D.barrier(ctx)
+    D.teardown(ctx)
+    return {"history": metadata["history"], "run_dir": str(run_dir),
+            "parameters": model.parameter_count(),
+            "seconds": time.perf_counter() - started, "model": model}

@@ -1,0 +1,107 @@
+"""Datasets: dead leaves, the dense shift-variant model, the cached virtual bench, pairs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from ekdun.data.deadleaves import dead_leaves, radial_power_slope
+from ekdun.data.dense_model import DenseShiftVariantModel, hat_weights
+from ekdun.data.pairs import PairsDataset
+from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
+from ekdun.errors import InvalidInputError
+from ekdun.physics.operators import ShiftInvariantOperator
+from psfkit.io.grid import read_grid
+from psfkit.io.pairs import read_pairs
+
+SMALL = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=2, grid_shape=(3, 3))
+
+
+def test_dead_leaves_statistics():
+    images = [dead_leaves((128, 128), seed) for seed in range(4)]
+    for im in images:
+        assert im.shape == (3, 128, 128) and im.dtype == np.float32
+        assert 0.0 <= im.min() and im.max() <= 1.0
+    # piecewise-constant disks: many exactly repeated values, sharp edges
+    assert len(np.unique(images[0][0])) < 0.2 * 128 * 128
+    # scale invariance: power spectrum close to 1/f^2 (natural images: slope about -2)
+    slope = np.mean([radial_power_slope(im.mean(axis=0)) for im in images])
+    assert -2.8 < slope < -1.2
+    np.testing.assert_array_equal(dead_leaves((32, 32), 5), dead_leaves((32, 32), 5))
+
+
+def test_hat_weights_partition_of_unity():
+    w = hat_weights(np.array([2.0, 10.0, 20.0]), 25)
+    np.testing.assert_allclose(w.sum(axis=0), 1.0)
+    assert w[0, 0] == 1.0 and w[2, 24] == 1.0 and w[1, 10] == 1.0
+    assert w[0, 6] == pytest.approx(0.5) and w[1, 6] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("convention", ["source", "sensor"])
+def test_dense_model_with_equal_psfs_is_the_shift_invariant_model(convention):
+    rng = np.random.default_rng(0)
+    k = rng.random((3, 12, 10))
+    kernels = np.broadcast_to(k, (3, 4, 3, 12, 10))
+    model = DenseShiftVariantModel(kernels, [3, 10, 20], [0, 5, 20, 30], (24, 32), convention)
+    x = torch.rand(2, 3, 24, 32, dtype=torch.float64)
+    si = ShiftInvariantOperator(torch.as_tensor(k), (24, 32)).double()
+    torch.testing.assert_close(model(x), si.A(x), rtol=1e-10, atol=1e-12)
+
+
+def test_point_source_at_a_node_images_to_that_nodes_psf():
+    rng = np.random.default_rng(1)
+    kernels = rng.random((3, 3, 1, 9, 9))
+    rows, cols = [4, 12, 20], [5, 14, 25]
+    model = DenseShiftVariantModel(kernels, rows, cols, (24, 30), "source")
+    x = np.zeros((1, 24, 30))
+    x[0, rows[1], cols[2]] = 1.0
+    y = model(x).numpy()
+    expected = np.zeros((1, 24, 30))
+    expected[0, rows[1] - 4:rows[1] + 5, cols[2] - 4:cols[2] + 5] = kernels[1, 2, 0]
+    np.testing.assert_allclose(y, expected, atol=1e-10)
+
+
+def test_virtual_bench_is_deterministic_cached_and_rebuilt_on_mismatch(tmp_path):
+    a = make_virtual_bench(tmp_path / "a", SMALL, progress=False)
+    b = make_virtual_bench(tmp_path / "b", SMALL, progress=False)
+    ma, mb = read_manifest(a), read_manifest(b)
+    assert ma["content_hash"] == mb["content_hash"] and ma["files"] == mb["files"]
+    assert ma["spec"]["seed"] == 0 and "torch" in ma["versions"]
+    scene = np.load(a / "train" / "scene" / "train0000.npy")
+    assert scene.shape == (32, 32, 3) and scene.dtype == np.float32
+    # the grid is a psfkit grid of the requested shape (for psfkit fit-eigen / compare)
+    assert read_grid(a / "grid").grid_shape == (3, 3)
+    pairs = read_pairs(a / "test")
+    assert len(pairs) == 2 and pairs.shape == (3, 32, 32)
+
+    # cached: not rebuilt (the files keep their modification times)
+    stamp = (a / "manifest.json").stat().st_mtime_ns
+    make_virtual_bench(a, SMALL, progress=False)
+    assert (a / "manifest.json").stat().st_mtime_ns == stamp
+    # manifest disagrees (other spec) -> rebuilt; a corrupted file -> rebuilt
+    other = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=1, grid_shape=(3, 3))
+    make_virtual_bench(a, other, progress=False)
+    assert read_manifest(a)["spec"]["n_test"] == 1 and len(read_pairs(a / "test")) == 1
+    np.save(a / "train" / "scene" / "train0000.npy", np.zeros((32, 32, 3), np.float32))
+    make_virtual_bench(a, other, progress=False)
+    assert np.load(a / "train" / "scene" / "train0000.npy").max() > 0
+    # a foreign non-empty folder is never overwritten
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    with pytest.raises(InvalidInputError, match="not a virtual-bench dataset"):
+        make_virtual_bench(tmp_path / "mine", SMALL, progress=False)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+    assert json.loads((a / "manifest.json").read_text())["format"] == "ekdun-virtual-bench"
+
+
+def test_pairs_dataset_reads_dlmd_as_rgb(real_data):
+    root = real_data("dlmd_mirflickr")
+    ds = PairsDataset(root)
+    assert len(ds) == 7 and ds.image_shape == (3, 270, 480)
+    scene, meas = ds[0]
+    assert scene.shape == meas.shape == (3, 270, 480) and scene.dtype == torch.float32
+    raw = np.load(root / "lensed" / f"{ds.names[0]}.npy")           # BGR on disk
+    np.testing.assert_array_equal(scene.numpy(), np.moveaxis(raw[..., ::-1], -1, 0))

@@ -1,0 +1,177 @@
+"""Metrics, tables, the reconstruct / eval / admm commands and bad-input errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from ekdun.cli import main as ekdun_main
+from ekdun.data.deadleaves import dead_leaves
+from ekdun.evaluation import LPIPSMetric, psnr, ssim, write_tables
+from ekdun.physics.operators import ShiftInvariantOperator
+from ekdun.reconstruction import admm_tv
+from ekdun.training import TrainOptions, train
+from ekdun.training.trainer import CHECKPOINT
+
+SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tiny_data, tmp_path_factory):
+    pairs, kernels = tiny_data
+    from ekdun.data.pairs import PairsDataset
+
+    run = tmp_path_factory.mktemp("run") / "ek"
+    train(run, "ekdun", kernels, PairsDataset(pairs), "tiny", SMALL,
+          TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
+    return run / CHECKPOINT
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("ekdun: error:")
+    return err[0]
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_metrics_match_skimage(channels):
+    rng = np.random.default_rng(0)
+    x = rng.random((2, channels, 40, 52))
+    y = np.clip(x + 0.1 * rng.standard_normal(x.shape), 0, 1)
+    got_ssim = ssim(torch.as_tensor(y), torch.as_tensor(x)).numpy()
+    got_psnr = psnr(torch.as_tensor(y), torch.as_tensor(x)).numpy()
+    for i in range(2):
+        ref = structural_similarity(y[i], x[i], data_range=1.0, channel_axis=0,
+                                    gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False)
+        assert got_ssim[i] == pytest.approx(ref, abs=1e-6)
+        assert got_psnr[i] == pytest.approx(peak_signal_noise_ratio(x[i], y[i], data_range=1),
+                                            abs=1e-8)
+
+
+def test_lpips_says_clearly_when_unavailable(tmp_path):
+    metric = LPIPSMetric(tmp_path / "missing.pth")
+    if not metric.available:
+        assert metric.reason.startswith("LPIPS unavailable")
+        assert torch.isnan(metric(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 16))).all()
+
+
+def test_tables_markdown_and_json(tmp_path):
+    rows = [
+        {"label": "EK-DUN (base)", "model": "ekdun", "schedule": "base", "psnr": 20.0,
+         "ssim": 0.5, "lpips": None, "parameters": 10, "runtime_ms_median": 1.0,
+         "peak_memory_mib": 2.0},
+        {"label": "EK-DUN (last-2)", "model": "ekdun", "schedule": "last-2", "psnr": 21.5,
+         "ssim": 0.6, "lpips": None, "parameters": 10, "runtime_ms_median": 1.0,
+         "peak_memory_mib": 2.0},
+        {"label": "Le-ADMM-U", "model": "le-admm-u", "schedule": None, "psnr": 19.0,
+         "ssim": 0.4, "lpips": None, "parameters": 1000, "runtime_ms_median": 3.0,
+         "peak_memory_mib": 4.0},
+    ]
+    written = write_tables(tmp_path, rows, ["LPIPS unavailable: test"])
+    t1 = (tmp_path / "table1.md").read_text()
+    assert "| Le-ADMM-U | 19.00 | 0.4000 | n/a | 1,000 |" in t1
+    assert "EK-DUN (last-2)" in t1 and "EK-DUN (base)" not in t1
+    t2 = json.loads((tmp_path / "table2.json").read_text())
+    assert [r["label"] for r in t2["rows"]] == ["base only", "last-2"]
+    assert "LPIPS unavailable" in (tmp_path / "table2.md").read_text()
+    assert set(written) >= {"table1.md", "table2.md", "results.json"}
+
+
+def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, capsys):
+    pairs, _ = tiny_data
+    assert ekdun_main(["eval", str(tiny_checkpoint), "--data", str(pairs), "--out",
+                       str(tmp_path / "tables"), "--quiet"]) == 0
+    res = json.loads((tmp_path / "tables" / "results.json").read_text())["results"][0]
+    assert np.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["parameters"] > 0
+    assert res["runtime_ms_median"] > 0 and res["model"] == "ekdun"
+    assert (tmp_path / "tables" / "table2.md").is_file()
+
+    out = tmp_path / "recon"
+    assert ekdun_main(["reconstruct", str(tiny_checkpoint), str(pairs / "measurement"),
+                       "--out", str(out)]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted([f"im{i}.{s}" for i in range(8) for s in ("npy", "png")])
+    image = np.load(out / "im0.npy")
+    assert image.shape == (16, 16, 3) and np.isfinite(image).all()
+
+
+def test_bad_inputs_give_one_line_errors_and_no_outputs(tiny_data, tiny_checkpoint,
+                                                        tmp_path, capsys):
+    pairs, kernels = tiny_data
+    # measurement size does not match the model
+    wrong = tmp_path / "wrong.npy"
+    np.save(wrong, np.zeros((20, 20, 3), np.float32))
+    out = tmp_path / "out"
+    assert ekdun_main(["reconstruct", str(tiny_checkpoint), str(wrong), "--out",
+                       str(out)]) == 2
+    assert "20x20x3 but the model expects 16x16x3" in _one_error_line(capsys)
+    assert not out.exists()
+    # corrupt checkpoint
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"PK\x03\x04 not really a zip")
+    assert ekdun_main(["reconstruct", str(bad), str(pairs / "measurement"), "--out",
+                       str(out)]) == 2
+    assert "not a readable checkpoint" in _one_error_line(capsys)
+    assert not out.exists()
+    # empty dataset folder
+    empty = tmp_path / "empty"
+    (empty / "scene").mkdir(parents=True)
+    (empty / "measurement").mkdir()
+    run = tmp_path / "run"
+    assert ekdun_main(["train", str(empty), str(run), "--kernels", str(kernels),
+                       "--quiet"]) == 2
+    assert "empty pairs folder" in _one_error_line(capsys)
+    assert not run.exists()
+    # unpaired files
+    np.save(empty / "scene" / "a.npy", np.zeros((16, 16, 3), np.float32))
+    np.save(empty / "measurement" / "b.npy", np.zeros((16, 16, 3), np.float32))
+    assert ekdun_main(["train", str(empty), str(run), "--kernels", str(kernels),
+                       "--quiet"]) == 2
+    assert "unpaired file(s)" in _one_error_line(capsys)
+    assert not run.exists()
+    # training pairs of the wrong size for the kernel file
+    np.save(empty / "measurement" / "a.npy", np.zeros((16, 16, 3), np.float32))
+    (empty / "measurement" / "b.npy").unlink()
+    big = tmp_path / "big"
+    for sub in ("scene", "measurement"):
+        (big / sub).mkdir(parents=True)
+        np.save(big / sub / "a.npy", np.zeros((20, 20, 3), np.float32))
+    assert ekdun_main(["train", str(big), str(run), "--kernels", str(kernels),
+                       "--quiet"]) == 2
+    assert "model's sensor is 16x16" in _one_error_line(capsys)
+    assert not run.exists()
+
+
+def test_admm_tv_recovers_a_synthetic_scene():
+    rng = np.random.default_rng(0)
+    psf = np.zeros((1, 32, 32))
+    psf[0, rng.integers(0, 32, 20), rng.integers(0, 32, 20)] = 1.0
+    x = torch.as_tensor(dead_leaves((48, 48), 3, channels=1))[None].double()
+    op = ShiftInvariantOperator(torch.as_tensor(psf / psf.sum()), (48, 48)).double()
+    y = op.A(x)
+    y = y + 1e-3 * y.max() * torch.randn(y.shape, generator=torch.Generator().manual_seed(0),
+                                         dtype=y.dtype)
+    back = op.A_adjoint(y)
+    back = back * (back * x).sum() / (back * back).sum()        # best-scaled Aᵀy
+    recon = admm_tv(y[0], psf, iterations=200, tau=1e-3)
+    baseline = float(psnr(back.clamp(0, 1), x)[0])
+    got = float(psnr(recon[None].clamp(0, 1), x)[0])
+    assert got > baseline + 5.0, (got, baseline)
+
+
+def test_admm_cli_on_the_real_diffusercam_tutorial_data(real_data, tmp_path):
+    folder = real_data("diffusercam_tutorial")
+    out = tmp_path / "hand.npy"
+    assert ekdun_main(["admm", str(folder / "psf_sample.tif"),
+                       str(folder / "rawdata_hand_sample.tif"), "--out", str(out),
+                       "--downsample", "8", "--iterations", "40"]) == 0
+    image = np.load(out)
+    assert image.shape == (150, 200) and np.isfinite(image).all()
+    assert image.std() > 0.05 * image.max() > 0
+    assert out.with_suffix(".png").is_file()

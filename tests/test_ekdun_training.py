@@ -1,0 +1,132 @@
+"""Training: loss decreases, resume equals an uninterrupted run, DDP equals one process,
+checkpoints never execute code, learned kernels export as psfkit kernel files."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from ekdun.cli import main as ekdun_main
+from ekdun.data.pairs import PairsDataset
+from ekdun.training import CheckpointError, TrainOptions, export_kernels, load_checkpoint, train
+from psfkit.kernelfile import load_kernels
+
+SENSOR = (16, 16)
+SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
+
+
+def _options(epochs: int) -> TrainOptions:
+    return TrainOptions(epochs=epochs, batch_size=4, lr=1e-3, progress=False, threads=1)
+
+
+def test_training_reduces_loss_and_writes_the_run_folder(tiny_data, tmp_path):
+    pairs, kernels = tiny_data
+    result = train(tmp_path / "run", "ekdun", kernels, PairsDataset(pairs), "tiny", SMALL,
+                   _options(4))
+    losses = [h["train_loss"] for h in result["history"]]
+    assert losses[-1] < losses[0]
+    run = tmp_path / "run"
+    assert {"checkpoint.pt", "log.csv", "kernels_initial.npz", "kernels_learned.npz"} <= {
+        p.name for p in run.iterdir()}
+    assert len((run / "log.csv").read_text().strip().splitlines()) == 5
+    initial, learned = load_kernels(run / "kernels_initial.npz"), load_kernels(
+        run / "kernels_learned.npz")
+    assert learned.basis == initial.basis == "paper" and learned.sensor_shape == SENSOR
+    assert learned.convention == initial.convention
+    assert not np.array_equal(learned.kernels, initial.kernels)
+    np.testing.assert_array_equal(initial.kernels, load_kernels(kernels).kernels)
+    # export from the checkpoint (library and CLI) equals the run's kernels_learned.npz
+    np.testing.assert_array_equal(export_kernels(run / "checkpoint.pt").kernels,
+                                  learned.kernels)
+    assert ekdun_main(["export-kernels", str(run / "checkpoint.pt"), "--out",
+                       str(tmp_path / "learned.npz")]) == 0
+    np.testing.assert_array_equal(load_kernels(tmp_path / "learned.npz").kernels,
+                                  learned.kernels)
+    # a second run into the same folder must be explicit
+    with pytest.raises(Exception, match="--resume"):
+        train(run, "ekdun", kernels, PairsDataset(pairs), "tiny", SMALL, _options(4))
+
+
+def test_resume_equals_an_uninterrupted_run(tiny_data, tmp_path):
+    pairs, kernels = tiny_data
+    data = PairsDataset(pairs)
+    straight = train(tmp_path / "a", "ekdun", kernels, data, "tiny", SMALL, _options(4))
+    train(tmp_path / "b", "ekdun", kernels, data, "tiny", SMALL, _options(2))
+    # "killed" after epoch 2; something else disturbs the global RNGs meanwhile
+    torch.manual_seed(123)
+    np.random.seed(7)  # noqa: NPY002
+    resumed = train(tmp_path / "b", "ekdun", kernels, data, "tiny", SMALL, _options(4),
+                    resume=True)
+    assert [h["epoch"] for h in resumed["history"]] == [1, 2, 3, 4]
+    for (name, p), q in zip(straight["model"].state_dict().items(),
+                            resumed["model"].state_dict().values(), strict=True):
+        torch.testing.assert_close(p, q, rtol=0, atol=1e-6, msg=name)
+    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    assert [h["train_loss"] for h in a["metadata"]["history"]] == pytest.approx(
+        [h["train_loss"] for h in b["metadata"]["history"]], rel=1e-6)
+    assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == 4
+
+
+def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path):
+    pairs, kernels = tiny_data
+    common = [str(pairs), "--kernels", str(kernels), "--iterations", "2", "--epochs", "2",
+              "--batch-size", "4", "--lr", "1e-3", "--threads", "1", "--quiet",
+              "--device", "cpu"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    one = subprocess.run([sys.executable, "-m", "ekdun.cli", "train", *common[:1],
+                          str(tmp_path / "one"), *common[1:]], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert one.returncode == 0, one.stderr
+    two = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone",
+                          "--nproc_per_node", "2", "-m", "ekdun.cli", "train", *common[:1],
+                          str(tmp_path / "two"), *common[1:]], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert two.returncode == 0, two.stderr[-2000:]
+    a = load_checkpoint(tmp_path / "one" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "two" / "checkpoint.pt")
+    assert b["metadata"]["world_size"] == 2 and a["metadata"]["world_size"] == 1
+    for name, p in a["model"].items():
+        torch.testing.assert_close(b["model"][name], p, rtol=1e-5, atol=1e-5, msg=name)
+
+
+class _Evil:
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol:UserWarning")
+def test_checkpoints_never_execute_code(tmp_path, capsys):
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "ekdun-checkpoint", "payload": _Evil(str(marker))}, evil)
+    with pytest.raises(CheckpointError, match="refused to load"):
+        load_checkpoint(evil)
+    assert not marker.exists()
+    raw = tmp_path / "raw.pt"
+    raw.write_bytes(pickle.dumps(_Evil(str(marker))))
+    with pytest.raises(CheckpointError, match=str(raw)):       # refused, whatever the reason
+        load_checkpoint(raw)
+    assert not marker.exists()
+    # the CLI turns it into one line and writes nothing
+    out = tmp_path / "learned.npz"
+    assert ekdun_main(["export-kernels", str(evil), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ekdun: error:") and "refused" in err[0]
+    assert not marker.exists() and not out.exists()
+    # foreign but harmless torch file, and garbage bytes
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not an ekdun-checkpoint"):
+        load_checkpoint(tmp_path / "foreign.pt")
+    (tmp_path / "garbage.pt").write_bytes(b"\x00garbage" * 10)
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(tmp_path / "garbage.pt")
