@@ -31,8 +31,10 @@
 #
 # > **Illustrative numbers.** 64 × 64 pixels, 16 training pairs and 3 epochs on a CPU (well
 # > under a minute). The kernels do change during such a short training (the printed relative
-# > change), but mostly by noise from a few large Adam steps, not by a converged physical
-# > correction, and the held-out PSNR is far from a trained network's. The numbers show how to
+# > change), but mostly by a smooth pedestal outside the caustic in `Kv` and `Kh` (visible in
+# > the figures below; Adam moves even near-zero pixels by about the kernel learning rate per
+# > step), not by a displacement of the caustic spots, and the held-out PSNR is far from a
+# > trained network's. The numbers show how to
 # > read the comparison, not what a fully trained EK-DUN learns. For that, train longer
 # > (`ekdun benchmark-tiny`, or `ekdun train` on your data) and run
 # > `python analysis/fig7_learned_kernels.py RUN_DIR/checkpoint.pt GRID --out DIR`.
