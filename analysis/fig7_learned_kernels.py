@@ -3,8 +3,12 @@ learned-vs-measured comparison the paper only shows.
 
 Usage::
 
-    python analysis/fig7_learned_kernels.py LEARNED.npz GRID --out DIR [--initial K.npz]
+    python analysis/fig7_learned_kernels.py LEARNED GRID --out DIR [--initial K.npz]
 
+``LEARNED`` is a kernel file (``kernels_learned.npz``, ``ekdun export-kernels``) or an EK-DUN
+checkpoint (``RUN_DIR/checkpoint.pt``, or the run folder), whose kernels are exported with
+:func:`ekdun.training.export_kernels`; for a checkpoint, ``--initial`` defaults to its seed
+kernels (:func:`ekdun.training.initial_kernels`).
 Writes ``DIR/figures/fig7.png|pdf`` (the paper's layout, learned kernels alone; ``fig7_zoom``
 the central part of the caustic), and the comparison of :func:`psfkit.compare.compare_kernels`
 (as ``psfkit compare``): ``DIR/compare.json``, ``DIR/compare.html``, ``DIR/figures/``.
@@ -23,13 +27,27 @@ from _common import run
 from psfkit.compare import check_learned, compare_kernels, load_grid
 from psfkit.compare_report import write_comparison
 from psfkit.figures import figure_kernels
-from psfkit.kernelfile import load_kernels
+from psfkit.kernelfile import KernelModel, load_kernels
+
+
+def load_learned(path: str) -> tuple[KernelModel, KernelModel | None]:
+    """``(learned, initial)`` kernels of ``path``: a kernel file (initial ``None``), or an
+    EK-DUN checkpoint / run folder (its exported kernels and its seed kernels)."""
+    where = Path(path)
+    if where.suffix != ".pt" and not where.is_dir():
+        return load_kernels(path), None
+    from ekdun.evaluation.evaluate import checkpoint_path
+    from ekdun.training import export_kernels, initial_kernels, load_checkpoint
+
+    doc = load_checkpoint(checkpoint_path(where))
+    return export_kernels(doc), initial_kernels(doc)
 
 
 def main(args: argparse.Namespace) -> int:
-    learned = load_kernels(args.learned)
+    learned, initial = load_learned(args.learned)
     check_learned(learned, args.learned)
-    initial = load_kernels(args.initial) if args.initial else None
+    if args.initial:
+        initial = load_kernels(args.initial)
     grid = load_grid(args.grid)
     comparison = compare_kernels(learned, grid, initial=initial, progress=not args.quiet)
     names = list(learned.kernel_names)
@@ -48,9 +66,11 @@ def main(args: argparse.Namespace) -> int:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("learned", help="kernel file of the trained model")
+    p.add_argument("learned", help="kernel file of the trained model, or its EK-DUN "
+                                   "checkpoint.pt (or run folder)")
     p.add_argument("grid", help="PSF-grid folder of the same camera")
-    p.add_argument("--initial", help="kernel file before training")
+    p.add_argument("--initial", help="kernel file before training (default for a "
+                                     "checkpoint: its seed kernels)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

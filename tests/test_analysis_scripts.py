@@ -18,6 +18,13 @@ from psfkit.kernelfile import KernelModel, save_kernels
 ANALYSIS = Path(__file__).resolve().parents[1] / "analysis"
 
 
+SMALL = {"ekdun": {"iterations": 2, "prior": {"widths": [4, 8]}},
+         "le-admm-u": {"iterations": 2, "denoiser": {"widths": [4, 8]}},
+         "updn": {"iterations": 2, "copies": 1, "denoiser": {"widths": [4, 8]}}}
+RUNS = {"ekdun-last-2": ("ekdun", "last-2"), "ekdun-base": ("ekdun", "base"),
+        "ekdun-all": ("ekdun", "all"), "le-admm-u": ("le-admm-u", None), "updn": ("updn", None)}
+
+
 def _run(script: str, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(ANALYSIS / script), *args], capture_output=True,
                           text=True, timeout=300, check=False)
@@ -34,6 +41,31 @@ def bench(tmp_path_factory):
     save_kernels(initial, KernelModel(kernels=np.stack([model.kernels[0]] * 3),
                                       sensor_shape=model.sensor_shape))
     return grid, learned, initial
+
+
+@pytest.fixture(scope="module")
+def runs(tiny_data, tmp_path_factory) -> dict[str, Path]:
+    """The five runs of Tables 1 and 2, each a 1-epoch training of a very small network on
+    the 16 × 16 ``tiny_data`` pairs (seconds)."""
+    import torch
+
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.training import TrainOptions, train
+
+    torch.set_num_threads(1)
+    pairs, kernels = tiny_data
+    root = tmp_path_factory.mktemp("runs")
+    for name, (model, schedule) in RUNS.items():
+        overrides = {**SMALL[model], **({"schedule": schedule} if schedule else {})}
+        train(root / name, model, kernels, PairsDataset(pairs), "tiny", overrides,
+              TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
+    return {name: root / name for name in RUNS}
+
+
+def _table_rows(path: Path) -> list[str]:
+    return [line.split("|")[1].strip() for line in path.read_text().splitlines()
+            if line.startswith("| ") and not line.startswith("| Method")
+            and not line.startswith("| Eigen")]
 
 
 def _nontrivial(path: Path, size: int = 10_000) -> None:
@@ -83,3 +115,96 @@ def test_scripts_fail_in_one_line(bench, tmp_path):
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and "no such kernel file" in done.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_table1_from_runs_then_from_results(runs, tiny_data, tmp_path):
+    pairs, _ = tiny_data
+    out = tmp_path / "t1"
+    done = _run("table1.py", str(runs["le-admm-u"]), str(runs["updn"]),
+                str(runs["ekdun-last-2"] / "checkpoint.pt"), "--data", str(pairs),
+                "--out", str(out), "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["results.json", "table1.json",
+                                                      "table1.md"]
+    assert _table_rows(out / "table1.md") == ["Le-ADMM-U", "UPDN", "EK-DUN (last-2)"]
+    rows = json.loads((out / "table1.json").read_text())["rows"]
+    assert all(np.isfinite(r["psnr"]) and r["parameters"] > 0 for r in rows)
+    assert "missing rows" not in done.stdout and "| UPDN |" in done.stdout
+    # re-render without evaluating: the same table
+    again = tmp_path / "t1b"
+    done = _run("table1.py", "--results", str(out / "results.json"), "--out", str(again))
+    assert done.returncode == 0, done.stderr
+    assert (again / "table1.md").read_text() == (out / "table1.md").read_text()
+    assert not (again / "results.json").exists()
+
+
+def test_table2_from_runs_then_from_results(runs, tiny_data, tmp_path):
+    pairs, _ = tiny_data
+    out = tmp_path / "t2"
+    done = _run("table2.py", *(str(runs[n]) for n in ("ekdun-all", "ekdun-base",
+                                                      "ekdun-last-2")),
+                "--data", str(pairs), "--out", str(out), "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert _table_rows(out / "table2.md") == ["base only", "last-2", "all"]
+    results = json.loads((out / "results.json").read_text())["results"]
+    assert {r["schedule"] for r in results} == {"base", "last-2", "all"}
+    partial = tmp_path / "partial.json"
+    updn = {"model": "updn", "psnr": 1.0, "label": "UPDN"}
+    partial.write_text(json.dumps({"results": [results[0], updn]}))
+    done = _run("table2.py", "--results", str(partial), "--out", str(tmp_path / "t2b"))
+    assert done.returncode == 0, done.stderr
+    assert "missing rows: " in done.stdout and len(_table_rows(tmp_path / "t2b" /
+                                                               "table2.md")) == 1
+
+
+def test_table_scripts_fail_in_one_line(runs, tiny_data, tmp_path):
+    only_updn = tmp_path / "updn.json"
+    only_updn.write_text(json.dumps({"results": [{"model": "updn", "psnr": 1.0,
+                                                  "label": "UPDN"}]}))
+    cases = [
+        (("table1.py",), "give run folders (with --data) or --results"),
+        (("table1.py", str(runs["updn"])), "need --data"),
+        (("table2.py", "--results", str(only_updn)), "no rows for Table 2"),
+        (("table1.py", str(tmp_path / "nope"), "--data", str(tiny_data[0])),
+         "no such checkpoint"),
+    ]
+    for args, message in cases:
+        done = _run(*args, "--out", str(tmp_path / "x"))
+        assert done.returncode == 2, (args, done.stderr)
+        assert len(done.stderr.strip().splitlines()) == 1 and message in done.stderr, args
+        assert not (tmp_path / "x").exists()
+
+
+def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
+    """A real (1-epoch) EK-DUN trained on a tiny virtual-bench dataset (its run folder as
+    LEARNED), compared with the dataset's grid; ``--initial`` defaults to the checkpoint's seed
+    kernels."""
+    import torch
+
+    from ekdun.benchmark import fit_seed_kernels
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+    from ekdun.training import TrainOptions, train
+
+    torch.set_num_threads(1)
+    data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
+        sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3)), progress=False)
+    kernels = fit_seed_kernels(data, tmp_path / "seed.npz")
+    train(tmp_path / "run", "ekdun", kernels, PairsDataset(data / "train"), "tiny",
+          SMALL["ekdun"], TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
+    out = tmp_path / "f7"
+    done = _run("fig7_learned_kernels.py", str(tmp_path / "run"), str(data / "grid"),
+                "--out", str(out), "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert "learned: v_vs_kernels" in done.stdout and "initial: v_vs_kernels 1.000" in done.stdout
+    _nontrivial(out / "figures" / "fig7.png")
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["initial"] is not None
+
+
+def test_fig7_refuses_a_checkpoint_without_eigen_kernels(runs, bench, tmp_path):
+    grid, _, _ = bench
+    done = _run("fig7_learned_kernels.py", str(runs["updn"] / "checkpoint.pt"), str(grid),
+                "--out", str(tmp_path / "f7c"))
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert "only EK-DUN has eigen kernels" in done.stderr and not (tmp_path / "f7c").exists()

@@ -11,7 +11,18 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from ekdun.cli import main as ekdun_main
 from ekdun.data.deadleaves import dead_leaves
-from ekdun.evaluation import LPIPSMetric, psnr, ssim, write_tables
+from ekdun.errors import InvalidInputError
+from ekdun.evaluation import (
+    LPIPSMetric,
+    psnr,
+    read_results,
+    render_table,
+    ssim,
+    write_results,
+    write_table,
+    write_tables,
+)
+from ekdun.evaluation.tables import missing_rows
 from ekdun.physics.operators import ShiftInvariantOperator
 from ekdun.reconstruction import admm_tv
 from ekdun.training import TrainOptions, train
@@ -81,6 +92,37 @@ def test_tables_markdown_and_json(tmp_path):
     assert [r["label"] for r in t2["rows"]] == ["base only", "last-2"]
     assert "LPIPS unavailable" in (tmp_path / "table2.md").read_text()
     assert set(written) >= {"table1.md", "table2.md", "results.json"}
+
+
+def test_one_table_at_a_time_and_results_round_trip(tmp_path):
+    rows = [
+        {"label": "EK-DUN (all)", "model": "ekdun", "schedule": "all", "psnr": 20.0,
+         "ssim": 0.5, "lpips": None, "parameters": 10, "runtime_ms_median": 1.0,
+         "peak_memory_mib": 2.0},
+        {"label": "UPDN", "model": "updn", "schedule": None, "psnr": 19.0, "ssim": 0.4,
+         "lpips": None, "parameters": 20, "runtime_ms_median": 2.0, "peak_memory_mib": 3.0},
+    ]
+    write_results(tmp_path / "r", rows, ["a note"])
+    back, notes = read_results(tmp_path / "r")              # a folder means its results.json
+    assert back == rows and notes == ["a note"]
+    text = render_table(back, "table2", notes)
+    assert "| all | 20.00 | 0.5000 | n/a |" in text and text.rstrip().endswith("a note")
+    assert missing_rows(back, "table2") == ["base only", "last-2"]
+    assert missing_rows(back, "table1") == ["EK-DUN (last-2)", "Le-ADMM-U"]
+    written = write_table(tmp_path / "t", back, "table1")
+    assert sorted(written) == ["table1.json", "table1.md"]
+    assert "| UPDN | 19.00 |" in (tmp_path / "t" / "table1.md").read_text()
+    assert [r["label"] for r in json.loads((tmp_path / "t" / "table1.json").read_text())[
+        "rows"]] == ["UPDN"]
+    with pytest.raises(InvalidInputError, match="no rows for Table 1"):
+        write_table(tmp_path / "u", back[:1], "table1")
+    assert not (tmp_path / "u").exists()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"rows": []}')
+    with pytest.raises(InvalidInputError, match="not an ekdun results file"):
+        read_results(bad)
+    with pytest.raises(InvalidInputError, match="no such results file"):
+        read_results(tmp_path / "absent.json")
 
 
 def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, capsys):

@@ -14,7 +14,14 @@ import torch
 
 from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
-from ekdun.training import CheckpointError, TrainOptions, export_kernels, load_checkpoint, train
+from ekdun.training import (
+    CheckpointError,
+    TrainOptions,
+    export_kernels,
+    initial_kernels,
+    load_checkpoint,
+    train,
+)
 from psfkit.kernelfile import load_kernels
 
 SENSOR = (16, 16)
@@ -44,6 +51,9 @@ def test_training_reduces_loss_and_writes_the_run_folder(tiny_data, tmp_path):
     # export from the checkpoint (library and CLI) equals the run's kernels_learned.npz
     np.testing.assert_array_equal(export_kernels(run / "checkpoint.pt").kernels,
                                   learned.kernels)
+    seed = initial_kernels(run / "checkpoint.pt")     # = kernels_initial.npz
+    np.testing.assert_array_equal(seed.kernels, initial.kernels)
+    assert seed.basis == "paper" and seed.sensor_shape == SENSOR
     assert ekdun_main(["export-kernels", str(run / "checkpoint.pt"), "--out",
                        str(tmp_path / "learned.npz")]) == 0
     np.testing.assert_array_equal(load_kernels(tmp_path / "learned.npz").kernels,

@@ -26,16 +26,10 @@ def _threads(args: argparse.Namespace) -> None:
 
 
 def resolve_split(data: str, split: str) -> Path:
-    """A virtual-bench dataset root means its ``split`` folder; anything else is a pairs
-    folder."""
-    from ekdun.data.virtual_bench import read_manifest
+    """See :func:`ekdun.data.virtual_bench.resolve_split`."""
+    from ekdun.data.virtual_bench import resolve_split as resolve
 
-    root = Path(data)
-    if not root.is_dir():
-        raise InvalidInputError(f"{root}: no such dataset folder")
-    if read_manifest(root) is not None:
-        return root / split
-    return root
+    return resolve(data, split)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -189,38 +183,20 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def _checkpoint_path(item: str) -> Path:
-    p = Path(item)
-    return p / "checkpoint.pt" if p.is_dir() else p
+    from ekdun.evaluation.evaluate import checkpoint_path
+
+    return checkpoint_path(item)
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from ekdun.data.pairs import PairsDataset
-    from ekdun.evaluation import LPIPSMetric, evaluate_model, write_tables
-    from ekdun.evaluation.tables import label_for
-    from ekdun.training.builder import network_from_checkpoint
+    from ekdun.evaluation import LPIPSMetric, evaluate_checkpoints, write_tables
 
     _threads(args)
-    dataset = PairsDataset(resolve_split(args.data, "test"))
-    models = [(c, *network_from_checkpoint(_checkpoint_path(c))) for c in args.checkpoints]
     lpips = LPIPSMetric(args.lpips_weights)
     if not lpips.available:
         _say(args, lpips.reason)
-    results = []
-    for path, model, doc in models:
-        meta = doc["metadata"]
-        sensor = tuple(model.physics.sensor_shape)
-        if tuple(dataset.image_shape[1:]) != sensor:
-            raise InvalidInputError(f"{args.data}: pairs are {dataset.image_shape[1]}x"
-                                    f"{dataset.image_shape[2]} but {path} expects "
-                                    f"{sensor[0]}x{sensor[1]}")
-        schedule = meta.get("overrides", {}).get("schedule") or (
-            meta.get("schedule") if meta["model"] == "ekdun" else None)
-        row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips,
-                             args.device)
-        row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
-                    "epochs": meta.get("epoch")})
-        results.append(row)
-        _say(args, f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}")
+    results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
+                                   log=lambda line: _say(args, line))
     write_tables(args.out, results, [lpips.reason] if lpips.reason else [])
     return 0
 

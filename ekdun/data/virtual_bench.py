@@ -254,6 +254,23 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None
 
 
+def resolve_split(data: str | os.PathLike, split: str) -> Path:
+    """The pairs folder of ``data``: a virtual-bench dataset root means its ``split``
+    folder (``"train"`` or ``"test"``), anything else is a pairs folder itself.
+
+    Raises
+    ------
+    InvalidInputError
+        ``data`` is not a folder.
+    """
+    root = Path(data)
+    if not root.is_dir():
+        raise InvalidInputError(f"{root}: no such dataset folder")
+    if read_manifest(root) is not None:
+        return root / split
+    return root
+
+
 def dataset_is_current(root: str | os.PathLike, spec: VirtualBenchSpec,
                        verify_hash: bool = True) -> bool:
     """Whether ``root`` holds exactly the dataset ``spec`` describes."""

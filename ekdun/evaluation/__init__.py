@@ -1,7 +1,14 @@
 """Evaluation: metrics (PSNR, SSIM, LPIPS), model evaluation and Tables 1 and 2."""
 
-from ekdun.evaluation.evaluate import evaluate_model
+from ekdun.evaluation.evaluate import evaluate_checkpoints, evaluate_model
 from ekdun.evaluation.metrics import LPIPSMetric, psnr, ssim
-from ekdun.evaluation.tables import write_tables
+from ekdun.evaluation.tables import (
+    read_results,
+    render_table,
+    write_results,
+    write_table,
+    write_tables,
+)
 
-__all__ = ["LPIPSMetric", "evaluate_model", "psnr", "ssim", "write_tables"]
+__all__ = ["LPIPSMetric", "evaluate_checkpoints", "evaluate_model", "psnr", "read_results",
+           "render_table", "ssim", "write_results", "write_table", "write_tables"]

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch.utils.data import Dataset
 
+from ekdun.errors import InvalidInputError
 from ekdun.evaluation.metrics import LPIPSMetric, psnr, ssim
 from ekdun.models.unrolled import UnrolledNetwork
 
@@ -79,6 +82,69 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         else "torch CPU allocations (profiler estimate)",
         "device": str(device),
     }
+
+
+def checkpoint_path(item: str | os.PathLike) -> Path:
+    """``item`` itself, or ``item/checkpoint.pt`` when ``item`` is a run folder."""
+    path = Path(item)
+    return path / "checkpoint.pt" if path.is_dir() else path
+
+
+def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | os.PathLike,
+                         lpips: LPIPSMetric | None = None, device: str | torch.device = "cpu",
+                         log: Callable[[str], Any] | None = None) -> list[dict[str, Any]]:
+    """Evaluate trained runs on held-out pairs: the rows of Tables 1 and 2.
+
+    Parameters
+    ----------
+    checkpoints : sequence of path-like
+        ``checkpoint.pt`` files or run folders (``ekdun train`` outputs).
+    data : path-like
+        Pairs folder, or a virtual-bench dataset (its ``test/`` split is used).
+    lpips : LPIPSMetric, optional
+        LPIPS metric (rows get ``lpips: None`` when absent or unavailable).
+    device : str or torch.device
+        Where to run the networks.
+    log : callable, optional
+        Called with one line per evaluated run.
+
+    Returns
+    -------
+    list of dict
+        :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``.
+
+    Raises
+    ------
+    InvalidInputError
+        A checkpoint cannot be read, the dataset is missing, or its images do not have the
+        sensor size of a model (checked for every run before any evaluation).
+    """
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.data.virtual_bench import resolve_split
+    from ekdun.evaluation.tables import label_for
+    from ekdun.training.builder import network_from_checkpoint
+
+    dataset = PairsDataset(resolve_split(data, "test"))
+    models = [(path, *network_from_checkpoint(path))
+              for path in map(checkpoint_path, checkpoints)]
+    for path, model, _ in models:
+        sensor = tuple(model.physics.sensor_shape)
+        if tuple(dataset.image_shape[1:]) != sensor:
+            raise InvalidInputError(f"{data}: pairs are {dataset.image_shape[1]}x"
+                                    f"{dataset.image_shape[2]} but {path} expects "
+                                    f"{sensor[0]}x{sensor[1]}")
+    results = []
+    for path, model, doc in models:
+        meta = doc["metadata"]
+        schedule = meta.get("overrides", {}).get("schedule") or (
+            meta.get("schedule") if meta["model"] == "ekdun" else None)
+        row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
+        row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
+                    "epochs": meta.get("epoch")})
+        results.append(row)
+        if log is not None:
+            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}")
+    return results
 
 
 def save_reconstructions(model: UnrolledNetwork, dataset: Dataset, out_dir: Path,

@@ -1,8 +1,8 @@
 """Training: loop, checkpoints, logs, distributed helpers and kernel export."""
 
 from ekdun.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from ekdun.training.export import export_kernels
+from ekdun.training.export import export_kernels, initial_kernels
 from ekdun.training.trainer import TrainOptions, train
 
-__all__ = ["CheckpointError", "TrainOptions", "export_kernels", "load_checkpoint",
-           "save_checkpoint", "train"]
+__all__ = ["CheckpointError", "TrainOptions", "export_kernels", "initial_kernels",
+           "load_checkpoint", "save_checkpoint", "train"]

@@ -61,3 +61,33 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     meta["normalization"] = "learned (initialised from: " + str(
         seed.normalization if seed is not None else "unknown") + ")"
     return kernel_model_from(kernels, meta)
+
+
+def initial_kernels(checkpoint: str | os.PathLike | dict[str, Any]) -> KernelModel:
+    """The seed kernels an EK-DUN checkpoint was trained from (what ``kernels_initial.npz``
+    holds), as a :class:`KernelModel`; the "before" of ``psfkit compare --initial``.
+
+    Parameters
+    ----------
+    checkpoint : checkpoint path or loaded checkpoint dict
+        An ``ekdun train`` checkpoint.
+
+    Raises
+    ------
+    CheckpointError
+        Not a readable ekdun checkpoint.
+    ConfigurationError
+        The network has no eigen-kernel physics (Le-ADMM-U, UPDN).
+    """
+    from ekdun.training.checkpoint import CheckpointError, load_checkpoint
+
+    doc = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
+    where = "checkpoint" if isinstance(checkpoint, dict) else str(checkpoint)
+    try:
+        meta = doc["metadata"]
+        if meta["model"] != "ekdun":
+            raise ConfigurationError(f"{where}: only EK-DUN has eigen kernels to export, not "
+                                     f"{meta['model']}")
+        return kernel_model_from(doc["initial_kernels"].numpy(), meta["kernel_metadata"])
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{where}: no initial kernels ({exc})") from None
