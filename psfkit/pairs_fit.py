@@ -50,8 +50,10 @@ class PairFitOptions:
         ``λ`` relative to the mean scene power.
     difference : float
         ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
-    iterations : int
-        Conjugate-gradient iterations of the final solve (scales fixed).
+    iterations : int, optional
+        Conjugate-gradient iterations of the final solve (scales fixed); default 30 for a
+        shift-invariant model (better conditioned: more iterations change nothing measurable
+        on DLMD) and 60 for eigen-kernel models.
     scale_iterations : int
         Conjugate-gradient iterations of each earlier round that re-estimates the scales.
     tolerance : float
@@ -68,12 +70,18 @@ class PairFitOptions:
     convention: str = "sensor"
     tikhonov: float = 1e-2
     difference: float = 1.0
-    iterations: int = 60
+    iterations: int | None = None
     scale_iterations: int = 20
     tolerance: float = 1e-4
     fit_scale: bool = True
     rounds: int = 3
     scene_padding: int = 2
+
+    @property
+    def final_iterations(self) -> int:
+        if self.iterations is not None:
+            return self.iterations
+        return 30 if self.basis == "si" else 60
 
     def __post_init__(self) -> None:
         get_basis(self.basis)
@@ -81,7 +89,7 @@ class PairFitOptions:
             raise ConfigurationError(f"convention must be one of {CONVENTIONS}")
         if self.tikhonov < 0 or self.difference < 0:
             raise ConfigurationError("tikhonov and difference must be >= 0")
-        if min(self.iterations, self.scale_iterations, self.rounds) < 1 \
+        if min(self.final_iterations, self.scale_iterations, self.rounds) < 1 \
                 or self.scene_padding < 2:
             raise ConfigurationError("iterations and rounds must be >= 1, scene_padding >= 2")
 
@@ -92,6 +100,23 @@ def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
     hk, wk = kernel_shape
     rolled = torch.roll(full, shifts=(hk // 2, wk // 2), dims=(-2, -1))
     return rolled[..., :hk, :wk]
+
+
+def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[int, int],
+                            scene_padding: int = 2) -> tuple[int, int]:
+    """Smallest FFT-friendly grid on which circular convolution gives exactly the model's
+    ``crop(K * pad(x))``.
+
+    Scene and crop share the sensor-sized window, so the offsets that reach the crop lie in
+    ``(−H', H')``; with the kernel's support ``[−Hk//2, Hk − Hk//2)`` none of them wraps onto
+    the support once the grid has ``H' + Hk//2`` rows (likewise columns). For full-size
+    kernels that is 1.5× the sensor instead of the model's ``P·H'`` (2×): 0.56× the FFT work.
+    """
+    from scipy.fft import next_fast_len
+
+    full = Fn.padded_shape(sensor_shape, scene_padding)
+    return tuple(min(f, next_fast_len(s + k // 2, real=True))            # type: ignore[return-value]
+                 for s, k, f in zip(sensor_shape, kernel_shape, full, strict=True))
 
 
 class KernelSpaceOperator:
@@ -112,7 +137,7 @@ class KernelSpaceOperator:
                  kernel_shape: tuple[int, int], scene_padding: int = 2) -> None:
         _n, c, h, w = scenes.shape
         self.sensor = (h, w)
-        self.grid = Fn.padded_shape((h, w), scene_padding)
+        self.grid = linear_convolution_grid((h, w), kernel_shape, scene_padding)
         self.kernel_shape = kernel_shape
         self.convention = convention
         wb = get_basis(basis)
@@ -260,7 +285,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=scale_rounds * options.scale_iterations + options.iterations,
+        bar = tqdm(total=scale_rounds * options.scale_iterations + options.final_iterations,
                    unit="it", leave=False, desc=f"fit {options.basis}")
     round_index = 0
     while True:
@@ -279,7 +304,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         rhs = op.adjoint(y)
         kernels, info = _conjugate_gradients(
             normal, rhs, kernels, lambda r, op=op, lam=lam: op.precondition(r, lam),
-            options.iterations if final_round else options.scale_iterations,
+            options.final_iterations if final_round else options.scale_iterations,
             options.tolerance, bar)
         info["round"] = round_index
         history.append(info)

@@ -52,14 +52,20 @@ def test_kernel_space_operator_is_adjoint(basis: str, convention: str) -> None:
 
 @pytest.mark.parametrize(("basis", "convention"), [("si", "sensor"), ("paper", "sensor"),
                                                    ("paper", "source")])
-def test_kernel_space_forward_is_the_ekdun_operator(basis: str, convention: str) -> None:
+@pytest.mark.parametrize("shape", [(12, 16), (13, 17), (11, 10)])
+def test_kernel_space_forward_is_the_ekdun_operator(basis: str, convention: str,
+                                                    shape: tuple[int, int]) -> None:
+    """Same operator as ekdun's (on its 2× grid), although the fit runs on a smaller grid."""
     rng = np.random.default_rng(1)
-    x = _scenes(rng, 2, 3, 12, 16)
-    kernels = _kernels(rng, get_basis(basis).n_kernels, 3, 12, 16).astype(np.float32)
+    x = _scenes(rng, 2, 3, *shape)
+    kernels = _kernels(rng, get_basis(basis).n_kernels, 3, *shape).astype(np.float32)
+    kernels[..., 0, :] += 0.5                    # mass at the support's edges: wrap-around shows
+    kernels[..., :, -1] += 0.5
     model = KernelModel(kernels=kernels, basis=basis, convention=convention,
-                        sensor_shape=(12, 16), channels=("R", "G", "B"))
-    ours = KernelSpaceOperator(torch.as_tensor(x), basis, convention, (12, 16)).forward(
-        torch.as_tensor(kernels, dtype=torch.float64)).numpy()
+                        sensor_shape=shape, channels=("R", "G", "B"))
+    op = KernelSpaceOperator(torch.as_tensor(x), basis, convention, shape)
+    assert op.grid[0] < 2 * shape[0] and op.grid[1] < 2 * shape[1]
+    ours = op.forward(torch.as_tensor(kernels, dtype=torch.float64)).numpy()
     theirs = predict(model, x.astype(np.float32))
     assert np.abs(ours - theirs).max() <= 1e-5 * np.abs(theirs).max()
 

@@ -75,8 +75,9 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--difference", type=float, default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
                         f"likewise (default {d.difference:g})")
-    g.add_argument("--iterations", type=int, default=d.iterations,
-                   help=f"conjugate-gradient iterations per round (default {d.iterations})")
+    g.add_argument("--iterations", type=int, default=None,
+                   help="conjugate-gradient iterations of the final solve (default 30 for si, "
+                        "60 for eigen-kernel models)")
     g.add_argument("--no-scale", action="store_true",
                    help="do not estimate a scale per pair (use when the pairs share one "
                         "exposure and normalisation)")
