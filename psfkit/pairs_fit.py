@@ -22,6 +22,7 @@ alternating rounds (``fit_scale``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -64,6 +65,10 @@ class PairFitOptions:
         Kernel solves in all when scales are fitted (``rounds − 1`` scale updates).
     scene_padding : int
         Convolution grid as a multiple of the sensor size.
+    seed_with_si : bool
+        Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
+        scales): the CG then only has to find the corrections. From zero kernels, 60
+        iterations leave a full-resolution DLMD fit under-converged and worse than the PSF.
     """
 
     basis: str = "si"
@@ -76,6 +81,7 @@ class PairFitOptions:
     fit_scale: bool = True
     rounds: int = 3
     scene_padding: int = 2
+    seed_with_si: bool = True
 
     @property
     def final_iterations(self) -> int:
@@ -275,6 +281,12 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     kernel_shape = (h, w)
     n_kernels = get_basis(options.basis).n_kernels
     scales = torch.ones(n, dtype=dtype, device=device)
+    if initial is None and n_kernels > 1 and options.seed_with_si:
+        seed = fit_pairs(scenes, measurements,
+                         dataclasses.replace(options, basis="si", iterations=None),
+                         dtype=dtype, device=device, progress=progress)
+        initial = np.repeat(seed.kernels, n_kernels, axis=0)
+        scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
     kernels = torch.zeros((n_kernels, c, *kernel_shape), dtype=dtype, device=device) \
         if initial is None else torch.as_tensor(initial, dtype=dtype, device=device).clone()
     history: list[dict[str, Any]] = []
