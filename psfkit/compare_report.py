@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from psfkit import __version__
 from psfkit.compare import KernelComparison
 from psfkit.io.atomic import atomic_directory
-from psfkit.report import _fmt, _table
+from psfkit.report import REPORT_CSS, format_value, html_table
 
 FIGURES = (
     ("fig7_learned_vs_measured", "Fig. 7 layout: learned kernels, their differences, and the "
@@ -52,7 +52,7 @@ def _metric_rows(comparison: KernelComparison) -> str:
                 cells = (cmp.label, f"K_{name}", vs, a["corr"], a["corr_u"], a["corr_v"],
                          a["epe_px"], a["slope"], a["rms_a_px"], a["rms_b_px"],
                          m["difference_ncc"] if key == "vs_measured_kernels" else None)
-                body.append("<tr>" + "".join(f"<td>{_fmt(v, '.3f')}</td>" for v in cells)
+                body.append("<tr>" + "".join(f"<td>{format_value(v, '.3f')}</td>" for v in cells)
                             + "</tr>")
     return (f"<table class='grid'><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}"
             f"</tr>{''.join(body)}</table>")
@@ -86,7 +86,7 @@ v = row), K_k(x + D(x)) ≈ K_base(x), on the caustic mask of the measured K_bas
 between the centre PSF and the outermost reliable PSFs on the kernel's axis (both sides),
 divided by the change of the kernel's weight. Correlations are Pearson over the mask;
 "–" means undefined (a map without displacement). See docs/compare.md.</p>
-{_table([(k, v) for k, v in angles] + ceiling)}
+{html_table([(k, v) for k, v in angles] + ceiling)}
 {_metric_rows(comparison)}
 <div class="warn"><b>Notes</b><ul>{notes}</ul></div>
 {figs}
@@ -96,16 +96,7 @@ divided by the change of the kernel's weight. Correlations are Pearson over the 
 def _page(section: str) -> str:
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>Learned vs measured kernels</title>
-<style>
-body {{ font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }}
-h2 {{ font-size: 1.2em; border-bottom: 1px solid #ccc; }}
-table {{ border-collapse: collapse; font-size: 0.85em; margin: 0.5em 0; }}
-th, td {{ padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }}
-table.grid td {{ text-align: right; }}
-figure {{ margin: 1em 0; }} img {{ max-width: 100%; }}
-figcaption {{ font-size: 0.85em; color: #555; }}
-.warn {{ background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }}
-</style></head><body>
+<style>{REPORT_CSS}</style></head><body>
 <p>psfkit {html.escape(__version__)}. Numbers: <a href="compare.json">compare.json</a>.</p>
 {section}
 </body></html>

@@ -181,7 +181,21 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
     return out_dir
 
 
-def _fmt(value: Any, spec: str = ".4g") -> str:
+REPORT_CSS = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 0.5em 0; }
+th, td { padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }
+table.grid td { text-align: right; }
+figure { margin: 1em 0; } img { max-width: 100%; }
+figcaption { font-size: 0.85em; color: #555; }
+.warn { background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }
+"""
+"""The stylesheet shared by psfkit's HTML reports."""
+
+
+def format_value(value: Any, spec: str = ".4g") -> str:
+    """A number or text for an HTML cell (``–`` for missing or non-finite values)."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "–"
     if isinstance(value, float):
@@ -189,8 +203,10 @@ def _fmt(value: Any, spec: str = ".4g") -> str:
     return html.escape(str(value))
 
 
-def _table(rows: list[tuple[str, Any]]) -> str:
-    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>" for k, v in rows)
+def html_table(rows: list[tuple[str, Any]]) -> str:
+    """A two-column key/value HTML table."""
+    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{format_value(v)}</td></tr>"
+                    for k, v in rows)
     return f"<table class='kv'>{cells}</table>"
 
 
@@ -201,7 +217,7 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
     gain = doc.get("gain_fit") or {}
     growth = doc.get("warp_growth") or {}
     anis = doc.get("warp_anisotropy") or {}
-    summary = _table([
+    summary = html_table([
         ("grid", result.grid_root),
         ("positions", f"{result.grid_shape[0]} × {result.grid_shape[1]}"),
         ("images", f"{h} × {w} × {c} ({'/'.join(result.channels)})"),
@@ -209,21 +225,21 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
         ("normalization", doc["conventions"]["normalization"]),
         ("field coordinates", result.field_units),
     ])
-    registration = _table([
+    registration = html_table([
         ("magnification (px per field unit)", shift.get("magnification")),
-        ("magnification u / v", f"{_fmt(shift.get('magnification_u'))} / "
-                                f"{_fmt(shift.get('magnification_v'))}"),
+        ("magnification u / v", f"{format_value(shift.get('magnification_u'))} / "
+                                f"{format_value(shift.get('magnification_v'))}"),
         ("rotation (deg; 180 = inverted image)", shift.get("rotation_deg")),
         ("shear", shift.get("shear")),
-        ("offset (du, dv) px", str([_fmt(v) for v in shift.get("offset_px", [])])),
+        ("offset (du, dv) px", str([format_value(v) for v in shift.get("offset_px", [])])),
         ("rms residual distortion (px)", shift.get("rms_residual_px")),
     ])
-    gains = _table([
+    gains = html_table([
         ("cosⁿ law exponent n", gain.get("cos_exponent")),
         ("cosⁿ fit rms residual", gain.get("cos_rms_residual")),
         ("quadratic fit rms residual", gain.get("poly_rms_residual")),
     ])
-    warp = _table([
+    warp = html_table([
         ("residual growth exponent (θ^p)", growth.get("exponent")),
         ("  ± (1σ)", growth.get("exponent_std")),
         ("residual at 10° (px)", growth.get("scale_10deg")),
@@ -241,22 +257,13 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
         f"</figcaption></figure>" for stem, caption, data in figures)
     head = ("file", "row", "col", "shift_du_px", "shift_dv_px", "quality", "overlap", "gain",
             "mae", "warp_residual_rms_px", "warp_anisotropy")
-    body = "".join("<tr>" + "".join(f"<td>{_fmt(r[k])}</td>" for k in head) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td>{format_value(r[k])}</td>" for k in head) + "</tr>"
                    for r in csv_rows(result))
     positions = (f"<table class='grid'><tr>{''.join(f'<th>{k}</th>' for k in head)}</tr>"
                  f"{body}</table>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>PSF grid report</title>
-<style>
-body {{ font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }}
-h1 {{ font-size: 1.5em; }} h2 {{ font-size: 1.2em; border-bottom: 1px solid #ccc; }}
-table {{ border-collapse: collapse; font-size: 0.85em; }}
-th, td {{ padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }}
-table.grid td {{ text-align: right; }}
-figure {{ margin: 1em 0; }} img {{ max-width: 100%; }}
-figcaption {{ font-size: 0.85em; color: #555; }}
-.warn {{ background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }}
-</style></head><body>
+<style>{REPORT_CSS}</style></head><body>
 <h1>PSF grid report</h1>
 <p>psfkit {html.escape(__version__)}. Numbers: <a href="results.json">results.json</a>,
 <a href="positions.csv">positions.csv</a>. Shifts are the displacement (du, dv) of each PSF

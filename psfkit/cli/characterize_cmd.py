@@ -42,6 +42,18 @@ def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterizati
                              workers=args.workers)
 
 
+def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
+                           ) -> GridCharacterization:
+    """:func:`_run`, then the numbers to ``--out`` (JSON/CSV) when given; a bad output name is
+    refused before the work."""
+    if args.out:
+        check_numbers_path(args.out)
+    result = _run(args, steps)
+    if args.out:
+        write_numbers(result, args.out)
+    return result
+
+
 def _grid_print(values: np.ndarray, fmt: str) -> None:
     for row in values:
         print("  " + " ".join(format(v, fmt) if np.isfinite(v) else " " * len(format(0, fmt))
@@ -115,22 +127,14 @@ def print_registration(result: GridCharacterization) -> None:
 
 
 def run_register(args: argparse.Namespace) -> int:
-    if args.out:
-        check_numbers_path(args.out)  # refuse a bad output name before the work
-    result = _run(args, ("register",))
-    if args.out:
-        write_numbers(result, args.out)
+    result = _run_and_write_numbers(args, ("register",))
     print_registration(result)
     _print_warnings(result)
     return 0
 
 
 def run_mae(args: argparse.Namespace) -> int:
-    if args.out:
-        check_numbers_path(args.out)  # refuse a bad output name before the work
-    result = _run(args, ("register", "gain", "mae"))
-    if args.out:
-        write_numbers(result, args.out)
+    result = _run_and_write_numbers(args, ("register", "gain", "mae"))
     print(f"MAE vs the centre PSF (normalization: centre {args.normalization} = 1; "
           f"smoothing {args.mae_smoothing:g} px), x 1e-3:")
     _grid_print(result.table("mae") * 1e3, "7.3f")
@@ -141,11 +145,7 @@ def run_mae(args: argparse.Namespace) -> int:
 
 
 def run_warp(args: argparse.Namespace) -> int:
-    if args.out:
-        check_numbers_path(args.out)  # refuse a bad output name before the work
-    result = _run(args, ("register", "gain", "warp"))
-    if args.out:
-        write_numbers(result, args.out)
+    result = _run_and_write_numbers(args, ("register", "gain", "warp"))
     print("residual displacement rms (px) after the affine part:")
     _grid_print(result.warp_table("residual_rms"), "6.3f")
     print("tangential / sagittal anisotropy:")

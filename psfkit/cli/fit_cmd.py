@@ -14,7 +14,13 @@ from psfkit.figures import (
     figure_weight_maps,
     save_figure,
 )
-from psfkit.grid_fit import CV_BASES, CV_BASES_ALL, EigenFitOptions, fit_eigen_grid
+from psfkit.grid_fit import (
+    CV_BASES,
+    CV_BASES_ALL,
+    EigenFitOptions,
+    GridEigenResult,
+    fit_eigen_grid,
+)
 from psfkit.io import atomic_directory, read_grid
 from psfkit.kernelfile import save_kernels
 from psfkit.report import jsonable
@@ -60,6 +66,22 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
                            preprocess=preprocess_options(args))
 
 
+def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = False) -> None:
+    """Fig. 7 (kernels, and zoomed), Fig. 3 (weight maps), diagnostics and ``fit.json`` of an
+    eigen-kernel fit, written atomically into ``folder``."""
+    model = result.kernel_model()
+    with atomic_directory(folder, overwrite=overwrite) as tmp:
+        names = list(model.kernel_names)
+        save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels"),
+                    tmp / "fig7_kernels")
+        save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels (zoom)",
+                                   zoom=0.3), tmp / "fig7_kernels_zoom")
+        save_figure(figure_weight_maps(model.basis, model.sensor_shape), tmp / "fig3_weights")
+        save_figure(figure_eigen_diagnostics(result), tmp / "diagnostics")
+        (tmp / "fit.json").write_text(json.dumps(jsonable(result.summary()), indent=1) + "\n",
+                                      encoding="utf-8")
+
+
 def run_fit_eigen(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -81,16 +103,7 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
     result = fit_eigen_grid(grid, _options(args, basis), progress=not args.quiet)
     model = result.kernel_model()
     if figures is not None:
-        with atomic_directory(figures) as tmp:
-            names = list(model.kernel_names)
-            save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels"),
-                        tmp / "fig7_kernels")
-            save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels (zoom)",
-                                       zoom=0.3), tmp / "fig7_kernels_zoom")
-            save_figure(figure_weight_maps(model.basis, model.sensor_shape), tmp / "fig3_weights")
-            save_figure(figure_eigen_diagnostics(result), tmp / "diagnostics")
-            (tmp / "fit.json").write_text(json.dumps(jsonable(result.summary()), indent=1)
-                                          + "\n", encoding="utf-8")
+        write_fit_figures(result, figures)
     save_kernels(out, model)
     summary = result.summary()
     print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {grid.grid_shape[0]}x"

@@ -148,18 +148,13 @@ def run_demo(args: argparse.Namespace) -> int:
 
 def _demo_eigen_fit(grid: PsfGrid, out: Path, quiet: bool) -> None:
     """The demo's last step: the eigen-kernel fit that seeds EK-DUN (as ``psfkit fit-eigen``)."""
-    from psfkit.figures import figure_kernels, figure_weight_maps, save_figure
+    from psfkit.cli.fit_cmd import write_fit_figures
     from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
-    from psfkit.io import atomic_directory
     from psfkit.kernelfile import save_kernels
 
     result = fit_eigen_grid(grid, EigenFitOptions(), progress=not quiet)
-    model = result.kernel_model()
-    save_kernels(out / "kernels.npz", model)
-    with atomic_directory(out / "kernels-figures", overwrite=True) as tmp:
-        save_figure(figure_kernels(model.kernels, list(model.kernel_names),
-                                   "measured eigen-kernels"), tmp / "fig7_kernels")
-        save_figure(figure_weight_maps(model.basis, model.sensor_shape), tmp / "fig3_weights")
+    save_kernels(out / "kernels.npz", result.kernel_model())
+    write_fit_figures(result, out / "kernels-figures", overwrite=True)
     if result.cv is not None:
         errors = ", ".join(f"{name} {err:.3f}" for name, err
                            in result.cv["held_out_relative_error"].items())

@@ -18,6 +18,7 @@ and measurements of the same size.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass
@@ -52,11 +53,30 @@ class PairSet:
         return len(self.names)
 
     def load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(scene, measurement)`` of pair ``index``, ``(C, H, W)`` float32 each."""
-        scene = read_image(self.root / self.scene_dir / self.scene_files[index],
-                           self.channel_order).astype(np.float32)
-        measurement = read_image(self.root / self.measurement_dir / self.measurement_files[index],
-                                 self.channel_order).astype(np.float32)
+        """``(scene, measurement)`` of pair ``index``, ``(C, H, W)`` float32 each.
+
+        Raises
+        ------
+        InvalidInputError
+            NaN/Inf values, a scene whose size differs from its measurement's, or a pair whose
+            size differs from the set's.
+        """
+        scene_path = self.root / self.scene_dir / self.scene_files[index]
+        measurement_path = self.root / self.measurement_dir / self.measurement_files[index]
+        scene = read_image(scene_path, self.channel_order).astype(np.float32)
+        measurement = read_image(measurement_path, self.channel_order).astype(np.float32)
+        for path, image in ((scene_path, scene), (measurement_path, measurement)):
+            if not np.all(np.isfinite(image)):
+                raise InvalidInputError(f"{path}: contains NaN/Inf values")
+        if scene.shape != measurement.shape:
+            raise InvalidInputError(
+                f"{scene_path}: scene {scene.shape[1]}×{scene.shape[2]}×{scene.shape[0]} "
+                f"differs from its measurement {measurement.shape[1]}×{measurement.shape[2]}×"
+                f"{measurement.shape[0]}; the forward model needs scenes at the sensor's size "
+                "(resample them first)")
+        if any(self.shape) and scene.shape != self.shape:
+            raise InvalidInputError(f"{scene_path}: size {scene.shape} differs from "
+                                    f"{self.names[0]} ({self.shape})")
         if self.flip in ("ud", "both"):
             scene = scene[:, ::-1]
         if self.flip in ("lr", "both"):
@@ -102,7 +122,8 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
     channel_order : {"RGB", "BGR"}, optional
         Overrides ``pairs.json`` and the layout's default.
     check_pixels : bool
-        Read every image to refuse NaN/Inf values and mismatched shapes.
+        Read every image now to refuse NaN/Inf values and mismatched shapes (otherwise only
+        the first pair is read here; :meth:`PairSet.load` checks each pair as it is read).
 
     Raises
     ------
@@ -150,27 +171,9 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
                     names=names, scene_files=tuple(scenes[n] for n in names),
                     measurement_files=tuple(measurements[n] for n in names),
                     channel_order=order, flip=flip, shape=(0, 0, 0))
-    shape = None
-    for i in range(len(names) if check_pixels else 1):
-        scene, measurement = pairs.load(i)
-        for what, image in (("scene", scene), ("measurement", measurement)):
-            path = root / (scene_dir if what == "scene" else measurement_dir) / (
-                pairs.scene_files[i] if what == "scene" else pairs.measurement_files[i])
-            if not np.all(np.isfinite(image)):
-                raise InvalidInputError(f"{path}: contains NaN/Inf values")
-        if scene.shape != measurement.shape:
-            raise InvalidInputError(
-                f"{root / scene_dir / pairs.scene_files[i]}: scene {scene.shape[1]}×"
-                f"{scene.shape[2]}×{scene.shape[0]} differs from its measurement "
-                f"{measurement.shape[1]}×{measurement.shape[2]}×{measurement.shape[0]}; the "
-                "forward model needs scenes at the sensor's size (resample them first)")
-        if shape is None:
-            shape = scene.shape
-        elif scene.shape != shape:
-            raise InvalidInputError(f"{root / scene_dir / pairs.scene_files[i]}: size "
-                                    f"{scene.shape} differs from {names[0]} ({shape})")
-    assert shape is not None
-    return PairSet(root=root, scene_dir=scene_dir, measurement_dir=measurement_dir,
-                   names=names, scene_files=pairs.scene_files,
-                   measurement_files=pairs.measurement_files, channel_order=order, flip=flip,
-                   shape=shape)  # type: ignore[arg-type]
+    # every image is validated as it is loaded: the first fixes the set's size
+    shape = pairs.load(0)[0].shape
+    pairs = dataclasses.replace(pairs, shape=shape)
+    for i in range(1, len(names) if check_pixels else 1):
+        pairs.load(i)
+    return pairs
