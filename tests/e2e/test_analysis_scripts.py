@@ -15,7 +15,7 @@ from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
 from psfkit.kernelfile import KernelModel, save_kernels
 
-ANALYSIS = Path(__file__).resolve().parents[1] / "analysis"
+ANALYSIS = Path(__file__).resolve().parents[2] / "analysis"
 
 
 SMALL = {"ekdun": {"iterations": 2, "prior": {"widths": [4, 8]}},
