@@ -83,10 +83,14 @@ class KernelModel:
         kernels = np.asarray(self.kernels)
         if not np.issubdtype(kernels.dtype, np.number) or np.issubdtype(kernels.dtype,
                                                                          np.complexfloating):
-            raise ModelFileError(f"kernel model: kernels must be real numbers, got dtype "
+            raise ModelFileError(f"{_DEFAULT_WHERE}: kernels must be real numbers, got dtype "
                                  f"{kernels.dtype}")
         object.__setattr__(self, "kernels", kernels.astype(np.float32, copy=False))
-        shape = tuple(self.sensor_shape)
+        try:
+            shape = tuple(self.sensor_shape)
+        except TypeError:
+            raise ModelFileError(f"{_DEFAULT_WHERE}: sensor_shape {self.sensor_shape!r} is not "
+                                 "a valid size") from None
         if shape == (0, 0):
             shape = tuple(kernels.shape[-2:])
         # NumPy integers become ints so that the metadata is JSON; anything else is refused.
