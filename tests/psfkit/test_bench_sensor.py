@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from psfkit.bench.sensor import SensorModel, bin_pixels, relative_illumination
-from psfkit.errors import ConfigurationError
+from psfkit.errors import ConfigurationError, InvalidInputError
 
 
 def test_noise_statistics_are_poisson_gaussian():
@@ -37,6 +37,9 @@ def test_relative_illumination_and_binning():
     assert binned.shape == (1, 2, 3)
     assert binned.sum() == image.sum()
     assert binned[0, 0, 0] == 0 + 1 + 6 + 7
+    with pytest.raises(InvalidInputError, match=r"image shape \(1, 4, 6\) is not a multiple "
+                                                "of the binning factor 4"):
+        bin_pixels(image, 4)
 
 
 def test_sensor_validation():
