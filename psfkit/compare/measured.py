@@ -23,7 +23,8 @@ from psfkit.compare.resampling import check_shapes, resample
 from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
 from psfkit.errors import InvalidInputError
 from psfkit.grid_fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
-from psfkit.io.grid import PsfGrid, read_grid
+from psfkit.io.grid import PsfGrid
+from psfkit.io.grid_validation import read_grid
 from psfkit.kernelfile import KernelModel
 from psfkit.preprocess import luminance
 from psfkit.weights import get_basis
