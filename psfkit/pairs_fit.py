@@ -34,6 +34,7 @@ from torch import Tensor
 from ekdun.physics import functional as Fn
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import CONVENTIONS, KernelModel
+from psfkit.resample import bin_mean
 from psfkit.weights import get_basis
 
 
@@ -241,13 +242,12 @@ def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
         return scenes, measurements
 
     def binned(a: np.ndarray) -> np.ndarray:
-        n, c, h, w = a.shape
+        h, w = a.shape[-2:]
         hh, ww = h // factor, w // factor
         if hh < 4 or ww < 4:
             raise InvalidInputError(f"downsampling {h}x{w} pairs by {factor} leaves too few "
                                     "pixels")
-        blocks = a[:, :, :hh * factor, :ww * factor].reshape(n, c, hh, factor, ww, factor)
-        return blocks.mean(axis=(3, 5), dtype=np.float64).astype(np.float32)
+        return bin_mean(a, factor).astype(np.float32)
 
     return binned(scenes), binned(measurements)
 

@@ -210,13 +210,9 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _box_downsample(image, factor: int):
+    from psfkit.resample import bin_mean
 
-    if factor <= 1:
-        return image
-    c, h, w = image.shape
-    h2, w2 = h // factor, w // factor
-    return image[:, :h2 * factor, :w2 * factor].reshape(c, h2, factor, w2, factor).mean(
-        axis=(2, 4))
+    return image if factor <= 1 else bin_mean(image, factor)
 
 
 def run_admm(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.errors import ConfigurationError
 
 
 def relative_illumination(cos_theta: float | np.ndarray, exponent: float = 4.0
@@ -19,23 +19,6 @@ def relative_illumination(cos_theta: float | np.ndarray, exponent: float = 4.0
     fall-off (microlenses steepen it).
     """
     return np.asarray(cos_theta, dtype=np.float64) ** exponent
-
-
-def bin_pixels(image: np.ndarray, factor: int) -> np.ndarray:
-    """Sum ``factor × factor`` blocks of the last two axes (sensor-pixel integration).
-
-    Raises
-    ------
-    InvalidInputError
-        The last two axes are not multiples of ``factor``.
-    """
-    if factor == 1:
-        return image
-    *lead, h, w = image.shape
-    if h % factor or w % factor:
-        raise InvalidInputError(f"image shape {image.shape} is not a multiple of the binning "
-                                f"factor {factor}")
-    return image.reshape(*lead, h // factor, factor, w // factor, factor).sum(axis=(-3, -1))
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,8 @@ from psfkit.grid_fit import (
     fit_eigen_grid,
 )
 from psfkit.io import atomic_directory, read_grid
+from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
-from psfkit.report import jsonable
 from psfkit.weights import BASIS_NAMES
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io import atomic_file, read_pairs
+from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_fit import (
     PairFitOptions,
@@ -21,7 +22,6 @@ from psfkit.pairs_fit import (
     predict,
     relative_errors,
 )
-from psfkit.report import jsonable
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}

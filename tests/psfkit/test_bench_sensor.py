@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from psfkit.bench.sensor import SensorModel, bin_pixels, relative_illumination
-from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.bench.sensor import SensorModel, relative_illumination
+from psfkit.errors import ConfigurationError
 
 
 def test_noise_statistics_are_poisson_gaussian():
@@ -30,16 +30,8 @@ def test_black_level_container_and_saturation():
     assert np.all(bright == 4095 * 16)                 # clipped at full scale: 65520
 
 
-def test_relative_illumination_and_binning():
+def test_relative_illumination():
     assert relative_illumination(np.cos(np.deg2rad(30.0))) == pytest.approx(0.75**2)
-    image = np.arange(24.0).reshape(1, 4, 6)
-    binned = bin_pixels(image, 2)
-    assert binned.shape == (1, 2, 3)
-    assert binned.sum() == image.sum()
-    assert binned[0, 0, 0] == 0 + 1 + 6 + 7
-    with pytest.raises(InvalidInputError, match=r"image shape \(1, 4, 6\) is not a multiple "
-                                                "of the binning factor 4"):
-        bin_pixels(image, 4)
 
 
 def test_sensor_validation():
