@@ -1,10 +1,11 @@
-"""A bounded, order-free parallel map for per-position work on large images."""
+"""A bounded, order-keeping parallel map for per-position work on large images."""
 
 from __future__ import annotations
 
 import os
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -18,10 +19,14 @@ def default_workers() -> int:
 
 def bounded_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None
                 ) -> Iterator[tuple[int, R]]:
-    """Yield ``(index, fn(item))`` as results complete, with at most ``workers + 1`` items in
-    flight, so that a full-resolution image per item never piles up in memory. With one
-    worker everything runs in the calling thread. An exception cancels what is pending and
-    propagates."""
+    """Yield ``(index, fn(item))`` in the order of ``items``, with at most ``workers + 1``
+    items in flight, so that a full-resolution image per item never piles up in memory. With
+    one worker everything runs in the calling thread. An exception cancels what is pending and
+    propagates.
+
+    Results come in input order (not completion order) so that sums accumulated over them are
+    bit-identical from run to run, whatever the thread timing.
+    """
     workers = default_workers() if workers is None else max(1, workers)
     if workers == 1:
         for index, item in enumerate(items):
@@ -29,23 +34,21 @@ def bounded_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = 
         return
     iterator = enumerate(items)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending: dict[Future[R], int] = {}
+        pending: deque[tuple[int, Future[R]]] = deque()
         try:
             for index, item in iterator:
-                pending[pool.submit(fn, item)] = index
+                pending.append((index, pool.submit(fn, item)))
                 if len(pending) > workers:
                     break
             while pending:
-                done, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for future in done:
-                    index = pending.pop(future)
-                    result = future.result()
-                    del future
-                    for next_index, item in iterator:   # refill one slot
-                        pending[pool.submit(fn, item)] = next_index
-                        break
-                    yield index, result
-                    del result
+                index, future = pending.popleft()
+                result = future.result()
+                del future
+                for next_index, item in iterator:   # refill one slot
+                    pending.append((next_index, pool.submit(fn, item)))
+                    break
+                yield index, result
+                del result
         finally:
-            for future in pending:
+            for _, future in pending:
                 future.cancel()
