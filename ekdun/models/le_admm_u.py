@@ -42,8 +42,9 @@ from torch import Tensor, nn
 from ekdun.models.configs import LeADMMUConfig
 from ekdun.models.unet import UNet
 from ekdun.models.unrolled import State, UnrolledNetwork
-from ekdun.physics import functional as Fn
 from ekdun.physics.operators import ShiftInvariantOperator
+from psfkit.forward.convolution import crop, pad
+from psfkit.forward.fft import irfft2, rfft2
 
 
 def finite_differences(x: Tensor) -> Tensor:
@@ -109,8 +110,8 @@ class LeADMMU(UnrolledNetwork):
             "spectrum": spectrum,
             "conj_spectrum": op.conj_spectra[0],                   # cached (fixed PSF)
             "hth": spectrum.real ** 2 + spectrum.imag ** 2,
-            "cty": Fn.pad(y, grid),                                # Cᵀy
-            "ctc": Fn.pad(torch.ones_like(y[:1, :1]), grid),       # CᵀC, a 0/1 mask
+            "cty": pad(y, grid),                                # Cᵀy
+            "ctc": pad(torch.ones_like(y[:1, :1]), grid),       # CᵀC, a 0/1 mask
         }
 
     def initial_state(self, y: Tensor, context: dict[str, Any]) -> State:
@@ -135,10 +136,10 @@ class LeADMMU(UnrolledNetwork):
         w = torch.relu(x + alpha3 / mu3)
 
         rhs = (mu3 * w - alpha3) + finite_differences_adjoint(mu2 * u - alpha2)
-        numerator = Fn.rfft2(rhs) + context["conj_spectrum"] * Fn.rfft2(mu1 * v - alpha1)
+        numerator = rfft2(rhs) + context["conj_spectrum"] * rfft2(mu1 * v - alpha1)
         x_hat = numerator / (mu1 * context["hth"] + mu2 * self.tv_spectrum + mu3)
-        x = Fn.irfft2(x_hat, grid)
-        hx = Fn.irfft2(spectrum * x_hat, grid)
+        x = irfft2(x_hat, grid)
+        hx = irfft2(spectrum * x_hat, grid)
 
         return {"x": x, "hx": hx,
                 "alpha1": alpha1 + mu1 * (hx - v),
@@ -148,7 +149,7 @@ class LeADMMU(UnrolledNetwork):
     def admm_estimate(self, y: Tensor) -> Tensor:
         """The cropped ADMM iterate before the U-Net, ``(B, C, H', W')``."""
         state, _ = self.iterate(y)
-        return Fn.crop(state["x"], self.physics.sensor_shape)
+        return crop(state["x"], self.physics.sensor_shape)
 
     def output(self, state: State, context: dict[str, Any]) -> Tensor:
-        return self.denoiser(Fn.crop(state["x"], self.physics.sensor_shape))
+        return self.denoiser(crop(state["x"], self.physics.sensor_shape))

@@ -21,7 +21,9 @@ import torch
 from torch import Tensor
 
 from ekdun.errors import TensorShapeError
-from ekdun.physics import functional as Fn
+from psfkit.forward.convolution import crop, kernel_spectra, pad
+from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.geometry import padded_shape
 
 
 def _grad(v: Tensor) -> tuple[Tensor, Tensor]:
@@ -82,10 +84,10 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
                                f"measurement {sensor[0]}x{sensor[1]}")
     if normalize_psf:
         h = h / h.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
-    grid = Fn.padded_shape(sensor, scene_padding)
+    grid = padded_shape(sensor, scene_padding)
     scale = float(y.abs().max().clamp_min(1e-12))
     y = y / scale
-    H = Fn.kernel_spectra(h, grid)                         # (C, PH, PW//2+1)
+    H = kernel_spectra(h, grid)                         # (C, PH, PW//2+1)
     HtH = (H.abs() ** 2)
     lipschitz = float(HtH.max())
     mu1, mu2, mu3 = mu1 * lipschitz, mu2, mu3 * lipschitz
@@ -95,13 +97,13 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
     denom = mu1 * HtH + mu2 * lap + mu3
 
     def conv(v: Tensor) -> Tensor:
-        return Fn.irfft2(torch.fft.rfft2(v) * H, grid)
+        return irfft2(rfft2(v) * H, grid)
 
     def conv_t(v: Tensor) -> Tensor:
-        return Fn.irfft2(torch.fft.rfft2(v) * H.conj(), grid)
+        return irfft2(rfft2(v) * H.conj(), grid)
 
-    cty = Fn.pad(y, grid)
-    mask = Fn.pad(torch.ones_like(y), grid)
+    cty = pad(y, grid)
+    mask = pad(torch.ones_like(y), grid)
     v = torch.zeros((y.shape[0], *grid), dtype=torch.float64)
     xi = torch.zeros_like(v)
     rho = torch.zeros_like(v)
@@ -115,7 +117,7 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
         w = (v + rho / mu3).clamp_min(0)
         rhs = (mu3 * w - rho) + _grad_adjoint(mu2 * uy - eta_y, mu2 * ux - eta_x) \
             + conv_t(mu1 * x - xi)
-        v = Fn.irfft2(torch.fft.rfft2(rhs) / denom, grid)
+        v = irfft2(rfft2(rhs) / denom, grid)
         hv = conv(v)
         gy, gx = _grad(v)
         xi = xi + mu1 * (hv - x)
@@ -123,4 +125,4 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
         eta_x = eta_x + mu2 * (gx - ux)
         rho = rho + mu3 * (v - w)
     out = v.clamp_min(0) * scale
-    return out if full_grid else Fn.crop(out, sensor).contiguous()
+    return out if full_grid else crop(out, sensor).contiguous()
