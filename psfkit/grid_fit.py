@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.alignment import GridAligner
+from psfkit.choices import CV_BASES
 from psfkit.eigen import (
     NormalEquations,
     WorkingStack,
@@ -34,8 +35,6 @@ from psfkit.preprocess import PreprocessOptions
 from psfkit.registration import bin_image
 from psfkit.weights import get_basis
 
-CV_BASES = ("si", "paper")                 # compared by default (with the fitted basis)
-CV_BASES_ALL = ("si", "paper", "paper+odd", "paper+cross", "paper+odd+cross", "poly:2")
 RELIABLE_OVERLAP = 0.5
 
 
