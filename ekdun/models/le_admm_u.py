@@ -2,7 +2,7 @@ r"""Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM followed by a U
 
 The ADMM-TV of DiffuserCam (Antipa et al. 2018) with learned ``μ1, μ2, μ3, τ`` per iteration
 (kept positive by a log parametrisation), unrolled for a few iterations: the updates are those
-of :mod:`ekdun.reconstruction.tv_admm_steps` (shared with ``ekdun admm``), for ``x`` on the
+of :mod:`ekdun.models.tv_admm_steps` (shared with ``ekdun admm``), for ``x`` on the
 padded grid with the splits ``v = Hx`` (crop), ``u = Ψx`` (TV) and ``w = x`` (non-negativity).
 All variables start at zero; each iteration takes two forward and two inverse FFTs. The
 estimate is the central ``H' × W'`` of ``x`` (our scenes have the sensor's size), which the
@@ -19,15 +19,15 @@ import torch
 from torch import Tensor, nn
 
 from ekdun.models.configs import LeADMMUConfig
-from ekdun.models.unet import UNet
-from ekdun.models.unrolled import State, UnrolledNetwork
-from ekdun.physics.operators import ShiftInvariantOperator
-from ekdun.reconstruction.tv_admm_steps import (
+from ekdun.models.tv_admm_steps import (
     admm_tv_context,
     admm_tv_initial_state,
     admm_tv_iteration,
     finite_difference_spectrum,
 )
+from ekdun.models.unet import UNet
+from ekdun.models.unrolled import State, UnrolledNetwork
+from ekdun.physics.operators import ShiftInvariantOperator
 from psfkit.forward.convolution import crop
 
 

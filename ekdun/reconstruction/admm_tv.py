@@ -10,7 +10,7 @@ For users without a trained network (the DiffuserCam tutorial's algorithm, Antip
 with ``v`` on the padded grid (``scene_padding × H'``), ``C`` the crop to the sensor and
 ``h * ·`` a circular FFT convolution (exactly ``y = crop(K * pad(x))`` of ``design.md`` for a
 scene inside the central block). Every update is closed-form; they are the steps of
-:mod:`ekdun.reconstruction.tv_admm_steps`, shared with Le-ADMM-U (which learns ``μ`` and ``τ``
+:mod:`ekdun.models.tv_admm_steps`, shared with Le-ADMM-U (which learns ``μ`` and ``τ``
 per iteration), and every FFT goes through :mod:`psfkit.forward`.
 """
 
@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from ekdun.errors import TensorShapeError
-from ekdun.reconstruction.tv_admm_steps import (
+from ekdun.models.tv_admm_steps import (
     admm_tv_context,
     admm_tv_initial_state,
     admm_tv_iteration,

@@ -21,10 +21,10 @@ from ekdun.models import (
     count_parameters,
     parse_schedule,
 )
+from ekdun.models.tv_admm_steps import finite_differences, finite_differences_adjoint
 from ekdun.models.updn import interleave_copies
 from ekdun.physics import PreparedOperator, ShiftInvariantOperator
 from ekdun.physics.synthetic import caustic_psf
-from ekdun.reconstruction.tv_admm_steps import finite_differences, finite_differences_adjoint
 from psfkit.kernelfile import KernelModel, save_kernels
 
 SENSOR = (32, 48)

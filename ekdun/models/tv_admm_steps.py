@@ -28,6 +28,9 @@ The ``x`` update is exact in the Fourier domain (``HᵀH`` and ``ΨᵀΨ`` are b
 the padded-grid FFT); ``𝒮`` is the anisotropic soft threshold. Each iteration takes two
 forward and two inverse FFTs, all through :mod:`psfkit.forward.fft`. Every function is
 differentiable (Le-ADMM-U trains through it) and works with float or tensor ``μ``, ``τ``.
+
+It lives with the models rather than in :mod:`ekdun.reconstruction` because the layers only
+go down: ``reconstruction`` (checkpoints) sits above ``training``, which sits above ``models``.
 """
 
 from __future__ import annotations
