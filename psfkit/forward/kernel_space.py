@@ -40,15 +40,22 @@ def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[i
 class KernelSpaceOperator:
     """``B: K ↦ (A_K x_i)_i`` for fixed scenes, and its exact adjoint, on the padded grid.
 
+    The same model as :func:`~psfkit.forward.convolution.eigen_kernel_forward` (checked to
+    rounding by ``tests/psfkit/test_pairs_fit.py``), arranged so that the scenes' spectra are
+    taken once and the kernels are the variable.
+
     Parameters
     ----------
     scenes : Tensor
         ``(N, C, H', W')``.
-    basis, convention :
-        The model.
+    basis : str
+        Weight basis name (:mod:`psfkit.weights`; ``"si"`` for one kernel with weight 1).
+    convention : {"sensor", "source"}
+        Where the weight maps act.
     kernel_shape : (int, int)
         ``(Hk, Wk)``, at most the sensor size.
     scene_padding : int
+        Padding factor ``P`` of the model (the grid used is at most ``P × sensor``).
     """
 
     def __init__(self, scenes: Tensor, basis: str, convention: str,
