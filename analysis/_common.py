@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from psfkit.cli.main import run_cli
-from psfkit.report import jsonable
+from psfkit.io.jsonable import jsonable
 
 
 def run(parser: argparse.ArgumentParser, body: Callable[[argparse.Namespace], int],

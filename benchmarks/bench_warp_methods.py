@@ -18,7 +18,7 @@ import numpy as np
 import tifffile
 from scipy import ndimage
 
-from psfkit.registration import bin_image
+from psfkit.resample import bin_image
 from psfkit.warp import FLOW_METHODS, dense_flow, warp_field
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -25,8 +25,8 @@ from ekdun.training.builder import network_from_checkpoint
 from ekdun.training.checkpoint import load_checkpoint
 from ekdun.training.trainer import CHECKPOINT, TrainOptions, train
 from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.io import read_grid
 from psfkit.io.atomic import atomic_file
-from psfkit.io.grid import read_grid
 from psfkit.kernelfile import save_kernels
 
 RUNS: tuple[tuple[str, str, dict[str, Any]], ...] = (

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 
-__all__ = ["ConfigurationError", "InvalidInputError", "KernelShapeError", "TensorShapeError"]
+__all__ = ["CheckpointError", "ConfigurationError", "InvalidInputError", "KernelShapeError",
+           "TensorShapeError"]
 
 
 class TensorShapeError(InvalidInputError):
@@ -17,3 +18,7 @@ class TensorShapeError(InvalidInputError):
 
 class KernelShapeError(InvalidInputError):
     """Kernels or weight maps are malformed (wrong rank, larger than the sensor, ...)."""
+
+
+class CheckpointError(InvalidInputError):
+    """A checkpoint file is missing, corrupt, foreign or unsafe, or cannot rebuild its network."""

@@ -27,6 +27,8 @@ from psfkit.registration import (
 )
 
 MIN_OVERLAP = 0.05       # below this fraction of the sensor, a position cannot be compared
+RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
+                         # reliable (its deformation biases a translation-only registration)
 
 
 @dataclass(frozen=True)

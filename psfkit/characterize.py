@@ -14,7 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from psfkit.alignment import GridAligner
+from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.errors import ConfigurationError
 from psfkit.gain import GainFit, fit_gain, overlap_gain
 from psfkit.io.grid import GridPosition, PsfGrid
@@ -23,10 +23,10 @@ from psfkit.parallel import bounded_map
 from psfkit.preprocess import PreprocessOptions
 from psfkit.registration import (
     ShiftMapFit,
-    bin_image,
     fit_shift_map,
     normalized_cross_correlation,
 )
+from psfkit.resample import bin_image, binning_factor
 from psfkit.warp import (
     FLOW_METHODS,
     GrowthFit,
@@ -38,8 +38,6 @@ from psfkit.warp import (
 )
 
 STEPS = ("register", "gain", "mae", "warp")
-RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
-                         # reliable (its deformation biases a translation-only registration)
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
 QUIVER_CELLS = 24        # arrows along the longest side of a stored residual flow
 
@@ -224,14 +222,14 @@ def _smooth(image: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _thumbnail(image: np.ndarray) -> np.ndarray:
-    factor = max(1, int(np.ceil(max(image.shape) / THUMBNAIL_SIZE)))
+    factor = binning_factor(image.shape, THUMBNAIL_SIZE)
     return bin_image(image, factor) / factor**2
 
 
 def _coarse_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Block-average a ``(2, H, W)`` flow over the masked pixels to ``(3, h, w)``:
     ``(d_u, d_v, fraction of masked pixels)`` for quiver plots."""
-    factor = max(1, int(np.ceil(max(flow.shape[1:]) / QUIVER_CELLS)))
+    factor = binning_factor(flow.shape[1:], QUIVER_CELLS)
     weight = bin_image(mask.astype(np.float64), factor)
     du = bin_image(np.where(mask, flow[0], 0.0), factor) / np.maximum(weight, 1)
     dv = bin_image(np.where(mask, flow[1], 0.0), factor) / np.maximum(weight, 1)

@@ -10,9 +10,7 @@
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import json
 import os
 from collections.abc import Sequence
@@ -23,8 +21,10 @@ from matplotlib.figure import Figure
 
 from psfkit import __version__
 from psfkit.compare import KernelComparison
+from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
+from psfkit.figures.style import png_base64, save_figure
+from psfkit.html_report import REPORT_CSS, figures_html, format_value, html_table
 from psfkit.io.atomic import atomic_directory
-from psfkit.report import REPORT_CSS, format_value, html_table
 
 FIGURES = (
     ("fig7_learned_vs_measured", "Fig. 7 layout: learned kernels, their differences, and the "
@@ -73,11 +73,7 @@ def html_section(comparison: KernelComparison, figures: list[tuple[str, str, str
     ceiling = [(f"measured K_{n} vs measured warp: corr", a["corr"])
                for n, a in comparison.measured_kernels_vs_warp.items()]
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in doc["notes"]) or "<li>none</li>"
-    figs = "".join(
-        f"<figure id='{stem}'><img alt='{html.escape(caption)}' "
-        f"src='data:image/png;base64,{data}'><figcaption>{html.escape(caption)} "
-        f"(<a href='figures/{stem}.pdf'>PDF</a>, <a href='figures/{stem}.png'>PNG</a>)"
-        f"</figcaption></figure>" for stem, caption, data in figures)
+    figs = figures_html(figures)
     return f"""<section id="learned-vs-measured">
 <h2>Learned vs measured eigen-kernels</h2>
 <p>Displacements D = (D_u, D_v) in pixels of the kernel file's sensor grid (u = column,
@@ -105,8 +101,6 @@ def _page(section: str) -> str:
 
 def comparison_figures(comparison: KernelComparison) -> list[tuple[str, str, Any]]:
     """``(stem, caption, Figure)`` of every comparison figure."""
-    from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
-
     out = []
     for stem, caption, kind, zoom in FIGURES:
         fig = figure_learned_vs_measured(comparison, zoom=zoom) if kind == "kernels" \
@@ -123,8 +117,6 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
 
     ``extra_figures`` are ``(stem, figure)`` pairs also saved under ``figures/`` (e.g. the
     paper's Fig. 7 of the learned kernels alone)."""
-    from psfkit.figures.style import publication_style, save_figure
-
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         fig_dir = tmp / "figures"
@@ -132,10 +124,7 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
         embedded = []
         for stem, caption, fig in comparison_figures(comparison):
             save_figure(fig, fig_dir / stem)
-            buffer = io.BytesIO()
-            with publication_style():
-                fig.savefig(buffer, format="png", dpi=120)
-            embedded.append((stem, caption, base64.b64encode(buffer.getvalue()).decode()))
+            embedded.append((stem, caption, png_base64(fig, dpi=120)))
         for stem, fig in extra_figures:
             save_figure(fig, fig_dir / stem)
         doc = comparison.to_dict()

@@ -30,7 +30,7 @@ import numpy as np
 from psfkit.alignment import AlignedPsf
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import CONVENTIONS
-from psfkit.registration import bin_image
+from psfkit.resample import bin_image
 from psfkit.weights import WeightBasis, get_basis, separable_coordinates
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.alignment import GridAligner
+from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.choices import CV_BASES
 from psfkit.eigen import (
     NormalEquations,
@@ -32,10 +32,8 @@ from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
 from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
 from psfkit.preprocess import PreprocessOptions
-from psfkit.registration import bin_image
+from psfkit.resample import bin_image, binning_factor
 from psfkit.weights import get_basis
-
-RELIABLE_OVERLAP = 0.5
 
 
 @dataclass(frozen=True)
@@ -144,10 +142,6 @@ class GridEigenResult:
         return out
 
 
-def _binning_factor(shape: tuple[int, int], working_size: int) -> int:
-    return max(1, math.ceil(max(shape) / working_size))
-
-
 def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                    progress: bool = False, workers: int | None = None) -> GridEigenResult:
     """Fit the eigen-kernel model of ``options.basis`` to a PSF grid, both conventions.
@@ -177,7 +171,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     full_res = CONVENTIONS if options.convention == "auto" else (options.convention,)
     equations = {conv: NormalEquations(basis, conv, (c, h, w)) for conv in full_res}
     stack = WorkingStack.empty(len(grid.positions), (c, h, w),
-                               _binning_factor((h, w), options.working_size))
+                               binning_factor((h, w), options.working_size))
     reference_total = aligner.reference.sum(axis=0)
     bar: Any = None
     if progress:
@@ -234,12 +228,10 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         result.pca = stack_pca(stack.images, stack.valid, reliable)
         region = result.pca.region
         k = basis.n_kernels
-        binned_kernels = _bin_kernels(full_kernels[convention], factor)
+        # the kernels averaged over the working grid's blocks
+        binned_kernels = np.stack([np.stack([bin_image(ch, factor) / factor**2 for ch in k])
+                                   for k in full_kernels[convention]])
         result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
                                                  result.pca.components[:k][:, :, region])
     return result
 
-
-def _bin_kernels(kernels: np.ndarray, factor: int) -> np.ndarray:
-    """``(K, C, H, W)`` kernels averaged over ``factor × factor`` blocks (the working grid)."""
-    return np.stack([np.stack([bin_image(ch, factor) / factor**2 for ch in k]) for k in kernels])

@@ -40,6 +40,7 @@ from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
 KERNEL_VERSION = 1
+_DEFAULT_WHERE = "kernel model"   # how a model without a file names itself in errors
 
 
 @dataclass(frozen=True)
@@ -80,11 +81,129 @@ class KernelModel:
 
     def __post_init__(self) -> None:
         kernels = np.asarray(self.kernels)
+        if not np.issubdtype(kernels.dtype, np.number) or np.issubdtype(kernels.dtype,
+                                                                         np.complexfloating):
+            raise ModelFileError(f"{_DEFAULT_WHERE}: kernels must be real numbers, got dtype "
+                                 f"{kernels.dtype}")
         object.__setattr__(self, "kernels", kernels.astype(np.float32, copy=False))
-        if self.sensor_shape == (0, 0):
-            object.__setattr__(self, "sensor_shape", tuple(kernels.shape[-2:]))
-        validate_model(self.kernels, self.basis, self.convention, self.sensor_shape,
-                       self.channels, self.scene_padding, where="kernel model")
+        try:
+            shape = tuple(self.sensor_shape)
+        except TypeError:
+            raise ModelFileError(f"{_DEFAULT_WHERE}: sensor_shape {self.sensor_shape!r} is not "
+                                 "a valid size") from None
+        if shape == (0, 0):
+            shape = tuple(kernels.shape[-2:])
+        # NumPy integers become ints so that the metadata is JSON; anything else is refused.
+        object.__setattr__(self, "sensor_shape", tuple(
+            int(s) if isinstance(s, np.integer) else s for s in shape))
+        self.validate(_DEFAULT_WHERE)
+
+    def validate(self, where: str = _DEFAULT_WHERE) -> None:
+        """Check that the pieces of the model agree; the one check of the kernel-file contract.
+
+        Run on construction, by :func:`save_kernels` (the kernels array can be changed in
+        place after construction), by :func:`load_kernels` and by ekdun before training.
+
+        Parameters
+        ----------
+        where : str
+            What the model is (a file path, ``"seed kernels"``); starts the error message.
+
+        Raises
+        ------
+        ModelFileError
+            Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
+            than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
+            convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``.
+        """
+        try:
+            basis = get_basis(self.basis)
+        except PsfkitError as exc:
+            raise ModelFileError(f"{where}: {exc}") from None
+        shape = self.sensor_shape
+        if (len(shape) != 2 or not all(isinstance(s, (int, np.integer)) for s in shape)
+                or min(shape) < 2):
+            raise ModelFileError(f"{where}: sensor_shape {list(shape)} is not a valid size")
+        check_kernels(self.kernels, shape, where)
+        k = self.kernels
+        if k.shape[0] != basis.n_kernels:
+            raise ModelFileError(f"{where}: basis {self.basis!r} needs {basis.n_kernels} "
+                                 f"kernels {basis.kernel_names}, the file has {k.shape[0]}")
+        if k.shape[1] != len(self.channels) or len(self.channels) not in (1, 3):
+            raise ModelFileError(f"{where}: kernels have {k.shape[1]} channel(s) but channels "
+                                 f"are {list(self.channels)}")
+        if self.convention not in CONVENTIONS:
+            raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
+                                 f"{self.convention!r}")
+        if (isinstance(self.scene_padding, bool) or not isinstance(self.scene_padding, int)
+                or self.scene_padding < 2):
+            raise ModelFileError(f"{where}: scene_padding must be an integer >= 2, got "
+                                 f"{self.scene_padding!r}")
+        centre = self.optical_center
+        if centre is not None and not _two_finite_numbers(centre):
+            raise ModelFileError(f"{where}: optical_center must be None or two finite numbers "
+                                 f"(v_c, u_c), got {centre!r}")
+
+    def to_metadata(self) -> dict[str, Any]:
+        """The model without its kernels as JSON-able values: the ``metadata`` of a kernel file
+        (see the module docstring) and of an ekdun checkpoint's seed kernels.
+
+        :meth:`from_metadata` is its inverse.
+        """
+        return {
+            "format": KERNEL_FORMAT, "version": KERNEL_VERSION,
+            "basis": self.basis, "convention": self.convention,
+            "kernel_names": list(self.kernel_names), "channels": list(self.channels),
+            "sensor_shape": [int(s) for s in self.sensor_shape],
+            "optical_center": None if self.optical_center is None
+            else [float(c) for c in self.optical_center],
+            "scene_padding": self.scene_padding, "normalization": self.normalization,
+            "kernel_origin": "array centre (H//2, W//2)",
+            "provenance": self.provenance,
+        }
+
+    @classmethod
+    def from_metadata(cls, kernels: np.ndarray, meta: dict[str, Any],
+                      where: str = _DEFAULT_WHERE) -> KernelModel:
+        """The model of ``kernels`` ``(K, C, Hk, Wk)`` and ``meta`` (:meth:`to_metadata`'s).
+
+        ``format`` and ``version`` are the file's business (:func:`load_kernels` checks them);
+        they may be absent, as in checkpoints written before they were recorded there.
+        ``scene_padding``, ``normalization``, ``optical_center``, ``kernel_names`` and
+        ``provenance`` are optional.
+
+        Raises
+        ------
+        ModelFileError
+            ``meta`` lacks or mangles a field, or the model fails :meth:`validate`; the message
+            starts with ``where``.
+        """
+        if not isinstance(meta, dict):
+            raise ModelFileError(f"{where}: metadata is not a JSON object")
+        try:
+            centre = meta.get("optical_center")
+            values = dict(
+                basis=meta["basis"], convention=meta["convention"],
+                sensor_shape=tuple(meta["sensor_shape"]), channels=tuple(meta["channels"]),
+                optical_center=None if centre is None else tuple(centre),
+                scene_padding=meta.get("scene_padding", 2),
+                normalization=meta.get("normalization", "unspecified"),
+                provenance=meta.get("provenance", {}))
+        except (KeyError, TypeError) as exc:
+            raise ModelFileError(f"{where}: metadata lacks or mangles {exc}") from None
+        try:
+            model = cls(kernels=kernels, **values)
+        except ModelFileError as exc:
+            # Re-issued with ``where`` in front of the problem (construction says "kernel model").
+            reason = str(exc).removeprefix(f"{_DEFAULT_WHERE}: ")
+            raise ModelFileError(f"{where}: {reason}") from None
+        except (TypeError, ValueError) as exc:
+            raise ModelFileError(f"{where}: metadata mangles a field ({exc})") from None
+        names = meta.get("kernel_names", list(model.kernel_names))
+        if list(names) != list(model.kernel_names):
+            raise ModelFileError(f"{where}: kernel_names {names} do not match basis "
+                                 f"{model.basis!r} {list(model.kernel_names)}")
+        return model
 
     @property
     def weight_basis(self) -> WeightBasis:
@@ -115,36 +234,56 @@ class KernelModel:
         return cls(kernels=psf[None], basis="si", **kwargs)
 
 
-def validate_model(kernels: np.ndarray, basis_name: str, convention: str,
-                   sensor_shape: tuple[int, int], channels: tuple[str, ...], scene_padding: int,
-                   where: str) -> None:
-    """Raise :class:`ModelFileError` naming ``where`` if the pieces of a model disagree."""
-    k = kernels
+def _two_finite_numbers(values: Any) -> bool:
     try:
-        basis = get_basis(basis_name)
-    except PsfkitError as exc:
-        raise ModelFileError(f"{where}: {exc}") from None
-    if k.ndim != 4:
-        raise ModelFileError(f"{where}: kernels must be (K, C, H, W), got shape {k.shape}")
-    if k.shape[0] != basis.n_kernels:
-        raise ModelFileError(f"{where}: basis {basis_name!r} needs {basis.n_kernels} kernels "
-                             f"{basis.kernel_names}, the file has {k.shape[0]}")
-    if k.shape[1] != len(channels) or len(channels) not in (1, 3):
-        raise ModelFileError(f"{where}: kernels have {k.shape[1]} channel(s) but channels are "
-                             f"{list(channels)}")
-    if convention not in CONVENTIONS:
-        raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
-                             f"{convention!r}")
-    if len(sensor_shape) != 2 or min(sensor_shape) < 2:
-        raise ModelFileError(f"{where}: sensor_shape {list(sensor_shape)} is not a valid size")
-    h, w = sensor_shape
-    if not isinstance(scene_padding, int) or scene_padding < 2:
-        raise ModelFileError(f"{where}: scene_padding must be an integer >= 2")
-    if k.shape[2] > h or k.shape[3] > w:
-        raise ModelFileError(f"{where}: kernels {k.shape[2]}x{k.shape[3]} are larger than the "
-                             f"sensor {h}x{w}")
-    if not np.all(np.isfinite(k)):
-        raise ModelFileError(f"{where}: kernels contain NaN/Inf values")
+        return len(values) == 2 and all(np.isfinite(float(v)) for v in values)
+    except (TypeError, ValueError):
+        return False
+
+
+def check_kernels(kernels: Any, sensor_shape: tuple[int, int], where: str = "",
+                  error: type[PsfkitError] = ModelFileError) -> None:
+    """Check a kernel array ``(K, C, Hk, Wk)`` against the sensor ``(H', W')``.
+
+    The array part of :meth:`KernelModel.validate`, shared with ekdun's operators.
+
+    Parameters
+    ----------
+    kernels : numpy.ndarray or torch.Tensor
+        The kernels. A tensor is checked through its own ``is_floating_point`` and
+        ``isfinite`` methods (so on its device, without importing torch here).
+    sensor_shape : (int, int)
+        ``(H', W')``; a kernel may not be larger.
+    where : str
+        Starts the message (``"{where}: ..."``) when not empty.
+    error : PsfkitError subclass
+        The class raised (ekdun raises its ``KernelShapeError``).
+
+    Raises
+    ------
+    error
+        Not 4-D, no kernel or channel, not floating point, larger than the sensor, NaN/Inf.
+    """
+    prefix = f"{where}: " if where else ""
+    shape = tuple(int(s) for s in kernels.shape)
+    if len(shape) != 4:
+        raise error(f"{prefix}kernels must be (K, C, H, W), got shape {shape}")
+    if shape[0] < 1 or shape[1] < 1:
+        raise error(f"{prefix}kernels must have at least one kernel and channel, got shape "
+                    f"{shape}")
+    if hasattr(kernels, "is_floating_point"):
+        floating = bool(kernels.is_floating_point())
+    else:
+        floating = bool(np.issubdtype(np.asarray(kernels).dtype, np.floating))
+    if not floating:
+        raise error(f"{prefix}kernels must be float32 or float64, got {kernels.dtype}")
+    h, w = int(sensor_shape[0]), int(sensor_shape[1])
+    if shape[2] > h or shape[3] > w:
+        raise error(f"{prefix}kernels {shape[2]}x{shape[3]} are larger than the sensor {h}x{w}")
+    finite = (kernels.isfinite().all() if hasattr(kernels, "isfinite")
+              else np.isfinite(kernels).all())
+    if not bool(finite):
+        raise error(f"{prefix}kernels contain NaN/Inf values")
 
 
 def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
@@ -152,16 +291,8 @@ def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
     path = Path(path)
     if path.suffix != ".npz":
         raise ModelFileError(f"{path}: kernel files are .npz")
-    meta = {
-        "format": KERNEL_FORMAT, "version": KERNEL_VERSION,
-        "basis": model.basis, "convention": model.convention,
-        "kernel_names": list(model.kernel_names), "channels": list(model.channels),
-        "sensor_shape": list(model.sensor_shape),
-        "optical_center": None if model.optical_center is None else list(model.optical_center),
-        "scene_padding": model.scene_padding, "normalization": model.normalization,
-        "kernel_origin": "array centre (H//2, W//2)",
-        "provenance": model.provenance,
-    }
+    model.validate(where=str(path))
+    meta = model.to_metadata()
     with atomic_file(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, kernels=model.kernels, metadata=np.array(json.dumps(meta)))
     return path
@@ -189,23 +320,4 @@ def load_kernels(path: str | os.PathLike) -> KernelModel:
     if meta.get("version") != KERNEL_VERSION:
         raise ModelFileError(f"{path}: kernel file version {meta.get('version')!r} is not "
                              f"supported (this toolkit reads version {KERNEL_VERSION})")
-    try:
-        values = dict(
-            kernels=kernels.astype(np.float32, copy=False), basis=meta["basis"],
-            convention=meta["convention"], sensor_shape=tuple(meta["sensor_shape"]),
-            channels=tuple(meta["channels"]),
-            optical_center=None if meta.get("optical_center") is None
-            else tuple(meta["optical_center"]),
-            scene_padding=meta.get("scene_padding", 2),
-            normalization=meta.get("normalization", "unspecified"),
-            provenance=meta.get("provenance", {}))
-    except (KeyError, TypeError) as exc:
-        raise ModelFileError(f"{path}: metadata lacks or mangles {exc}") from None
-    validate_model(values["kernels"], values["basis"], values["convention"],
-                   values["sensor_shape"], values["channels"], values["scene_padding"],
-                   where=str(path))
-    model = KernelModel(**values)
-    if list(meta.get("kernel_names", model.kernel_names)) != list(model.kernel_names):
-        raise ModelFileError(f"{path}: kernel_names {meta.get('kernel_names')} do not match "
-                             f"basis {model.basis!r} {list(model.kernel_names)}")
-    return model
+    return KernelModel.from_metadata(kernels, meta, where=str(path))

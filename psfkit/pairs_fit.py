@@ -38,6 +38,7 @@ from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_options import PairFitOptions
+from psfkit.resample import bin_mean
 from psfkit.weights import get_basis
 
 
@@ -84,13 +85,12 @@ def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
         return scenes, measurements
 
     def binned(a: np.ndarray) -> np.ndarray:
-        n, c, h, w = a.shape
+        h, w = a.shape[-2:]
         hh, ww = h // factor, w // factor
         if hh < 4 or ww < 4:
             raise InvalidInputError(f"downsampling {h}x{w} pairs by {factor} leaves too few "
                                     "pixels")
-        blocks = a[:, :, :hh * factor, :ww * factor].reshape(n, c, hh, factor, ww, factor)
-        return blocks.mean(axis=(3, 5), dtype=np.float64).astype(np.float32)
+        return bin_mean(a, factor).astype(np.float32)
 
     return binned(scenes), binned(measurements)
 

@@ -16,7 +16,6 @@ Lett. 33, 156 (2008), in two stages of ×10 so that each stage costs O(31·N)).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +24,7 @@ from scipy import linalg
 from scipy.signal.windows import tukey
 
 from psfkit.errors import InvalidInputError
+from psfkit.resample import bin_image, binning_factor
 
 
 def _cross_spectrum(moving: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -64,14 +64,6 @@ def _integer_peak(spectrum: np.ndarray) -> np.ndarray:
     size = np.array(correlation.shape, float)
     peak[peak > size / 2] -= size[peak > size / 2]
     return peak
-
-
-def bin_image(image: np.ndarray, factor: int) -> np.ndarray:
-    """Sum ``factor × factor`` blocks of a 2-D image (trailing rows/columns dropped)."""
-    if factor == 1:
-        return image
-    h, w = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
-    return image[:h, :w].reshape(h // factor, factor, w // factor, factor).sum(axis=(1, 3))
 
 
 def overlap_slices(shape: tuple[int, int], shift_vu: tuple[int, int]
@@ -138,7 +130,7 @@ class ShiftRegistrar:
         # shifts scale by exactly 2.
         self.fine_factor = 2 if binning else 1
         self.fine_reference = bin_image(reference, self.fine_factor)
-        self.coarse_factor = max(1, math.ceil(max(self.fine_reference.shape) / coarse_size))
+        self.coarse_factor = binning_factor(self.fine_reference.shape, coarse_size)
         coarse = bin_image(self.fine_reference, self.coarse_factor)
         self._coarse_shape = coarse.shape
         canvas = np.zeros((2 * coarse.shape[0], 2 * coarse.shape[1]))

@@ -12,22 +12,19 @@ written)::
 
 from __future__ import annotations
 
-import base64
 import csv
 import html
-import io
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from psfkit import __version__
 from psfkit.characterize import RELIABLE_OVERLAP, GridCharacterization
 from psfkit.errors import InvalidInputError
+from psfkit.html_report import REPORT_CSS, figures_html, format_value, html_table
 from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.io.jsonable import jsonable
 
 CSV_COLUMNS = (
     "row", "col", "file", "field_x_deg", "field_y_deg", "monitor_x_px", "monitor_y_px",
@@ -36,23 +33,6 @@ CSV_COLUMNS = (
     "warp_rms_tangential_px", "warp_rms_sagittal_px", "warp_anisotropy", "affine_scale_u",
     "affine_scale_v", "affine_shear", "affine_rotation_deg", "affine_scale_tangential",
     "affine_scale_sagittal")
-
-
-def jsonable(value: Any) -> Any:
-    """Plain-JSON version of nested results (NaN/Inf → null, numpy → Python)."""
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
 
 
 def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
@@ -156,6 +136,7 @@ FIGURES = (
 def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
                  overwrite: bool = False) -> Path:
     """Write figures, JSON, CSV and the HTML report into ``out_dir`` (atomically)."""
+    # matplotlib loads only when a report is drawn (not for `psfkit characterize --help`)
     from psfkit import figures as fig_module
 
     out_dir = Path(out_dir)
@@ -170,44 +151,12 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
                 continue
             fig = getattr(fig_module, fn_name)(result)
             fig_module.save_figure(fig, fig_dir / stem)
-            buffer = io.BytesIO()
-            with fig_module.publication_style():
-                fig.savefig(buffer, format="png", dpi=150)
-            embedded.append((stem, caption, base64.b64encode(buffer.getvalue()).decode()))
+            embedded.append((stem, caption, fig_module.png_base64(fig, dpi=150)))
         doc = results_document(result)
         (tmp / "results.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
         _write_csv(tmp / "positions.csv", result)
         (tmp / "report.html").write_text(_html(result, doc, embedded), encoding="utf-8")
     return out_dir
-
-
-REPORT_CSS = """
-body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
-h1 { font-size: 1.5em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; }
-table { border-collapse: collapse; font-size: 0.85em; margin: 0.5em 0; }
-th, td { padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }
-table.grid td { text-align: right; }
-figure { margin: 1em 0; } img { max-width: 100%; }
-figcaption { font-size: 0.85em; color: #555; }
-.warn { background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }
-"""
-"""The stylesheet shared by psfkit's HTML reports."""
-
-
-def format_value(value: Any, spec: str = ".4g") -> str:
-    """A number or text for an HTML cell (``–`` for missing or non-finite values)."""
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "–"
-    if isinstance(value, float):
-        return format(value, spec)
-    return html.escape(str(value))
-
-
-def html_table(rows: list[tuple[str, Any]]) -> str:
-    """A two-column key/value HTML table."""
-    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{format_value(v)}</td></tr>"
-                    for k, v in rows)
-    return f"<table class='kv'>{cells}</table>"
 
 
 def _html(result: GridCharacterization, doc: dict[str, Any],
@@ -250,11 +199,7 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
     ])
     warnings = "".join(f"<li>{html.escape(m)}</li>" for m in doc["warnings"]) or \
         "<li>none</li>"
-    figs = "".join(
-        f"<figure id='{stem}'><img alt='{html.escape(caption)}' "
-        f"src='data:image/png;base64,{data}'><figcaption>{html.escape(caption)} "
-        f"(<a href='figures/{stem}.pdf'>PDF</a>, <a href='figures/{stem}.png'>PNG</a>)"
-        f"</figcaption></figure>" for stem, caption, data in figures)
+    figs = figures_html(figures)
     head = ("file", "row", "col", "shift_du_px", "shift_dv_px", "quality", "overlap", "gain",
             "mae", "warp_residual_rms_px", "warp_anisotropy")
     body = "".join("<tr>" + "".join(f"<td>{format_value(r[k])}</td>" for k in head) + "</tr>"

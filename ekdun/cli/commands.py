@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ekdun.errors import InvalidInputError
-
-MODELS = ("ekdun", "le-admm-u", "updn")
+from ekdun.model_names import MODEL_NAMES
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -63,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "global batch).")
     p.add_argument("data", help="pairs folder, or a virtual-bench dataset (uses its train/)")
     p.add_argument("run_dir", help="output folder (checkpoint.pt, log.csv, kernel files)")
-    p.add_argument("--model", choices=MODELS, default="ekdun")
+    p.add_argument("--model", choices=MODEL_NAMES, default="ekdun")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--kernels", help="kernel file (.npz, e.g. from psfkit fit-eigen)")
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
@@ -211,13 +210,9 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _box_downsample(image, factor: int):
+    from psfkit.resample import bin_mean
 
-    if factor <= 1:
-        return image
-    c, h, w = image.shape
-    h2, w2 = h // factor, w // factor
-    return image[:, :h2 * factor, :w2 * factor].reshape(c, h2, factor, w2, factor).mean(
-        axis=(2, 4))
+    return image if factor <= 1 else bin_mean(image, factor)
 
 
 def run_admm(args: argparse.Namespace) -> int:

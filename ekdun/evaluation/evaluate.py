@@ -146,14 +146,3 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
             log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}")
     return results
 
-
-def save_reconstructions(model: UnrolledNetwork, dataset: Dataset, out_dir: Path,
-                         limit: int = 4) -> None:
-    """A few reconstructions as ``.npy`` for figures."""
-    import numpy as np
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with torch.no_grad():
-        for i in range(min(limit, len(dataset))):  # type: ignore[arg-type]
-            out = model(dataset[i][1][None]).clamp(0, 1)[0].numpy()
-            np.save(out_dir / f"{i:03d}.npy", np.moveaxis(out, 0, -1))

@@ -17,6 +17,8 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from ekdun.errors import TensorShapeError
+
 LPIPS_ENV = "EKDUN_LPIPS_WEIGHTS"
 
 
@@ -34,13 +36,19 @@ def _gaussian_window(sigma: float = 1.5, truncate: float = 3.5) -> Tensor:
 
 
 def ssim(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
-    """Per-image SSIM of ``(B, C, H, W)`` tensors (images at least 11 × 11)."""
+    """Per-image SSIM of ``(B, C, H, W)`` tensors (images at least 11 × 11).
+
+    Raises
+    ------
+    TensorShapeError
+        Images smaller than the 11 × 11 Gaussian window.
+    """
     x, y = output.double(), target.double()
     _, c, h, w = x.shape
     g = _gaussian_window()
     k = g.numel()
     if h < k or w < k:
-        raise ValueError(f"SSIM needs images of at least {k}x{k}, got {h}x{w}")
+        raise TensorShapeError(f"SSIM needs images of at least {k}x{k}, got {h}x{w}")
     gh = g.view(1, 1, k, 1).repeat(c, 1, 1, 1).to(x.device)
     gw = g.view(1, 1, 1, k).repeat(c, 1, 1, 1).to(x.device)
 

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from ekdun.errors import ConfigurationError, KernelShapeError
+from ekdun.model_names import MODEL_NAMES
 from ekdun.models.configs import (
     EKDUNConfig,
     LeADMMUConfig,
@@ -29,7 +30,8 @@ from ekdun.physics.operators import (
 from psfkit.kernelfile import KernelModel, load_kernels
 from psfkit.weights import get_basis
 
-MODEL_NAMES = ("ekdun", "le-admm-u", "updn")
+__all__ = ["MODEL_NAMES", "Source", "build_model"]
+
 
 Source = KernelModel | np.ndarray | torch.Tensor | str | os.PathLike
 

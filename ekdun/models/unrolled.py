@@ -19,6 +19,7 @@ from typing import Any
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
+from psfkit.kernelfile import KernelModel
 
 State = dict[str, Tensor]
 
@@ -36,13 +37,36 @@ class UnrolledNetwork(nn.Module):
     ----------
     iterations : int
         Number of unrolled iterations.
+
+    Attributes
+    ----------
+    seed_kernels : KernelModel or None
+        The kernel model the network was built from (its physics' initial kernels, with the
+        kernel file's basis, convention and geometry), set by :meth:`set_seed_kernels`
+        (:func:`ekdun.training.builder.build_network` does); ``None`` for a network built
+        directly. Training writes it as ``kernels_initial.npz`` and into the checkpoint, and
+        the learned kernels are exported with its metadata.
     """
+
+    seed_kernels: KernelModel | None
 
     def __init__(self, iterations: int) -> None:
         super().__init__()
         if iterations < 1:
             raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
         self.iterations = int(iterations)
+        self.seed_kernels = None
+
+    def set_seed_kernels(self, seed: KernelModel) -> None:
+        """Remember the kernel model the network was built from (checked first).
+
+        Raises
+        ------
+        ModelFileError
+            ``seed`` fails :meth:`~psfkit.kernelfile.KernelModel.validate`.
+        """
+        seed.validate(where="seed kernels")
+        self.seed_kernels = seed
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
         """Per-forward-pass quantities shared by all iterations (checks ``y``)."""

@@ -37,7 +37,7 @@ from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.forward.operator import SpectralOperator
-from psfkit.kernelfile import KernelModel
+from psfkit.kernelfile import KernelModel, check_kernels
 from psfkit.weights import get_basis
 
 
@@ -130,7 +130,7 @@ class FFTConvolutionOperator(nn.Module):
         if convention not in CONVENTIONS:
             raise ConfigurationError(f"convention must be 'sensor' or 'source', got "
                                      f"{convention!r}")
-        _check_kernels(kernels, sensor)
+        check_kernels(kernels, sensor, error=KernelShapeError)
         if weights is not None:
             if weights.ndim != 3 or tuple(weights.shape) != (kernels.shape[0], *sensor):
                 raise KernelShapeError(
@@ -427,20 +427,3 @@ def _check_sensor_shape(sensor_shape: Sequence[int]) -> tuple[int, int]:
     if len(sensor_shape) != 2 or min(int(s) for s in sensor_shape) < 2:
         raise KernelShapeError(f"sensor_shape {list(sensor_shape)} is not a valid size")
     return (int(sensor_shape[0]), int(sensor_shape[1]))
-
-
-def _check_kernels(kernels: Tensor, sensor: tuple[int, int]) -> None:
-    if kernels.ndim != 4:
-        raise KernelShapeError(f"kernels must be (K, C, H, W), got shape "
-                               f"{tuple(kernels.shape)}")
-    if kernels.shape[0] < 1 or kernels.shape[1] < 1:
-        raise KernelShapeError(f"kernels must have at least one kernel and channel, got shape "
-                               f"{tuple(kernels.shape)}")
-    if not kernels.is_floating_point():
-        raise KernelShapeError(f"kernels must be float32 or float64, got {kernels.dtype}")
-    hk, wk = int(kernels.shape[-2]), int(kernels.shape[-1])
-    if hk > sensor[0] or wk > sensor[1]:
-        raise KernelShapeError(f"kernels {hk}x{wk} are larger than the sensor "
-                               f"{sensor[0]}x{sensor[1]}")
-    if not bool(torch.isfinite(kernels).all()):
-        raise KernelShapeError("kernels contain NaN/Inf values")

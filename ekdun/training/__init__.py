@@ -1,6 +1,7 @@
 """Training: loop, checkpoints, logs, distributed helpers and kernel export."""
 
-from ekdun.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from ekdun.errors import CheckpointError
+from ekdun.training.checkpoint import load_checkpoint, save_checkpoint
 from ekdun.training.export import export_kernels, initial_kernels
 from ekdun.training.trainer import TrainOptions, train
 

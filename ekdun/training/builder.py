@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import os
-from dataclasses import fields
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
-import torch
 
-from ekdun.errors import ConfigurationError
+from ekdun.errors import CheckpointError, ConfigurationError
 from ekdun.models.configs import UNetConfig
+from ekdun.models.ekdun_net import EKDUN
 from ekdun.models.factory import build_model
 from ekdun.models.unrolled import UnrolledNetwork
-from ekdun.training.checkpoint import CheckpointError, load_checkpoint
+from ekdun.training.checkpoint import load_checkpoint
+from psfkit.errors import ModelFileError
 from psfkit.kernelfile import KernelModel, load_kernels
 from psfkit.weights import get_basis
 
@@ -33,29 +34,6 @@ def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> K
         psf = psf[None]
     return KernelModel.shift_invariant(psf, normalization="measured PSF as given",
                                        provenance={"source": "measured PSF"})
-
-
-def kernel_metadata(model: KernelModel) -> dict[str, Any]:
-    """JSON-able description of a kernel model without its kernels."""
-    return {"basis": model.basis, "convention": model.convention,
-            "sensor_shape": list(model.sensor_shape), "channels": list(model.channels),
-            "optical_center": None if model.optical_center is None
-            else list(model.optical_center),
-            "scene_padding": model.scene_padding, "normalization": model.normalization,
-            "provenance": model.provenance}
-
-
-def kernel_model_from(kernels: np.ndarray, meta: dict[str, Any]) -> KernelModel:
-    """Inverse of :func:`kernel_metadata` with the kernels given."""
-    return KernelModel(kernels=np.asarray(kernels, dtype=np.float32), basis=meta["basis"],
-                       convention=meta["convention"],
-                       sensor_shape=tuple(meta["sensor_shape"]),
-                       channels=tuple(meta["channels"]),
-                       optical_center=None if meta.get("optical_center") is None
-                       else tuple(meta["optical_center"]),
-                       scene_padding=int(meta.get("scene_padding", 2)),
-                       normalization=meta.get("normalization", "unspecified"),
-                       provenance=meta.get("provenance", {}))
 
 
 def decode_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -89,14 +67,12 @@ def build_network(name: str, seed: KernelModel, preset: str,
     if seed.basis == "si" or seed.kernels.shape[0] == 1:
         source = seed.kernels[0]
     model = build_model(name, source, preset, **overrides)
-    if name == "ekdun" and source is not seed:
-        # EK-DUN built from a PSF: Kv = Kh = Kbase, paper basis, the seed's geometry.
-        config_basis = getattr(model, "config", None)
-        basis = getattr(config_basis, "basis", "paper")
-        n = get_basis(basis).n_kernels
-        seed = kernel_model_from(np.repeat(seed.kernels[:1], n, axis=0),
-                                 {**kernel_metadata(seed), "basis": basis})
-    model.seed_kernels = seed  # type: ignore[attr-defined]
+    if isinstance(model, EKDUN) and source is not seed:
+        # EK-DUN built from a PSF: Kv = Kh = Kbase in the configured basis, the seed's geometry.
+        basis = model.config.basis
+        seed = replace(seed, basis=basis,
+                       kernels=np.repeat(seed.kernels[:1], get_basis(basis).n_kernels, axis=0))
+    model.set_seed_kernels(seed)
     return model
 
 
@@ -111,16 +87,15 @@ def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any]
     meta = doc["metadata"]
     where = "checkpoint" if isinstance(checkpoint, dict) else str(checkpoint)
     try:
-        seed = kernel_model_from(doc["initial_kernels"].numpy(), meta["kernel_metadata"])
+        seed = KernelModel.from_metadata(doc["initial_kernels"].numpy(),
+                                         meta["kernel_metadata"],
+                                         where="initial kernels")
         model = build_network(meta["model"], seed, meta["preset"], meta.get("overrides", {}))
         model.load_state_dict(doc["model"])
     except (KeyError, RuntimeError, TypeError, ValueError, AttributeError,
-            ConfigurationError) as exc:
+            ConfigurationError, ModelFileError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CheckpointError(f"{where}: cannot rebuild the network ({first[:160]})") from None
-    model.seed_kernels = seed  # type: ignore[attr-defined]
+    # build_network remembered the checkpoint's seed (an EK-DUN from a PSF: its expansion).
     return model, doc
 
-
-def to_device(model: torch.nn.Module, device: str) -> torch.nn.Module:
-    return model.to(torch.device(device))

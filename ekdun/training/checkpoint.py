@@ -35,15 +35,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ekdun.errors import InvalidInputError
+from ekdun.errors import CheckpointError
 from psfkit.io.atomic import atomic_file
+
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "load_checkpoint", "rng_state",
+           "save_checkpoint", "set_rng_state"]  # CheckpointError: defined in ekdun.errors
 
 FORMAT = "ekdun-checkpoint"
 VERSION = 1
-
-
-class CheckpointError(InvalidInputError):
-    """A checkpoint file is missing, corrupt, foreign or unsafe."""
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> Path:

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from torch import nn
 
-from ekdun.errors import ConfigurationError
-from ekdun.training.builder import kernel_metadata, kernel_model_from, network_from_checkpoint
+from ekdun.errors import CheckpointError, ConfigurationError
+from ekdun.training.builder import network_from_checkpoint
+from ekdun.training.checkpoint import load_checkpoint
+from psfkit.errors import ModelFileError
 from psfkit.kernelfile import KernelModel
 
 
@@ -45,22 +48,20 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     if not isinstance(model, EKDUN):
         raise ConfigurationError(f"only EK-DUN has eigen kernels to export, not "
                                  f"{type(model).__name__}")
-    seed: KernelModel | None = getattr(model, "seed_kernels", None)
+    seed = model.seed_kernels
     kernels = model.physics.kernels.detach().cpu().numpy().astype(np.float32)
     if seed is None:
+        # A network built directly (not by build_network): its physics has the geometry.
         n = kernels.shape[0]
-        meta = {"basis": "paper" if n == 3 else "si", "convention": model.physics.convention,
-                "sensor_shape": list(model.physics.sensor_shape),
-                "channels": ["R", "G", "B"] if kernels.shape[1] == 3 else ["L"],
-                "optical_center": None, "scene_padding": model.physics.scene_padding,
-                "normalization": "learned", "provenance": {}}
-    else:
-        meta = kernel_metadata(seed)
-    meta["provenance"] = {"source": "ekdun training (learned kernels)",
-                          "epoch": epoch, "seed_provenance": meta.get("provenance", {})}
-    meta["normalization"] = "learned (initialised from: " + str(
-        seed.normalization if seed is not None else "unknown") + ")"
-    return kernel_model_from(kernels, meta)
+        seed = KernelModel(kernels=kernels, basis="paper" if n == 3 else "si",
+                           convention=model.physics.convention,
+                           sensor_shape=tuple(model.physics.sensor_shape),
+                           channels=("R", "G", "B") if kernels.shape[1] == 3 else ("L",),
+                           scene_padding=model.physics.scene_padding, normalization="unknown")
+    provenance = {"source": "ekdun training (learned kernels)", "epoch": epoch,
+                  "seed_provenance": seed.provenance}
+    return replace(seed, kernels=kernels, provenance=provenance,
+                   normalization=f"learned (initialised from: {seed.normalization})")
 
 
 def initial_kernels(checkpoint: str | os.PathLike | dict[str, Any]) -> KernelModel:
@@ -79,8 +80,6 @@ def initial_kernels(checkpoint: str | os.PathLike | dict[str, Any]) -> KernelMod
     ConfigurationError
         The network has no eigen-kernel physics (Le-ADMM-U, UPDN).
     """
-    from ekdun.training.checkpoint import CheckpointError, load_checkpoint
-
     doc = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     where = "checkpoint" if isinstance(checkpoint, dict) else str(checkpoint)
     try:
@@ -88,6 +87,7 @@ def initial_kernels(checkpoint: str | os.PathLike | dict[str, Any]) -> KernelMod
         if meta["model"] != "ekdun":
             raise ConfigurationError(f"{where}: only EK-DUN has eigen kernels to export, not "
                                      f"{meta['model']}")
-        return kernel_model_from(doc["initial_kernels"].numpy(), meta["kernel_metadata"])
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        return KernelModel.from_metadata(doc["initial_kernels"].numpy(),
+                                         meta["kernel_metadata"], where="initial kernels")
+    except (KeyError, TypeError, ValueError, AttributeError, ModelFileError) as exc:
         raise CheckpointError(f"{where}: no initial kernels ({exc})") from None

@@ -29,18 +29,12 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
-from ekdun.errors import ConfigurationError, InvalidInputError
+from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
 from ekdun.models.configs import TrainingConfig, get_preset
 from ekdun.models.unrolled import UnrolledNetwork
 from ekdun.training import distributed as D
-from ekdun.training.builder import (
-    build_network,
-    encode_overrides,
-    kernel_metadata,
-    seed_kernel_model,
-)
+from ekdun.training.builder import build_network, encode_overrides, seed_kernel_model
 from ekdun.training.checkpoint import (
-    CheckpointError,
     load_checkpoint,
     rng_state,
     save_checkpoint,
@@ -165,6 +159,8 @@ def train(run_dir: str | os.PathLike, model_name: str,
     random.seed(options.seed)
     seed_model = seed_kernel_model(seed)
     model = build_network(model_name, seed_model, preset, overrides)
+    seed_kernels = model.seed_kernels
+    assert seed_kernels is not None       # build_network sets it: what the network starts from
     _check_dataset(dataset, model)
     model.to(ctx.device)
     optimizer = torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr)
@@ -175,13 +171,13 @@ def train(run_dir: str | os.PathLike, model_name: str,
         "model": model_name, "preset": preset, "overrides": overrides,
         "schedule": getattr(getattr(model, "config", None), "schedule", None),
         "sensor_shape": list(model.physics.sensor_shape),
-        "kernel_metadata": kernel_metadata(model.seed_kernels),
+        "kernel_metadata": seed_kernels.to_metadata(),
         "training": asdict(cfg), "seed": options.seed, "world_size": ctx.world_size,
         "parameters": model.parameter_count(), "amp": use_amp,
         "dataset_size": len(dataset),  # type: ignore[arg-type]
         "epoch": 0, "history": [],
     }
-    initial_kernels = torch.as_tensor(model.seed_kernels.kernels)
+    initial_kernels = torch.as_tensor(seed_kernels.kernels)
     start_epoch = 1
     if resume:
         doc = load_checkpoint(ckpt_path, map_location=ctx.device)
@@ -202,7 +198,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
     elif ctx.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         if model_name == "ekdun":
-            save_kernels(run_dir / KERNELS_INITIAL, model.seed_kernels)
+            save_kernels(run_dir / KERNELS_INITIAL, seed_kernels)
 
     net: nn.Module = model
     if ctx.distributed:

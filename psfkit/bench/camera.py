@@ -33,8 +33,9 @@ from psfkit.bench.diffuser import (
     slope_rms_for_angle,
 )
 from psfkit.bench.propagation import chief_ray_shift, oblique_transfer_function, unit_phasor
-from psfkit.bench.sensor import SensorModel, bin_pixels, relative_illumination
+from psfkit.bench.sensor import SensorModel, relative_illumination
 from psfkit.errors import ConfigurationError
+from psfkit.resample import bin_image
 
 CHANNEL_NAMES = {1: ("L",), 3: ("R", "G", "B")}
 
@@ -373,7 +374,8 @@ class VirtualCamera:
                                                  alpha, beta, residual_um)
             transfer *= self._spectrum(field_deg, c, opl)
             field_at_sensor = sfft.ifft2(transfer, workers=-1, overwrite_x=True)
-            intensity = bin_pixels(np.abs(field_at_sensor) ** 2, self.oversample)
+            # sensor-pixel integration of the oversampled intensity
+            intensity = bin_image(np.abs(field_at_sensor) ** 2, self.oversample, exact=True)
             out[c] = intensity * scale
         blur_px = self.source_blur_um() / self.pixel_um
         if blur_px > 0:

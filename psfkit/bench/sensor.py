@@ -21,16 +21,6 @@ def relative_illumination(cos_theta: float | np.ndarray, exponent: float = 4.0
     return np.asarray(cos_theta, dtype=np.float64) ** exponent
 
 
-def bin_pixels(image: np.ndarray, factor: int) -> np.ndarray:
-    """Sum ``factor × factor`` blocks of the last two axes (sensor-pixel integration)."""
-    if factor == 1:
-        return image
-    *lead, h, w = image.shape
-    if h % factor or w % factor:
-        raise ValueError(f"shape {image.shape} is not a multiple of {factor}")
-    return image.reshape(*lead, h // factor, factor, w // factor, factor).sum(axis=(-3, -1))
-
-
 @dataclass(frozen=True)
 class SensorModel:
     """Photon-to-digital conversion of one exposure.

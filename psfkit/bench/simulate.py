@@ -28,7 +28,7 @@ import numpy as np
 
 from psfkit.bench.camera import BenchConfig, VirtualCamera
 from psfkit.errors import ConfigurationError, InvalidInputError
-from psfkit.io.grid import GridWriter
+from psfkit.io.grid_writer import GridWriter
 
 TRUTH_DIR = "ground_truth"
 NOMINAL_EXPOSURE_S = 0.01

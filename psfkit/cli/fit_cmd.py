@@ -11,6 +11,7 @@ from psfkit.choices import CV_BASES, CV_BASES_ALL
 from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
 from psfkit.io import atomic_directory, read_grid
+from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
 from psfkit.weights import BASIS_NAMES
 
@@ -70,7 +71,6 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
         figure_weight_maps,
         save_figure,
     )
-    from psfkit.report import jsonable
 
     model = result.kernel_model()
     with atomic_directory(folder, overwrite=overwrite) as tmp:

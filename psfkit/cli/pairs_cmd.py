@@ -12,6 +12,7 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io import atomic_file, read_pairs
+from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
 from psfkit.weights import BASIS_NAMES
@@ -94,7 +95,6 @@ def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
 def run_fit_pairs(args: argparse.Namespace) -> int:
     # torch is imported here, by the commands that use it, not when the parser is built
     from psfkit.pairs_fit import fit_pairs, leave_one_out
-    from psfkit.report import jsonable
 
     out = Path(args.out)
     if out.suffix != ".npz":

@@ -13,11 +13,11 @@ from psfkit.figures.grid_figures import (
     figure_warp,
     figure_warp_summary,
 )
-from psfkit.figures.style import new_figure, publication_style, save_figure
+from psfkit.figures.style import new_figure, png_base64, publication_style, save_figure
 
 __all__ = [
     "figure_displacements", "figure_eigen_diagnostics", "figure_kernels",
     "figure_learned_vs_measured", "figure_maps", "figure_montage",
     "figure_shift_variance", "figure_warp", "figure_warp_summary", "figure_weight_maps",
-    "new_figure", "publication_style", "save_figure",
+    "new_figure", "png_base64", "publication_style", "save_figure",
 ]

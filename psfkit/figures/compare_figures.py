@@ -9,7 +9,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.image import AxesImage
 
-from psfkit.compare import DisplacementMap, KernelComparison
+from psfkit.compare.displacement import DisplacementMap
+from psfkit.compare.results import KernelComparison
 from psfkit.figures.eigen_figures import _crop_box
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
 from psfkit.preprocess import luminance

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import base64
 import contextlib
+import io
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -58,3 +60,12 @@ def save_figure(fig: Figure, stem: str | Path, formats: tuple[str, ...] = ("png"
             fig.savefig(tmp, format=fmt)
         paths.append(path)
     return paths
+
+
+def png_base64(fig: Figure, dpi: int) -> str:
+    """``fig`` as a base64-encoded PNG at ``dpi`` in the publication style (for an ``<img>``
+    embedded in an HTML page)."""
+    buffer = io.BytesIO()
+    with publication_style():
+        fig.savefig(buffer, format="png", dpi=dpi)
+    return base64.b64encode(buffer.getvalue()).decode()

@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from psfkit.cli import main
@@ -66,18 +67,41 @@ def test_console_script_reports_bad_grid_without_traceback(tmp_path):
                                           "Expecting property name enclosed in double quotes")
 
 
-def test_demo_runs_on_the_embedded_default(tmp_path, capsys):
+def test_demo_measures_the_bench_ground_truth(tmp_path, capsys):
+    """The main job, checked against the virtual bench's ground truth, not only for files."""
+    from psfkit.bench import read_ground_truth
+    from psfkit.kernelfile import load_kernels
+
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "virtual bench: 9 x 9 PSFs of 135 x 180 x 3" in text
-    assert (out / "grid" / "manifest.json").is_file()
-    from psfkit.kernelfile import load_kernels
+    truth = read_ground_truth(out / "grid")
+    results = json.loads((out / "report" / "results.json").read_text())
+    rows, cols = truth.shift_px.shape[:2]
+    by_index = {(p["row"], p["col"]): p for p in results["positions"]}
+    shift = np.array([[by_index[r, c]["shift_px"] for c in range(cols)] for r in range(rows)])
+    overlap = np.array([[by_index[r, c]["overlap"] for c in range(cols)] for r in range(rows)])
+    gain = np.array([[by_index[r, c]["gain"] for c in range(cols)] for r in range(rows)])
+    reliable = overlap >= results["reliable_overlap"]
+    error = np.hypot(*np.moveaxis(shift - truth.shift_px, -1, 0))
+    assert reliable.sum() >= 25
+    assert np.sqrt(np.mean(error[reliable] ** 2)) < 0.1           # px rms (measured 0.038)
+    assert np.abs(gain[reliable] / truth.gain[reliable] - 1).max() < 0.01
+    assert results["gain_fit"]["cos_exponent"] == pytest.approx(4, abs=0.1)
+    assert results["shift_map"]["magnification"] == pytest.approx(
+        truth.info["magnification_px_per_monitor_px"], rel=1e-3)
 
     kernels = load_kernels(out / "kernels.npz")
     assert kernels.basis == "paper" and kernels.sensor_shape == (135, 180)
+    centre = truth.clean_psfs[rows // 2, cols // 2]
+    base = kernels.kernels[0]
+    ncc = np.sum((base - base.mean()) * (centre - centre.mean())) / (
+        np.linalg.norm(base - base.mean()) * np.linalg.norm(centre - centre.mean()))
+    assert ncc > 0.9                   # Kbase is the on-axis caustic of the bench
+    held_out = kernels.provenance["fit"]["cross_validation"]["held_out_relative_error"]
+    assert held_out["paper/sensor"] < 0.8 * held_out["centre PSF only"]
     assert (out / "kernels-figures" / "fig7_kernels.png").is_file()
-    assert "held-out relative error" in text
     assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 2
     assert "not empty" in capsys.readouterr().err
 

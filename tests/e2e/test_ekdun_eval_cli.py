@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from ekdun.cli import main as ekdun_main
 from ekdun.data.deadleaves import dead_leaves
-from ekdun.errors import InvalidInputError
+from ekdun.errors import InvalidInputError, TensorShapeError
 from ekdun.evaluation import (
     LPIPSMetric,
     psnr,
@@ -63,6 +65,27 @@ def test_metrics_match_skimage(channels):
         assert got_ssim[i] == pytest.approx(ref, abs=1e-6)
         assert got_psnr[i] == pytest.approx(peak_signal_noise_ratio(x[i], y[i], data_range=1),
                                             abs=1e-8)
+
+
+def test_ssim_refuses_images_smaller_than_its_window():
+    small = torch.zeros(1, 1, 10, 12)
+    with pytest.raises(TensorShapeError, match="SSIM needs images of at least 11x11, got 10x12"):
+        ssim(small, small)
+
+
+def test_one_list_of_model_names_offered_without_importing_torch():
+    code = ("import sys, json\n"
+            "from ekdun.cli import build_parser\n"
+            "sub = build_parser()._subparsers._group_actions[0].choices\n"
+            "model = [a for a in sub['train']._actions if a.dest == 'model'][0]\n"
+            "print(json.dumps([list(model.choices), 'torch' in sys.modules]))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True)
+    choices, torch_loaded = json.loads(run.stdout)
+    from ekdun.models import MODEL_NAMES
+
+    assert choices == list(MODEL_NAMES) == ["ekdun", "le-admm-u", "updn"]
+    assert not torch_loaded
 
 
 def test_lpips_says_clearly_when_unavailable(tmp_path):

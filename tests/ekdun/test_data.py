@@ -14,7 +14,7 @@ from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
 from ekdun.errors import InvalidInputError
 from ekdun.physics.operators import ShiftInvariantOperator
-from psfkit.io.grid import read_grid
+from psfkit.io import read_grid
 from psfkit.io.pairs import read_pairs
 
 SMALL = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=2, grid_shape=(3, 3))

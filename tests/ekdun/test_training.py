@@ -14,15 +14,24 @@ import torch
 
 from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
+from ekdun.errors import CheckpointError
+from ekdun.models import build_model
 from ekdun.training import (
-    CheckpointError,
     TrainOptions,
     export_kernels,
     initial_kernels,
     load_checkpoint,
     train,
 )
-from psfkit.kernelfile import load_kernels
+from ekdun.training.builder import (
+    build_network,
+    decode_overrides,
+    encode_overrides,
+    network_from_checkpoint,
+)
+from ekdun.training.checkpoint import save_checkpoint
+from psfkit.errors import ModelFileError, PsfkitError
+from psfkit.kernelfile import KernelModel, load_kernels
 
 SENSOR = (16, 16)
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
@@ -140,3 +149,74 @@ def test_checkpoints_never_execute_code(tmp_path, capsys):
     (tmp_path / "garbage.pt").write_bytes(b"\x00garbage" * 10)
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
         load_checkpoint(tmp_path / "garbage.pt")
+
+
+# The kernel metadata as checkpoints stored it before KernelModel.to_metadata wrote it: no
+# format, version, kernel_names or kernel_origin. Such checkpoints must keep loading.
+OLD_KERNEL_METADATA = {"basis": "paper", "convention": "sensor", "sensor_shape": list(SENSOR),
+                       "channels": ["R", "G", "B"], "optical_center": None, "scene_padding": 2,
+                       "normalization": "unspecified", "provenance": {}}
+
+
+def _old_checkpoint(path, kernels, state_dict, kernel_metadata=OLD_KERNEL_METADATA):
+    return save_checkpoint(path, {
+        "metadata": {"model": "ekdun", "preset": "tiny", "overrides": encode_overrides(SMALL),
+                     "sensor_shape": list(SENSOR), "kernel_metadata": kernel_metadata,
+                     "epoch": 3},
+        "model": state_dict, "initial_kernels": torch.as_tensor(kernels)})
+
+
+def test_checkpoints_with_the_older_kernel_metadata_still_load(tiny_data, tmp_path):
+    _, kernels = tiny_data
+    seed = load_kernels(kernels)
+    trained = build_network("ekdun", seed, "tiny", SMALL)
+    with torch.no_grad():                                # "learned": differs from the seed
+        trained.physics.kernels.mul_(1.5)
+    path = _old_checkpoint(tmp_path / "old.pt", seed.kernels, trained.state_dict())
+    model, _ = network_from_checkpoint(path)
+    for name, value in trained.state_dict().items():
+        torch.testing.assert_close(model.state_dict()[name], value, rtol=0, atol=0, msg=name)
+    assert model.seed_kernels is not None
+    assert model.seed_kernels.to_metadata() == seed.to_metadata()
+    np.testing.assert_array_equal(model.seed_kernels.kernels, seed.kernels)
+    before = initial_kernels(path)
+    np.testing.assert_array_equal(before.kernels, seed.kernels)
+    learned = export_kernels(path)
+    np.testing.assert_array_equal(learned.kernels, 1.5 * seed.kernels)
+    assert (learned.basis, learned.sensor_shape, learned.provenance["epoch"]) == (
+        "paper", SENSOR, 3)
+    # a checkpoint whose seed breaks the kernel-file contract is refused, naming the problem
+    nan = np.full_like(seed.kernels, np.nan)
+    bad = _old_checkpoint(tmp_path / "nan.pt", nan, trained.state_dict())
+    with pytest.raises(CheckpointError, match="initial kernels: kernels contain NaN/Inf"):
+        network_from_checkpoint(bad)
+    with pytest.raises(CheckpointError, match="initial kernels: kernels contain NaN/Inf"):
+        initial_kernels(bad)
+    lens = _old_checkpoint(tmp_path / "lens.pt", seed.kernels, trained.state_dict(),
+                           {**OLD_KERNEL_METADATA, "convention": "lens"})
+    with pytest.raises(CheckpointError, match="convention must be 'sensor' or 'source'"):
+        network_from_checkpoint(lens)
+
+
+def test_seed_kernels_is_a_declared_attribute(tiny_data):
+    _, kernels = tiny_data
+    seed = load_kernels(kernels)
+    direct = build_model("ekdun", seed, "tiny", **decode_overrides(SMALL))
+    assert direct.seed_kernels is None                   # built directly
+    exported = export_kernels(direct)                    # geometry from the physics then
+    np.testing.assert_array_equal(exported.kernels, seed.kernels)
+    assert (exported.basis, exported.sensor_shape, exported.normalization) == (
+        "paper", SENSOR, "learned (initialised from: unknown)")
+    model = build_network("ekdun", seed, "tiny", SMALL)
+    assert model.seed_kernels is seed
+    # from a PSF: the seed is the PSF repeated as the basis' kernels, with the PSF's geometry
+    psf_seed = KernelModel.shift_invariant(seed.kernels[0], normalization="PSF")
+    from_psf = build_network("ekdun", psf_seed, "tiny", SMALL)
+    assert from_psf.seed_kernels is not None and from_psf.seed_kernels.basis == "paper"
+    np.testing.assert_array_equal(from_psf.seed_kernels.kernels,
+                                  np.stack([seed.kernels[0]] * 3))
+    assert build_network("le-admm-u", psf_seed, "tiny", {}).seed_kernels is psf_seed
+    seed.kernels[0, 0, 0, 0] = np.nan                    # changed in place after loading
+    with pytest.raises(ModelFileError, match=r"^seed kernels: kernels contain NaN/Inf"):
+        model.set_seed_kernels(seed)
+    assert issubclass(CheckpointError, PsfkitError)      # the CLIs print it as one line

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from psfkit.bench.sensor import SensorModel, bin_pixels, relative_illumination
+from psfkit.bench.sensor import SensorModel, relative_illumination
 from psfkit.errors import ConfigurationError
 
 
@@ -30,13 +30,8 @@ def test_black_level_container_and_saturation():
     assert np.all(bright == 4095 * 16)                 # clipped at full scale: 65520
 
 
-def test_relative_illumination_and_binning():
+def test_relative_illumination():
     assert relative_illumination(np.cos(np.deg2rad(30.0))) == pytest.approx(0.75**2)
-    image = np.arange(24.0).reshape(1, 4, 6)
-    binned = bin_pixels(image, 2)
-    assert binned.shape == (1, 2, 3)
-    assert binned.sum() == image.sum()
-    assert binned[0, 0, 0] == 0 + 1 + 6 + 7
 
 
 def test_sensor_validation():

@@ -13,7 +13,7 @@ from scipy import ndimage
 
 from psfkit.characterize import characterize_grid
 from psfkit.io import GridWriter, read_grid
-from psfkit.registration import bin_image
+from psfkit.resample import bin_image
 
 BLACK = 200
 

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.errors import ConfigurationError, ModelFileError
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.errors import ConfigurationError, ModelFileError, PsfkitError
+from psfkit.kernelfile import KernelModel, check_kernels, load_kernels, save_kernels
 from psfkit.weights import BASIS_NAMES, get_basis, normalized_coordinates
 
 
@@ -115,3 +115,92 @@ def test_kernel_file_refuses_foreign_files(tmp_path):
         load_kernels(tmp_path / "z.npz")  # pickled objects are never loaded
     with pytest.raises(ModelFileError, match="no such kernel file"):
         load_kernels(tmp_path / "missing.npz")
+
+
+@pytest.mark.parametrize("change,message", [
+    (dict(kernels=np.full((3, 3, 8, 10), np.nan)), "kernel model: kernels contain NaN/Inf"),
+    (dict(kernels=np.ones((3, 8, 10))), r"kernels must be \(K, C, H, W\), got shape"),
+    (dict(kernels=np.ones((3, 3, 8, 11))), "kernels 8x11 are larger than the sensor 8x10"),
+    (dict(kernels=np.ones((2, 3, 8, 10))), "basis 'paper' needs 3 kernels"),
+    (dict(kernels=np.full((3, 3, 8, 10), "a")), "kernels must be real numbers"),
+    (dict(convention="lens"), "convention must be 'sensor' or 'source', got 'lens'"),
+    (dict(basis="papr"), "unknown weight basis 'papr'"),
+    (dict(channels=("R", "G")), r"kernels have 3 channel\(s\) but channels are"),
+    (dict(sensor_shape=(8.0, 10.0)), r"sensor_shape \[8.0, 10.0\] is not a valid size"),
+    (dict(sensor_shape=(8, 10, 1)), "sensor_shape .* is not a valid size"),
+    (dict(scene_padding=1), "scene_padding must be an integer >= 2, got 1"),
+    (dict(scene_padding=2.0), "scene_padding must be an integer >= 2, got 2.0"),
+    (dict(optical_center=(np.nan, 1.0)), "optical_center must be None or two finite numbers"),
+    (dict(optical_center=(1.0,)), "optical_center must be None or two finite numbers"),
+])
+def test_kernel_model_refuses_what_breaks_the_contract(change, message):
+    values = dict(kernels=np.ones((3, 3, 8, 10), np.float32), sensor_shape=(8, 10))
+    values.update(change)
+    with pytest.raises(ModelFileError, match=message) as info:
+        KernelModel(**values)
+    assert isinstance(info.value, PsfkitError)           # the CLIs print it as one line
+
+
+def test_validate_catches_kernels_changed_in_place_and_save_refuses_them(tmp_path):
+    model = _model()
+    model.validate()                                      # a valid model passes
+    model.kernels[1, 2, 3, 4] = np.inf                    # the array is mutable
+    with pytest.raises(ModelFileError, match=r"^seed: kernels contain NaN/Inf"):
+        model.validate(where="seed")
+    with pytest.raises(ModelFileError, match=r"k\.npz: kernels contain NaN/Inf"):
+        save_kernels(tmp_path / "k.npz", model)
+    assert list(tmp_path.iterdir()) == []                 # nothing written, not even a temp
+
+
+def test_check_kernels_is_the_array_part_of_the_contract():
+    check_kernels(np.zeros((1, 1, 4, 4), np.float64), (4, 4))
+    with pytest.raises(ModelFileError, match=r"^kernels must be float32 or float64, got int64"):
+        check_kernels(np.zeros((1, 1, 4, 4), np.int64), (4, 4))
+    with pytest.raises(ModelFileError, match=r"^x: kernels must have at least one kernel"):
+        check_kernels(np.zeros((0, 1, 4, 4)), (4, 4), where="x")
+
+    class OtherError(PsfkitError):
+        pass
+
+    with pytest.raises(OtherError, match="kernels 5x4 are larger than the sensor 4x4"):
+        check_kernels(np.zeros((1, 1, 5, 4)), (4, 4), error=OtherError)
+
+
+def test_metadata_round_trip():
+    model = _model(basis="paper", convention="source", optical_center=(np.float64(3.5), 4),
+                   scene_padding=3, normalization="base sums to 1",
+                   provenance={"grid": "lab/grid", "residual": 0.01})
+    meta = model.to_metadata()
+    assert json.loads(json.dumps(meta)) == meta           # JSON as it is
+    assert meta["kernel_names"] == ["base", "v", "h"] and meta["format"] == "ekdun-kernels"
+    back = KernelModel.from_metadata(model.kernels, meta)
+    assert back.to_metadata() == meta
+    np.testing.assert_array_equal(back.kernels, model.kernels)
+    assert (back.basis, back.convention, back.sensor_shape, back.optical_center,
+            back.scene_padding, back.normalization, back.provenance) == (
+        "paper", "source", (8, 10), (3.5, 4.0), 3, "base sums to 1",
+        {"grid": "lab/grid", "residual": 0.01})
+    # numpy integers in the geometry are stored as ints (json.dumps refuses numpy's)
+    numpy_shape = KernelModel(kernels=model.kernels, sensor_shape=(np.int64(8), np.int64(10)))
+    assert json.dumps(numpy_shape.to_metadata()["sensor_shape"]) == "[8, 10]"
+
+
+def test_from_metadata_reads_the_older_checkpoint_form_and_names_the_problem():
+    # what ekdun checkpoints stored before the metadata had one writer: no format, version,
+    # kernel_names or kernel_origin
+    old = {"basis": "paper", "convention": "sensor", "sensor_shape": [8, 10],
+           "channels": ["R", "G", "B"], "optical_center": None, "scene_padding": 2,
+           "normalization": "unspecified", "provenance": {}}
+    kernels = _model().kernels
+    back = KernelModel.from_metadata(kernels, old)
+    assert {k: v for k, v in back.to_metadata().items() if k in old} == old
+    with pytest.raises(ModelFileError, match=r"^seed: metadata lacks or mangles 'convention'"):
+        KernelModel.from_metadata(kernels, {k: v for k, v in old.items() if k != "convention"},
+                                  where="seed")
+    with pytest.raises(ModelFileError, match=r"^seed: kernels contain NaN/Inf"):
+        KernelModel.from_metadata(np.full_like(kernels, np.nan), old, where="seed")
+    with pytest.raises(ModelFileError, match=r"^seed: kernel_names .* do not match"):
+        KernelModel.from_metadata(kernels, {**old, "kernel_names": ["a", "b", "c"]},
+                                  where="seed")
+    with pytest.raises(ModelFileError, match=r"^seed: metadata is not a JSON object"):
+        KernelModel.from_metadata(kernels, ["paper"], where="seed")  # type: ignore[arg-type]

@@ -8,8 +8,7 @@ from scipy import ndimage
 from psfkit.bench import BenchConfig, VirtualCamera
 from psfkit.bench.camera import box_blur
 from psfkit.bench.propagation import fresnel_transfer_anisotropic, propagate
-from psfkit.bench.sensor import bin_pixels
-from psfkit.registration import bin_image
+from psfkit.resample import bin_image
 from psfkit.warp import (
     affine_registration,
     dense_flow,
@@ -92,7 +91,8 @@ def propagated():
     def image(extra_t, extra_s, azimuth):
         transfer = fresnel_transfer_anisotropic(shape, cam.sim_pitch_um, cam.wavelengths_um[1],
                                                 d + extra_t, d + extra_s, azimuth)
-        intensity = bin_pixels(np.abs(propagate(envelope, transfer)) ** 2, cam.oversample)
+        intensity = bin_image(np.abs(propagate(envelope, transfer)) ** 2, cam.oversample,
+                              exact=True)
         return box_blur(intensity[None], cam.source_blur_um() / cam.pixel_um)[0]
 
     return image

@@ -1,0 +1,184 @@
+"""Comparing kernel models with the measured modes (:func:`compare_kernels`,
+:func:`compare_model`).
+
+Learned side: the kernels of a kernel file (after training), padded to the sensor size and
+registered to the measured ``Kbase`` by one global sub-pixel shift; their displacement maps,
+difference kernels and span are compared with the measured ones.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
+from psfkit.compare.measured import MeasuredModes, measure_modes
+from psfkit.compare.options import CompareOptions
+from psfkit.compare.resampling import pad_kernels, resample
+from psfkit.compare.results import KernelComparison, KernelSetComparison
+from psfkit.compare.statistics import map_agreement, normalized_correlation
+from psfkit.errors import ModelFileError
+from psfkit.io.grid import PsfGrid
+from psfkit.kernelfile import KernelModel, load_kernels
+from psfkit.pca import principal_angles_deg
+from psfkit.preprocess import luminance
+from psfkit.registration import register_shift, shift_image
+
+
+def _kernel_displacements(lum: np.ndarray, names: tuple[str, ...], mask: np.ndarray,
+                          options: CompareOptions) -> dict[str, DisplacementMap]:
+    return {name: displacement_map(lum[0], lum[k], mask, options.flow_method, options.smooth_px)
+            for k, name in enumerate(names) if k > 0}
+
+
+def _prepare_learned(learned: KernelModel, measured: MeasuredModes, options: CompareOptions,
+                     where: str) -> tuple[np.ndarray, tuple[float, float]]:
+    """Learned kernels padded to the sensor and registered to the measured ``Kbase``."""
+    if learned.basis != measured.model.basis or learned.convention != measured.model.convention:
+        raise ModelFileError(f"{where}: basis/convention {learned.basis}/{learned.convention} "
+                             f"differ from the measured fit's {measured.model.basis}/"
+                             f"{measured.model.convention}")
+    if tuple(learned.sensor_shape) != tuple(measured.sensor_shape):
+        raise ModelFileError(f"{where}: sensor {list(learned.sensor_shape)} differs from the "
+                             f"comparison grid {list(measured.sensor_shape)}")
+    kernels = pad_kernels(learned.kernels, tuple(measured.sensor_shape))
+    if kernels.shape[1] != measured.model.kernels.shape[1]:
+        raise ModelFileError(f"{where}: {kernels.shape[1]} channel(s) but the grid has "
+                             f"{measured.model.kernels.shape[1]}")
+    shift = (0.0, 0.0)
+    if options.align:
+        shift = register_shift(luminance(measured.model.kernels[0]), luminance(kernels[0]))
+        if abs(shift[0]) > 0.005 or abs(shift[1]) > 0.005:
+            kernels = shift_image(kernels.reshape(-1, *kernels.shape[-2:]), shift)[0].reshape(
+                kernels.shape)
+    return kernels, (float(shift[0]), float(shift[1]))
+
+
+def _angles(kernels: np.ndarray, measured: MeasuredModes, n_pca: int
+            ) -> tuple[np.ndarray, np.ndarray | None]:
+    eigen = principal_angles_deg(kernels, measured.model.kernels)
+    if measured.pca_components is None or measured.pca_region is None:
+        return eigen, None
+    n = min(n_pca or len(kernels), len(measured.pca_components))
+    region = measured.pca_region
+    working = resample(kernels, region.shape)
+    pca = principal_angles_deg(working[:, :, region], measured.pca_components[:n][:, :, region])
+    return eigen, pca
+
+
+def compare_model(model: KernelModel, measured: MeasuredModes, label: str = "learned",
+                  options: CompareOptions | None = None, where: str = "learned kernels"
+                  ) -> KernelSetComparison:
+    """Compare one kernel model with measured modes (see the module docstring).
+
+    Raises
+    ------
+    ModelFileError
+        Basis, convention, sensor size or channels differ from the measured fit's.
+    """
+    options = options or CompareOptions()
+    kernels, shift = _prepare_learned(model, measured, options, where)
+    names = measured.model.kernel_names
+    lum = np.stack([luminance(k) for k in kernels])
+    meas_lum = np.stack([luminance(k) for k in measured.model.kernels])
+    mask = comparison_mask(meas_lum[0], options)
+    disp = _kernel_displacements(lum, names, mask, options)
+    meas_disp = _kernel_displacements(meas_lum, names, mask, options)
+    metrics = {}
+    for k, name in enumerate(names):
+        if k == 0:
+            continue
+        warp = measured.warps.get(name)
+        metrics[name] = {
+            "vs_measured_kernels": map_agreement(disp[name], meas_disp[name],
+                                                 options.min_displacement_px),
+            "vs_measured_warp": None if warp is None else map_agreement(
+                disp[name], warp, options.min_displacement_px),
+            "difference_ncc": normalized_correlation(lum[k] - lum[0], meas_lum[k] - meas_lum[0]),
+        }
+    eigen, pca = _angles(kernels, measured, options.n_pca)
+    return KernelSetComparison(label=label, kernels=kernels, displacements=disp,
+                               metrics=metrics, angles_eigen_deg=eigen, angles_pca_deg=pca,
+                               global_shift_px=shift)
+
+
+def _as_model(value: KernelModel | str | os.PathLike) -> KernelModel:
+    if isinstance(value, KernelModel):
+        return value
+    return load_kernels(value)
+
+
+def check_learned(model: KernelModel, where: str) -> None:
+    """Refuse a kernel model without correction kernels (nothing to compare)."""
+    if len(model.kernels) < 2:
+        raise ModelFileError(f"{where}: basis {model.basis!r} has a single kernel; the "
+                             "comparison needs Kbase and correction kernels (e.g. basis "
+                             "'paper': Kbase, Kv, Kh)")
+
+
+def compare_kernels(learned: KernelModel | str | os.PathLike,
+                    measured: PsfGrid | str | os.PathLike | MeasuredModes,
+                    initial: KernelModel | str | os.PathLike | None = None,
+                    options: CompareOptions | None = None, progress: bool = False
+                    ) -> KernelComparison:
+    """Compare learned eigen-kernels with the measured modes of the same camera.
+
+    Parameters
+    ----------
+    learned : KernelModel or path
+        The trained model's kernels (a kernel file with at least two kernels).
+    measured : PsfGrid, path or MeasuredModes
+        The camera's PSF grid (or modes already measured by :func:`measure_modes` on the
+        learned file's sensor grid, to compare several models without refitting).
+    initial : KernelModel or path, optional
+        The kernels before training: the same numbers are reported for them.
+    options : CompareOptions, optional
+    progress : bool
+        Progress bar for the grid fit.
+
+    Returns
+    -------
+    KernelComparison
+
+    Raises
+    ------
+    ModelFileError
+        A kernel file is unreadable, of the wrong version, has one kernel, or its basis,
+        convention or sensor size differs from the other's.
+    GridFormatError, InvalidInputError
+        Not a grid, or a grid whose PSFs cannot be brought to the kernel file's sensor size.
+    """
+    options = options or CompareOptions()
+    learned_model = _as_model(learned)
+    where = str(learned) if not isinstance(learned, KernelModel) else "learned kernels"
+    check_learned(learned_model, where)
+    initial_model = None
+    if initial is not None:
+        initial_model = _as_model(initial)
+        iw = str(initial) if not isinstance(initial, KernelModel) else "initial kernels"
+        check_learned(initial_model, iw)
+        for attr in ("basis", "convention", "sensor_shape"):
+            if getattr(initial_model, attr) != getattr(learned_model, attr):
+                raise ModelFileError(f"{iw}: {attr} {getattr(initial_model, attr)!r} differs "
+                                     f"from the learned file's {getattr(learned_model, attr)!r}")
+    if isinstance(measured, MeasuredModes):
+        modes = measured
+    else:
+        modes = measure_modes(measured, learned_model.basis, learned_model.convention,
+                              tuple(learned_model.sensor_shape), options, progress)
+    result_learned = compare_model(learned_model, modes, "learned", options, where)
+    result_initial = None if initial_model is None else compare_model(
+        initial_model, modes, "initial", options, "initial kernels")
+    meas_lum = np.stack([luminance(k) for k in modes.model.kernels])
+    mask = comparison_mask(meas_lum[0], options)
+    meas_disp = _kernel_displacements(meas_lum, modes.model.kernel_names, mask, options)
+    vs_warp = {name: map_agreement(meas_disp[name], warp, options.min_displacement_px)
+               for name, warp in modes.warps.items() if name in meas_disp}
+    notes = list(modes.notes)
+    if learned_model.kernels.shape[-2:] != tuple(learned_model.sensor_shape):
+        notes.append(f"learned kernels {learned_model.kernels.shape[-2]}x"
+                     f"{learned_model.kernels.shape[-1]} zero-padded to the sensor size")
+    return KernelComparison(learned=result_learned, initial=result_initial, measured=modes,
+                            measured_displacements=meas_disp, measured_kernels_vs_warp=vs_warp,
+                            mask=mask, options=options, notes=notes)

@@ -1,0 +1,100 @@
+"""Displacement maps: the local sub-pixel displacement of one image relative to another on
+the caustic (dense optical flow, gain-matched, masked smoothing).
+
+A displacement field ``D = (D_u, D_v)`` is ``(2, H, W)`` in pixels, ``u`` = column (right),
+``v`` = row (down); ``other(x + D(x)) ≈ reference(x)`` (as in :mod:`psfkit.warp`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from psfkit.compare.options import CompareOptions
+from psfkit.errors import InvalidInputError
+from psfkit.warp import caustic_mask, dense_flow
+
+
+@dataclass(frozen=True)
+class DisplacementMap:
+    """A displacement field and where it is meaningful.
+
+    Attributes
+    ----------
+    field : numpy.ndarray
+        ``(2, H, W)`` float32 ``(D_u, D_v)`` in px, ``other(x + D(x)) ≈ reference(x)``;
+        zero outside ``mask``.
+    mask : numpy.ndarray
+        ``(H, W)`` bool.
+    """
+
+    field: np.ndarray = dataclasses.field(repr=False)
+    mask: np.ndarray = dataclasses.field(repr=False)
+
+    def rms(self) -> float:
+        """RMS length of the displacement over the mask (px; NaN on an empty mask)."""
+        if not self.mask.any():
+            return float("nan")
+        return float(np.sqrt(np.mean(np.sum(self.field[:, self.mask] ** 2, axis=0))))
+
+    def scaled(self, factor: float) -> DisplacementMap:
+        return DisplacementMap(field=(self.field * np.float32(factor)).astype(np.float32),
+                               mask=self.mask)
+
+
+def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of ``values`` ``(..., H, W)`` using only the pixels in ``mask``
+    (normalised convolution); zero outside ``mask``."""
+    m = mask.astype(np.float64)
+    if sigma <= 0:
+        return np.where(mask, values, 0).astype(np.float32)
+    weight = ndimage.gaussian_filter(m, sigma, mode="constant")
+    out = np.zeros(values.shape, np.float32)
+    for index in np.ndindex(values.shape[:-2]):
+        smooth = ndimage.gaussian_filter(values[index] * m, sigma, mode="constant")
+        out[index] = np.where(mask, smooth / np.maximum(weight, 1e-12), 0)
+    return out
+
+
+def displacement_map(reference: np.ndarray, other: np.ndarray, mask: np.ndarray,
+                     method: str = "dis", smooth_px: float = 3.0) -> DisplacementMap:
+    """Local sub-pixel displacement of ``other`` relative to ``reference`` on ``mask``.
+
+    Parameters
+    ----------
+    reference, other : numpy.ndarray
+        ``(H, W)`` non-negative images (e.g. kernel luminance), same frame.
+    mask : numpy.ndarray
+        ``(H, W)`` bool, where the displacement is meaningful (the caustic).
+    method : str
+        Dense-flow method (:func:`psfkit.warp.dense_flow`).
+    smooth_px : float
+        Sigma (px) of the masked Gaussian smoothing.
+
+    Returns
+    -------
+    DisplacementMap
+        ``other(x + D(x)) ≈ reference(x)``, in px.
+    """
+    if reference.shape != other.shape or reference.ndim != 2 or mask.shape != reference.shape:
+        raise InvalidInputError("displacement_map needs two 2-D images and a mask of one shape")
+    if not mask.any():
+        return DisplacementMap(np.zeros((2, *reference.shape), np.float32), mask)
+    ref = np.clip(reference, 0, None).astype(np.float32)
+    oth = np.clip(other, 0, None).astype(np.float32)
+    # gain differences (vignetting) are not displacements: match the sums on the mask
+    s_ref, s_oth = float(ref[mask].sum()), float(oth[mask].sum())
+    if s_ref > 0 and s_oth > 0:
+        oth = oth * np.float32(s_ref / s_oth)
+    flow = dense_flow(ref, oth, method)
+    return DisplacementMap(masked_smooth(flow, mask, smooth_px), mask)
+
+
+def comparison_mask(base_luminance: np.ndarray, options: CompareOptions) -> np.ndarray:
+    """Caustic mask of the measured ``Kbase`` luminance ``(H, W)`` (see
+    :func:`psfkit.warp.caustic_mask`)."""
+    return caustic_mask(base_luminance, np.ones(base_luminance.shape, bool), options.mask_level,
+                        options.mask_border, options.mask_dilate)

@@ -1,0 +1,156 @@
+"""The measured side of a comparison (:func:`measure_modes`): what a PSF grid says about the
+eigen-kernels, on the comparison grid.
+
+- the eigen-kernels fitted to the grid (:func:`psfkit.grid_fit.fit_eigen_grid`) with the
+  learned file's basis and weight convention;
+- the top PCA modes of the registered grid (:mod:`psfkit.pca`);
+- warp fields at the outermost reliable positions (:mod:`psfkit.compare.warps`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from psfkit.alignment import GridAligner
+from psfkit.compare.displacement import DisplacementMap, comparison_mask
+from psfkit.compare.options import CompareOptions
+from psfkit.compare.resampling import check_shapes, resample
+from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
+from psfkit.errors import InvalidInputError
+from psfkit.grid_fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
+from psfkit.io.grid import PsfGrid
+from psfkit.io.grid_validation import read_grid
+from psfkit.kernelfile import KernelModel
+from psfkit.preprocess import luminance
+from psfkit.weights import get_basis
+
+
+@dataclass
+class MeasuredModes:
+    """What a PSF grid says about the eigen-kernels, on the comparison grid.
+
+    Attributes
+    ----------
+    model : KernelModel
+        Eigen-kernels fitted to the grid, resampled to ``sensor_shape``.
+    sensor_shape : (int, int)
+        The comparison grid ``(H, W)`` (the learned file's sensor size).
+    warps : dict
+        Kernel name (``"v"``, ``"h"``) → :class:`DisplacementMap`: the displacement of that
+        kernel relative to ``Kbase`` predicted by the measured warps (see the module
+        docstring).
+    warp_positions : dict
+        Kernel name (or ``"all"``) → list of ``{"row", "col", "shift_px",
+        "mean_weight_change", "overlap", "warp_rms_px"}`` of the positions used.
+    pca_components : numpy.ndarray or None
+        ``(r, C, h, w)`` top uncentred PCA modes on the fit's binned working grid.
+    pca_region : numpy.ndarray or None
+        ``(h, w)`` bool, pixels the PCA used.
+    fit : GridEigenResult
+    notes : list of str
+        What was resampled, skipped or approximated.
+    """
+
+    model: KernelModel
+    sensor_shape: tuple[int, int]
+    warps: dict[str, DisplacementMap]
+    warp_positions: dict[str, list[dict[str, Any]]]
+    pca_components: np.ndarray | None
+    pca_region: np.ndarray | None
+    fit: GridEigenResult = field(repr=False)
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"grid": self.fit.grid_root, "grid_shape": list(self.fit.grid_shape),
+                "image_shape": list(self.fit.image_shape),
+                "comparison_shape": list(self.sensor_shape),
+                "basis": self.model.basis, "convention": self.model.convention,
+                "warp_positions": self.warp_positions,
+                "warp_rms_px": {k: w.rms() for k, w in self.warps.items()},
+                "pca_modes": None if self.pca_components is None
+                else len(self.pca_components),
+                "fit": self.fit.summary(), "notes": self.notes}
+
+
+def load_grid(measured: PsfGrid | str | os.PathLike) -> PsfGrid:
+    """A :class:`PsfGrid` from a grid or a grid folder (validated, pixels checked lazily)."""
+    if isinstance(measured, PsfGrid):
+        return measured
+    path = Path(measured)
+    if not path.is_dir():
+        raise InvalidInputError(f"{path}: not a PSF-grid folder")
+    return read_grid(path, check_pixels=False)
+
+
+def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention: str,
+                  sensor_shape: tuple[int, int], options: CompareOptions | None = None,
+                  progress: bool = False) -> MeasuredModes:
+    """Fit the grid and measure its warp fields and PCA modes on the comparison grid.
+
+    Parameters
+    ----------
+    measured : PsfGrid or path
+        The PSF grid of the camera.
+    basis, convention : str
+        Weight basis and convention of the fitted eigen-kernels (those of the learned file).
+    sensor_shape : (int, int)
+        The comparison grid ``(H, W)``; the grid's PSFs are resampled to it when their size
+        differs (same aspect ratio required).
+    options : CompareOptions, optional
+
+    Raises
+    ------
+    GridFormatError
+        Not a grid, or no centre.
+    InvalidInputError
+        Aspect ratios differ, or the grid cannot determine the basis.
+    """
+    options = options or CompareOptions()
+    grid = load_grid(measured)
+    _, h, w = grid.image_shape
+    check_shapes(sensor_shape, (h, w), str(grid.root))
+    notes = []
+    if (h, w) != tuple(sensor_shape):
+        notes.append(f"grid PSFs {h}x{w} resampled to the kernel file's sensor "
+                     f"{sensor_shape[0]}x{sensor_shape[1]} (factor {h / sensor_shape[0]:.3g}); "
+                     "displacements are in kernel-file pixels")
+    fit_options = options.fit or EigenFitOptions(basis=basis, convention=convention,
+                                                 cv_bases=(), preprocess=options.preprocess)
+    fit = fit_eigen_grid(grid, fit_options, progress=progress)
+    fitted = fit.kernel_model()
+    model = KernelModel(kernels=resample(fitted.kernels, tuple(sensor_shape)),
+                        basis=fitted.basis, convention=fitted.convention,
+                        sensor_shape=tuple(sensor_shape), channels=fitted.channels,
+                        normalization=fitted.normalization, provenance=fitted.provenance)
+    base_lum = luminance(model.kernels[0])
+    mask = comparison_mask(base_lum, options)
+    aligner = GridAligner(grid, fit_options.preprocess, fit_options.upsample)
+    warps, positions = {}, {}
+    if options.warp_positions == "all":
+        warps, used, more = measured_warps_joint(aligner, basis, convention, (h, w),
+                                                  tuple(sensor_shape), mask, options)
+        notes.extend(more)
+        positions = {"all": used}
+    for name in get_basis(basis).kernel_names[1:] if options.warp_positions == "axes" else ():
+        if name not in WARP_AXES:
+            notes.append(f"kernel {name!r}: no single-axis warp predicts it; kernel and PCA "
+                         "comparisons only")
+            continue
+        warp, used, more = measured_warp(aligner, name, basis, convention, (h, w),
+                                          tuple(sensor_shape), mask, options)
+        notes.extend(more)
+        positions[name] = used
+        if warp is not None:
+            warps[name] = warp
+    pca = fit.pca
+    if pca is None:
+        notes.append("too few reliable positions for a PCA of the grid")
+    return MeasuredModes(model=model, sensor_shape=tuple(sensor_shape), warps=warps,
+                         warp_positions=positions,
+                         pca_components=None if pca is None else pca.components,
+                         pca_region=None if pca is None else pca.region, fit=fit, notes=notes)

@@ -1,0 +1,69 @@
+"""Options of a learned-vs-measured comparison (:class:`CompareOptions`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from psfkit.errors import ConfigurationError
+from psfkit.grid_fit import EigenFitOptions
+from psfkit.preprocess import PreprocessOptions
+from psfkit.warp import FLOW_METHODS
+
+
+@dataclass(frozen=True)
+class CompareOptions:
+    """Options of :func:`compare_kernels`.
+
+    Attributes
+    ----------
+    flow_method : str
+        Dense-flow method (:func:`psfkit.warp.dense_flow`): ``"dis"`` (default), ``"farneback"``,
+        ``"ilk"`` or ``"tvl1"``.
+    smooth_px : float
+        Standard deviation (px of the comparison grid) of the masked Gaussian applied to every
+        displacement map; flows on caustics are noisy off the bright lines.
+    mask_level, mask_border, mask_dilate : float, int, int
+        Caustic mask (:func:`psfkit.warp.caustic_mask`): pixels within ``mask_dilate`` px of a
+        pixel brighter than ``mask_level`` × the peak of the measured ``Kbase``, and
+        ``mask_border`` px inside the image.
+    min_displacement_px : float
+        A displacement map whose RMS over the mask is below this (px) counts as "no
+        displacement": its correlations are NaN.
+    n_pca : int
+        Number of measured PCA modes whose span the learned kernels are compared with (the
+        number of kernels by default, 0 = that number).
+    warp_positions : {"axes", "all"}
+        Measured warps from the outermost reliable positions on each kernel's axis (``v``,
+        ``h`` only; default), or from every reliable position, solved jointly for all
+        correction kernels (covers more pixels with sensor-side weights, but diagonal
+        positions add changes the basis cannot describe; see docs/compare.md).
+    align : bool
+        Register the learned ``Kbase`` to the measured one by a global sub-pixel shift first.
+    fit : EigenFitOptions or None
+        Options of the measured eigen-kernel fit; ``None``: the learned file's basis and
+        convention, no cross-validation.
+    preprocess : PreprocessOptions
+        Preprocessing of the grid (dark, normalisation, saturation).
+    """
+
+    flow_method: str = "dis"
+    smooth_px: float = 3.0
+    mask_level: float = 0.02
+    mask_border: int = 8
+    mask_dilate: int = 3
+    min_displacement_px: float = 0.02
+    n_pca: int = 0
+    warp_positions: str = "axes"
+    align: bool = True
+    fit: EigenFitOptions | None = None
+    preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
+
+    def __post_init__(self) -> None:
+        if self.flow_method not in FLOW_METHODS:
+            raise ConfigurationError(f"unknown flow method {self.flow_method!r} "
+                                     f"(use {', '.join(FLOW_METHODS)})")
+        if self.warp_positions not in ("all", "axes"):
+            raise ConfigurationError(f"warp_positions must be 'all' or 'axes', got "
+                                     f"{self.warp_positions!r}")
+        if self.smooth_px < 0 or self.min_displacement_px < 0 or self.n_pca < 0:
+            raise ConfigurationError("smooth_px, min_displacement_px and n_pca must be >= 0")

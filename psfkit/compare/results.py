@@ -1,0 +1,138 @@
+"""Results of a comparison: one kernel model against the measured modes
+(:class:`KernelSetComparison`) and the whole comparison (:class:`KernelComparison`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from psfkit.compare.displacement import DisplacementMap
+from psfkit.compare.measured import MeasuredModes
+from psfkit.compare.options import CompareOptions
+from psfkit.io.jsonable import jsonable
+
+
+@dataclass
+class KernelSetComparison:
+    """One kernel model (learned, or its initial value) against the measured modes.
+
+    Attributes
+    ----------
+    label : str
+        ``"learned"`` or ``"initial"``.
+    kernels : numpy.ndarray
+        ``(K, C, H, W)`` the model's kernels on the comparison grid, registered to the
+        measured ``Kbase``.
+    displacements : dict
+        Kernel name → :class:`DisplacementMap` of that kernel relative to ``Kbase``.
+    metrics : dict
+        Kernel name → ``{"vs_measured_kernels": map_agreement, "vs_measured_warp":
+        map_agreement or None, "difference_ncc": float}``.
+    angles_eigen_deg, angles_pca_deg : numpy.ndarray or None
+        Principal angles (degrees, ascending) between the span of the kernels and the span of
+        the measured eigen-kernels / top PCA modes.
+    global_shift_px : (float, float)
+        ``(du, dv)`` by which the model's ``Kbase`` was displaced relative to the measured one
+        (undone before comparing).
+    """
+
+    label: str
+    kernels: np.ndarray = field(repr=False)
+    displacements: dict[str, DisplacementMap] = field(repr=False)
+    metrics: dict[str, dict[str, Any]]
+    angles_eigen_deg: np.ndarray | None
+    angles_pca_deg: np.ndarray | None
+    global_shift_px: tuple[float, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"label": self.label, "global_shift_px": list(self.global_shift_px),
+                "displacement_rms_px": {k: d.rms() for k, d in self.displacements.items()},
+                "metrics": self.metrics,
+                "principal_angles_deg_vs_measured_eigen":
+                    None if self.angles_eigen_deg is None else self.angles_eigen_deg.tolist(),
+                "principal_angles_deg_vs_measured_pca":
+                    None if self.angles_pca_deg is None else self.angles_pca_deg.tolist()}
+
+
+@dataclass
+class KernelComparison:
+    """Result of :func:`compare_kernels`.
+
+    Attributes
+    ----------
+    learned : KernelSetComparison
+    initial : KernelSetComparison or None
+        The same numbers for the kernels before training (``--initial``).
+    measured : MeasuredModes
+    measured_displacements : dict
+        Kernel name → :class:`DisplacementMap` of the measured eigen-kernel relative to the
+        measured ``Kbase``.
+    measured_kernels_vs_warp : dict
+        Kernel name → :func:`map_agreement` of the measured eigen-kernel displacement with the
+        measured warp (how far the fit itself follows the warp: a ceiling for the learned one).
+    mask : numpy.ndarray
+        ``(H, W)`` bool caustic mask of the measured ``Kbase``.
+    options : CompareOptions
+    notes : list of str
+    """
+
+    learned: KernelSetComparison
+    initial: KernelSetComparison | None
+    measured: MeasuredModes
+    measured_displacements: dict[str, DisplacementMap] = field(repr=False)
+    measured_kernels_vs_warp: dict[str, dict[str, Any]]
+    mask: np.ndarray = field(repr=False)
+    options: CompareOptions = field(repr=False)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def kernel_names(self) -> tuple[str, ...]:
+        return self.measured.model.kernel_names
+
+    def headline(self) -> dict[str, dict[str, float]]:
+        """``{label: {"<name>_vs_warp": corr, "<name>_vs_kernels": corr, ...}}`` for the
+        learned (and initial) kernels: the numbers to quote."""
+        out = {}
+        for cmp in (self.learned, self.initial):
+            if cmp is None:
+                continue
+            row = {}
+            for name, m in cmp.metrics.items():
+                row[f"{name}_vs_kernels"] = m["vs_measured_kernels"]["corr"]
+                if m["vs_measured_warp"] is not None:
+                    row[f"{name}_vs_warp"] = m["vs_measured_warp"]["corr"]
+                row[f"{name}_difference_ncc"] = m["difference_ncc"]
+            out[cmp.label] = row
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return jsonable({
+            "conventions": {
+                "displacement": "D = (D_u, D_v) px on the comparison grid (the kernel file's "
+                                "sensor), u = column (right), v = row (down); "
+                                "K_k(x + D(x)) ≈ Kbase(x)",
+                "measured_warp": "flow centre PSF → edge PSF, averaged over the two opposite "
+                                 "edges (paper weights are even) and divided by the kernel's "
+                                 "weight there: the predicted displacement of K_k",
+                "correlation": "Pearson over the caustic mask of the measured Kbase; null "
+                               "(NaN) when a map has no displacement",
+                "difference_ncc": "uncentred normalised correlation of K_k − Kbase "
+                                  "(luminance), learned vs measured",
+                "angles": "principal angles in degrees, ascending"},
+            "kernel_names": list(self.kernel_names),
+            "mask_pixels": int(self.mask.sum()),
+            "headline": self.headline(),
+            "learned": self.learned.to_dict(),
+            "initial": None if self.initial is None else self.initial.to_dict(),
+            "measured": self.measured.to_dict(),
+            "measured_displacement_rms_px": {k: d.rms()
+                                             for k, d in self.measured_displacements.items()},
+            "measured_kernels_vs_warp": self.measured_kernels_vs_warp,
+            "options": {"flow_method": self.options.flow_method,
+                        "smooth_px": self.options.smooth_px,
+                        "min_displacement_px": self.options.min_displacement_px,
+                        "warp_positions": self.options.warp_positions,
+                        "mask_level": self.options.mask_level, "align": self.options.align},
+            "notes": self.notes})

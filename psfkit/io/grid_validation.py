@@ -1,0 +1,210 @@
+"""Reading a PSF-grid folder = validating all of it (:func:`read_grid`): manifest, grid
+indices, files present and listed, image shapes and pixel types, pixel values, header fields.
+Every problem is a :class:`~psfkit.errors.GridFormatError` naming the file."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from psfkit.errors import GridFormatError, InvalidInputError
+from psfkit.io.grid import PsfGrid
+from psfkit.io.images import IMAGE_SUFFIXES, read_image
+from psfkit.io.manifest import (
+    find_manifest,
+    locate_center,
+    parse_index,
+    parse_manifest,
+    parse_positive,
+)
+
+
+def _check_pixels(path: Path, image: np.ndarray) -> None:
+    if np.issubdtype(image.dtype, np.floating):
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        if bad:
+            raise GridFormatError(f"{path}: contains {bad} NaN/Inf pixel value(s)")
+    if not np.any(image):
+        raise GridFormatError(f"{path}: all-zero frame (nothing was captured)")
+
+
+def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
+    c, h, w = shape
+    return f"{h}×{w}×{c} {dtype}"
+
+
+def read_grid(root: str | os.PathLike, check_pixels: bool = True,
+              progress: bool = False) -> PsfGrid:
+    """Read and validate a PSF-grid folder.
+
+    Parameters
+    ----------
+    root : path-like
+        The grid folder (holding ``manifest.json`` or ``manifest.csv``).
+    check_pixels : bool
+        Also read every image to reject NaN/Inf values and all-zero frames (one image in
+        memory at a time). Without it only headers, shapes and dtypes are checked.
+    progress : bool
+        Show a progress bar while checking images.
+
+    Returns
+    -------
+    PsfGrid
+
+    Raises
+    ------
+    GridFormatError
+        Missing or malformed manifest, missing/duplicate grid index or file, missing image,
+        files in the folder that the manifest does not list, non-image files, mixed shapes or
+        dtypes, NaN/Inf values, all-zero frames.
+    """
+    root = Path(root)
+    if not root.exists():
+        raise GridFormatError(f"{root}: no such grid folder")
+    if not root.is_dir():
+        raise GridFormatError(f"{root}: not a folder (a PSF grid is a folder with a manifest)")
+    manifest = find_manifest(root)
+    header, positions = parse_manifest(manifest)
+
+    seen_index: dict[tuple[int, int], str] = {}
+    seen_file: set[str] = set()
+    for p in positions:
+        if (p.row, p.col) in seen_index:
+            raise GridFormatError(f"{manifest}: grid index ({p.row}, {p.col}) appears twice "
+                                  f"({seen_index[(p.row, p.col)]} and {p.file})")
+        if p.file in seen_file:
+            raise GridFormatError(f"{manifest}: file {p.file} is listed twice")
+        seen_index[(p.row, p.col)] = p.file
+        seen_file.add(p.file)
+
+    n_rows = max(p.row for p in positions) + 1
+    n_cols = max(p.col for p in positions) + 1
+    if header.get("grid_shape") is not None:
+        gs = header["grid_shape"]
+        if not (isinstance(gs, list) and len(gs) == 2):
+            raise GridFormatError(f"{manifest}: 'grid_shape' must be [rows, cols], got {gs!r}")
+        declared = tuple(parse_index(v, str(manifest), "grid_shape") for v in gs)
+        if declared[0] < n_rows or declared[1] < n_cols:
+            raise GridFormatError(f"{manifest}: positions reach index ({n_rows - 1}, "
+                                  f"{n_cols - 1}) beyond grid_shape {list(declared)}")
+        n_rows, n_cols = declared
+    missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
+    if missing:
+        listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
+        more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+        raise GridFormatError(f"{manifest}: grid index {listed}{more} missing from the "
+                              f"{n_rows}×{n_cols} grid")
+    positions.sort(key=lambda p: (p.row, p.col))
+
+    dark_file = header.get("dark_frame")
+    if dark_file is not None and (not isinstance(dark_file, str) or Path(dark_file).name
+                                  != dark_file):
+        raise GridFormatError(f"{manifest}: 'dark_frame' must be a file name in the folder")
+    if dark_file is not None and dark_file in seen_file:
+        raise GridFormatError(f"{manifest}: {dark_file} is both a PSF and the dark frame")
+
+    listed = seen_file | ({dark_file} if dark_file else set())
+    for name in sorted(listed):
+        if not (root / name).is_file():
+            raise GridFormatError(f"{root / name}: listed in {manifest.name} but missing")
+    unlisted = sorted(f.name for f in root.iterdir() if f.is_file()
+                      and f.suffix.lower() in IMAGE_SUFFIXES and f.name not in listed)
+    if unlisted:
+        shown = ", ".join(unlisted[:3]) + (f" and {len(unlisted) - 3} more"
+                                           if len(unlisted) > 3 else "")
+        raise GridFormatError(f"{manifest}: does not match the folder: image file(s) {shown} "
+                              "not listed")
+
+    channel_order = header.get("channel_order", "RGB")
+    if channel_order not in ("RGB", "BGR"):
+        raise GridFormatError(f"{manifest}: 'channel_order' must be 'RGB' or 'BGR'")
+
+    ref_shape: tuple[int, int, int] | None = None
+    ref_dtype: np.dtype | None = None
+    ref_file = ""
+    files = [p.file for p in positions] + ([dark_file] if dark_file else [])
+    iterator: Any = files
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(files, desc="checking grid", unit="img", leave=False)
+    for name in iterator:
+        path = root / name
+        if check_pixels:
+            try:
+                image = read_image(path, channel_order)
+            except InvalidInputError as exc:
+                raise GridFormatError(str(exc)) from None
+            shape, dtype = image.shape, image.dtype
+        else:
+            shape, dtype = _peek(path, channel_order)
+        if ref_shape is None:
+            ref_shape, ref_dtype, ref_file = shape, dtype, name  # type: ignore[assignment]
+        elif shape != ref_shape or dtype != ref_dtype:
+            what = "shape" if shape != ref_shape else "pixel type"
+            raise GridFormatError(
+                f"{path}: {what} {_describe(shape, dtype)} differs from {ref_file} "
+                f"({_describe(ref_shape, ref_dtype)})")
+        if check_pixels and name != dark_file:
+            _check_pixels(path, image)
+        if check_pixels and name == dark_file and np.issubdtype(dtype, np.floating) \
+                and not np.all(np.isfinite(image)):
+            raise GridFormatError(f"{path}: dark frame contains NaN/Inf values")
+    assert ref_shape is not None and ref_dtype is not None
+
+    channels = ("L",) if ref_shape[0] == 1 else ("R", "G", "B")
+    bit_depth = header.get("bit_depth")
+    if bit_depth is not None and (not isinstance(bit_depth, int) or not 1 <= bit_depth <= 32):
+        raise GridFormatError(f"{manifest}: 'bit_depth' must be an integer in 1..32")
+    black_level = header.get("black_level")
+    if black_level is not None and not isinstance(black_level, (int, float)):
+        raise GridFormatError(f"{manifest}: 'black_level' must be a number")
+    pitch = header.get("pixel_pitch_um")
+    if pitch is not None:
+        pitch = parse_positive(pitch, str(manifest), "pixel_pitch_um")
+    known = {"format", "version", "grid_shape", "channel_order", "bit_depth", "black_level",
+             "dark_frame", "pixel_pitch_um", "center"}
+    metadata = {k: v for k, v in header.items() if k not in known}
+    metadata["_manifest"] = manifest.name
+    return PsfGrid(
+        root=root,
+        positions=tuple(positions),
+        grid_shape=(n_rows, n_cols),
+        image_shape=ref_shape,
+        dtype=ref_dtype,
+        channels=channels,
+        channel_order=channel_order,
+        dark_file=dark_file,
+        black_level=None if black_level is None else float(black_level),
+        bit_depth=bit_depth,
+        pixel_pitch_um=pitch,
+        center_index=locate_center(positions, (n_rows, n_cols), header, manifest),
+        metadata=metadata,
+    )
+
+
+def _peek(path: Path, channel_order: str) -> tuple[tuple[int, int, int], np.dtype]:
+    """Shape ``(C, H, W)`` and dtype of an image without decoding all pixels where possible."""
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            array = np.load(path, mmap_mode="r", allow_pickle=False)
+            shape = array.shape
+            if len(shape) == 2:
+                return (1, *shape), array.dtype
+            if len(shape) == 3 and shape[2] in (1, 3):
+                return (shape[2], shape[0], shape[1]), array.dtype
+            raise InvalidInputError(f"{path}: expected (H, W) or (H, W, C) with C in (1, 3), "
+                                    f"got {shape}")
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
+    except Exception as exc:
+        raise GridFormatError(f"{path}: not a readable image ({exc})") from None
+    try:
+        image = read_image(path, channel_order)
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
+    return image.shape, image.dtype  # type: ignore[return-value]
