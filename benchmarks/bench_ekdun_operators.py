@@ -19,29 +19,16 @@ from collections.abc import Callable
 import torch
 
 from ekdun.physics import EigenKernelOperator, PreparedOperator, ShiftInvariantOperator
-from ekdun.physics import functional as Fn
 from ekdun.physics.synthetic import caustic_psf
+from psfkit.forward.fft import count_ffts
 
 
-def count_ffts(fn: Callable[[], object]) -> tuple[int, int]:
-    """``(forward, inverse)`` 2-D FFT calls (``Fn.rfft2``, ``Fn.irfft2``) made by ``fn``."""
-    counts = [0, 0]
-    rfft2, irfft2 = Fn.rfft2, Fn.irfft2
-
-    def counted_rfft2(*args, **kwargs):
-        counts[0] += 1
-        return rfft2(*args, **kwargs)
-
-    def counted_irfft2(*args, **kwargs):
-        counts[1] += 1
-        return irfft2(*args, **kwargs)
-
-    Fn.rfft2, Fn.irfft2 = counted_rfft2, counted_irfft2
-    try:
+def fft_calls(fn: Callable[[], object]) -> tuple[int, int]:
+    """``(forward, inverse)`` 2-D FFT calls of the forward model (:func:`psfkit.forward.count_ffts`,
+    the counter the tests use) made by ``fn``."""
+    with count_ffts() as count:
         fn()
-    finally:
-        Fn.rfft2, Fn.irfft2 = rfft2, irfft2
-    return counts[0], counts[1]
+    return count.as_tuple()
 
 
 def timed(fn: Callable[[], object], device: torch.device) -> float:
@@ -86,7 +73,7 @@ def main() -> None:
             return lambda: (op.A(x), op.A_adjoint(y))
 
         for name, op in bound.items():
-            fwd, adj = count_ffts(lambda op=op: op.A(x)), count_ffts(lambda op=op: op.A_adjoint(y))
+            fwd, adj = fft_calls(lambda op=op: op.A(x)), fft_calls(lambda op=op: op.A_adjoint(y))
             print(f"{name}: forward {fwd[0]} FFT + {fwd[1]} inverse FFT, adjoint {adj[0]} FFT "
                   f"+ {adj[1]} inverse FFT (each call transforms all {args.batch}x"
                   f"{args.channels} planes)")

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
+from psfkit.choices import CV_BASES
 from psfkit.eigen import (
     NormalEquations,
     WorkingStack,
@@ -33,9 +34,6 @@ from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
 from psfkit.preprocess import PreprocessOptions
 from psfkit.resample import bin_image, binning_factor
 from psfkit.weights import get_basis
-
-CV_BASES = ("si", "paper")                 # compared by default (with the fitted basis)
-CV_BASES_ALL = ("si", "paper", "paper+odd", "paper+cross", "paper+odd+cross", "poly:2")
 
 
 @dataclass(frozen=True)

@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from psfkit.errors import ModelFileError, PsfkitError
+from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.io.atomic import atomic_file
 from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
 KERNEL_VERSION = 1
-CONVENTIONS = ("sensor", "source")
 _DEFAULT_WHERE = "kernel model"   # how a model without a file names itself in errors
 
 
@@ -215,9 +215,8 @@ class KernelModel:
 
     @property
     def padded_shape(self) -> tuple[int, int]:
-        """Size of the grid on which the convolutions run."""
-        return (self.scene_padding * self.sensor_shape[0],
-                self.scene_padding * self.sensor_shape[1])
+        """Size of the grid on which the convolutions run (:func:`psfkit.forward.padded_shape`)."""
+        return padded_shape(self.sensor_shape, self.scene_padding)
 
     def weight_maps(self) -> np.ndarray:
         """``(K, H', W')`` float64 weights (of the sensor pixels or of the scene pixels,

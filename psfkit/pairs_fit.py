@@ -1,8 +1,9 @@
 r"""Forward models fitted to (scene, measurement) pairs (``psfkit fit-pairs``, ``eval-model``).
 
 For users without a point-source grid: the kernels of a shift-invariant or eigen-kernel model
-``y = A_K x`` (the operators of :mod:`ekdun.physics`, so the fitted model is exactly the one
-ekdun trains with) are estimated from pairs by regularised least squares,
+``y = A_K x`` (the forward model of :mod:`psfkit.forward`, which ekdun's operators wrap, so
+the fitted model is exactly the one ekdun trains with) are estimated from pairs by regularised
+least squares (in the kernel-space form :class:`~psfkit.forward.kernel_space.KernelSpaceOperator`),
 
 .. math::
 
@@ -31,172 +32,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ekdun.physics import functional as Fn
-from psfkit.errors import ConfigurationError, InvalidInputError
-from psfkit.kernelfile import CONVENTIONS, KernelModel
+from psfkit.errors import InvalidInputError
+from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zero_workspace
+from psfkit.forward.geometry import padded_shape
+from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.kernelfile import KernelModel
+from psfkit.pairs_options import PairFitOptions
 from psfkit.resample import bin_mean
 from psfkit.weights import get_basis
-
-
-@dataclass(frozen=True)
-class PairFitOptions:
-    """Options of :func:`fit_pairs`.
-
-    Attributes
-    ----------
-    basis : str
-        ``"si"`` (one shift-invariant PSF) or an eigen-kernel basis (``"paper"``, ...).
-    convention : {"sensor", "source"}
-        Where the weights of an eigen-kernel model live.
-    tikhonov : float
-        ``λ`` relative to the mean scene power.
-    difference : float
-        ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
-    iterations : int, optional
-        Conjugate-gradient iterations of the final solve (scales fixed); default 30 for a
-        shift-invariant model (better conditioned: more iterations change nothing measurable
-        on DLMD) and 60 for eigen-kernel models.
-    scale_iterations : int
-        Conjugate-gradient iterations of each earlier round that re-estimates the scales.
-    tolerance : float
-        Stop when the relative residual of the normal equations falls below this.
-    fit_scale : bool
-        Estimate one scale per pair (per-image normalised ground truth).
-    rounds : int
-        Kernel solves in all when scales are fitted (``rounds − 1`` scale updates).
-    scene_padding : int
-        Convolution grid as a multiple of the sensor size.
-    seed_with_si : bool
-        Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
-        scales): the CG then only has to find the corrections. From zero kernels, 60
-        iterations leave a full-resolution DLMD fit under-converged and worse than the PSF.
-    """
-
-    basis: str = "si"
-    convention: str = "sensor"
-    tikhonov: float = 1e-2
-    difference: float = 1.0
-    iterations: int | None = None
-    scale_iterations: int = 20
-    tolerance: float = 1e-4
-    fit_scale: bool = True
-    rounds: int = 3
-    scene_padding: int = 2
-    seed_with_si: bool = True
-
-    @property
-    def final_iterations(self) -> int:
-        if self.iterations is not None:
-            return self.iterations
-        return 30 if self.basis == "si" else 60
-
-    def __post_init__(self) -> None:
-        get_basis(self.basis)
-        if self.convention not in CONVENTIONS:
-            raise ConfigurationError(f"convention must be one of {CONVENTIONS}")
-        if self.tikhonov < 0 or self.difference < 0:
-            raise ConfigurationError("tikhonov and difference must be >= 0")
-        if min(self.final_iterations, self.scale_iterations, self.rounds) < 1 \
-                or self.scene_padding < 2:
-            raise ConfigurationError("iterations and rounds must be >= 1, scene_padding >= 2")
-
-
-def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
-    """Adjoint of :func:`ekdun.physics.functional.embed_kernel`: the centred kernel window of a
-    ``(..., PH, PW)`` array whose origin is at index ``(0, 0)``."""
-    hk, wk = kernel_shape
-    rolled = torch.roll(full, shifts=(hk // 2, wk // 2), dims=(-2, -1))
-    return rolled[..., :hk, :wk]
-
-
-def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[int, int],
-                            scene_padding: int = 2) -> tuple[int, int]:
-    """Smallest FFT-friendly grid on which circular convolution gives exactly the model's
-    ``crop(K * pad(x))``.
-
-    Scene and crop share the sensor-sized window, so the offsets that reach the crop lie in
-    ``(−H', H')``; with the kernel's support ``[−Hk//2, Hk − Hk//2)`` none of them wraps onto
-    the support once the grid has ``H' + Hk//2`` rows (likewise columns). For full-size
-    kernels that is 1.5× the sensor instead of the model's ``P·H'`` (2×): 0.56× the FFT work.
-    """
-    from scipy.fft import next_fast_len
-
-    full = Fn.padded_shape(sensor_shape, scene_padding)
-    return tuple(min(f, next_fast_len(s + k // 2, real=True))            # type: ignore[return-value]
-                 for s, k, f in zip(sensor_shape, kernel_shape, full, strict=True))
-
-
-class KernelSpaceOperator:
-    """``B: K ↦ (A_K x_i)_i`` for fixed scenes, and its exact adjoint, on the padded grid.
-
-    Parameters
-    ----------
-    scenes : Tensor
-        ``(N, C, H', W')``.
-    basis, convention :
-        The model.
-    kernel_shape : (int, int)
-        ``(Hk, Wk)``, at most the sensor size.
-    scene_padding : int
-    """
-
-    def __init__(self, scenes: Tensor, basis: str, convention: str,
-                 kernel_shape: tuple[int, int], scene_padding: int = 2) -> None:
-        _n, c, h, w = scenes.shape
-        self.sensor = (h, w)
-        self.grid = linear_convolution_grid((h, w), kernel_shape, scene_padding)
-        self.kernel_shape = kernel_shape
-        self.convention = convention
-        wb = get_basis(basis)
-        self.n_kernels = wb.n_kernels
-        self.weights = None if basis == "si" else torch.as_tensor(
-            wb.maps((h, w)), dtype=scenes.dtype, device=scenes.device)
-        self.channels = c
-        if self.weights is None or convention == "sensor":
-            # (N, 1, C, ...) spectra of the scenes: one per pair
-            self.scene_spectra = Fn.rfft2(Fn.pad(scenes, self.grid))[:, None]
-        else:
-            # source side: spectra of every weighted scene (N, K, C, ...)
-            weighted = scenes[:, None] * self.weights[None, :, None]
-            self.scene_spectra = Fn.rfft2(Fn.pad(weighted, self.grid))
-        self.power = (self.scene_spectra.abs() ** 2).sum(dim=(0, 1))       # (C, PH, PW//2+1)
-
-    def forward(self, kernels: Tensor) -> Tensor:
-        """``(K, C, Hk, Wk) → (N, C, H', W')``."""
-        spectra = Fn.kernel_spectra(kernels, self.grid)                   # (K, C, ...)
-        if self.weights is None:
-            return Fn.crop(Fn.irfft2(self.scene_spectra[:, 0] * spectra[0], self.grid),
-                           self.sensor)
-        if self.convention == "sensor":
-            out = None
-            for k in range(self.n_kernels):
-                image = Fn.crop(Fn.irfft2(self.scene_spectra[:, 0] * spectra[k], self.grid),
-                                self.sensor) * self.weights[k]
-                out = image if out is None else out + image
-            return out
-        total = (self.scene_spectra * spectra[None]).sum(dim=1)
-        return Fn.crop(Fn.irfft2(total, self.grid), self.sensor)
-
-    def adjoint(self, residuals: Tensor) -> Tensor:
-        """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each residual with its scene."""
-        if self.weights is not None and self.convention == "sensor":
-            spectra = []
-            for k in range(self.n_kernels):
-                r_hat = Fn.rfft2(Fn.pad(residuals * self.weights[k], self.grid))
-                spectra.append((r_hat * self.scene_spectra[:, 0].conj()).sum(dim=0))
-            spectrum = torch.stack(spectra)
-        else:
-            r_hat = Fn.rfft2(Fn.pad(residuals, self.grid))[:, None]            # (N, 1, C, ...)
-            spectrum = (r_hat * self.scene_spectra.conj()).sum(dim=0)          # (K or 1, C, ...)
-        return extract_kernel(Fn.irfft2(spectrum, self.grid), self.kernel_shape)
-
-    def precondition(self, kernels: Tensor, regulariser: float) -> Tensor:
-        """Approximate inverse of the normal operator: divide by the scene power per
-        frequency (the circulant part of ``BᵀB``)."""
-        spectra = Fn.kernel_spectra(kernels, self.grid)
-        mean_weight = 1.0 if self.weights is None else float(self.weights.pow(2).mean())
-        filtered = spectra / (self.power * mean_weight + regulariser)
-        return extract_kernel(Fn.irfft2(filtered, self.grid), self.kernel_shape)
 
 
 def _difference_prior(kernels: Tensor) -> Tensor:
@@ -375,8 +218,6 @@ def _conjugate_gradients(apply: Any, rhs: Tensor, start: Tensor, precondition: A
 def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32
             ) -> np.ndarray:
     """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``."""
-    from ekdun.physics.operators import EigenKernelOperator
-
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
         raise InvalidInputError(f"scenes are {scenes.shape[-2]}x{scenes.shape[-1]} but the "
                                 f"model's sensor is {model.sensor_shape[0]}x"
@@ -384,9 +225,13 @@ def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.f
     if scenes.shape[1] != len(model.channels):
         raise InvalidInputError(f"scenes have {scenes.shape[1]} channel(s), the model "
                                 f"{len(model.channels)}")
-    op = EigenKernelOperator.from_kernel_model(model, dtype=dtype)
+    grid = padded_shape(tuple(model.sensor_shape), model.scene_padding)
     with torch.no_grad():
-        return op.A(torch.as_tensor(scenes, dtype=dtype)).numpy()
+        x = torch.as_tensor(scenes, dtype=dtype)
+        spectra = kernel_spectra(torch.as_tensor(model.kernels, dtype=dtype), grid)
+        weights = torch.as_tensor(model.weight_maps(), dtype=dtype)
+        return eigen_kernel_forward(x, spectra, weights, grid, model.convention,
+                                    zero_workspace(x, grid)).numpy()
 
 
 def relative_errors(prediction: np.ndarray, measurements: np.ndarray) -> dict[str, np.ndarray]:

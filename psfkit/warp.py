@@ -41,9 +41,8 @@ import scipy.fft as sfft
 from scipy import optimize
 from scipy.signal.windows import tukey
 
+from psfkit.choices import FLOW_METHODS
 from psfkit.errors import ConfigurationError, InvalidInputError
-
-FLOW_METHODS = ("dis", "farneback", "ilk", "tvl1")
 
 
 @dataclass(frozen=True)

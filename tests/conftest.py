@@ -16,6 +16,17 @@ REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
                               Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+@pytest.fixture
+def fft_counter():
+    """Counts of the forward model's FFT calls during the test (:func:`psfkit.forward.count_ffts`,
+    the counter ``benchmarks/bench_ekdun_operators.py`` uses): ``fft_counter.take()`` gives
+    ``(forward, inverse)`` since the last take (each call transforms all B×C planes)."""
+    from psfkit.forward.fft import count_ffts
+
+    with count_ffts() as count:
+        yield count
+
+
 @pytest.fixture(scope="session")
 def small_config() -> BenchConfig:
     """The default camera binned 8×: 135 × 180 pixels of 27.6 µm."""

@@ -14,7 +14,8 @@ constant beyond the outermost nodes). Summing over scene points:
 or ``y = Σ_n w_n ⊙ crop(K_n * pad(x))`` (``"sensor"``: the weights act on the sensor pixels).
 Each term is one FFT convolution, so the cost is ``N·M`` convolutions per image (81 for a
 9 × 9 grid) — a far richer model than the 3-kernel eigen-kernel model, which is why the
-virtual bench uses it to simulate measurements.
+virtual bench uses it to simulate measurements. The convolutions are those of the one forward
+model, :func:`psfkit.forward.convolution.eigen_kernel_forward`, with ``N·M`` kernels.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ import torch
 from torch import Tensor
 
 from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
-from ekdun.physics import functional as Fn
+from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
+from psfkit.forward.geometry import CONVENTIONS, padded_shape
 
 
 def hat_weights(nodes: np.ndarray, size: int) -> np.ndarray:
@@ -75,7 +77,7 @@ class DenseShiftVariantModel:
         if k.ndim != 5 or k.shape[0] != len(node_rows) or k.shape[1] != len(node_cols):
             raise KernelShapeError(f"kernels must be (N, M, C, Hk, Wk) with N = {len(node_rows)}"
                                    f", M = {len(node_cols)}; got {tuple(k.shape)}")
-        if convention not in ("source", "sensor"):
+        if convention not in CONVENTIONS:
             raise ConfigurationError(f"convention must be 'source' or 'sensor', got "
                                      f"{convention!r}")
         h, w = int(sensor_shape[0]), int(sensor_shape[1])
@@ -84,7 +86,7 @@ class DenseShiftVariantModel:
                                    f"{h}x{w}")
         self.sensor_shape = (h, w)
         self.convention = convention
-        self.grid_shape = Fn.padded_shape((h, w), scene_padding)
+        self.grid_shape = padded_shape((h, w), scene_padding)
         n, m, c = k.shape[:3]
         self.channels = int(c)
         self.n_nodes = n * m
@@ -93,7 +95,7 @@ class DenseShiftVariantModel:
         self.weights = torch.as_tensor(
             np.einsum("ih,jw->ijhw", wy, wx).reshape(n * m, h, w), dtype=torch.float64)
         flat = k.reshape(n * m, c, k.shape[-2], k.shape[-1])
-        self.spectra = Fn.kernel_spectra(flat, self.grid_shape)     # (NM, C, PH, PW//2+1)
+        self.spectra = kernel_spectra(flat, self.grid_shape)     # (NM, C, PH, PW//2+1)
 
     def __call__(self, x: Tensor | np.ndarray) -> Tensor:
         """Forward model for scenes ``(B, C, H', W')`` (or one ``(C, H', W')``), float64."""
@@ -106,6 +108,6 @@ class DenseShiftVariantModel:
                 t.shape[1] != self.channels:
             raise TensorShapeError(f"scene must be (B, {self.channels}, {self.sensor_shape[0]},"
                                    f" {self.sensor_shape[1]}), got {tuple(t.shape)}")
-        out = Fn.eigen_kernel_forward(t, self.spectra, self.weights, self.grid_shape,
-                                      self.convention)
+        out = eigen_kernel_forward(t, self.spectra, self.weights, self.grid_shape,
+                                   self.convention)
         return out[0] if single else out

@@ -1,7 +1,8 @@
 """Physics layer of ekdun: lensless forward operators with exact adjoints.
 
-:mod:`ekdun.physics.functional` holds the pure FFT kernels (pad, crop, kernel embedding,
-spectra, convolution and correlation); :mod:`ekdun.physics.operators` the operator classes.
+The forward model itself (pad, crop, kernel embedding and spectra, FFT convolution and
+correlation, Eq. 7 in both conventions) lives in :mod:`psfkit.forward`;
+:mod:`ekdun.physics.operators` holds the :class:`torch.nn.Module` operator classes wrapping it.
 """
 
 from ekdun.physics.operators import (

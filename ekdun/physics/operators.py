@@ -1,29 +1,22 @@
 r"""Forward operators of the lensless camera with exact adjoints (``A`` and ``A_adjoint``).
 
-``A`` maps a scene ``(B, C, H', W')`` to a measurement of the same size, ``A_adjoint`` back; both
-are linear, run on the padded grid of :mod:`ekdun.physics.functional` with real FFTs, and are
-exact adjoints (``<A x, y> = <x, Aᵀ y>`` to rounding).
+Thin :class:`torch.nn.Module` wrappers over the one forward model, :mod:`psfkit.forward` (as
+deepinv's ``SpaceVaryingBlur`` wraps ``product_convolution2d``): the modules hold the kernels,
+weight maps and cached kernel spectra, check their inputs, and call
+:func:`~psfkit.forward.convolution.eigen_kernel_forward` /
+:func:`~psfkit.forward.convolution.eigen_kernel_adjoint`. ``A`` maps a scene ``(B, C, H', W')``
+to a measurement of the same size, ``A_adjoint`` back (``<A x, y> = <x, Aᵀ y>`` to rounding).
 
-Operators
----------
-:class:`ShiftInvariantOperator`
-    ``y = crop(K * pad(x))``: one PSF ``(C, Hk, Wk)``.
-:class:`EigenKernelOperator`
-    Eq. 7, ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` (sensor side, default) or
-    ``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` (source side), kernels ``(K, C, Hk, Wk)`` and weight
-    maps ``(K, H', W')`` from :mod:`psfkit.weights` (any basis; the paper's ``base, v, h`` by
-    default).
-:class:`MultiPSFOperator`
-    ``N`` PSFs per colour acting channel-wise on ``N·C`` channels (UPDN's learned PSFs).
+:class:`ShiftInvariantOperator` is ``y = crop(K * pad(x))`` with one PSF ``(C, Hk, Wk)``;
+:class:`EigenKernelOperator` Eq. 7 with kernels ``(K, C, Hk, Wk)`` and weight maps
+``(K, H', W')`` from :mod:`psfkit.weights`, sensor side (default) or source side;
+:class:`MultiPSFOperator` ``N`` PSFs per colour acting channel-wise (UPDN's learned PSFs).
 
-Kernel spectra
---------------
-Every FFT of a kernel is taken by :meth:`FFTConvolutionOperator.spectra`. With fixed kernels
-the spectra are cached in a (non-persistent) buffer, recomputed after ``.to(device/dtype)`` and
-``load_state_dict``. With trainable kernels they are recomputed on each call of
-:meth:`~FFTConvolutionOperator.spectra`, so a network calls it **once per forward pass** and
-binds the result with :meth:`~FFTConvolutionOperator.prepare`; the returned
-:class:`PreparedOperator` applies ``A``/``Aᵀ`` with no kernel FFT at all::
+Kernel spectra are taken by :meth:`FFTConvolutionOperator.spectra`: cached for fixed kernels
+(recomputed after ``.to(device/dtype)`` and ``load_state_dict``), recomputed on each call for
+trainable ones, so a network calls it **once per forward pass** and binds the result with
+:meth:`~FFTConvolutionOperator.prepare`; the :class:`PreparedOperator` then applies ``A``/``Aᵀ``
+with no kernel FFT at all::
 
     op = physics.prepare()          # kernel FFTs here, once
     for i in range(iterations):
@@ -41,35 +34,18 @@ import torch
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
-from ekdun.physics import functional as Fn
+from psfkit.forward.convolution import kernel_spectra
+from psfkit.forward.geometry import CONVENTIONS, padded_shape
+from psfkit.forward.operator import SpectralOperator
 from psfkit.kernelfile import KernelModel, check_kernels
 from psfkit.weights import get_basis
 
-_REAL_DTYPE = {torch.complex64: torch.float32, torch.complex128: torch.float64}
 
+class PreparedOperator(SpectralOperator):
+    """An eigen-kernel operator bound to precomputed kernel spectra, with input checks.
 
-class PreparedOperator:
-    """An eigen-kernel operator bound to precomputed kernel spectra.
-
-    Cheap to build (no copies), so unrolled networks build one per forward pass, or several
-    sharing spectra (EK-DUN's base-kernel model uses the first kernel's spectrum of its
-    eigen-kernel model).
-
-    Parameters
-    ----------
-    spectra : Tensor
-        ``(K, C, PH, PW//2 + 1)`` complex kernel spectra.
-    weights : Tensor or None
-        ``(K, H', W')`` weight maps (real, same precision as ``spectra``), or ``None`` for one
-        kernel with weight 1.
-    sensor_shape : (int, int)
-        ``(H', W')``.
-    grid_shape : (int, int)
-        ``(PH, PW)``, the padded grid of the spectra.
-    convention : {"sensor", "source"}
-        Where the weights act.
-    conj_spectra : Tensor, optional
-        ``spectra.conj()`` materialised (taken lazily, once, when not given).
+    :class:`psfkit.forward.operator.SpectralOperator` (same parameters) whose ``A`` and
+    ``A_adjoint`` first check their input (:meth:`check`).
     """
 
     def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
@@ -77,28 +53,7 @@ class PreparedOperator:
                  conj_spectra: Tensor | None = None) -> None:
         if weights is None and spectra.shape[0] != 1:
             raise KernelShapeError(f"{spectra.shape[0]} kernels need weight maps")
-        self.spectra = spectra
-        self._conj_spectra = conj_spectra
-        self.weights = weights
-        self.sensor_shape = (int(sensor_shape[0]), int(sensor_shape[1]))
-        self.grid_shape = (int(grid_shape[0]), int(grid_shape[1]))
-        self.convention = convention
-        self.channels = int(spectra.shape[1])
-        self.dtype = _REAL_DTYPE[spectra.dtype]
-        self._workspace: Tensor | None = None
-
-    @property
-    def n_kernels(self) -> int:
-        """Number of kernels ``K`` (1 for the shift-invariant model)."""
-        return int(self.spectra.shape[0])
-
-    @property
-    def conj_spectra(self) -> Tensor:
-        """Conjugate spectra for the adjoint, materialised once (a lazy ``conj()`` view would
-        cost a copy in every product)."""
-        if self._conj_spectra is None:
-            self._conj_spectra = self.spectra.conj().resolve_conj()
-        return self._conj_spectra
+        super().__init__(spectra, weights, sensor_shape, grid_shape, convention, conj_spectra)
 
     def check(self, t: Tensor, what: str) -> None:
         """Raise :class:`~ekdun.errors.TensorShapeError` unless ``t`` fits this operator."""
@@ -115,32 +70,15 @@ class PreparedOperator:
             raise TensorShapeError(f"{what} is {t.dtype} but the operator is {self.dtype} "
                                    "(convert the operator with .to(dtype) or the input)")
 
-    def workspace(self, like: Tensor) -> Tensor:
-        """Zero-padding workspace for inputs shaped like ``like``, kept across calls (it stays
-        zero outside the corner that each call overwrites; only used outside autograd)."""
-        ws = self._workspace
-        if (ws is None or ws.shape[:-2] != like.shape[:-2] or ws.dtype != like.dtype
-                or ws.device != like.device):
-            ws = self._workspace = Fn.zero_workspace(like, self.grid_shape)
-        return ws
-
     def A(self, x: Tensor) -> Tensor:
         """Forward model ``y = A x``, ``(B, C, H', W') → (B, C, H', W')``."""
         self.check(x, "scene")
-        return Fn.eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
-                                       self.convention, self._workspace_for(x))
+        return self.forward(x)
 
     def A_adjoint(self, y: Tensor) -> Tensor:
         """Exact adjoint ``x = Aᵀ y``, ``(B, C, H', W') → (B, C, H', W')``."""
         self.check(y, "measurement")
-        return Fn.eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
-                                       self.convention, self._workspace_for(y))
-
-    def _workspace_for(self, t: Tensor) -> Tensor | None:
-        # Autograd needs fresh padded inputs; without it, one zero-padded array is reused.
-        if torch.is_grad_enabled() and (t.requires_grad or self.spectra.requires_grad):
-            return None
-        return self.workspace(t)
+        return self.adjoint(y)
 
     __call__ = A
 
@@ -150,6 +88,15 @@ def _as_tensor(array: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
         return array.detach().to(dtype=dtype if dtype is not None else array.dtype)
     return torch.as_tensor(np.asarray(array), dtype=dtype if dtype is not None
                            else torch.float32)
+
+
+def _psf_tensor(psf: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
+    """A measured PSF ``(C, H, W)`` or ``(H, W)`` (mono) as a ``(C, H, W)`` tensor."""
+    t = _as_tensor(psf, dtype)
+    t = t[None] if t.ndim == 2 else t
+    if t.ndim != 3:
+        raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(t.shape)}")
+    return t
 
 
 class FFTConvolutionOperator(nn.Module):
@@ -180,7 +127,7 @@ class FFTConvolutionOperator(nn.Module):
         if not isinstance(scene_padding, int) or scene_padding < 2:
             raise ConfigurationError(f"scene_padding must be an integer >= 2, got "
                                      f"{scene_padding!r}")
-        if convention not in Fn.CONVENTIONS:
+        if convention not in CONVENTIONS:
             raise ConfigurationError(f"convention must be 'sensor' or 'source', got "
                                      f"{convention!r}")
         check_kernels(kernels, sensor, error=KernelShapeError)
@@ -194,7 +141,7 @@ class FFTConvolutionOperator(nn.Module):
             raise KernelShapeError(f"{kernels.shape[0]} kernels need weight maps")
         self.sensor_shape = sensor
         self.scene_padding = scene_padding
-        self.grid_shape = Fn.padded_shape(sensor, scene_padding)
+        self.grid_shape = padded_shape(sensor, scene_padding)
         self.convention = convention
         kernels = kernels.detach().clone()
         if trainable:
@@ -229,7 +176,7 @@ class FFTConvolutionOperator(nn.Module):
             self._spectra_cache = self._conj_spectra_cache = None
         else:
             with torch.no_grad():
-                self._spectra_cache = Fn.kernel_spectra(self.kernels, self.grid_shape)
+                self._spectra_cache = kernel_spectra(self.kernels, self.grid_shape)
                 self._conj_spectra_cache = self._spectra_cache.conj().resolve_conj()
 
     def _apply(self, fn: Any, recurse: bool = True) -> FFTConvolutionOperator:
@@ -250,7 +197,7 @@ class FFTConvolutionOperator(nn.Module):
         cache = self._spectra_cache
         if cache is not None and not self.kernels.requires_grad:
             return cache[:n]
-        return Fn.kernel_spectra(self.kernels[:n], self.grid_shape)
+        return kernel_spectra(self.kernels[:n], self.grid_shape)
 
     def _cached_conj(self, first: int | None = None) -> Tensor | None:
         cache = self._conj_spectra_cache
@@ -330,10 +277,7 @@ class ShiftInvariantOperator(FFTConvolutionOperator):
                  scene_padding: int = 2, trainable: bool = False,
                  dtype: torch.dtype | None = None) -> ShiftInvariantOperator:
         """From a measured PSF array ``(C, H, W)`` or ``(H, W)`` (mono), origin at its centre."""
-        t = _as_tensor(psf, dtype)
-        if t.ndim == 2:
-            t = t[None]
-        return cls(t, sensor_shape, scene_padding, trainable)
+        return cls(_psf_tensor(psf, dtype), sensor_shape, scene_padding, trainable)
 
 
 class EigenKernelOperator(FFTConvolutionOperator):
@@ -407,11 +351,7 @@ class EigenKernelOperator(FFTConvolutionOperator):
                  scene_padding: int = 2, trainable: bool = False,
                  dtype: torch.dtype | None = None) -> EigenKernelOperator:
         """Every kernel a copy of one measured PSF ``(C, H, W)`` (equals the SI model)."""
-        t = _as_tensor(psf, dtype)
-        if t.ndim == 2:
-            t = t[None]
-        if t.ndim != 3:
-            raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(t.shape)}")
+        t = _psf_tensor(psf, dtype)
         n = get_basis(basis).n_kernels
         return cls.from_basis(t[None].repeat(n, 1, 1, 1), basis, sensor_shape,
                               convention=convention, scene_padding=scene_padding,
@@ -472,11 +412,7 @@ class MultiPSFOperator(FFTConvolutionOperator):
         """``copies`` identical copies of a measured PSF ``(C, H, W)``."""
         if copies < 1:
             raise ConfigurationError(f"copies must be >= 1, got {copies}")
-        t = _as_tensor(psf, dtype)
-        if t.ndim == 2:
-            t = t[None]
-        if t.ndim != 3:
-            raise KernelShapeError(f"a PSF must be (C, H, W), got shape {tuple(t.shape)}")
+        t = _psf_tensor(psf, dtype)
         return cls(t[None].repeat(copies, 1, 1, 1), sensor_shape, scene_padding, trainable)
 
     def tile(self, y: Tensor) -> Tensor:

@@ -9,9 +9,9 @@ For users without a trained network (the DiffuserCam tutorial's algorithm, Antip
 
 with ``v`` on the padded grid (``scene_padding × H'``), ``C`` the crop to the sensor and
 ``h * ·`` a circular FFT convolution (exactly ``y = crop(K * pad(x))`` of ``design.md`` for a
-scene inside the central block). Splitting ``x = h * v`` (data), ``u = ∇v`` (TV) and
-``w = v`` (non-negativity) makes every update closed-form: the ``x`` update is a per-pixel
-division, ``u`` a soft threshold, ``w`` a clip, and ``v`` one division in Fourier space.
+scene inside the central block). Every update is closed-form; they are the steps of
+:mod:`ekdun.models.tv_admm_steps`, shared with Le-ADMM-U (which learns ``μ`` and ``τ``
+per iteration), and every FFT goes through :mod:`psfkit.forward`.
 """
 
 from __future__ import annotations
@@ -21,15 +21,14 @@ import torch
 from torch import Tensor
 
 from ekdun.errors import TensorShapeError
-from ekdun.physics import functional as Fn
-
-
-def _grad(v: Tensor) -> tuple[Tensor, Tensor]:
-    return torch.roll(v, -1, -2) - v, torch.roll(v, -1, -1) - v
-
-
-def _grad_adjoint(gy: Tensor, gx: Tensor) -> Tensor:
-    return (torch.roll(gy, 1, -2) - gy) + (torch.roll(gx, 1, -1) - gx)
+from ekdun.models.tv_admm_steps import (
+    admm_tv_context,
+    admm_tv_initial_state,
+    admm_tv_iteration,
+    finite_difference_spectrum,
+)
+from psfkit.forward.convolution import crop, kernel_spectra
+from psfkit.forward.geometry import padded_shape
 
 
 def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iterations: int = 100,
@@ -82,45 +81,17 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
                                f"measurement {sensor[0]}x{sensor[1]}")
     if normalize_psf:
         h = h / h.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
-    grid = Fn.padded_shape(sensor, scene_padding)
+    grid = padded_shape(sensor, scene_padding)
     scale = float(y.abs().max().clamp_min(1e-12))
     y = y / scale
-    H = Fn.kernel_spectra(h, grid)                         # (C, PH, PW//2+1)
-    HtH = (H.abs() ** 2)
-    lipschitz = float(HtH.max())
-    mu1, mu2, mu3 = mu1 * lipschitz, mu2, mu3 * lipschitz
-    ky = torch.fft.fftfreq(grid[0], dtype=torch.float64)[:, None]
-    kx = torch.fft.rfftfreq(grid[1], dtype=torch.float64)[None, :]
-    lap = (2 - 2 * torch.cos(2 * np.pi * ky)) + (2 - 2 * torch.cos(2 * np.pi * kx))
-    denom = mu1 * HtH + mu2 * lap + mu3
-
-    def conv(v: Tensor) -> Tensor:
-        return Fn.irfft2(torch.fft.rfft2(v) * H, grid)
-
-    def conv_t(v: Tensor) -> Tensor:
-        return Fn.irfft2(torch.fft.rfft2(v) * H.conj(), grid)
-
-    cty = Fn.pad(y, grid)
-    mask = Fn.pad(torch.ones_like(y), grid)
-    v = torch.zeros((y.shape[0], *grid), dtype=torch.float64)
-    xi = torch.zeros_like(v)
-    rho = torch.zeros_like(v)
-    eta_y, eta_x = torch.zeros_like(v), torch.zeros_like(v)
-    hv = conv(v)
-    gy, gx = _grad(v)
+    H = kernel_spectra(h, grid)                         # (C, PH, PW//2+1)
+    lipschitz = float((H.abs() ** 2).max())
+    context = admm_tv_context(y, H, H.conj().resolve_conj(), grid)
+    tv_spectrum = finite_difference_spectrum(grid, torch.float64)
+    mu1, mu3 = mu1 * lipschitz, mu3 * lipschitz
+    state = admm_tv_initial_state(context)
     for _ in range(iterations):
-        uy = torch.sign(gy + eta_y / mu2) * (torch.abs(gy + eta_y / mu2) - tau / mu2).clamp_min(0)
-        ux = torch.sign(gx + eta_x / mu2) * (torch.abs(gx + eta_x / mu2) - tau / mu2).clamp_min(0)
-        x = (cty + mu1 * hv + xi) / (mask + mu1)
-        w = (v + rho / mu3).clamp_min(0)
-        rhs = (mu3 * w - rho) + _grad_adjoint(mu2 * uy - eta_y, mu2 * ux - eta_x) \
-            + conv_t(mu1 * x - xi)
-        v = Fn.irfft2(torch.fft.rfft2(rhs) / denom, grid)
-        hv = conv(v)
-        gy, gx = _grad(v)
-        xi = xi + mu1 * (hv - x)
-        eta_y = eta_y + mu2 * (gy - uy)
-        eta_x = eta_x + mu2 * (gx - ux)
-        rho = rho + mu3 * (v - w)
+        state = admm_tv_iteration(state, context, mu1, mu2, mu3, tau, tv_spectrum)
+    v = state["x"]
     out = v.clamp_min(0) * scale
-    return out if full_grid else Fn.crop(out, sensor).contiguous()
+    return out if full_grid else crop(out, sensor).contiguous()

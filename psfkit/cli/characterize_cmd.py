@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psfkit.characterize import (
-    RELIABLE_OVERLAP,
-    CharacterizeOptions,
-    GridCharacterization,
-    characterize_grid,
-)
+from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
 from psfkit.io import read_grid
-from psfkit.report import check_numbers_path, warnings_for, write_numbers, write_report
-from psfkit.warp import FLOW_METHODS
+
+# The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
+# not when the parser is built (``psfkit --help`` stays fast).
+if TYPE_CHECKING:
+    from psfkit.characterize import CharacterizeOptions, GridCharacterization
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -29,6 +28,8 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
+    from psfkit.characterize import CharacterizeOptions
+
     return CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
                                upsample=args.upsample,
                                flow_method=getattr(args, "method", "dis"),
@@ -37,6 +38,8 @@ def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOp
 
 
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
+    from psfkit.characterize import characterize_grid
+
     grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
     return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
                              workers=args.workers)
@@ -46,6 +49,8 @@ def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
                            ) -> GridCharacterization:
     """:func:`_run`, then the numbers to ``--out`` (JSON/CSV) when given; a bad output name is
     refused before the work."""
+    from psfkit.report import check_numbers_path, write_numbers
+
     if args.out:
         check_numbers_path(args.out)
     result = _run(args, steps)
@@ -61,6 +66,8 @@ def _grid_print(values: np.ndarray, fmt: str) -> None:
 
 
 def _print_warnings(result: GridCharacterization) -> None:
+    from psfkit.report import warnings_for
+
     for message in warnings_for(result):
         print(f"warning: {message}")
 
@@ -145,6 +152,8 @@ def run_mae(args: argparse.Namespace) -> int:
 
 
 def run_warp(args: argparse.Namespace) -> int:
+    from psfkit.characterize import RELIABLE_OVERLAP
+
     result = _run_and_write_numbers(args, ("register", "gain", "warp"))
     print("residual displacement rms (px) after the affine part:")
     _grid_print(result.warp_table("residual_rms"), "6.3f")
@@ -170,6 +179,8 @@ def _check_report_dir(out: str, overwrite: bool) -> None:
 
 
 def run_report(args: argparse.Namespace) -> int:
+    from psfkit.report import write_report
+
     _check_report_dir(args.out, args.overwrite)
     result = _run(args, ("register", "gain", "mae", "warp"))
     out = write_report(result, args.out, overwrite=args.overwrite)

@@ -6,11 +6,10 @@ import argparse
 import math
 from pathlib import Path
 
+from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import preprocess_options
-from psfkit.compare import CompareOptions, check_learned, compare_kernels, load_grid
 from psfkit.errors import InvalidInputError
 from psfkit.kernelfile import load_kernels
-from psfkit.warp import FLOW_METHODS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -53,6 +52,8 @@ def _fmt(value: float | None) -> str:
 
 
 def run_compare(args: argparse.Namespace) -> int:
+    # imported here, not when the parser is built (scipy, OpenCV, matplotlib)
+    from psfkit.compare import CompareOptions, check_learned, compare_kernels, load_grid
     from psfkit.compare_report import write_comparison
 
     out = Path(args.out)

@@ -5,26 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from psfkit.choices import CV_BASES, CV_BASES_ALL
 from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
-from psfkit.figures import (
-    figure_eigen_diagnostics,
-    figure_kernels,
-    figure_weight_maps,
-    save_figure,
-)
-from psfkit.grid_fit import (
-    CV_BASES,
-    CV_BASES_ALL,
-    EigenFitOptions,
-    GridEigenResult,
-    fit_eigen_grid,
-)
 from psfkit.io import atomic_directory, read_grid
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
 from psfkit.weights import BASIS_NAMES
+
+# The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
+# not when the parser is built (``psfkit --help`` stays fast).
+if TYPE_CHECKING:
+    from psfkit.grid_fit import EigenFitOptions, GridEigenResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -57,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
+    from psfkit.grid_fit import EigenFitOptions
+
     choice = args.cv_bases.strip().lower()
     cv = () if choice == "none" else CV_BASES_ALL if choice == "all" else tuple(
         b.strip() for b in args.cv_bases.split(",") if b.strip())
@@ -69,6 +65,13 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
 def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = False) -> None:
     """Fig. 7 (kernels, and zoomed), Fig. 3 (weight maps), diagnostics and ``fit.json`` of an
     eigen-kernel fit, written atomically into ``folder``."""
+    from psfkit.figures import (
+        figure_eigen_diagnostics,
+        figure_kernels,
+        figure_weight_maps,
+        save_figure,
+    )
+
     model = result.kernel_model()
     with atomic_directory(folder, overwrite=overwrite) as tmp:
         names = list(model.kernel_names)
@@ -83,6 +86,8 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
 
 
 def run_fit_eigen(args: argparse.Namespace) -> int:
+    from psfkit.grid_fit import fit_eigen_grid
+
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")

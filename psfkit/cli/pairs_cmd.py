@@ -14,14 +14,7 @@ from psfkit.errors import InvalidInputError
 from psfkit.io import atomic_file, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_fit import (
-    PairFitOptions,
-    downsample_pairs,
-    fit_pairs,
-    leave_one_out,
-    predict,
-    relative_errors,
-)
+from psfkit.pairs_options import PairFitOptions
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -89,6 +82,8 @@ def _write_text(path: str, text: str) -> None:
 
 
 def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
+    from psfkit.pairs_fit import downsample_pairs
+
     if factor < 1:
         raise InvalidInputError(f"--downsample must be >= 1, got {factor}")
     pairs = read_pairs(folder, check_pixels=False)   # load_all() checks every pair
@@ -98,6 +93,9 @@ def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
 
 
 def run_fit_pairs(args: argparse.Namespace) -> int:
+    # torch is imported here, by the commands that use it, not when the parser is built
+    from psfkit.pairs_fit import fit_pairs, leave_one_out
+
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
@@ -140,6 +138,8 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
 
 
 def run_eval_model(args: argparse.Namespace) -> int:
+    from psfkit.pairs_fit import predict, relative_errors
+
     model = load_kernels(args.model)
     factor = args.downsample if args.downsample is not None else int(
         model.provenance.get("downsample", 1) or 1)

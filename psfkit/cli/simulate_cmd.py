@@ -6,12 +6,17 @@ import argparse
 import dataclasses
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psfkit.bench import BenchConfig, read_ground_truth, simulate_grid
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import PsfGrid, read_grid
+
+# The virtual bench (scipy) is imported by the commands that run it, not when the parser is
+# built (``psfkit --help`` stays fast).
+if TYPE_CHECKING:
+    from psfkit.bench import BenchConfig
 
 
 def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
@@ -36,6 +41,8 @@ def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
 
 
 def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
+    from psfkit.bench import BenchConfig
+
     values: dict = {}
     if args.bench_config:
         path = Path(args.bench_config)
@@ -95,6 +102,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    from psfkit.bench import simulate_grid
+
     config = bench_config_from_args(args)
     out = simulate_grid(args.out, config, grid_shape=(args.rows, args.cols), extent=args.extent,
                         dark_frame=not args.no_dark, suffix=f".{args.format}",
@@ -104,6 +113,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    from psfkit.bench import read_ground_truth, simulate_grid
     from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
     from psfkit.report import write_report
 

@@ -114,3 +114,14 @@ def test_console_scripts_are_installed(script):
     result = subprocess.run([str(exe), "--version"], capture_output=True, text=True)
     assert result.returncode == 0
     assert result.stdout.startswith(f"{script} 0.")
+
+
+def test_building_the_parser_imports_neither_torch_nor_ekdun():
+    # psfkit --help and psfkit info must not pay for torch (seconds) nor reach into ekdun
+    # (psfkit never imports ekdun); the commands import their heavy modules when they run.
+    code = ("import sys; from psfkit.cli import main; from psfkit.cli.main import build_parser; "
+            "build_parser(); print(sorted({m.split('.')[0] for m in sys.modules} "
+            "& {'torch', 'ekdun', 'matplotlib', 'scipy', 'cv2'}))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == "[]"

@@ -21,10 +21,9 @@ from ekdun.models import (
     count_parameters,
     parse_schedule,
 )
-from ekdun.models.le_admm_u import finite_differences, finite_differences_adjoint
+from ekdun.models.tv_admm_steps import finite_differences, finite_differences_adjoint
 from ekdun.models.updn import interleave_copies
 from ekdun.physics import PreparedOperator, ShiftInvariantOperator
-from ekdun.physics import functional as Fn
 from ekdun.physics.synthetic import caustic_psf
 from psfkit.kernelfile import KernelModel, save_kernels
 
@@ -147,8 +146,9 @@ def test_schedules():
     ("last-k", [1] * 8 + [3] * 2, [1] * 9 + [3] * 2, (26, 25)),
     ("all", [3] * 10, [3] * 11, (1 + 3 + 10 * 4, 1 + 10 * 4)),
 ])
-def test_schedule_decides_which_model_each_iteration_calls(monkeypatch, psf, schedule,
-                                                           forward_log, adjoint_log, ffts):
+def test_schedule_decides_which_model_each_iteration_calls(monkeypatch, fft_counter, psf,
+                                                           schedule, forward_log, adjoint_log,
+                                                           ffts):
     model = build_model("ekdun", psf, "paper", schedule=schedule,
                         prior=UNetConfig(widths=(4,)))
     _, y = measurement(psf, batch=1)
@@ -163,26 +163,14 @@ def test_schedule_decides_which_model_each_iteration_calls(monkeypatch, psf, sch
         calls["At"].append(self.n_kernels)
         return adjoint(self, x)
 
-    counts = [0, 0]
-    rfft2, irfft2 = Fn.rfft2, Fn.irfft2
-
-    def counted_rfft2(*args, **kwargs):
-        counts[0] += 1
-        return rfft2(*args, **kwargs)
-
-    def counted_irfft2(*args, **kwargs):
-        counts[1] += 1
-        return irfft2(*args, **kwargs)
-
     monkeypatch.setattr(PreparedOperator, "A", logged_forward)
     monkeypatch.setattr(PreparedOperator, "A_adjoint", logged_adjoint)
-    monkeypatch.setattr(Fn, "rfft2", counted_rfft2)
-    monkeypatch.setattr(Fn, "irfft2", counted_irfft2)
+    fft_counter.take()
     model(y)
     assert calls["A"] == forward_log          # one A per iteration, in order
     assert calls["At"] == adjoint_log         # f⁰ = Aᵀy, then one Aᵀ per iteration
     # kernel spectra once per forward pass (one batched call), then 1+K / K+1 per A / Aᵀ
-    assert tuple(counts) == ffts
+    assert fft_counter.take() == ffts
 
 
 def test_initial_ekdun_is_gradient_descent_with_step_one_over_lipschitz(psf):

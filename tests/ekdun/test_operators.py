@@ -13,7 +13,7 @@ from ekdun.physics import (
     MultiPSFOperator,
     ShiftInvariantOperator,
 )
-from ekdun.physics import functional as Fn
+from psfkit import forward as Fn
 from psfkit.errors import InvalidInputError
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.weights import get_basis
@@ -183,31 +183,6 @@ def test_eigen_kernel_with_equal_kernels_equals_shift_invariant(convention):
     assert (ek.A(x) - si.A(x)).abs().max() > 1e-3
 
 
-class FFTCounter:
-    """Counts calls of the FFT entry points ``Fn.rfft2`` / ``Fn.irfft2`` (each call
-    transforms all B×C planes)."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        self.forward = self.inverse = 0
-        rfft2, irfft2 = Fn.rfft2, Fn.irfft2
-
-        def counted_rfft2(*args, **kwargs):
-            self.forward += 1
-            return rfft2(*args, **kwargs)
-
-        def counted_irfft2(*args, **kwargs):
-            self.inverse += 1
-            return irfft2(*args, **kwargs)
-
-        monkeypatch.setattr(Fn, "rfft2", counted_rfft2)
-        monkeypatch.setattr(Fn, "irfft2", counted_irfft2)
-
-    def take(self) -> tuple[int, int]:
-        counts = (self.forward, self.inverse)
-        self.forward = self.inverse = 0
-        return counts
-
-
 def test_cropped_inverse_fft_equals_full_inverse_then_crop():
     spectrum = torch.fft.rfft2(torch.rand(2, 3, 10, 13, dtype=torch.float64))
     full = torch.fft.irfft2(spectrum, s=(10, 13))
@@ -222,9 +197,10 @@ def test_cropped_inverse_fft_equals_full_inverse_then_crop():
     ("ek-sensor", "paper+odd", (1, 5), (5, 1)),
     ("multi", "si", (1, 1), (1, 1)),
 ])
-def test_fft_counts(monkeypatch, kind, basis, forward, adjoint):
+def test_fft_counts(fft_counter, kind, basis, forward, adjoint):
     op = make_operator(kind, (8, 10), 3, torch.float32, basis=basis, trainable=True)
-    counter = FFTCounter(monkeypatch)
+    counter = fft_counter
+    counter.take()
     prepared = op.prepare()   # all kernel FFTs in one batched call, once per forward pass
     assert counter.take() == (1, 0)
     x = torch.rand(2, op.channels, 8, 10)

@@ -30,9 +30,13 @@ circular convolution never wraps: the model is exactly the linear convolution
 
 Eigen-kernel models (Eq. 7 of the paper) sum ``K`` such convolutions with weight maps ``W_k``
 ``(K, H', W')``; see :func:`eigen_kernel_forward`. Every 2-D FFT goes through :func:`rfft2`
-and every inverse through :func:`irfft2` (wrappers of :mod:`torch.fft`), which keeps the FFT
-count of every operator easy to audit (the tests count calls of these two functions). Every
-function here is differentiable and works for float32 and float64 on any device.
+and every inverse through :func:`irfft2` (:mod:`psfkit.forward.fft`, wrappers of
+:mod:`torch.fft`), which keeps the FFT count of every operator easy to audit
+(:func:`~psfkit.forward.fft.count_ffts`). Every function here is differentiable and works for
+float32 and float64 on any device. ekdun's operator classes (:mod:`ekdun.physics.operators`) are
+thin :class:`torch.nn.Module` wrappers over :func:`eigen_kernel_forward` and
+:func:`eigen_kernel_adjoint`; the kernel-space form used to fit kernels from pairs is
+:mod:`psfkit.forward.kernel_space`.
 """
 
 from __future__ import annotations
@@ -41,18 +45,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-CONVENTIONS = ("sensor", "source")
-
-
-def padded_shape(sensor_shape: tuple[int, int], scene_padding: int = 2) -> tuple[int, int]:
-    """Size ``(P·H', P·W')`` of the grid on which the convolutions run."""
-    return (scene_padding * sensor_shape[0], scene_padding * sensor_shape[1])
-
-
-def centre_offset(sensor_shape: tuple[int, int],
-                  grid_shape: tuple[int, int]) -> tuple[int, int]:
-    """``(top, left)`` index of the sensor-sized block in the centre of ``grid_shape``."""
-    return ((grid_shape[0] - sensor_shape[0]) // 2, (grid_shape[1] - sensor_shape[1]) // 2)
+from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.geometry import centre_offset
 
 
 def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
@@ -92,32 +86,6 @@ crop_adjoint = pad
 pad_adjoint = crop
 
 
-def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
-    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken).
-
-    With ``grid_shape``, ``z`` is zero-padded at the end of each axis to that size first (inside
-    the FFT call: no explicit padded copy).
-    """
-    return torch.fft.rfft2(z) if grid_shape is None else torch.fft.rfft2(z, s=grid_shape)
-
-
-def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
-           crop_shape: tuple[int, int] | None = None) -> Tensor:
-    """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
-
-    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
-    With ``crop_shape`` only the top-left ``crop_shape`` block is returned, and only computed:
-    the complex inverse along the columns runs on the whole grid, but the real inverse along
-    the rows only on the rows kept (the same numbers as ``irfft2`` then slicing, for about
-    three quarters of the work).
-    """
-    if crop_shape is None:
-        return torch.fft.irfft2(spectrum, s=grid_shape)
-    columns = torch.fft.ifft(spectrum, dim=-2)
-    rows = torch.fft.irfft(columns[..., :crop_shape[0], :], n=grid_shape[1], dim=-1)
-    return rows[..., :crop_shape[1]]
-
-
 def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     """Place centred kernels on the padded grid with their origin at index ``(0, 0)``.
 
@@ -136,6 +104,14 @@ def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     hk, wk = kernels.shape[-2:]
     grown = F.pad(kernels, (0, grid_shape[1] - wk, 0, grid_shape[0] - hk))
     return torch.roll(grown, shifts=(-(hk // 2), -(wk // 2)), dims=(-2, -1))
+
+
+def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
+    """Adjoint of :func:`embed_kernel`: the centred ``(Hk, Wk)`` kernel window of a
+    ``(..., PH, PW)`` array whose origin is at index ``(0, 0)``, ``(..., Hk, Wk)``."""
+    hk, wk = kernel_shape
+    rolled = torch.roll(full, shifts=(hk // 2, wk // 2), dims=(-2, -1))
+    return rolled[..., :hk, :wk]
 
 
 def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
@@ -165,7 +141,7 @@ def _spectrum_of_corner(z: Tensor, grid_shape: tuple[int, int], workspace: Tenso
     return rfft2(workspace)
 
 
-def _records_graph(*tensors: Tensor) -> bool:
+def records_graph(*tensors: Tensor) -> bool:
     """Whether autograd records operations on ``tensors`` (else buffers may be reused)."""
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
@@ -181,7 +157,7 @@ def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tup
     products reuse one buffer (allocating large arrays costs more than multiplying them).
     """
     sensor = (x.shape[-2], x.shape[-1])
-    graph = _records_graph(x, spectra) or (weights is not None and weights.requires_grad)
+    graph = records_graph(x, spectra) or (weights is not None and weights.requires_grad)
     x_hat = _spectrum_of_corner(x, grid_shape, None if graph else workspace)
     n_kernels = spectra.shape[0]
     product: Tensor | None = None
@@ -214,7 +190,7 @@ def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tupl
     (padding and cropping as in :func:`_fan_out`).
     """
     h, w = y.shape[-2], y.shape[-1]
-    graph = _records_graph(y, spectra) or (weights is not None and weights.requires_grad)
+    graph = records_graph(y, spectra) or (weights is not None and weights.requires_grad)
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
         y_hat = _spectrum_of_corner(y, grid_shape, None if graph else workspace,
@@ -298,3 +274,4 @@ def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
 def zero_workspace(like: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     """A zero ``(..., PH, PW)`` workspace for inputs shaped like ``like`` ``(..., H', W')``."""
     return like.new_zeros((*like.shape[:-2], *grid_shape))
+

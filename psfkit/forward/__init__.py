@@ -1,0 +1,55 @@
+"""The forward model of the lensless camera, written once (``shared/design.md``).
+
+``y = crop(K * pad(x))`` on a padded grid, the eigen-kernel operator of Eq. 7 in both
+conventions with its exact adjoint, and its kernel-space form ``K ↦ A_K x`` used to fit kernels
+from (scene, measurement) pairs. Everything above it calls these functions: psfkit's
+``fit-pairs`` (:mod:`psfkit.pairs_fit`), ekdun's operator classes, the dense virtual-bench model,
+ADMM-TV and Le-ADMM-U.
+
+Modules
+-------
+:mod:`psfkit.forward.geometry`
+    ``CONVENTIONS``, :func:`padded_shape`, :func:`centre_offset` (no torch).
+:mod:`psfkit.forward.fft`
+    :func:`rfft2` / :func:`irfft2`, the only FFT entry points, and :func:`count_ffts`.
+:mod:`psfkit.forward.convolution`
+    ``pad``/``crop``, kernel embedding and spectra, :func:`eigen_kernel_forward` /
+    :func:`eigen_kernel_adjoint`.
+:mod:`psfkit.forward.operator`
+    :class:`SpectralOperator`: ``A``/``Aᵀ`` bound to precomputed kernel spectra (what ekdun's
+    operator modules hand to the unrolled networks).
+:mod:`psfkit.forward.kernel_space`
+    :class:`KernelSpaceOperator` (``B: K ↦ (A_K x_i)_i`` and ``Bᵀ``), the fit-pairs form.
+
+Importing this package loads only the geometry; the torch parts load on first use of one of
+their names (``psfkit --help`` and the kernel file stay free of torch).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from psfkit.forward.geometry import CONVENTIONS, centre_offset, padded_shape
+
+_LAZY = {
+    "FFTCount": "fft", "count_ffts": "fft", "rfft2": "fft", "irfft2": "fft",
+    "pad": "convolution", "crop": "convolution", "crop_adjoint": "convolution",
+    "pad_adjoint": "convolution", "embed_kernel": "convolution",
+    "extract_kernel": "convolution", "kernel_spectra": "convolution",
+    "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
+    "zero_workspace": "convolution", "PaddingWorkspace": "operator",
+    "SpectralOperator": "operator",
+    "records_graph": "convolution",
+    "KernelSpaceOperator": "kernel_space", "linear_convolution_grid": "kernel_space",
+}
+
+__all__ = ["CONVENTIONS", "centre_offset", "padded_shape", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    # PEP 562: import the torch modules only when one of their names is used.
+    if name in _LAZY:
+        module = importlib.import_module(f"psfkit.forward.{_LAZY[name]}")
+        return getattr(module, name)
+    raise AttributeError(f"module 'psfkit.forward' has no attribute {name!r}")

@@ -1,0 +1,117 @@
+r"""Kernel-space form of the forward model, for fitting kernels to (scene, measurement) pairs.
+
+For fixed scenes ``x_i`` the model ``y_i = A_K x_i`` (:mod:`psfkit.forward.convolution`, Eq. 7
+in either convention) is linear in the kernels ``K``: :class:`KernelSpaceOperator` applies
+``B: K ↦ (A_K x_i)_i`` and its exact adjoint ``Bᵀ`` (correlate each residual with its scene),
+with the scene spectra taken once, on the smallest grid on which the circular convolution is
+still exactly the model's (:func:`linear_convolution_grid`). :mod:`psfkit.pairs_fit` solves the
+normal equations with it; the FFTs go through :func:`~psfkit.forward.fft.rfft2` /
+:func:`~psfkit.forward.fft.irfft2` like every other user of the forward model.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from psfkit.forward.convolution import crop, extract_kernel, kernel_spectra, pad
+from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.geometry import padded_shape
+from psfkit.weights import get_basis
+
+
+def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[int, int],
+                            scene_padding: int = 2) -> tuple[int, int]:
+    """Smallest FFT-friendly grid on which circular convolution gives exactly the model's
+    ``crop(K * pad(x))``.
+
+    Scene and crop share the sensor-sized window, so the offsets that reach the crop lie in
+    ``(−H', H')``; with the kernel's support ``[−Hk//2, Hk − Hk//2)`` none of them wraps onto
+    the support once the grid has ``H' + Hk//2`` rows (likewise columns). For full-size
+    kernels that is 1.5× the sensor instead of the model's ``P·H'`` (2×): 0.56× the FFT work.
+    """
+    from scipy.fft import next_fast_len
+
+    full = padded_shape(sensor_shape, scene_padding)
+    return tuple(min(f, next_fast_len(s + k // 2, real=True))            # type: ignore[return-value]
+                 for s, k, f in zip(sensor_shape, kernel_shape, full, strict=True))
+
+
+class KernelSpaceOperator:
+    """``B: K ↦ (A_K x_i)_i`` for fixed scenes, and its exact adjoint, on the padded grid.
+
+    The same model as :func:`~psfkit.forward.convolution.eigen_kernel_forward` (checked to
+    rounding by ``tests/psfkit/test_pairs_fit.py``), arranged so that the scenes' spectra are
+    taken once and the kernels are the variable.
+
+    Parameters
+    ----------
+    scenes : Tensor
+        ``(N, C, H', W')``.
+    basis : str
+        Weight basis name (:mod:`psfkit.weights`; ``"si"`` for one kernel with weight 1).
+    convention : {"sensor", "source"}
+        Where the weight maps act.
+    kernel_shape : (int, int)
+        ``(Hk, Wk)``, at most the sensor size.
+    scene_padding : int
+        Padding factor ``P`` of the model (the grid used is at most ``P × sensor``).
+    """
+
+    def __init__(self, scenes: Tensor, basis: str, convention: str,
+                 kernel_shape: tuple[int, int], scene_padding: int = 2) -> None:
+        _n, c, h, w = scenes.shape
+        self.sensor = (h, w)
+        self.grid = linear_convolution_grid((h, w), kernel_shape, scene_padding)
+        self.kernel_shape = kernel_shape
+        self.convention = convention
+        wb = get_basis(basis)
+        self.n_kernels = wb.n_kernels
+        self.weights = None if basis == "si" else torch.as_tensor(
+            wb.maps((h, w)), dtype=scenes.dtype, device=scenes.device)
+        self.channels = c
+        if self.weights is None or convention == "sensor":
+            # (N, 1, C, ...) spectra of the scenes: one per pair
+            self.scene_spectra = rfft2(pad(scenes, self.grid))[:, None]
+        else:
+            # source side: spectra of every weighted scene (N, K, C, ...)
+            weighted = scenes[:, None] * self.weights[None, :, None]
+            self.scene_spectra = rfft2(pad(weighted, self.grid))
+        self.power = (self.scene_spectra.abs() ** 2).sum(dim=(0, 1))       # (C, PH, PW//2+1)
+
+    def forward(self, kernels: Tensor) -> Tensor:
+        """``(K, C, Hk, Wk) → (N, C, H', W')``."""
+        spectra = kernel_spectra(kernels, self.grid)                   # (K, C, ...)
+        if self.weights is None:
+            return crop(irfft2(self.scene_spectra[:, 0] * spectra[0], self.grid),
+                           self.sensor)
+        if self.convention == "sensor":
+            out = None
+            for k in range(self.n_kernels):
+                image = crop(irfft2(self.scene_spectra[:, 0] * spectra[k], self.grid),
+                                self.sensor) * self.weights[k]
+                out = image if out is None else out + image
+            return out
+        total = (self.scene_spectra * spectra[None]).sum(dim=1)
+        return crop(irfft2(total, self.grid), self.sensor)
+
+    def adjoint(self, residuals: Tensor) -> Tensor:
+        """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each residual with its scene."""
+        if self.weights is not None and self.convention == "sensor":
+            spectra = []
+            for k in range(self.n_kernels):
+                r_hat = rfft2(pad(residuals * self.weights[k], self.grid))
+                spectra.append((r_hat * self.scene_spectra[:, 0].conj()).sum(dim=0))
+            spectrum = torch.stack(spectra)
+        else:
+            r_hat = rfft2(pad(residuals, self.grid))[:, None]            # (N, 1, C, ...)
+            spectrum = (r_hat * self.scene_spectra.conj()).sum(dim=0)          # (K or 1, C, ...)
+        return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
+
+    def precondition(self, kernels: Tensor, regulariser: float) -> Tensor:
+        """Approximate inverse of the normal operator: divide by the scene power per
+        frequency (the circulant part of ``BᵀB``)."""
+        spectra = kernel_spectra(kernels, self.grid)
+        mean_weight = 1.0 if self.weights is None else float(self.weights.pow(2).mean())
+        filtered = spectra / (self.power * mean_weight + regulariser)
+        return extract_kernel(irfft2(filtered, self.grid), self.kernel_shape)
