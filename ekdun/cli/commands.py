@@ -114,6 +114,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder (NAME.npy + NAME.png)")
     p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--amp", choices=("off", "bf16", "fp16"), default="off",
+                   help="autocast precision of the network (fp16: CUDA only; the physics "
+                        "FFTs stay float32)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=run_reconstruct)
 
@@ -218,7 +221,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from ekdun.reconstruction import reconstruct_files
 
     written = reconstruct_files(args.checkpoint, args.measurements, args.out,
-                                args.channel_order, args.device, args.overwrite)
+                                args.channel_order, args.device, args.overwrite,
+                                args.amp)
     print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
     return 0
 

@@ -1,6 +1,7 @@
-"""Training speed options (issue 15): bf16 autocast matches float32, the physics stays float32
+"""Speed options (issue 15): bf16 autocast training matches float32, the physics stays float32
 under autocast, streamed and resident batches train identically, channels_last is the same
-network, and the loop reads the loss from the device only at log points."""
+network, the loop reads the loss from the device only at log points, and bf16 reconstruction
+is within a stated PSNR of float32."""
 
 from __future__ import annotations
 
@@ -141,3 +142,29 @@ def test_amp_choices_are_checked(tiny_data, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bf16" in err[0]
     assert not (run / "checkpoint.pt").exists()
+
+
+def test_bf16_reconstruction_is_within_a_stated_psnr_of_fp32(tiny_data, tmp_path, capsys):
+    # Measured on this trained tiny EK-DUN (8 pairs of 16x16): |PSNR(bf16) - PSNR(fp32)|
+    # = 0.0004 dB (14.0285 vs 14.0281 dB); the tolerance keeps a 20x margin, far below the
+    # ~1.5 dB that training adds (the issue's GPU target is 0.05 dB at paper size).
+    from ekdun.reconstruction import reconstruct_files
+
+    pairs, kernels = tiny_data
+    data = PairsDataset(pairs)
+    train(tmp_path / "run", "ekdun", kernels, data, "tiny", SMALL, _options(6, lr=1e-2))
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    scenes = torch.stack([data[i][0] for i in range(len(data))])
+    values = {}
+    for amp in ("off", "bf16"):
+        written = reconstruct_files(checkpoint, [pairs / "measurement"], tmp_path / amp,
+                                    amp=amp)
+        out = torch.stack([torch.from_numpy(np.load(f)).permute(2, 0, 1) for f in written])
+        assert out.dtype == torch.float32
+        values[amp] = float(psnr(out.clamp(0, 1), scenes).mean())
+    assert abs(values["bf16"] - values["off"]) < 0.01
+    assert ekdun_main(["reconstruct", str(checkpoint), str(pairs / "measurement"), "--out",
+                       str(tmp_path / "cli"), "--amp", "bf16"]) == 0
+    assert ekdun_main(["reconstruct", str(checkpoint), str(pairs / "measurement"), "--out",
+                       str(tmp_path / "fp16"), "--amp", "fp16", "--device", "cpu"]) == 2
+    assert not (tmp_path / "fp16").exists()
