@@ -86,9 +86,8 @@ class BareStep:
         self.optimizer = torch.optim.Adam(_param_groups(self.model, cfg.lr, cfg.kernel_lr_scale),
                                           lr=cfg.lr)
         self.scaler = torch.amp.GradScaler("cuda", enabled=amp == "fp16")
-        fmt = torch.channels_last if channels_last else torch.contiguous_format
-        self.x = data.x[:args.batch].to(device).contiguous(memory_format=fmt)
-        self.y = data.y[:args.batch].to(device).contiguous(memory_format=fmt)
+        self.x = data.x[:args.batch].to(device)
+        self.y = data.y[:args.batch].to(device)
         self.amp, self.device = amp, device
 
     def step(self) -> None:

@@ -10,8 +10,10 @@ Mixed precision (``amp``)
     prior outputs to float32), so every FFT runs on float32/complex64 data
     (``tests/ekdun/test_training_speed.py`` checks it).
 channels_last
-    The U-Net convolutions in ``torch.channels_last`` memory format (faster with cuDNN on
-    tensor cores; usually slower on CPU): default on CUDA only.
+    The U-Nets already run their activations channels-last (:mod:`ekdun.models.unet`); this
+    option also stores the convolution weights channels-last, so that no layout conversion of
+    the weights happens in each call (what cuDNN on tensor cores prefers): default on CUDA
+    only. Data batches stay contiguous: the physics FFTs want contiguous planes.
 compile
     ``torch.compile`` of the network; the first steps pay the compilation (reported as the
     warm-up time).

@@ -77,15 +77,14 @@ class BatchSource:
         Keep the dataset on the device; ``None``: when it fits (:func:`fits_on_device`).
     workers : int
         DataLoader worker processes of the streamed path.
-    channels_last : bool
-        Deliver batches in ``torch.channels_last`` memory format.
+
+    Batches are contiguous ``(b, C, H', W')``: the physics FFTs want contiguous planes (the
+    U-Nets switch to channels-last themselves).
     """
 
     def __init__(self, dataset: Dataset, batch_size: int, seed: int, ctx: D.DistContext,
-                 resident: bool | None = None, workers: int = 2,
-                 channels_last: bool = False) -> None:
+                 resident: bool | None = None, workers: int = 2) -> None:
         self.device = ctx.device
-        self.channels_last = channels_last
         n = len(dataset)  # type: ignore[arg-type]
         self.sampler = _EpochBatches(n, batch_size, seed, ctx)
         D.global_batches(n, batch_size, seed, 1)  # configuration errors before any loading
@@ -95,17 +94,13 @@ class BatchSource:
         self.loader: DataLoader | None = None
         if self.resident:
             items = [dataset[i] for i in range(n)]
-            self.scenes = self._format(torch.stack([it[0] for it in items]).to(ctx.device))
-            self.measurements = self._format(
-                torch.stack([it[1] for it in items]).to(ctx.device))
+            self.scenes = torch.stack([it[0] for it in items]).to(ctx.device)
+            self.measurements = torch.stack([it[1] for it in items]).to(ctx.device)
         else:
             cuda = ctx.device.type == "cuda"
             self.loader = DataLoader(dataset, batch_sampler=self.sampler,
                                      num_workers=workers, pin_memory=cuda,
                                      persistent_workers=workers > 0)
-
-    def _format(self, t: torch.Tensor) -> torch.Tensor:
-        return t.contiguous(memory_format=torch.channels_last) if self.channels_last else t
 
     def __len__(self) -> int:
         return len(self.sampler)
@@ -123,5 +118,4 @@ class BatchSource:
             return
         for x, y in self.loader:
             # Pinned memory + non_blocking: the copy overlaps the previous step's kernels.
-            yield (self._format(x.to(self.device, non_blocking=True)),
-                   self._format(y.to(self.device, non_blocking=True)))
+            yield x.to(self.device, non_blocking=True), y.to(self.device, non_blocking=True)

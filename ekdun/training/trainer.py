@@ -232,7 +232,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
     if options.compile:
         net = torch.compile(net)
     source = BatchSource(dataset, cfg.batch_size, options.seed, ctx, options.resident,
-                         options.workers, channels_last)
+                         options.workers)
     metadata["resident_dataset"] = source.resident
     started = time.perf_counter()
     for epoch in range(start_epoch, cfg.epochs + 1):
