@@ -45,7 +45,7 @@ from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, train
 from ekdun.training import acceleration as acc
 from ekdun.training.builder import build_network
-from ekdun.training.trainer import _param_groups
+from ekdun.training.trainer import make_optimizer
 from psfkit.kernelfile import KernelModel
 
 
@@ -83,8 +83,7 @@ class BareStep:
         if channels_last:
             acc.convolutions_channels_last(self.model)
         self.net = torch.compile(self.model) if args.compile else self.model
-        self.optimizer = torch.optim.Adam(_param_groups(self.model, cfg.lr, cfg.kernel_lr_scale),
-                                          lr=cfg.lr)
+        self.optimizer = make_optimizer(self.model, cfg, device)
         self.scaler = torch.amp.GradScaler("cuda", enabled=amp == "fp16")
         self.x = data.x[:args.batch].to(device)
         self.y = data.y[:args.batch].to(device)

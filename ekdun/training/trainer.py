@@ -114,6 +114,17 @@ def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[d
     return groups
 
 
+def make_optimizer(model: nn.Module, cfg: TrainingConfig, device: torch.device
+                   ) -> torch.optim.Adam:
+    """Adam over the network (lr) and its physics kernels (lr × ``kernel_lr_scale``).
+
+    Fused on CUDA: faster, and it takes the fp16 gradient scaler's inf check on the device
+    (a non-fused step makes ``GradScaler.step`` read it on the host, a wait every step).
+    """
+    return torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr,
+                            fused=True if device.type == "cuda" else None)
+
+
 def _check_dataset(dataset: Dataset, model: UnrolledNetwork) -> None:
     if len(dataset) == 0:  # type: ignore[arg-type]
         raise InvalidInputError("the training dataset is empty")
@@ -181,7 +192,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
     model = build_network(model_name, seed_model, preset, overrides)
     _check_dataset(dataset, model)
     model.to(ctx.device)
-    optimizer = torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr)
+    optimizer = make_optimizer(model, cfg, ctx.device)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma)
     amp = acc.resolve_amp(options.amp, ctx.device)
     use_amp = amp != "off"
