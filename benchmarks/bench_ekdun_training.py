@@ -25,6 +25,10 @@ sensitive to other processes on a shared machine).
     python benchmarks/bench_ekdun_training.py --amp bf16                    # bf16 autocast
     python benchmarks/bench_ekdun_training.py --preset paper --size 256 256 --batch 8 --amp fp16
     python benchmarks/bench_ekdun_training.py --preset paper --batch 1 --n-train 8   # paper size
+
+With ``--compile`` the bare network is compiled first (its warm-up is printed); the trainer's
+networks then find the compiled code in the process's caches, so their reported warm-up is
+shorter than a fresh ``ekdun train --compile`` would see.
 """
 
 from __future__ import annotations
