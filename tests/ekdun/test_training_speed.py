@@ -18,7 +18,7 @@ from ekdun.evaluation.metrics import psnr
 from ekdun.models import build_model
 from ekdun.physics.operators import EigenKernelOperator
 from ekdun.physics.synthetic import caustic_psf
-from ekdun.training import TrainOptions, train
+from ekdun.training import TrainOptions, load_checkpoint, train
 from ekdun.training import acceleration as acc
 from psfkit.kernelfile import load_kernels
 
@@ -54,8 +54,6 @@ def test_bf16_training_matches_fp32(tiny_data, tmp_path):
     seed_psnr = _psnr(build_model("ekdun", load_kernels(kernels).kernels[0], "tiny",
                                   iterations=2), data)
     assert _psnr(runs["off"]["model"], data) > seed_psnr + 0.5
-    assert runs["bf16"]["model"] is not None
-    from ekdun.training.checkpoint import load_checkpoint
     meta = load_checkpoint(tmp_path / "bf16" / "checkpoint.pt")["metadata"]
     assert meta["precision"] == "bf16" and meta["amp"] is True
 
