@@ -75,7 +75,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto (cuda if present), cpu, cuda:0 ...")
     p.add_argument("--threads", type=int, help="torch CPU threads")
-    p.add_argument("--no-amp", action="store_true", help="no mixed precision on CUDA")
+    p.add_argument("--amp", choices=("auto", "off", "bf16", "fp16"), default="auto",
+                   help="autocast precision of the network (the physics FFTs stay float32): "
+                        "auto = fp16 on CUDA, off on CPU; bf16 works on CPU too")
+    p.add_argument("--no-amp", action="store_true", help="same as --amp off")
+    p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                   help="U-Net convolutions in channels_last format (default: on CUDA only)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the network (reports its warm-up time)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="DataLoader workers when the dataset does not fit on the device")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -104,6 +113,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder (NAME.npy + NAME.png)")
     p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--amp", choices=("off", "bf16", "fp16"), default="off",
+                   help="autocast precision of the network (fp16: CUDA only; the physics "
+                        "FFTs stay float32)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=run_reconstruct)
 
@@ -171,13 +183,17 @@ def run_train(args: argparse.Namespace) -> int:
     if args.iterations:
         overrides["iterations"] = args.iterations
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                           seed=args.seed, amp=not args.no_amp, device=args.device,
-                           progress=not args.quiet, threads=args.threads)
+                           seed=args.seed, amp="off" if args.no_amp else args.amp,
+                           device=args.device, progress=not args.quiet, threads=args.threads,
+                           channels_last=args.channels_last, compile=args.compile,
+                           workers=args.workers)
     result = train(args.run_dir, args.model, args.kernels or args.psf, dataset, args.preset,
                    overrides, options, resume=args.resume, overwrite=args.overwrite)
     last = result["history"][-1] if result["history"] else {}
     _say(args, f"trained {args.model}: {len(result['history'])} epochs, final loss "
                f"{last.get('train_loss', float('nan')):.4g}; {args.run_dir}")
+    if "compile_warmup_s" in result:
+        _say(args, f"torch.compile warm-up (first step): {result['compile_warmup_s']:.1f} s")
     return 0
 
 
@@ -204,7 +220,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from ekdun.reconstruction import reconstruct_files
 
     written = reconstruct_files(args.checkpoint, args.measurements, args.out,
-                                args.channel_order, args.device, args.overwrite)
+                                args.channel_order, args.device, args.overwrite,
+                                args.amp)
     print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
     return 0
 

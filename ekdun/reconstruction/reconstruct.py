@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from ekdun.errors import InvalidInputError, TensorShapeError
+from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
@@ -57,10 +58,17 @@ def to_preview(image: np.ndarray) -> np.ndarray:
 @torch.no_grad()
 def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
                       out_dir: str | os.PathLike, channel_order: str = "RGB",
-                      device: str = "cpu", overwrite: bool = False) -> list[Path]:
+                      device: str = "cpu", overwrite: bool = False,
+                      amp: str = "off") -> list[Path]:
     """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 and an 8-bit
     ``NAME.png`` preview). All inputs are checked against the model before anything is
-    written; the output folder appears atomically."""
+    written; the output folder appears atomically.
+
+    ``amp`` (``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the
+    physics FFTs stay float32 (:mod:`ekdun.training.acceleration`) and the outputs are
+    float32 either way.
+    """
+    precision = acc.resolve_amp(amp, torch.device(device))
     model, _ = network_from_checkpoint(checkpoint)
     model = model.to(device).eval()
     sensor = tuple(model.physics.sensor_shape)
@@ -77,7 +85,9 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     written = []
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
-            out = model(torch.from_numpy(y)[None].to(device))[0].cpu().numpy()
+            with acc.autocast(precision, torch.device(device)):
+                out = model(torch.from_numpy(y)[None].to(device))
+            out = out[0].float().cpu().numpy()
             write_image(tmp / f"{f.stem}.npy", out.astype(np.float32))
             write_image(tmp / f"{f.stem}.png", to_preview(out))
             written.append(Path(out_dir) / f"{f.stem}.npy")

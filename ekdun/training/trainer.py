@@ -10,6 +10,12 @@
     (the batch order depends only on ``(seed, epoch)``).
 ``log.csv``
     one row per epoch (loss, learning rate, time).
+
+Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
+with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
+device and read once per epoch (and at the progress bar's log points), so the host never
+waits for the device inside an epoch; ``amp``, ``channels_last`` and ``compile`` are described
+in :mod:`ekdun.training.acceleration`.
 ``kernels_initial.npz`` / ``kernels_learned.npz``
     EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
     convention and sensor size as the seed), for ``psfkit compare``.
@@ -20,6 +26,7 @@ from __future__ import annotations
 import os
 import random
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,7 +39,9 @@ from torch.utils.data import Dataset
 from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
 from ekdun.models.configs import TrainingConfig, get_preset
 from ekdun.models.unrolled import UnrolledNetwork
+from ekdun.training import acceleration as acc
 from ekdun.training import distributed as D
+from ekdun.training.batches import BatchSource
 from ekdun.training.builder import build_network, encode_overrides, seed_kernel_model
 from ekdun.training.checkpoint import (
     load_checkpoint,
@@ -54,7 +63,14 @@ KERNELS_LEARNED = "kernels_learned.npz"
 class TrainOptions:
     """Run options; ``None`` takes the preset's :class:`~ekdun.models.configs.TrainingConfig`.
 
-    ``batch_size`` is the GLOBAL batch (split over ``torchrun`` processes).
+    ``batch_size`` is the GLOBAL batch (split over ``torchrun`` processes). ``amp``:
+    ``"auto"`` (or ``True``: fp16 on CUDA, off elsewhere), ``"bf16"``, ``"fp16"``, ``"off"``
+    (or ``False``); ``channels_last`` ``None``: on CUDA only; ``compile``: ``torch.compile``
+    the network (its warm-up is reported as ``compile_warmup_s`` in the metadata);
+    ``resident`` ``None``: keep the dataset on the device when it fits, else stream it with
+    ``workers`` DataLoader processes; ``log_every``: steps between progress-bar loss updates
+    (each one waits for the device); ``on_epoch``: called with each epoch's history row after
+    its checkpoint is written (benchmarks time epochs with it).
     """
 
     epochs: int | None = None
@@ -63,10 +79,16 @@ class TrainOptions:
     gamma: float | None = None
     kernel_lr_scale: float | None = None
     seed: int = 0
-    amp: bool = True
+    amp: bool | str = True
     device: str = "auto"
     progress: bool = True
     threads: int | None = None
+    channels_last: bool | None = None
+    compile: bool = False
+    resident: bool | None = None
+    workers: int = 2
+    log_every: int = 25
+    on_epoch: Callable[[dict[str, Any]], None] | None = None
 
     def resolve(self, preset: str) -> TrainingConfig:
         base = get_preset(preset).training
@@ -86,12 +108,15 @@ def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[d
     return groups
 
 
-def _batch(dataset: Dataset, indices: list[int], device: torch.device
-           ) -> tuple[torch.Tensor, torch.Tensor]:
-    items = [dataset[i] for i in indices]
-    x = torch.stack([it[0] for it in items]).to(device)
-    y = torch.stack([it[1] for it in items]).to(device)
-    return x, y
+def make_optimizer(model: nn.Module, cfg: TrainingConfig, device: torch.device
+                   ) -> torch.optim.Adam:
+    """Adam over the network (lr) and its physics kernels (lr × ``kernel_lr_scale``).
+
+    Fused on CUDA: faster, and it takes the fp16 gradient scaler's inf check on the device
+    (a non-fused step makes ``GradScaler.step`` read it on the host, a wait every step).
+    """
+    return torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr,
+                            fused=True if device.type == "cuda" else None)
 
 
 def _check_dataset(dataset: Dataset, model: UnrolledNetwork) -> None:
@@ -163,10 +188,15 @@ def train(run_dir: str | os.PathLike, model_name: str,
     assert seed_kernels is not None       # build_network sets it: what the network starts from
     _check_dataset(dataset, model)
     model.to(ctx.device)
-    optimizer = torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr)
+    optimizer = make_optimizer(model, cfg, ctx.device)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma)
-    use_amp = options.amp and ctx.device.type == "cuda"
-    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    amp = acc.resolve_amp(options.amp, ctx.device)
+    use_amp = amp != "off"
+    # Gradient scaling only for fp16 (bf16 has float32's exponent range).
+    scaler = torch.amp.GradScaler("cuda", enabled=amp == "fp16")
+    channels_last = acc.use_channels_last(options.channels_last, ctx.device)
+    if channels_last:
+        acc.convolutions_channels_last(model)
     metadata: dict[str, Any] = {
         "model": model_name, "preset": preset, "overrides": overrides,
         "schedule": getattr(getattr(model, "config", None), "schedule", None),
@@ -174,6 +204,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
         "kernel_metadata": seed_kernels.to_metadata(),
         "training": asdict(cfg), "seed": options.seed, "world_size": ctx.world_size,
         "parameters": model.parameter_count(), "amp": use_amp,
+        "precision": amp, "channels_last": channels_last, "compile": options.compile,
         "dataset_size": len(dataset),  # type: ignore[arg-type]
         "epoch": 0, "history": [],
     }
@@ -189,7 +220,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
         model.load_state_dict(doc["model"])
         optimizer.load_state_dict(doc["optimizer"])
         scheduler.load_state_dict(doc["scheduler"])
-        if "scaler" in doc and use_amp:
+        if "scaler" in doc and scaler.is_enabled():
             scaler.load_state_dict(doc["scaler"])
         set_rng_state(doc["rng"])
         metadata["history"] = old.get("history", [])
@@ -205,39 +236,48 @@ def train(run_dir: str | os.PathLike, model_name: str,
         net = nn.parallel.DistributedDataParallel(
             model, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
             find_unused_parameters=True)
+    if options.compile:
+        net = torch.compile(net)
+    source = BatchSource(dataset, cfg.batch_size, options.seed, ctx, options.resident,
+                         options.workers)
+    metadata["resident_dataset"] = source.resident
     started = time.perf_counter()
     for epoch in range(start_epoch, cfg.epochs + 1):
         t0 = time.perf_counter()
         model.train()
-        batches = D.global_batches(len(dataset), cfg.batch_size,  # type: ignore[arg-type]
-                                   options.seed, epoch)
-        iterator: Any = batches
         bar = None
         if options.progress and ctx.is_main:
             from tqdm.auto import tqdm
 
-            iterator = bar = tqdm(batches, desc=f"{model_name} epoch {epoch}/{cfg.epochs}",
-                                  unit="batch", leave=False)
-        total, count = 0.0, 0
-        for batch in iterator:
-            x, y = _batch(dataset, D.local_share(batch, ctx.rank, ctx.world_size), ctx.device)
+            bar = tqdm(total=len(source), desc=f"{model_name} epoch {epoch}/{cfg.epochs}",
+                       unit="batch", leave=False)
+        # The epoch's loss is summed on the device: reading it (.item()) makes the host wait
+        # for the device, so that happens only at log points and at the end of the epoch.
+        total = torch.zeros((), dtype=torch.float64, device=ctx.device)
+        count = 0
+        for x, y in source.epoch(epoch):
             optimizer.zero_grad(set_to_none=True)
-            with torch.autocast("cuda", dtype=torch.float16, enabled=use_amp):
+            with acc.autocast(amp, ctx.device):
                 out = net(y)
             loss = nn.functional.mse_loss(out.float(), x)
             scaler.scale(loss).backward()
             scaler.step(optimizer)
             scaler.update()
-            total += float(loss.detach())
+            total += loss.detach()
             count += 1
+            if options.compile and count == 1 and epoch == start_epoch:
+                acc.cuda_synchronize(ctx.device)
+                metadata["compile_warmup_s"] = round(time.perf_counter() - t0, 3)
             if bar is not None:
-                bar.set_postfix(loss=f"{total / count:.3g}")
+                bar.update()
+                if count % max(options.log_every, 1) == 0:
+                    bar.set_postfix(loss=f"{total.item() / count:.3g}")
         if bar is not None:
             bar.close()
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
+        mean_loss = D.all_mean(total.item() / max(count, 1), ctx)
         seconds = time.perf_counter() - t0
-        mean_loss = D.all_mean(total / max(count, 1), ctx)
         metadata["history"].append({
             "epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
             "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)})
@@ -253,8 +293,12 @@ def train(run_dir: str | os.PathLike, model_name: str,
                 learned = export_kernels(model)
                 learned = replace(learned, provenance={**learned.provenance, "epoch": epoch})
                 save_kernels(run_dir / KERNELS_LEARNED, learned)
+            if options.on_epoch is not None:
+                options.on_epoch(metadata["history"][-1])
         D.barrier(ctx)
     D.teardown(ctx)
     return {"history": metadata["history"], "run_dir": str(run_dir),
             "parameters": model.parameter_count(),
-            "seconds": time.perf_counter() - started, "model": model}
+            "seconds": time.perf_counter() - started, "model": model,
+            **({"compile_warmup_s": metadata["compile_warmup_s"]}
+               if "compile_warmup_s" in metadata else {})}
