@@ -12,6 +12,8 @@ from psfkit.bench import BenchConfig, simulate_grid
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 
 TINY_SENSOR = (16, 16)
+#: Dark level of the DiffuserCam tutorial PSF (mean of its dark corner, ``../shared/data`` README).
+CAUSTIC_DARK_LEVEL = 34.0
 REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
                               Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -52,6 +54,28 @@ def real_data():
         return path
 
     return locate
+
+
+@pytest.fixture(scope="session")
+def real_caustic(real_data) -> np.ndarray:
+    """The real DiffuserCam tutorial PSF (1200 × 1600, float64) with its dark level
+    :data:`CAUSTIC_DARK_LEVEL` subtracted (not clipped: the noise stays zero-mean)."""
+    import tifffile
+
+    psf = tifffile.imread(real_data("diffusercam_tutorial", "psf_sample.tif"))
+    return psf.astype(np.float64) - CAUSTIC_DARK_LEVEL
+
+
+@pytest.fixture()
+def torch_one_thread():
+    """One intra-op torch thread for the test (tiny tensors: more threads only contend with the
+    other pytest-xdist worker); restores the previous count."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="session")

@@ -32,13 +32,9 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 SMALL_UNET = UNetConfig(widths=(4, 8))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_intra_op_thread():
-    """Tiny tensors: extra threads only contend with the other pytest-xdist worker."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+@pytest.fixture(autouse=True)
+def _one_intra_op_thread(torch_one_thread):
+    """Tiny tensors: every test here runs with one torch thread (shared fixture)."""
 
 
 @pytest.fixture(scope="module")

@@ -22,13 +22,9 @@ KINDS = ("si", "ek-sensor", "ek-source", "multi")
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_intra_op_thread():
-    """Tiny tensors: extra threads only contend with the other pytest-xdist worker."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+@pytest.fixture(autouse=True)
+def _one_intra_op_thread(torch_one_thread):
+    """Tiny tensors: every test here runs with one torch thread (shared fixture)."""
 
 
 def make_operator(kind: str, sensor: tuple[int, int], colours: int, dtype: torch.dtype,

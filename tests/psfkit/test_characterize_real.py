@@ -8,7 +8,6 @@ applied with scipy splines, independently of psfkit's own Fourier shifts).
 
 import numpy as np
 import pytest
-import tifffile
 from scipy import ndimage
 
 from psfkit.characterize import characterize_grid
@@ -31,9 +30,8 @@ def _transform(image, matrix, shift, gain):
 
 
 @pytest.fixture(scope="module")
-def real_grid(real_data, tmp_path_factory):
-    psf = tifffile.imread(real_data("diffusercam_tutorial", "psf_sample.tif")).astype(float)
-    psf = bin_image(np.clip(psf - 34.0, 0, None), 2)          # 600 × 800
+def real_grid(real_caustic, tmp_path_factory):
+    psf = bin_image(np.clip(real_caustic, 0, None), 2)          # 600 × 800
     psf *= 20000.0 / psf.max()
     rng = np.random.default_rng(7)
     truth = {}

@@ -21,10 +21,9 @@ from psfkit.warp import (
 
 
 @pytest.fixture(scope="module")
-def caustic(real_data):
+def caustic(real_caustic):
     """The real DiffuserCam PSF binned 2× (600 × 800), unit peak."""
-    psf = tifffile.imread(real_data("diffusercam_tutorial", "psf_sample.tif"))
-    psf = np.clip(psf.astype(np.float64) - 34.0, 0, None)
+    psf = np.clip(real_caustic, 0, None)
     psf = bin_image(psf, 2)
     return psf / psf.max()
 
