@@ -3,26 +3,60 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.errors import PsfkitError
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (or SIGHUP), raised in the main thread so that it unwinds like Ctrl-C: every
+    ``with`` block of an output transaction removes its temporaries on the way out."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def terminate_like_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise :class:`Terminated` (main thread only)."""
+    previous = {}
+    try:
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            previous[sig] = signal.signal(sig, _raise_terminated)
+    except ValueError:   # not the main thread: leave the signals alone
+        pass
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     """Parse ``argv`` and run the chosen sub-command.
 
     Expected failures (:class:`~psfkit.errors.PsfkitError`, file-system errors) become one
-    line on stderr and exit status 2; Ctrl-C gives status 130. Outputs are written
-    atomically by the library, so a failed command leaves no partial files.
+    line on stderr and exit status 2; Ctrl-C gives status 130, SIGTERM 143 (128 + signal
+    number), after the temporaries of unfinished outputs have been removed. Outputs are
+    written through :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves
+    no partial files.
     """
     args = parser.parse_args(argv)
     if not hasattr(args, "func"):
         parser.print_help(sys.stderr)
         return 2
     try:
-        return int(args.func(args) or 0)
+        with terminate_like_interrupt():
+            return int(args.func(args) or 0)
     except PsfkitError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
     except OSError as exc:
@@ -31,9 +65,11 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     except MemoryError:
         print(f"{prog}: error: out of memory (try --downsample or a smaller input)",
               file=sys.stderr)
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "
+              "removed", file=sys.stderr)
+        return 128 + int(signum)
     return 2
 
 

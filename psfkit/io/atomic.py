@@ -1,20 +1,55 @@
-"""Atomic creation of output files and folders.
+"""Atomic creation of output files and folders, and the toolkit's one output policy.
 
 Outputs are first written under a temporary name in the destination's own directory and
 renamed into place only once complete, so an interrupted or failed run never leaves a
 half-written result behind (a rename within one file system is atomic).
+
+The policy every command follows (``docs/inputs-and-errors.md``):
+
+* **All or nothing.** A command declares its outputs in one :class:`OutputTransaction`
+  before it computes anything; each gets a temporary name next to its target, and all are
+  renamed into place together at the end. If the command fails or is interrupted, the
+  temporaries are removed and nothing appears at the final paths.
+* **No silent replacement.** An existing file, or a non-empty folder, is replaced only with
+  ``overwrite=True`` (``--overwrite``). This is checked when the output is declared and again
+  at commit time by a rename that cannot clobber: files use ``renameat2(RENAME_NOREPLACE)``
+  (falling back to ``link`` + ``unlink``, which fail with ``EEXIST`` too); folders use a plain
+  ``rename``, which on POSIX fails when the destination is a file or a non-empty folder and
+  only ever replaces an *empty* folder, which this policy treats as absent.
+* **Recognisable temporaries.** Temporary names are
+  ``.<name>.psfkit-tmp.<pid>.<random>[<suffix>]``; every run removes those of its kind, in
+  the folders it writes to, whose process has ended (or that are older than
+  :data:`STALE_AGE_S`), and says so in one line on stderr.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
+import re
 import shutil
+import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from psfkit.errors import InvalidInputError
+
+TEMP_TAG = ".psfkit-tmp."
+"""Marks the toolkit's temporary outputs; followed by the writing process's id."""
+STALE_AGE_S = 24 * 3600.0
+"""A temporary output older than this is stale even if its process id is alive (the id may
+have been reused, or belong to another machine sharing the folder)."""
+_TEMP_PID = re.compile(re.escape(TEMP_TAG) + r"(\d+)\.")
+_RENAME_NOREPLACE = 1
+_AT_FDCWD = -100
+
+
+class OutputExistsError(InvalidInputError):
+    """An output exists and would be replaced without ``--overwrite``."""
 
 
 def _read_umask() -> int:
@@ -26,36 +61,359 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
-def _prepare_parent(path: Path) -> None:
+# ----------------------------------------------------------------------------- stale temps
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def remove_stale_temps(folder: str | os.PathLike, quiet: bool = False) -> list[Path]:
+    """Remove the toolkit's temporary outputs in ``folder`` left by runs that were killed.
+
+    A temporary output (name containing :data:`TEMP_TAG`) is stale when the process that
+    made it has ended, or when it is older than :data:`STALE_AGE_S`. Says what it removed in
+    one line on stderr unless ``quiet``. Returns the removed paths.
+    """
+    folder = Path(folder)
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        match = _TEMP_PID.search(entry.name)
+        if match is None or not entry.name.startswith("."):
+            continue
+        try:
+            age = now - entry.stat(follow_symlinks=False).st_mtime
+        except OSError:
+            continue
+        if _pid_alive(int(match.group(1))) and age < STALE_AGE_S:
+            continue
+        path = Path(entry.path)
+        _remove(path)
+        removed.append(path)
+    if removed and not quiet:
+        names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
+        print(f"note: removed {len(removed)} stale temporary output(s) of interrupted runs "
+              f"in {folder}: {names}", file=sys.stderr)
+    return removed
+
+
+_CLEANED: set[Path] = set()
+
+
+def _clean_once(folder: Path) -> None:
+    """:func:`remove_stale_temps` once per folder and process (writers run often)."""
+    key = folder.resolve()
+    if key not in _CLEANED:
+        _CLEANED.add(key)
+        remove_stale_temps(folder)
+
+
+# ------------------------------------------------------------------------ no-clobber rename
+
+def _load_renameat2():
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
+                   ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+_renameat2 = _load_renameat2()
+
+
+def rename_noreplace(src: Path, dst: Path) -> None:
+    """Rename the file ``src`` to ``dst``; raise :class:`FileExistsError` if ``dst`` exists.
+
+    Atomic with ``renameat2(RENAME_NOREPLACE)`` (Linux >= 3.15, glibc >= 2.28); otherwise a
+    hard link (fails if ``dst`` exists) then unlink of ``src``; on file systems without hard
+    links, a check then rename (a small race remains there, and only there).
+    """
+    if _renameat2 is not None:
+        if _renameat2(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst),
+                      _RENAME_NOREPLACE) == 0:
+            return
+        err = ctypes.get_errno()
+        if err not in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EPERM):
+            raise OSError(err, os.strerror(err), str(dst))
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        raise
+    except OSError:
+        if os.path.lexists(dst):
+            raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(dst)) from None
+        os.rename(src, dst)
+        return
+    os.unlink(src)
+
+
+# ------------------------------------------------------------------------------ the policy
+
+def _exists_error(path: Path, what: str) -> OutputExistsError:
+    return OutputExistsError(f"{path}: {what} (use --overwrite to replace it)")
+
+
+def check_output(path: str | os.PathLike, kind: str = "file", overwrite: bool = False) -> Path:
+    """Refuse an output path before any work is done.
+
+    ``kind`` is ``"file"`` or ``"folder"``. Without ``overwrite`` an existing file, or a
+    non-empty folder, is an :class:`OutputExistsError`; a path of the other kind, or a parent
+    that is not a folder, is an :class:`~psfkit.errors.InvalidInputError` in any case.
+    """
+    path = Path(path)
     parent = path.parent
     if parent.exists() and not parent.is_dir():
-        raise InvalidInputError(f"{parent}: exists and is not a directory")
-    parent.mkdir(parents=True, exist_ok=True)
+        raise InvalidInputError(f"{path}: {parent} exists and is not a directory")
+    if kind == "file":
+        if path.is_dir():
+            raise InvalidInputError(f"{path}: is a directory, expected a file path")
+        if os.path.lexists(path) and not overwrite:
+            raise _exists_error(path, "output file exists")
+    else:
+        if os.path.lexists(path) and not path.is_dir():
+            raise InvalidInputError(f"{path}: exists and is not a directory")
+        if path.is_dir() and any(path.iterdir()) and not overwrite:
+            raise _exists_error(path, "output folder exists and is not empty")
+    return path
 
+
+def _prepare_parent(path: Path) -> list[Path]:
+    """Create the missing folders above ``path``; returns them, outermost first (a failed
+    run removes them again)."""
+    missing = [p for p in reversed(path.parents) if not p.exists()]
+    try:
+        for folder in missing:
+            folder.mkdir()
+    except FileExistsError:
+        pass   # created meanwhile by someone else
+    except OSError as exc:
+        _remove_empty(missing)
+        raise InvalidInputError(f"{path}: cannot create its folder "
+                                f"({exc.strerror or exc})") from None
+    if not path.parent.is_dir():
+        raise InvalidInputError(f"{path}: {path.parent} exists and is not a directory")
+    return missing
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    for folder in reversed(folders):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _temp_for(path: Path, kind: str, created: list[Path]) -> Path:
+    """Create the temporary twin of ``path`` (empty file or folder) next to it; the folders
+    this had to create are appended to ``created``."""
+    created += _prepare_parent(path)
+    _clean_once(path.parent)
+    try:
+        if kind == "file":
+            fd, name = tempfile.mkstemp(prefix=f".{path.stem}{TEMP_TAG}{os.getpid()}.",
+                                        suffix=path.suffix, dir=path.parent)
+            os.close(fd)
+        else:
+            name = tempfile.mkdtemp(prefix=f".{path.name}{TEMP_TAG}{os.getpid()}.",
+                                    dir=path.parent)
+    except OSError as exc:
+        _remove_empty(created)
+        # name the user's path, not the hidden temporary one
+        raise InvalidInputError(f"{path}: cannot write here ({exc.strerror or exc})") from None
+    return Path(name)
+
+
+class _Output:
+    def __init__(self, path: Path, kind: str, overwrite: bool) -> None:
+        self.path, self.kind, self.overwrite = path, kind, overwrite
+        self.created: list[Path] = []   # parent folders made for it, removed on failure
+        self.temp = _temp_for(path, kind, self.created)
+        self.backup: Path | None = None   # the replaced output, kept until all are committed
+        self.committed = False
+
+    def commit(self) -> None:
+        path, temp = self.path, self.temp
+        os.chmod(temp, (0o666 if self.kind == "file" else 0o777) & ~_UMASK)  # mkstemp: 0600
+        check_output(path, self.kind, self.overwrite)   # again: something may have appeared
+        try:
+            if self.kind == "file":
+                self._commit_file()
+            else:
+                self._commit_folder()
+        except (FileExistsError, IsADirectoryError, NotADirectoryError) as exc:
+            raise _exists_error(path, "output was created meanwhile by another run") from exc
+        except OSError as exc:
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                raise _exists_error(path, "output was created meanwhile by another run") from exc
+            raise InvalidInputError(f"{path}: cannot write here ({exc.strerror or exc})"
+                                    ) from None
+        self.committed = True
+
+    def _commit_file(self) -> None:
+        path, temp = self.path, self.temp
+        if not os.path.lexists(path):
+            rename_noreplace(temp, path)
+            return
+        with contextlib.suppress(OSError):   # a hard-linked backup allows a roll-back
+            backup = path.with_name(f".{path.stem}{TEMP_TAG}{os.getpid()}.old{path.suffix}")
+            backup.unlink(missing_ok=True)
+            os.link(path, backup)
+            self.backup = backup
+        os.replace(temp, path)   # atomic replacement: the path never disappears
+
+    def _commit_folder(self) -> None:
+        path, temp = self.path, self.temp
+        if path.is_dir() and any(path.iterdir()):   # overwrite: move the old one aside
+            backup = path.with_name(f".{path.name}{TEMP_TAG}{os.getpid()}.old")
+            _remove(backup)
+            os.rename(path, backup)
+            self.backup = backup
+            try:
+                os.rename(temp, path)
+            except OSError:
+                os.rename(backup, path)
+                self.backup = None
+                raise
+            return
+        # absent or empty: rename() replaces at most an empty folder and fails on a file or
+        # a non-empty folder (ENOTDIR / ENOTEMPTY / EEXIST), so nothing can be clobbered
+        os.rename(temp, path)
+
+    def roll_back(self) -> None:
+        if self.committed:
+            if self.backup is not None and self.kind == "file":
+                os.replace(self.backup, self.path)
+            else:
+                _remove(self.path)
+                if self.backup is not None:
+                    os.rename(self.backup, self.path)
+            self.backup = None
+        _remove(self.temp)
+
+    def finish(self) -> None:
+        if self.backup is not None:
+            _remove(self.backup)
+
+
+class OutputTransaction:
+    """The outputs of one command: declared first, written to temporaries, committed together.
+
+    Examples
+    --------
+    >>> with OutputTransaction(overwrite=args.overwrite) as outputs:   # doctest: +SKIP
+    ...     figures = outputs.folder(args.figures)      # checked now, before any work
+    ...     kernels = outputs.file(args.out)
+    ...     result = fit(...)                           # the long computation
+    ...     write_figures(result, figures)              # into the temporaries
+    ...     save_kernels(kernels, result.model)
+    ... # here both appear, or (on any error, Ctrl-C or SIGTERM) neither does
+
+    Parameters
+    ----------
+    overwrite : bool
+        Replace existing outputs (``--overwrite``); default: refuse them, up front and again
+        at commit time.
+    """
+
+    def __init__(self, overwrite: bool = False) -> None:
+        self.overwrite = overwrite
+        self._outputs: list[_Output] = []
+
+    def _declare(self, path: str | os.PathLike, kind: str, suffixes: tuple[str, ...]) -> Path:
+        path = Path(path)
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise InvalidInputError(f"{path}: output must end in {' or '.join(suffixes)}")
+        if any(o.path.resolve() == path.resolve() for o in self._outputs):
+            raise InvalidInputError(f"{path}: given for two outputs of one command")
+        check_output(path, kind, self.overwrite)
+        output = _Output(path, kind, self.overwrite)
+        self._outputs.append(output)
+        return output.temp
+
+    def file(self, path: str | os.PathLike, suffixes: tuple[str, ...] = ()) -> Path:
+        """Declare an output file; returns the temporary path to write (same suffix).
+
+        ``suffixes`` (e.g. ``(".json", ".csv")``) restricts the accepted extensions."""
+        return self._declare(path, "file", suffixes)
+
+    def folder(self, path: str | os.PathLike) -> Path:
+        """Declare an output folder; returns the (empty) temporary folder to fill."""
+        return self._declare(path, "folder", ())
+
+    def commit(self) -> None:
+        """Rename every temporary into place; if one fails, undo those already done."""
+        for output in self._outputs:
+            check_output(output.path, output.kind, self.overwrite)   # all, before any rename
+        done = []
+        try:
+            for output in self._outputs:
+                output.commit()
+                done.append(output)
+        except BaseException:
+            for output in reversed(done):
+                with contextlib.suppress(OSError):
+                    output.roll_back()
+            raise
+        for output in self._outputs:
+            output.finish()
+        self._outputs = []
+
+    def discard(self) -> None:
+        """Remove every temporary (on failure); nothing appears at the final paths."""
+        for output in reversed(self._outputs):
+            _remove(output.temp)
+            _remove_empty(output.created)
+        self._outputs = []
+
+    def __enter__(self) -> OutputTransaction:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.discard()
+            return
+        try:
+            self.commit()
+        finally:
+            self.discard()
+
+
+# ------------------------------------------------------------------- single-output helpers
 
 @contextlib.contextmanager
-def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_file(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path; on success rename it to ``path``, on error delete it.
 
     The temporary file keeps the suffix of ``path`` so that writers choosing their
     format from the extension (numpy, matplotlib, tifffile) behave as for ``path``.
+    ``overwrite`` defaults to True here because library code rewrites its own files (a
+    checkpoint every epoch); commands pass the user's ``--overwrite``.
     """
-    path = Path(path)
-    if path.is_dir():
-        raise InvalidInputError(f"{path}: is a directory, expected a file path")
-    _prepare_parent(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
-                                    dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        yield tmp
-        # mkstemp creates 0600 files; give the result the permissions of a normal new file
-        os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with OutputTransaction(overwrite=overwrite) as outputs:
+        yield outputs.file(path)
 
 
 @contextlib.contextmanager
@@ -68,27 +426,7 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterat
         Final folder.
     overwrite : bool
         Replace an existing ``path``. Without it an existing non-empty ``path`` is an error,
-        raised before any work is done.
+        raised before any work is done (and again before the rename).
     """
-    path = Path(path)
-    if path.exists():
-        if not path.is_dir():
-            raise InvalidInputError(f"{path}: exists and is not a directory")
-        if any(path.iterdir()) and not overwrite:
-            raise InvalidInputError(
-                f"{path}: output folder exists and is not empty (use --overwrite to replace it)")
-    _prepare_parent(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-    try:
-        yield tmp
-        os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700 folders
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = None
-    if path.exists():
-        old = path.with_name(f".{path.name}.old-{os.getpid()}")
-        os.replace(path, old)
-    os.replace(tmp, path)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    with OutputTransaction(overwrite=overwrite) as outputs:
+        yield outputs.folder(path)
