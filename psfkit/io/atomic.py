@@ -274,7 +274,7 @@ class _Output:
 
     def _commit_file(self) -> None:
         path, temp = self.path, self.temp
-        if not os.path.lexists(path):
+        if not self.overwrite or not os.path.lexists(path):
             rename_noreplace(temp, path)
             return
         with contextlib.suppress(OSError):   # a hard-linked backup allows a roll-back
@@ -286,7 +286,7 @@ class _Output:
 
     def _commit_folder(self) -> None:
         path, temp = self.path, self.temp
-        if path.is_dir() and any(path.iterdir()):   # overwrite: move the old one aside
+        if self.overwrite and path.is_dir() and any(path.iterdir()):   # move the old aside
             backup = path.with_name(f".{path.name}{TEMP_TAG}{os.getpid()}.old")
             _remove(backup)
             os.rename(path, backup)
