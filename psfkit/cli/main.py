@@ -13,32 +13,44 @@ from psfkit.errors import PsfkitError
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (or SIGHUP), raised in the main thread so that it unwinds like Ctrl-C: every
-    ``with`` block of an output transaction removes its temporaries on the way out."""
+    """SIGTERM, SIGHUP or SIGINT (Ctrl-C), raised in the main thread so that it unwinds like
+    Ctrl-C: every ``with`` block of an output transaction removes its temporaries."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
 
 
-def _raise_terminated(signum: int, frame: object) -> None:
-    raise Terminated(signum)
-
-
 @contextlib.contextmanager
 def terminate_like_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM and SIGHUP raise :class:`Terminated` (main thread only)."""
+    """Within the block, SIGTERM, SIGHUP and SIGINT raise :class:`Terminated` (main thread
+    only).
+
+    A signal that lands inside C code may surface as another exception (an extension module
+    being imported turns it into ``ImportError``); once a signal was received, whatever
+    propagates becomes :class:`Terminated`, so the exit status still says why.
+    """
+    received: list[int] = []
+
+    def handler(signum: int, frame: object) -> None:
+        received.append(signum)
+        raise Terminated(signum)
+
     previous = {}
     try:
-        for sig in (signal.SIGTERM, signal.SIGHUP):
-            previous[sig] = signal.signal(sig, _raise_terminated)
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+            previous[sig] = signal.signal(sig, handler)
     except ValueError:   # not the main thread: leave the signals alone
         pass
     try:
         yield
+    except Exception as exc:
+        if received:
+            raise Terminated(received[0]) from exc
+        raise
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
