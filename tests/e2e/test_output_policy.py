@@ -18,6 +18,7 @@ from psfkit.io.atomic import TEMP_TAG
 from psfkit.kernelfile import load_kernels
 
 FAST_FIT = ["--cv-bases", "none", "--quiet"]
+PSFKIT = [str(Path(sys.executable).parent / "psfkit")]   # the installed console script
 
 
 def temps(folder: Path) -> list[str]:
@@ -62,6 +63,20 @@ def test_report_folder_refused_unless_overwrite_then_replaced(grid_3x3, tmp_path
     assert main(["report", str(grid_3x3), "--out", str(out), "--quiet"]) == 2
     assert "not empty" in one_error_line(capsys)
     assert main(["report", str(grid_3x3), "--out", str(out), "--quiet", "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["figures", "positions.csv",
+                                                     "report.html", "results.json"]
+    assert temps(tmp_path) == []
+
+
+def test_two_concurrent_reports_to_one_folder_one_wins(grid_3x3, tmp_path):
+    out = tmp_path / "rep"
+    argv = [*PSFKIT, "report", str(grid_3x3), "--out", str(out), "--quiet"]
+    procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    results = [(p.wait(timeout=600), p.stderr.read()) for p in procs]
+    assert sorted(rc for rc, _ in results) == [0, 2], results
+    loser = next(err for rc, err in results if rc == 2).strip().splitlines()
+    assert len(loser) == 1 and str(out) in loser[0] and "--overwrite" in loser[0]
     assert sorted(p.name for p in out.iterdir()) == ["figures", "positions.csv",
                                                      "report.html", "results.json"]
     assert temps(tmp_path) == []
@@ -137,7 +152,7 @@ def _writing_started(folder: Path) -> bool:
 
 
 def _run_and_kill(argv: list[str], folder: Path, sig: int) -> subprocess.CompletedProcess:
-    proc = subprocess.Popen([sys.executable, "-m", "psfkit.cli.main", *argv],
+    proc = subprocess.Popen([*PSFKIT, *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
     while not _writing_started(folder):
@@ -165,14 +180,14 @@ def test_killed_while_writing_leaves_no_partial_output(grid_3x3, tmp_path, comma
     assert not any((tmp_path / name).exists() for name in finals)   # nothing partial appears
     if sig == signal.SIGTERM:
         assert killed.returncode == 128 + signal.SIGTERM
-        lines = killed.stderr.strip().splitlines()
-        assert lines[-1] == "psfkit: interrupted (SIGTERM); unfinished outputs removed"
+        assert killed.stderr.strip() == ("psfkit: interrupted (SIGTERM); unfinished outputs "
+                                         "removed")
         assert "Traceback" not in killed.stderr
         assert temps(tmp_path) == []                # cleaned up on the way out
     else:
         assert killed.returncode == -signal.SIGKILL
         assert temps(tmp_path) != []                # cannot clean up: the next run will
-    again = subprocess.run([sys.executable, "-m", "psfkit.cli.main", *argv],
+    again = subprocess.run([*PSFKIT, *argv],
                            capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr
     assert temps(tmp_path) == []
