@@ -17,9 +17,10 @@ The policy every command follows (``docs/inputs-and-errors.md``):
   ``rename``, which on POSIX fails when the destination is a file or a non-empty folder and
   only ever replaces an *empty* folder, which this policy treats as absent.
 * **Recognisable temporaries.** Temporary names are
-  ``.<name>.psfkit-tmp.<pid>.<random>[<suffix>]``; every run removes those of its kind, in
-  the folders it writes to, whose process has ended (or that are older than
-  :data:`STALE_AGE_S`), and says so in one line on stderr.
+  ``.<name>.psfkit-tmp.<pid>@<host>.<random>[<suffix>]`` (``<host>``: 6 hex digits of the
+  machine's name); every run removes those of its kind, in the folders it writes to, whose
+  process on this machine has ended (or that are older than :data:`STALE_AGE_S`), and says
+  so in one line on stderr.
 """
 
 from __future__ import annotations
@@ -27,9 +28,11 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import hashlib
 import os
 import re
 import shutil
+import socket
 import sys
 import tempfile
 import time
@@ -43,7 +46,14 @@ TEMP_TAG = ".psfkit-tmp."
 STALE_AGE_S = 24 * 3600.0
 """A temporary output older than this is stale even if its process id is alive (the id may
 have been reused, or belong to another machine sharing the folder)."""
-_TEMP_PID = re.compile(re.escape(TEMP_TAG) + r"(\d+)\.")
+_TEMP_PID = re.compile(re.escape(TEMP_TAG) + r"(\d+)@([0-9a-f]{6})\.")
+_HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]   # pids are per machine
+
+
+def _owner() -> str:
+    """``<pid>@<host>`` of this process, as written into temporary names."""
+    return f"{os.getpid()}@{_HOST}"
+
 _RENAME_NOREPLACE = 1
 _AT_FDCWD = -100
 
@@ -88,7 +98,8 @@ def remove_stale_temps(folder: str | os.PathLike, quiet: bool = False) -> list[P
     """Remove the toolkit's temporary outputs in ``folder`` left by runs that were killed.
 
     A temporary output (name containing :data:`TEMP_TAG`) is stale when the process that
-    made it has ended, or when it is older than :data:`STALE_AGE_S`. Says what it removed in
+    made it, on this machine, has ended, or when it is older than :data:`STALE_AGE_S` (the
+    only test for one made on another machine sharing the folder). Says what it removed in
     one line on stderr unless ``quiet``. Returns the removed paths.
     """
     folder = Path(folder)
@@ -106,7 +117,8 @@ def remove_stale_temps(folder: str | os.PathLike, quiet: bool = False) -> list[P
             age = now - entry.stat(follow_symlinks=False).st_mtime
         except OSError:
             continue
-        if _pid_alive(int(match.group(1))) and age < STALE_AGE_S:
+        here = match.group(2) == _HOST
+        if age < STALE_AGE_S and (not here or _pid_alive(int(match.group(1)))):
             continue
         path = Path(entry.path)
         _remove(path)
@@ -233,11 +245,11 @@ def _temp_for(path: Path, kind: str, created: list[Path]) -> Path:
     _clean_once(path.parent)
     try:
         if kind == "file":
-            fd, name = tempfile.mkstemp(prefix=f".{path.stem}{TEMP_TAG}{os.getpid()}.",
+            fd, name = tempfile.mkstemp(prefix=f".{path.stem}{TEMP_TAG}{_owner()}.",
                                         suffix=path.suffix, dir=path.parent)
             os.close(fd)
         else:
-            name = tempfile.mkdtemp(prefix=f".{path.name}{TEMP_TAG}{os.getpid()}.",
+            name = tempfile.mkdtemp(prefix=f".{path.name}{TEMP_TAG}{_owner()}.",
                                     dir=path.parent)
     except OSError as exc:
         _remove_empty(created)
@@ -278,7 +290,7 @@ class _Output:
             rename_noreplace(temp, path)
             return
         with contextlib.suppress(OSError):   # a hard-linked backup allows a roll-back
-            backup = path.with_name(f".{path.stem}{TEMP_TAG}{os.getpid()}.old{path.suffix}")
+            backup = path.with_name(f".{path.stem}{TEMP_TAG}{_owner()}.old{path.suffix}")
             backup.unlink(missing_ok=True)
             os.link(path, backup)
             self.backup = backup
@@ -287,7 +299,7 @@ class _Output:
     def _commit_folder(self) -> None:
         path, temp = self.path, self.temp
         if self.overwrite and path.is_dir() and any(path.iterdir()):   # move the old aside
-            backup = path.with_name(f".{path.name}{TEMP_TAG}{os.getpid()}.old")
+            backup = path.with_name(f".{path.name}{TEMP_TAG}{_owner()}.old")
             _remove(backup)
             os.rename(path, backup)
             self.backup = backup

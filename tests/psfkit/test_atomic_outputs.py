@@ -29,6 +29,10 @@ def temps(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.rglob("*") if TEMP_TAG in p.name)
 
 
+def owner(pid: int, host: str = atomic._HOST) -> str:
+    return f"{pid}@{host}"
+
+
 def dead_pid() -> int:
     """The id of a process that has ended (and been reaped)."""
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -185,28 +189,30 @@ def test_a_replaced_file_is_restored_when_a_later_output_fails(tmp_path, monkeyp
 
 def test_stale_temporaries_are_recognised_and_removed(tmp_path, capsys):
     pid = dead_pid()
-    stale_file = tmp_path / f".k{TEMP_TAG}{pid}.abc123.npz"
-    stale_dir = tmp_path / f".rep{TEMP_TAG}{pid}.def456"
-    old_dir = tmp_path / f".figs{TEMP_TAG}1.ghi789"        # pid 1 lives, but 2 days old
-    live = tmp_path / f".x{TEMP_TAG}{os.getpid()}.jkl012"   # a run in progress: kept
+    stale_file = tmp_path / f".k{TEMP_TAG}{owner(pid)}.abc123.npz"
+    stale_dir = tmp_path / f".rep{TEMP_TAG}{owner(pid)}.def456"
+    old_dir = tmp_path / f".figs{TEMP_TAG}{owner(1)}.ghi789"   # pid 1 lives, but 2 days old
+    live = tmp_path / f".x{TEMP_TAG}{owner(os.getpid())}.jkl012"   # a run in progress
+    elsewhere = tmp_path / f".y{TEMP_TAG}{owner(pid, 'abcdef')}.mno345"   # another machine
     stale_file.write_bytes(b"")
     (stale_dir / "figures").mkdir(parents=True)
     old_dir.mkdir()
     live.mkdir()
+    elsewhere.mkdir()
     two_days_ago = time.time() - 2 * 86400
     os.utime(old_dir, (two_days_ago, two_days_ago))
     (tmp_path / "user.npz").write_bytes(b"")                # not ours: kept
     removed = remove_stale_temps(tmp_path)
     assert sorted(p.name for p in removed) == sorted([stale_file.name, stale_dir.name,
                                                       old_dir.name])
-    assert sorted(os.listdir(tmp_path)) == sorted([live.name, "user.npz"])
+    assert sorted(os.listdir(tmp_path)) == sorted([live.name, elsewhere.name, "user.npz"])
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "removed 3 stale temporary output(s)" in err[0]
 
 
 def test_a_new_output_cleans_its_folder_first(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(atomic, "_CLEANED", set())
-    stale = tmp_path / f".k{TEMP_TAG}{dead_pid()}.abc123.npz"
+    stale = tmp_path / f".k{TEMP_TAG}{owner(dead_pid())}.abc123.npz"
     stale.write_bytes(b"")
     with atomic_file(tmp_path / "k.npz") as tmp:
         tmp.write_text("ok")
@@ -217,7 +223,7 @@ def test_a_new_output_cleans_its_folder_first(tmp_path, monkeypatch, capsys):
 def test_unwritable_outputs_are_named_by_the_users_path(tmp_path, monkeypatch):
     def refuse(*args, dir=None, **kwargs):
         raise PermissionError(13, "Permission denied",
-                              str(Path(dir) / f".k{TEMP_TAG}123.xyz.npz"))
+                              str(Path(dir) / f".k{TEMP_TAG}{owner(123)}.xyz.npz"))
 
     monkeypatch.setattr(tempfile, "mkstemp", refuse)
     with pytest.raises(InvalidInputError) as info:
