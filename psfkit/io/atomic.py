@@ -400,12 +400,28 @@ class OutputTransaction:
             _remove_empty(output.created)
         self._outputs = []
 
+    def _target_of(self, exc: BaseException | None) -> Path | None:
+        """The output whose hidden temporary an :class:`OSError` names, if any."""
+        name = getattr(exc, "filename", None) if isinstance(exc, OSError) else None
+        if not name or TEMP_TAG not in str(name):
+            return None
+        failed = Path(os.fsdecode(name))
+        for output in self._outputs:
+            if (failed == output.temp or output.temp in failed.parents
+                    or failed.name.startswith(f".{output.temp.stem}")):
+                return output.path
+        return None
+
     def __enter__(self) -> OutputTransaction:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is not None:
+            target = self._target_of(exc)
             self.discard()
+            if target is not None:   # e.g. disk full while writing: name the user's path
+                raise InvalidInputError(f"{target}: cannot write here "
+                                        f"({exc.strerror or exc})") from None
             return
         try:
             self.commit()

@@ -231,6 +231,16 @@ def test_unwritable_outputs_are_named_by_the_users_path(tmp_path, monkeypatch):
     assert str(info.value) == f"{tmp_path / 'k.npz'}: cannot write here (Permission denied)"
 
 
+def test_write_errors_inside_a_temporary_name_the_users_path(tmp_path):
+    target = tmp_path / "rep"
+    with pytest.raises(InvalidInputError) as info:
+        with OutputTransaction() as out:
+            folder = out.folder(target)
+            raise OSError(28, "No space left on device", str(folder / "figures" / "a.png"))
+    assert str(info.value) == f"{target}: cannot write here (No space left on device)"
+    assert temps(tmp_path) == []
+
+
 def test_single_output_helpers_keep_their_defaults(tmp_path):
     target = tmp_path / "log.csv"
     for text in ("1", "2"):   # library files rewritten in place (a log every epoch)
