@@ -19,8 +19,8 @@ The policy every command follows (``docs/inputs-and-errors.md``):
 * **Recognisable temporaries.** Temporary names are
   ``.<name>.psfkit-tmp.<pid>@<host>.<random>[<suffix>]`` (``<host>``: 6 hex digits of the
   machine's name); every run removes those of its kind, in the folders it writes to, whose
-  process on this machine has ended (or that are older than :data:`STALE_AGE_S`), and says
-  so in one line on stderr.
+  process on this machine has ended (or that are older than a day), and says so in one line
+  on stderr (:mod:`psfkit.io.temps`).
 """
 
 from __future__ import annotations
@@ -28,31 +28,16 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
-import hashlib
 import os
-import re
-import shutil
-import socket
-import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from psfkit.errors import InvalidInputError
+from psfkit.io.temps import TEMP_TAG, clean_once, owner, remove_path, remove_stale_temps
 
-TEMP_TAG = ".psfkit-tmp."
-"""Marks the toolkit's temporary outputs; followed by the writing process's id."""
-STALE_AGE_S = 24 * 3600.0
-"""A temporary output older than this is stale even if its process id is alive (the id may
-have been reused, or belong to another machine sharing the folder)."""
-_TEMP_PID = re.compile(re.escape(TEMP_TAG) + r"(\d+)@([0-9a-f]{6})\.")
-_HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]   # pids are per machine
-
-
-def _owner() -> str:
-    """``<pid>@<host>`` of this process, as written into temporary names."""
-    return f"{os.getpid()}@{_HOST}"
+__all__ = ["TEMP_TAG", "OutputExistsError", "OutputTransaction", "atomic_directory",
+           "atomic_file", "check_output", "remove_stale_temps", "rename_noreplace"]
 
 _RENAME_NOREPLACE = 1
 _AT_FDCWD = -100
@@ -69,76 +54,6 @@ def _read_umask() -> int:
 
 
 _UMASK = _read_umask()
-
-
-# ----------------------------------------------------------------------------- stale temps
-
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    except OSError:
-        return False
-    return True
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)
-
-
-def remove_stale_temps(folder: str | os.PathLike, quiet: bool = False) -> list[Path]:
-    """Remove the toolkit's temporary outputs in ``folder`` left by runs that were killed.
-
-    A temporary output (name containing :data:`TEMP_TAG`) is stale when the process that
-    made it, on this machine, has ended, or when it is older than :data:`STALE_AGE_S` (the
-    only test for one made on another machine sharing the folder). Says what it removed in
-    one line on stderr unless ``quiet``. Returns the removed paths.
-    """
-    folder = Path(folder)
-    removed = []
-    try:
-        entries = list(os.scandir(folder))
-    except OSError:
-        return removed
-    now = time.time()
-    for entry in entries:
-        match = _TEMP_PID.search(entry.name)
-        if match is None or not entry.name.startswith("."):
-            continue
-        try:
-            age = now - entry.stat(follow_symlinks=False).st_mtime
-        except OSError:
-            continue
-        here = match.group(2) == _HOST
-        if age < STALE_AGE_S and (not here or _pid_alive(int(match.group(1)))):
-            continue
-        path = Path(entry.path)
-        _remove(path)
-        removed.append(path)
-    if removed and not quiet:
-        names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
-        print(f"note: removed {len(removed)} stale temporary output(s) of interrupted runs "
-              f"in {folder}: {names}", file=sys.stderr)
-    return removed
-
-
-_CLEANED: set[Path] = set()
-
-
-def _clean_once(folder: Path) -> None:
-    """:func:`remove_stale_temps` once per folder and process (writers run often)."""
-    key = folder.resolve()
-    if key not in _CLEANED:
-        _CLEANED.add(key)
-        remove_stale_temps(folder)
 
 
 # ------------------------------------------------------------------------ no-clobber rename
@@ -242,14 +157,14 @@ def _temp_for(path: Path, kind: str, created: list[Path]) -> Path:
     """Create the temporary twin of ``path`` (empty file or folder) next to it; the folders
     this had to create are appended to ``created``."""
     created += _prepare_parent(path)
-    _clean_once(path.parent)
+    clean_once(path.parent)
     try:
         if kind == "file":
-            fd, name = tempfile.mkstemp(prefix=f".{path.stem}{TEMP_TAG}{_owner()}.",
+            fd, name = tempfile.mkstemp(prefix=f".{path.stem}{TEMP_TAG}{owner()}.",
                                         suffix=path.suffix, dir=path.parent)
             os.close(fd)
         else:
-            name = tempfile.mkdtemp(prefix=f".{path.name}{TEMP_TAG}{_owner()}.",
+            name = tempfile.mkdtemp(prefix=f".{path.name}{TEMP_TAG}{owner()}.",
                                     dir=path.parent)
     except OSError as exc:
         _remove_empty(created)
@@ -290,7 +205,7 @@ class _Output:
             rename_noreplace(temp, path)
             return
         with contextlib.suppress(OSError):   # a hard-linked backup allows a roll-back
-            backup = path.with_name(f".{path.stem}{TEMP_TAG}{_owner()}.old{path.suffix}")
+            backup = path.with_name(f".{path.stem}{TEMP_TAG}{owner()}.old{path.suffix}")
             backup.unlink(missing_ok=True)
             os.link(path, backup)
             self.backup = backup
@@ -299,8 +214,8 @@ class _Output:
     def _commit_folder(self) -> None:
         path, temp = self.path, self.temp
         if self.overwrite and path.is_dir() and any(path.iterdir()):   # move the old aside
-            backup = path.with_name(f".{path.name}{TEMP_TAG}{_owner()}.old")
-            _remove(backup)
+            backup = path.with_name(f".{path.name}{TEMP_TAG}{owner()}.old")
+            remove_path(backup)
             os.rename(path, backup)
             self.backup = backup
             try:
@@ -319,15 +234,15 @@ class _Output:
             if self.backup is not None and self.kind == "file":
                 os.replace(self.backup, self.path)
             else:
-                _remove(self.path)
+                remove_path(self.path)
                 if self.backup is not None:
                     os.rename(self.backup, self.path)
             self.backup = None
-        _remove(self.temp)
+        remove_path(self.temp)
 
     def finish(self) -> None:
         if self.backup is not None:
-            _remove(self.backup)
+            remove_path(self.backup)
 
 
 class OutputTransaction:
@@ -396,7 +311,7 @@ class OutputTransaction:
     def discard(self) -> None:
         """Remove every temporary (on failure); nothing appears at the final paths."""
         for output in reversed(self._outputs):
-            _remove(output.temp)
+            remove_path(output.temp)
             _remove_empty(output.created)
         self._outputs = []
 

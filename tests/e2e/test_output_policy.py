@@ -14,8 +14,8 @@ import pytest
 
 from ekdun.cli import main as ekdun_main
 from psfkit.cli import main
-from psfkit.io import atomic
 from psfkit.io.atomic import TEMP_TAG
+from psfkit.io.temps import HOST
 from psfkit.kernelfile import load_kernels
 
 FAST_FIT = ["--cv-bases", "none", "--quiet"]
@@ -134,7 +134,7 @@ def test_train_with_a_bad_batch_size_writes_nothing(tiny_data, tmp_path, capsys)
 def test_a_stale_temporary_is_removed_by_the_next_run(grid_3x3, tmp_path, capsys):
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
-    stale = tmp_path / f".rep{TEMP_TAG}{proc.pid}@{atomic._HOST}.abcd1234"
+    stale = tmp_path / f".rep{TEMP_TAG}{proc.pid}@{HOST}.abcd1234"
     (stale / "figures").mkdir(parents=True)
     (stale / "figures" / "half.png").write_bytes(b"\x89PNG")
     assert main(["register", str(grid_3x3), "--out", str(tmp_path / "r.json"),

@@ -14,6 +14,7 @@ import pytest
 
 from psfkit.errors import InvalidInputError
 from psfkit.io import atomic
+from psfkit.io import temps as temp_names
 from psfkit.io.atomic import (
     TEMP_TAG,
     OutputExistsError,
@@ -29,7 +30,7 @@ def temps(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.rglob("*") if TEMP_TAG in p.name)
 
 
-def owner(pid: int, host: str = atomic._HOST) -> str:
+def owner(pid: int, host: str = temp_names.HOST) -> str:
     return f"{pid}@{host}"
 
 
@@ -211,7 +212,7 @@ def test_stale_temporaries_are_recognised_and_removed(tmp_path, capsys):
 
 
 def test_a_new_output_cleans_its_folder_first(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(atomic, "_CLEANED", set())
+    monkeypatch.setattr(temp_names, "_CLEANED", set())
     stale = tmp_path / f".k{TEMP_TAG}{owner(dead_pid())}.abc123.npz"
     stale.write_bytes(b"")
     with atomic_file(tmp_path / "k.npz") as tmp:
