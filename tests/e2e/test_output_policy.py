@@ -92,6 +92,24 @@ def test_eval_model_out_refused_unless_overwrite(tiny_data, tmp_path, capsys):
     assert out.read_text() == "mine"
 
 
+@pytest.mark.parametrize("argv, existing", [
+    (["export-kernels", "{ck}", "--out", "{dir}/k.npz"], "k.npz"),
+    (["admm", "{psf}", "{psf}", "--out", "{dir}/x.npy"], "x.npy"),
+    (["admm", "{psf}", "{psf}", "--out", "{dir}/y.npy"], "y.png"),   # the preview counts too
+    (["eval", "{ck}", "--data", "{dir}", "--out", "{dir}/tables"], "tables/table1.md"),
+])
+def test_ekdun_outputs_refused_before_any_work(tmp_path, capsys, argv, existing):
+    # the inputs do not even exist: the output is refused first, before anything is read
+    target = tmp_path / existing
+    target.parent.mkdir(exist_ok=True)
+    target.write_text("mine")
+    args = [a.format(ck=tmp_path / "absent.pt", psf=tmp_path / "absent.png", dir=tmp_path)
+            for a in argv]
+    assert ekdun_main(args) == 2
+    assert "(use --overwrite to replace it)" in one_error_line(capsys)
+    assert target.read_text() == "mine" and temps(tmp_path) == []
+
+
 # ---------------------------------------------------------------- all or nothing
 
 def test_fit_eigen_bad_out_leaves_no_figures(grid_3x3, tmp_path, capsys):
