@@ -99,6 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True,
                    help="pairs folder, or a virtual-bench dataset (uses its test/)")
     p.add_argument("--out", required=True, help="folder for the tables")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS "
                                            "(else $EKDUN_LPIPS_WEIGHTS; else unavailable)")
     p.add_argument("--device", default="cpu")
@@ -133,6 +134,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--background", choices=("none", "corner"), default="corner",
                    help="subtract the mean of the [5:15, 5:15] corner from each (default)")
     p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out file and its preview")
     p.set_defaults(func=run_admm)
 
     # ---------------------------------------------------------------- export-kernels
@@ -140,6 +143,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                               "kernel file")
     p.add_argument("checkpoint")
     p.add_argument("--out", required=True, help="kernel file (.npz)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=run_export_kernels)
 
     # ---------------------------------------------------------------- benchmark-tiny
@@ -205,14 +209,17 @@ def _checkpoint_path(item: str) -> Path:
 
 def run_eval(args: argparse.Namespace) -> int:
     from ekdun.evaluation import LPIPSMetric, evaluate_checkpoints, write_tables
+    from psfkit.io import OutputTransaction
 
     _threads(args)
-    lpips = LPIPSMetric(args.lpips_weights)
-    if not lpips.available:
-        _say(args, lpips.reason)
-    results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
-                                   log=lambda line: _say(args, line))
-    write_tables(args.out, results, [lpips.reason] if lpips.reason else [])
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        folder = outputs.folder(args.out)   # checked before the evaluation
+        lpips = LPIPSMetric(args.lpips_weights)
+        if not lpips.available:
+            _say(args, lpips.reason)
+        results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
+                                       log=lambda line: _say(args, line))
+        write_tables(folder, results, [lpips.reason] if lpips.reason else [])
     return 0
 
 
@@ -233,16 +240,28 @@ def _box_downsample(image, factor: int):
 
 
 def run_admm(args: argparse.Namespace) -> int:
-    import numpy as np
 
-    from ekdun.reconstruction import admm_tv
-    from ekdun.reconstruction.reconstruct import to_preview
-    from psfkit.io.atomic import atomic_file
-    from psfkit.io.images import read_image, write_image
+    from psfkit.io import OutputTransaction
 
     out = Path(args.out)
     if out.suffix != ".npy":
         raise InvalidInputError(f"{out}: the output must be a .npy file")
+    # the image and its preview are checked first and appear together
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        staged = outputs.file(out), outputs.file(out.with_suffix(".png"))
+        result = _admm(args, *staged)
+    print(f"ADMM-TV reconstruction {result.shape[1]}x{result.shape[2]}: {out}",
+          file=sys.stderr)
+    return 0
+
+
+def _admm(args: argparse.Namespace, out: Path, preview_path: Path):
+    import numpy as np
+
+    from ekdun.reconstruction import admm_tv
+    from ekdun.reconstruction.reconstruct import to_preview
+    from psfkit.io.images import read_image, write_image
+
     images = []
     for path in (args.psf, args.measurement):
         image = read_image(path, args.channel_order).astype(np.float64)
@@ -258,11 +277,8 @@ def run_admm(args: argparse.Namespace) -> int:
     result = admm_tv(y, psf, iterations=args.iterations, tau=args.tau).numpy()
     write_image(out, result.astype(np.float32))
     preview = result / max(float(result.max()), 1e-12)
-    with atomic_file(out.with_suffix(".png")) as tmp:
-        write_image(tmp.with_suffix(".png"), to_preview(preview))
-    print(f"ADMM-TV reconstruction {result.shape[1]}x{result.shape[2]}: {out}",
-          file=sys.stderr)
-    return 0
+    write_image(preview_path, to_preview(preview))
+    return result
 
 
 def run_export_kernels(args: argparse.Namespace) -> int:
@@ -272,7 +288,11 @@ def run_export_kernels(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
-    save_kernels(out, export_kernels(_checkpoint_path(args.checkpoint)))
+    from psfkit.io import OutputTransaction
+
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        staged = outputs.file(out)
+        save_kernels(staged, export_kernels(_checkpoint_path(args.checkpoint)))
     print(f"learned kernels: {out}", file=sys.stderr)
     return 0
 

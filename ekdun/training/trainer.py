@@ -96,6 +96,22 @@ class TrainOptions:
         return replace(base, **values)
 
 
+def check_training_config(cfg: TrainingConfig) -> None:
+    """Refuse out-of-range settings before anything is built or written (a bad batch size
+    used to fail in the first epoch, after ``kernels_initial.npz`` had been written)."""
+    for name in ("epochs", "batch_size"):
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigurationError(f"--{name.replace('_', '-')} must be an integer >= 1, "
+                                     f"got {value!r}")
+    for name in ("lr", "gamma", "kernel_lr_scale"):
+        value = float(getattr(cfg, name))
+        # kernel_lr_scale 0 freezes the physics kernels, a valid choice
+        if not np.isfinite(value) or value < 0 or (value == 0 and name != "kernel_lr_scale"):
+            raise ConfigurationError(f"--{name.replace('_', '-')}: must be a finite positive "
+                                     f"number, got {value!r}")
+
+
 def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
     kernels, others = [], []
     for name, p in model.named_parameters():
@@ -164,6 +180,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
     """
     options = options or TrainOptions()
     cfg = options.resolve(preset)
+    check_training_config(cfg)
     ctx = D.setup(options.device)
     if options.threads:
         torch.set_num_threads(options.threads)

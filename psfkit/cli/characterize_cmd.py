@@ -10,8 +10,7 @@ import numpy as np
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import add_grid_options, preprocess_options
-from psfkit.errors import InvalidInputError
-from psfkit.io import read_grid
+from psfkit.io import OutputTransaction, read_grid
 
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).
@@ -48,14 +47,14 @@ def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterizati
 def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
                            ) -> GridCharacterization:
     """:func:`_run`, then the numbers to ``--out`` (JSON/CSV) when given; a bad output name is
-    refused before the work."""
+    refused before the work, as is an existing one without ``--overwrite``."""
     from psfkit.report import check_numbers_path, write_numbers
 
-    if args.out:
-        check_numbers_path(args.out)
-    result = _run(args, steps)
-    if args.out:
-        write_numbers(result, args.out)
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        numbers = outputs.file(check_numbers_path(args.out)) if args.out else None
+        result = _run(args, steps)
+        if numbers is not None:
+            write_numbers(result, numbers)
     return result
 
 
@@ -78,6 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "1/UPSAMPLE px) and fit the field-position -> shift map.")
     _common(p)
     p.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=run_register)
 
     m = sub.add_parser("mae", help="mean absolute error of each PSF vs the centre PSF",
@@ -89,6 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Gaussian sigma (px) applied before the MAE to suppress sensor noise "
                         "(0 = raw pixels; default 1)")
     m.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     m.set_defaults(func=run_mae)
 
     w = sub.add_parser("warp", help="dense warp fields: affine part and astigmatic residual",
@@ -99,6 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the residual (default dis)")
     w.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
+    w.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     w.set_defaults(func=run_warp)
 
     r = sub.add_parser("report", help="register + gain + MAE + warp, as an HTML report",
@@ -171,19 +173,14 @@ def run_warp(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_report_dir(out: str, overwrite: bool) -> None:
-    path = Path(out)
-    if path.exists() and (not path.is_dir() or (any(path.iterdir()) and not overwrite)):
-        raise InvalidInputError(f"{path}: output folder exists and is not empty (use "
-                                "--overwrite to replace it)")
-
-
 def run_report(args: argparse.Namespace) -> int:
     from psfkit.report import write_report
 
-    _check_report_dir(args.out, args.overwrite)
-    result = _run(args, ("register", "gain", "mae", "warp"))
-    out = write_report(result, args.out, overwrite=args.overwrite)
+    out = Path(args.out)
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        folder = outputs.folder(out)   # checked before the work
+        result = _run(args, ("register", "gain", "mae", "warp"))
+        write_report(result, folder, overwrite=True)   # into the empty temporary folder
     print_registration(result)
     _print_warnings(result)
     print(f"report: {out / 'report.html'}")

@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import Any
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import preprocess_options
-from psfkit.errors import InvalidInputError
+from psfkit.io import OutputTransaction
 from psfkit.kernelfile import load_kernels
 
 
@@ -53,14 +54,21 @@ def _fmt(value: float | None) -> str:
 
 def run_compare(args: argparse.Namespace) -> int:
     # imported here, not when the parser is built (scipy, OpenCV, matplotlib)
-    from psfkit.compare import CompareOptions, check_learned, compare_kernels, load_grid
     from psfkit.compare_report import write_comparison
 
     out = Path(args.out)
     # refuse every bad input before any work (and before anything is written)
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.overwrite)):
-        raise InvalidInputError(f"{out}: output folder exists and is not empty "
-                                "(use --overwrite to replace it)")
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        folder = outputs.folder(out)
+        comparison, learned = _compare(args)
+        write_comparison(comparison, folder, overwrite=True)   # into the empty temporary
+    _print_comparison(args, comparison, learned, out)
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> tuple[Any, Any]:
+    from psfkit.compare import CompareOptions, check_learned, compare_kernels, load_grid
+
     learned = load_kernels(args.learned)
     check_learned(learned, args.learned)
     initial = load_kernels(args.initial) if args.initial else None
@@ -70,7 +78,11 @@ def run_compare(args: argparse.Namespace) -> int:
                              preprocess=preprocess_options(args))
     comparison = compare_kernels(learned, grid, initial=initial, options=options,
                                  progress=not args.quiet)
-    write_comparison(comparison, out, overwrite=args.overwrite)
+    return comparison, learned
+
+
+def _print_comparison(args: argparse.Namespace, comparison: Any, learned: Any, out: Path
+                      ) -> None:
     print(f"compared {args.learned} ({', '.join(learned.kernel_names)}) with grid {args.grid}; "
           f"wrote {out}")
     print("  displacement-map correlation (Pearson; n/a = no displacement):")

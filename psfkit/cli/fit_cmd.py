@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 from psfkit.choices import CV_BASES, CV_BASES_ALL
 from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
-from psfkit.io import atomic_directory, read_grid
+from psfkit.io import OutputTransaction, atomic_directory, read_grid
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
 from psfkit.weights import BASIS_NAMES
@@ -47,6 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--figures", metavar="DIR",
                    help="also write Fig. 7 (kernels), Fig. 3 (weights), diagnostics and a JSON "
                         "summary into DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out file or --figures folder")
     p.set_defaults(func=run_fit_eigen)
 
 
@@ -86,14 +88,23 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
 
 
 def run_fit_eigen(args: argparse.Namespace) -> int:
-    from psfkit.grid_fit import fit_eigen_grid
-
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
-    figures = Path(args.figures) if args.figures else None
-    if figures is not None and figures.exists() and any(figures.iterdir()):
-        raise InvalidInputError(f"{figures}: output folder exists and is not empty")
+    # both outputs are checked before the fit and appear together, or neither does
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        figures = outputs.folder(args.figures) if args.figures else None
+        kernels = outputs.file(out)
+        result, basis = _fit(args, figures, kernels)
+    _print_summary(result, basis, out)
+    return 0
+
+
+def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
+         ) -> tuple[GridEigenResult, str]:
+    """Fit, and write the kernel file (and figures) to the given temporary paths."""
+    from psfkit.grid_fit import fit_eigen_grid
+
     grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
     basis = args.basis
     if basis == "auto":
@@ -106,13 +117,18 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
         basis = best.split("/")[0]
         print(f"cross-validation chose basis {basis!r}")
     result = fit_eigen_grid(grid, _options(args, basis), progress=not args.quiet)
-    model = result.kernel_model()
     if figures is not None:
-        write_fit_figures(result, figures)
-    save_kernels(out, model)
+        write_fit_figures(result, figures, overwrite=True)   # into the empty temporary folder
+    save_kernels(kernels, result.kernel_model())
+    return result, basis
+
+
+def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
+    model = result.kernel_model()
+    grid_shape = result.grid_shape
     summary = result.summary()
-    print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {grid.grid_shape[0]}x"
-          f"{grid.grid_shape[1]} PSFs; wrote {out} ({model.convention}-side weights)")
+    print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {grid_shape[0]}x"
+          f"{grid_shape[1]} PSFs; wrote {out} ({model.convention}-side weights)")
     for conv, res in summary["in_sample_relative_error"].items():
         print(f"  {conv}-side weights: in-sample relative error median {res['median']:.4f}, "
               f"max {res['max']:.4f}")
@@ -129,4 +145,3 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
     if result.angles_deg is not None:
         print("  principal angles eigen-kernels vs top PCA subspace (deg): "
               + ", ".join(f"{a:.1f}" for a in result.angles_deg))
-    return 0

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.errors import InvalidInputError
-from psfkit.io import atomic_file, read_pairs
+from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
@@ -42,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also report each pair's error when it is left out of the fit")
     p.add_argument("--report", metavar="JSON", help="write the fit summary to this JSON file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out or --report file")
     p.set_defaults(func=run_fit_pairs)
 
     e = sub.add_parser(
@@ -55,6 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
     e.add_argument("--out", metavar="JSON", help="write the errors to this JSON file")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     e.set_defaults(func=run_eval_model)
 
 
@@ -76,11 +79,6 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         "exposure and normalisation)")
 
 
-def _write_text(path: str, text: str) -> None:
-    with atomic_file(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-
-
 def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
     from psfkit.pairs_fit import downsample_pairs
 
@@ -93,9 +91,6 @@ def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
 
 
 def run_fit_pairs(args: argparse.Namespace) -> int:
-    # torch is imported here, by the commands that use it, not when the parser is built
-    from psfkit.pairs_fit import fit_pairs, leave_one_out
-
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
@@ -103,6 +98,21 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
     options = PairFitOptions(basis=basis, convention=args.convention, tikhonov=args.tikhonov,
                              difference=args.difference, iterations=args.iterations,
                              fit_scale=not args.no_scale)
+    # both outputs are checked before the fit and appear together, or neither does
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        kernels = outputs.file(out)
+        report = outputs.file(args.report) if args.report else None
+        pairs, scenes, fit, summary = _fit(args, basis, options, kernels, report)
+    _print_fit(args, basis, out, pairs, scenes, fit, summary)
+    return 0
+
+
+def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels: Path,
+         report: Path | None) -> tuple[Any, np.ndarray, Any, dict[str, Any]]:
+    """Fit, and write the kernel file (and report) to the given temporary paths."""
+    # torch is imported here, by the commands that use it, not when the parser is built
+    from psfkit.pairs_fit import fit_pairs, leave_one_out
+
     pairs, scenes, measurements = _load(args.pairs, args.downsample)
     fit = fit_pairs(scenes, measurements, options, progress=not args.quiet)
     summary: dict[str, Any] = {
@@ -119,10 +129,14 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
                   "names": list(pairs.names), "downsample": args.downsample,
                   "options": options.__dict__, "training_error":
                   [round(float(e), 6) for e in fit.training_error]}
-    report = json.dumps(jsonable(summary), indent=1) + "\n" if args.report else None
-    save_kernels(out, fit.kernel_model(provenance))
+    save_kernels(kernels, fit.kernel_model(provenance))
     if report is not None:
-        _write_text(args.report, report)
+        report.write_text(json.dumps(jsonable(summary), indent=1) + "\n", encoding="utf-8")
+    return pairs, scenes, fit, summary
+
+
+def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
+               scenes: np.ndarray, fit: Any, summary: dict[str, Any]) -> None:
     name = "shift-invariant PSF" if basis == "si" else f"{basis} eigen-kernels"
     print(f"fitted a {name} to {len(pairs)} pairs of {scenes.shape[-2]}x{scenes.shape[-1]}x"
           f"{scenes.shape[1]}; wrote {out}")
@@ -134,10 +148,22 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
         loo = summary["leave_one_out"]
         print(f"  leave-one-out relative error: mean {loo['mean_raw']:.4f} raw, "
               f"{loo['mean_scaled']:.4f} with the best per-pair scale")
-    return 0
 
 
 def run_eval_model(args: argparse.Namespace) -> int:
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        out = outputs.file(args.out) if args.out else None
+        result = _evaluate(args)
+        if out is not None:
+            out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+    print(f"{'pair':>16s}  {'raw':>8s}  {'scaled':>8s}")
+    for name, row in result["per_pair"].items():
+        print(f"{name:>16s}  {row['raw']:8.4f}  {row['scaled']:8.4f}")
+    print(f"{'mean':>16s}  {result['mean_raw']:8.4f}  {result['mean_scaled']:8.4f}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from psfkit.pairs_fit import predict, relative_errors
 
     model = load_kernels(args.model)
@@ -158,10 +184,4 @@ def run_eval_model(args: argparse.Namespace) -> int:
                            for i, name in enumerate(pairs.names)},
               "mean_raw": float(errors["raw"].mean()),
               "mean_scaled": float(errors["scaled"].mean())}
-    if args.out:
-        _write_text(args.out, json.dumps(result, indent=1) + "\n")
-    print(f"{'pair':>16s}  {'raw':>8s}  {'scaled':>8s}")
-    for name, row in result["per_pair"].items():
-        print(f"{name:>16s}  {row['raw']:8.4f}  {row['scaled']:8.4f}")
-    print(f"{'mean':>16s}  {result['mean_raw']:8.4f}  {result['mean_scaled']:8.4f}")
-    return 0
+    return result

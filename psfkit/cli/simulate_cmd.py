@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psfkit.errors import ConfigurationError, InvalidInputError
-from psfkit.io import PsfGrid, read_grid
+from psfkit.io import OutputTransaction, PsfGrid, read_grid
+from psfkit.io.atomic import check_output
 
 # The virtual bench (scipy) is imported by the commands that run it, not when the parser is
 # built (``psfkit --help`` stays fast).
@@ -113,24 +115,43 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from psfkit.bench import read_ground_truth, simulate_grid
+    from psfkit.bench import simulate_grid
+
+    config = bench_config_from_args(args)
+    out = check_output(args.out, "folder", args.overwrite)
+    grid_dir, report_dir = out / "grid", out / "report"
+    new_grid = not grid_dir.exists()
+    try:
+        # the report and kernels appear together; the grid (which they name) is written
+        # first, under its final name, and removed again if the demo fails
+        with OutputTransaction(overwrite=True) as outputs:
+            staged = (outputs.folder(report_dir), outputs.file(out / "kernels.npz"),
+                      outputs.folder(out / "kernels-figures"))
+            simulate_grid(grid_dir, config, overwrite=True, progress=not args.quiet)
+            _demo_steps(args, config, grid_dir, *staged)
+    except BaseException:
+        if new_grid:
+            shutil.rmtree(grid_dir, ignore_errors=True)
+        raise
+    print(f"report: {report_dir / 'report.html'}")
+    print(f"kernels for ekdun: {out / 'kernels.npz'} (figures in {out / 'kernels-figures'})")
+    return 0
+
+
+def _demo_steps(args: argparse.Namespace, config: BenchConfig, grid_dir: Path,
+                report_tmp: Path, kernels_tmp: Path, figures_tmp: Path) -> None:
+    """Characterize the simulated grid and fit its eigen-kernels, into the staged outputs."""
+    from psfkit.bench import read_ground_truth
     from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
     from psfkit.report import write_report
 
-    config = bench_config_from_args(args)
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise InvalidInputError(f"{out}: output folder exists and is not empty "
-                                "(use --overwrite to replace it)")
-    grid_dir, report_dir = out / "grid", out / "report"
-    simulate_grid(grid_dir, config, overwrite=True, progress=not args.quiet)
     grid = read_grid(grid_dir)
     truth = read_ground_truth(grid_dir)
     c, h, w = grid.image_shape
     print(f"virtual bench: {grid.grid_shape[0]} x {grid.grid_shape[1]} PSFs of {h} x {w} x {c} "
           f"({grid.dtype}), field up to {np.abs(truth.field_deg).max():.2f} deg, in {grid_dir}")
     result = characterize_grid(grid, CharacterizeOptions(), progress=not args.quiet)
-    write_report(result, report_dir, overwrite=True)
+    write_report(result, report_tmp, overwrite=True)
 
     error = np.hypot(*np.moveaxis(result.table("shift") - truth.shift_px, -1, 0))
     reliable = result.table("overlap") >= RELIABLE_OVERLAP
@@ -151,22 +172,19 @@ def run_demo(args: argparse.Namespace) -> int:
         a = result.warp_anisotropy
         print(f"tangential/sagittal anisotropy: {a['median_measured']:.2f} "
               f"(geometric optics {a['median_geometric']:.2f})")
-    print(f"report: {report_dir / 'report.html'}")
-    _demo_eigen_fit(grid, out, quiet=args.quiet)
-    return 0
+    _demo_eigen_fit(grid, kernels_tmp, figures_tmp, quiet=args.quiet)
 
 
-def _demo_eigen_fit(grid: PsfGrid, out: Path, quiet: bool) -> None:
+def _demo_eigen_fit(grid: PsfGrid, kernels: Path, figures: Path, quiet: bool) -> None:
     """The demo's last step: the eigen-kernel fit that seeds EK-DUN (as ``psfkit fit-eigen``)."""
     from psfkit.cli.fit_cmd import write_fit_figures
     from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
     from psfkit.kernelfile import save_kernels
 
     result = fit_eigen_grid(grid, EigenFitOptions(), progress=not quiet)
-    save_kernels(out / "kernels.npz", result.kernel_model())
-    write_fit_figures(result, out / "kernels-figures", overwrite=True)
+    save_kernels(kernels, result.kernel_model())
+    write_fit_figures(result, figures, overwrite=True)
     if result.cv is not None:
         errors = ", ".join(f"{name} {err:.3f}" for name, err
                            in result.cv["held_out_relative_error"].items())
         print(f"eigen-kernels: held-out relative error {errors}")
-    print(f"kernels for ekdun: {out / 'kernels.npz'} (figures in {out / 'kernels-figures'})")
