@@ -24,7 +24,6 @@ the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A ker
 
 from __future__ import annotations
 
-import json
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -35,6 +34,15 @@ import numpy as np
 
 from psfkit.errors import ModelFileError, PsfkitError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import (
+    MAX_IMAGE_PIXELS,
+    MAX_SCENE_PADDING,
+    bounded_size,
+    dumps_finite,
+    exact_int,
+    finite_number,
+    load_json_document,
+)
 from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
@@ -139,8 +147,14 @@ def validate_model(kernels: np.ndarray, basis_name: str, convention: str,
     if len(sensor_shape) != 2 or min(sensor_shape) < 2:
         raise ModelFileError(f"{where}: sensor_shape {list(sensor_shape)} is not a valid size")
     h, w = sensor_shape
-    if not isinstance(scene_padding, int) or scene_padding < 2:
-        raise ModelFileError(f"{where}: scene_padding must be an integer >= 2")
+    if isinstance(scene_padding, bool) or not isinstance(scene_padding, int) \
+            or not 2 <= scene_padding <= MAX_SCENE_PADDING:
+        raise ModelFileError(f"{where}: scene_padding must be an integer in 2..."
+                             f"{MAX_SCENE_PADDING}, got {scene_padding!r}")
+    if scene_padding**2 * h * w > 4 * MAX_IMAGE_PIXELS:
+        raise ModelFileError(f"{where}: the convolution grid {scene_padding}x{h} x "
+                             f"{scene_padding}x{w} exceeds the limit of {4 * MAX_IMAGE_PIXELS} "
+                             "pixels")
     if k.shape[2] > h or k.shape[3] > w:
         raise ModelFileError(f"{where}: kernels {k.shape[2]}x{k.shape[3]} are larger than the "
                              f"sensor {h}x{w}")
@@ -163,9 +177,42 @@ def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
         "kernel_origin": "array centre (H//2, W//2)",
         "provenance": model.provenance,
     }
+    text = dumps_finite(meta, f"{path}: metadata")   # never a bare NaN in a kernel file
     with atomic_file(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, kernels=model.kernels, metadata=np.array(json.dumps(meta)))
+        np.savez(fh, kernels=model.kernels, metadata=np.array(text))
     return path
+
+
+def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
+    """The model fields of a kernel file's metadata, each checked for type and range
+    (``where: field ...`` in messages); raises ``KeyError`` for a missing required field."""
+    def text(key: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise ModelFileError(f"{where}: '{key}' must be a string, got {value!r}")
+        return value
+
+    channels = meta["channels"]
+    if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
+        raise ModelFileError(f"{where}: 'channels' must be a list of names, got {channels!r}")
+    sensor = tuple(bounded_size(meta["sensor_shape"], f"{where}: 'sensor_shape'"))
+    if len(sensor) != 2:
+        raise ModelFileError(f"{where}: 'sensor_shape' must be [H, W], got {list(sensor)}")
+    center = meta.get("optical_center")
+    if center is not None:
+        if not isinstance(center, list) or len(center) != 2:
+            raise ModelFileError(f"{where}: 'optical_center' must be [v, u], got {center!r}")
+        center = tuple(finite_number(v, f"{where}: 'optical_center'", -10.0 * max(sensor),
+                                     10.0 * max(sensor)) for v in center)
+    provenance = meta.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise ModelFileError(f"{where}: 'provenance' must be an object, got {provenance!r}")
+    return dict(basis=text("basis", meta["basis"]),
+                convention=text("convention", meta["convention"]),
+                sensor_shape=sensor, channels=tuple(channels), optical_center=center,
+                scene_padding=exact_int(meta.get("scene_padding", 2),
+                                        f"{where}: 'scene_padding'", 2, MAX_SCENE_PADDING),
+                normalization=text("normalization", meta.get("normalization", "unspecified")),
+                provenance=provenance)
 
 
 def load_kernels(path: str | os.PathLike) -> KernelModel:
@@ -179,29 +226,30 @@ def load_kernels(path: str | os.PathLike) -> KernelModel:
                 raise ModelFileError(f"{path}: not a kernel file (needs 'kernels' and "
                                      "'metadata' arrays)")
             kernels = np.array(data["kernels"])
-            meta = json.loads(str(data["metadata"]))
+            text = str(data["metadata"])
     except ModelFileError:
         raise
-    except (ValueError, OSError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ModelFileError(f"{path}: not a readable kernel file ({reason})") from None
+    try:
+        meta = load_json_document(text, f"{path}: metadata")
+    except PsfkitError as exc:
+        raise ModelFileError(str(exc)) from None
     if not isinstance(meta, dict) or meta.get("format") != KERNEL_FORMAT:
         raise ModelFileError(f"{path}: not an {KERNEL_FORMAT} file")
-    if meta.get("version") != KERNEL_VERSION:
+    if isinstance(meta.get("version"), bool) or meta.get("version") != KERNEL_VERSION:
         raise ModelFileError(f"{path}: kernel file version {meta.get('version')!r} is not "
                              f"supported (this toolkit reads version {KERNEL_VERSION})")
     try:
-        values = dict(
-            kernels=kernels.astype(np.float32, copy=False), basis=meta["basis"],
-            convention=meta["convention"], sensor_shape=tuple(meta["sensor_shape"]),
-            channels=tuple(meta["channels"]),
-            optical_center=None if meta.get("optical_center") is None
-            else tuple(meta["optical_center"]),
-            scene_padding=meta.get("scene_padding", 2),
-            normalization=meta.get("normalization", "unspecified"),
-            provenance=meta.get("provenance", {}))
-    except (KeyError, TypeError) as exc:
-        raise ModelFileError(f"{path}: metadata lacks or mangles {exc}") from None
+        values = _checked_metadata(meta, f"{path}: metadata")
+    except KeyError as exc:
+        raise ModelFileError(f"{path}: metadata lacks {exc}") from None
+    except PsfkitError as exc:
+        raise ModelFileError(str(exc)) from None
+    if kernels.dtype.kind not in "biuf":
+        raise ModelFileError(f"{path}: kernels are {kernels.dtype} data, expected numbers")
+    values["kernels"] = kernels.astype(np.float32, copy=False)
     validate_model(values["kernels"], values["basis"], values["convention"],
                    values["sensor_shape"], values["channels"], values["scene_padding"],
                    where=str(path))

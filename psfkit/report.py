@@ -16,7 +16,6 @@ import base64
 import csv
 import html
 import io
-import json
 import math
 import os
 from pathlib import Path
@@ -28,6 +27,7 @@ from psfkit import __version__
 from psfkit.characterize import RELIABLE_OVERLAP, GridCharacterization
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.validation import dumps_finite
 
 CSV_COLUMNS = (
     "row", "col", "file", "field_x_deg", "field_y_deg", "monitor_x_px", "monitor_y_px",
@@ -113,7 +113,7 @@ def write_numbers(result: GridCharacterization, path: str | os.PathLike) -> Path
     path = check_numbers_path(path)
     with atomic_file(path) as tmp:
         if path.suffix == ".json":
-            tmp.write_text(json.dumps(results_document(result), indent=1) + "\n",
+            tmp.write_text(dumps_finite(results_document(result), str(path), indent=1) + "\n",
                            encoding="utf-8")
         else:
             _write_csv(tmp, result)
@@ -175,7 +175,9 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
                 fig.savefig(buffer, format="png", dpi=150)
             embedded.append((stem, caption, base64.b64encode(buffer.getvalue()).decode()))
         doc = results_document(result)
-        (tmp / "results.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        (tmp / "results.json").write_text(
+            dumps_finite(doc, str(Path(out_dir) / "results.json"), indent=1) + "\n",
+            encoding="utf-8")
         _write_csv(tmp / "positions.csv", result)
         (tmp / "report.html").write_text(_html(result, doc, embedded), encoding="utf-8")
     return out_dir

@@ -10,6 +10,7 @@ from typing import Any
 
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import dumps_finite
 
 MODEL_LABELS = {"le-admm-u": "Le-ADMM-U", "updn": "UPDN", "ekdun": "EK-DUN"}
 SCHEDULE_LABELS = {"base": "base only", "last-2": "last-2", "last-k": "last-2", "all": "all"}
@@ -125,7 +126,8 @@ def render_table(results: list[dict[str, Any]], which: str,
 
 def _write_json(path: Path, doc: dict[str, Any]) -> Path:
     with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+        tmp.write_text(dumps_finite(doc, str(path), indent=1, default=float) + "\n",
+                       encoding="utf-8")
     return path
 
 

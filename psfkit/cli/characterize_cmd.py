@@ -17,6 +17,7 @@ from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.errors import InvalidInputError
 from psfkit.io import read_grid
 from psfkit.report import check_numbers_path, warnings_for, write_numbers, write_report
+from psfkit.validation import nonnegative_float, positive_int
 from psfkit.warp import FLOW_METHODS
 
 
@@ -24,7 +25,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     add_grid_options(p)
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour)")
-    p.add_argument("--workers", type=int, default=None,
+    p.add_argument("--workers", type=positive_int, default=None,
                    help="positions processed concurrently (default 2)")
 
 
@@ -78,7 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "(and gain) compensation: the error of a shift-invariant "
                                    "model (paper Fig. 2).")
     _common(m)
-    m.add_argument("--mae-smoothing", type=float, default=1.0, metavar="SIGMA",
+    m.add_argument("--mae-smoothing", type=nonnegative_float, default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) applied before the MAE to suppress sensor noise "
                         "(0 = raw pixels; default 1)")
     m.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
@@ -102,7 +103,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--out", required=True, help="output folder (created atomically)")
     r.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the warp residual (default dis)")
-    r.add_argument("--mae-smoothing", type=float, default=1.0, metavar="SIGMA",
+    r.add_argument("--mae-smoothing", type=nonnegative_float, default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) before the MAE (default 1)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     r.set_defaults(func=run_report)

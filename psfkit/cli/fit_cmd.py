@@ -24,6 +24,7 @@ from psfkit.grid_fit import (
 from psfkit.io import atomic_directory, read_grid
 from psfkit.kernelfile import save_kernels
 from psfkit.report import jsonable
+from psfkit.validation import positive_int
 from psfkit.weights import BASIS_NAMES
 
 
@@ -49,7 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated bases compared by cross-validation with the fitted "
                         f"one (default {','.join(CV_BASES)}; 'all' = {','.join(CV_BASES_ALL)}; "
                         "'none' to skip)")
-    p.add_argument("--folds", type=int, default=9, help="cross-validation folds (default 9)")
+    p.add_argument("--folds", type=positive_int, default=9,
+                   help="cross-validation folds (default 9)")
     p.add_argument("--figures", metavar="DIR",
                    help="also write Fig. 7 (kernels), Fig. 3 (weights), diagnostics and a JSON "
                         "summary into DIR")

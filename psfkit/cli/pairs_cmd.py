@@ -4,7 +4,6 @@ pairs, and their prediction error on pairs they never saw."""
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from psfkit.pairs_fit import (
     relative_errors,
 )
 from psfkit.report import jsonable
+from psfkit.validation import dumps_finite, exact_int, nonnegative_float, positive_int
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -58,7 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "with the best per-pair scale (for per-image normalised datasets).")
     e.add_argument("model", help="kernel file (.npz) from fit-pairs or fit-eigen")
     e.add_argument("pairs", help="pairs folder")
-    e.add_argument("--downsample", type=int, default=None, metavar="N",
+    e.add_argument("--downsample", type=positive_int, default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
     e.add_argument("--out", metavar="JSON", help="write the errors to this JSON file")
@@ -68,14 +68,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     d = PairFitOptions()
     g = p.add_argument_group("solver")
-    g.add_argument("--downsample", type=int, default=1, metavar="N",
+    g.add_argument("--downsample", type=positive_int, default=1, metavar="N",
                    help="bin scenes and measurements N x N before fitting (default 1)")
-    g.add_argument("--tikhonov", type=float, default=d.tikhonov,
+    g.add_argument("--tikhonov", type=nonnegative_float, default=d.tikhonov,
                    help=f"ridge weight relative to the mean scene power (default {d.tikhonov:g})")
-    g.add_argument("--difference", type=float, default=d.difference,
+    g.add_argument("--difference", type=nonnegative_float, default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
                         f"likewise (default {d.difference:g})")
-    g.add_argument("--iterations", type=int, default=None,
+    g.add_argument("--iterations", type=positive_int, default=None,
                    help="conjugate-gradient iterations of the final solve (default 30 for si, "
                         "60 for eigen-kernel models)")
     g.add_argument("--no-scale", action="store_true",
@@ -121,7 +121,8 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
                   "names": list(pairs.names), "downsample": args.downsample,
                   "options": options.__dict__, "training_error":
                   [round(float(e), 6) for e in fit.training_error]}
-    report = json.dumps(jsonable(summary), indent=1) + "\n" if args.report else None
+    report = dumps_finite(jsonable(summary), args.report, indent=1) + "\n" if args.report \
+        else None
     save_kernels(out, fit.kernel_model(provenance))
     if report is not None:
         _write_text(args.report, report)
@@ -141,8 +142,9 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
 
 def run_eval_model(args: argparse.Namespace) -> int:
     model = load_kernels(args.model)
-    factor = args.downsample if args.downsample is not None else int(
-        model.provenance.get("downsample", 1) or 1)
+    factor = args.downsample if args.downsample is not None else exact_int(
+        model.provenance.get("downsample", 1) or 1, f"{args.model}: provenance 'downsample'",
+        1, 64)
     pairs, scenes, measurements = _load(args.pairs, factor)
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
         raise InvalidInputError(
@@ -159,7 +161,7 @@ def run_eval_model(args: argparse.Namespace) -> int:
               "mean_raw": float(errors["raw"].mean()),
               "mean_scaled": float(errors["scaled"].mean())}
     if args.out:
-        _write_text(args.out, json.dumps(result, indent=1) + "\n")
+        _write_text(args.out, dumps_finite(result, args.out, indent=1) + "\n")
     print(f"{'pair':>16s}  {'raw':>8s}  {'scaled':>8s}")
     for name, row in result["per_pair"].items():
         print(f"{name:>16s}  {row['raw']:8.4f}  {row['scaled']:8.4f}")

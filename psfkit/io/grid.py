@@ -31,6 +31,7 @@ import numpy as np
 from psfkit.errors import GridFormatError, InvalidInputError
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
+from psfkit.validation import MAX_GRID_SIDE, finite_number, load_json_document, require_finite
 
 FORMAT_NAME = "psfkit-grid"
 FORMAT_VERSION = 1
@@ -39,6 +40,7 @@ MANIFEST_CSV = "manifest.csv"
 _CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")
 _CENTRE_TOL = 1e-6
+_POSITION_KEYS = ("file", "row", "col", "monitor_px", "field_deg", "exposure_s")
 
 
 @dataclass(frozen=True)
@@ -114,7 +116,8 @@ class PsfGrid:
         """The dark frame as ``(C, H, W)`` float32, or ``None`` when the grid has none."""
         if self.dark_file is None:
             return None
-        return read_image(self.root / self.dark_file, self.channel_order).astype(np.float32)
+        path = self.root / self.dark_file
+        return _checked_dark(path, read_image(path, self.channel_order)).astype(np.float32)
 
     def iter_images(self) -> Iterator[tuple[GridPosition, np.ndarray]]:
         """Yield ``(position, image)`` in row-major order, one image in memory at a time."""
@@ -178,6 +181,9 @@ def _index(value: Any, where: str, name: str) -> int:
             f"{where}: '{name}' must be a non-negative integer, got {value!r}") from None
     if not as_float.is_integer() or as_float < 0:
         raise GridFormatError(f"{where}: '{name}' must be a non-negative integer, got {value!r}")
+    if as_float > MAX_GRID_SIDE:
+        raise GridFormatError(f"{where}: '{name}' {value!r} exceeds the limit of "
+                              f"{MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
     return int(as_float)
 
 
@@ -201,6 +207,10 @@ def _position_from_dict(entry: Any, where: str) -> GridPosition:
         raise GridFormatError(f"{where}: position without a 'file' name: {entry!r}")
     if Path(file).name != file:
         raise GridFormatError(f"{where}: file '{file}' must be a plain name inside the grid folder")
+    unknown = sorted(str(k) for k in entry if k not in _POSITION_KEYS)
+    if unknown:
+        raise GridFormatError(f"{where} ({file}): unknown key(s) {', '.join(unknown)} "
+                              f"(allowed: {', '.join(_POSITION_KEYS)})")
     return GridPosition(
         file=file,
         row=_index(entry.get("row"), f"{where} ({file})", "row"),
@@ -213,19 +223,18 @@ def _position_from_dict(entry: Any, where: str) -> GridPosition:
 
 def _parse_json(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     try:
-        text = path.read_text(encoding="utf-8")
-        doc = json.loads(text)
-    except UnicodeDecodeError:
-        raise GridFormatError(f"{path}: not a UTF-8 text file") from None
-    except json.JSONDecodeError as exc:
-        raise GridFormatError(f"{path}: invalid JSON at line {exc.lineno}: {exc.msg}") from None
+        doc = load_json_document(path.read_bytes(), str(path))
+    except GridFormatError:
+        raise
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
     if not isinstance(doc, dict):
         raise GridFormatError(f"{path}: top level must be an object with a 'positions' list")
     fmt = doc.get("format", FORMAT_NAME)
     if fmt != FORMAT_NAME:
         raise GridFormatError(f"{path}: format is {fmt!r}, expected {FORMAT_NAME!r}")
     version = doc.get("version", FORMAT_VERSION)
-    if version != FORMAT_VERSION:
+    if isinstance(version, bool) or version != FORMAT_VERSION:
         raise GridFormatError(
             f"{path}: grid format version {version!r} is not supported (this reader: "
             f"{FORMAT_VERSION})")
@@ -246,7 +255,7 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
         raise GridFormatError(f"{path}: not a readable CSV file ({exc})") from None
     if not rows:
         raise GridFormatError(f"{path}: no rows (needs a header line with file,row,col)")
-    columns = set(rows[0].keys())
+    columns = {c for c in rows[0] if c is not None}
     missing = {"file", "row", "col"} - columns
     if missing:
         raise GridFormatError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
@@ -258,6 +267,9 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     positions = []
     for line_no, row in enumerate(rows, start=2):
         where = f"{path} line {line_no}"
+        if None in row:  # DictReader files cells beyond the header under the key None
+            raise GridFormatError(f"{where}: {len(row[None])} cell(s) more than the "
+                                  f"{len(columns)} columns of the header")
         role = (row.get("role") or "psf").strip().lower()
         if role == "dark":
             if "dark_frame" in header:
@@ -326,6 +338,14 @@ def _check_pixels(path: Path, image: np.ndarray) -> None:
         raise GridFormatError(f"{path}: all-zero frame (nothing was captured)")
 
 
+def _checked_dark(path: Path, image: np.ndarray) -> np.ndarray:
+    """The dark frame, refused when it holds NaN/Inf (one check for every command)."""
+    try:
+        return require_finite(image, f"{path}: dark frame")
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
+
+
 def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
     c, h, w = shape
     return f"{h}×{w}×{c} {dtype}"
@@ -386,6 +406,9 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
             raise GridFormatError(f"{manifest}: positions reach index ({n_rows - 1}, "
                                   f"{n_cols - 1}) beyond grid_shape {list(declared)}")
         n_rows, n_cols = declared
+    if n_rows > MAX_GRID_SIDE or n_cols > MAX_GRID_SIDE:
+        raise GridFormatError(f"{manifest}: grid of {n_rows} x {n_cols} positions exceeds the "
+                              f"limit of {MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
     missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
     if missing:
         listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
@@ -445,18 +468,21 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
                 f"({_describe(ref_shape, ref_dtype)})")
         if check_pixels and name != dark_file:
             _check_pixels(path, image)
-        if check_pixels and name == dark_file and np.issubdtype(dtype, np.floating) \
-                and not np.all(np.isfinite(image)):
-            raise GridFormatError(f"{path}: dark frame contains NaN/Inf values")
+        if check_pixels and name == dark_file:
+            _checked_dark(path, image)
     assert ref_shape is not None and ref_dtype is not None
 
     channels = ("L",) if ref_shape[0] == 1 else ("R", "G", "B")
     bit_depth = header.get("bit_depth")
-    if bit_depth is not None and (not isinstance(bit_depth, int) or not 1 <= bit_depth <= 32):
+    if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)
+                                  or not 1 <= bit_depth <= 32):
         raise GridFormatError(f"{manifest}: 'bit_depth' must be an integer in 1..32")
     black_level = header.get("black_level")
-    if black_level is not None and not isinstance(black_level, (int, float)):
-        raise GridFormatError(f"{manifest}: 'black_level' must be a number")
+    if black_level is not None:
+        try:  # a black level is at most the largest stored value (2^32 for any container)
+            black_level = finite_number(black_level, f"{manifest}: 'black_level'", 0.0, 2.0**32)
+        except InvalidInputError as exc:
+            raise GridFormatError(str(exc)) from None
     pitch = header.get("pixel_pitch_um")
     if pitch is not None:
         pitch = _positive(pitch, str(manifest), "pixel_pitch_um")

@@ -14,6 +14,7 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import bounded_size, require_finite_output
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -28,6 +29,15 @@ def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.nda
         raise InvalidInputError(
             f"{path}: has {chw.shape[0]} channels; expected 1 (mono) or 3 (RGB)")
     return chw
+
+
+def _check_declared_size(shape: tuple[int, ...], path: Path) -> None:
+    """Refuse an image whose header declares an absurd size, before decoding it."""
+    if len(shape) not in (2, 3):
+        raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {shape}")
+    height, width = (shape[1], shape[2]) if len(shape) == 3 and shape[0] in (1, 3) \
+        else (shape[0], shape[1])
+    bounded_size((height, width), f"{path}: image size", unit="pixels")
 
 
 def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
@@ -64,6 +74,7 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
 
             with tifffile.TiffFile(path) as tif:
                 series = tif.series[0]
+                _check_declared_size(series.shape, path)
                 array = series.asarray()
                 axes = series.axes
             channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
@@ -79,7 +90,10 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
             chw = _to_chw(array, path)
             channel_order = "RGB"
         elif suffix == ".npy":
-            array = np.load(path, allow_pickle=False)
+            header = np.load(path, mmap_mode="r", allow_pickle=False)  # reads the header only
+            _check_declared_size(header.shape, path)
+            array = np.array(header)
+            del header
             chw = _to_chw(array, path)
         else:
             raise InvalidInputError(
@@ -106,6 +120,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     if image.ndim != 3 or image.shape[0] not in (1, 3):
         raise InvalidInputError(f"{path}: expected a (C, H, W) array with C in (1, 3), "
                                 f"got shape {image.shape}")
+    require_finite_output(image, str(path))
     hwc = image[0] if image.shape[0] == 1 else np.moveaxis(image, 0, -1)
     suffix = path.suffix.lower()
     with atomic_file(path) as tmp:
