@@ -173,10 +173,20 @@ def _nesting_depth(text: str) -> int:
     return deepest
 
 
+def _refuse_overflow(where: str):
+    def hook(text: str) -> float:
+        value = float(text)
+        if not math.isfinite(value):
+            raise InvalidInputError(f"{where}: number {text} is out of range")
+        return value
+    return hook
+
+
 def load_json_document(text: str | bytes, where: str) -> Any:
     """Parse JSON from a file we were given, strictly.
 
-    Duplicate keys, ``NaN``/``Infinity`` literals and nesting deeper than ``MAX_JSON_DEPTH``
+    Duplicate keys, ``NaN``/``Infinity`` literals, numbers that overflow to infinity
+    (``1e400``) and nesting deeper than ``MAX_JSON_DEPTH``
     (which would exhaust the parser's recursion) are refused; errors name ``where``.
 
     Raises
@@ -192,7 +202,8 @@ def load_json_document(text: str | bytes, where: str) -> Any:
         raise InvalidInputError(f"{where}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     try:
         return json.loads(text, object_pairs_hook=_refuse_duplicates(where),
-                          parse_constant=_refuse_constant(where))
+                          parse_constant=_refuse_constant(where),
+                          parse_float=_refuse_overflow(where))
     except json.JSONDecodeError as exc:
         raise InvalidInputError(f"{where}: invalid JSON at line {exc.lineno}: {exc.msg}") \
             from None

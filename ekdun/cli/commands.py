@@ -207,10 +207,10 @@ def run_eval(args: argparse.Namespace) -> int:
 
     _threads(args)
     lpips = LPIPSMetric(args.lpips_weights)
-    if not lpips.available:
-        _say(args, lpips.reason)
     results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
                                    log=lambda line: _say(args, line))
+    if not lpips.available:  # said after the work, so that an input error stays one line
+        _say(args, lpips.reason)
     write_tables(args.out, results, [lpips.reason] if lpips.reason else [])
     return 0
 

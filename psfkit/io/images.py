@@ -7,7 +7,10 @@ Only this module converts between the two.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +32,27 @@ def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.nda
         raise InvalidInputError(
             f"{path}: has {chw.shape[0]} channels; expected 1 (mono) or 3 (RGB)")
     return chw
+
+
+@contextlib.contextmanager
+def _tifffile_messages() -> Iterator[list[str]]:
+    """Collect what tifffile logs about a damaged file (it would print it on stderr) so
+    that the one error line can say it instead."""
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage().split("> ", 1)[-1])
+
+    logger = logging.getLogger("tifffile")
+    handler, propagate = Collect(), logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield messages
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def _check_declared_size(shape: tuple[int, ...], path: Path) -> None:
@@ -72,7 +96,10 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            with tifffile.TiffFile(path) as tif:
+            with _tifffile_messages() as messages, tifffile.TiffFile(path) as tif:
+                if not tif.series:
+                    raise InvalidInputError(f"{path}: not a readable image ("
+                                            f"{messages[0] if messages else 'no image data'})")
                 series = tif.series[0]
                 _check_declared_size(series.shape, path)
                 array = series.asarray()
