@@ -318,5 +318,6 @@ class OneLineArgumentParser(argparse.ArgumentParser):
     every other error of the command-line interfaces; ``--help`` still shows the usage."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        sys.stderr.write(f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        command = self.prog.split()[0]   # "psfkit: error: ..." like every other error
+        sys.stderr.write(f"{command}: error: {message} (see {self.prog} --help)\n")
         sys.exit(2)

@@ -70,7 +70,10 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     Outputs are written atomically by the library, so a failed command leaves no partial files.
     """
     debug = _debug_requested(prog, argv)
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage errors (one line, status 2) and --help / --version
+        return exc.code if isinstance(exc.code, int) else 2
     if not hasattr(args, "func"):
         parser.print_help(sys.stderr)
         return 2

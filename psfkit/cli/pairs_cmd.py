@@ -88,11 +88,23 @@ def _write_text(path: str, text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
+def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
+    """An all-zero scene or measurement carries no information and makes the per-pair scale
+    0/0: name the file instead of reporting NaN kernels or errors later."""
+    for stack, folder, files in ((scenes, pairs.scene_dir, pairs.scene_files),
+                                 (measurements, pairs.measurement_dir, pairs.measurement_files)):
+        blank = [i for i in range(len(stack)) if not np.any(stack[i])]
+        if blank:
+            raise InvalidInputError(f"{pairs.root / folder / files[blank[0]]}: all-zero image "
+                                    "(nothing to fit or predict)")
+
+
 def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
     if factor < 1:
         raise InvalidInputError(f"--downsample must be >= 1, got {factor}")
     pairs = read_pairs(folder, check_pixels=False)   # load_all() checks every pair
     scenes, measurements = pairs.load_all()
+    _refuse_blank(pairs, scenes, measurements)
     scenes, measurements = downsample_pairs(scenes, measurements, factor)
     return pairs, scenes, measurements
 

@@ -79,8 +79,6 @@ class PairSet:
         for path, image in ((scene_path, scene), (measurement_path, measurement)):
             if not np.all(np.isfinite(image)):
                 raise InvalidInputError(f"{path}: contains NaN/Inf values")
-            if not np.any(image):
-                raise InvalidInputError(f"{path}: all-zero image (nothing to fit or predict)")
         if scene.shape != measurement.shape:
             raise InvalidInputError(
                 f"{scene_path}: scene {scene.shape[1]}×{scene.shape[2]}×{scene.shape[0]} "
