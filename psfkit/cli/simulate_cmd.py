@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +11,7 @@ import numpy as np
 from psfkit.bench import BenchConfig, read_ground_truth, simulate_grid
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import PsfGrid, read_grid
-from psfkit.validation import positive_float, positive_int
+from psfkit.validation import load_json_document, positive_float, positive_int
 
 
 def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
@@ -41,11 +40,9 @@ def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
     if args.bench_config:
         path = Path(args.bench_config)
         try:
-            values = json.loads(path.read_text(encoding="utf-8"))
+            values = load_json_document(path.read_bytes(), str(path))
         except FileNotFoundError:
             raise InvalidInputError(f"{path}: no such file") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InvalidInputError(f"{path}: not valid JSON ({exc})") from None
         if not isinstance(values, dict):
             raise InvalidInputError(f"{path}: expected a JSON object of BenchConfig parameters")
     config = BenchConfig.from_dict(values)

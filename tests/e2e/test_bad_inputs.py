@@ -267,11 +267,27 @@ def _tiny_admm_inputs(work: Path, nan_in: str | None = None) -> None:
     np.save(work / "meas.npy", meas)
 
 
-def admm_nan_case(where: str) -> Callable[[Path, Fixtures], list[str]]:
+def admm_nan_case(where: str, command: str = "admm") -> Callable[[Path, Fixtures], list[str]]:
+    """``ekdun admm PSF MEAS`` (or ``ekdun train PAIRS --psf PSF``) with one NaN/Inf."""
     def build(work: Path, fx: Fixtures) -> list[str]:
         _tiny_admm_inputs(work, nan_in=where)
+        if command == "train":
+            psf = np.zeros((16, 16, 3), np.float32)
+            psf[8, 8] = [1.0, np.nan, 1.0]
+            np.save(work / "psf.npy", psf)
+            return ["train", str(fx.pairs), str(work / "run"), "--psf", str(work / "psf.npy"),
+                    "--quiet", "--epochs", "1"]
         return ["admm", str(work / "psf.npy"), str(work / "meas.npy"), "--out",
                 str(work / "x.npy"), "--iterations", "2"]
+    return build
+
+
+def bench_config_case(text: str) -> Callable[[Path, Fixtures], list[str]]:
+    """``psfkit simulate-grid --bench-config bench.json`` with a malformed JSON file."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        (work / "bench.json").write_text(text)
+        return ["simulate-grid", "--out", str(work / "g"), "--bench-config",
+                str(work / "bench.json"), "--quiet"]
     return build
 
 
@@ -376,6 +392,7 @@ CASES: list[Case] = [
                                              "{kernels}", "--lr", "nan"), "--lr", 1),
     Case("make-dataset-photons-nan", "ekdun", ekdun_case("make-dataset", "{work}/ds",
                                                          "--photons", "nan"), "--photons", 1),
+    Case("train-psf-nan", "ekdun", admm_nan_case("psf", command="train"), "psf.npy", 1),
     Case("checkpoint-nan-weight-reconstruct", "ekdun", checkpoint_case(_nan_weight),
          "checkpoint.pt", 1),
     Case("checkpoint-nan-weight-eval", "ekdun", checkpoint_case(_nan_weight, "eval"),
@@ -437,6 +454,9 @@ CASES: list[Case] = [
          pairs_case(lambda p: (p / "scene" / "im3.npy").write_bytes(b"")), "im3.npy", 2),
     Case("mae-smoothing-text", "psfkit", grid_case("--mae-smoothing", "wide", command="mae"),
          "--mae-smoothing", 2),
+    Case("bench-config-deep", "psfkit", bench_config_case(DEEP), "bench.json", 2),
+    Case("bench-config-duplicate-key", "psfkit",
+         bench_config_case('{"seed": 1, "seed": 2}'), "seed", 7),
     Case("train-lr-negative", "ekdun", ekdun_case("train", "{pairs}", "{work}/run", "--kernels",
                                                   "{kernels}", "--lr", "-1"), "--lr", 2),
     Case("checkpoint-zero-bytes", "ekdun", checkpoint_case(None, raw=b""), "checkpoint.pt", 2),
