@@ -24,7 +24,6 @@ the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A ker
 
 from __future__ import annotations
 
-import json
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -36,6 +35,14 @@ import numpy as np
 from psfkit.errors import ModelFileError, PsfkitError
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import (
+    MAX_IMAGE_PIXELS,
+    MAX_SCENE_PADDING,
+    bounded_size,
+    dumps_finite,
+    finite_number,
+    load_json_document,
+)
 from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
@@ -136,9 +143,14 @@ class KernelModel:
             raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
                                  f"{self.convention!r}")
         if (isinstance(self.scene_padding, bool) or not isinstance(self.scene_padding, int)
-                or self.scene_padding < 2):
-            raise ModelFileError(f"{where}: scene_padding must be an integer >= 2, got "
-                                 f"{self.scene_padding!r}")
+                or not 2 <= self.scene_padding <= MAX_SCENE_PADDING):
+            raise ModelFileError(f"{where}: scene_padding must be an integer in 2..."
+                                 f"{MAX_SCENE_PADDING}, got {self.scene_padding!r}")
+        h, w = int(shape[0]), int(shape[1])
+        if self.scene_padding**2 * h * w > 4 * MAX_IMAGE_PIXELS:   # before torch allocates it
+            raise ModelFileError(f"{where}: the convolution grid {self.scene_padding}x{h} x "
+                                 f"{self.scene_padding}x{w} exceeds the limit of "
+                                 f"{4 * MAX_IMAGE_PIXELS} pixels")
         centre = self.optical_center
         if centre is not None and not _two_finite_numbers(centre):
             raise ModelFileError(f"{where}: optical_center must be None or two finite numbers "
@@ -181,16 +193,11 @@ class KernelModel:
         if not isinstance(meta, dict):
             raise ModelFileError(f"{where}: metadata is not a JSON object")
         try:
-            centre = meta.get("optical_center")
-            values = dict(
-                basis=meta["basis"], convention=meta["convention"],
-                sensor_shape=tuple(meta["sensor_shape"]), channels=tuple(meta["channels"]),
-                optical_center=None if centre is None else tuple(centre),
-                scene_padding=meta.get("scene_padding", 2),
-                normalization=meta.get("normalization", "unspecified"),
-                provenance=meta.get("provenance", {}))
-        except (KeyError, TypeError) as exc:
-            raise ModelFileError(f"{where}: metadata lacks or mangles {exc}") from None
+            values = _checked_metadata(meta, f"{where}: metadata")
+        except KeyError as exc:
+            raise ModelFileError(f"{where}: metadata lacks {exc}") from None
+        except PsfkitError as exc:
+            raise ModelFileError(str(exc)) from None
         try:
             model = cls(kernels=kernels, **values)
         except ModelFileError as exc:
@@ -232,6 +239,40 @@ class KernelModel:
         channels = ("L",) if psf.shape[0] == 1 else ("R", "G", "B")
         kwargs.setdefault("channels", channels)
         return cls(kernels=psf[None], basis="si", **kwargs)
+
+
+def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
+    """The model fields of kernel metadata, each checked for type and range (``where: field
+    ...`` in messages), before anything is allocated; ``KeyError`` for a missing field."""
+    def text(key: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise ModelFileError(f"{where}: '{key}' must be a string, got {value!r}")
+        return value
+
+    channels = meta["channels"]
+    if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
+        raise ModelFileError(f"{where}: 'channels' must be a list of names, got {channels!r}")
+    sensor = tuple(bounded_size(meta["sensor_shape"], f"{where}: 'sensor_shape'"))
+    if len(sensor) != 2:
+        raise ModelFileError(f"{where}: 'sensor_shape' must be [H, W], got {list(sensor)}")
+    center = meta.get("optical_center")
+    if center is not None:
+        if not isinstance(center, list) or len(center) != 2:
+            raise ModelFileError(f"{where}: 'optical_center' must be [v, u], got {center!r}")
+        center = tuple(finite_number(v, f"{where}: 'optical_center'", -10.0 * max(sensor),
+                                     10.0 * max(sensor)) for v in center)
+    provenance = meta.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise ModelFileError(f"{where}: 'provenance' must be an object, got {provenance!r}")
+    padding = meta.get("scene_padding", 2)
+    if isinstance(padding, bool) or not isinstance(padding, int):
+        raise ModelFileError(f"{where}: 'scene_padding' must be an integer, got {padding!r}")
+    return dict(basis=text("basis", meta["basis"]),
+                convention=text("convention", meta["convention"]),
+                sensor_shape=sensor, channels=tuple(channels), optical_center=center,
+                scene_padding=padding,
+                normalization=text("normalization", meta.get("normalization", "unspecified")),
+                provenance=provenance)
 
 
 def _two_finite_numbers(values: Any) -> bool:
@@ -292,9 +333,9 @@ def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
     if path.suffix != ".npz":
         raise ModelFileError(f"{path}: kernel files are .npz")
     model.validate(where=str(path))
-    meta = model.to_metadata()
+    text = dumps_finite(model.to_metadata(), f"{path}: metadata")  # never a bare NaN in a file
     with atomic_file(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, kernels=model.kernels, metadata=np.array(json.dumps(meta)))
+        np.savez(fh, kernels=model.kernels, metadata=np.array(text))
     return path
 
 
@@ -309,15 +350,19 @@ def load_kernels(path: str | os.PathLike) -> KernelModel:
                 raise ModelFileError(f"{path}: not a kernel file (needs 'kernels' and "
                                      "'metadata' arrays)")
             kernels = np.array(data["kernels"])
-            meta = json.loads(str(data["metadata"]))
+            text = str(data["metadata"])
     except ModelFileError:
         raise
-    except (ValueError, OSError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ModelFileError(f"{path}: not a readable kernel file ({reason})") from None
+    try:
+        meta = load_json_document(text, f"{path}: metadata")
+    except PsfkitError as exc:
+        raise ModelFileError(str(exc)) from None
     if not isinstance(meta, dict) or meta.get("format") != KERNEL_FORMAT:
         raise ModelFileError(f"{path}: not an {KERNEL_FORMAT} file")
-    if meta.get("version") != KERNEL_VERSION:
+    if isinstance(meta.get("version"), bool) or meta.get("version") != KERNEL_VERSION:
         raise ModelFileError(f"{path}: kernel file version {meta.get('version')!r} is not "
                              f"supported (this toolkit reads version {KERNEL_VERSION})")
     return KernelModel.from_metadata(kernels, meta, where=str(path))

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import html
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ from psfkit.errors import InvalidInputError
 from psfkit.html_report import REPORT_CSS, figures_html, format_value, html_table
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.jsonable import jsonable
+from psfkit.validation import dumps_finite
 
 CSV_COLUMNS = (
     "row", "col", "file", "field_x_deg", "field_y_deg", "monitor_x_px", "monitor_y_px",
@@ -93,7 +93,7 @@ def write_numbers(result: GridCharacterization, path: str | os.PathLike) -> Path
     path = check_numbers_path(path)
     with atomic_file(path) as tmp:
         if path.suffix == ".json":
-            tmp.write_text(json.dumps(results_document(result), indent=1) + "\n",
+            tmp.write_text(dumps_finite(results_document(result), str(path), indent=1) + "\n",
                            encoding="utf-8")
         else:
             _write_csv(tmp, result)
@@ -153,7 +153,9 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
             fig_module.save_figure(fig, fig_dir / stem)
             embedded.append((stem, caption, fig_module.png_base64(fig, dpi=150)))
         doc = results_document(result)
-        (tmp / "results.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        (tmp / "results.json").write_text(
+            dumps_finite(doc, str(Path(out_dir) / "results.json"), indent=1) + "\n",
+            encoding="utf-8")
         _write_csv(tmp / "positions.csv", result)
         (tmp / "report.html").write_text(_html(result, doc, embedded), encoding="utf-8")
     return out_dir

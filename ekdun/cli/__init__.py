@@ -8,16 +8,19 @@ from collections.abc import Sequence
 
 from ekdun import __version__
 from psfkit.cli import run_cli
+from psfkit.cli.main import add_debug_option
+from psfkit.validation import OneLineArgumentParser
 
 
 def build_parser() -> argparse.ArgumentParser:
     from ekdun.cli import commands
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineArgumentParser(
         prog="ekdun",
         description="Train, evaluate and run unrolled reconstruction networks (EK-DUN, "
                     "Le-ADMM-U, UPDN) for lensless cameras.")
     parser.add_argument("--version", action="version", version=f"ekdun {__version__}")
+    add_debug_option(parser)
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     commands.register(sub)
     return parser

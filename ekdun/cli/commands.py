@@ -10,6 +10,15 @@ from typing import Any
 
 from ekdun.errors import InvalidInputError
 from ekdun.model_names import MODEL_NAMES
+from psfkit.validation import (
+    MAX_GRID_SIDE,
+    MAX_UNROLLED_ITERATIONS,
+    bounded_size,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    require_finite,
+)
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -39,16 +48,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "measurements through a dense shift-variant model with "
                                    "sensor noise. Reused when the manifest matches.")
     p.add_argument("out", help="dataset folder")
-    p.add_argument("--sensor", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
-    p.add_argument("--n-train", type=int, default=96)
-    p.add_argument("--n-test", type=int, default=24)
-    p.add_argument("--grid", type=int, nargs=2, default=(9, 9), metavar=("N", "M"),
+    p.add_argument("--sensor", type=positive_int, nargs=2, default=(64, 64), metavar=("H", "W"))
+    p.add_argument("--n-train", type=positive_int, default=96)
+    p.add_argument("--n-test", type=positive_int, default=24)
+    p.add_argument("--grid", type=positive_int, nargs=2, default=(9, 9), metavar=("N", "M"),
                    help="PSF grid (and dense-model nodes), default 9 9")
-    p.add_argument("--half-fov", type=float, default=30.0,
+    p.add_argument("--half-fov", type=positive_float, default=30.0,
                    help="field angle (deg) at the sensor edge (default 30)")
-    p.add_argument("--aperture", type=float, default=1.3,
+    p.add_argument("--aperture", type=positive_float, default=1.3,
                    help="side of the square aperture in mm (default 1.3)")
-    p.add_argument("--photons", type=float, default=2000.0,
+    p.add_argument("--photons", type=positive_float, default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
@@ -68,13 +77,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
     p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
-    p.add_argument("--iterations", type=int, help="override the preset's iterations")
-    p.add_argument("--epochs", type=int)
-    p.add_argument("--batch-size", type=int, help="global batch size")
-    p.add_argument("--lr", type=float)
+    p.add_argument("--iterations", type=positive_int, help="override the preset's iterations")
+    p.add_argument("--epochs", type=positive_int)
+    p.add_argument("--batch-size", type=positive_int, help="global batch size")
+    p.add_argument("--lr", type=positive_float)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto (cuda if present), cpu, cuda:0 ...")
-    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--threads", type=positive_int, help="torch CPU threads")
     p.add_argument("--amp", choices=("auto", "off", "bf16", "fp16"), default="auto",
                    help="autocast precision of the network (the physics FFTs stay float32): "
                         "auto = fp16 on CUDA, off on CPU; bf16 works on CPU too")
@@ -83,7 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="U-Net convolutions in channels_last format (default: on CUDA only)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the network (reports its warm-up time)")
-    p.add_argument("--workers", type=int, default=2,
+    p.add_argument("--workers", type=positive_int, default=2,
                    help="DataLoader workers when the dataset does not fit on the device")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
@@ -103,7 +112,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS "
                                            "(else $EKDUN_LPIPS_WEIGHTS; else unavailable)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int)
+    p.add_argument("--threads", type=positive_int)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_eval)
 
@@ -128,9 +137,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("measurement", help="measurement image")
     p.add_argument("--out", required=True, help="output .npy (a .png preview is written next "
                                                 "to it)")
-    p.add_argument("--iterations", type=int, default=100)
-    p.add_argument("--tau", type=float, default=1e-3, help="TV weight (relative)")
-    p.add_argument("--downsample", type=int, default=1, help="box-downsample both first")
+    p.add_argument("--iterations", type=positive_int, default=100)
+    p.add_argument("--tau", type=nonnegative_float, default=1e-3, help="TV weight (relative)")
+    p.add_argument("--downsample", type=positive_int, default=1, help="box-downsample both first")
     p.add_argument("--background", choices=("none", "corner"), default="corner",
                    help="subtract the mean of the [5:15, 5:15] corner from each (default)")
     p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
@@ -150,10 +159,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("benchmark-tiny", help="dataset, fit, 5 trainings, Tables 1 and 2 "
                                               "(tiny preset, CPU)")
     p.add_argument("out", help="benchmark folder (resumable)")
-    p.add_argument("--epochs", type=int)
-    p.add_argument("--n-train", type=int, default=96)
-    p.add_argument("--n-test", type=int, default=24)
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--epochs", type=positive_int)
+    p.add_argument("--n-train", type=positive_int, default=96)
+    p.add_argument("--n-test", type=positive_int, default=24)
+    p.add_argument("--threads", type=positive_int, default=1,
                    help="torch threads (default 1: fastest on a shared 2-core machine)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
@@ -165,6 +174,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_make_dataset(args: argparse.Namespace) -> int:
     from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 
+    bounded_size(args.sensor, "--sensor", max_side=4096)
+    bounded_size(args.grid, "--grid", max_side=MAX_GRID_SIDE, unit="positions")
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
@@ -178,6 +189,9 @@ def run_train(args: argparse.Namespace) -> int:
     from ekdun.data.pairs import PairsDataset
     from ekdun.training import TrainOptions, train
 
+    if args.iterations and args.iterations > MAX_UNROLLED_ITERATIONS:
+        raise InvalidInputError(f"--iterations {args.iterations} exceeds the limit of "
+                                f"{MAX_UNROLLED_ITERATIONS} unrolled iterations")
     dataset = PairsDataset(resolve_split(args.data, "train"))
     overrides: dict[str, Any] = {}
     if args.schedule:
@@ -215,10 +229,10 @@ def run_eval(args: argparse.Namespace) -> int:
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         folder = outputs.folder(args.out)   # checked before the evaluation
         lpips = LPIPSMetric(args.lpips_weights)
-        if not lpips.available:
-            _say(args, lpips.reason)
         results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
                                        log=lambda line: _say(args, line))
+        if not lpips.available:  # said after the work, so that an input error stays one line
+            _say(args, lpips.reason)
         write_tables(folder, results, [lpips.reason] if lpips.reason else [])
     return 0
 
@@ -264,7 +278,11 @@ def _admm(args: argparse.Namespace, out: Path, preview_path: Path):
 
     images = []
     for path in (args.psf, args.measurement):
-        image = read_image(path, args.channel_order).astype(np.float64)
+        image = require_finite(read_image(path, args.channel_order), path).astype(np.float64)
+        if min(image.shape[-2:]) // args.downsample < 8:
+            raise InvalidInputError(f"--downsample {args.downsample}: {path} "
+                                    f"({image.shape[-2]}x{image.shape[-1]}) would be smaller "
+                                    "than 8x8 pixels")
         if args.background == "corner":
             image = image - image[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
         images.append(_box_downsample(image, args.downsample))

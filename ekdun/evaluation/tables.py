@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -10,6 +9,7 @@ from typing import Any
 
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import dumps_finite, load_json_document
 
 MODEL_LABELS = {"le-admm-u": "Le-ADMM-U", "updn": "UPDN", "ekdun": "EK-DUN"}
 SCHEDULE_LABELS = {"base": "base only", "last-2": "last-2", "last-k": "last-2", "all": "all"}
@@ -125,7 +125,8 @@ def render_table(results: list[dict[str, Any]], which: str,
 
 def _write_json(path: Path, doc: dict[str, Any]) -> Path:
     with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+        tmp.write_text(dumps_finite(doc, str(path), indent=1, default=float) + "\n",
+                       encoding="utf-8")
     return path
 
 
@@ -172,10 +173,7 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict[str, Any]], list[st
         path = path / "results.json"
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such results file")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InvalidInputError(f"{path}: not a JSON file ({exc})") from None
+    doc = load_json_document(path.read_bytes(), str(path))
     rows = doc.get("results") if isinstance(doc, dict) else None
     if not isinstance(rows, list) or not all(
             isinstance(r, dict) and "model" in r and "psnr" in r for r in rows):

@@ -28,7 +28,9 @@ def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> K
         if path.endswith(".npz"):
             return load_kernels(path)
         from psfkit.io.images import read_image
-        source = read_image(path).astype(np.float32)
+        from psfkit.validation import require_finite
+
+        source = require_finite(read_image(path), str(path)).astype(np.float32)
     psf = np.asarray(source, dtype=np.float32)
     if psf.ndim == 2:
         psf = psf[None]

@@ -36,7 +36,9 @@ import numpy as np
 import torch
 
 from ekdun.errors import CheckpointError
+from psfkit.errors import PsfkitError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import MAX_UNROLLED_ITERATIONS, exact_int, load_json_document
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "load_checkpoint", "rng_state",
            "save_checkpoint", "set_rng_state"]  # CheckpointError: defined in ekdun.errors
@@ -92,11 +94,40 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     for key in ("metadata", "model"):
         if key not in doc:
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
+    if not isinstance(doc["metadata"], str):
+        raise CheckpointError(f"{path}: checkpoint metadata is not a JSON string")
     try:
-        doc["metadata"] = json.loads(doc["metadata"])
-    except (TypeError, json.JSONDecodeError):
-        raise CheckpointError(f"{path}: checkpoint metadata is not valid JSON") from None
+        doc["metadata"] = load_json_document(doc["metadata"], f"{path}: metadata")
+    except PsfkitError as exc:
+        raise CheckpointError(str(exc)) from None
+    _check_contents(doc, path)
     return doc
+
+
+def _check_contents(doc: dict[str, Any], path: Path) -> None:
+    """Refuse metadata sizes that would make the rebuilt network absurd and non-finite
+    weights (one NaN weight turns every reconstruction into NaN)."""
+    meta = doc["metadata"]
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: checkpoint metadata is not an object")
+    overrides = meta.get("overrides", {})
+    if not isinstance(overrides, dict):
+        raise CheckpointError(f"{path}: metadata 'overrides' must be an object")
+    if "iterations" in overrides:
+        try:
+            exact_int(overrides["iterations"], f"{path}: metadata 'iterations'", 1,
+                      MAX_UNROLLED_ITERATIONS)
+        except PsfkitError as exc:
+            raise CheckpointError(str(exc)) from None
+    for key in ("model", "initial_kernels"):
+        tensors = doc.get(key)
+        items = tensors.items() if isinstance(tensors, dict) else [(key, tensors)]
+        for name, tensor in items:
+            if isinstance(tensor, torch.Tensor) and tensor.is_floating_point() \
+                    and not bool(torch.isfinite(tensor).all()):
+                bad = int((~torch.isfinite(tensor)).sum())
+                raise CheckpointError(f"{path}: {key} tensor {name!r} contains {bad} "
+                                      "NaN/Inf value(s)")
 
 
 def rng_state() -> dict[str, Any]:

@@ -36,6 +36,8 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     ConfigurationError
         The network has no eigen-kernel physics (Le-ADMM-U, UPDN).
     """
+    where = "" if isinstance(model_or_checkpoint, (nn.Module, dict)) \
+        else f"{model_or_checkpoint}: "            # the message names the checkpoint file
     if isinstance(model_or_checkpoint, nn.Module):
         model = model_or_checkpoint
         model = getattr(model, "module", model)         # unwrap DistributedDataParallel
@@ -46,7 +48,7 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     from ekdun.models.ekdun_net import EKDUN
 
     if not isinstance(model, EKDUN):
-        raise ConfigurationError(f"only EK-DUN has eigen kernels to export, not "
+        raise ConfigurationError(f"{where}only EK-DUN has eigen kernels to export, not "
                                  f"{type(model).__name__}")
     seed = model.seed_kernels
     kernels = model.physics.kernels.detach().cpu().numpy().astype(np.float32)

@@ -4,12 +4,62 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
+import os
 import signal
 import sys
+import zipfile
 from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.errors import PsfkitError
+from psfkit.validation import OneLineArgumentParser
+
+
+def _debug_requested(prog: str, argv: Sequence[str] | None) -> bool:
+    args = sys.argv[1:] if argv is None else list(argv)
+    env = os.environ.get(f"{prog.upper()}_DEBUG", "") or os.environ.get("PSFKIT_DEBUG", "")
+    return "--debug" in args or env not in ("", "0")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _is_allocation_error(exc: BaseException) -> bool:
+    """torch reports failed allocations as RuntimeError subclasses (OutOfMemoryError) or as a
+    RuntimeError whose text says so; numpy as MemoryError or ValueError('array is too big')."""
+    text = str(exc)
+    return (type(exc).__name__ == "OutOfMemoryError" or "DefaultCPUAllocator" in text
+            or "out of memory" in text or "array is too big" in text
+            or "Maximum allowed size exceeded" in text)
+
+
+def error_line(prog: str, exc: BaseException) -> tuple[str, int]:
+    """The one line (without newline) and the exit status for an exception of a command.
+
+    Bad input (project errors, unreadable files, absurd sizes, malformed JSON or archives)
+    gives status 2; anything else is an internal error (status 1) with a request to report it.
+    """
+    if isinstance(exc, PsfkitError):
+        return f"{prog}: error: {exc}", 2
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        return f"{prog}: error: {where}{exc.strerror or _first_line(exc)}", 2
+    if isinstance(exc, MemoryError) or _is_allocation_error(exc):
+        return (f"{prog}: error: out of memory ({_first_line(exc)[:120]}); an input declares "
+                "sizes larger than this machine can hold"), 2
+    if isinstance(exc, RecursionError):
+        return f"{prog}: error: an input is nested too deeply to be read", 2
+    if isinstance(exc, (json.JSONDecodeError, zipfile.BadZipFile, EOFError)):
+        return f"{prog}: error: an input file is malformed ({_first_line(exc)})", 2
+    if isinstance(exc, (ValueError, TypeError)):
+        return (f"{prog}: error: invalid value ({_first_line(exc)[:200]}); if the inputs are "
+                f"valid this is a bug: please report it (run with --debug for details)"), 2
+    return (f"{prog}: internal error ({type(exc).__name__}: {_first_line(exc)[:200]}); this is "
+            f"a bug, please report it with the command line (--debug or "
+            f"{prog.upper()}_DEBUG=1 prints the traceback)"), 1
 
 
 class Terminated(KeyboardInterrupt):
@@ -56,33 +106,42 @@ def terminate_like_interrupt() -> Iterator[None]:
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     """Parse ``argv`` and run the chosen sub-command.
 
-    Expected failures (:class:`~psfkit.errors.PsfkitError`, file-system errors) become one
-    line on stderr and exit status 2; Ctrl-C gives status 130, SIGTERM 143 (128 + signal
-    number), after the temporaries of unfinished outputs have been removed. Outputs are
-    written through :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves
-    no partial files.
+    Every failure is one line on stderr: bad input (:class:`~psfkit.errors.PsfkitError`,
+    file-system errors, malformed files, sizes that do not fit in memory) exits with status 2,
+    an unexpected internal error with status 1 and a request to report it. Ctrl-C gives
+    status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
+    have been removed. ``--debug`` (or ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``) shows the full
+    traceback instead. Outputs are written through
+    :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves no partial files.
     """
-    args = parser.parse_args(argv)
+    debug = _debug_requested(prog, argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage errors (one line, status 2) and --help / --version
+        return exc.code if isinstance(exc.code, int) else 2
     if not hasattr(args, "func"):
         parser.print_help(sys.stderr)
         return 2
     try:
         with terminate_like_interrupt():
             return int(args.func(args) or 0)
-    except PsfkitError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-    except OSError as exc:
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-    except MemoryError:
-        print(f"{prog}: error: out of memory (try --downsample or a smaller input)",
-              file=sys.stderr)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "
               "removed", file=sys.stderr)
         return 128 + int(signum)
-    return 2
+    except Exception as exc:
+        if debug:
+            raise
+        line, status = error_line(prog, exc)
+        print(line, file=sys.stderr)
+        return status
+
+
+def add_debug_option(parser: argparse.ArgumentParser) -> None:
+    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``)."""
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of an error")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,10 +154,11 @@ def build_parser() -> argparse.ArgumentParser:
         simulate_cmd,
     )
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineArgumentParser(
         prog="psfkit",
         description="Characterize the shift-variant PSF of a lensless (diffuser) camera.")
     parser.add_argument("--version", action="version", version=f"psfkit {__version__}")
+    add_debug_option(parser)
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     simulate_cmd.register(sub)
     inspect_cmd.register(sub)

@@ -4,7 +4,6 @@ pairs, and their prediction error on pairs they never saw."""
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +14,7 @@ from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
+from psfkit.validation import dumps_finite, exact_int, nonnegative_float, positive_int
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "with the best per-pair scale (for per-image normalised datasets).")
     e.add_argument("model", help="kernel file (.npz) from fit-pairs or fit-eigen")
     e.add_argument("pairs", help="pairs folder")
-    e.add_argument("--downsample", type=int, default=None, metavar="N",
+    e.add_argument("--downsample", type=positive_int, default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
     e.add_argument("--out", metavar="JSON", help="write the errors to this JSON file")
@@ -64,19 +64,30 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     d = PairFitOptions()
     g = p.add_argument_group("solver")
-    g.add_argument("--downsample", type=int, default=1, metavar="N",
+    g.add_argument("--downsample", type=positive_int, default=1, metavar="N",
                    help="bin scenes and measurements N x N before fitting (default 1)")
-    g.add_argument("--tikhonov", type=float, default=d.tikhonov,
+    g.add_argument("--tikhonov", type=nonnegative_float, default=d.tikhonov,
                    help=f"ridge weight relative to the mean scene power (default {d.tikhonov:g})")
-    g.add_argument("--difference", type=float, default=d.difference,
+    g.add_argument("--difference", type=nonnegative_float, default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
                         f"likewise (default {d.difference:g})")
-    g.add_argument("--iterations", type=int, default=None,
+    g.add_argument("--iterations", type=positive_int, default=None,
                    help="conjugate-gradient iterations of the final solve (default 30 for si, "
                         "60 for eigen-kernel models)")
     g.add_argument("--no-scale", action="store_true",
                    help="do not estimate a scale per pair (use when the pairs share one "
                         "exposure and normalisation)")
+
+
+def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
+    """An all-zero scene or measurement carries no information and makes the per-pair scale
+    0/0: name the file instead of reporting NaN kernels or errors later."""
+    for stack, folder, files in ((scenes, pairs.scene_dir, pairs.scene_files),
+                                 (measurements, pairs.measurement_dir, pairs.measurement_files)):
+        blank = [i for i in range(len(stack)) if not np.any(stack[i])]
+        if blank:
+            raise InvalidInputError(f"{pairs.root / folder / files[blank[0]]}: all-zero image "
+                                    "(nothing to fit or predict)")
 
 
 def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
@@ -86,6 +97,7 @@ def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
         raise InvalidInputError(f"--downsample must be >= 1, got {factor}")
     pairs = read_pairs(folder, check_pixels=False)   # load_all() checks every pair
     scenes, measurements = pairs.load_all()
+    _refuse_blank(pairs, scenes, measurements)
     scenes, measurements = downsample_pairs(scenes, measurements, factor)
     return pairs, scenes, measurements
 
@@ -131,7 +143,8 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
                   [round(float(e), 6) for e in fit.training_error]}
     save_kernels(kernels, fit.kernel_model(provenance))
     if report is not None:
-        report.write_text(json.dumps(jsonable(summary), indent=1) + "\n", encoding="utf-8")
+        report.write_text(dumps_finite(jsonable(summary), args.report, indent=1) + "\n",
+                          encoding="utf-8")
     return pairs, scenes, fit, summary
 
 
@@ -155,7 +168,7 @@ def run_eval_model(args: argparse.Namespace) -> int:
         out = outputs.file(args.out) if args.out else None
         result = _evaluate(args)
         if out is not None:
-            out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+            out.write_text(dumps_finite(result, args.out, indent=1) + "\n", encoding="utf-8")
     print(f"{'pair':>16s}  {'raw':>8s}  {'scaled':>8s}")
     for name, row in result["per_pair"].items():
         print(f"{name:>16s}  {row['raw']:8.4f}  {row['scaled']:8.4f}")
@@ -167,8 +180,9 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from psfkit.pairs_fit import predict, relative_errors
 
     model = load_kernels(args.model)
-    factor = args.downsample if args.downsample is not None else int(
-        model.provenance.get("downsample", 1) or 1)
+    factor = args.downsample if args.downsample is not None else exact_int(
+        model.provenance.get("downsample", 1) or 1, f"{args.model}: provenance 'downsample'",
+        1, 64)
     pairs, scenes, measurements = _load(args.pairs, factor)
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
         raise InvalidInputError(

@@ -27,6 +27,7 @@ import numpy as np
 
 from psfkit.errors import GridFormatError, InvalidInputError
 from psfkit.io.images import read_image
+from psfkit.validation import require_finite
 
 FORMAT_NAME = "psfkit-grid"
 FORMAT_VERSION = 1
@@ -107,7 +108,8 @@ class PsfGrid:
         """The dark frame as ``(C, H, W)`` float32, or ``None`` when the grid has none."""
         if self.dark_file is None:
             return None
-        return read_image(self.root / self.dark_file, self.channel_order).astype(np.float32)
+        path = self.root / self.dark_file
+        return checked_dark(path, read_image(path, self.channel_order)).astype(np.float32)
 
     def field_deg(self) -> np.ndarray | None:
         """Field angles as an ``(N, M, 2)`` array of ``(θx, θy)`` degrees, or ``None``."""
@@ -139,3 +141,11 @@ class PsfGrid:
                 "position (no position at field (0, 0) and no odd-sized middle); add "
                 "\"center\": [row, col] to the manifest")
         return self.center_index
+
+
+def checked_dark(path: Path, image: np.ndarray) -> np.ndarray:
+    """The dark frame, refused when it holds NaN/Inf (one check for every command)."""
+    try:
+        return require_finite(image, f"{path}: dark frame")
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.errors import GridFormatError, InvalidInputError
-from psfkit.io.grid import PsfGrid
+from psfkit.io.grid import PsfGrid, checked_dark
 from psfkit.io.images import IMAGE_SUFFIXES, read_image
 from psfkit.io.manifest import (
     find_manifest,
@@ -20,6 +20,7 @@ from psfkit.io.manifest import (
     parse_manifest,
     parse_positive,
 )
+from psfkit.validation import MAX_GRID_SIDE, finite_number
 
 
 def _check_pixels(path: Path, image: np.ndarray) -> None:
@@ -91,6 +92,9 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
             raise GridFormatError(f"{manifest}: positions reach index ({n_rows - 1}, "
                                   f"{n_cols - 1}) beyond grid_shape {list(declared)}")
         n_rows, n_cols = declared
+    if n_rows > MAX_GRID_SIDE or n_cols > MAX_GRID_SIDE:
+        raise GridFormatError(f"{manifest}: grid of {n_rows} x {n_cols} positions exceeds the "
+                              f"limit of {MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
     missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
     if missing:
         listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
@@ -150,18 +154,21 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
                 f"({_describe(ref_shape, ref_dtype)})")
         if check_pixels and name != dark_file:
             _check_pixels(path, image)
-        if check_pixels and name == dark_file and np.issubdtype(dtype, np.floating) \
-                and not np.all(np.isfinite(image)):
-            raise GridFormatError(f"{path}: dark frame contains NaN/Inf values")
+        if check_pixels and name == dark_file:
+            checked_dark(path, image)
     assert ref_shape is not None and ref_dtype is not None
 
     channels = ("L",) if ref_shape[0] == 1 else ("R", "G", "B")
     bit_depth = header.get("bit_depth")
-    if bit_depth is not None and (not isinstance(bit_depth, int) or not 1 <= bit_depth <= 32):
+    if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)
+                                  or not 1 <= bit_depth <= 32):
         raise GridFormatError(f"{manifest}: 'bit_depth' must be an integer in 1..32")
     black_level = header.get("black_level")
-    if black_level is not None and not isinstance(black_level, (int, float)):
-        raise GridFormatError(f"{manifest}: 'black_level' must be a number")
+    if black_level is not None:
+        try:  # a black level is at most the largest stored value (2^32 for any container)
+            black_level = finite_number(black_level, f"{manifest}: 'black_level'", 0.0, 2.0**32)
+        except InvalidInputError as exc:
+            raise GridFormatError(str(exc)) from None
     pitch = header.get("pixel_pitch_um")
     if pitch is not None:
         pitch = parse_positive(pitch, str(manifest), "pixel_pitch_um")

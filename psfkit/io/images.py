@@ -7,13 +7,17 @@ Only this module converts between the two.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_file
+from psfkit.validation import bounded_size, require_finite_output
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -28,6 +32,36 @@ def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.nda
         raise InvalidInputError(
             f"{path}: has {chw.shape[0]} channels; expected 1 (mono) or 3 (RGB)")
     return chw
+
+
+@contextlib.contextmanager
+def _tifffile_messages() -> Iterator[list[str]]:
+    """Collect what tifffile logs about a damaged file (it would print it on stderr) so
+    that the one error line can say it instead."""
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage().split("> ", 1)[-1])
+
+    logger = logging.getLogger("tifffile")
+    handler, propagate = Collect(), logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield messages
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
+def _check_declared_size(shape: tuple[int, ...], path: Path) -> None:
+    """Refuse an image whose header declares an absurd size, before decoding it."""
+    if len(shape) not in (2, 3):
+        raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {shape}")
+    height, width = (shape[1], shape[2]) if len(shape) == 3 and shape[0] in (1, 3) \
+        else (shape[0], shape[1])
+    bounded_size((height, width), f"{path}: image size", unit="pixels")
 
 
 def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
@@ -62,8 +96,12 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            with tifffile.TiffFile(path) as tif:
+            with _tifffile_messages() as messages, tifffile.TiffFile(path) as tif:
+                if not tif.series:
+                    raise InvalidInputError(f"{path}: not a readable image ("
+                                            f"{messages[0] if messages else 'no image data'})")
                 series = tif.series[0]
+                _check_declared_size(series.shape, path)
                 array = series.asarray()
                 axes = series.axes
             channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
@@ -79,7 +117,10 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
             chw = _to_chw(array, path)
             channel_order = "RGB"
         elif suffix == ".npy":
-            array = np.load(path, allow_pickle=False)
+            header = np.load(path, mmap_mode="r", allow_pickle=False)  # reads the header only
+            _check_declared_size(header.shape, path)
+            array = np.array(header)
+            del header
             chw = _to_chw(array, path)
         else:
             raise InvalidInputError(
@@ -106,6 +147,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     if image.ndim != 3 or image.shape[0] not in (1, 3):
         raise InvalidInputError(f"{path}: expected a (C, H, W) array with C in (1, 3), "
                                 f"got shape {image.shape}")
+    require_finite_output(image, str(path))
     hwc = image[0] if image.shape[0] == 1 else np.moveaxis(image, 0, -1)
     suffix = path.suffix.lower()
     with atomic_file(path) as tmp:

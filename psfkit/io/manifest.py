@@ -6,12 +6,11 @@ and locating the grid's centre position. Checks of the folder itself are in
 from __future__ import annotations
 
 import csv
-import json
 import math
 from pathlib import Path
 from typing import Any
 
-from psfkit.errors import GridFormatError
+from psfkit.errors import GridFormatError, InvalidInputError
 from psfkit.io.grid import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -19,10 +18,12 @@ from psfkit.io.grid import (
     MANIFEST_JSON,
     GridPosition,
 )
+from psfkit.validation import MAX_GRID_SIDE, load_json_document
 
 CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")
 CENTRE_TOLERANCE = 1e-6
+POSITION_KEYS = ("file", "row", "col", "monitor_px", "field_deg", "exposure_s")
 
 
 def parse_pair(value: Any, where: str, name: str) -> tuple[float, float] | None:
@@ -49,6 +50,9 @@ def parse_index(value: Any, where: str, name: str) -> int:
             f"{where}: '{name}' must be a non-negative integer, got {value!r}") from None
     if not as_float.is_integer() or as_float < 0:
         raise GridFormatError(f"{where}: '{name}' must be a non-negative integer, got {value!r}")
+    if as_float > MAX_GRID_SIDE:
+        raise GridFormatError(f"{where}: '{name}' {value!r} exceeds the limit of "
+                              f"{MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
     return int(as_float)
 
 
@@ -74,6 +78,10 @@ def position_from_dict(entry: Any, where: str) -> GridPosition:
         raise GridFormatError(f"{where}: position without a 'file' name: {entry!r}")
     if Path(file).name != file:
         raise GridFormatError(f"{where}: file '{file}' must be a plain name inside the grid folder")
+    unknown = sorted(str(k) for k in entry if k not in POSITION_KEYS)
+    if unknown:
+        raise GridFormatError(f"{where} ({file}): unknown key(s) {', '.join(unknown)} "
+                              f"(allowed: {', '.join(POSITION_KEYS)})")
     return GridPosition(
         file=file,
         row=parse_index(entry.get("row"), f"{where} ({file})", "row"),
@@ -86,19 +94,18 @@ def position_from_dict(entry: Any, where: str) -> GridPosition:
 
 def _parse_json(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     try:
-        text = path.read_text(encoding="utf-8")
-        doc = json.loads(text)
-    except UnicodeDecodeError:
-        raise GridFormatError(f"{path}: not a UTF-8 text file") from None
-    except json.JSONDecodeError as exc:
-        raise GridFormatError(f"{path}: invalid JSON at line {exc.lineno}: {exc.msg}") from None
+        doc = load_json_document(path.read_bytes(), str(path))
+    except GridFormatError:
+        raise
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
     if not isinstance(doc, dict):
         raise GridFormatError(f"{path}: top level must be an object with a 'positions' list")
     fmt = doc.get("format", FORMAT_NAME)
     if fmt != FORMAT_NAME:
         raise GridFormatError(f"{path}: format is {fmt!r}, expected {FORMAT_NAME!r}")
     version = doc.get("version", FORMAT_VERSION)
-    if version != FORMAT_VERSION:
+    if isinstance(version, bool) or version != FORMAT_VERSION:
         raise GridFormatError(
             f"{path}: grid format version {version!r} is not supported (this reader: "
             f"{FORMAT_VERSION})")
@@ -119,7 +126,7 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
         raise GridFormatError(f"{path}: not a readable CSV file ({exc})") from None
     if not rows:
         raise GridFormatError(f"{path}: no rows (needs a header line with file,row,col)")
-    columns = set(rows[0].keys())
+    columns = {c for c in rows[0] if c is not None}
     missing = {"file", "row", "col"} - columns
     if missing:
         raise GridFormatError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
@@ -131,6 +138,9 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     positions = []
     for line_no, row in enumerate(rows, start=2):
         where = f"{path} line {line_no}"
+        if None in row:  # DictReader files cells beyond the header under the key None
+            raise GridFormatError(f"{where}: {len(row[None])} cell(s) more than the "
+                                  f"{len(columns)} columns of the header")
         role = (row.get("role") or "psf").strip().lower()
         if role == "dark":
             if "dark_frame" in header:

@@ -19,7 +19,6 @@ and measurements of the same size.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,11 +27,13 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.images import IMAGE_SUFFIXES, read_image
+from psfkit.validation import load_json_document
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
 MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")
 FLIPS = ("none", "ud", "lr", "both")
 MANIFEST = "pairs.json"
+_MANIFEST_KEYS = ("scene_dir", "measurement_dir", "channel_order", "flip")
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,7 @@ class PairSet:
     channel_order: str
     flip: str
     shape: tuple[int, int, int]
+    dtypes: tuple[str, str] = ("", "")  # pixel types of the scenes and of the measurements
 
     def __len__(self) -> int:
         return len(self.names)
@@ -63,8 +65,17 @@ class PairSet:
         """
         scene_path = self.root / self.scene_dir / self.scene_files[index]
         measurement_path = self.root / self.measurement_dir / self.measurement_files[index]
-        scene = read_image(scene_path, self.channel_order).astype(np.float32)
-        measurement = read_image(measurement_path, self.channel_order).astype(np.float32)
+        raw_scene = read_image(scene_path, self.channel_order)
+        raw_measurement = read_image(measurement_path, self.channel_order)
+        for path, raw, dtype in ((scene_path, raw_scene, self.dtypes[0]),
+                                 (measurement_path, raw_measurement, self.dtypes[1])):
+            # one pixel type per folder: a uint16 file among float ones has another scale
+            if dtype and str(raw.dtype) != dtype:
+                raise InvalidInputError(f"{path}: pixel type {raw.dtype} differs from the "
+                                        f"other files' ({dtype}, as {self.names[0]}); convert "
+                                        "them to one type")
+        scene = raw_scene.astype(np.float32)
+        measurement = raw_measurement.astype(np.float32)
         for path, image in ((scene_path, scene), (measurement_path, measurement)):
             if not np.all(np.isfinite(image)):
                 raise InvalidInputError(f"{path}: contains NaN/Inf values")
@@ -111,6 +122,23 @@ def _pick(root: Path, choices: tuple[str, ...], what: str) -> str:
     return found[0]
 
 
+def _read_manifest(path: Path) -> dict:
+    """``pairs.json``: strict JSON, known keys, each a string (names the bad field)."""
+    manifest = load_json_document(path.read_bytes(), str(path))
+    if not isinstance(manifest, dict):
+        raise InvalidInputError(f"{path}: must be a JSON object")
+    unknown = sorted(k for k in manifest if k not in _MANIFEST_KEYS)
+    if unknown:
+        raise InvalidInputError(f"{path}: unknown key(s) {', '.join(unknown)} (allowed: "
+                                f"{', '.join(_MANIFEST_KEYS)})")
+    for key, value in manifest.items():
+        if not isinstance(value, str) or not value:
+            raise InvalidInputError(f"{path}: '{key}' must be a non-empty string, got {value!r}")
+        if key.endswith("_dir") and Path(value).name != value:
+            raise InvalidInputError(f"{path}: '{key}' must be a sub-folder name, got {value!r}")
+    return manifest
+
+
 def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
                check_pixels: bool = True) -> PairSet:
     """Read and validate a pairs folder.
@@ -136,12 +164,7 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
         raise InvalidInputError(f"{root}: no such pairs folder")
     manifest: dict = {}
     if (root / MANIFEST).is_file():
-        try:
-            manifest = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InvalidInputError(f"{root / MANIFEST}: invalid JSON ({exc})") from None
-        if not isinstance(manifest, dict):
-            raise InvalidInputError(f"{root / MANIFEST}: must be a JSON object")
+        manifest = _read_manifest(root / MANIFEST)
     scene_dir = manifest.get("scene_dir") or _pick(root, SCENE_DIRS, "scene")
     measurement_dir = manifest.get("measurement_dir") or _pick(root, MEASUREMENT_DIRS,
                                                                "measurement")
@@ -171,7 +194,10 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
                     names=names, scene_files=tuple(scenes[n] for n in names),
                     measurement_files=tuple(measurements[n] for n in names),
                     channel_order=order, flip=flip, shape=(0, 0, 0))
-    # every image is validated as it is loaded: the first fixes the set's size
+    # every image is validated as it is loaded: the first fixes the set's size and pixel type
+    dtypes = tuple(str(read_image(root / folder / files[0], order).dtype) for folder, files in
+                   ((scene_dir, pairs.scene_files), (measurement_dir, pairs.measurement_files)))
+    pairs = dataclasses.replace(pairs, dtypes=dtypes)
     shape = pairs.load(0)[0].shape
     pairs = dataclasses.replace(pairs, shape=shape)
     for i in range(1, len(names) if check_pixels else 1):

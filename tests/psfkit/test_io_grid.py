@@ -112,8 +112,8 @@ def _corrupt(grid_dir, case):
             image = read_image(grid_dir / p["file"].replace(".npy", ".tiff")).astype(np.float32)
             (grid_dir / p["file"].replace(".npy", ".tiff")).unlink()
             if p["file"] == "psf_r01_c01.npy":
-                image[0, 3, 3] = np.nan
-            write_image(grid_dir / p["file"], image)
+                image[0, 3, 3] = np.nan   # write_image refuses NaN: save the bad file directly
+            np.save(grid_dir / p["file"], np.moveaxis(image, 0, -1))
         doc.pop("dark_frame")
         (grid_dir / "dark.tiff").unlink()
         _write_manifest(grid_dir, doc)

@@ -1,0 +1,7 @@
+"""``python -m psfkit.cli`` (the ``psfkit`` command without an installed entry point)."""
+
+import sys
+
+from psfkit.cli import main
+
+sys.exit(main())

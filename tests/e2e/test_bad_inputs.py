@@ -1,0 +1,654 @@
+"""Malformed inputs through the real command lines: one line, the culprit named, exit 2.
+
+Table-driven: every row of ``CASES`` builds its malformed input in its own folder from small
+shared fixtures (a simulated 3 × 3 grid, tiny pairs and kernel file, tiny checkpoints), runs
+``psfkit`` or ``ekdun`` in a subprocess and asserts that
+
+- the exit status is 2,
+- stderr is exactly one non-empty line, which names the offending file or flag,
+- no traceback appears anywhere,
+- nothing new appeared in the case's folder (where its outputs would go).
+
+Adding a row: ``Case(id, cli, build, names)`` where ``build(work, fx)`` writes what it needs
+under ``work`` and returns the argument list; the builders below (``grid_case``,
+``manifest_case``, ``kernel_case``, ``pairs_case``, ``checkpoint_case``...) cover the usual
+shapes. Classes (issue 12): 1 non-finite values, 2 tracebacks, 3 resource exhaustion,
+7 invalid values and misleading messages.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.e2e
+
+REPO = Path(__file__).resolve().parents[2]
+DEEP = "[" * 200_000 + "]" * 200_000
+SMALL_EKDUN = {"iterations": 2, "prior": {"widths": [4, 8]}}
+SMALL_LE_ADMM = {"iterations": 2, "denoiser": {"widths": [4, 8]}}
+
+
+@dataclass(frozen=True)
+class Fixtures:
+    grid: Path              # simulated 3 × 3 uint16 RGB grid with dark frame (read-only)
+    float_grid: Path        # the same grid stored as float32 TIFFs (read-only)
+    pairs: Path             # 8 tiny pairs (16 × 16 × 3 float32 .npy)
+    kernels: Path           # their 3-kernel model
+    checkpoint: Path        # a 1-epoch EK-DUN checkpoint of the tiny pairs
+    le_admm: Path           # a 1-epoch Le-ADMM-U checkpoint
+
+
+@dataclass(frozen=True)
+class Case:
+    id: str
+    cli: str                                            # "psfkit" or "ekdun"
+    build: Callable[[Path, Fixtures], list[str]]        # makes the input, returns the argv
+    names: str                                          # the error line must contain this
+    cls: int = 0                                        # class of issue 12 (documentation)
+
+
+# --------------------------------------------------------------------------- builders
+
+
+def _copy_grid(src: Path, work: Path) -> Path:
+    dst = work / "grid"
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("ground_truth"))
+    return dst
+
+
+def _edit_manifest(grid: Path, edit: Callable[[dict], Any]) -> None:
+    path = grid / "manifest.json"
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc, indent=1))
+
+
+def grid_case(*extra: str, command: str = "info", float_grid: bool = False,
+              prepare: Callable[[Path], Any] | None = None
+              ) -> Callable[[Path, Fixtures], list[str]]:
+    """``psfkit COMMAND GRID EXTRA...`` on a copy of the grid, optionally modified."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        grid = _copy_grid(fx.float_grid if float_grid else fx.grid, work)
+        if prepare is not None:
+            prepare(grid)
+        out = [f"--out={work / 'out.json'}"] if command in ("register", "mae") else []
+        quiet = ["--quiet"] if command in ("info", "register", "mae") else []
+        return [command, str(grid), *quiet, *out, *extra]
+    return build
+
+
+def manifest_case(edit: Callable[[dict], Any], command: str = "info"
+                  ) -> Callable[[Path, Fixtures], list[str]]:
+    return grid_case(command=command, prepare=lambda g: _edit_manifest(g, edit))
+
+
+def manifest_text_case(text: Callable[[str], str]) -> Callable[[Path, Fixtures], list[str]]:
+    def prepare(grid: Path) -> None:
+        path = grid / "manifest.json"
+        path.write_text(text(path.read_text()))
+    return grid_case(prepare=prepare)
+
+
+def position_edit(key: str, value: Any, index: int = 0) -> Callable[[dict], Any]:
+    def edit(doc: dict) -> None:
+        doc["positions"][index][key] = value
+    return edit
+
+
+def header_edit(key: str, value: Any) -> Callable[[dict], Any]:
+    def edit(doc: dict) -> None:
+        doc[key] = value
+    return edit
+
+
+def _csv_manifest(grid: Path, extra_cell: bool = False, bad_row: bool = False) -> None:
+    doc = json.loads((grid / "manifest.json").read_text())
+    lines = ["file,row,col,role"]
+    for i, p in enumerate(doc["positions"]):
+        row = "abc" if bad_row and i == 1 else p["row"]
+        lines.append(f"{p['file']},{row},{p['col']},psf" + (",7" if extra_cell and i == 2
+                                                               else ""))
+    lines.append(f"{doc['dark_frame']},,,dark")
+    (grid / "manifest.json").unlink()
+    (grid / "manifest.csv").write_text("\n".join(lines) + "\n")
+
+
+def _write_tiff(path: Path, hwc: np.ndarray) -> None:
+    import tifffile
+
+    tifffile.imwrite(path, hwc, photometric="rgb" if hwc.ndim == 3 else "minisblack")
+
+
+def _poison_tiff(name: str, value: float = np.nan) -> Callable[[Path], Any]:
+    """Put one non-finite pixel into a float32 TIFF of the grid."""
+    def prepare(grid: Path) -> None:
+        import tifffile
+
+        image = tifffile.imread(grid / name)
+        image[5, 7, 1] = value
+        _write_tiff(grid / name, image)
+    return prepare
+
+
+def _replace_image(name: str, array: np.ndarray | None = None, raw: bytes | None = None
+                   ) -> Callable[[Path], Any]:
+    def prepare(grid: Path) -> None:
+        if raw is not None:
+            (grid / name).write_bytes(raw)
+        else:
+            _write_tiff(grid / name, array)
+    return prepare
+
+
+def _huge_npy_header(grid: Path) -> None:
+    """A 20-byte-edit image: an .npy whose header declares 100000 × 100000 pixels."""
+    path = grid / "psf_r00_c00.npy"
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": "<u2", "fortran_order": False, "shape": (100_000, 100_000)})
+        fh.write(b"\0" * 64)
+    (grid / "psf_r00_c00.tiff").unlink()
+    _edit_manifest(grid, position_edit("file", "psf_r00_c00.npy"))
+
+
+# kernel files -------------------------------------------------------------------------
+
+
+def _rewrite_kernels(src: Path, dst: Path, meta_text: Callable[[str], str] | None = None,
+                     kernels: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+    with np.load(src, allow_pickle=False) as data:
+        k, text = np.array(data["kernels"]), str(data["metadata"])
+    if kernels is not None:
+        k = kernels(k)
+    if meta_text is not None:
+        text = meta_text(text)
+    with open(dst, "wb") as fh:
+        np.savez(fh, kernels=k, metadata=np.array(text))
+
+
+def meta_edit(key: str, value: Any, raw: str | None = None) -> Callable[[str], str]:
+    """Set a metadata field; ``raw`` is spliced verbatim (NaN literals, nesting...)."""
+    def edit(text: str) -> str:
+        doc = json.loads(text)
+        doc[key] = "@@RAW@@" if raw is not None else value
+        out = json.dumps(doc)
+        return out.replace('"@@RAW@@"', raw) if raw is not None else out
+    return edit
+
+
+def kernel_case(meta_text: Callable[[str], str] | None = None,
+                kernels: Callable[[np.ndarray], np.ndarray] | None = None,
+                raw: bytes | None = None) -> Callable[[Path, Fixtures], list[str]]:
+    """``psfkit eval-model K.npz PAIRS --out`` with a modified kernel file."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        target = work / "k.npz"
+        if raw is not None:
+            target.write_bytes(raw)
+        else:
+            _rewrite_kernels(fx.kernels, target, meta_text, kernels)
+        return ["eval-model", str(target), str(fx.pairs), "--out", str(work / "errors.json")]
+    return build
+
+
+# pairs --------------------------------------------------------------------------------
+
+
+def pairs_case(prepare: Callable[[Path], Any] | None = None, command: str = "eval-model",
+               *extra: str) -> Callable[[Path, Fixtures], list[str]]:
+    """``psfkit eval-model K PAIRS`` (or ``fit-pairs``) on a modified copy of the pairs."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        pairs = work / "pairs"
+        shutil.copytree(fx.pairs, pairs)
+        if prepare is not None:
+            prepare(pairs)
+        if command == "fit-pairs":
+            return ["fit-pairs", str(pairs), "--out", str(work / "model.npz"), "--quiet",
+                    *extra]
+        return ["eval-model", str(fx.kernels), str(pairs), "--out", str(work / "e.json"),
+                *extra]
+    return build
+
+
+def pairs_json(text: str) -> Callable[[Path], Any]:
+    return lambda pairs: (pairs / "pairs.json").write_text(text)
+
+
+def _edit_scene(name: str, edit: Callable[[np.ndarray], np.ndarray],
+                folder: str = "scene") -> Callable[[Path], Any]:
+    def prepare(pairs: Path) -> None:
+        path = pairs / folder / name
+        np.save(path, edit(np.load(path)))
+    return prepare
+
+
+def _nan_pixel(a: np.ndarray) -> np.ndarray:
+    a = a.copy()
+    a[3, 4, 0] = np.nan
+    return a
+
+
+# ekdun ----------------------------------------------------------------------------------
+
+
+def ekdun_case(*args: str) -> Callable[[Path, Fixtures], list[str]]:
+    """``ekdun ARGS`` with ``{pairs}``, ``{kernels}``, ``{psf}``, ``{meas}``, ``{work}``,
+    ``{ckpt}`` filled in (``{psf}``/``{meas}`` are written into the case folder)."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        names = {"pairs": fx.pairs, "kernels": fx.kernels, "work": work,
+                 "ckpt": fx.checkpoint, "psf": work / "psf.npy", "meas": work / "meas.npy"}
+        if any("{psf}" in a or "{meas}" in a for a in args):
+            _tiny_admm_inputs(work)
+        return [a.format(**names) for a in args]
+    return build
+
+
+def _tiny_admm_inputs(work: Path, nan_in: str | None = None) -> None:
+    rng = np.random.default_rng(0)
+    psf = np.zeros((32, 32), np.float32)
+    psf[14:18, 12:20] = 1.0
+    meas = rng.random((32, 32)).astype(np.float32)
+    if nan_in == "psf":
+        psf[16, 16] = np.nan
+    if nan_in == "meas":
+        meas[3, 3] = np.inf
+    np.save(work / "psf.npy", psf)
+    np.save(work / "meas.npy", meas)
+
+
+def admm_nan_case(where: str, command: str = "admm") -> Callable[[Path, Fixtures], list[str]]:
+    """``ekdun admm PSF MEAS`` (or ``ekdun train PAIRS --psf PSF``) with one NaN/Inf."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        _tiny_admm_inputs(work, nan_in=where)
+        if command == "train":
+            psf = np.zeros((16, 16, 3), np.float32)
+            psf[8, 8] = [1.0, np.nan, 1.0]
+            np.save(work / "psf.npy", psf)
+            return ["train", str(fx.pairs), str(work / "run"), "--psf", str(work / "psf.npy"),
+                    "--quiet", "--epochs", "1"]
+        return ["admm", str(work / "psf.npy"), str(work / "meas.npy"), "--out",
+                str(work / "x.npy"), "--iterations", "2"]
+    return build
+
+
+def bench_config_case(text: str) -> Callable[[Path, Fixtures], list[str]]:
+    """``psfkit simulate-grid --bench-config bench.json`` with a malformed JSON file."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        (work / "bench.json").write_text(text)
+        return ["simulate-grid", "--out", str(work / "g"), "--bench-config",
+                str(work / "bench.json"), "--quiet"]
+    return build
+
+
+def checkpoint_case(edit: Callable[[dict], Any] | None, command: str = "reconstruct",
+                    raw: bytes | None = None, source: str = "checkpoint"
+                    ) -> Callable[[Path, Fixtures], list[str]]:
+    """``ekdun reconstruct|eval|export-kernels`` with a modified copy of a checkpoint."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        import torch
+
+        target = work / "checkpoint.pt"
+        if raw is not None:
+            target.write_bytes(raw)
+        else:
+            doc = torch.load(getattr(fx, source), weights_only=True)
+            if edit is not None:
+                edit(doc)
+            torch.save(doc, target)
+        if command == "eval":
+            return ["eval", str(target), "--data", str(fx.pairs), "--out", str(work / "tables")]
+        if command == "export-kernels":
+            return ["export-kernels", str(target), "--out", str(work / "k.npz")]
+        meas = work / "m.npy"
+        np.save(meas, np.load(fx.pairs / "measurement" / "im0.npy"))
+        return ["reconstruct", str(target), str(meas), "--out", str(work / "recon")]
+    return build
+
+
+def _nan_weight(doc: dict) -> None:
+    name = next(k for k, v in doc["model"].items() if v.is_floating_point() and v.numel() > 1)
+    doc["model"][name].view(-1)[0] = float("nan")
+
+
+def _ckpt_meta(edit: Callable[[dict], Any] | None = None, text: str | None = None
+               ) -> Callable[[dict], Any]:
+    def apply(doc: dict) -> None:
+        if text is not None:
+            doc["metadata"] = text
+        else:
+            meta = json.loads(doc["metadata"])
+            edit(meta)
+            doc["metadata"] = json.dumps(meta)
+    return apply
+
+
+# --------------------------------------------------------------------------- the table
+
+CASES: list[Case] = [
+    # ---- class 1: non-finite values --------------------------------------------------
+    Case("black-level-overflow", "psfkit",
+         manifest_text_case(lambda t: t.replace('"black_level": 1024.0', '"black_level": 1e400')),
+         "manifest.json", 1),
+    Case("black-level-infinity", "psfkit", manifest_case(header_edit("black_level", np.inf)),
+         "manifest.json", 1),
+    Case("black-level-nan-literal", "psfkit",
+         manifest_text_case(lambda t: t.replace('"black_level": 1024.0', '"black_level": NaN')),
+         "manifest.json", 1),
+    Case("black-level-huge-negative", "psfkit",
+         manifest_case(header_edit("black_level", -1e30)), "black_level", 1),
+    Case("field-deg-overflow", "psfkit",
+         manifest_text_case(lambda t: t.replace("-9.645550545", "-1e999", 1)), "1e999", 1),
+    Case("psf-nan-pixel", "psfkit", grid_case(float_grid=True,
+                                              prepare=_poison_tiff("psf_r00_c02.tiff")),
+         "psf_r00_c02.tiff", 1),
+    Case("dark-nan-info", "psfkit", grid_case(float_grid=True, prepare=_poison_tiff("dark.tiff")),
+         "dark.tiff", 1),
+    Case("dark-nan-register", "psfkit",
+         grid_case(command="register", float_grid=True, prepare=_poison_tiff("dark.tiff")),
+         "dark.tiff", 1),
+    Case("dark-inf-mae", "psfkit",
+         grid_case(command="mae", float_grid=True, prepare=_poison_tiff("dark.tiff", np.inf)),
+         "dark.tiff", 1),
+    Case("saturation-level-nan", "psfkit", grid_case("--saturation-level", "nan",
+                                                     command="register"),
+         "--saturation-level", 1),
+    Case("hot-pixel-sigma-nan", "psfkit", grid_case("--hot-pixel-sigma", "nan",
+                                                    command="register"),
+         "--hot-pixel-sigma", 1),
+    Case("mae-smoothing-nan", "psfkit", grid_case("--mae-smoothing", "nan", command="mae"),
+         "--mae-smoothing", 1),
+    Case("kernel-optical-center-nan", "psfkit",
+         kernel_case(meta_edit("optical_center", None, raw="[NaN, 8.0]")), "k.npz", 1),
+    Case("kernel-optical-center-inf", "psfkit",
+         kernel_case(meta_edit("optical_center", None, raw="[1e400, 8.0]")), "1e400", 1),
+    Case("kernel-optical-center-far", "psfkit",
+         kernel_case(meta_edit("optical_center", [1e30, 8.0])), "optical_center", 1),
+    Case("kernel-nan-weight", "psfkit",
+         kernel_case(kernels=lambda k: np.where(np.arange(k.size).reshape(k.shape) == 5,
+                                                np.nan, k).astype(np.float32)),
+         "k.npz", 1),
+    Case("pairs-scene-nan", "psfkit", pairs_case(_edit_scene("im2.npy", _nan_pixel)),
+         "im2.npy", 1),
+    Case("pairs-measurement-nan", "psfkit",
+         pairs_case(_edit_scene("im5.npy", _nan_pixel, "measurement")), "im5.npy", 1),
+    Case("fit-pairs-tikhonov-nan", "psfkit", pairs_case(None, "fit-pairs", "--tikhonov", "nan"),
+         "--tikhonov", 1),
+    Case("admm-psf-nan", "ekdun", admm_nan_case("psf"), "psf.npy", 1),
+    Case("admm-measurement-inf", "ekdun", admm_nan_case("meas"), "meas.npy", 1),
+    Case("admm-tau-nan", "ekdun", ekdun_case("admm", "{psf}", "{meas}", "--out", "{work}/x.npy",
+                                             "--tau", "nan"), "--tau", 1),
+    Case("train-lr-nan", "ekdun", ekdun_case("train", "{pairs}", "{work}/run", "--kernels",
+                                             "{kernels}", "--lr", "nan"), "--lr", 1),
+    Case("make-dataset-photons-nan", "ekdun", ekdun_case("make-dataset", "{work}/ds",
+                                                         "--photons", "nan"), "--photons", 1),
+    Case("train-psf-nan", "ekdun", admm_nan_case("psf", command="train"), "psf.npy", 1),
+    Case("checkpoint-nan-weight-reconstruct", "ekdun", checkpoint_case(_nan_weight),
+         "checkpoint.pt", 1),
+    Case("checkpoint-nan-weight-eval", "ekdun", checkpoint_case(_nan_weight, "eval"),
+         "checkpoint.pt", 1),
+
+    # ---- class 2: tracebacks ---------------------------------------------------------
+    Case("manifest-deep-nesting", "psfkit", manifest_text_case(lambda t: DEEP), "manifest.json",
+         2),
+    Case("manifest-deep-field", "psfkit",
+         manifest_text_case(lambda t: t.replace('"bit_depth": 12', f'"extra": {DEEP}', 1)),
+         "manifest.json", 2),
+    Case("manifest-csv-extra-cell", "psfkit",
+         grid_case(prepare=lambda g: _csv_manifest(g, extra_cell=True)), "manifest.csv", 2),
+    Case("manifest-csv-row-text", "psfkit",
+         grid_case(prepare=lambda g: _csv_manifest(g, bad_row=True)), "row", 2),
+    Case("manifest-not-utf8", "psfkit",
+         grid_case(prepare=lambda g: (g / "manifest.json").write_bytes(b"\xff\xfe{\x00")),
+         "manifest.json", 2),
+    Case("manifest-empty", "psfkit",
+         grid_case(prepare=lambda g: (g / "manifest.json").write_bytes(b"")), "manifest.json",
+         2),
+    Case("manifest-top-level-list", "psfkit", manifest_text_case(lambda t: "[1, 2]"),
+         "manifest.json", 2),
+    Case("manifest-grid-shape-text", "psfkit", manifest_case(header_edit("grid_shape", "3x3")),
+         "grid_shape", 2),
+    Case("manifest-exposure-text", "psfkit",
+         manifest_case(position_edit("exposure_s", "fast")), "exposure_s", 2),
+    Case("manifest-monitor-text", "psfkit", manifest_case(position_edit("monitor_px", "abc")),
+         "monitor_px", 2),
+    Case("manifest-center-bool", "psfkit", manifest_case(header_edit("center", [True, 0])),
+         "center", 2),
+    Case("manifest-file-path", "psfkit",
+         manifest_case(position_edit("file", "../psf_r00_c00.tiff")), "psf_r00_c00.tiff", 2),
+    Case("image-zero-bytes", "psfkit", grid_case(prepare=_replace_image("psf_r01_c01.tiff",
+                                                                        raw=b"")),
+         "psf_r01_c01.tiff", 2),
+    Case("image-garbage", "psfkit",
+         grid_case(prepare=_replace_image("psf_r01_c00.tiff", raw=b"II*\x00garbage" * 10)),
+         "psf_r01_c00.tiff", 2),
+    Case("image-four-channels", "psfkit", grid_case(prepare=_replace_image(
+        "psf_r02_c02.tiff", np.ones((135, 180, 4), np.uint16))), "psf_r02_c02.tiff", 2),
+    Case("kernel-zero-byte-npz", "psfkit", kernel_case(raw=b""), "k.npz", 2),
+    Case("kernel-not-a-zip", "psfkit", kernel_case(raw=b"PK\x03\x04 truncated"), "k.npz", 2),
+    Case("kernel-deep-metadata", "psfkit", kernel_case(lambda t: DEEP), "k.npz", 2),
+    Case("kernel-sensor-shape-text", "psfkit",
+         kernel_case(meta_edit("sensor_shape", "16x16")), "sensor_shape", 2),
+    Case("kernel-scene-padding-text", "psfkit",
+         kernel_case(meta_edit("scene_padding", "two")), "scene_padding", 2),
+    Case("kernel-basis-number", "psfkit", kernel_case(meta_edit("basis", 5)), "basis", 2),
+    Case("kernel-optical-center-text", "psfkit",
+         kernel_case(meta_edit("optical_center", ["a", "b"])), "optical_center", 2),
+    Case("kernel-provenance-downsample-text", "psfkit",
+         kernel_case(meta_edit("provenance", {"downsample": "x"})), "downsample", 2),
+    Case("pairs-json-scene-dir-number", "psfkit", pairs_case(pairs_json('{"scene_dir": 5}')),
+         "scene_dir", 2),
+    Case("pairs-json-deep", "psfkit", pairs_case(pairs_json(DEEP)), "pairs.json", 2),
+    Case("pairs-json-list", "psfkit", pairs_case(pairs_json("[]")), "pairs.json", 2),
+    Case("pairs-zero-byte-image", "psfkit",
+         pairs_case(lambda p: (p / "scene" / "im3.npy").write_bytes(b"")), "im3.npy", 2),
+    Case("mae-smoothing-text", "psfkit", grid_case("--mae-smoothing", "wide", command="mae"),
+         "--mae-smoothing", 2),
+    Case("bench-config-deep", "psfkit", bench_config_case(DEEP), "bench.json", 2),
+    Case("bench-config-duplicate-key", "psfkit",
+         bench_config_case('{"seed": 1, "seed": 2}'), "seed", 7),
+    Case("train-lr-negative", "ekdun", ekdun_case("train", "{pairs}", "{work}/run", "--kernels",
+                                                  "{kernels}", "--lr", "-1"), "--lr", 2),
+    Case("checkpoint-zero-bytes", "ekdun", checkpoint_case(None, raw=b""), "checkpoint.pt", 2),
+    Case("checkpoint-deep-metadata", "ekdun",
+         checkpoint_case(_ckpt_meta(text=DEEP)), "checkpoint.pt", 2),
+
+    # ---- class 3: resource exhaustion ------------------------------------------------
+    Case("manifest-huge-row", "psfkit", manifest_case(position_edit("row", 100_000_000)),
+         "row", 3),
+    Case("manifest-huge-grid-shape", "psfkit",
+         manifest_case(header_edit("grid_shape", [100_000, 100_000])), "grid_shape", 3),
+    Case("manifest-huge-center", "psfkit", manifest_case(header_edit("center", [10**9, 1])),
+         "center", 3),
+    Case("image-huge-npy-header", "psfkit", grid_case(prepare=_huge_npy_header),
+         "psf_r00_c00.npy", 3),
+    Case("kernel-huge-scene-padding", "psfkit",
+         kernel_case(meta_edit("scene_padding", 10**12)), "scene_padding", 3),
+    Case("kernel-huge-sensor-shape", "psfkit",
+         kernel_case(meta_edit("sensor_shape", [100_000, 100_000])), "sensor_shape", 3),
+    Case("checkpoint-huge-iterations", "ekdun",
+         checkpoint_case(_ckpt_meta(lambda m: m.setdefault("overrides", {}).update(
+             iterations=10**9))), "checkpoint.pt", 3),
+    Case("train-huge-iterations", "ekdun", ekdun_case("train", "{pairs}", "{work}/run",
+                                                      "--kernels", "{kernels}", "--iterations",
+                                                      "100000"), "--iterations", 3),
+    Case("make-dataset-huge-sensor", "ekdun", ekdun_case("make-dataset", "{work}/ds", "--sensor",
+                                                         "100000", "100000"), "--sensor", 3),
+
+    # ---- class 7: invalid values, misleading messages --------------------------------
+    Case("register-workers-negative", "psfkit", grid_case("--workers", "-1", command="register"),
+         "--workers", 7),
+    Case("register-saturation-negative", "psfkit",
+         grid_case("--saturation-level", "-5", command="register"), "--saturation-level", 7),
+    Case("register-upsample-zero", "psfkit", grid_case("--upsample", "0", command="register"),
+         "--upsample", 7),
+    Case("manifest-bit-depth-true", "psfkit", manifest_case(header_edit("bit_depth", True)),
+         "bit_depth", 7),
+    Case("manifest-version-true", "psfkit", manifest_case(header_edit("version", True)),
+         "version", 7),
+    Case("manifest-duplicate-key", "psfkit",
+         manifest_text_case(lambda t: t.replace('"bit_depth": 12', '"bit_depth": 12, '
+                                                '"bit_depth": 16', 1)),
+         "bit_depth", 7),
+    Case("manifest-unknown-position-key", "psfkit",
+         manifest_case(position_edit("exposure", 0.01)), "exposure", 7),
+    Case("kernel-version-true", "psfkit", kernel_case(meta_edit("version", True)), "k.npz", 7),
+    Case("kernel-scene-padding-true", "psfkit", kernel_case(meta_edit("scene_padding", True)),
+         "scene_padding", 7),
+    Case("kernel-duplicate-key", "psfkit",
+         kernel_case(lambda t: t.replace('"basis": "paper"', '"basis": "paper", "basis": "si"')),
+         "basis", 7),
+    Case("pairs-json-duplicate-key", "psfkit",
+         pairs_case(pairs_json('{"flip": "ud", "flip": "none"}')), "flip", 7),
+    Case("pairs-json-unknown-key", "psfkit", pairs_case(pairs_json('{"scenes": "scene"}')),
+         "scenes", 7),
+    Case("pairs-mixed-dtypes", "psfkit",
+         pairs_case(_edit_scene("im4.npy", lambda a: (a * 1000).astype(np.uint16))), "im4.npy",
+         7),
+    Case("pairs-all-zero-scene", "psfkit",
+         pairs_case(_edit_scene("im1.npy", np.zeros_like), "fit-pairs"), "im1.npy", 7),
+    Case("eval-model-downsample-zero", "psfkit", pairs_case(None, "eval-model", "--downsample",
+                                                            "0"), "--downsample", 7),
+    Case("fit-pairs-iterations-zero", "psfkit", pairs_case(None, "fit-pairs", "--iterations",
+                                                           "0"), "--iterations", 7),
+    Case("admm-downsample-zero", "ekdun", ekdun_case("admm", "{psf}", "{meas}", "--out",
+                                                     "{work}/x.npy", "--downsample", "0"),
+         "--downsample", 7),
+    Case("admm-downsample-huge", "ekdun", ekdun_case("admm", "{psf}", "{meas}", "--out",
+                                                     "{work}/x.npy", "--downsample", "5000"),
+         "--downsample", 7),
+    Case("admm-iterations-zero", "ekdun", ekdun_case("admm", "{psf}", "{meas}", "--out",
+                                                     "{work}/x.npy", "--iterations", "0"),
+         "--iterations", 7),
+    Case("train-epochs-zero", "ekdun", ekdun_case("train", "{pairs}", "{work}/run", "--kernels",
+                                                  "{kernels}", "--epochs", "0"), "--epochs", 7),
+    Case("train-batch-size-negative", "ekdun", ekdun_case("train", "{pairs}", "{work}/run",
+                                                          "--kernels", "{kernels}",
+                                                          "--batch-size", "-2"),
+         "--batch-size", 7),
+    Case("export-kernels-le-admm-u", "ekdun",
+         checkpoint_case(None, "export-kernels", source="le_admm"), "checkpoint.pt", 7),
+]
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+def _float_grid(src: Path, dst: Path) -> Path:
+    import tifffile
+
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("ground_truth"))
+    for f in dst.glob("*.tiff"):
+        _write_tiff(f, tifffile.imread(f).astype(np.float32))
+    _edit_manifest(dst, lambda doc: doc.pop("bit_depth"))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def fixtures(grid_3x3, tiny_data, tmp_path_factory) -> Fixtures:
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.training import TrainOptions, train
+    from ekdun.training.trainer import CHECKPOINT
+
+    pairs, kernels = tiny_data
+    root = tmp_path_factory.mktemp("bad_inputs_fixtures")
+    options = TrainOptions(epochs=1, batch_size=4, progress=False, threads=1)
+    runs = {}
+    for name, overrides in (("ekdun", SMALL_EKDUN), ("le-admm-u", SMALL_LE_ADMM)):
+        train(root / name, name, kernels, PairsDataset(pairs), "tiny", overrides, options)
+        runs[name] = root / name / CHECKPOINT
+    return Fixtures(grid=grid_3x3, float_grid=_float_grid(grid_3x3, root / "float_grid"),
+                    pairs=pairs, kernels=kernels, checkpoint=runs["ekdun"],
+                    le_admm=runs["le-admm-u"])
+
+
+def _listing(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_size for p in sorted(folder.rglob("*"))
+            if p.is_file()} | {str(p.relative_to(folder)) + "/": 0
+                               for p in folder.rglob("*") if p.is_dir()}
+
+
+def _run(cli: str, args: list[str]) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    for key in ("PSFKIT_DEBUG", "EKDUN_DEBUG"):
+        env.pop(key, None)
+    module = "psfkit.cli" if cli == "psfkit" else "ekdun.cli"
+    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True,
+                          text=True, env=env, cwd=REPO, timeout=300)
+
+
+def test_table_is_large_and_covers_every_class():
+    assert len(CASES) >= 60
+    assert len({c.id for c in CASES}) == len(CASES)
+    assert {c.cls for c in CASES} == {1, 2, 3, 7}
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input_is_one_line_naming_the_culprit(case: Case, fixtures: Fixtures,
+                                                  tmp_path: Path) -> None:
+    work = tmp_path / "case"
+    work.mkdir()
+    args = case.build(work, fixtures)
+    before = _listing(work)
+    done = _run(case.cli, args)
+    assert "Traceback" not in done.stderr + done.stdout
+    lines = done.stderr.splitlines()
+    assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
+    assert len(lines) == 1 and lines[0].strip(), lines
+    assert lines[0].startswith(f"{case.cli}"), lines[0]
+    assert case.names in lines[0], lines[0]
+    assert "internal error" not in lines[0]
+    assert _listing(work) == before, "the failed command left output behind"
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def test_non_finite_outputs_are_refused_before_writing(tmp_path):
+    from psfkit.errors import InvalidInputError, ModelFileError
+    from psfkit.io.images import write_image
+    from psfkit.kernelfile import KernelModel, save_kernels
+    from psfkit.validation import dumps_finite, require_finite_output
+
+    with pytest.raises(InvalidInputError, match=r"out\.json.*non-finite.*at a\.b\.1"):
+        dumps_finite({"a": {"b": [1.0, float("nan")]}}, "out.json")
+    with pytest.raises(InvalidInputError, match="non-finite"):
+        dumps_finite({"x": np.float32(np.inf)}, "t.json", default=float)
+    assert json.loads(dumps_finite({"a": [1.0, None]}, "ok.json")) == {"a": [1.0, None]}
+    with pytest.raises(InvalidInputError, match="refusing to write 2 non-finite"):
+        require_finite_output(np.array([0.0, np.nan, np.inf]), "x.npy")
+    image = np.ones((1, 8, 8), np.float32)
+    image[0, 2, 2] = np.nan
+    with pytest.raises(InvalidInputError, match=r"x\.npy"):
+        write_image(tmp_path / "x.npy", image)
+    kernels = np.ones((1, 1, 4, 4), np.float32)
+    with pytest.raises(ModelFileError, match="NaN/Inf"):
+        KernelModel(kernels=np.where(kernels > 0, np.nan, 0), basis="si", channels=("L",))
+    model = KernelModel(kernels=kernels, basis="si", channels=("L",), sensor_shape=(8, 8),
+                        optical_center=(float("nan"), 4.0))
+    with pytest.raises(InvalidInputError, match=r"k\.npz.*optical_center"):
+        save_kernels(tmp_path / "k.npz", model)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_debug_shows_the_traceback_and_internal_errors_say_so(tmp_path, capsys, monkeypatch):
+    from psfkit.cli.main import error_line
+
+    line, status = error_line("psfkit", KeyError("boom"))
+    assert status == 1 and "internal error" in line and "report" in line
+    assert error_line("psfkit", RecursionError())[1] == 2
+    assert error_line("psfkit", zipfile.BadZipFile("x"))[1] == 2
+    done = subprocess.run([sys.executable, "-m", "psfkit.cli", "--debug", "info",
+                           str(tmp_path / "missing")], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=120)
+    assert done.returncode != 0 and "Traceback" in done.stderr and "GridFormatError" in done.stderr
