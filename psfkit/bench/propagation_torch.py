@@ -19,6 +19,7 @@ torch is imported here only, so that importing :mod:`psfkit` (and its CLI) does 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
@@ -36,19 +37,15 @@ def default_device() -> str:
 
 
 @contextmanager
-def cpu_threads(n: int | None):
-    """Run torch's CPU operators on ``n`` threads (all cores when None), then restore.
+def cpu_threads(n: int) -> Iterator[None]:
+    """Run torch's CPU operators on ``n`` threads, then restore the previous count.
 
-    For a whole run (changing the thread count re-creates torch's thread pool: not per PSF).
-    ``OMP_NUM_THREADS=1`` (set in test environments) would otherwise leave torch on one
-    thread, while scipy.fft uses all cores (``workers=-1``) in both paths.
+    Set once for a whole run: changing the count re-creates torch's thread pool.
     """
-    import os
-
     import torch
 
     previous = torch.get_num_threads()
-    torch.set_num_threads(max(1, n or os.cpu_count() or 1))
+    torch.set_num_threads(max(1, n))
     try:
         yield
     finally:

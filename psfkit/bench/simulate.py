@@ -58,11 +58,16 @@ def grid_monitor_positions(config: BenchConfig, grid_shape: tuple[int, int],
 
 @contextmanager
 def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
-    """All CPU cores for a torch-backend camera during a grid (set once, not per PSF)."""
+    """One torch thread for a torch-backend camera on the CPU during a grid.
+
+    The FFTs, the bulk of the work, run in scipy on all cores; torch's elementwise operators
+    on a second OpenMP thread cost far more than they gain when the writer thread (and other
+    processes) share the cores: measured 10x slower per PSF on a loaded 2-core machine.
+    """
     if camera.backend == "torch" and camera.device_type == "cpu":
         from psfkit.bench.propagation_torch import cpu_threads
 
-        with cpu_threads(None):
+        with cpu_threads(1):
             yield
     else:
         yield
