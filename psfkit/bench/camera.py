@@ -34,6 +34,7 @@ from psfkit.bench.diffuser import (
     slope_rms_for_angle,
 )
 from psfkit.bench.propagation import chief_ray_shift, oblique_transfer_function, unit_phasor
+from psfkit.bench.propagation_torch import resolve_backend
 from psfkit.bench.sensor import SensorModel, bin_pixels, relative_illumination
 from psfkit.errors import ConfigurationError
 
@@ -433,17 +434,6 @@ class VirtualCamera:
     def psf(self, field_deg: tuple[float, float]) -> np.ndarray:
         """Noise-free PSF on the sensor, ``(C, H, W)`` float32, relative irradiance."""
         return place_patch(self.psf_patch(field_deg), self.sensor_shape)
-
-
-def resolve_backend(backend: str) -> str:
-    """``"torch"`` or ``"numpy"`` for a backend name (``"auto"``: torch if importable)."""
-    if backend not in ("auto", "torch", "numpy"):
-        raise ConfigurationError(f"backend must be 'auto', 'torch' or 'numpy', got {backend!r}")
-    if backend == "auto":
-        import importlib.util
-
-        return "torch" if importlib.util.find_spec("torch") is not None else "numpy"
-    return backend
 
 
 def box_blur(image: np.ndarray, width_px: float) -> np.ndarray:

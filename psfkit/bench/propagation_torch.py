@@ -25,8 +25,21 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from psfkit.errors import ConfigurationError
+
 if TYPE_CHECKING:
     import torch
+
+
+def resolve_backend(backend: str) -> str:
+    """``"torch"`` or ``"numpy"`` for a backend name (``"auto"``: torch if importable)."""
+    if backend not in ("auto", "torch", "numpy"):
+        raise ConfigurationError(f"backend must be 'auto', 'torch' or 'numpy', got {backend!r}")
+    if backend == "auto":
+        import importlib.util
+
+        return "torch" if importlib.util.find_spec("torch") is not None else "numpy"
+    return backend
 
 
 def default_device() -> str:
