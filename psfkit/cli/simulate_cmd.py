@@ -79,8 +79,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--backend", choices=("auto", "torch", "numpy"), default="auto",
-                   help="optics backend: torch (batched float32 FFTs, CUDA if present), numpy "
-                        "(the float64 reference path); auto = torch if installed")
+                   help="optics backend: torch (float32, CUDA if present; same clean PSFs to "
+                        "~5e-7 but another noise realization), numpy (the float64 reference "
+                        "path, file for file as before); auto (default) = torch if installed")
     add_bench_options(p)
     p.set_defaults(func=run_simulate)
 
