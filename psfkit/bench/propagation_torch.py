@@ -1,8 +1,9 @@
-r"""The virtual camera's optics in PyTorch: all channels of one PSF as batched float32 FFTs.
+r"""The virtual camera's optics in PyTorch: all channels of one PSF in float32, in place.
 
 The same physics as the NumPy path of :meth:`psfkit.bench.camera.VirtualCamera.psf_patch`
 (envelope behind the diffuser, oblique angular-spectrum propagation, pixel integration,
-source blur), run on whichever device is available (CUDA if present, else the CPU threads).
+source blur), run on whichever device is available: CUDA if present (cuFFT), else the CPU
+(elementwise work in torch, FFTs in scipy's pocketfft on the same memory, all cores).
 Everything is float32; the formulas that lose digits to cancellation in float32 are rewritten
 without it, so the phases stay within ~1e-5 rad of the float64 ones where the light is:
 
