@@ -1,23 +1,32 @@
-"""Benchmark: ``psfkit fit-eigen`` on a full-resolution 9×9 RGB grid (target ≤ 20 s, 2 cores).
+"""Benchmark: ``psfkit fit-eigen`` on a full-resolution 9×9 RGB grid, this code vs an older one.
 
-Each repeat runs the command in a fresh process; the median wall time and the peak resident
-memory are printed, with the fit's cross-validated errors.
+Targets (issues 2 and 15): ≤ 20 s on 2 cores, and ≤ 0.5× the time of the code at ``--old-ref``
+(default ``main``) on the same machine in the same run. The old code is exported from git
+(``git archive``) into a temporary folder; each repeat runs the command in a fresh process for
+the old and the new code, alternating, and the medians of the wall times, their ratio, the peak
+resident memory and the largest kernel difference between the two (relative to the largest
+kernel value) are printed, with the fit's cross-validated errors.
 
     python benchmarks/bench_fit_eigen.py                 # simulates the grid first (2 min)
-    python benchmarks/bench_fit_eigen.py --grid DIR
+    python benchmarks/bench_fit_eigen.py --grid DIR --repeat 3 --old-ref main
+    python benchmarks/bench_fit_eigen.py --grid DIR --old-ref none   # new code only
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
+from io import BytesIO
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[1]
 CHILD = """
 import resource, sys
 from psfkit.cli import main
@@ -28,10 +37,31 @@ sys.exit(code)
 """
 
 
+def export_code(ref: str, dest: Path) -> Path:
+    """The ``psfkit`` package as of git ``ref``, extracted under ``dest``."""
+    archive = subprocess.run(["git", "archive", "--format=tar", ref, "psfkit"], cwd=ROOT,
+                             check=True, capture_output=True).stdout
+    with tarfile.open(fileobj=BytesIO(archive)) as tar:
+        tar.extractall(dest, filter="data")
+    return dest
+
+
+def kernel_difference(a: Path, b: Path) -> float:
+    """``max |Ka − Kb| / max |Ka|`` over all kernels of two kernel files."""
+    import numpy as np
+
+    from psfkit.kernelfile import load_kernels
+
+    ka, kb = load_kernels(a).kernels, load_kernels(b).kernels
+    return float(np.abs(ka - kb).max() / np.abs(ka).max())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--grid")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--old-ref", default="main",
+                        help="git revision of the old code ('none': time the new code only)")
     parser.add_argument("--figures", action="store_true", help="also time writing the figures")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -40,22 +70,37 @@ def main() -> None:
             from psfkit.bench import simulate_grid
 
             grid = str(simulate_grid(Path(tmp) / "grid", progress=True))
-        times, peaks = [], []
+        codes = {"new": ROOT}
+        if args.old_ref != "none":
+            codes["old"] = export_code(args.old_ref, Path(tmp) / "old")
+        times: dict[str, list[float]] = {name: [] for name in codes}
+        peaks: dict[str, list[float]] = {name: [] for name in codes}
         for i in range(args.repeat):
-            out = Path(tmp) / f"k{i}.npz"
-            t0 = time.perf_counter()
-            res = subprocess.run([sys.executable, "-c", CHILD, grid, str(out),
-                                  str(Path(tmp) / f"fig{i}"), "1" if args.figures else "0"],
-                                 check=True, capture_output=True, text=True)
-            times.append(time.perf_counter() - t0)
-            peaks.append(float(res.stdout.split("PEAK")[-1]))
-            print(f"run {i + 1}: {times[-1]:.1f} s, peak RSS {peaks[-1]:.2f} GiB", flush=True)
+            for name, code in codes.items():
+                out = Path(tmp) / f"{name}{i}.npz"
+                env = {**os.environ, "PYTHONPATH": str(code)}
+                t0 = time.perf_counter()
+                res = subprocess.run([sys.executable, "-c", CHILD, grid, str(out),
+                                      str(Path(tmp) / f"fig{name}{i}"),
+                                      "1" if args.figures else "0"],
+                                     check=True, capture_output=True, text=True, env=env)
+                times[name].append(time.perf_counter() - t0)
+                peaks[name].append(float(res.stdout.split("PEAK")[-1]))
+                print(f"run {i + 1} {name}: {times[name][-1]:.1f} s, peak RSS "
+                      f"{peaks[name][-1]:.2f} GiB", flush=True)
         from psfkit.kernelfile import load_kernels
 
-        summary = load_kernels(Path(tmp) / "k0.npz").provenance["fit"]
+        summary = load_kernels(Path(tmp) / "new0.npz").provenance["fit"]
+        diff = kernel_difference(Path(tmp) / "old0.npz", Path(tmp) / "new0.npz") \
+            if "old" in codes else None
     label = "with figures" if args.figures else "kernel file only"
-    print(f"fit-eigen 9x9 grid ({label}): median {statistics.median(times):.1f} s over "
-          f"{len(times)} runs (target <= 20 s), peak RSS {max(peaks):.2f} GiB")
+    medians = {name: statistics.median(t) for name, t in times.items()}
+    for name in codes:
+        print(f"fit-eigen 9x9 grid ({label}), {name} code: median {medians[name]:.1f} s over "
+              f"{len(times[name])} runs (target <= 20 s), peak RSS {max(peaks[name]):.2f} GiB")
+    if diff is not None:
+        print(f"ratio new / old (median wall): {medians['new'] / medians['old']:.3f} "
+              f"(target <= 0.5); kernels max |new - old| / max |old| = {diff:.1e}")
     print("held-out relative error: " + json.dumps(
         summary["cross_validation"]["held_out_relative_error"]))
 

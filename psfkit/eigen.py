@@ -33,6 +33,8 @@ from psfkit.kernelfile import CONVENTIONS
 from psfkit.resample import bin_image
 from psfkit.weights import WeightBasis, get_basis, separable_coordinates
 
+BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (cache-sized)
+
 
 def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
                      shift: tuple[float, float], convention: str,
@@ -94,25 +96,46 @@ class NormalEquations:
         Products are formed and accumulated in the image's own precision: float32 for grid
         data (half the memory traffic of float64; its rounding, ~1e-7 per PSF, is far below
         any sensor's noise), float64 for float64 input (the exact-recovery tests).
+
+        The work runs over blocks of rows small enough to stay in the CPU cache (weights,
+        masked products and accumulators of a block are touched once each per PSF instead of
+        once per product at full size): the same operations per pixel, in the same order, as
+        on whole images, so the sums are bit-identical, at about half the time.
         """
         dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float64
         if self.count == 0 and not isinstance(self.gram, np.ndarray):
             k = self.basis.n_kernels
             self.gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
             self.rhs = np.zeros((self.channels, k, self.h, self.w), dtype)
-        weights = position_weights(self.basis, (self.h, self.w), shift, self.convention,
-                                   self.optical_center).astype(dtype)
-        mask = valid.astype(dtype)
-        mw = weights * mask                   # (K, H, W); source-side weights broadcast
-        product = np.empty((self.h, self.w), dtype)
-        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
-            np.multiply(mw[i], weights[j], out=product)
-            self.gram[index] += product
-        for c in range(self.channels):
-            masked = image[c] * mask
-            for k in range(self.basis.n_kernels):
-                np.multiply(weights[k], masked, out=product)
-                self.rhs[c, k] += product
+        assert isinstance(self.gram, np.ndarray) and isinstance(self.rhs, np.ndarray)
+        sensor = self.convention == "sensor"
+        if sensor:
+            du, dv = shift
+            u_n, v_n = separable_coordinates((self.h, self.w), self.optical_center)
+            u_n = u_n + du / (self.w / 2.0)
+            v_n = v_n + dv / (self.h / 2.0)
+        else:
+            weights = position_weights(self.basis, (self.h, self.w), shift, self.convention,
+                                       self.optical_center).astype(dtype)
+        rows = max(1, BLOCK_ELEMENTS // self.w)
+        product = np.empty((rows, self.w), dtype)
+        for r0 in range(0, self.h, rows):
+            block = slice(r0, min(r0 + rows, self.h))
+            prod = product[:block.stop - r0]
+            if sensor:                                   # weights of these rows only
+                weights = self.basis.evaluate(u_n, v_n[block]).astype(dtype)
+            mask = valid[block].astype(dtype)
+            mw = weights * mask                   # (K, R, W); source-side weights broadcast
+            gram = self.gram[:, block]
+            for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+                np.multiply(mw[i], weights[j], out=prod)
+                gram[index] += prod
+            rhs = self.rhs[:, :, block]
+            for c in range(self.channels):
+                masked = image[c, block] * mask
+                for k in range(self.basis.n_kernels):
+                    np.multiply(weights[k], masked, out=prod)
+                    rhs[c, k] += prod
         self.count += 1
 
     def minus(self, other: NormalEquations) -> NormalEquations:
@@ -136,19 +159,57 @@ class NormalEquations:
         eigenvalue of the normalized Gram matrix ``(H, W)`` (0 where a kernel pixel is not
         constrained by the data)."""
         k = self.basis.n_kernels
-        gram = np.zeros((self.h * self.w, k, k))
-        flat = self.gram.reshape(len(self._iu[0]), -1).T
-        gram[:, self._iu[0], self._iu[1]] = flat
-        gram[:, self._iu[1], self._iu[0]] = flat
-        scale = np.maximum(np.trace(gram, axis1=1, axis2=2) / k, 1e-300)
-        normalized = gram / scale[:, None, None]
-        smallest = np.linalg.eigvalsh(normalized)[:, 0].reshape(self.h, self.w) \
-            if conditioning else None
-        system = normalized + ridge * _difference_prior(k) + 1e-12 * np.eye(k)
-        rhs = self.rhs.reshape(self.channels, k, -1).transpose(2, 1, 0) / scale[:, None, None]
-        solution = np.linalg.solve(system, rhs)                       # (N, K, C)
-        kernels = np.moveaxis(solution, 0, -1).reshape(k, self.channels, self.h, self.w)
+        n = self.h * self.w
+        flat = np.asarray(self.gram, dtype=np.float64).reshape(len(self._iu[0]), n)
+        scale = np.zeros(n)
+        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+            if i == j:
+                scale += flat[index]
+        scale = np.maximum(scale / k, 1e-300)
+        # (K, K, N) systems, pixels last (contiguous vector operations over the pixels)
+        system = np.empty((k, k, n))
+        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+            np.divide(flat[index], scale, out=system[i, j])
+            system[j, i] = system[i, j]
+        del flat
+        smallest = np.linalg.eigvalsh(np.moveaxis(system, -1, 0))[:, 0].reshape(
+            self.h, self.w) if conditioning else None
+        system += (ridge * _difference_prior(k) + 1e-12 * np.eye(k))[:, :, None]
+        rhs = np.asarray(self.rhs, dtype=np.float64).reshape(self.channels, k, n)
+        rhs = np.moveaxis(rhs, 0, 1) / scale                        # (K, C, N)
+        solution = _solve_spd(system, rhs)
+        kernels = solution.reshape(k, self.channels, self.h, self.w)
         return kernels, smallest
+
+
+def _solve_spd(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``system[:, :, n] x[:, :, n] = rhs[:, :, n]`` for every pixel ``n``.
+
+    ``system`` ``(K, K, N)`` symmetric positive definite, ``rhs`` ``(K, C, N)``; returns
+    ``(K, C, N)``. A Cholesky factorization vectorized over the pixels (K is small, N is
+    millions: one LAPACK call per pixel costs ~1 µs, ten times the arithmetic); pixels where a
+    pivot loses more than 10 of its 16 digits are re-solved by LAPACK with partial pivoting.
+    """
+    k = system.shape[0]
+    chol = np.zeros_like(system)
+    weak = np.zeros(system.shape[-1], bool)
+    for j in range(k):
+        pivot = system[j, j] - sum(chol[j, p] ** 2 for p in range(j))
+        weak |= pivot <= 1e-10 * np.abs(system[j, j])
+        chol[j, j] = np.sqrt(np.where(weak, 1.0, pivot))   # weak pixels: placeholder
+        for i in range(j + 1, k):
+            chol[i, j] = (system[i, j] - sum(chol[i, p] * chol[j, p] for p in range(j))) \
+                / chol[j, j]
+    y = np.empty_like(rhs)
+    for i in range(k):
+        y[i] = (rhs[i] - sum(chol[i, p] * y[p] for p in range(i))) / chol[i, i]
+    x = np.empty_like(rhs)
+    for i in reversed(range(k)):
+        x[i] = (y[i] - sum(chol[p, i] * x[p] for p in range(i + 1, k))) / chol[i, i]
+    if weak.any():
+        x[:, :, weak] = np.moveaxis(np.linalg.solve(
+            np.moveaxis(system[:, :, weak], -1, 0), np.moveaxis(rhs[:, :, weak], -1, 0)), 0, -1)
+    return x
 
 
 def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],

@@ -132,3 +132,13 @@ def fresnel_transfer_anisotropic(shape: tuple[int, int], pitch_um: float,
 def propagate(field: np.ndarray, transfer: np.ndarray, workers: int | None = None) -> np.ndarray:
     """Apply a transfer function (FFT order) to a complex field: ``IFFT(FFT(field)·H)``."""
     return sfft.ifft2(sfft.fft2(field, workers=workers) * transfer, workers=workers)
+
+
+def box_blur(image: np.ndarray, width_px: float) -> np.ndarray:
+    """Convolve the last two axes with a centred square box of side ``width_px`` (Fourier
+    domain, exact for band-limited data; used for the finite size of the displayed source)."""
+    gy = np.fft.fftfreq(image.shape[-2])[:, None]
+    gx = np.fft.rfftfreq(image.shape[-1])[None, :]
+    spec = sfft.rfft2(image, axes=(-2, -1))
+    spec *= np.sinc(gy * width_px) * np.sinc(gx * width_px)
+    return sfft.irfft2(spec, s=image.shape[-2:], axes=(-2, -1))

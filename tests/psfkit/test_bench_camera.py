@@ -147,3 +147,19 @@ def test_mono_camera_has_one_channel():
     cam = VirtualCamera(dataclasses.replace(BenchConfig(downsample=8), wavelengths_nm=(530.0,)))
     assert cam.psf((1.0, 1.0)).shape == (1, 135, 180)
     assert cam.channels == ("L",)
+
+
+@pytest.mark.parametrize("spherical", [True, False])
+def test_torch_optics_match_the_numpy_reference(spherical):
+    """float32 torch path vs the float64-phase NumPy path: relative L2 below 1e-4 (measured
+    ~5e-7), at the field edge too, and the chief-ray placement identical."""
+    config = dataclasses.replace(BenchConfig(downsample=4), spherical_source=spherical)
+    numpy_cam = VirtualCamera(config, backend="numpy")
+    torch_cam = VirtualCamera(config, backend="torch", device="cpu")
+    assert numpy_cam.backend == "numpy" and torch_cam.backend == "torch"
+    for field in [(0.0, 0.0), (9.5, -7.0), (-3.3, 5.1)]:
+        ref, new = numpy_cam.psf_patch(field), torch_cam.psf_patch(field)
+        assert new.offset == ref.offset and new.shift_px == ref.shift_px
+        assert np.linalg.norm(new.image - ref.image) / np.linalg.norm(ref.image) < 1e-4
+    with pytest.raises(ConfigurationError, match="backend"):
+        VirtualCamera(config, backend="jax")
