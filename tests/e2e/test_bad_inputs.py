@@ -13,7 +13,8 @@ Adding a row: ``Case(id, cli, build, names)`` where ``build(work, fx)`` writes w
 under ``work`` and returns the argument list; the builders below (``grid_case``,
 ``manifest_case``, ``kernel_case``, ``pairs_case``, ``checkpoint_case``...) cover the usual
 shapes. Classes (issue 12): 1 non-finite values, 2 tracebacks, 3 resource exhaustion,
-7 invalid values and misleading messages.
+4 a bad second output, 5 an existing output without ``--overwrite``, 7 invalid values and
+misleading messages (6, leftovers after a kill, is ``test_output_policy.py``'s kill test).
 """
 
 from __future__ import annotations
@@ -84,9 +85,20 @@ def grid_case(*extra: str, command: str = "info", float_grid: bool = False,
         if prepare is not None:
             prepare(grid)
         out = [f"--out={work / 'out.json'}"] if command in ("register", "mae") else []
-        quiet = ["--quiet"] if command in ("info", "register", "mae") else []
-        return [command, str(grid), *quiet, *out, *extra]
+        quiet = ["--quiet"] if command in ("info", "register", "mae", "fit-eigen",
+                                           "report") else []
+        return [command, str(grid), *quiet, *out,
+                *(a.replace("{work}", str(work)) for a in extra)]
     return build
+
+
+def _touch(relative: str) -> Callable[[Path], Any]:
+    """``prepare`` for grid cases: a file at ``work/relative`` (``work`` = the grid's parent)."""
+    def prepare(grid: Path) -> None:
+        path = grid.parent / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("already here")
+    return prepare
 
 
 def manifest_case(edit: Callable[[dict], Any], command: str = "info"
@@ -213,11 +225,12 @@ def pairs_case(prepare: Callable[[Path], Any] | None = None, command: str = "eva
         shutil.copytree(fx.pairs, pairs)
         if prepare is not None:
             prepare(pairs)
+        more = [a.replace("{work}", str(work)) for a in extra]
         if command == "fit-pairs":
             return ["fit-pairs", str(pairs), "--out", str(work / "model.npz"), "--quiet",
-                    *extra]
+                    *more]
         return ["eval-model", str(fx.kernels), str(pairs), "--out", str(work / "e.json"),
-                *extra]
+                *more]
     return build
 
 
@@ -538,6 +551,28 @@ CASES: list[Case] = [
          "--batch-size", 7),
     Case("export-kernels-le-admm-u", "ekdun",
          checkpoint_case(None, "export-kernels", source="le_admm"), "checkpoint.pt", 7),
+    # class 4: one bad output path fails the whole command before any work, nothing written
+    Case("fit-eigen-figures-ok-out-under-a-file", "psfkit",
+         grid_case("--figures", "{work}/figs", "--out", "{work}/afile/k.npz",
+                   command="fit-eigen", prepare=_touch("afile")), "afile", 4),
+    Case("fit-pairs-report-under-a-file", "psfkit",
+         pairs_case(lambda pairs: (pairs.parent / "afile").write_text("x"), "fit-pairs",
+                    "--report", "{work}/afile/r.json"), "afile", 4),
+    Case("eval-model-out-under-a-file", "psfkit",
+         pairs_case(lambda pairs: (pairs.parent / "e.json").mkdir(), "eval-model"),
+         "e.json", 4),
+    # class 5: an existing output is never replaced without --overwrite (files and folders)
+    Case("register-out-exists", "psfkit",
+         grid_case(command="register", prepare=_touch("out.json")), "out.json", 5),
+    Case("fit-eigen-out-exists", "psfkit",
+         grid_case("--out", "{work}/k.npz", command="fit-eigen", prepare=_touch("k.npz")),
+         "k.npz", 5),
+    Case("report-folder-exists", "psfkit",
+         grid_case("--out", "{work}/rep", command="report", prepare=_touch("rep/index.html")),
+         "rep", 5),
+    Case("fit-pairs-out-exists", "psfkit",
+         pairs_case(lambda pairs: (pairs.parent / "model.npz").write_text("x"), "fit-pairs"),
+         "model.npz", 5),
 ]
 
 
@@ -590,7 +625,8 @@ def _run(cli: str, args: list[str]) -> subprocess.CompletedProcess:
 def test_table_is_large_and_covers_every_class():
     assert len(CASES) >= 60
     assert len({c.id for c in CASES}) == len(CASES)
-    assert {c.cls for c in CASES} == {1, 2, 3, 7}
+    # class 6 (leftovers after a kill) is tested by tests/e2e/test_output_policy.py
+    assert {c.cls for c in CASES} == {1, 2, 3, 4, 5, 7}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
@@ -634,9 +670,13 @@ def test_non_finite_outputs_are_refused_before_writing(tmp_path):
     kernels = np.ones((1, 1, 4, 4), np.float32)
     with pytest.raises(ModelFileError, match="NaN/Inf"):
         KernelModel(kernels=np.where(kernels > 0, np.nan, 0), basis="si", channels=("L",))
+    with pytest.raises(ModelFileError, match="optical_center"):
+        KernelModel(kernels=kernels, basis="si", channels=("L",), sensor_shape=(8, 8),
+                    optical_center=(float("nan"), 4.0))
     model = KernelModel(kernels=kernels, basis="si", channels=("L",), sensor_shape=(8, 8),
-                        optical_center=(float("nan"), 4.0))
-    with pytest.raises(InvalidInputError, match=r"k\.npz.*optical_center"):
+                        optical_center=(4.0, 4.0))
+    object.__setattr__(model, "optical_center", (float("nan"), 4.0))   # spoiled later
+    with pytest.raises(ModelFileError, match=r"k\.npz.*optical_center"):
         save_kernels(tmp_path / "k.npz", model)
     assert list(tmp_path.iterdir()) == []
 
