@@ -68,7 +68,11 @@ def test_demo_outputs_are_unchanged(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("model", ["si", "ek"])
-def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, model, capsys):
+def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, model, capsys,
+                                                        torch_one_thread):
+    # One torch thread, as when the golden files were written: the float32 conjugate-gradient
+    # fit stops after a fixed number of iterations, so the summation order of a multi-threaded
+    # FFT changes its last digits (about 1e-3 relative on near-zero kernel pixels).
     pairs = real_data("dlmd_mirflickr")
     kernels = tmp_path / f"{model}.npz"
     assert main(["fit-pairs", str(pairs), "--model", model, "--downsample", "4",
