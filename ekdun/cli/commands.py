@@ -75,6 +75,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--kernels", help="kernel file (.npz, e.g. from psfkit fit-eigen)")
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
+    p.add_argument("--holdout", action="append", metavar="NAME[,NAME]",
+                   help="leave these pairs (file stems, e.g. im65) out of training; "
+                        "repeatable")
+    p.add_argument("--downsample", type=int, metavar="N",
+                   help="bin the pairs N x N (default: 1 if they have the kernels' size, else "
+                        "the factor the kernel file was fitted with)")
+    p.add_argument("--channel-order", choices=("RGB", "BGR"),
+                   help="channel order of the pairs' .npy/TIFF files (default: the folder's: "
+                        "BGR for the DLMD layout lensed/ + diffuser/, else RGB)")
     p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=positive_int, help="override the preset's iterations")
@@ -121,7 +130,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("checkpoint")
     p.add_argument("measurements", nargs="+", help="image files (npy, png, tiff) or folders")
     p.add_argument("--out", required=True, help="output folder (NAME.npy + NAME.png)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
+    p.add_argument("--channel-order", choices=("RGB", "BGR"),
+                   help="channel order of .npy/TIFF measurements (default: that of the "
+                        "training pairs, e.g. BGR for DLMD; else RGB)")
+    p.add_argument("--downsample", type=int, metavar="N",
+                   help="bin the measurements N x N (default: as the training pairs were)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--amp", choices=("off", "bf16", "fp16"), default="off",
                    help="autocast precision of the network (fp16: CUDA only; the physics "
@@ -186,13 +199,36 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from ekdun.data.pairs import PairsDataset
-    from ekdun.training import TrainOptions, train
+    import numpy as np
 
     if args.iterations and args.iterations > MAX_UNROLLED_ITERATIONS:
         raise InvalidInputError(f"--iterations {args.iterations} exceeds the limit of "
                                 f"{MAX_UNROLLED_ITERATIONS} unrolled iterations")
-    dataset = PairsDataset(resolve_split(args.data, "train"))
+    from ekdun.data.pairs import PairsDataset, match_downsample
+    from ekdun.training import TrainOptions, train
+    from ekdun.training.builder import seed_kernel_model
+
+    root = resolve_split(args.data, "train")
+    source = args.kernels or args.psf
+    if args.psf and (args.downsample or 1) > 1:
+        # a measured PSF is binned like the pairs (block mean, as `ekdun admm --downsample`)
+        from psfkit.io.images import read_image
+        from psfkit.resample import bin_mean
+
+        seed = seed_kernel_model(bin_mean(read_image(args.psf).astype(np.float32),
+                                          args.downsample).astype(np.float32))
+    else:
+        seed = seed_kernel_model(source)
+    probe = read_pairs_shape(root, args.channel_order)
+    factor = match_downsample(probe, seed, args.downsample, where=f"the pairs in {root}",
+                              model_name=str(source))
+    dataset = PairsDataset(root, args.channel_order, holdout=args.holdout or (),
+                           downsample=factor)
+    if factor > 1 or dataset.holdout:
+        _say(args, f"training on {len(dataset)} pairs of {root}"
+                   + (f" (held out: {', '.join(dataset.holdout)})" if dataset.holdout else "")
+                   + (f", binned {factor}x{factor} to {dataset.image_shape[1]}x"
+                      f"{dataset.image_shape[2]}" if factor > 1 else ""))
     overrides: dict[str, Any] = {}
     if args.schedule:
         if args.model != "ekdun":
@@ -205,7 +241,7 @@ def run_train(args: argparse.Namespace) -> int:
                            device=args.device, progress=not args.quiet, threads=args.threads,
                            channels_last=args.channels_last, compile=args.compile,
                            workers=args.workers)
-    result = train(args.run_dir, args.model, args.kernels or args.psf, dataset, args.preset,
+    result = train(args.run_dir, args.model, seed, dataset, args.preset,
                    overrides, options, resume=args.resume, overwrite=args.overwrite)
     last = result["history"][-1] if result["history"] else {}
     _say(args, f"trained {args.model}: {len(result['history'])} epochs, final loss "
@@ -213,6 +249,14 @@ def run_train(args: argparse.Namespace) -> int:
     if "compile_warmup_s" in result:
         _say(args, f"torch.compile warm-up (first step): {result['compile_warmup_s']:.1f} s")
     return 0
+
+
+def read_pairs_shape(root: Path, channel_order: str | None) -> tuple[int, int]:
+    """``(H, W)`` of a pairs folder's images as stored (reads the first pair only)."""
+    from psfkit.io.pairs import read_pairs
+
+    shape = read_pairs(root, channel_order, check_pixels=False).shape
+    return int(shape[1]), int(shape[2])
 
 
 def _checkpoint_path(item: str) -> Path:
@@ -242,7 +286,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     written = reconstruct_files(args.checkpoint, args.measurements, args.out,
                                 args.channel_order, args.device, args.overwrite,
-                                args.amp)
+                                args.amp, downsample=args.downsample)
     print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
     return 0
 

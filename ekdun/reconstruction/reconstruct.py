@@ -14,6 +14,7 @@ from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
+from psfkit.resample import bin_mean
 
 
 def read_measurement(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
@@ -55,21 +56,38 @@ def to_preview(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
+def training_read_options(doc: dict) -> tuple[str, int]:
+    """``(channel_order, downsample)`` with which a checkpoint's training pairs were read
+    (``("RGB", 1)`` for checkpoints that do not record it)."""
+    data = doc.get("metadata", {}).get("data") or {}
+    order = data.get("channel_order") if data.get("channel_order") in ("RGB", "BGR") else "RGB"
+    factor = data.get("downsample")
+    return order, int(factor) if isinstance(factor, int) and factor >= 1 else 1
+
+
 @torch.no_grad()
 def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
-                      out_dir: str | os.PathLike, channel_order: str = "RGB",
-                      device: str = "cpu", overwrite: bool = False,
-                      amp: str = "off") -> list[Path]:
-    """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 and an 8-bit
-    ``NAME.png`` preview). All inputs are checked against the model before anything is
-    written; the output folder appears atomically.
+                      out_dir: str | os.PathLike, channel_order: str | None = None,
+                      device: str = "cpu", overwrite: bool = False, amp: str = "off",
+                      downsample: int | None = None) -> list[Path]:
+    """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 RGB and an
+    8-bit ``NAME.png`` preview), in the orientation of the training scenes. All inputs are
+    checked against the model before anything is written; the output folder appears
+    atomically.
 
-    ``amp`` (``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the
-    physics FFTs stay float32 (:mod:`ekdun.training.acceleration`) and the outputs are
-    float32 either way.
+    ``channel_order`` (of ``.npy``/TIFF inputs) and ``downsample`` (block mean, as in
+    training) default to how the checkpoint's training pairs were read, so a model trained on
+    DLMD pairs (BGR, binned) reads DLMD measurements as they are stored. ``amp`` (``"off"``,
+    ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the physics FFTs stay
+    float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
     """
     precision = acc.resolve_amp(amp, torch.device(device))
-    model, _ = network_from_checkpoint(checkpoint)
+    model, doc = network_from_checkpoint(checkpoint)
+    trained_order, trained_factor = training_read_options(doc)
+    channel_order = channel_order or trained_order
+    factor = trained_factor if downsample is None else int(downsample)
+    if factor < 1:
+        raise InvalidInputError(f"downsample must be >= 1, got {factor}")
     model = model.to(device).eval()
     sensor = tuple(model.physics.sensor_shape)
     channels = model.physics.channels
@@ -77,10 +95,13 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     images = []
     for f in files:
         y = read_measurement(f, channel_order)
+        if factor > 1:
+            y = bin_mean(y, factor).astype(np.float32)
         if tuple(y.shape[-2:]) != sensor or y.shape[0] != channels:
             raise TensorShapeError(
-                f"{f}: measurement is {y.shape[1]}x{y.shape[2]}x{y.shape[0]} but the model "
-                f"expects {sensor[0]}x{sensor[1]}x{channels}")
+                f"{f}: measurement is {y.shape[1]}x{y.shape[2]}x{y.shape[0]}"
+                + (f" after binning by {factor}" if factor > 1 else "")
+                + f" but the model expects {sensor[0]}x{sensor[1]}x{channels}")
         images.append(y)
     written = []
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:

@@ -223,6 +223,8 @@ def train(run_dir: str | os.PathLike, model_name: str,
         "parameters": model.parameter_count(), "amp": use_amp,
         "precision": amp, "channels_last": channels_last, "compile": options.compile,
         "dataset_size": len(dataset),  # type: ignore[arg-type]
+        # how the pairs were read (channel order, binning, held-out names): reconstruct reuses it
+        "data": dataset.describe() if hasattr(dataset, "describe") else {},
         "epoch": 0, "history": [],
     }
     initial_kernels = torch.as_tensor(seed_kernels.kernels)

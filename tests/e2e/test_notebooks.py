@@ -58,6 +58,7 @@ def test_notebook_runs(path, kernel_env):
         assert "epoch 3: train loss" in text and "held-out PSNR" in text
     if path.stem.startswith("04") and "not available" not in text:
         assert "held-out relative error" in text
+        assert "held-out im65: EK-DUN" in text
 
 
 @pytest.mark.slow

@@ -10,12 +10,13 @@ import torch
 
 from ekdun.data.deadleaves import dead_leaves, radial_power_slope
 from ekdun.data.dense_model import DenseShiftVariantModel, hat_weights
-from ekdun.data.pairs import PairsDataset
+from ekdun.data.pairs import PairsDataset, match_downsample, parse_names
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
 from ekdun.errors import InvalidInputError
 from ekdun.physics.operators import ShiftInvariantOperator
 from psfkit.io import read_grid
 from psfkit.io.pairs import read_pairs
+from psfkit.kernelfile import KernelModel
 
 SMALL = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=2, grid_shape=(3, 3))
 
@@ -105,3 +106,54 @@ def test_pairs_dataset_reads_dlmd_as_rgb(real_data):
     assert scene.shape == meas.shape == (3, 270, 480) and scene.dtype == torch.float32
     raw = np.load(root / "lensed" / f"{ds.names[0]}.npy")           # BGR on disk
     np.testing.assert_array_equal(scene.numpy(), np.moveaxis(raw[..., ::-1], -1, 0))
+
+
+def _dlmd_like(root, names, shape=(3, 18, 30)):
+    """A DLMD-layout folder (lensed/ + diffuser/, BGR HWC .npy) of random pairs."""
+    rng = np.random.default_rng(3)
+    for sub in ("lensed", "diffuser"):
+        (root / sub).mkdir(parents=True)
+        for name in names:
+            np.save(root / sub / f"{name}.npy",
+                    rng.random((shape[1], shape[2], shape[0])).astype(np.float32))
+    return root
+
+
+def test_pairs_dataset_holds_out_and_bins_like_fit_pairs(tmp_path):
+    root = _dlmd_like(tmp_path / "d", ["a", "b", "c"])
+    ds = PairsDataset(root, holdout=["b.npy"], downsample=4)
+    assert ds.names == ("a", "c") and len(ds) == 2 and ds.image_shape == (3, 4, 7)
+    scene, meas = ds[1]
+    raw = np.moveaxis(np.load(root / "lensed" / "c.npy"), -1, 0)[::-1]        # BGR -> RGB
+    expected = raw[:, :16, :28].reshape(3, 4, 4, 7, 4).mean(axis=(2, 4))
+    np.testing.assert_allclose(scene.numpy(), expected, rtol=1e-6)
+    assert meas.shape == scene.shape == (3, 4, 7)
+    info = ds.describe()
+    assert info["holdout"] == ["b"] and info["channel_order"] == "BGR"
+    assert info["downsample"] == 4 and info["image_shape"] == [3, 4, 7]
+    lazy = PairsDataset(root, holdout=["b"], downsample=4, preload=False)
+    np.testing.assert_array_equal(lazy[1][0].numpy(), scene.numpy())
+    with pytest.raises(InvalidInputError, match="no pair named zz"):
+        PairsDataset(root, holdout=["zz"])
+    with pytest.raises(InvalidInputError, match="every pair is held out"):
+        PairsDataset(root, holdout=["a,b", "c"])
+    with pytest.raises(InvalidInputError, match="too few pixels"):
+        PairsDataset(root, downsample=5)
+    assert parse_names(["im65,im157", " im65.npy"]) == ("im65", "im157")
+
+
+def test_match_downsample_uses_the_kernel_files_fit_factor():
+    def model(shape, factor=None):
+        return KernelModel(kernels=np.zeros((1, 3, *shape), np.float32), basis="si",
+                           sensor_shape=shape,
+                           provenance={"downsample": factor} if factor else {})
+
+    assert match_downsample((270, 480), model((270, 480))) == 1
+    assert match_downsample((270, 480), model((67, 120), 4)) == 4
+    assert match_downsample((270, 480), model((67, 120), 4), requested=4) == 4
+    with pytest.raises(InvalidInputError, match="--downsample 4 matches it"):
+        match_downsample((270, 480), model((67, 120)))          # no provenance: say which
+    with pytest.raises(InvalidInputError, match=r"binned by 2: 135x240.*67x120"):
+        match_downsample((270, 480), model((67, 120), 4), requested=2)
+    with pytest.raises(InvalidInputError, match="fit the kernels on these images"):
+        match_downsample((270, 480), model((50, 50)))
