@@ -93,8 +93,12 @@ def high_frequency_fraction(image: np.ndarray) -> float:
 def _prepared(image: np.ndarray) -> np.ndarray:
     # A constant background (an unsubtracted black level) would dominate an unwhitened
     # correlation and pin it at zero shift: remove the median; unit peak for the FFTs.
-    out = image.astype(np.float64) - np.median(image[::4, ::4])
-    return out / max(float(np.max(np.abs(out))), 1e-30)
+    # (in place on one float64 copy: the same values as the expression form, without its
+    # three full-size temporaries)
+    out = image.astype(np.float64)
+    out -= np.median(image[::4, ::4])
+    out /= max(float(out.max()), -float(out.min()), 1e-30)
+    return out
 
 
 class ShiftRegistrar:
@@ -211,28 +215,33 @@ def shift_image(image: np.ndarray, shift: tuple[float, float], margin: int = 8
     squeeze = image.ndim == 2
     stack = image[None] if squeeze else image
     h, w = stack.shape[-2:]
-    moved = np.zeros_like(stack)
     # aligned_int(x) = image(x + n): destination rows [max(0,-n), h - max(0,n))
     (dst_v, dst_u), (src_v, src_u) = overlap_slices((h, w), (nv, nu))
-    moved[:, dst_v, dst_u] = stack[:, src_v, src_u]
     valid = np.zeros((h, w), dtype=bool)
-    if ru or rv:  # the Fourier ramp rings within a pixel or two of the data's edges
-        valid[dst_v.start + 2:dst_v.stop - 2, dst_u.start + 2:dst_u.stop - 2] = True
-    else:
+    if not (ru or rv):
         valid[dst_v, dst_u] = True
-    if ru or rv:
-        # zero margin against wrap-around, grown to FFT-friendly sizes
-        pad_v = sfft.next_fast_len(h + 2 * margin, real=True) - h - margin
-        pad_u = sfft.next_fast_len(w + 2 * margin, real=True) - w - margin
-        padded = np.pad(moved, ((0, 0), (margin, pad_v), (margin, pad_u)))
-        spec = sfft.rfft2(padded, axes=(-2, -1), workers=-1)
-        # separable phase ramp, in the spectrum's own precision (no complex128 upcast)
-        ramp_v = np.exp(2j * np.pi * np.fft.fftfreq(padded.shape[-2]) * rv).astype(spec.dtype)
-        ramp_u = np.exp(2j * np.pi * np.fft.rfftfreq(padded.shape[-1]) * ru).astype(spec.dtype)
-        spec *= ramp_v[:, None]
-        spec *= ramp_u[None, :]
-        moved = sfft.irfft2(spec, s=padded.shape[-2:], axes=(-2, -1), workers=-1)[
-            :, margin:margin + h, margin:margin + w].astype(stack.dtype, copy=False)
+        moved = np.zeros_like(stack)
+        moved[:, dst_v, dst_u] = stack[:, src_v, src_u]
+        return (moved[0] if squeeze else moved), valid
+    # the Fourier ramp rings within a pixel or two of the data's edges
+    valid[dst_v.start + 2:dst_v.stop - 2, dst_u.start + 2:dst_u.stop - 2] = True
+    # zero margin against wrap-around, grown to FFT-friendly sizes; the integer move is
+    # written straight into the padded canvas (one copy of the image, not three)
+    size_v = sfft.next_fast_len(h + 2 * margin, real=True)
+    size_u = sfft.next_fast_len(w + 2 * margin, real=True)
+    padded = np.zeros((stack.shape[0], size_v, size_u), dtype=stack.dtype)
+    padded[:, margin + dst_v.start:margin + dst_v.stop,
+           margin + dst_u.start:margin + dst_u.stop] = stack[:, src_v, src_u]
+    spec = sfft.rfft2(padded, axes=(-2, -1), workers=-1, overwrite_x=True)
+    del padded
+    # separable phase ramp, in the spectrum's own precision (no complex128 upcast)
+    ramp_v = np.exp(2j * np.pi * np.fft.fftfreq(size_v) * rv).astype(spec.dtype)
+    ramp_u = np.exp(2j * np.pi * np.fft.rfftfreq(size_u) * ru).astype(spec.dtype)
+    spec *= ramp_v[:, None]
+    spec *= ramp_u[None, :]
+    moved = sfft.irfft2(spec, s=(size_v, size_u), axes=(-2, -1), workers=-1,
+                        overwrite_x=True)[:, margin:margin + h, margin:margin + w]
+    moved = moved.astype(stack.dtype, copy=False)
     return (moved[0] if squeeze else moved), valid
 
 
