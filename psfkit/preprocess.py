@@ -71,7 +71,15 @@ def luminance(image: np.ndarray) -> np.ndarray:
     if image.shape[0] == 1:
         return image[0]
     r, g, b = LUMINANCE_WEIGHTS
-    return (r * image[0] + g * image[1] + b * image[2]).astype(np.float32, copy=False)
+    if image.dtype != np.float32:
+        return (r * image[0] + g * image[1] + b * image[2]).astype(np.float32, copy=False)
+    # ``r·R + g·G + b·B`` with the same float32 operations in the same order, in two buffers
+    out = np.multiply(image[0], r)
+    term = np.multiply(image[1], g)
+    out += term
+    np.multiply(image[2], b, out=term)
+    out += term
+    return out
 
 
 def saturation_level_for(grid: PsfGrid) -> float | None:
