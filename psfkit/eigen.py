@@ -22,6 +22,8 @@ Both conventions are linear with exact adjoints in :mod:`ekdun.physics`.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +32,6 @@ import numpy as np
 from psfkit.alignment import AlignedPsf
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import CONVENTIONS
-from psfkit.parallel import bounded_map
 from psfkit.resample import bin_image
 from psfkit.weights import WeightBasis, get_basis, separable_coordinates
 
@@ -189,8 +190,11 @@ class NormalEquations:
             solution[:, :, block] = _solve_spd(system, b)
 
         blocks = [slice(a, min(a + SOLVE_BLOCK, n)) for a in range(0, n, SOLVE_BLOCK)]
-        for _ in bounded_map(solve_pixels, blocks, workers=None if len(blocks) > 1 else 1):
-            pass
+        if len(blocks) == 1:
+            solve_pixels(blocks[0])
+        else:   # numpy releases the GIL in these vector operations
+            with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+                list(pool.map(solve_pixels, blocks))
         kernels = solution.reshape(k, self.channels, self.h, self.w)
         smallest = None if smallest is None else smallest.reshape(self.h, self.w)
         return kernels, smallest
