@@ -4,6 +4,7 @@ the numbers that say whether the learned kernels are the measured ones."""
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 import matplotlib
@@ -90,7 +91,7 @@ def figure_starts(comparisons: dict[str, KernelComparison]) -> Figure:
                 ax.set_xticks([])
                 ax.set_yticks([])
                 if i == 0:
-                    ax.set_ylabel(label, fontsize=7)
+                    ax.set_ylabel(textwrap.fill(label, 22), fontsize=6)
             for i in range(1, k):
                 ax = axes[r, k + i - 1]
                 ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)

@@ -61,7 +61,8 @@ def main(args: argparse.Namespace) -> int:
     if args.one_psf:
         other, other_initial = load_learned(args.one_psf)
         check_learned(other, args.one_psf)
-        starts["one PSF"] = compare_kernels(other, comparison.measured, initial=other_initial)
+        starts[args.one_psf_label] = compare_kernels(other, comparison.measured,
+                                                     initial=other_initial)
     numbers = {label: start_numbers(c) for label, c in starts.items()}
     text = caption(numbers)
     paper = [("fig7", figure_kernels(learned.kernels, names, "learned eigen-kernels")),
@@ -93,6 +94,8 @@ def parser() -> argparse.ArgumentParser:
                                      "trained from one PSF, shown next to LEARNED")
     p.add_argument("--label", default="seeded from the measured fit",
                    help="what LEARNED started from (for the figure and caption)")
+    p.add_argument("--one-psf-label", default="one PSF",
+                   help="what the --one-psf model is (for the figure and caption)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

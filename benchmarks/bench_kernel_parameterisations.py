@@ -39,7 +39,7 @@ from ekdun.benchmark import fit_seed_kernels  # noqa: E402
 from ekdun.data.pairs import PairsDataset  # noqa: E402
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench  # noqa: E402
 from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
-from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER  # noqa: E402
+from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support  # noqa: E402
 from ekdun.training import TrainOptions, train  # noqa: E402
 from ekdun.training.builder import build_network, network_from_checkpoint  # noqa: E402
 from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
@@ -115,11 +115,19 @@ def measure_lr(data: Path, seeds: dict[str, Path], batches: int = 6) -> list[dic
                               {"kernel_param": param})
         groups = _param_groups(model, lr, scale)
         grads: list[list[float]] = [[] for _ in groups]
+        per_kernel = []
         for b in range(batches):
             x, y = zip(*(train_set[4 * b + i] for i in range(4)), strict=True)
             model.zero_grad()
             loss = torch.nn.functional.mse_loss(model(torch.stack(y)), torch.stack(x))
             loss.backward()
+            if param == "free":
+                g = model.physics.kernels.grad.detach()
+                inside = seed_support(model.physics.kernels)
+                per_kernel.append(torch.cat([
+                    g.pow(2).mean(dim=(1, 2, 3)).sqrt(),
+                    g[..., inside].pow(2).mean().sqrt()[None],
+                    g[..., ~inside].pow(2).mean().sqrt()[None]]))
             for g, group in enumerate(groups):
                 flat = torch.cat([p.grad.flatten() for p in group["params"]
                                   if p.grad is not None])
@@ -132,7 +140,32 @@ def measure_lr(data: Path, seeds: dict[str, Path], batches: int = 6) -> list[dic
             rows.append({"group": name, "param_rms": rms, "grad_rms": float(np.mean(grads[g])),
                          "lr": group["lr"],
                          "relative_step": group["lr"] / max(rms, 1e-12)})
+        if per_kernel:
+            # how strongly the loss constrains each kernel: RMS gradient per pixel of Kbase,
+            # Kv, Kh (the last-2 schedule only uses Kv, Kh in 2 of 10 iterations)
+            rows.append({"group": "free pixels: grad RMS per pixel of Kbase, Kv, Kh; inside, "
+                                  "outside the caustic support",
+                         "per_kernel_grad_rms": torch.stack(per_kernel).mean(0).tolist()})
     return rows
+
+
+def _f(value: Any, fmt: str = "+.2f") -> str:
+    return "n/a" if value is None or value != value else format(value, fmt)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """The results as the Markdown table of docs/compare.md."""
+    head = ("| seed | kernels | PSNR (dB) | SSIM | pedestal share of change | kernel mass outside "
+            "support | disp. corr Kv / Kh | diff. NCC Kv / Kh | angles to top-3 PCA (°) |\n"
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    body = []
+    for r in rows:
+        angles = ", ".join(f"{a:.1f}" for a in (r.get("angles_pca") or []))
+        body.append(f"| {r['seed']} | {r['param']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+                    f"{100 * r['pedestal_share']:.1f} % | {100 * r['outside_mass']:.1f} % | "
+                    f"{_f(r['v_disp_corr'])} / {_f(r['h_disp_corr'])} | "
+                    f"{_f(r['v_diff_ncc'], '.3f')} / {_f(r['h_diff_ncc'], '.3f')} | {angles} |")
+    return "\n".join([head, *body])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,13 +175,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default=",".join(PARAMS))
     ap.add_argument("--seeds", default=",".join(SEEDS))
     ap.add_argument("--measure-lr", action="store_true")
+    ap.add_argument("--table", action="store_true", help="print OUT/results.json as Markdown")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     out = Path(args.out)
+    if args.table:
+        print(markdown_table(json.loads((out / "results.json").read_text())))
+        return 0
     data, seeds = prepare(out)
     if args.measure_lr:
         rows = measure_lr(data, seeds)
         for r in rows:
+            if "per_kernel_grad_rms" in r:
+                print(r["group"], ", ".join(f"{v:.3g}" for v in r["per_kernel_grad_rms"]))
+                continue
             print(f"{r['group']:22s} param RMS {r['param_rms']:.3g}  grad RMS "
                   f"{r['grad_rms']:.3g}  lr {r['lr']:.3g}  lr/RMS {r['relative_step']:.3g}")
         (out / "lr_measurement.json").write_text(json.dumps(rows, indent=1) + "\n")
@@ -179,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"ncc {row['v_diff_ncc']:.3f} / {row['h_diff_ncc']:.3f}", flush=True)
     summary = [{k: v for k, v in r.items() if k != "compare"} for r in results]
     (out / "results.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    print(markdown_table(summary))
     print(f"LR multipliers: {LR_MULTIPLIER}")
     return 0
 
