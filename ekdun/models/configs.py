@@ -75,6 +75,8 @@ class EKDUNConfig:
         Coarse displacement grid ``n × n`` of ``flow``.
     flow_residual : bool
         ``flow`` with a small trainable residual on the support.
+    kernel_gain : bool
+        ``physical`` with a learned per-channel gain of the correction kernels.
     """
 
     iterations: int = 10
@@ -89,6 +91,7 @@ class EKDUNConfig:
     kernel_support_dilate: int = 3
     flow_grid: int = 8
     flow_residual: bool = False
+    kernel_gain: bool = False
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ class EKDUN(UnrolledNetwork):
                                              dtype=dtype))
         self.kernel_param = build_parameterisation(
             config.kernel_param, physics.kernels.detach(), config.kernel_support_dilate,
-            config.flow_grid, config.flow_residual)
+            config.flow_grid, config.flow_residual, config.kernel_gain)
         if self.kernel_param is not None:
             physics.kernels.requires_grad_(False)
             self.sync_kernels()

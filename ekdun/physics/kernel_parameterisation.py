@@ -8,7 +8,8 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
   dilated), with the seed's energy ``E`` on ``S`` kept exactly. ``θ`` starts at
   ``log(max(seed, 0) + floor)``, so the seed is reproduced (up to ``floor`` = 1e-6 of the
   peak). A step of ``θ`` changes a pixel by a *factor*: a near-zero pixel stays near zero,
-  so no pedestal can grow.
+  so no pedestal can grow. With ``kernel_gain`` the correction kernels also get a learned
+  per-channel gain (their energy is then the seed's × that gain).
 * ``"flow"`` (:class:`FlowKernels`): ``Kbase`` as in ``"physical"``; each correction kernel
   ``K_j(x) = g_{j,c} · Kbase(x − D_j(x)) [+ S · R_j]``, ``D_j`` a smooth displacement field
   (px) on a coarse ``n × n`` grid upsampled bicubically to the kernel, ``g`` a per-channel
@@ -61,9 +62,14 @@ class PhysicalKernels(nn.Module):
         ``(H, W)`` bool.
     floor : float
         Relative floor (of each kernel's peak) added to the seed before taking logs.
+    gain : bool
+        Correction kernels (all but the first) get a learned per-channel gain ``exp(·)``
+        (starting at 1): their energy is then the seed's times that gain (the measured
+        ``Kv``, ``Kh`` carry less light than ``Kbase``; an energy-keeping kernel cannot).
     """
 
-    def __init__(self, seed: Tensor, support: Tensor, floor: float = 1e-6) -> None:
+    def __init__(self, seed: Tensor, support: Tensor, floor: float = 1e-6,
+                 gain: bool = False) -> None:
         super().__init__()
         if seed.ndim != 4 or tuple(support.shape) != tuple(seed.shape[-2:]):
             raise ConfigurationError("physical kernels need (K, C, H, W) seeds and an (H, W) "
@@ -79,13 +85,19 @@ class PhysicalKernels(nn.Module):
         self.register_buffer("support", support.clone())
         self.register_buffer("energy", energy)
         self.logits = nn.Parameter(torch.log(positive + floor * peak))
+        self.log_gain = (nn.Parameter(seed.new_zeros((seed.shape[0] - 1, seed.shape[1])))
+                         if gain else None)
 
     def forward(self) -> Tensor:
         """The kernels ``(K, C, H, W)``."""
         k, c, h, w = self.logits.shape
         masked = self.logits.masked_fill(~self.support, float("-inf"))
-        return self.energy * torch.softmax(masked.reshape(k, c, h * w), dim=-1).reshape(
+        kernels = self.energy * torch.softmax(masked.reshape(k, c, h * w), dim=-1).reshape(
             k, c, h, w)
+        if self.log_gain is None:
+            return kernels
+        gains = torch.cat([self.log_gain.new_zeros((1, c)), self.log_gain]).exp()
+        return kernels * gains[:, :, None, None]
 
 
 def warp_bilinear(image: Tensor, displacement: Tensor) -> Tensor:
@@ -195,7 +207,8 @@ class FlowKernels(nn.Module):
 
 
 def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: int = 8,
-                           flow_residual: bool = False) -> nn.Module | None:
+                           flow_residual: bool = False, gain: bool = False
+                           ) -> nn.Module | None:
     """The module that makes the kernels (``None`` for ``"free"``) from seed ``(K, C, H, W)``.
 
     Raises
@@ -210,7 +223,7 @@ def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: 
         return None
     support = seed_support(seed, dilate=dilate).to(seed.device)
     if name == "physical":
-        return PhysicalKernels(seed, support)
+        return PhysicalKernels(seed, support, gain=gain)
     flow = FlowKernels(seed, support, flow_grid, flow_residual)
     flow.fit_to(seed)
     return flow

@@ -143,3 +143,19 @@ def test_kernels_have_their_own_optimiser_group(tiny_data, name):
     assert {id(p) for p in groups[1]["params"]} == kernel_ids
     assert not kernel_ids & {id(p) for p in groups[0]["params"]}
     assert groups[1]["lr"] == pytest.approx(1e-3 * 1e-2 * LR_MULTIPLIER[name])
+
+
+def test_physical_gain_scales_only_the_correction_kernels():
+    seed = _seed((48, 48), dtype=torch.float64)
+    module = build_parameterisation("physical", seed, gain=True)
+    k0 = module().detach()
+    assert module.log_gain is not None and module.log_gain.shape == (2, 1)
+    with torch.no_grad():
+        module.log_gain.copy_(torch.log(torch.tensor([[0.5], [2.0]], dtype=torch.float64)))
+    k = module().detach()
+    assert torch.equal(k[0], k0[0])                      # Kbase untouched, energy kept
+    torch.testing.assert_close(k[1:].sum(dim=(-2, -1)),
+                               k0[1:].sum(dim=(-2, -1)) * torch.tensor([[0.5], [2.0]],
+                                                                       dtype=torch.float64),
+                               rtol=1e-12, atol=0)
+    assert float(k.min()) >= 0.0
