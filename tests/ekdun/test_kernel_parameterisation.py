@@ -159,3 +159,18 @@ def test_physical_gain_scales_only_the_correction_kernels():
                                                                        dtype=torch.float64),
                                rtol=1e-12, atol=0)
     assert float(k.min()) >= 0.0
+
+
+def test_cli_kernel_param(tiny_data, tmp_path, capsys):
+    from ekdun.cli import main as ekdun_main
+
+    pairs, kernels = tiny_data
+    args = ["train", str(pairs), str(tmp_path / "run"), "--kernels", str(kernels),
+            "--iterations", "2", "--epochs", "1", "--threads", "1", "--quiet",
+            "--device", "cpu", "--kernel-param", "flow"]
+    assert ekdun_main(args) == 0
+    learned = load_kernels(tmp_path / "run" / "kernels_learned.npz")
+    assert learned.provenance["kernel_param"] == "flow"
+    assert ekdun_main(["train", str(pairs), str(tmp_path / "r2"), "--model", "updn", "--psf",
+                       str(kernels), "--kernel-param", "flow"]) == 2
+    assert "--kernel-param applies to --model ekdun only" in capsys.readouterr().err
