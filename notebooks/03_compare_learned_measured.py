@@ -214,7 +214,9 @@ display(figure_displacements(flow_cmp))
 # - From one PSF, `physical` learns displacements in the measured direction (correlation
 #   +0.62 / +0.81) but 4× too small and cannot learn the gain that dominates the measured
 #   `Kv − Kbase` (difference NCC 0.1); `flow` learns the gain (NCC 0.86) but a tiny,
-#   anti-correlated displacement. Neither discovers the measured modes as a whole.
+#   anti-correlated displacement. `physical` with a learned gain (`kernel_gain`) comes
+#   closest to both (+0.58 / +0.80, NCC 0.60 / 0.62) but does not reach the targets (0.6,
+#   0.8): none discovers the measured modes as a whole.
 # - After the 3 epochs here the numbers are smaller still; read the correlations against the
 #   chance level (about ±0.3).
 
