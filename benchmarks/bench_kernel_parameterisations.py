@@ -50,6 +50,10 @@ from psfkit.io import read_grid  # noqa: E402
 from psfkit.kernelfile import load_kernels, save_kernels  # noqa: E402
 
 PARAMS = ("free", "physical", "flow")
+#: Model overrides of each run name (``--params``); ``physical-gain`` is not in the default set.
+OVERRIDES = {"free": {"kernel_param": "free"}, "physical": {"kernel_param": "physical"},
+             "flow": {"kernel_param": "flow"},
+             "physical-gain": {"kernel_param": "physical", "kernel_gain": True}}
 SEEDS = ("measured", "one-psf")
 
 
@@ -206,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (ckpt.is_file() and load_checkpoint(ckpt)["metadata"]["epoch"]
                     >= args.epochs):
                 train(run, "ekdun", seeds[seed], PairsDataset(data / "train"), "tiny",
-                      {"kernel_param": param}, options, resume=ckpt.is_file())
+                      OVERRIDES[param], options, resume=ckpt.is_file())
             model, _ = network_from_checkpoint(ckpt)
             row = {"seed": seed, "param": param, "epochs": args.epochs,
                    "train_s": round(time.perf_counter() - t0, 1), **test_scores(model, data),
