@@ -87,6 +87,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=positive_int, help="override the preset's iterations")
+    p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
+                   help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
     p.add_argument("--epochs", type=positive_int)
     p.add_argument("--batch-size", type=positive_int, help="global batch size")
     p.add_argument("--lr", type=positive_float)
@@ -236,6 +238,10 @@ def run_train(args: argparse.Namespace) -> int:
         overrides["schedule"] = args.schedule
     if args.iterations:
         overrides["iterations"] = args.iterations
+    if args.kernel_param:
+        if args.model != "ekdun":
+            raise InvalidInputError("--kernel-param applies to --model ekdun only")
+        overrides["kernel_param"] = args.kernel_param
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                            seed=args.seed, amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
