@@ -39,8 +39,8 @@ from torch.utils.data import Dataset
 from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
 from ekdun.models.configs import TrainingConfig, get_preset
 from ekdun.models.unrolled import UnrolledNetwork
-from ekdun.training import acceleration as acc
 from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
+from ekdun.training import acceleration as acc
 from ekdun.training import distributed as D
 from ekdun.training.batches import BatchSource
 from ekdun.training.builder import build_network, encode_overrides, seed_kernel_model
