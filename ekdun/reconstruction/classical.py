@@ -163,24 +163,45 @@ def reconstruct_with_model(measurement: np.ndarray, model: KernelModel,
     return ModelReconstructor(model, options)(np.asarray(measurement)).image
 
 
+def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RGB",
+                               downsample: int = 1, background: str = "none") -> np.ndarray:
+    """A measurement file as ``(C, H, W)`` float32 RGB, optionally box-downsampled by
+    ``downsample`` and with the mean of its ``[5:15, 5:15]`` corner subtracted
+    (``background="corner"``, before downsampling)."""
+    from ekdun.reconstruction.reconstruct import read_measurement
+    from psfkit.resample import bin_mean
+
+    if background not in ("none", "corner"):
+        raise ConfigurationError(f"background must be 'none' or 'corner', got {background!r}")
+    if downsample < 1:
+        raise ConfigurationError(f"downsample must be >= 1, got {downsample}")
+    y = read_measurement(path, channel_order)
+    if background == "corner":
+        y = y - y[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
+    if downsample > 1:
+        y = bin_mean(y, downsample)
+    return np.ascontiguousarray(y, dtype=np.float32)
+
+
 def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
                        out_dir: str | os.PathLike, options: ClassicalOptions | None = None,
                        channel_order: str = "RGB", overwrite: bool = False,
-                       progress: bool = False) -> list[Path]:
+                       progress: bool = False, downsample: int = 1,
+                       background: str = "none") -> list[Path]:
     """Reconstruct measurement files and folders into ``out_dir``, atomically.
 
-    Every input is read and checked before anything is computed. Each ``NAME`` gives
-    ``NAME.npy`` (``H × W × C`` float32, in ``channel_order``, like the input) and an 8-bit RGB
-    ``NAME.png`` preview scaled to its maximum.
+    Every input is read (:func:`read_classical_measurement`) and checked before anything is
+    computed. Each ``NAME`` gives ``NAME.npy`` (``H × W × C`` float32, in ``channel_order``,
+    like the input) and an 8-bit RGB ``NAME.png`` preview scaled to its maximum.
     """
-    from ekdun.reconstruction.reconstruct import measurement_files, read_measurement
+    from ekdun.reconstruction.reconstruct import measurement_files
     from psfkit.io.atomic import atomic_directory
 
     files = measurement_files(inputs)
     recon = ModelReconstructor(model, options)
     images = []
     for f in files:
-        y = read_measurement(f, channel_order)
+        y = read_classical_measurement(f, channel_order, downsample, background)
         recon.check(y, str(f))
         images.append(y)
     written = []
