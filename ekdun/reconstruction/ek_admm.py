@@ -109,27 +109,33 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
                if op.weights is None else op.weights)[:, None]    # (K, 1, H', W')
     gain = 1.0 / (mu1 + (weights ** 2).sum(dim=0))                # (1, H', W')
     m3 = mu3 if nonneg else 0.0
-    denominator = (mu1 * (spectra.abs() ** 2).sum(dim=0)
-                   + mu2 * finite_difference_spectrum(grid, y.dtype) + m3)
+    power = (spectra.abs() ** 2).sum(dim=0)                       # Σ_k |K̂_k|²
+    denominator = mu1 * power + mu2 * finite_difference_spectrum(grid, y.dtype) + m3
     x = torch.zeros((op.channels, *grid), dtype=y.dtype, device=y.device)
-    hx = torch.zeros((n_kernels, *x.shape), dtype=y.dtype, device=y.device)
+    x_hat = rfft2(x)
+    # Only the in-view blocks of H_k x and of the u-duals are ever read (see _iteration).
+    hx = torch.zeros((n_kernels, op.channels, *sensor), dtype=y.dtype, device=y.device)
     alpha1, alpha3 = torch.zeros_like(hx), torch.zeros_like(x)
     alpha2 = torch.zeros((2, *x.shape), dtype=y.dtype, device=y.device)
     result = TVResult(image=x, iterations=0, converged=False, operator_norm=norm)
     for k in range(1, iterations + 1):
         s = soft_threshold(finite_differences(x) + alpha2 / mu2, tv / mu2)
-        b = hx + alpha1 / mu1
-        residual = (y - (weights * crop(b, sensor)).sum(dim=0)) * gain   # (C, H', W')
-        u = b + pad(weights * residual, grid)
+        # u_k = b_k + pad(W_k r), b_k = H_k x + α_k/μ1 (Sherman–Morrison inside the view).
+        residual = (y - (weights * (hx + alpha1 / mu1)).sum(dim=0)) * gain   # (C, H', W')
+        correction = weights * residual                                    # (K, C, H', W')
         rhs = finite_differences_adjoint(mu2 * s - alpha2)
         if nonneg:
             w = torch.relu(x + alpha3 / mu3)
             rhs = rhs + (mu3 * w - alpha3)
-        numerator = rfft2(rhs) + (conj * rfft2(mu1 * u - alpha1)).sum(dim=0)
-        x_hat = numerator / denominator
+        # μ1 u_k − α_k = μ1 (H_k x + pad(W_k r)) everywhere: the duals cancel, and
+        # F(H_k x) = K̂_k x̂, so the data part of the right-hand side costs K FFTs of the
+        # in-view corrections only.
+        data = power * x_hat + (conj * rfft2(pad(correction, grid))).sum(dim=0)
+        x_hat = (rfft2(rhs) + mu1 * data) / denominator
         x_new = irfft2(x_hat, grid)
-        hx = irfft2(spectra * x_hat, grid)
-        alpha1 = alpha1 + mu1 * (hx - u)
+        hx_new = crop(irfft2(spectra * x_hat, grid), sensor)
+        alpha1 = mu1 * (hx_new - hx - correction)      # α_k + μ1 (H_k x⁺ − u_k), in view
+        hx = hx_new
         alpha2 = alpha2 + mu2 * (finite_differences(x_new) - s)
         if nonneg:
             alpha3 = alpha3 + mu3 * (x_new - w)
