@@ -20,12 +20,13 @@ from ekdun.errors import InvalidInputError
 
 _DEFAULTS = {"psf": {"iterations": 100, "tv": 1e-3, "background": "corner"},
              "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
+# ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch
+# (tests/e2e/test_cli_classical.py checks that they agree).
+SOLVERS = ("auto", "admm", "pdhg")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``admm`` and its alias ``reconstruct-classical``."""
-    from ekdun.reconstruction.classical import SOLVERS
-
     p = sub.add_parser(
         "admm", aliases=["reconstruct-classical"],
         help="classical TV reconstruction with a PSF image or a kernel file (no training)",

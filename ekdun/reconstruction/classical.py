@@ -64,8 +64,8 @@ class ClassicalOptions:
     """
 
     solver: str = "auto"
-    tv: float = 1e-3
-    iterations: int = 300
+    tv: float = 3e-4
+    iterations: int = 100
     nonneg: bool = True
     tol: float = 0.0
     dtype: str = "float32"
