@@ -91,7 +91,7 @@ def test_nonneg_constraint_and_stopping_rule():
 
 def test_model_reconstructor_solvers_and_refusals():
     model = _model()
-    _, scene, y = _problem(torch.float32)
+    _, _, y = _problem(torch.float32)
     auto = ModelReconstructor(model, ClassicalOptions(iterations=50))
     assert auto.solver == "admm" and auto.extended
     image = auto(y.numpy()).image
