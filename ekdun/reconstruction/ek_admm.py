@@ -39,7 +39,6 @@ from ekdun.models.tv_admm_steps import (
     finite_difference_spectrum,
     finite_differences,
     finite_differences_adjoint,
-    soft_threshold,
 )
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
@@ -110,44 +109,59 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     gain = 1.0 / (mu1 + (weights ** 2).sum(dim=0))                # (1, H', W')
     m3 = mu3 if nonneg else 0.0
     power = (spectra.abs() ** 2).sum(dim=0)                       # Σ_k |K̂_k|²
-    denominator = mu1 * power + mu2 * finite_difference_spectrum(grid, y.dtype) + m3
+    inverse = 1.0 / (mu1 * power + mu2 * finite_difference_spectrum(grid, y.dtype) + m3)
+    # x̂⁺ = inverse·F(rhs) + keep·x̂ + Σ_k lift_k·F(pad(W_k r)) (see the loop).
+    keep = mu1 * power * inverse
+    lift = (mu1 * inverse) * conj                                 # (K, C, PH, PW//2+1)
+    shift_invariant = op.weights is None
     x = torch.zeros((op.channels, *grid), dtype=y.dtype, device=y.device)
     x_hat = rfft2(x)
-    # Only the in-view blocks of H_k x and of the u-duals are ever read (see _iteration).
+    dx = finite_differences(x)
+    # Only the in-view blocks of H_k x and of the u-duals are ever read.
     hx = torch.zeros((n_kernels, op.channels, *sensor), dtype=y.dtype, device=y.device)
     alpha1, alpha3 = torch.zeros_like(hx), torch.zeros_like(x)
     alpha2 = torch.zeros((2, *x.shape), dtype=y.dtype, device=y.device)
+    track = tol > 0 or callback is not None
     result = TVResult(image=x, iterations=0, converged=False, operator_norm=norm)
     for k in range(1, iterations + 1):
-        s = soft_threshold(finite_differences(x) + alpha2 / mu2, tv / mu2)
+        s = torch.nn.functional.softshrink(dx + alpha2 / mu2, tv / mu2)
         # u_k = b_k + pad(W_k r), b_k = H_k x + α_k/μ1 (Sherman–Morrison inside the view).
-        residual = (y - (weights * (hx + alpha1 / mu1)).sum(dim=0)) * gain   # (C, H', W')
-        correction = weights * residual                                    # (K, C, H', W')
+        b = hx + alpha1 / mu1
+        if shift_invariant:
+            correction = (y - b[0]) * gain                                 # (1, C, H', W')
+            correction = correction[None]
+        else:
+            residual = (y - (weights * b).sum(dim=0)) * gain               # (C, H', W')
+            correction = weights * residual                                # (K, C, H', W')
         rhs = finite_differences_adjoint(mu2 * s - alpha2)
         if nonneg:
             w = torch.relu(x + alpha3 / mu3)
-            rhs = rhs + (mu3 * w - alpha3)
+            rhs += mu3 * w - alpha3
         # μ1 u_k − α_k = μ1 (H_k x + pad(W_k r)) everywhere: the duals cancel, and
         # F(H_k x) = K̂_k x̂, so the data part of the right-hand side costs K FFTs of the
         # in-view corrections only.
-        data = power * x_hat + (conj * rfft2(pad(correction, grid))).sum(dim=0)
-        x_hat = (rfft2(rhs) + mu1 * data) / denominator
+        lifted = lift * rfft2(pad(correction, grid))
+        x_hat = rfft2(rhs).mul_(inverse).addcmul_(keep, x_hat)
+        x_hat += lifted[0] if n_kernels == 1 else lifted.sum(dim=0)
         x_new = irfft2(x_hat, grid)
         hx_new = crop(irfft2(spectra * x_hat, grid), sensor)
         alpha1 = mu1 * (hx_new - hx - correction)      # α_k + μ1 (H_k x⁺ − u_k), in view
         hx = hx_new
-        alpha2 = alpha2 + mu2 * (finite_differences(x_new) - s)
+        dx = finite_differences(x_new)                 # also the next iteration's Ψx
+        alpha2 = alpha2 + mu2 * (dx - s)
         if nonneg:
             alpha3 = alpha3 + mu3 * (x_new - w)
-        change = float((x_new - x).norm() / x_new.norm().clamp_min(1e-30))
-        x = x_new
-        result.relative_change.append(change)
         result.iterations = k
-        if callback is not None:
-            callback(k, change)
-        if tol > 0 and change < tol:
-            result.converged = True
-            break
+        if track:
+            change = float((x_new - x).norm() / x_new.norm().clamp_min(1e-30))
+            result.relative_change.append(change)
+            if callback is not None:
+                callback(k, change)
+            if tol > 0 and change < tol:
+                x = x_new
+                result.converged = True
+                break
+        x = x_new
     image = x.clamp_min(0) if nonneg else x
     result.image = image * (peak / norm)
     return result

@@ -57,7 +57,8 @@ class TVResult:
     converged : bool
         Whether the relative-change rule stopped it (``tol > 0``).
     relative_change : list of float
-        ``‖x_k − x_{k−1}‖ / ‖x_k‖`` per iteration.
+        ``‖x_k − x_{k−1}‖ / ‖x_k‖`` per iteration (:func:`ek_admm_tv` records it only with a
+        ``tol`` or a callback).
     objective : list of float
         The objective after each iteration (only with ``track_objective``).
     operator_norm : float
