@@ -112,7 +112,8 @@ def main() -> None:
     parser.add_argument("--downsample", type=int, default=2)
     parser.add_argument("--iterations", type=int, default=100)
     parser.add_argument("--pdhg-iterations", type=int, default=300)
-    parser.add_argument("--tv", default="3e-5,1e-4,3e-4,1e-3", help="TV weights to choose from")
+    parser.add_argument("--tv", default="1e-5,3e-5,1e-4,3e-4,1e-3",
+                        help="TV weights to choose from")
     parser.add_argument("--lensless-tau", default="1e-6,1e-5,1e-4")
     parser.add_argument("--tune-pairs", type=int, default=2,
                         help="fit pairs used to choose the TV weight")
