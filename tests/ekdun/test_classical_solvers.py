@@ -97,6 +97,9 @@ def test_model_reconstructor_solvers_and_refusals():
     image = auto(y.numpy()).image
     assert image.shape == (1, *SENSOR) and image.dtype == np.float32
     assert np.isfinite(image).all() and image.min() >= 0
+    double = ModelReconstructor(model, ClassicalOptions(iterations=50, dtype="float64"))
+    np.testing.assert_allclose(double(y.numpy()).image, image, rtol=0,
+                               atol=1e-4 * float(np.abs(image).max()))
     source = ModelReconstructor(_model("source"), ClassicalOptions(iterations=5, extended=False))
     assert source.solver == "pdhg"
     with pytest.raises(ConfigurationError, match="source-side"):
