@@ -57,10 +57,10 @@ class ClassicalOptions:
     tol : float
         Relative-change stopping rule (0 = off).
     dtype : {"float32", "float64"}
-    extended : bool
+    extended : bool, optional
         Solve for the scene on the whole padded grid (light from outside the view) and return
         its central block; needs a sensor-side (or shift-invariant) model. ``admm`` always
-        does.
+        does; ``None`` (default): wherever the model allows.
     """
 
     solver: str = "auto"
@@ -69,7 +69,7 @@ class ClassicalOptions:
     nonneg: bool = True
     tol: float = 0.0
     dtype: str = "float32"
-    extended: bool = True
+    extended: bool | None = None
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
@@ -116,7 +116,8 @@ class ModelReconstructor:
                 f"a source-side eigen-kernel model ({model.basis!r}) needs solver 'pdhg' "
                 "without the extended scene (its weights exist only inside the view)")
         self.solver = solver
-        self.extended = solver == "admm" or self.options.extended
+        extended = self.options.extended
+        self.extended = solver == "admm" or (sensor_side if extended is None else extended)
         self.solver_operator = (ExtendedSceneOperator(self.prepared) if self.extended
                                 else self.prepared)
         self._norm: float | None = None

@@ -100,8 +100,11 @@ def test_model_reconstructor_solvers_and_refusals():
     double = ModelReconstructor(model, ClassicalOptions(iterations=50, dtype="float64"))
     np.testing.assert_allclose(double(y.numpy()).image, image, rtol=0,
                                atol=1e-4 * float(np.abs(image).max()))
-    source = ModelReconstructor(_model("source"), ClassicalOptions(iterations=5, extended=False))
-    assert source.solver == "pdhg"
+    source = ModelReconstructor(_model("source"), ClassicalOptions(iterations=5))
+    assert source.solver == "pdhg" and not source.extended
+    assert np.isfinite(source(y.numpy()).image).all()
+    with pytest.raises(ConfigurationError, match="source-side"):
+        ModelReconstructor(_model("source"), ClassicalOptions(solver="pdhg", extended=True))
     with pytest.raises(ConfigurationError, match="source-side"):
         ModelReconstructor(_model("source"), ClassicalOptions(solver="admm"))
     si = ModelReconstructor(_model("source", "si"), ClassicalOptions(iterations=5))
