@@ -19,7 +19,7 @@ from psfkit.io import read_pairs
 from psfkit.kernelfile import save_kernels
 from psfkit.pairs_fit import PairFitOptions, downsample_pairs, fit_pairs
 
-HELD_OUT = 3                     # im4 (pair order as read): never used to fit the models
+HELD_OUT = 3                     # im394 (pairs sorted by name): never used to fit the models
 
 
 @pytest.fixture(scope="module")
