@@ -12,6 +12,9 @@ from psfkit.errors import ConfigurationError
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.weights import get_basis
 
+SUPPORTS = ("none", "auto", "mask")
+ENERGIES = ("free", "fit", "base")
+
 
 @dataclass(frozen=True)
 class PairFitOptions:
@@ -45,6 +48,22 @@ class PairFitOptions:
         Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
         scales): the CG then only has to find the corrections. From zero kernels, 60
         iterations leave a full-resolution DLMD fit under-converged and worse than the PSF.
+    nonneg : bool
+        Constrain the kernels to be non-negative (a measured PSF is). Any constraint makes the
+        final solve accelerated projected gradient (:mod:`psfkit.pairs_constraints`), warm
+        started from the unconstrained conjugate-gradient solution.
+    support : {"none", "auto", "mask"}
+        Kernels are zero outside a footprint: ``"auto"`` derives it from the unconstrained base
+        kernel (the SI fit for ``si``; :func:`~psfkit.pairs_constraints.auto_support`),
+        ``"mask"`` takes the mask passed to :func:`~psfkit.pairs_fit.fit_pairs`.
+    support_threshold : float
+        ``"auto"`` support: fraction of the smoothed ``|K|``'s maximum kept.
+    energy : {"free", "fit", "base"}
+        Per-kernel energy (sum per channel): free; fixed to the unconstrained fit's sums
+        (``"fit"``); or every kernel of a channel fixed to the unconstrained base kernel's sum
+        (``"base"``: Kv and Kh carry Kbase's energy).
+    projected_iterations : int
+        Iterations of the projected-gradient solve.
     """
 
     basis: str = "si"
@@ -58,6 +77,16 @@ class PairFitOptions:
     rounds: int = 3
     scene_padding: int = 2
     seed_with_si: bool = True
+    nonneg: bool = True
+    support: str = "none"
+    support_threshold: float = 0.1
+    energy: str = "free"
+    projected_iterations: int = 100
+
+    @property
+    def constrained(self) -> bool:
+        """Whether the final solve is the projected one."""
+        return self.nonneg or self.support != "none" or self.energy != "free"
 
     @property
     def final_iterations(self) -> int:
@@ -74,3 +103,10 @@ class PairFitOptions:
         if min(self.final_iterations, self.scale_iterations, self.rounds) < 1 \
                 or self.scene_padding < 2:
             raise ConfigurationError("iterations and rounds must be >= 1, scene_padding >= 2")
+        if self.support not in SUPPORTS:
+            raise ConfigurationError(f"support must be one of {SUPPORTS}, got {self.support!r}")
+        if self.energy not in ENERGIES:
+            raise ConfigurationError(f"energy must be one of {ENERGIES}, got {self.energy!r}")
+        if not 0 <= self.support_threshold < 1 or self.projected_iterations < 1:
+            raise ConfigurationError("support_threshold must be in [0, 1) and "
+                                     "projected_iterations >= 1")
