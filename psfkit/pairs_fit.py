@@ -234,10 +234,11 @@ def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=options.projected_iterations, unit="it", leave=False,
+        bar = tqdm(total=options.final_projected_iterations, unit="it", leave=False,
                    desc="projected fit")
     mask = None if support is None else torch.as_tensor(support, device=rhs.device)
-    kernels, info = projected_fit(normal, rhs, unconstrained, options.projected_iterations,
+    kernels, info = projected_fit(normal, rhs, unconstrained,
+                                  options.final_projected_iterations,
                                   options.nonneg, mask, energy, bar=bar)
     if bar is not None:
         bar.close()
