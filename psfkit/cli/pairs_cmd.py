@@ -73,8 +73,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         f"likewise (default {d.difference:g})")
     g.add_argument("--iterations", type=int, default=None,
                    help="conjugate-gradient iterations of the final solve (default 30 for si, "
-                        "60 for eigen-kernel models; 10 and 20 when a constrained solve "
-                        "follows)")
+                        "60 for eigen-kernel models)")
     g.add_argument("--no-scale", action="store_true",
                    help="do not estimate a scale per pair (use when the pairs share one "
                         "exposure and normalisation)")
@@ -97,8 +96,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         "the unconstrained fit's sums) or base (every kernel carries the "
                         "unconstrained base kernel's)")
     c.add_argument("--projected-iterations", type=int, default=None,
-                   help="iterations of the constrained solve (default 60 for si, 100 for "
-                        "eigen-kernel models)")
+                   help="iterations of the constrained solve (default 100)")
 
 
 def _write_text(path: str, text: str) -> None:
