@@ -19,6 +19,11 @@ circulant part of the normal operator, :math:`1/(\sum_i|\hat x_i|^2 + \lambda)` 
 on the data's units. Datasets whose ground truth was normalised image by image (the DiffuserCam
 Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated in a few
 alternating rounds (``fit_scale``).
+
+By default the kernels are then made physical: the final solve continues, warm-started from the
+CG solution, by accelerated projected gradient under non-negativity and optionally a support
+and per-kernel energies (:mod:`psfkit.pairs_constraints`; ``PairFitOptions.nonneg``,
+``support``, ``energy``). :meth:`PairFit.physics` is what the kernel file records about them.
 """
 
 from __future__ import annotations
