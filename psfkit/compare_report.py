@@ -58,6 +58,29 @@ def _metric_rows(comparison: KernelComparison) -> str:
             f"</tr>{''.join(body)}</table>")
 
 
+def _change_rows(comparison: KernelComparison) -> str:
+    head = ("change", "kernel", "gain", "gain part", "pedestal", "displacement", "other",
+            "outside mass")
+    body = []
+    for vs, split in comparison.kernel_change.items():
+        if not isinstance(split, dict):
+            continue
+        for name, part in split.items():
+            if name == "all":
+                continue
+            f = part["fractions"]
+            cells = (vs.replace("_", " "), f"K_{name}", part["gain"], f["gain"], f["pedestal"],
+                     f["displacement"], f["other"], part["outside_mass_fraction"])
+            body.append("<tr>" + "".join(f"<td>{format_value(v, '.3f')}</td>" for v in cells)
+                        + "</tr>")
+    if not body:
+        return ""
+    return ("<p>Kernel change split (light fractions, docs/compare.md): gain on the caustic, "
+            "pedestal outside its dilated support, displacement (optical flow), other.</p>"
+            f"<table class='grid'><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}"
+            f"</tr>{''.join(body)}</table>")
+
+
 def html_section(comparison: KernelComparison, figures: list[tuple[str, str, str]]) -> str:
     """The comparison as an HTML ``<section>`` (for a report page); ``figures`` are
     ``(stem, caption, base64 PNG)``."""
@@ -84,6 +107,7 @@ divided by the change of the kernel's weight. Correlations are Pearson over the 
 "–" means undefined (a map without displacement). See docs/compare.md.</p>
 {html_table([(k, v) for k, v in angles] + ceiling)}
 {_metric_rows(comparison)}
+{_change_rows(comparison)}
 <div class="warn"><b>Notes</b><ul>{notes}</ul></div>
 {figs}
 </section>"""

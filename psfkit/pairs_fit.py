@@ -19,6 +19,11 @@ circulant part of the normal operator, :math:`1/(\sum_i|\hat x_i|^2 + \lambda)` 
 on the data's units. Datasets whose ground truth was normalised image by image (the DiffuserCam
 Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated in a few
 alternating rounds (``fit_scale``).
+
+By default the kernels are then made physical: the final solve continues, warm-started from the
+CG solution, by accelerated projected gradient under non-negativity and optionally a support
+and per-kernel energies (:mod:`psfkit.pairs_constraints`; ``PairFitOptions.nonneg``,
+``support``, ``energy``). :meth:`PairFit.physics` is what the kernel file records about them.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zer
 from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.kernelfile import KernelModel
+from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
 from psfkit.pairs_options import PairFitOptions
 from psfkit.resample import bin_mean
 from psfkit.weights import get_basis
@@ -67,6 +73,15 @@ class PairFit:
     training_error: np.ndarray
     history: list[dict[str, Any]]
     options: PairFitOptions
+    support: np.ndarray | None = field(default=None, repr=False)
+
+    def physics(self) -> dict[str, Any]:
+        """The constraints imposed and what the kernels are: energies ``[K][C]``, support
+        fraction, negative and non-finite pixel counts (recorded in the kernel file)."""
+        o = self.options
+        return {"constraints": {"nonneg": o.nonneg, "support": o.support,
+                                "energy": o.energy},
+                **kernel_summary(self.kernels)}
 
     def kernel_model(self, provenance: dict[str, Any] | None = None) -> KernelModel:
         channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
@@ -98,7 +113,7 @@ def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
 def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
               options: PairFitOptions | None = None, initial: np.ndarray | None = None,
               dtype: torch.dtype = torch.float32, device: str = "cpu",
-              progress: bool = False) -> PairFit:
+              progress: bool = False, support_mask: np.ndarray | None = None) -> PairFit:
     """Fit a forward model to ``(N, C, H, W)`` scenes and measurements.
 
     Parameters
@@ -108,16 +123,27 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     options : PairFitOptions
     initial : numpy.ndarray, optional
         ``(K, C, Hk, Wk)`` starting kernels (e.g. a shift-invariant fit for an EK model).
+    support_mask : numpy.ndarray, optional
+        ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
+        "mask"``; nonzero = inside).
 
     Raises
     ------
     InvalidInputError
-        Mismatched shapes or no pairs.
+        Mismatched shapes, no pairs, a support mask missing or of the wrong size, or an
+        energy constraint that a non-negative kernel cannot meet (a sum <= 0).
     """
     options = options or PairFitOptions()
     if scenes.shape != measurements.shape or scenes.ndim != 4 or len(scenes) == 0:
         raise InvalidInputError(f"scenes {scenes.shape} and measurements {measurements.shape} "
                                 "must both be (N, C, H, W) with N >= 1")
+    if (options.support == "mask") != (support_mask is not None):
+        raise InvalidInputError("a support mask is given exactly when options.support is "
+                                f"'mask' (support {options.support!r})")
+    if support_mask is not None and tuple(support_mask.shape) != tuple(scenes.shape[-2:]):
+        raise InvalidInputError(f"the support mask is {support_mask.shape[0]}x"
+                                f"{support_mask.shape[1]}, the kernels "
+                                f"{scenes.shape[-2]}x{scenes.shape[-1]}")
     x = torch.as_tensor(scenes, dtype=dtype, device=device)
     y = torch.as_tensor(measurements, dtype=dtype, device=device)
     n, c, h, w = x.shape
@@ -126,7 +152,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     scales = torch.ones(n, dtype=dtype, device=device)
     if initial is None and n_kernels > 1 and options.seed_with_si:
         seed = fit_pairs(scenes, measurements,
-                         dataclasses.replace(options, basis="si", iterations=None),
+                         dataclasses.replace(options, basis="si", iterations=None,
+                                             nonneg=False, support="none", energy="free"),
                          dtype=dtype, device=device, progress=progress)
         initial = np.repeat(seed.kernels, n_kernels, axis=0)
         scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
@@ -175,13 +202,53 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
             scale_rounds = round_index + 1           # converged: go to the final solve
         scales = new
         round_index += 1
+    support = None
+    if options.constrained:
+        kernels, support, info = _constrained_solve(normal, rhs, kernels, options,
+                                                    support_mask, progress)
+        history.append(info)
     if bar is not None:
         bar.close()
     residual = op.forward(kernels) - y
     errors = residual.pow(2).sum(dim=(1, 2, 3)).sqrt() / y.pow(2).sum(dim=(1, 2, 3)).sqrt()
     return PairFit(kernels=kernels.cpu().numpy(), basis=options.basis,
                    convention=options.convention, scales=scales.cpu().numpy(),
-                   training_error=errors.cpu().numpy(), history=history, options=options)
+                   training_error=errors.cpu().numpy(), history=history, options=options,
+                   support=support)
+
+
+def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
+                       options: PairFitOptions, support_mask: np.ndarray | None,
+                       progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
+    """The final solve under ``options``' constraints, warm-started from the unconstrained
+    (CG) kernels, whose base kernel also gives the automatic support and the energies."""
+    support = None
+    if options.support == "auto":
+        support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
+    elif options.support == "mask":
+        support = np.asarray(support_mask) != 0
+    energy = None
+    if options.energy == "fit":
+        energy = unconstrained.sum(dim=(2, 3))
+    elif options.energy == "base":
+        energy = unconstrained[0].sum(dim=(1, 2))[None].expand(unconstrained.shape[0], -1)
+    if energy is not None and options.nonneg and bool((energy <= 0).any()):
+        raise InvalidInputError(f"energy {options.energy!r}: the unconstrained fit has a "
+                                "kernel with sum <= 0, which no non-negative kernel matches")
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=options.final_projected_iterations, unit="it", leave=False,
+                   desc="projected fit")
+    mask = None if support is None else torch.as_tensor(support, device=rhs.device)
+    kernels, info = projected_fit(normal, rhs, unconstrained,
+                                  options.final_projected_iterations,
+                                  options.nonneg, mask, energy, bar=bar)
+    if bar is not None:
+        bar.close()
+    info["support_fraction"] = 1.0 if support is None else float(support.mean())
+    return kernels, support, info
 
 
 def _conjugate_gradients(apply: Any, rhs: Tensor, start: Tensor, precondition: Any,
@@ -247,7 +314,8 @@ def relative_errors(prediction: np.ndarray, measurements: np.ndarray) -> dict[st
 
 
 def leave_one_out(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
-                  progress: bool = False) -> dict[str, Any]:
+                  progress: bool = False, support_mask: np.ndarray | None = None
+                  ) -> dict[str, Any]:
     """Held-out errors: each pair predicted by the model fitted on all the others."""
     n = len(scenes)
     if n < 2:
@@ -260,7 +328,8 @@ def leave_one_out(scenes: np.ndarray, measurements: np.ndarray, options: PairFit
         indices = tqdm(indices, desc=f"leave-one-out ({options.basis})", unit="fit")
     for i in indices:
         keep = np.arange(n) != i
-        fit = fit_pairs(scenes[keep], measurements[keep], options)
+        fit = fit_pairs(scenes[keep], measurements[keep], options,
+                        support_mask=support_mask)
         errors = relative_errors(predict(fit.kernel_model(), scenes[i:i + 1]),
                                  measurements[i:i + 1])
         raw[i], scaled[i] = errors["raw"][0], errors["scaled"][0]

@@ -14,10 +14,8 @@ from psfkit.validation import (
     MAX_GRID_SIDE,
     MAX_UNROLLED_ITERATIONS,
     bounded_size,
-    nonnegative_float,
     positive_float,
     positive_int,
-    require_finite,
 )
 
 
@@ -87,6 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=positive_int, help="override the preset's iterations")
+    p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
+                   help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
     p.add_argument("--epochs", type=positive_int)
     p.add_argument("--batch-size", type=positive_int, help="global batch size")
     p.add_argument("--lr", type=positive_float)
@@ -143,22 +143,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_reconstruct)
 
     # ---------------------------------------------------------------- admm
-    p = sub.add_parser("admm", help="classical ADMM-TV reconstruction with a measured PSF",
-                       description="No trained model needed: ADMM with TV and "
-                                   "non-negativity (DiffuserCam tutorial algorithm).")
-    p.add_argument("psf", help="PSF image")
-    p.add_argument("measurement", help="measurement image")
-    p.add_argument("--out", required=True, help="output .npy (a .png preview is written next "
-                                                "to it)")
-    p.add_argument("--iterations", type=positive_int, default=100)
-    p.add_argument("--tau", type=nonnegative_float, default=1e-3, help="TV weight (relative)")
-    p.add_argument("--downsample", type=positive_int, default=1, help="box-downsample both first")
-    p.add_argument("--background", choices=("none", "corner"), default="corner",
-                   help="subtract the mean of the [5:15, 5:15] corner from each (default)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing --out file and its preview")
-    p.set_defaults(func=run_admm)
+    from ekdun.cli import classical_cmd
+
+    classical_cmd.register(sub)
 
     # ---------------------------------------------------------------- export-kernels
     p = sub.add_parser("export-kernels", help="write a trained EK-DUN's kernels as a psfkit "
@@ -236,6 +223,10 @@ def run_train(args: argparse.Namespace) -> int:
         overrides["schedule"] = args.schedule
     if args.iterations:
         overrides["iterations"] = args.iterations
+    if args.kernel_param:
+        if args.model != "ekdun":
+            raise InvalidInputError("--kernel-param applies to --model ekdun only")
+        overrides["kernel_param"] = args.kernel_param
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                            seed=args.seed, amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
@@ -289,58 +280,6 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                                 args.amp, downsample=args.downsample)
     print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
     return 0
-
-
-def _box_downsample(image, factor: int):
-    from psfkit.resample import bin_mean
-
-    return image if factor <= 1 else bin_mean(image, factor)
-
-
-def run_admm(args: argparse.Namespace) -> int:
-
-    from psfkit.io import OutputTransaction
-
-    out = Path(args.out)
-    if out.suffix != ".npy":
-        raise InvalidInputError(f"{out}: the output must be a .npy file")
-    # the image and its preview are checked first and appear together
-    with OutputTransaction(overwrite=args.overwrite) as outputs:
-        staged = outputs.file(out), outputs.file(out.with_suffix(".png"))
-        result = _admm(args, *staged)
-    print(f"ADMM-TV reconstruction {result.shape[1]}x{result.shape[2]}: {out}",
-          file=sys.stderr)
-    return 0
-
-
-def _admm(args: argparse.Namespace, out: Path, preview_path: Path):
-    import numpy as np
-
-    from ekdun.reconstruction import admm_tv
-    from ekdun.reconstruction.reconstruct import to_preview
-    from psfkit.io.images import read_image, write_image
-
-    images = []
-    for path in (args.psf, args.measurement):
-        image = require_finite(read_image(path, args.channel_order), path).astype(np.float64)
-        if min(image.shape[-2:]) // args.downsample < 8:
-            raise InvalidInputError(f"--downsample {args.downsample}: {path} "
-                                    f"({image.shape[-2]}x{image.shape[-1]}) would be smaller "
-                                    "than 8x8 pixels")
-        if args.background == "corner":
-            image = image - image[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
-        images.append(_box_downsample(image, args.downsample))
-    psf, y = images
-    if psf.shape[-2:] != y.shape[-2:] and (psf.shape[-2] > y.shape[-2]
-                                            or psf.shape[-1] > y.shape[-1]):
-        raise InvalidInputError(f"{args.psf}: PSF {psf.shape[-2]}x{psf.shape[-1]} is larger "
-                                f"than the measurement {y.shape[-2]}x{y.shape[-1]}")
-    psf = np.clip(psf, 0, None)
-    result = admm_tv(y, psf, iterations=args.iterations, tau=args.tau).numpy()
-    write_image(out, result.astype(np.float32))
-    preview = result / max(float(result.max()), 1e-12)
-    write_image(preview_path, to_preview(preview))
-    return result
 
 
 def run_export_kernels(args: argparse.Namespace) -> int:

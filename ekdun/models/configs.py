@@ -64,6 +64,19 @@ class EKDUNConfig:
         Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
+    kernel_param : {"free", "physical", "flow"}
+        How the trainable kernels are parameterised
+        (:mod:`ekdun.physics.kernel_parameterisation`): free pixels (the paper's), non-negative
+        on the seed's dilated caustic with its energy kept, or ``Kbase`` warped by smooth
+        learned displacement fields times per-channel gains.
+    kernel_support_dilate : int
+        Dilation (px) of the seed's caustic support (``physical``, ``flow``).
+    flow_grid : int
+        Coarse displacement grid ``n × n`` of ``flow``.
+    flow_residual : bool
+        ``flow`` with a small trainable residual on the support.
+    kernel_gain : bool
+        ``physical`` with a learned per-channel gain of the correction kernels.
     """
 
     iterations: int = 10
@@ -74,6 +87,11 @@ class EKDUNConfig:
     step_scale: float = 1.0
     penalty_scale: float = 0.5
     kappa_init: float = 1.0
+    kernel_param: str = "free"
+    kernel_support_dilate: int = 3
+    flow_grid: int = 8
+    flow_residual: bool = False
+    kernel_gain: bool = False
 
 
 @dataclass(frozen=True)

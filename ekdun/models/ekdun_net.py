@@ -22,6 +22,11 @@ model in the last ``k`` iterations (base model for ``f⁰``); ``"all"`` the eige
 everywhere including ``f⁰``. Kernel spectra are taken once per forward pass (only the base
 kernel's for ``"base"``).
 
+Kernels: free pixels in ``physics`` (``kernel_param="free"``), or made by a
+:mod:`~ekdun.physics.kernel_parameterisation` module (``self.kernel_param``) in training mode;
+``physics.kernels`` is then a fixed copy, brought up to date (with cached spectra) whenever
+the network is put in eval mode or loads a state dict.
+
 Parameters ``ε⁽ⁱ⁾ = exp(·)`` and ``η⁽ⁱ⁾ = exp(·)`` are kept positive by a log parametrisation;
 ``κ⁽ⁱ⁾`` is free. Initial values: ``ε = step_scale / L``, ``η = penalty_scale · L`` with
 ``L = max |K̂|² ≈ ‖AᵀA‖`` and ``κ = kappa_init``. With the default zero-initialised residual
@@ -40,7 +45,9 @@ from torch import Tensor, nn
 from ekdun.models.configs import EKDUNConfig, parse_schedule
 from ekdun.models.unet import UNet
 from ekdun.models.unrolled import State, UnrolledNetwork
+from ekdun.physics.kernel_parameterisation import build_parameterisation
 from ekdun.physics.operators import EigenKernelOperator
+from psfkit.forward.convolution import kernel_spectra
 
 
 class EKDUN(UnrolledNetwork):
@@ -74,6 +81,38 @@ class EKDUN(UnrolledNetwork):
             (config.iterations,), math.log(config.penalty_scale * lipschitz), dtype=dtype))
         self.kappa = nn.Parameter(torch.full((config.iterations,), config.kappa_init,
                                              dtype=dtype))
+        self.kernel_param = build_parameterisation(
+            config.kernel_param, physics.kernels.detach(), config.kernel_support_dilate,
+            config.flow_grid, config.flow_residual, config.kernel_gain)
+        if self.kernel_param is not None:
+            physics.kernels.requires_grad_(False)
+            self.sync_kernels()
+            self.register_load_state_dict_post_hook(lambda module, _keys: module.sync_kernels())
+
+    def current_kernels(self) -> Tensor:
+        """The kernels ``(K, C, Hk, Wk)`` the network uses now (differentiable)."""
+        return self.physics.kernels if self.kernel_param is None else self.kernel_param()
+
+    def sync_kernels(self) -> None:
+        """Copy the parameterised kernels into ``physics`` (and refresh its spectra)."""
+        if self.kernel_param is None:
+            return
+        with torch.no_grad():
+            self.physics.kernels.copy_(self.kernel_param())
+        self.physics.refresh_spectra()
+
+    def train(self, mode: bool = True) -> EKDUN:
+        super().train(mode)
+        if not mode:
+            self.sync_kernels()
+        return self
+
+    def _spectra(self, first: int | None = None) -> Tensor:
+        if self.kernel_param is None or not self.training:
+            return self.physics.spectra(first)
+        kernels = self.kernel_param()
+        return kernel_spectra(kernels if first is None else kernels[:first],
+                              self.physics.grid_shape)
 
     @property
     def uses_eigen_kernels(self) -> bool:
@@ -84,11 +123,11 @@ class EKDUN(UnrolledNetwork):
         # One kernel FFT batch per forward pass, reused by every iteration; the base model
         # shares the eigen-kernel model's spectra (and their conjugates).
         if self.uses_eigen_kernels:
-            eigen = self.physics.prepare(self.physics.spectra())
+            eigen = self.physics.prepare(self._spectra())
             base = self.physics.prepare_base(eigen.spectra, eigen.conj_spectra)
         else:
             eigen = None
-            base = self.physics.prepare_base(self.physics.spectra(first=1))
+            base = self.physics.prepare_base(self._spectra(first=1))
         base.check(y, "measurement")
         return {"y": y, "base": base, "eigen": eigen}
 

@@ -51,7 +51,7 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
         raise ConfigurationError(f"{where}only EK-DUN has eigen kernels to export, not "
                                  f"{type(model).__name__}")
     seed = model.seed_kernels
-    kernels = model.physics.kernels.detach().cpu().numpy().astype(np.float32)
+    kernels = model.current_kernels().detach().cpu().numpy().astype(np.float32)
     if seed is None:
         # A network built directly (not by build_network): its physics has the geometry.
         n = kernels.shape[0]
@@ -61,6 +61,7 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
                            channels=("R", "G", "B") if kernels.shape[1] == 3 else ("L",),
                            scene_padding=model.physics.scene_padding, normalization="unknown")
     provenance = {"source": "ekdun training (learned kernels)", "epoch": epoch,
+                  "kernel_param": model.config.kernel_param,
                   "seed_provenance": seed.provenance}
     return replace(seed, kernels=kernels, provenance=provenance,
                    normalization=f"learned (initialised from: {seed.normalization})")

@@ -39,6 +39,7 @@ from torch.utils.data import Dataset
 from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
 from ekdun.models.configs import TrainingConfig, get_preset
 from ekdun.models.unrolled import UnrolledNetwork
+from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
 from ekdun.training import acceleration as acc
 from ekdun.training import distributed as D
 from ekdun.training.batches import BatchSource
@@ -113,14 +114,18 @@ def check_training_config(cfg: TrainingConfig) -> None:
 
 
 def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
+    # Kernels (free pixels in physics., or a parameterisation's kernel_param.) get their own
+    # group; the parameterisation's multiplier is measured (docs/compare.md).
     kernels, others = [], []
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
-        (kernels if name.startswith("physics.") else others).append(p)
+        (kernels if name.startswith(("physics.", "kernel_param.")) else others).append(p)
     groups = [{"params": others, "lr": lr}]
     if kernels:
-        groups.append({"params": kernels, "lr": lr * kernel_lr_scale})
+        param = getattr(getattr(model, "config", None), "kernel_param", "free")
+        groups.append({"params": kernels, "lr": lr * kernel_lr_scale * LR_MULTIPLIER[param],
+                       "name": "kernels"})
     return groups
 
 

@@ -95,6 +95,19 @@ def _print_comparison(args: argparse.Namespace, comparison: Any, learned: Any, o
         if cmp is not None and cmp.angles_pca_deg is not None:
             print(f"  principal angles {cmp.label} vs top PCA modes (deg): "
                   + ", ".join(f"{a:.1f}" for a in cmp.angles_pca_deg))
+    for vs, split in comparison.kernel_change.items():
+        if not isinstance(split, dict):
+            continue
+        print(f"  kernel change {vs.replace('_', ' ')} (gain / light fractions gain, pedestal, "
+              "displacement, other):")
+        for name, part in split.items():
+            if name == "all":
+                print(f"    all     outside-support mass {part['outside_mass_fraction']:.3f}, "
+                      f"pedestal share of change {part['pedestal_share_of_change']:.3f}")
+                continue
+            f = part["fractions"]
+            print(f"    K_{name:5s} gain {part['gain']:+.3f}  " + "  ".join(
+                f"{k} {f[k]:.3f}" for k in ("gain", "pedestal", "displacement", "other")))
     for note in comparison.notes:
         print(f"  note: {note}")
     return 0

@@ -25,8 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "fit-pairs", help="fit a shift-invariant or eigen-kernel model to image pairs",
         description="Regularised least-squares fit of the forward model y = crop(K * pad(x)) "
                     "(one PSF, or eigen-kernels with weight maps) to (scene, measurement) "
-                    "pairs, by preconditioned conjugate gradients on the normal equations. "
-                    "Writes a kernel file that ekdun and eval-model read.")
+                    "pairs, by preconditioned conjugate gradients on the normal equations, "
+                    "then (by default) accelerated projected gradient under the constraints "
+                    "of a measured PSF: non-negative, optionally zero outside a support and "
+                    "with fixed energies. Writes a kernel file that ekdun and eval-model "
+                    "read; its provenance records the constraints, energies and support.")
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
     p.add_argument("--model", default="si",
@@ -77,6 +80,26 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-scale", action="store_true",
                    help="do not estimate a scale per pair (use when the pairs share one "
                         "exposure and normalisation)")
+    c = p.add_argument_group("constraints (a measured PSF's)")
+    c.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=d.nonneg,
+                   help="non-negative kernels (default); --no-nonneg gives the unconstrained "
+                        "least-squares kernels, with their negative lobes")
+    c.add_argument("--support", choices=("none", "auto"), default="none",
+                   help="auto: kernels are zero outside the caustic footprint of the "
+                        "unconstrained base kernel (smoothed |K| above --support-threshold of "
+                        "its maximum, dilated 2 pixels); default none")
+    c.add_argument("--support-threshold", type=float, default=d.support_threshold,
+                   help=f"fraction of the maximum for --support auto (default "
+                        f"{d.support_threshold:g})")
+    c.add_argument("--support-mask", metavar="FILE",
+                   help="footprint image (.npy/.png/.tif, nonzero = inside) of the sensor's "
+                        "size, binned by --downsample; overrides --support")
+    c.add_argument("--energy", choices=("free", "fit", "base"), default=d.energy,
+                   help="per-kernel energy (sum per channel): free (default), fit (fixed to "
+                        "the unconstrained fit's sums) or base (every kernel carries the "
+                        "unconstrained base kernel's)")
+    c.add_argument("--projected-iterations", type=int, default=None,
+                   help="iterations of the constrained solve (default 100)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
@@ -102,6 +125,24 @@ def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
     return pairs, scenes, measurements
 
 
+def _support_mask(path: str | None, factor: int, shape: tuple[int, int]) -> np.ndarray | None:
+    """The ``--support-mask`` image as a ``shape`` bool array: a pixel of the binned grid is
+    inside when any of its ``factor × factor`` sensor pixels is."""
+    if path is None:
+        return None
+    from psfkit.io.images import read_image
+    from psfkit.resample import bin_mean
+
+    mask = read_image(path).astype(np.float64).max(axis=0) != 0
+    if factor > 1 and mask.shape[0] >= shape[0] * factor and mask.shape[1] >= shape[1] * factor:
+        mask = bin_mean(mask.astype(np.float32), factor) > 0
+    if tuple(mask.shape) != tuple(shape):
+        raise InvalidInputError(f"{path}: the support mask is {mask.shape[0]}x{mask.shape[1]}, "
+                                f"the fitted sensor {shape[0]}x{shape[1]} (after --downsample "
+                                f"{factor})")
+    return mask
+
+
 def run_fit_pairs(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -109,7 +150,10 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
     basis = MODEL_ALIASES.get(args.model, args.model)
     options = PairFitOptions(basis=basis, convention=args.convention, tikhonov=args.tikhonov,
                              difference=args.difference, iterations=args.iterations,
-                             fit_scale=not args.no_scale)
+                             fit_scale=not args.no_scale, nonneg=args.nonneg,
+                             support="mask" if args.support_mask else args.support,
+                             support_threshold=args.support_threshold, energy=args.energy,
+                             projected_iterations=args.projected_iterations)
     # both outputs are checked before the fit and appear together, or neither does
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         kernels = outputs.file(out)
@@ -126,21 +170,26 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
     from psfkit.pairs_fit import fit_pairs, leave_one_out
 
     pairs, scenes, measurements = _load(args.pairs, args.downsample)
-    fit = fit_pairs(scenes, measurements, options, progress=not args.quiet)
+    mask = _support_mask(args.support_mask, args.downsample, scenes.shape[-2:])
+    fit = fit_pairs(scenes, measurements, options, progress=not args.quiet,
+                    support_mask=mask)
+    physics = fit.physics()
     summary: dict[str, Any] = {
         "pairs": str(pairs.root), "names": list(pairs.names), "model": basis,
         "convention": options.convention, "downsample": args.downsample,
         "sensor_shape": list(scenes.shape[-2:]), "options": options.__dict__,
         "training_error": dict(zip(pairs.names, fit.training_error.tolist(), strict=True)),
         "scales": dict(zip(pairs.names, fit.scales.tolist(), strict=True)),
-        "solver": fit.history}
+        "solver": fit.history, "physics": physics}
     if args.leave_one_out:
         summary["leave_one_out"] = leave_one_out(scenes, measurements, options,
-                                                 progress=not args.quiet)
+                                                 progress=not args.quiet, support_mask=mask)
     provenance = {"source": "psfkit fit-pairs", "pairs": str(pairs.root),
                   "names": list(pairs.names), "downsample": args.downsample,
                   "options": options.__dict__, "training_error":
-                  [round(float(e), 6) for e in fit.training_error]}
+                  [round(float(e), 6) for e in fit.training_error], "physics": physics}
+    if args.support_mask:
+        provenance["support_mask"] = str(args.support_mask)
     save_kernels(kernels, fit.kernel_model(provenance))
     if report is not None:
         report.write_text(dumps_finite(jsonable(summary), args.report, indent=1) + "\n",
@@ -157,6 +206,15 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
           f"max {fit.training_error.max():.4f}"
           + ("" if args.no_scale else f" (per-pair scales {fit.scales.min():.3f}-"
                                       f"{fit.scales.max():.3f})"))
+    options, physics = fit.options, summary["physics"]
+    constraints = [name for name, on in (("non-negative", options.nonneg),
+                                         (f"support {options.support}",
+                                          options.support != "none"),
+                                         (f"energy {options.energy}",
+                                          options.energy != "free")) if on]
+    print(f"  kernels: {', '.join(constraints) or 'unconstrained'}; "
+          f"{physics['negative_pixels']} negative pixels, support fraction "
+          f"{physics['support_fraction']:.3f}")
     if args.leave_one_out:
         loo = summary["leave_one_out"]
         print(f"  leave-one-out relative error: mean {loo['mean_raw']:.4f} raw, "

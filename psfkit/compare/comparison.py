@@ -13,6 +13,7 @@ import os
 import numpy as np
 
 from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
+from psfkit.compare.kernel_change import caustic_support, split_kernel_changes
 from psfkit.compare.measured import MeasuredModes, measure_modes
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import pad_kernels, resample
@@ -181,4 +182,22 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
                      f"{learned_model.kernels.shape[-1]} zero-padded to the sensor size")
     return KernelComparison(learned=result_learned, initial=result_initial, measured=modes,
                             measured_displacements=meas_disp, measured_kernels_vs_warp=vs_warp,
-                            mask=mask, options=options, notes=notes)
+                            mask=mask, options=options, notes=notes,
+                            kernel_change=kernel_change_report(
+                                result_learned, result_initial, modes, options))
+
+
+def kernel_change_report(learned: KernelSetComparison, initial: KernelSetComparison | None,
+                         modes: MeasuredModes, options: CompareOptions) -> dict:
+    """Split of the learned kernels' change (vs the initial and vs the measured kernels) into
+    gain, pedestal, displacement and other, on the dilated caustic support of the measured
+    kernels (:mod:`psfkit.compare.kernel_change`)."""
+    names = modes.model.kernel_names
+    support = caustic_support(modes.model.kernels, options.mask_level, options.mask_dilate)
+    out: dict = {"support_pixels": int(support.sum()),
+                 "learned_vs_measured": split_kernel_changes(
+                     learned.kernels, modes.model.kernels, support, names, options.flow_method)}
+    if initial is not None:
+        out["learned_vs_initial"] = split_kernel_changes(
+            learned.kernels, initial.kernels, support, names, options.flow_method)
+    return out

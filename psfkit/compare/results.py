@@ -76,6 +76,11 @@ class KernelComparison:
         ``(H, W)`` bool caustic mask of the measured ``Kbase``.
     options : CompareOptions
     notes : list of str
+    kernel_change : dict
+        ``{"learned_vs_initial": ..., "learned_vs_measured": ..., "support_pixels": int}``:
+        :func:`psfkit.compare.kernel_change.split_kernel_changes` of the learned kernels
+        against the initial (when given) and the measured ones, on the dilated caustic support
+        of the measured kernels (gain, pedestal, displacement, other).
     """
 
     learned: KernelSetComparison
@@ -86,6 +91,7 @@ class KernelComparison:
     mask: np.ndarray = field(repr=False)
     options: CompareOptions = field(repr=False)
     notes: list[str] = field(default_factory=list)
+    kernel_change: dict[str, Any] = field(default_factory=dict)
 
     @property
     def kernel_names(self) -> tuple[str, ...]:
@@ -130,6 +136,7 @@ class KernelComparison:
             "measured_displacement_rms_px": {k: d.rms()
                                              for k, d in self.measured_displacements.items()},
             "measured_kernels_vs_warp": self.measured_kernels_vs_warp,
+            "kernel_change": self.kernel_change,
             "options": {"flow_method": self.options.flow_method,
                         "smooth_px": self.options.smooth_px,
                         "min_displacement_px": self.options.min_displacement_px,

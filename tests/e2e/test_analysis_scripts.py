@@ -190,16 +190,34 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
         sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3)), progress=False)
     kernels = fit_seed_kernels(data, tmp_path / "seed.npz")
+    options = TrainOptions(epochs=1, batch_size=4, progress=False, threads=1)
     train(tmp_path / "run", "ekdun", kernels, PairsDataset(data / "train"), "tiny",
-          SMALL["ekdun"], TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
+          SMALL["ekdun"], options)
+    # a second start: one PSF (Kv = Kh = Kbase), flow-parameterised kernels
+    from dataclasses import replace
+
+    import numpy as np
+
+    from psfkit.kernelfile import load_kernels, save_kernels
+
+    seed = load_kernels(kernels)
+    one = save_kernels(tmp_path / "one.npz", replace(
+        seed, kernels=np.repeat(seed.kernels[:1], len(seed.kernels), axis=0)))
+    train(tmp_path / "run1", "ekdun", one, PairsDataset(data / "train"), "tiny",
+          {**SMALL["ekdun"], "kernel_param": "flow"}, options)
     out = tmp_path / "f7"
     done = _run("fig7_learned_kernels.py", str(tmp_path / "run"), str(data / "grid"),
-                "--out", str(out), "--quiet")
+                "--out", str(out), "--quiet", "--one-psf", str(tmp_path / "run1"))
     assert done.returncode == 0, done.stderr
     assert "learned: v_vs_kernels" in done.stdout and "initial: v_vs_kernels 1.000" in done.stdout
     _nontrivial(out / "figures" / "fig7.png")
+    _nontrivial(out / "figures" / "fig7_starts.png")
     doc = json.loads((out / "compare.json").read_text())
     assert doc["initial"] is not None
+    split = doc["kernel_change"]["learned_vs_initial"]
+    assert sum(split["v"]["fractions"].values()) == pytest.approx(1.0)
+    text = (out / "fig7_caption.md").read_text()
+    assert "one PSF: displacement corr." in text and "pedestal" in text
 
 
 def test_fig7_refuses_a_checkpoint_without_eigen_kernels(runs, bench, tmp_path):

@@ -86,6 +86,44 @@ def test_fit_pairs_downsample_is_remembered_by_eval_model(eigen_pairs, tmp_path:
     assert err.count("\n") == 0 and "16x24" in err and "8x12" in err
 
 
+def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, tmp_path: Path,
+                                                                 capsys) -> None:
+    """Default: non-negative kernels, with the constraints, energies and support fraction in
+    the kernel file's provenance; --no-nonneg gives the old unconstrained fit (negative
+    lobes); --support-mask and --energy are honoured."""
+    fit_dir, _, _ = eigen_pairs
+    common = ["--model", "ek", "--convention", "sensor", "--iterations", "40", "--quiet"]
+    default, free = tmp_path / "default.npz", tmp_path / "free.npz"
+    assert main(["fit-pairs", str(fit_dir), "--out", str(default), *common]) == 0
+    assert "0 negative pixels" in capsys.readouterr().out
+    assert main(["fit-pairs", str(fit_dir), "--out", str(free), "--no-nonneg", *common]) == 0
+    assert "unconstrained" in capsys.readouterr().out
+    model, unconstrained = load_kernels(default), load_kernels(free)
+    assert model.kernels.min() >= 0 and unconstrained.kernels.min() < 0
+    physics = model.provenance["physics"]
+    assert physics["constraints"] == {"nonneg": True, "support": "none", "energy": "free"}
+    assert physics["negative_pixels"] == 0 and physics["nonfinite_pixels"] == 0
+    np.testing.assert_allclose(physics["energy"], model.kernels.sum(axis=(-2, -1)), rtol=1e-5)
+    assert unconstrained.provenance["physics"]["negative_pixels"] > 0
+    assert unconstrained.provenance["options"]["nonneg"] is False
+
+    mask = np.zeros((16, 24), np.uint8)
+    mask[3:13, 4:20] = 1
+    np.save(tmp_path / "mask.npy", mask)
+    masked = tmp_path / "masked.npz"
+    assert main(["fit-pairs", str(fit_dir), "--out", str(masked), "--support-mask",
+                 str(tmp_path / "mask.npy"), "--energy", "fit", *common]) == 0
+    model = load_kernels(masked)
+    assert np.abs(model.kernels[..., mask == 0]).max() == 0 and model.kernels.min() >= 0
+    physics = model.provenance["physics"]
+    assert physics["constraints"] == {"nonneg": True, "support": "mask", "energy": "fit"}
+    assert physics["support_fraction"] <= mask.mean()
+    assert model.provenance["support_mask"].endswith("mask.npy")
+    # energies: those of the unconstrained fit (same data and options, so the same CG solve)
+    np.testing.assert_allclose(model.kernels.sum(axis=(-2, -1)),
+                               unconstrained.kernels.sum(axis=(-2, -1)), rtol=1e-5)
+
+
 def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Path,
                                                         capsys) -> None:
     fit_dir, _, model = eigen_pairs
@@ -97,6 +135,9 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
         (["fit-pairs", str(fit_dir), "--out", str(out), "--downsample", "0"], "downsample"),
         (["eval-model", str(tmp_path / "none.npz"), str(fit_dir)], "none.npz"),
     ]
+    np.save(tmp_path / "small_mask.npy", np.ones((5, 5), np.uint8))
+    cases.append((["fit-pairs", str(fit_dir), "--out", str(out), "--support-mask",
+                   str(tmp_path / "small_mask.npy")], "5x5"))
     unpaired = tmp_path / "unpaired"
     _write_pairs(unpaired, np.zeros((1, 3, 16, 24), np.float32),
                  np.ones((1, 3, 16, 24), np.float32))

@@ -56,6 +56,7 @@ def test_notebook_runs(path, kernel_env):
     if path.stem.startswith("03"):
         assert "illustrative" in path.read_text().lower() and "learned {" in text
         assert "epoch 3: train loss" in text and "held-out PSNR" in text
+        assert "flow, from one PSF: pedestal share of the change" in text
     if path.stem.startswith("04") and "not available" not in text:
         assert "held-out relative error" in text
         assert "held-out im65: EK-DUN" in text

@@ -73,6 +73,10 @@ def test_identical_learned_file_gives_perfect_agreement(modes):
     doc = result.to_dict()
     assert doc["headline"]["learned"]["v_vs_kernels"] == pytest.approx(1.0, abs=1e-6)
     assert len(doc["learned"]["principal_angles_deg_vs_measured_pca"]) == 3
+    # no change against the measured kernels: nothing to split
+    change = doc["kernel_change"]["learned_vs_measured"]
+    assert all(change[n]["change_rel"] < 1e-6 for n in ("base", "v", "h"))
+    assert change["all"]["outside_mass_fraction"] < 0.05
 
 
 def test_known_warp_is_recovered(grid_inner):

@@ -1,0 +1,109 @@
+"""Fig. 7 remade: measured modes next to the kernels learned from several starts (seeded from
+the measured fit, from one PSF), with the displacement fields as arrows over the caustic and
+the numbers that say whether the learned kernels are the measured ones."""
+
+from __future__ import annotations
+
+import textwrap
+from typing import Any
+
+import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+
+from psfkit.compare.results import KernelComparison
+from psfkit.figures.compare_figures import _quiver_panel
+from psfkit.figures.eigen_figures import _crop_box
+from psfkit.figures.style import PAGE_IN, new_figure, publication_style
+from psfkit.preprocess import luminance
+
+
+def start_numbers(comparison: KernelComparison) -> dict[str, Any]:
+    """The caption's numbers for one start: displacement correlation and difference NCC vs
+    the measured eigen-kernels, pedestal share of the change and outside-support mass (vs the
+    initial kernels when known, else vs the measured ones), angles to the top PCA modes."""
+    doc = comparison.to_dict()
+    change = doc["kernel_change"]
+    split = change.get("learned_vs_initial", change["learned_vs_measured"])
+    out: dict[str, Any] = {
+        "pedestal_share": split["all"]["pedestal_share_of_change"],
+        "outside_mass": split["all"]["outside_mass_fraction"],
+        "angles_pca_deg": doc["learned"]["principal_angles_deg_vs_measured_pca"]}
+    for name, m in doc["learned"]["metrics"].items():
+        out[f"{name}_disp_corr"] = m["vs_measured_kernels"]["corr"]
+        out[f"{name}_diff_ncc"] = m["difference_ncc"]
+    return out
+
+
+def _fmt(value: Any) -> str:
+    return "n/a" if value is None or value != value else f"{value:+.2f}"
+
+
+def caption(numbers: dict[str, dict[str, Any]]) -> str:
+    """One caption sentence per start."""
+    parts = []
+    for label, n in numbers.items():
+        names = [k[:-10] for k in n if k.endswith("_disp_corr")]
+        disp = " / ".join(_fmt(n[f"{k}_disp_corr"]) for k in names)
+        ncc = " / ".join(_fmt(n[f"{k}_diff_ncc"]) for k in names)
+        angles = n["angles_pca_deg"]
+        parts.append(f"{label}: displacement corr. (K_{'/K_'.join(names)}) {disp}, "
+                     f"difference NCC {ncc}, pedestal {100 * n['pedestal_share']:.1f} % of the "
+                     f"change, {100 * n['outside_mass']:.1f} % of the kernel mass outside the "
+                     f"caustic support" + ("" if angles is None else
+                                           ", angles to top PCA modes "
+                                           + ", ".join(f"{a:.0f}°" for a in angles)))
+    return "; ".join(parts) + "."
+
+
+def figure_starts(comparisons: dict[str, KernelComparison]) -> Figure:
+    """Rows: the measured fit, then the learned kernels of each start. Columns: ``K_base``,
+    the correction kernels, their differences from ``K_base``, and their displacement fields
+    (colour = length in px, arrows = direction, on the measured caustic mask)."""
+    first = next(iter(comparisons.values()))
+    names = first.kernel_names
+    rows: list[tuple[str, np.ndarray, dict]] = [
+        ("measured fit", first.measured.model.kernels, first.measured_displacements)]
+    rows += [(f"learned: {label}", c.learned.kernels, c.learned.displacements)
+             for label, c in comparisons.items()]
+    k = len(names)
+    box = _crop_box(luminance(first.measured.model.kernels[0]))
+    mask_box = _crop_box(np.where(first.mask, 1.0, 0.0), level=0.5, margin=2)
+    span = max(mask_box[0].stop - mask_box[0].start, mask_box[1].stop - mask_box[1].start)
+    step = max(2, span // 12)
+    values = [np.hypot(*d.field[:, d.mask]) for _, _, disp in rows for d in disp.values()
+              if d.mask.any()]
+    vmax = max((float(np.percentile(v, 95)) for v in values if v.size), default=1.0) or 1.0
+    cols = 3 * k - 2
+    with publication_style():
+        fig = new_figure(PAGE_IN * 1.3, 1.35 * len(rows) + 0.5)
+        axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
+        cmap = matplotlib.colormaps["RdBu_r"]
+        for r, (label, kernels, disp) in enumerate(rows):
+            lum = np.stack([luminance(x) for x in kernels])[:, box[0], box[1]]
+            peak = float(lum.max()) or 1.0
+            diffs = (lum[1:] - lum[0]) / peak
+            limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
+            for i in range(k):
+                ax = axes[r, i]
+                ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
+                ax.set_title(f"K_{names[i]}" if r == 0 else "")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if i == 0:
+                    ax.set_ylabel(textwrap.fill(label, 22), fontsize=6)
+            for i in range(1, k):
+                ax = axes[r, k + i - 1]
+                ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
+                ax.set_title(f"K_{names[i]} − K_{names[0]}" if r == 0 else "")
+                ax.set_axis_off()
+            for i in range(1, k):
+                ax = axes[r, 2 * k + i - 2]
+                d = disp.get(names[i])
+                if d is None:
+                    ax.set_axis_off()
+                    continue
+                _quiver_panel(ax, d, mask_box, vmax, f"D_{names[i]}" if r == 0 else "", step)
+        fig.suptitle(f"measured modes vs learned kernels (arrows: displacement, colour "
+                     f"0–{vmax:.2f} px)")
+    return fig

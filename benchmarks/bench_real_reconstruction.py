@@ -1,0 +1,246 @@
+"""Benchmark: classical reconstruction of real DLMD measurements with fitted SI and EK models.
+
+Leave-one-out over the shared DiffuserCam Lensless Mirflickr pairs: for each pair, the SI and
+the eigen-kernel (``paper`` basis, sensor side) models are fitted on the other pairs
+(:func:`psfkit.pairs_fit.fit_pairs`, as ``psfkit fit-pairs``), the TV weight of every method is
+chosen on two of those fit pairs only, and the held-out measurement is reconstructed. PSNR and
+SSIM are against the lensed ground truth after a least-squares scale (then clipped to [0, 1]);
+s/image is the wall time of one reconstruction on one thread (the model's operator built
+outside the timer, as a batch run does once). Methods:
+
+* ``EK admm`` / ``SI admm``: :class:`ekdun.reconstruction.classical.ModelReconstructor`
+  (``ekdun admm --kernels``), closed-form ADMM-TV, ``--iterations`` (default 100);
+* ``EK pdhg`` / ``SI pdhg``: the same models with PDHG, ``--pdhg-iterations`` (default 300),
+  the ADMM's TV weight;
+* ``SI admm_tv f64``: the older :func:`ekdun.reconstruction.admm_tv` (float64, the fitted PSF
+  as is), the SI ADMM's TV weight;
+* ``LenslessPiCam ADMM``: ``lensless`` 1.0.8's ADMM with the SI PSF, if importable (install it
+  outside the project, e.g. ``pip install --no-deps --target /tmp/lensless_site lensless==1.0.8``
+  and ``--lensless /tmp/lensless_site``); its ``tau`` chosen likewise.
+
+    python benchmarks/bench_real_reconstruction.py --downsample 2 --lensless /tmp/lensless_site
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_DATA = (Path(os.environ["PSFKIT_SHARED_DATA"]) / "dlmd_mirflickr"
+                if os.environ.get("PSFKIT_SHARED_DATA")
+                else Path(__file__).resolve().parents[2] / "shared" / "data" / "dlmd_mirflickr")
+
+
+def psnr_ssim(image: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """PSNR (dB) and SSIM of ``(C, H, W)`` ``image`` after the least-squares scale onto
+    ``truth`` (in [0, 1]), clipped to [0, 1]."""
+    from skimage.metrics import structural_similarity
+
+    a = float((image * truth).sum() / max(float((image * image).sum()), 1e-30))
+    scaled = np.clip(a * image, 0, 1)
+    mse = float(np.mean((scaled - truth) ** 2))
+    ssim = structural_similarity(scaled, truth, channel_axis=0, data_range=1.0)
+    return 10 * np.log10(1.0 / max(mse, 1e-30)), float(ssim)
+
+
+class Lensless:
+    """LenslessPiCam's ADMM with an SI PSF ``(C, H, W)`` (their conventions: PSF scaled to unit
+    L2 norm, data to peak 1, float32, default penalties)."""
+
+    def __init__(self, psf: np.ndarray, tau: float, roll: tuple[int, int] = (0, 0)) -> None:
+        from lensless import ADMM
+
+        p = np.moveaxis(np.roll(psf, roll, axis=(-2, -1)), 0, -1)[None].astype(np.float32)
+        self.admm = ADMM(p / np.linalg.norm(p), tau=tau)
+
+    def __call__(self, y: np.ndarray, iterations: int) -> np.ndarray:
+        d = np.moveaxis(y, 0, -1)[None].astype(np.float32)
+        self.admm.set_data(d / d.max())
+        out = np.asarray(self.admm.apply(n_iter=iterations, disp_iter=None, plot=False))
+        return np.moveaxis(out.reshape(out.shape[-3:]), -1, 0)
+
+
+def lensless_alignment(model, scene: np.ndarray) -> tuple[tuple[int, int], float]:
+    """The roll of the PSF that makes LenslessPiCam's forward model ours, and the relative max
+    difference left (float64). Its PSF origin is the centre of its padded grid, which is one
+    pixel off ours when an odd sensor side pads to an even fast FFT length (135 → 270)."""
+    import torch
+    from lensless.recon.rfft_convolve import RealFFTConvolve2D
+
+    from ekdun.physics.operators import EigenKernelOperator
+
+    op = EigenKernelOperator.from_kernel_model(model, dtype=torch.float64)
+    ours = op.A(torch.as_tensor(scene[None], dtype=torch.float64))[0].numpy()
+    best = ((0, 0), np.inf)
+    for roll in ((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)):
+        psf = np.moveaxis(np.roll(model.kernels[0], roll, axis=(-2, -1)), 0, -1)[None]
+        theirs = RealFFTConvolve2D(psf.astype(np.float64), dtype=np.float64, pad=True,
+                                   norm="backward").convolve(
+            np.moveaxis(scene, 0, -1)[None].astype(np.float64))
+        err = float(np.abs(ours - np.moveaxis(theirs[0], -1, 0)).max() / np.abs(ours).max())
+        best = min(best, (roll, err), key=lambda b: b[1])
+    return best
+
+
+def interleaved_timings(models: dict, chosen: dict, peer: tuple | None, y: np.ndarray,
+                        args: argparse.Namespace) -> dict[str, float]:
+    """Median s/image of each method over ``args.timing_repeats`` rounds that run the methods
+    in turn (so that load changes on a shared machine hit them alike)."""
+    from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
+
+    methods = {}
+    for name, model in models.items():
+        for solver, its in (("admm", args.iterations), ("pdhg", args.pdhg_iterations)):
+            recon = ModelReconstructor(model, ClassicalOptions(solver=solver, tv=chosen[name],
+                                                               iterations=its))
+            recon(y)                                            # ‖A‖ once, warm-up
+            methods[f"{name} {solver}"] = lambda r=recon: r(y)
+    if peer is not None:
+        solver = Lensless(models["SI"].kernels[0], *peer)
+        methods["LenslessPiCam ADMM"] = lambda s=solver: s(y, args.iterations)
+    times: dict[str, list[float]] = {name: [] for name in methods}
+    for _ in range(args.timing_repeats):
+        for name, run in methods.items():
+            t0 = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(t)) for name, t in times.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", default=os.environ.get("PSFKIT_DLMD", str(DEFAULT_DATA)))
+    parser.add_argument("--downsample", type=int, default=2)
+    parser.add_argument("--iterations", type=int, default=100)
+    parser.add_argument("--pdhg-iterations", type=int, default=300)
+    parser.add_argument("--tv", default="1e-5,3e-5,1e-4,3e-4,1e-3",
+                        help="TV weights to choose from")
+    parser.add_argument("--lensless-tau", default="1e-6,1e-5,1e-4")
+    parser.add_argument("--tune-pairs", type=int, default=2,
+                        help="fit pairs used to choose the TV weight")
+    parser.add_argument("--folds", help="comma-separated held-out pairs (default all)")
+    parser.add_argument("--lensless", help="folder holding the lensless package (PYTHONPATH)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--timing-repeats", type=int, default=5,
+                        help="interleaved timing rounds on the last held-out pair (medians)")
+    parser.add_argument("--json", help="write the per-pair results here")
+    args = parser.parse_args()
+    if args.lensless:
+        sys.path.insert(0, args.lensless)
+    import torch
+
+    from ekdun.reconstruction.admm_tv import admm_tv
+    from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
+    from psfkit.io import read_pairs
+    from psfkit.pairs_fit import PairFitOptions, downsample_pairs, fit_pairs
+
+    torch.set_num_threads(args.threads)
+    try:
+        import lensless  # noqa: F401
+
+        have_lensless = True
+    except ImportError as exc:
+        have_lensless = False
+        print(f"LenslessPiCam not available ({exc}): compare with the issue's figures")
+    load = os.getloadavg()
+    scenes, meas = downsample_pairs(*read_pairs(args.pairs).load_all(), args.downsample)
+    n = len(scenes)
+    folds = range(n) if not args.folds else [int(f) for f in args.folds.split(",")]
+    tvs = [float(t) for t in args.tv.split(",")]
+    taus = [float(t) for t in args.lensless_tau.split(",")]
+    print(f"{n} pairs {scenes.shape[-2]}x{scenes.shape[-1]} (downsample {args.downsample}), "
+          f"{args.threads} thread(s), load average at start {load[0]:.1f}", flush=True)
+    rows: dict[str, list] = {}
+
+    def record(name: str, image: np.ndarray, seconds: float, i: int, extra: dict) -> None:
+        p, s = psnr_ssim(image, scenes[i])
+        rows.setdefault(name, []).append({"pair": i, "psnr": p, "ssim": s, "s": seconds,
+                                          **extra})
+        print(f"  pair {i} {name:<20} {p:6.2f} dB  SSIM {s:.3f}  {seconds:6.2f} s  {extra}",
+              flush=True)
+
+    for i in folds:
+        keep = [j for j in range(n) if j != i]
+        tune = keep[:args.tune_pairs]
+        models, fit_s = {}, {}
+        for name, basis in (("SI", "si"), ("EK", "paper")):
+            t0 = time.perf_counter()
+            models[name] = fit_pairs(scenes[keep], meas[keep],
+                                     PairFitOptions(basis=basis)).kernel_model()
+            fit_s[name] = time.perf_counter() - t0
+        print(f"pair {i}: fits SI {fit_s['SI']:.1f} s, EK {fit_s['EK']:.1f} s; tuning on "
+              f"pairs {tune}", flush=True)
+        chosen = {}
+        for name, model in models.items():
+            scores = []
+            for tv in tvs:
+                recon = ModelReconstructor(model, ClassicalOptions(
+                    solver="admm", tv=tv, iterations=args.iterations))
+                scores.append(np.mean([psnr_ssim(recon(meas[j]).image, scenes[j])[0]
+                                       for j in tune]))
+            chosen[name] = tvs[int(np.argmax(scores))]
+            for solver, its in (("admm", args.iterations), ("pdhg", args.pdhg_iterations)):
+                recon = ModelReconstructor(model, ClassicalOptions(
+                    solver=solver, tv=chosen[name], iterations=its))
+                recon(meas[keep[0]])          # ‖A‖ (PDHG's power iteration) once per model
+                result = recon(meas[i])
+                record(f"{name} {solver}", result.image, result.seconds, i,
+                       {"tv": chosen[name], "it": its})
+        psf = models["SI"].kernels[0]
+        # admm_tv's tau is relative to a unit-gain PSF: scale by this one's gain.
+        gain = float(np.abs(np.fft.rfft2(psf, s=(2 * psf.shape[-2], 2 * psf.shape[-1]))).max())
+        t0 = time.perf_counter()
+        image = admm_tv(meas[i], psf, iterations=args.iterations, tau=chosen["SI"] * gain,
+                        normalize_psf=False).numpy()
+        record("SI admm_tv f64", image, time.perf_counter() - t0, i, {"tv": chosen["SI"]})
+        if have_lensless:
+            roll, err = lensless_alignment(models["SI"], scenes[i])
+            if i == folds[0]:
+                print(f"  lensless's forward model with the PSF rolled by {roll} agrees with "
+                      f"psfkit's to {err:.1e} (float64)")
+            scores = [np.mean([psnr_ssim(Lensless(psf, tau, roll)(meas[j], args.iterations),
+                                         scenes[j])[0] for j in tune]) for tau in taus]
+            tau = taus[int(np.argmax(scores))]
+            solver = Lensless(psf, tau, roll)
+            t0 = time.perf_counter()
+            image = solver(meas[i], args.iterations)
+            record("LenslessPiCam ADMM", image, time.perf_counter() - t0, i, {"tau": tau})
+    medians = interleaved_timings(models, chosen, (tau, roll) if have_lensless else None,
+                                  meas[i], args) if args.timing_repeats else {}
+    load_end = os.getloadavg()
+    print(f"\nLeave-one-out over pairs {list(folds)} at {scenes.shape[-2]}x{scenes.shape[-1]}, "
+          f"{args.threads} thread(s); load average {load[0]:.1f} at start, {load_end[0]:.1f} "
+          "at end (2 shared cores)\n")
+    print("| method | iterations | PSNR dB | SSIM | s/image (mean of pairs) | s/image (median, "
+          "interleaved) |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for name, r in rows.items():
+        its = r[0].get("it", args.iterations)
+        med = f"{medians[name]:.2f}" if name in medians else "-"
+        print(f"| {name} | {its} | {np.mean([x['psnr'] for x in r]):.2f} | "
+              f"{np.mean([x['ssim'] for x in r]):.3f} | {np.mean([x['s'] for x in r]):.2f} | "
+              f"{med} |")
+    if "EK admm" in rows and "SI admm" in rows:
+        diff = [e["psnr"] - s["psnr"] for e, s in zip(rows["EK admm"], rows["SI admm"],
+                                                     strict=True)]
+        ratio = medians.get("EK admm", np.nan) / medians.get("SI admm", np.nan)
+        print(f"\nEK − SI (admm): {np.mean(diff):+.2f} dB (EK better on {sum(d > 0 for d in diff)}"
+              f" of {len(diff)} pairs; target >= +0.5 dB), time ratio {ratio:.2f} (target <= 2)")
+    if "LenslessPiCam ADMM" in rows:
+        diff = [s["psnr"] - p["psnr"] for s, p in zip(rows["SI admm"], rows["LenslessPiCam ADMM"],
+                                                     strict=True)]
+        ratio = medians.get("SI admm", np.nan) / medians.get("LenslessPiCam ADMM", np.nan)
+        print(f"SI admm − LenslessPiCam: {np.mean(diff):+.2f} dB (better on "
+              f"{sum(d > 0 for d in diff)} of {len(diff)}), time ratio {ratio:.2f} (target <= 1)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

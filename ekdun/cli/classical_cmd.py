@@ -1,0 +1,187 @@
+"""``ekdun admm`` (alias ``ekdun reconstruct-classical``): reconstruction without training.
+
+Two forms, a thin layer over :mod:`ekdun.reconstruction`:
+
+* ``ekdun admm PSF MEASUREMENT --out X.npy``: the DiffuserCam tutorial's ADMM-TV with a PSF
+  image (:func:`~ekdun.reconstruction.admm_tv.admm_tv`). The PSF is clipped to ``>= 0`` and
+  scaled to unit sum per channel, as a measured point-source image should be; float64.
+* ``ekdun admm --kernels MODEL.npz MEASUREMENT... --out X.npy|FOLDER``: a kernel file (SI or
+  eigen-kernel, from fit-eigen or fit-pairs) used as fitted
+  (:class:`~ekdun.reconstruction.classical.ModelReconstructor`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ekdun.errors import InvalidInputError
+from psfkit.validation import nonnegative_float, positive_int, require_finite
+
+_DEFAULTS = {"psf": {"iterations": 100, "tv": 1e-3, "background": "corner"},
+             "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
+# ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch
+# (tests/e2e/test_cli_classical.py checks that they agree).
+SOLVERS = ("auto", "admm", "pdhg")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``admm`` and its alias ``reconstruct-classical``."""
+    p = sub.add_parser(
+        "admm", aliases=["reconstruct-classical"],
+        help="classical TV reconstruction with a PSF image or a kernel file (no training)",
+        description="No trained model needed. With a PSF image: ADMM-TV (DiffuserCam tutorial; "
+                    "the PSF is clipped to >= 0 and normalised to unit sum per channel). With "
+                    "--kernels: the SI or eigen-kernel model exactly as fitted (no clipping, "
+                    "no renormalisation), ADMM-TV with one split per kernel (sensor-side "
+                    "models) or PDHG (any model); folders of measurements in, a folder of "
+                    "reconstructions out.")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="PSF MEASUREMENT, or with --kernels: measurement files and/or folders")
+    p.add_argument("--kernels", help="kernel file (.npz) from psfkit fit-eigen / fit-pairs")
+    p.add_argument("--out", required=True,
+                   help="output .npy (a .png preview is written next to it); with --kernels "
+                        "and a folder or several measurements: an output folder")
+    p.add_argument("--iterations", type=positive_int, help="iterations (default 100)")
+    p.add_argument("--tv", "--tau", dest="tv", type=nonnegative_float,
+                   help="TV weight relative to the measurement's peak and the model's gain "
+                        "(default 1e-3 with a PSF image, 3e-4 with --kernels)")
+    p.add_argument("--solver", choices=SOLVERS, default="auto",
+                   help="--kernels: admm (SI and sensor-side EK), pdhg (any), auto (default)")
+    p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
+                   help="--kernels: constrain the image to >= 0 (default on)")
+    p.add_argument("--tol", type=nonnegative_float, default=0.0,
+                   help="--kernels: stop when the relative change of the image falls below "
+                        "this (default 0: run all iterations)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help="--kernels: precision (default float32)")
+    p.add_argument("--downsample", type=positive_int, default=1,
+                   help="box-downsample the inputs first")
+    p.add_argument("--background", choices=("none", "corner"),
+                   help="subtract the mean of the [5:15, 5:15] corner (default: corner with a "
+                        "PSF image, none with --kernels)")
+    p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB",
+                   help=".npy/TIFF channel order of the inputs (DLMD: BGR); with --kernels the "
+                        "output .npy is written in the same order")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output (file and preview, or folder)")
+    p.add_argument("--threads", type=positive_int, help="torch CPU threads")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_admm)
+
+
+def run_admm(args: argparse.Namespace) -> int:
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    form = "kernels" if args.kernels else "psf"
+    for name, value in _DEFAULTS[form].items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    return run_with_kernels(args) if args.kernels else run_with_psf(args)
+
+
+def run_with_kernels(args: argparse.Namespace) -> int:
+    from ekdun.reconstruction.classical import (
+        ClassicalOptions,
+        ModelReconstructor,
+        read_classical_measurement,
+        reconstruct_folder,
+        write_reconstruction,
+    )
+    from psfkit.kernelfile import load_kernels
+
+    model = load_kernels(args.kernels)
+    options = ClassicalOptions(solver=args.solver, tv=args.tv, iterations=args.iterations,
+                               nonneg=args.nonneg, tol=args.tol, dtype=args.dtype)
+    out = Path(args.out)
+    single = len(args.inputs) == 1 and Path(args.inputs[0]).is_file()
+    if single and out.suffix == ".npy":
+        from psfkit.io import OutputTransaction
+
+        # the image and its preview are checked first and appear together
+        with OutputTransaction(overwrite=args.overwrite) as outputs:
+            staged, preview = outputs.file(out), outputs.file(out.with_suffix(".png"))
+            y = read_classical_measurement(args.inputs[0], args.channel_order,
+                                           args.downsample, args.background)
+            require_finite(y, args.inputs[0])
+            recon = ModelReconstructor(model, options)
+            recon.check(y, args.inputs[0])
+            result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
+            write_reconstruction(staged, result.image, args.channel_order, preview)
+        print(f"{recon.solver} reconstruction {y.shape[1]}x{y.shape[2]} "
+              f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
+        return 0
+    if out.suffix:
+        raise InvalidInputError(f"{out}: several measurements need an output folder, not a file")
+    written = reconstruct_folder(model, args.inputs, out, options, args.channel_order,
+                                 args.overwrite, progress=not args.quiet,
+                                 downsample=args.downsample, background=args.background)
+    print(f"{len(written)} reconstruction(s) in {out}", file=sys.stderr)
+    return 0
+
+
+def _iteration_bar(total: int):  # a tqdm-driven callback
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, desc="reconstruct", unit="it")
+
+    def step(iteration: int, change: float) -> None:
+        bar.update(iteration - bar.n)
+        if iteration % 10 == 0:
+            bar.set_postfix_str(f"Δ {change:.1e}")
+        if iteration >= total:
+            bar.close()
+    return step
+
+
+def run_with_psf(args: argparse.Namespace) -> int:
+
+    from psfkit.io import OutputTransaction
+
+    if len(args.inputs) != 2:
+        raise InvalidInputError("give a PSF image and one measurement (or use --kernels "
+                                "MODEL.npz with measurement files and folders)")
+    out = Path(args.out)
+    if out.suffix != ".npy":
+        raise InvalidInputError(f"{out}: the output must be a .npy file")
+    # the image and its preview are checked first and appear together
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        staged = outputs.file(out), outputs.file(out.with_suffix(".png"))
+        result = _admm_with_psf(args, *staged)
+    print(f"ADMM-TV reconstruction {result.shape[1]}x{result.shape[2]}: {out}",
+          file=sys.stderr)
+    return 0
+
+
+def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
+    import numpy as np
+
+    from ekdun.reconstruction import admm_tv
+    from ekdun.reconstruction.reconstruct import to_preview
+    from psfkit.io.images import read_image, write_image
+    from psfkit.resample import bin_mean
+
+    images = []
+    for path in args.inputs:
+        image = require_finite(read_image(path, args.channel_order), path).astype(np.float64)
+        if min(image.shape[-2:]) // args.downsample < 8:
+            raise InvalidInputError(f"--downsample {args.downsample}: {path} "
+                                    f"({image.shape[-2]}x{image.shape[-1]}) would be smaller "
+                                    "than 8x8 pixels")
+        if args.background == "corner":
+            image = image - image[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
+        images.append(image if args.downsample <= 1 else bin_mean(image, args.downsample))
+    psf, y = images
+    if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
+        raise InvalidInputError(f"{args.inputs[0]}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
+                                f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")
+    # A measured point-source image: negative values are noise after background subtraction.
+    psf = np.clip(psf, 0, None)
+    result = admm_tv(y, psf, iterations=args.iterations, tau=args.tv).numpy()
+    write_image(out, result.astype(np.float32))
+    preview = result / max(float(result.max()), 1e-12)
+    write_image(preview_path, to_preview(preview))
+    return result

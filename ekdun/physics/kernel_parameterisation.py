@@ -1,0 +1,229 @@
+r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel_param``).
+
+* ``"free"``: every kernel pixel is a parameter (the paper's, and today's, behaviour). The
+  kernels live in :class:`~ekdun.physics.operators.EigenKernelOperator` as an
+  ``nn.Parameter``; nothing here is used.
+* ``"physical"`` (:class:`PhysicalKernels`): each kernel and channel is
+  ``K = E · softmax_S(θ)``: non-negative, zero outside the support ``S`` (the seed's caustic,
+  dilated), with the seed's energy ``E`` on ``S`` kept exactly. ``θ`` starts at
+  ``log(max(seed, 0) + floor)``, so the seed is reproduced (up to ``floor`` = 1e-6 of the
+  peak). A step of ``θ`` changes a pixel by a *factor*: a near-zero pixel stays near zero,
+  so no pedestal can grow. With ``kernel_gain`` the correction kernels also get a learned
+  per-channel gain (their energy is then the seed's × that gain).
+* ``"flow"`` (:class:`FlowKernels`): ``Kbase`` as in ``"physical"``; each correction kernel
+  ``K_j(x) = g_{j,c} · Kbase(x − D_j(x)) [+ S · R_j]``, ``D_j`` a smooth displacement field
+  (px) on a coarse ``n × n`` grid upsampled bicubically to the kernel, ``g`` a per-channel
+  gain (``exp`` of a parameter) and ``R_j`` an optional small residual on ``S``. The warp is a
+  bilinear resampling written out (not ``grid_sample``) so that ``D = 0`` gives ``Kbase``
+  bit for bit. From a measured seed the fields and gains are fitted to the seed's ``Kv, Kh``
+  first (:meth:`FlowKernels.fit_to`), the rest of the seed going into ``R`` if enabled.
+
+Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
+log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
+multiple of the network's learning rate (:data:`LR_MULTIPLIER`, measured in
+``benchmarks/bench_kernel_parameterisations.py --lr-sweep``; see docs/compare.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ekdun.errors import ConfigurationError
+from psfkit.compare.kernel_change import caustic_support
+
+#: Parameterisations ``EKDUNConfig.kernel_param`` accepts.
+KERNEL_PARAMETERISATIONS = ("free", "physical", "flow")
+
+#: Multiplier of ``TrainingConfig.kernel_lr_scale`` (1e-2 of the network's rate) for the
+#: kernel parameter group: free pixels 1 (unchanged), log-intensities and displacements
+#: (px) 100, i.e. the network's rate (tiny preset: 2e-3 per Adam step; over 360 steps a
+#: field can move ~0.7 px, the size of the measured displacements). Chosen by the lr sweep.
+LR_MULTIPLIER = {"free": 1.0, "physical": 100.0, "flow": 100.0}
+
+
+def seed_support(kernels: Tensor, level: float = 0.02, dilate: int = 3) -> Tensor:
+    """Dilated caustic support of kernels ``(K, C, H, W)``: ``(H, W)`` bool, the union over
+    kernels (:func:`psfkit.compare.kernel_change.caustic_support`)."""
+    k = kernels.detach().cpu().numpy().astype(np.float32)
+    return torch.as_tensor(caustic_support(k, level, dilate))
+
+
+class PhysicalKernels(nn.Module):
+    """Non-negative kernels on a fixed support with fixed per-(kernel, channel) energy.
+
+    Parameters
+    ----------
+    seed : Tensor
+        ``(K, C, H, W)`` initial kernels.
+    support : Tensor
+        ``(H, W)`` bool.
+    floor : float
+        Relative floor (of each kernel's peak) added to the seed before taking logs.
+    gain : bool
+        Correction kernels (all but the first) get a learned per-channel gain ``exp(·)``
+        (starting at 1): their energy is then the seed's times that gain (the measured
+        ``Kv``, ``Kh`` carry less light than ``Kbase``; an energy-keeping kernel cannot).
+    """
+
+    def __init__(self, seed: Tensor, support: Tensor, floor: float = 1e-6,
+                 gain: bool = False) -> None:
+        super().__init__()
+        if seed.ndim != 4 or tuple(support.shape) != tuple(seed.shape[-2:]):
+            raise ConfigurationError("physical kernels need (K, C, H, W) seeds and an (H, W) "
+                                     "support")
+        if not bool(support.any()):
+            raise ConfigurationError("the seed kernels have an empty caustic support")
+        mask = support.to(seed.dtype)
+        positive = seed.detach().clamp(min=0) * mask
+        energy = positive.sum(dim=(-2, -1), keepdim=True)
+        if bool((energy <= 0).any()):
+            raise ConfigurationError("a seed kernel has no positive energy on its support")
+        peak = positive.amax(dim=(-2, -1), keepdim=True)
+        self.register_buffer("support", support.clone())
+        self.register_buffer("energy", energy)
+        self.logits = nn.Parameter(torch.log(positive + floor * peak))
+        self.log_gain = (nn.Parameter(seed.new_zeros((seed.shape[0] - 1, seed.shape[1])))
+                         if gain else None)
+
+    def forward(self) -> Tensor:
+        """The kernels ``(K, C, H, W)``."""
+        k, c, h, w = self.logits.shape
+        masked = self.logits.masked_fill(~self.support, float("-inf"))
+        kernels = self.energy * torch.softmax(masked.reshape(k, c, h * w), dim=-1).reshape(
+            k, c, h, w)
+        if self.log_gain is None:
+            return kernels
+        gains = torch.cat([self.log_gain.new_zeros((1, c)), self.log_gain]).exp()
+        return kernels * gains[:, :, None, None]
+
+
+def warp_bilinear(image: Tensor, displacement: Tensor) -> Tensor:
+    """``image(x − D(x))`` by bilinear interpolation, zero outside.
+
+    Parameters
+    ----------
+    image : Tensor
+        ``(C, H, W)``.
+    displacement : Tensor
+        ``(N, 2, H, W)`` = ``(D_u, D_v)`` px (u = column, v = row).
+
+    Returns
+    -------
+    Tensor
+        ``(N, C, H, W)``; exactly ``image`` where ``D = 0``.
+    """
+    c, h, w = image.shape
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=image.dtype, device=image.device),
+                            torch.arange(w, dtype=image.dtype, device=image.device),
+                            indexing="ij")
+    py = yy - displacement[:, 1]
+    px = xx - displacement[:, 0]
+    y0, x0 = torch.floor(py), torch.floor(px)
+    wy, wx = py - y0, px - x0
+    flat = image.reshape(c, h * w)
+    out = image.new_zeros((c, *py.shape))
+    for dy, fy in ((0, 1 - wy), (1, wy)):
+        for dx, fx in ((0, 1 - wx), (1, wx)):
+            yi, xi = y0 + dy, x0 + dx
+            valid = (yi >= 0) & (yi < h) & (xi >= 0) & (xi < w)
+            index = (yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long()
+            out = out + flat[:, index] * (fy * fx * valid)
+    return out.transpose(0, 1)
+
+
+class FlowKernels(nn.Module):
+    """``Kbase`` (physical) and correction kernels = gain × ``Kbase`` warped by smooth fields.
+
+    Parameters
+    ----------
+    seed : Tensor
+        ``(K, C, H, W)``; ``seed[0]`` is ``Kbase``.
+    support : Tensor
+        ``(H, W)`` bool.
+    grid : int
+        Size ``n`` of the coarse ``n × n`` displacement grid.
+    residual : bool
+        Add a trainable residual on the support (starts at zero, or at what the fitted flow
+        leaves of a measured seed).
+    """
+
+    def __init__(self, seed: Tensor, support: Tensor, grid: int = 8,
+                 residual: bool = False) -> None:
+        super().__init__()
+        if seed.shape[0] < 2:
+            raise ConfigurationError("flow kernels need a base and at least one correction "
+                                     "kernel")
+        if grid < 2:
+            raise ConfigurationError(f"flow grid must be >= 2, got {grid}")
+        n, c = seed.shape[0] - 1, seed.shape[1]
+        self.base = PhysicalKernels(seed[:1], support)
+        self.field = nn.Parameter(seed.new_zeros((n, 2, grid, grid)))
+        self.log_gain = nn.Parameter(seed.new_zeros((n, c)))
+        self.residual = (nn.Parameter(seed.new_zeros((n, c, *seed.shape[-2:])))
+                         if residual else None)
+
+    def displacement(self) -> Tensor:
+        """Dense fields ``(N, 2, H, W)`` px (bicubic upsampling of the coarse grid)."""
+        return F.interpolate(self.field, size=tuple(self.base.support.shape), mode="bicubic",
+                             align_corners=True)
+
+    def forward(self) -> Tensor:
+        """The kernels ``(K, C, H, W)``."""
+        base = self.base()
+        moved = warp_bilinear(base[0], self.displacement())
+        corrections = self.log_gain.exp()[:, :, None, None] * moved
+        if self.residual is not None:
+            corrections = corrections + self.residual * self.base.support
+        return torch.cat([base, corrections])
+
+    def fit_to(self, seed: Tensor, steps: int = 300, lr: float = 0.05) -> float:
+        """Fit fields and gains (and residual) to a seed's correction kernels; returns the
+        relative L2 error of the flow model without the residual. Nothing is done when the
+        corrections equal ``Kbase`` (a one-PSF start: zero fields are exact)."""
+        target = seed[1:].detach()
+        if torch.equal(target, seed[:1].expand_as(target)):
+            return 0.0
+        params = [self.field, self.log_gain]
+        opt = torch.optim.Adam(params, lr=lr)
+        residual, self.residual = self.residual, None
+        try:
+            for _ in range(steps):
+                opt.zero_grad()
+                loss = ((self()[1:] - target) ** 2).sum()
+                loss.backward()
+                opt.step()
+            with torch.no_grad():
+                fitted = self()[1:]
+                error = float((fitted - target).norm() / target.norm())
+        finally:
+            self.residual = residual
+        if self.residual is not None:
+            with torch.no_grad():
+                self.residual.copy_((target - fitted) * self.base.support)
+        return error
+
+
+def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: int = 8,
+                           flow_residual: bool = False, gain: bool = False
+                           ) -> nn.Module | None:
+    """The module that makes the kernels (``None`` for ``"free"``) from seed ``(K, C, H, W)``.
+
+    Raises
+    ------
+    ConfigurationError
+        Unknown name, or a seed the parameterisation cannot represent.
+    """
+    if name not in KERNEL_PARAMETERISATIONS:
+        raise ConfigurationError(f"unknown kernel parameterisation {name!r} (use "
+                                 f"{', '.join(KERNEL_PARAMETERISATIONS)})")
+    if name == "free":
+        return None
+    support = seed_support(seed, dilate=dilate).to(seed.device)
+    if name == "physical":
+        return PhysicalKernels(seed, support, gain=gain)
+    flow = FlowKernels(seed, support, flow_grid, flow_residual)
+    flow.fit_to(seed)
+    return flow
