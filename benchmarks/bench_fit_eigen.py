@@ -40,9 +40,10 @@ sys.exit(code)
 
 
 def export_code(ref: str, dest: Path) -> Path:
-    """The ``psfkit`` package as of git ``ref``, extracted under ``dest``."""
-    archive = subprocess.run(["git", "archive", "--format=tar", ref, "psfkit"], cwd=ROOT,
-                             check=True, capture_output=True).stdout
+    """The ``psfkit`` and ``ekdun`` packages as of git ``ref``, extracted under ``dest``
+    (both: before issue 11, psfkit imported ekdun, which must then be the same age)."""
+    archive = subprocess.run(["git", "archive", "--format=tar", ref, "psfkit", "ekdun"],
+                             cwd=ROOT, check=True, capture_output=True).stdout
     with tarfile.open(fileobj=BytesIO(archive)) as tar:
         tar.extractall(dest, filter="data")
     return dest
