@@ -7,6 +7,7 @@ Shared by the characterization (:mod:`psfkit.characterize`) and the eigen-kernel
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -42,10 +43,15 @@ class AlignedPsf:
 
     position: GridPosition
     image: np.ndarray
-    luminance: np.ndarray
     valid: np.ndarray
     shift: tuple[float, float]
     prepared: PreparedPsf
+
+    @cached_property
+    def luminance(self) -> np.ndarray:
+        """``(H, W)`` luminance of ``image`` (computed on first use: the eigen-kernel fit
+        never needs it)."""
+        return luminance(self.image)
 
     @property
     def overlap(self) -> float:
@@ -119,5 +125,4 @@ class GridAligner:
             raise InvalidInputError(f"{name}: overlaps the centre PSF on only "
                                     f"{100 * overlap:.1f}% of the sensor after registration; "
                                     "cannot compare")
-        return AlignedPsf(position=pos, image=aligned, luminance=luminance(aligned),
-                          valid=valid, shift=shift, prepared=prep)
+        return AlignedPsf(position=pos, image=aligned, valid=valid, shift=shift, prepared=prep)

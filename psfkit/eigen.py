@@ -22,6 +22,8 @@ Both conventions are linear with exact adjoints in :mod:`ekdun.physics`.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +36,7 @@ from psfkit.resample import bin_image
 from psfkit.weights import WeightBasis, get_basis, separable_coordinates
 
 BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (cache-sized)
+SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 
 
 def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
@@ -160,25 +163,40 @@ class NormalEquations:
         constrained by the data)."""
         k = self.basis.n_kernels
         n = self.h * self.w
-        flat = np.asarray(self.gram, dtype=np.float64).reshape(len(self._iu[0]), n)
-        scale = np.zeros(n)
-        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
-            if i == j:
-                scale += flat[index]
-        scale = np.maximum(scale / k, 1e-300)
-        # (K, K, N) systems, pixels last (contiguous vector operations over the pixels)
-        system = np.empty((k, k, n))
-        for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
-            np.divide(flat[index], scale, out=system[i, j])
-            system[j, i] = system[i, j]
-        del flat
-        smallest = np.linalg.eigvalsh(np.moveaxis(system, -1, 0))[:, 0].reshape(
-            self.h, self.w) if conditioning else None
-        system += (ridge * _difference_prior(k) + 1e-12 * np.eye(k))[:, :, None]
-        rhs = np.asarray(self.rhs, dtype=np.float64).reshape(self.channels, k, n)
-        rhs = np.moveaxis(rhs, 0, 1) / scale                        # (K, C, N)
-        solution = _solve_spd(system, rhs)
+        gram = np.asarray(self.gram).reshape(len(self._iu[0]), n)
+        rhs = np.asarray(self.rhs).reshape(self.channels, k, n)
+        prior = (ridge * _difference_prior(k) + 1e-12 * np.eye(k))[:, :, None]
+        solution = np.empty((k, self.channels, n))
+        smallest = np.empty(n) if conditioning else None
+
+        def solve_pixels(block: slice) -> None:
+            # every operation is per pixel: blocks of pixels give the same numbers as one
+            # pass over the image, in cache-sized pieces, on two threads
+            flat = gram[:, block].astype(np.float64)
+            scale = np.zeros(flat.shape[1])
+            for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+                if i == j:
+                    scale += flat[index]
+            scale = np.maximum(scale / k, 1e-300)
+            # (K, K, n) systems, pixels last (contiguous vector operations over the pixels)
+            system = np.empty((k, k, flat.shape[1]))
+            for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+                np.divide(flat[index], scale, out=system[i, j])
+                system[j, i] = system[i, j]
+            if smallest is not None:
+                smallest[block] = np.linalg.eigvalsh(np.moveaxis(system, -1, 0))[:, 0]
+            system += prior
+            b = np.moveaxis(rhs[:, :, block].astype(np.float64), 0, 1) / scale   # (K, C, n)
+            solution[:, :, block] = _solve_spd(system, b)
+
+        blocks = [slice(a, min(a + SOLVE_BLOCK, n)) for a in range(0, n, SOLVE_BLOCK)]
+        if len(blocks) == 1:
+            solve_pixels(blocks[0])
+        else:   # numpy releases the GIL in these vector operations
+            with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+                list(pool.map(solve_pixels, blocks))
         kernels = solution.reshape(k, self.channels, self.h, self.w)
+        smallest = None if smallest is None else smallest.reshape(self.h, self.w)
         return kernels, smallest
 
 

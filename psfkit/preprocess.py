@@ -71,7 +71,15 @@ def luminance(image: np.ndarray) -> np.ndarray:
     if image.shape[0] == 1:
         return image[0]
     r, g, b = LUMINANCE_WEIGHTS
-    return (r * image[0] + g * image[1] + b * image[2]).astype(np.float32, copy=False)
+    if image.dtype != np.float32:
+        return (r * image[0] + g * image[1] + b * image[2]).astype(np.float32, copy=False)
+    # ``r·R + g·G + b·B`` with the same float32 operations in the same order, in two buffers
+    out = np.multiply(image[0], r)
+    term = np.multiply(image[1], g)
+    out += term
+    np.multiply(image[2], b, out=term)
+    out += term
+    return out
 
 
 def saturation_level_for(grid: PsfGrid) -> float | None:
@@ -133,7 +141,8 @@ def background_noise(lum: np.ndarray) -> float:
 def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
                 black_level: float | None = None, hot_pixels: np.ndarray | None = None,
                 saturation_level: float | None = None, exposure_scale: float = 1.0,
-                options: PreprocessOptions | None = None, name: str = "PSF") -> PreparedPsf:
+                options: PreprocessOptions | None = None, name: str = "PSF",
+                overwrite_raw: bool = False) -> PreparedPsf:
     """Preprocess one raw ``(C, H, W)`` capture.
 
     Parameters
@@ -151,6 +160,9 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     options : PreprocessOptions
     name : str
         File name used in error messages.
+    overwrite_raw : bool
+        ``raw`` (when float32) may become the returned image, modified in place: saves a
+        copy when the caller does not keep it.
 
     Raises
     ------
@@ -162,7 +174,7 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):
         raise InvalidInputError(f"{name}: contains {int(np.count_nonzero(~np.isfinite(raw)))} "
                                 "NaN/Inf pixel value(s)")
-    image = raw.astype(np.float32)
+    image = raw.astype(np.float32, copy=not overwrite_raw)
     level = options.saturation_level if options.saturation_level is not None \
         else saturation_level
     saturated = np.any(raw >= level, axis=0) if level is not None \
@@ -224,7 +236,8 @@ class GridCalibration:
             scale = self.reference_exposure / float(self.exposures[row, col])
         return prepare_psf(grid.load(row, col), dark=self.dark, black_level=self.black_level,
                            hot_pixels=self.hot_pixels, saturation_level=self.saturation_level,
-                           exposure_scale=scale, options=options, name=str(grid.path(row, col)))
+                           exposure_scale=scale, options=options, name=str(grid.path(row, col)),
+                           overwrite_raw=True)
 
 
 def normalization_scale(reference: np.ndarray, normalization: str) -> float:

@@ -27,29 +27,54 @@ from psfkit.errors import InvalidInputError
 from psfkit.resample import bin_image, binning_factor
 
 
-def _cross_spectrum(moving: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``FFT(moving) · conj(FFT(reference))``: the spectrum of their cross-correlation."""
-    return sfft.fft2(moving, workers=-1) * np.conj(sfft.fft2(reference, workers=-1))
+def _cross_spectrum(moving: np.ndarray, reference: np.ndarray, shape: tuple[int, int]
+                    ) -> np.ndarray:
+    """``FFT(moving) · conj(FFT(reference))`` of two real images zero-filled to ``shape``: the
+    spectrum of their cross-correlation, its non-negative column frequencies only (real FFTs:
+    half the work of complex ones)."""
+    return sfft.rfft2(moving, s=shape, workers=-1) * np.conj(
+        sfft.rfft2(reference, s=shape, workers=-1))
 
 
-def _correlation_at(spectrum: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def _correlation_at(spectrum: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                    width: int | None = None) -> np.ndarray:
     """Cross-correlation at the (sub-pixel) displacements ``rows × cols`` by a separable matrix
-    DFT of its ``spectrum`` (real part: the signals are real)."""
+    DFT of its ``spectrum`` (real part: the signals are real).
+
+    ``width``: the full number of columns when ``spectrum`` holds only the non-negative column
+    frequencies of a real signal's spectrum (:func:`_cross_spectrum`). Each negative column
+    frequency is the complex conjugate of its positive partner at the negated row frequency,
+    which is the same row except for the Nyquist row of an even height (``fftfreq`` gives it
+    −½ for both): its term is corrected by a rank-one update, so that the values equal those
+    of the full spectrum up to rounding.
+    """
     h, w = spectrum.shape
     e_v = np.exp(2j * np.pi * np.outer(rows, np.fft.fftfreq(h)))
-    e_u = np.exp(2j * np.pi * np.outer(np.fft.fftfreq(w), cols))
-    return (e_v @ spectrum @ e_u).real
+    if width is None or width == w:
+        e_u = np.exp(2j * np.pi * np.outer(np.fft.fftfreq(w), cols))
+        return (e_v @ spectrum @ e_u).real
+    e_u = np.exp(2j * np.pi * np.outer(np.fft.fftfreq(width)[:w], cols))
+    if width % 2 == 0:                  # the Nyquist column (frequency −½) has no partner
+        e_u[-1] = np.exp(-1j * np.pi * cols)
+    direct = e_v @ spectrum                                     # (rows, w)
+    partner = direct
+    if h % 2 == 0:
+        nyquist = e_v[:, h // 2]
+        partner = direct + np.outer(np.conj(nyquist) - nyquist, spectrum[h // 2])
+    inner = slice(1, w - 1 if width % 2 == 0 else w)            # columns with a partner
+    return (direct @ e_u).real + (partner[:, inner] @ e_u[inner]).real
 
 
-def _refine_peak(spectrum: np.ndarray, start: np.ndarray, upsample: int) -> np.ndarray:
+def _refine_peak(spectrum: np.ndarray, start: np.ndarray, upsample: int,
+                 width: int | None = None) -> np.ndarray:
     """Maximise the cross-correlation near ``start`` (``(dv, du)``) to ``1/upsample`` px, on
     grids of ±1.5 px at 0.1 px, then of ±1.5 steps around the best point at each 10× finer step
-    until the step is ``1/upsample``."""
+    until the step is ``1/upsample`` (``width`` as in :func:`_correlation_at`)."""
     best = np.asarray(start, dtype=np.float64)
     radius, step = 1.5, 0.1
     while True:
         offsets = np.arange(-round(radius / step), round(radius / step) + 1) * step
-        values = _correlation_at(spectrum, best[0] + offsets, best[1] + offsets)
+        values = _correlation_at(spectrum, best[0] + offsets, best[1] + offsets, width)
         i, j = np.unravel_index(np.argmax(values), values.shape)
         best = best + np.array([offsets[i], offsets[j]])
         if step <= 1.0 / upsample + 1e-12:
@@ -57,9 +82,13 @@ def _refine_peak(spectrum: np.ndarray, start: np.ndarray, upsample: int) -> np.n
         radius, step = 1.5 * step, max(step / 10.0, 1.0 / upsample)
 
 
-def _integer_peak(spectrum: np.ndarray) -> np.ndarray:
-    """Integer ``(dv, du)`` of the correlation maximum (wrapped to ±half the size)."""
-    correlation = sfft.ifft2(spectrum, workers=-1).real
+def _integer_peak(spectrum: np.ndarray, width: int | None = None) -> np.ndarray:
+    """Integer ``(dv, du)`` of the correlation maximum (wrapped to ±half the size);
+    ``width`` as in :func:`_correlation_at`."""
+    if width is None or width == spectrum.shape[1]:
+        correlation = sfft.ifft2(spectrum, workers=-1).real
+    else:
+        correlation = sfft.irfft2(spectrum, s=(spectrum.shape[0], width), workers=-1)
     peak = np.array(np.unravel_index(np.argmax(correlation), correlation.shape), float)
     size = np.array(correlation.shape, float)
     peak[peak > size / 2] -= size[peak > size / 2]
@@ -93,8 +122,12 @@ def high_frequency_fraction(image: np.ndarray) -> float:
 def _prepared(image: np.ndarray) -> np.ndarray:
     # A constant background (an unsubtracted black level) would dominate an unwhitened
     # correlation and pin it at zero shift: remove the median; unit peak for the FFTs.
-    out = image.astype(np.float64) - np.median(image[::4, ::4])
-    return out / max(float(np.max(np.abs(out))), 1e-30)
+    # (in place on one float64 copy: the same values as the expression form, without its
+    # three full-size temporaries)
+    out = image.astype(np.float64)
+    out -= np.median(image[::4, ::4])
+    out /= max(float(out.max()), -float(out.min()), 1e-30)
+    return out
 
 
 class ShiftRegistrar:
@@ -157,11 +190,9 @@ class ShiftRegistrar:
             # zero-fill the windowed crops to FFT-friendly sizes (harmless: the window is 0
             # there)
             fast = tuple(sfft.next_fast_len(n) for n in ref_crop.shape)
-            pads = [(0, f - n) for f, n in zip(fast, ref_crop.shape, strict=True)]
-            spectrum = _cross_spectrum(np.pad(mov_crop * window, pads),
-                                       np.pad(ref_crop * window, pads))
-            residual = _refine_peak(spectrum, _integer_peak(spectrum),
-                                    self.upsample * self.fine_factor)
+            spectrum = _cross_spectrum(mov_crop * window, ref_crop * window, fast)
+            residual = _refine_peak(spectrum, _integer_peak(spectrum, fast[1]),
+                                    self.upsample * self.fine_factor, fast[1])
             estimate = integer + residual
             if np.all(np.abs(residual) <= 1.0):
                 break
@@ -211,28 +242,33 @@ def shift_image(image: np.ndarray, shift: tuple[float, float], margin: int = 8
     squeeze = image.ndim == 2
     stack = image[None] if squeeze else image
     h, w = stack.shape[-2:]
-    moved = np.zeros_like(stack)
     # aligned_int(x) = image(x + n): destination rows [max(0,-n), h - max(0,n))
     (dst_v, dst_u), (src_v, src_u) = overlap_slices((h, w), (nv, nu))
-    moved[:, dst_v, dst_u] = stack[:, src_v, src_u]
     valid = np.zeros((h, w), dtype=bool)
-    if ru or rv:  # the Fourier ramp rings within a pixel or two of the data's edges
-        valid[dst_v.start + 2:dst_v.stop - 2, dst_u.start + 2:dst_u.stop - 2] = True
-    else:
+    if not (ru or rv):
         valid[dst_v, dst_u] = True
-    if ru or rv:
-        # zero margin against wrap-around, grown to FFT-friendly sizes
-        pad_v = sfft.next_fast_len(h + 2 * margin, real=True) - h - margin
-        pad_u = sfft.next_fast_len(w + 2 * margin, real=True) - w - margin
-        padded = np.pad(moved, ((0, 0), (margin, pad_v), (margin, pad_u)))
-        spec = sfft.rfft2(padded, axes=(-2, -1), workers=-1)
-        # separable phase ramp, in the spectrum's own precision (no complex128 upcast)
-        ramp_v = np.exp(2j * np.pi * np.fft.fftfreq(padded.shape[-2]) * rv).astype(spec.dtype)
-        ramp_u = np.exp(2j * np.pi * np.fft.rfftfreq(padded.shape[-1]) * ru).astype(spec.dtype)
-        spec *= ramp_v[:, None]
-        spec *= ramp_u[None, :]
-        moved = sfft.irfft2(spec, s=padded.shape[-2:], axes=(-2, -1), workers=-1)[
-            :, margin:margin + h, margin:margin + w].astype(stack.dtype, copy=False)
+        moved = np.zeros_like(stack)
+        moved[:, dst_v, dst_u] = stack[:, src_v, src_u]
+        return (moved[0] if squeeze else moved), valid
+    # the Fourier ramp rings within a pixel or two of the data's edges
+    valid[dst_v.start + 2:dst_v.stop - 2, dst_u.start + 2:dst_u.stop - 2] = True
+    # zero margin against wrap-around, grown to FFT-friendly sizes; the integer move is
+    # written straight into the padded canvas (one copy of the image, not three)
+    size_v = sfft.next_fast_len(h + 2 * margin, real=True)
+    size_u = sfft.next_fast_len(w + 2 * margin, real=True)
+    padded = np.zeros((stack.shape[0], size_v, size_u), dtype=stack.dtype)
+    padded[:, margin + dst_v.start:margin + dst_v.stop,
+           margin + dst_u.start:margin + dst_u.stop] = stack[:, src_v, src_u]
+    spec = sfft.rfft2(padded, axes=(-2, -1), workers=-1, overwrite_x=True)
+    del padded
+    # separable phase ramp, in the spectrum's own precision (no complex128 upcast)
+    ramp_v = np.exp(2j * np.pi * np.fft.fftfreq(size_v) * rv).astype(spec.dtype)
+    ramp_u = np.exp(2j * np.pi * np.fft.rfftfreq(size_u) * ru).astype(spec.dtype)
+    spec *= ramp_v[:, None]
+    spec *= ramp_u[None, :]
+    moved = sfft.irfft2(spec, s=(size_v, size_u), axes=(-2, -1), workers=-1,
+                        overwrite_x=True)[:, margin:margin + h, margin:margin + w]
+    moved = moved.astype(stack.dtype, copy=False)
     return (moved[0] if squeeze else moved), valid
 
 

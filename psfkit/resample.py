@@ -54,7 +54,19 @@ def bin_image(image: np.ndarray, factor: int, exact: bool = False) -> np.ndarray
     """
     if factor == 1:
         return image
-    return _blocks(image, factor, exact).sum(axis=(-3, -1))
+    blocks = _blocks(image, factor, exact)
+    if not np.issubdtype(blocks.dtype, np.floating):
+        return blocks.sum(axis=(-3, -1))      # integers and masks: numpy's promoted sum
+    # Whole-array adds of strided slices, the columns of a block first (the contiguous
+    # axis), then its rows: the same sequential sums as ``blocks.sum(axis=(-3, -1))``
+    # (bit-identical), at about twice the speed.
+    cols = blocks[..., 0].copy()
+    for j in range(1, factor):
+        cols += blocks[..., j]
+    out = cols[..., 0, :].copy()
+    for i in range(1, factor):
+        out += cols[..., i, :]
+    return out
 
 
 def bin_mean(image: np.ndarray, factor: int, exact: bool = False) -> np.ndarray:

@@ -102,7 +102,7 @@ class PsfGrid:
 
     def load(self, row: int, col: int) -> np.ndarray:
         """Image at ``(row, col)`` as ``(C, H, W)`` float32, stored units."""
-        return read_image(self.path(row, col), self.channel_order).astype(np.float32)
+        return read_image(self.path(row, col), self.channel_order, dtype=np.float32)
 
     def load_dark(self) -> np.ndarray | None:
         """The dark frame as ``(C, H, W)`` float32, or ``None`` when the grid has none."""

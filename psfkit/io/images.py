@@ -64,7 +64,8 @@ def _check_declared_size(shape: tuple[int, ...], path: Path) -> None:
     bounded_size((height, width), f"{path}: image size", unit="pixels")
 
 
-def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
+def read_image(path: str | os.PathLike, channel_order: str = "RGB",
+               dtype: np.dtype | type | None = None) -> np.ndarray:
     """Read one image file as a ``(C, H, W)`` array in its stored dtype.
 
     Parameters
@@ -75,11 +76,14 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
         Order of the channels as stored in ``.npy`` and TIFF files; ``"BGR"`` files (e.g.
         written with OpenCV, like the DiffuserCam Mirflickr data) are converted to RGB.
         PNG files are always decoded to RGB.
+    dtype : numpy dtype, optional
+        Convert to this type in the same pass as the reordering to ``(C, H, W)`` (one copy
+        of the image instead of two); default: as stored.
 
     Returns
     -------
     numpy.ndarray
-        ``(C, H, W)`` with ``C`` in {1, 3}, dtype as stored.
+        ``(C, H, W)`` with ``C`` in {1, 3}, dtype as stored (or ``dtype``).
 
     Raises
     ------
@@ -134,7 +138,13 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarra
         raise InvalidInputError(f"{path}: unsupported pixel type {chw.dtype}")
     if channel_order == "BGR" and chw.shape[0] == 3:
         chw = chw[::-1]
-    return np.ascontiguousarray(chw)
+    if chw.flags.c_contiguous:
+        return chw if dtype is None else chw.astype(dtype, copy=False)
+    # one plane at a time: twice as fast as a strided (H, W, C) → (C, H, W) copy at once
+    out = np.empty(chw.shape, dtype=chw.dtype if dtype is None else dtype)
+    for c, plane in enumerate(chw):
+        out[c] = plane
+    return out
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
