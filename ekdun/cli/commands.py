@@ -120,6 +120,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS "
                                            "(else $EKDUN_LPIPS_WEIGHTS; else unavailable)")
+    p.add_argument("--include-training", action="store_true",
+                   help="on the folder a run was trained on, score every pair, training pairs "
+                        "included (default: only the pairs it held out)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=positive_int)
     p.add_argument("--quiet", action="store_true")
@@ -265,7 +268,8 @@ def run_eval(args: argparse.Namespace) -> int:
         folder = outputs.folder(args.out)   # checked before the evaluation
         lpips = LPIPSMetric(args.lpips_weights)
         results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
-                                       log=lambda line: _say(args, line))
+                                       log=lambda line: _say(args, line),
+                                       include_training=args.include_training)
         if not lpips.available:  # said after the work, so that an input error stays one line
             _say(args, lpips.reason)
         write_tables(folder, results, [lpips.reason] if lpips.reason else [])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,8 @@ class PairsDataset(Dataset):
         Read every pair once into memory (small datasets).
     holdout : iterable of str
         Names (file stems) of pairs to leave out, e.g. a held-out test image.
+    only : iterable of str
+        If given, keep only the pairs of these names (e.g. the pairs a checkpoint held out).
     downsample : int
         Average ``downsample × downsample`` blocks of scenes and measurements (trailing
         rows/columns dropped), the binning of ``psfkit fit-pairs --downsample``: a model fitted
@@ -68,16 +71,19 @@ class PairsDataset(Dataset):
     """
 
     def __init__(self, root: str | os.PathLike, channel_order: str | None = None,
-                 preload: bool = True, holdout: Iterable[str] = (), downsample: int = 1
-                 ) -> None:
+                 preload: bool = True, holdout: Iterable[str] = (), downsample: int = 1,
+                 only: Iterable[str] = ()) -> None:
         self.pairs: PairSet = read_pairs(root, channel_order, check_pixels=False)
         self.holdout = parse_names(holdout)
-        unknown = [n for n in self.holdout if n not in self.pairs.names]
-        if unknown:
-            raise InvalidInputError(f"{root}: no pair named {', '.join(unknown)} to hold out "
-                                    f"(pairs: {', '.join(self.pairs.names[:8])}"
-                                    + (", ..." if len(self.pairs) > 8 else "") + ")")
-        self.indices = [i for i, n in enumerate(self.pairs.names) if n not in self.holdout]
+        selected = parse_names(only)
+        for names, what in ((self.holdout, "to hold out"), (selected, "to evaluate")):
+            unknown = [n for n in names if n not in self.pairs.names]
+            if unknown:
+                raise InvalidInputError(f"{root}: no pair named {', '.join(unknown)} {what} "
+                                        f"(pairs: {', '.join(self.pairs.names[:8])}"
+                                        + (", ..." if len(self.pairs) > 8 else "") + ")")
+        self.indices = [i for i, n in enumerate(self.pairs.names)
+                        if n not in self.holdout and (not selected or n in selected)]
         if not self.indices:
             raise InvalidInputError(f"{root}: every pair is held out; nothing to train on")
         if int(downsample) != downsample or downsample < 1:
@@ -113,7 +119,7 @@ class PairsDataset(Dataset):
     def describe(self) -> dict[str, Any]:
         """What the dataset is, JSON-able (recorded in checkpoints so that ``ekdun
         reconstruct`` reads measurements the way training did)."""
-        return {"root": str(self.pairs.root), "names": list(self.names),
+        return {"root": str(Path(self.pairs.root).resolve()), "names": list(self.names),
                 "holdout": list(self.holdout), "channel_order": self.pairs.channel_order,
                 "flip": self.pairs.flip, "downsample": self.downsample,
                 "image_shape": list(self.image_shape)}

@@ -90,9 +90,61 @@ def checkpoint_path(item: str | os.PathLike) -> Path:
     return path / "checkpoint.pt" if path.is_dir() else path
 
 
+def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
+                     include_training: bool = False) -> tuple[Any, str]:
+    """The pairs of ``data`` on which a checkpoint may be scored, read as it was trained.
+
+    A checkpoint records how its training pairs were read (``metadata["data"]``: folder,
+    held-out names, channel order, binning). Pairs are read with that channel order and
+    binning. When ``data`` is the training folder itself, only the pairs training held out
+    are scored, so that a table never mixes training images into its figures.
+
+    Parameters
+    ----------
+    data : path-like
+        Pairs folder, or a virtual-bench dataset (its ``test/`` split).
+    trained : dict
+        The checkpoint's ``metadata["data"]`` (``{}`` for checkpoints that predate it).
+    include_training : bool
+        Score every pair of the training folder anyway (the training error).
+
+    Returns
+    -------
+    (PairsDataset, str)
+        The dataset and a note saying which pairs it holds.
+
+    Raises
+    ------
+    InvalidInputError
+        ``data`` is the folder the checkpoint was trained on, with no pair held out.
+    """
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.data.virtual_bench import resolve_split
+
+    root = resolve_split(data, "test")
+    order = trained.get("channel_order") if trained.get("channel_order") in ("RGB", "BGR") \
+        else None
+    factor = trained.get("downsample")
+    factor = factor if isinstance(factor, int) and factor >= 1 else 1
+    same = bool(trained.get("root")) and Path(trained["root"]).resolve() == root.resolve()
+    held = list(trained.get("holdout") or [])
+    if same and not include_training:
+        if not held:
+            raise InvalidInputError(
+                f"{data}: the checkpoint was trained on every pair of this folder, so its "
+                "scores would be training scores; hold pairs out (ekdun train --holdout NAME), "
+                "evaluate on another folder, or pass --include-training")
+        return (PairsDataset(root, order, downsample=factor, only=held),
+                f"the {len(held)} pair(s) training held out: {', '.join(held)}")
+    note = ("every pair, training pairs included" if same
+            else f"every pair of {root}")
+    return PairsDataset(root, order, downsample=factor), note
+
+
 def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | os.PathLike,
                          lpips: LPIPSMetric | None = None, device: str | torch.device = "cpu",
-                         log: Callable[[str], Any] | None = None) -> list[dict[str, Any]]:
+                         log: Callable[[str], Any] | None = None,
+                         include_training: bool = False) -> list[dict[str, Any]]:
     """Evaluate trained runs on held-out pairs: the rows of Tables 1 and 2.
 
     Parameters
@@ -100,13 +152,17 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     checkpoints : sequence of path-like
         ``checkpoint.pt`` files or run folders (``ekdun train`` outputs).
     data : path-like
-        Pairs folder, or a virtual-bench dataset (its ``test/`` split is used).
+        Pairs folder, or a virtual-bench dataset (its ``test/`` split is used). Pairs are read
+        as each run's training pairs were (channel order, binning); on the training folder
+        itself only the pairs that run held out are scored (:func:`evaluation_pairs`).
     lpips : LPIPSMetric, optional
         LPIPS metric (rows get ``lpips: None`` when absent or unavailable).
     device : str or torch.device
         Where to run the networks.
     log : callable, optional
         Called with one line per evaluated run.
+    include_training : bool
+        On the training folder, score every pair (training pairs included).
 
     Returns
     -------
@@ -119,30 +175,32 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         A checkpoint cannot be read, the dataset is missing, or its images do not have the
         sensor size of a model (checked for every run before any evaluation).
     """
-    from ekdun.data.pairs import PairsDataset
-    from ekdun.data.virtual_bench import resolve_split
     from ekdun.evaluation.tables import label_for
     from ekdun.training.builder import network_from_checkpoint
 
-    dataset = PairsDataset(resolve_split(data, "test"))
     models = [(path, *network_from_checkpoint(path))
               for path in map(checkpoint_path, checkpoints)]
-    for path, model, _ in models:
+    datasets = []        # every run's pairs are checked before any evaluation
+    for path, model, doc in models:
+        dataset, note = evaluation_pairs(data, doc["metadata"].get("data") or {},
+                                         include_training)
         sensor = tuple(model.physics.sensor_shape)
         if tuple(dataset.image_shape[1:]) != sensor:
             raise InvalidInputError(f"{data}: pairs are {dataset.image_shape[1]}x"
                                     f"{dataset.image_shape[2]} but {path} expects "
                                     f"{sensor[0]}x{sensor[1]}")
+        datasets.append((dataset, note))
     results = []
-    for path, model, doc in models:
+    for (path, model, doc), (dataset, note) in zip(models, datasets, strict=True):
         meta = doc["metadata"]
         schedule = meta.get("overrides", {}).get("schedule") or (
             meta.get("schedule") if meta["model"] == "ekdun" else None)
         row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
         row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
-                    "epochs": meta.get("epoch")})
+                    "epochs": meta.get("epoch"), "pairs": list(dataset.names),
+                    "pairs_note": note})
         results.append(row)
         if log is not None:
-            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f}")
+            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f} ({note})")
     return results
 

@@ -39,7 +39,7 @@ def tiny_checkpoint(tiny_data, tmp_path_factory):
     from ekdun.data.pairs import PairsDataset
 
     run = tmp_path_factory.mktemp("run") / "ek"
-    train(run, "ekdun", kernels, PairsDataset(pairs), "tiny", SMALL,
+    train(run, "ekdun", kernels, PairsDataset(pairs, holdout=("im6", "im7")), "tiny", SMALL,
           TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
     return run / CHECKPOINT
 
@@ -153,6 +153,7 @@ def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, c
     assert ekdun_main(["eval", str(tiny_checkpoint), "--data", str(pairs), "--out",
                        str(tmp_path / "tables"), "--quiet"]) == 0
     res = json.loads((tmp_path / "tables" / "results.json").read_text())["results"][0]
+    assert res["pairs"] == ["im6", "im7"]          # only what training held out is scored
     assert np.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["parameters"] > 0
     assert res["runtime_ms_median"] > 0 and res["model"] == "ekdun"
     assert (tmp_path / "tables" / "table2.md").is_file()

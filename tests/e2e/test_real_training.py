@@ -9,6 +9,7 @@ kernel file.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +114,15 @@ def test_fit_pairs_train_reconstruct_on_dlmd(dlmd_fit_folder, tmp_path, capsys):
     for flipped in (truth[:, ::-1], truth[:, :, ::-1]):
         assert edges > 1.5 * _corr(_gradients(recon), _gradients(flipped))
     assert _corr(recon, truth) > _corr(recon, truth[:, ::-1]) + 0.1
+
+    # ekdun eval on the training folder scores only the held-out pair, read as in training
+    assert ekdun_main(["eval", str(run), "--data", str(root), "--out", str(tmp_path / "tables"),
+                       "--quiet"]) == 0
+    row = json.loads((tmp_path / "tables" / "results.json").read_text())["results"][0]
+    print(f"ekdun eval on {row['pairs']}: {row['psnr']:.2f} dB (reconstruct: "
+          f"{_psnr(np.clip(recon, 0, 1), truth):.2f} dB)")
+    assert row["pairs"] == [HELD_OUT]
+    assert abs(row["psnr"] - _psnr(np.clip(recon, 0, 1), truth)) < 0.05
 
 
 def test_train_refuses_pairs_that_do_not_match_the_kernels(dlmd_fit_folder, tmp_path,

@@ -142,6 +142,36 @@ def test_pairs_dataset_holds_out_and_bins_like_fit_pairs(tmp_path):
     assert parse_names(["im65,im157", " im65.npy"]) == ("im65", "im157")
 
 
+def test_evaluation_scores_only_what_training_held_out(tmp_path):
+    from ekdun.evaluation import evaluation_pairs
+
+    root = _dlmd_like(tmp_path / "d", ["a", "b", "c"])
+    trained = PairsDataset(root, holdout=["b"], downsample=4).describe()
+    ds, note = evaluation_pairs(root, trained)
+    assert ds.names == ("b",) and "held out: b" in note
+    assert ds.image_shape == (3, 4, 7) and ds.pairs.channel_order == "BGR"   # read as trained
+    np.testing.assert_array_equal(
+        ds[0][0].numpy(), PairsDataset(root, downsample=4).__getitem__(1)[0].numpy())
+    # the same folder named by another path is still the training folder
+    ds, _ = evaluation_pairs(tmp_path / "d" / ".." / "d", trained)
+    assert ds.names == ("b",)
+    # a run trained on every pair cannot be scored on its own folder by accident
+    everything = PairsDataset(root).describe()
+    with pytest.raises(InvalidInputError, match="trained on every pair of this folder"):
+        evaluation_pairs(root, everything)
+    ds, note = evaluation_pairs(root, everything, include_training=True)
+    assert ds.names == ("a", "b", "c") and "training pairs included" in note
+    # another folder: every pair, read with the run's channel order and binning
+    other = _dlmd_like(tmp_path / "e", ["x", "y"])
+    ds, _ = evaluation_pairs(other, trained)
+    assert ds.names == ("x", "y") and ds.image_shape == (3, 4, 7)
+    # checkpoints that predate the record: every pair, as stored
+    ds, _ = evaluation_pairs(root, {})
+    assert len(ds) == 3 and ds.image_shape == (3, 18, 30)
+    with pytest.raises(InvalidInputError, match="no pair named zz to evaluate"):
+        PairsDataset(root, only=["zz"])
+
+
 def test_match_downsample_uses_the_kernel_files_fit_factor():
     def model(shape, factor=None):
         return KernelModel(kernels=np.zeros((1, 3, *shape), np.float32), basis="si",
