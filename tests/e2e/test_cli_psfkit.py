@@ -125,3 +125,11 @@ def test_building_the_parser_imports_neither_torch_nor_ekdun():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             check=True)
     assert result.stdout.strip() == "[]"
+
+
+def test_info_on_a_grid_imports_neither_torch_nor_ekdun(grid_3x3):
+    code = ("import sys; from psfkit.cli import main; code = main(['info', sys.argv[1]]); "
+            "print(code, sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'ekdun'}))")
+    result = subprocess.run([sys.executable, "-c", code, str(grid_3x3)], capture_output=True,
+                            text=True, check=True)
+    assert result.stdout.strip().splitlines()[-1] == "0 []"
