@@ -7,12 +7,11 @@ from __future__ import annotations
 import textwrap
 from typing import Any
 
-import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
 from psfkit.compare.results import KernelComparison
-from psfkit.figures.compare_figures import _quiver_panel
+from psfkit.figures.compare_figures import draw_kernel_row, quiver_panel
 from psfkit.figures.eigen_figures import _crop_box
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
 from psfkit.preprocess import luminance
@@ -78,32 +77,17 @@ def figure_starts(comparisons: dict[str, KernelComparison]) -> Figure:
     with publication_style():
         fig = new_figure(PAGE_IN * 1.3, 1.35 * len(rows) + 0.5)
         axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
-        cmap = matplotlib.colormaps["RdBu_r"]
         for r, (label, kernels, disp) in enumerate(rows):
             lum = np.stack([luminance(x) for x in kernels])[:, box[0], box[1]]
-            peak = float(lum.max()) or 1.0
-            diffs = (lum[1:] - lum[0]) / peak
-            limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
-            for i in range(k):
-                ax = axes[r, i]
-                ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
-                ax.set_title(f"K_{names[i]}" if r == 0 else "")
-                ax.set_xticks([])
-                ax.set_yticks([])
-                if i == 0:
-                    ax.set_ylabel(textwrap.fill(label, 22), fontsize=6)
-            for i in range(1, k):
-                ax = axes[r, k + i - 1]
-                ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
-                ax.set_title(f"K_{names[i]} − K_{names[0]}" if r == 0 else "")
-                ax.set_axis_off()
+            draw_kernel_row(axes[r], lum, names, textwrap.fill(label, 22), titles=r == 0,
+                            label_size=6)
             for i in range(1, k):
                 ax = axes[r, 2 * k + i - 2]
                 d = disp.get(names[i])
                 if d is None:
                     ax.set_axis_off()
                     continue
-                _quiver_panel(ax, d, mask_box, vmax, f"D_{names[i]}" if r == 0 else "", step)
+                quiver_panel(ax, d, mask_box, vmax, f"D_{names[i]}" if r == 0 else "", step)
         fig.suptitle(f"measured modes vs learned kernels (arrows: displacement, colour "
                      f"0–{vmax:.2f} px)")
     return fig

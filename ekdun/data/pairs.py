@@ -39,6 +39,15 @@ def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
+def recorded_read_options(data: dict[str, Any]) -> tuple[str | None, int]:
+    """``(channel_order, downsample)`` with which a checkpoint's training pairs were read, from
+    its ``metadata["data"]`` (:meth:`PairsDataset.describe`); ``(None, 1)`` where a checkpoint
+    does not record them (``None``: the caller's default order)."""
+    order = data.get("channel_order") if data.get("channel_order") in ("RGB", "BGR") else None
+    factor = data.get("downsample")
+    return order, factor if isinstance(factor, int) and factor >= 1 else 1
+
+
 class PairsDataset(Dataset):
     """``(scene, measurement)`` pairs as ``(C, H, W)`` float32 tensors (RGB).
 

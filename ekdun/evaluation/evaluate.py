@@ -118,14 +118,11 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
     InvalidInputError
         ``data`` is the folder the checkpoint was trained on, with no pair held out.
     """
-    from ekdun.data.pairs import PairsDataset
+    from ekdun.data.pairs import PairsDataset, recorded_read_options
     from ekdun.data.virtual_bench import resolve_split
 
     root = resolve_split(data, "test")
-    order = trained.get("channel_order") if trained.get("channel_order") in ("RGB", "BGR") \
-        else None
-    factor = trained.get("downsample")
-    factor = factor if isinstance(factor, int) and factor >= 1 else 1
+    order, factor = recorded_read_options(trained)
     same = bool(trained.get("root")) and Path(trained["root"]).resolve() == root.resolve()
     held = list(trained.get("holdout") or [])
     if same and not include_training:

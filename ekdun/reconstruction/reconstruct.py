@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ekdun.data.pairs import recorded_read_options
 from ekdun.errors import InvalidInputError, TensorShapeError
 from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
@@ -59,10 +60,8 @@ def to_preview(image: np.ndarray) -> np.ndarray:
 def training_read_options(doc: dict) -> tuple[str, int]:
     """``(channel_order, downsample)`` with which a checkpoint's training pairs were read
     (``("RGB", 1)`` for checkpoints that do not record it)."""
-    data = doc.get("metadata", {}).get("data") or {}
-    order = data.get("channel_order") if data.get("channel_order") in ("RGB", "BGR") else "RGB"
-    factor = data.get("downsample")
-    return order, int(factor) if isinstance(factor, int) and factor >= 1 else 1
+    order, factor = recorded_read_options(doc.get("metadata", {}).get("data") or {})
+    return order or "RGB", factor
 
 
 @torch.no_grad()

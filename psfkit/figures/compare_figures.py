@@ -24,6 +24,33 @@ def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
     return rows
 
 
+def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | list[str],
+                    label: str, titles: bool = True, label_size: float | None = None
+                    ) -> AxesImage:
+    """One Fig. 7 row: the kernels' luminance ``lum`` ``(K, h, w)`` (square-root scale) in
+    ``axes[:K]`` and their differences from ``K_base`` in ``axes[K:2K−1]``, on the row's own
+    scale (learned kernels may be normalised differently). Returns the last difference image
+    (for a colour bar)."""
+    k = len(names)
+    peak = float(lum.max()) or 1.0
+    diffs = (lum[1:] - lum[0]) / peak
+    limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
+    for i in range(k):
+        ax = axes[i]
+        ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
+        ax.set_title(f"K_{names[i]}" if titles else "")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    axes[0].set_ylabel(label, fontsize=label_size)
+    cmap = matplotlib.colormaps["RdBu_r"]
+    for i in range(1, k):
+        ax = axes[k + i - 1]
+        im = ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
+        ax.set_title(f"K_{names[i]} − K_{names[0]}" if titles else "")
+        ax.set_axis_off()
+    return im
+
+
 def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None = None
                                ) -> Figure:
     """Fig. 7 layout (``K_base``, ``K_k`` ..., ``K_k − K_base`` ...) for the learned kernels,
@@ -49,33 +76,15 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
     with publication_style():
         fig = new_figure(PAGE_IN, 1.45 * len(rows) + 0.35)
         axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
-        cmap = matplotlib.colormaps["RdBu_r"]
         for r, (label, lum) in enumerate(rows):
-            lum = lum[:, box[0], box[1]]
-            # each row on its own scale: learned kernels may be normalised differently
-            peak = float(lum.max()) or 1.0
-            diffs = (lum[1:] - lum[0]) / peak
-            limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
-            for i in range(k):
-                ax = axes[r, i]
-                ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
-                ax.set_title(f"K_{names[i]}" if r == 0 else "")
-                ax.set_xticks([])
-                ax.set_yticks([])
-                if i == 0:
-                    ax.set_ylabel(label)
-            for i in range(1, k):
-                ax = axes[r, k + i - 1]
-                im = ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
-                ax.set_title(f"K_{names[i]} − K_{names[0]}" if r == 0 else "")
-                ax.set_axis_off()
+            im = draw_kernel_row(axes[r], lum[:, box[0], box[1]], names, label, titles=r == 0)
             fig.colorbar(im, ax=list(axes[r, k:]), shrink=0.8, label="diff. / peak")
         fig.suptitle("learned vs measured eigen-kernels (Fig. 7 layout)"
                      + (" – zoom" if zoom else ""))
     return fig
 
 
-def _quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax: float,
+def quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax: float,
                   title: str, step: int) -> AxesImage:
     field = disp.field[:, box[0], box[1]]
     mask = disp.mask[box[0], box[1]]
@@ -128,7 +137,7 @@ def figure_displacements(comparison: KernelComparison, arrows: int = 14) -> Figu
                     ax.set_axis_off()
                     ax.set_title(f"{label}: n/a")
                     continue
-                im = _quiver_panel(ax, disp, box, vmax, f"K_{name}: {label}", step)
+                im = quiver_panel(ax, disp, box, vmax, f"K_{name}: {label}", step)
             if im is not None:
                 fig.colorbar(im, ax=list(axes[r]), shrink=0.8, label="|D| (px)")
         fig.suptitle("local displacement of K_k relative to K_base")

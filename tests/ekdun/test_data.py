@@ -151,7 +151,7 @@ def test_evaluation_scores_only_what_training_held_out(tmp_path):
     assert ds.names == ("b",) and "held out: b" in note
     assert ds.image_shape == (3, 4, 7) and ds.pairs.channel_order == "BGR"   # read as trained
     np.testing.assert_array_equal(
-        ds[0][0].numpy(), PairsDataset(root, downsample=4).__getitem__(1)[0].numpy())
+        ds[0][0].numpy(), PairsDataset(root, downsample=4)[1][0].numpy())
     # the same folder named by another path is still the training folder
     ds, _ = evaluation_pairs(tmp_path / "d" / ".." / "d", trained)
     assert ds.names == ("b",)
