@@ -21,6 +21,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -165,11 +166,33 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     body = []
     for r in rows:
         angles = ", ".join(f"{a:.1f}" for a in (r.get("angles_pca") or []))
-        body.append(f"| {r['seed']} | {r['param']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+        kernels = r["param"] + (f" (training seed {r['train_seed']})"
+                                if r.get("train_seed") else "")
+        body.append(f"| {r['seed']} | {kernels} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                     f"{100 * r['pedestal_share']:.1f} % | {100 * r['outside_mass']:.1f} % | "
                     f"{_f(r['v_disp_corr'])} / {_f(r['h_disp_corr'])} | "
                     f"{_f(r['v_diff_ncc'], '.3f')} / {_f(r['h_diff_ncc'], '.3f')} | {angles} |")
-    return "\n".join([head, *body])
+    return "\n".join([head, *body, *_spread_lines(rows)])
+
+
+def _spread_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """Mean ± standard deviation over training seeds, where a set-up ran with several."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["seed"], r["param"]), []).append(r)
+    lines = []
+    for (seed, param), runs in groups.items():
+        if len(runs) < 2:
+            continue
+        psnrs = np.array([r["psnr"] for r in runs])
+        disp = np.array([[r["v_disp_corr"], r["h_disp_corr"]] for r in runs], float)
+        ncc = np.array([[r["v_diff_ncc"], r["h_diff_ncc"]] for r in runs], float)
+        lines.append(f"\n{seed} / {param}, {len(runs)} training seeds: PSNR "
+                     f"{psnrs.mean():.2f} ± {psnrs.std(ddof=1):.2f} dB (range "
+                     f"{psnrs.min():.2f}–{psnrs.max():.2f}); disp. corr "
+                     f"{disp.mean(0)[0]:+.2f} / {disp.mean(0)[1]:+.2f}; diff. NCC "
+                     f"{ncc.mean(0)[0]:.3f} / {ncc.mean(0)[1]:.3f}")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=15)
     ap.add_argument("--params", default=",".join(PARAMS))
     ap.add_argument("--seeds", default=",".join(SEEDS))
+    ap.add_argument("--train-seeds", default="0",
+                    help="training seeds (weights, batch order) of every set-up, e.g. 0,1,2: "
+                         "the spread says which PSNR differences are resolved")
     ap.add_argument("--measure-lr", action="store_true")
     ap.add_argument("--table", action="store_true", help="print OUT/results.json as Markdown")
     args = ap.parse_args(argv)
@@ -201,28 +227,38 @@ def main(argv: list[str] | None = None) -> int:
                           load_kernels(seeds["measured"]).convention, (64, 64),
                           CompareOptions())
     results = []
-    options = TrainOptions(epochs=args.epochs, progress=False, threads=1)
-    for seed in args.seeds.split(","):
-        for param in args.params.split(","):
-            run = out / "runs" / f"{seed}-{param}"
-            ckpt = run / CHECKPOINT
-            t0 = time.perf_counter()
-            if not (ckpt.is_file() and load_checkpoint(ckpt)["metadata"]["epoch"]
-                    >= args.epochs):
-                train(run, "ekdun", seeds[seed], PairsDataset(data / "train"), "tiny",
-                      OVERRIDES[param], options, resume=ckpt.is_file())
-            model, _ = network_from_checkpoint(ckpt)
-            row = {"seed": seed, "param": param, "epochs": args.epochs,
-                   "train_s": round(time.perf_counter() - t0, 1), **test_scores(model, data),
-                   **kernel_numbers(run, modes)}
-            (run / "numbers.json").write_text(json.dumps(row, indent=1, default=float))
-            results.append(row)
-            print(f"{seed:8s} {param:8s} PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f} "
-                  f"pedestal {row['pedestal_share']:.3f} outside {row['outside_mass']:.3f} "
-                  f"disp {row['v_disp_corr']} / {row['h_disp_corr']} "
-                  f"ncc {row['v_diff_ncc']:.3f} / {row['h_diff_ncc']:.3f}", flush=True)
+    for seed, param, train_seed in itertools.product(
+            args.seeds.split(","), args.params.split(","),
+            [int(t) for t in args.train_seeds.split(",")]):
+        options = TrainOptions(epochs=args.epochs, progress=False, threads=1,
+                               seed=train_seed)
+        run = out / "runs" / (f"{seed}-{param}" + (f"-t{train_seed}" if train_seed else ""))
+        ckpt = run / CHECKPOINT
+        t0 = time.perf_counter()
+        if not (ckpt.is_file() and load_checkpoint(ckpt)["metadata"]["epoch"]
+                >= args.epochs):
+            train(run, "ekdun", seeds[seed], PairsDataset(data / "train"), "tiny",
+                  OVERRIDES[param], options, resume=ckpt.is_file())
+        model, _ = network_from_checkpoint(ckpt)
+        row = {"seed": seed, "param": param, "train_seed": train_seed, "epochs": args.epochs,
+               "train_s": round(time.perf_counter() - t0, 1), **test_scores(model, data),
+               **kernel_numbers(run, modes)}
+        (run / "numbers.json").write_text(json.dumps(row, indent=1, default=float))
+        results.append(row)
+        print(f"{seed:8s} {param:8s} PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f} "
+              f"pedestal {row['pedestal_share']:.3f} outside {row['outside_mass']:.3f} "
+              f"disp {row['v_disp_corr']} / {row['h_disp_corr']} "
+              f"ncc {row['v_diff_ncc']:.3f} / {row['h_diff_ncc']:.3f}", flush=True)
     summary = [{k: v for k, v in r.items() if k != "compare"} for r in results]
-    (out / "results.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    # merged with the rows of earlier invocations on the same folder (other set-ups or seeds)
+    def key(r: dict[str, Any]) -> tuple:
+        return r["seed"], r["param"], r.get("train_seed", 0), r["epochs"]
+
+    path = out / "results.json"
+    earlier = json.loads(path.read_text()) if path.is_file() else []
+    done = {key(r) for r in summary}
+    summary = [r for r in earlier if key(r) not in done] + summary
+    path.write_text(json.dumps(summary, indent=1, default=float) + "\n")
     print(markdown_table(summary))
     print(f"LR multipliers: {LR_MULTIPLIER}")
     return 0

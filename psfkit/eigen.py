@@ -72,6 +72,18 @@ def _difference_prior(n_kernels: int) -> np.ndarray:
 class NormalEquations:
     """Per-pixel normal equations of an eigen-kernel fit, accumulated one PSF at a time.
 
+    Two accumulation paths give the same sums (to rounding):
+
+    - a PSF whose valid mask is a rectangle (the common case: the sensor's overlap after the
+      shift, nothing saturated) adds to the right-hand sides only the weighted image inside
+      the rectangle. Every weight of :mod:`psfkit.weights` is a sum of products
+      ``f(u)·g(v)``, so that PSF's Gram term ``m·w_i·w_j`` is a sum of outer products of
+      row and column vectors; these are kept (a few vectors per PSF) and summed for all PSFs
+      at once as one matrix product per Gram entry when the equations are read. Because the
+      weights sum to 1, the base kernel's right-hand side is the masked image minus the
+      correction terms' ones, and is formed then;
+    - any other mask goes through the per-pixel products (:meth:`_add_masked`).
+
     Parameters
     ----------
     basis : WeightBasis
@@ -83,34 +95,140 @@ class NormalEquations:
 
     def __init__(self, basis: WeightBasis, convention: str, image_shape: tuple[int, int, int],
                  optical_center: tuple[float, float] | None = None) -> None:
+        if convention not in CONVENTIONS:
+            raise ConfigurationError(f"convention must be one of {CONVENTIONS}, "
+                                     f"got {convention!r}")
         self.basis, self.convention = basis, convention
         self.channels, self.h, self.w = image_shape
         self.optical_center = optical_center
-        k = basis.n_kernels
-        self._iu = np.triu_indices(k)
-        # allocated by the first add(), in that image's precision
-        self.gram: np.ndarray | float = 0.0                                 # upper triangle
-        self.rhs: np.ndarray | float = 0.0
+        self._iu = np.triu_indices(basis.n_kernels)
+        # per-pixel sums (upper triangle of the Gram matrices; right-hand sides), allocated
+        # when first needed, in the first image's precision
+        self._gram: np.ndarray | None = None
+        self._rhs: np.ndarray | None = None
+        # rectangle path: [Σ m·a, Σ m·w_j·a (j ≥ 1)] per channel, and per PSF and kernel the
+        # masked row and column factors ``(S, H)``, ``(S, W)`` of its weight
+        self._rect_rhs: np.ndarray | None = None
+        self._factors: list[list[tuple[np.ndarray, np.ndarray]]] = []
         self.count = 0
+
+    @property
+    def gram(self) -> np.ndarray:
+        """``(K(K+1)/2, H, W)`` upper triangle of the per-pixel Gram matrices ``Σ m w wᵀ``."""
+        self._materialize()
+        assert self._gram is not None
+        return self._gram
+
+    @property
+    def rhs(self) -> np.ndarray:
+        """``(C, K, H, W)`` per-pixel right-hand sides ``Σ m w a``."""
+        self._materialize()
+        assert self._rhs is not None
+        return self._rhs
 
     def add(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float]) -> None:
         """Add one aligned ``(C, H, W)`` PSF with its ``(H, W)`` valid mask and shift.
 
         Products are formed and accumulated in the image's own precision: float32 for grid
         data (half the memory traffic of float64; its rounding, ~1e-7 per PSF, is far below
-        any sensor's noise), float64 for float64 input (the exact-recovery tests).
-
-        The work runs over blocks of rows small enough to stay in the CPU cache (weights,
-        masked products and accumulators of a block are touched once each per PSF instead of
-        once per product at full size): the same operations per pixel, in the same order, as
-        on whole images, so the sums are bit-identical, at about half the time.
+        any sensor's noise), float64 for float64 input (the exact-recovery tests). The Gram
+        sums of the rectangle path are float64 matrix products.
         """
-        dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float64
-        if self.count == 0 and not isinstance(self.gram, np.ndarray):
+        dtype = np.dtype(image.dtype if np.issubdtype(image.dtype, np.floating)
+                         else np.float64)
+        rect = _rectangle(valid)
+        if rect is None:
+            self._add_masked(image, valid, shift, dtype)
+        else:
+            self._add_rectangle(image, rect, shift, dtype)
+        self.count += 1
+
+    def _axis_weights(self, shift: tuple[float, float]
+                      ) -> list[list[tuple[np.ndarray | float | None, np.ndarray | None]]]:
+        """The weights of the PSF displaced by ``shift`` as sums of ``row(v) ⊗ col(u)``
+        products, per kernel (``None``: a factor of 1)."""
+        if self.convention == "source":
+            w = position_weights(self.basis, (self.h, self.w), shift, "source",
+                                 self.optical_center)[:, 0, 0]
+            return [[(float(wk), None)] for wk in w]
+        du, dv = shift
+        u_n, v_n = separable_coordinates((self.h, self.w), self.optical_center)
+        u_n = u_n[0] + du / (self.w / 2.0)
+        v_n = v_n[:, 0] + dv / (self.h / 2.0)
+        terms = [term.factors(u_n, v_n) for term in self.basis.terms]
+        # base weight 1 − Σ φ_j: the terms of u alone merged into one column factor, those of
+        # v alone into one row factor, products of both kept apart
+        col = np.ones(self.w)
+        row = np.zeros(self.h)
+        base: list[tuple[np.ndarray | float | None, np.ndarray | None]] = []
+        for fu, fv in terms:
+            if fv is None:
+                col = col - (fu if fu is not None else 1.0)
+            elif fu is None:
+                row = row - fv
+            else:
+                base.append((-fv, fu))
+        base.insert(0, (None, col))
+        if np.any(row):
+            base.insert(1, (row, None))
+        return [base] + [[(fv, fu)] for fu, fv in terms]
+
+    def _add_rectangle(self, image: np.ndarray, rect: tuple[slice, slice],
+                       shift: tuple[float, float], dtype: np.dtype) -> None:
+        if self._rect_rhs is None:
+            self._rect_rhs = np.zeros((self.channels, self.basis.n_kernels, self.h, self.w),
+                                      dtype)
+        rows, cols = rect
+        weights = self._axis_weights(shift)
+        # Gram factors: full-length vectors, zero outside the rectangle
+        row_mask = np.zeros(self.h)
+        row_mask[rows] = 1.0
+        col_mask = np.zeros(self.w)
+        col_mask[cols] = 1.0
+        factors = []
+        for terms in weights:
+            r = np.stack([row_mask * (1.0 if fv is None else fv) for fv, _ in terms])
+            c = np.stack([col_mask * (1.0 if fu is None else fu) for _, fu in terms])
+            factors.append((r, c))
+        self._factors.append(factors)
+        # right-hand sides inside the rectangle, in blocks of rows that stay in the cache:
+        # Σ m·a (slot 0) and Σ m·φ_j·a, each product with the row factor, then the column one
+        width = cols.stop - cols.start
+        scaling = []
+        for ((fv, fu),) in weights[1:]:
+            steps = []
+            if fv is not None:
+                steps.append(dtype.type(fv) if np.isscalar(fv) else fv[rows].astype(dtype)[:, None])
+            if fu is not None:
+                steps.append(fu[cols].astype(dtype))
+            scaling.append(steps)
+        block_rows = max(1, BLOCK_ELEMENTS // width)
+        buffer = np.empty((block_rows, width), dtype)
+        acc = self._rect_rhs
+        for r0 in range(rows.start, rows.stop, block_rows):
+            block = slice(r0, min(r0 + block_rows, rows.stop))
+            tmp = buffer[:block.stop - r0]
+            local = slice(block.start - rows.start, block.stop - rows.start)
+            for c in range(self.channels):
+                data = image[c, block, cols]
+                acc[c, 0, block, cols] += data
+                for k, steps in enumerate(scaling, start=1):
+                    first = steps[0]
+                    np.multiply(data, first[local] if np.ndim(first) == 2 else first, out=tmp)
+                    for factor in steps[1:]:
+                        tmp *= factor[local] if np.ndim(factor) == 2 else factor
+                    acc[c, k, block, cols] += tmp
+
+    def _add_masked(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float],
+                    dtype: np.dtype) -> None:
+        """Per-pixel products over blocks of rows small enough to stay in the CPU cache
+        (weights, masked products and accumulators of a block are touched once each per PSF
+        instead of once per product at full size)."""
+        if self._gram is None:
             k = self.basis.n_kernels
-            self.gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
-            self.rhs = np.zeros((self.channels, k, self.h, self.w), dtype)
-        assert isinstance(self.gram, np.ndarray) and isinstance(self.rhs, np.ndarray)
+            self._gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
+            self._rhs = np.zeros((self.channels, k, self.h, self.w), dtype)
+        assert self._rhs is not None
         sensor = self.convention == "sensor"
         if sensor:
             du, dv = shift
@@ -129,30 +247,59 @@ class NormalEquations:
                 weights = self.basis.evaluate(u_n, v_n[block]).astype(dtype)
             mask = valid[block].astype(dtype)
             mw = weights * mask                   # (K, R, W); source-side weights broadcast
-            gram = self.gram[:, block]
+            gram = self._gram[:, block]
             for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
                 np.multiply(mw[i], weights[j], out=prod)
                 gram[index] += prod
-            rhs = self.rhs[:, :, block]
+            rhs = self._rhs[:, :, block]
             for c in range(self.channels):
                 masked = image[c, block] * mask
                 for k in range(self.basis.n_kernels):
                     np.multiply(weights[k], masked, out=prod)
                     rhs[c, k] += prod
-        self.count += 1
+
+    def _materialize(self) -> None:
+        """Fold the rectangle path's factors and sums into the per-pixel arrays."""
+        if self._factors:
+            gram = np.zeros((len(self._iu[0]), self.h, self.w)) if self._gram is None \
+                else self._gram.astype(np.float64)
+            for index, (i, j) in enumerate(zip(*self._iu, strict=True)):
+                left = np.concatenate([(f[i][0][:, None] * f[j][0][None]).reshape(-1, self.h)
+                                       for f in self._factors])
+                right = np.concatenate([(f[i][1][:, None] * f[j][1][None]).reshape(-1, self.w)
+                                        for f in self._factors])
+                gram[index] += left.T @ right
+            self._gram = gram
+            self._factors = []
+            assert self._rect_rhs is not None
+            sums = self._rect_rhs
+            base = sums[:, 0].astype(np.float64) - sums[:, 1:].astype(np.float64).sum(axis=1)
+            sums[:, 0] = base
+            if self._rhs is None:
+                self._rhs = sums
+            else:
+                self._rhs = self._rhs + sums
+            self._rect_rhs = None
+        if self._gram is None:      # nothing added
+            k = self.basis.n_kernels
+            self._gram = np.zeros((len(self._iu[0]), self.h, self.w))
+            self._rhs = np.zeros((self.channels, k, self.h, self.w))
+
+    def _from_arrays(self, gram: np.ndarray, rhs: np.ndarray, count: int) -> NormalEquations:
+        out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
+                              self.optical_center)
+        out._gram, out._rhs, out.count = gram, rhs, count
+        return out
 
     def minus(self, other: NormalEquations) -> NormalEquations:
         """The equations of this set of PSFs without those of ``other`` (a subset)."""
-        out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
-                              self.optical_center)
-        out.gram = self.gram - other.gram
-        out.rhs = self.rhs - other.rhs
-        out.count = self.count - other.count
-        return out
+        return self._from_arrays(self.gram - other.gram, self.rhs - other.rhs,
+                                 self.count - other.count)
 
     def __iadd__(self, other: NormalEquations) -> NormalEquations:
-        self.gram += other.gram
-        self.rhs += other.rhs
+        self._materialize()
+        self._gram = self.gram + other.gram     # may change precision: not in place
+        self._rhs = self.rhs + other.rhs
         self.count += other.count
         return self
 
@@ -163,8 +310,8 @@ class NormalEquations:
         constrained by the data)."""
         k = self.basis.n_kernels
         n = self.h * self.w
-        gram = np.asarray(self.gram).reshape(len(self._iu[0]), n)
-        rhs = np.asarray(self.rhs).reshape(self.channels, k, n)
+        gram = self.gram.reshape(len(self._iu[0]), n)
+        rhs = self.rhs.reshape(self.channels, k, n)
         prior = (ridge * _difference_prior(k) + 1e-12 * np.eye(k))[:, :, None]
         solution = np.empty((k, self.channels, n))
         smallest = np.empty(n) if conditioning else None
@@ -228,6 +375,19 @@ def _solve_spd(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         x[:, :, weak] = np.moveaxis(np.linalg.solve(
             np.moveaxis(system[:, :, weak], -1, 0), np.moveaxis(rhs[:, :, weak], -1, 0)), 0, -1)
     return x
+
+
+def _rectangle(valid: np.ndarray) -> tuple[slice, slice] | None:
+    """The slices of ``valid``'s bounding box if ``valid`` is exactly that box, else None."""
+    rows = np.flatnonzero(valid.any(axis=1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(valid[rows[0]])
+    rect = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    area = (rect[0].stop - rect[0].start) * (rect[1].stop - rect[1].start)
+    if int(np.count_nonzero(valid)) != area or not valid[rect].all():
+        return None
+    return rect
 
 
 def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
@@ -303,8 +463,16 @@ class WorkingStack:
     def put(self, p: int, aligned: AlignedPsf, image: np.ndarray, gain: float) -> None:
         """Store position ``p`` binned (``image`` may be the gain-compensated version)."""
         f = self.factor
-        self.images[p] = np.stack([bin_image(ch, f) / f**2 for ch in image])
-        self.valid[p] = bin_image(aligned.valid.astype(np.float32), f) > f**2 - 0.5
+        self.images[p] = bin_image(image, f)
+        self.images[p] /= np.float32(f**2)
+        rect = _rectangle(aligned.valid)
+        if rect is None:
+            self.valid[p] = bin_image(aligned.valid.astype(np.float32), f) > f**2 - 0.5
+        else:   # the blocks that lie inside the rectangle
+            h, w = self.valid.shape[1:]
+            rows = (np.arange(h) * f >= rect[0].start) & ((np.arange(h) + 1) * f <= rect[0].stop)
+            cols = (np.arange(w) * f >= rect[1].start) & ((np.arange(w) + 1) * f <= rect[1].stop)
+            self.valid[p] = rows[:, None] & cols[None, :]
         self.shifts[p] = np.asarray(aligned.shift) / f
         self.index[p] = (aligned.position.row, aligned.position.col)
         self.overlap[p] = aligned.overlap

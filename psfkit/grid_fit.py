@@ -10,6 +10,7 @@ PCA (:mod:`psfkit.pca`) are computed. The result becomes a kernel file for ekdun
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -142,6 +143,10 @@ class GridEigenResult:
         return out
 
 
+def _solve_all(equations: dict[str, NormalEquations], ridge: float) -> dict[str, np.ndarray]:
+    return {conv: eq.solve(ridge, conditioning=False)[0] for conv, eq in equations.items()}
+
+
 def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                    progress: bool = False, workers: int | None = None) -> GridEigenResult:
     """Fit the eigen-kernel model of ``options.basis`` to a PSF grid, both conventions.
@@ -197,16 +202,20 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     shifts = (stack.shifts * factor).reshape(n_rows, n_cols, 2)
     check_design(basis, shifts, (h, w), str(grid.root))
 
-    full_kernels = {conv: eq.solve(options.ridge, conditioning=False)[0]
-                    for conv, eq in equations.items()}
+    # the full-resolution solve (large vector operations, mostly outside the GIL) runs beside
+    # the working-copy fits and the cross-validation (many small ones)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        solving = pool.submit(_solve_all, equations, options.ridge)
+        residuals, conditioning = {}, {}
+        for conv in CONVENTIONS:             # both conventions, compared on the working copy
+            kernels, conditioning[conv] = fit_stack(stack, basis, conv, ridge=options.ridge)
+            residuals[conv] = stack_residuals(stack, kernels, basis, conv).reshape(n_rows,
+                                                                                   n_cols)
+        center_row = center[0] * n_cols + center[1]
+        cv = cross_validate(stack, list(dict.fromkeys([options.basis, *options.cv_bases])),
+                            CONVENTIONS, center_row, options.folds) if options.cv_bases else None
+        full_kernels = solving.result()
     del equations
-    residuals, conditioning = {}, {}
-    for conv in CONVENTIONS:             # both conventions, compared on the working copy
-        kernels, conditioning[conv] = fit_stack(stack, basis, conv, ridge=options.ridge)
-        residuals[conv] = stack_residuals(stack, kernels, basis, conv).reshape(n_rows, n_cols)
-    center_row = center[0] * n_cols + center[1]
-    cv = cross_validate(stack, list(dict.fromkeys([options.basis, *options.cv_bases])),
-                        CONVENTIONS, center_row, options.folds) if options.cv_bases else None
     if options.convention != "auto":
         convention = options.convention
     elif cv is not None:

@@ -39,10 +39,10 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 from scipy import optimize
-from scipy.signal.windows import tukey
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.windows import tukey_window
 
 
 @dataclass(frozen=True)
@@ -316,7 +316,7 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     if min(ref.shape) < 32:
         return float("nan")
     mov = mov * (ref.sum() / max(mov.sum(), 1e-30))
-    window = tukey(ref.shape[0], 0.3)[:, None] * tukey(ref.shape[1], 0.3)[None]
+    window = tukey_window(ref.shape[0], 0.3)[:, None] * tukey_window(ref.shape[1], 0.3)[None]
     # real input: the half spectrum holds every angle in [0, π) once
     power = np.abs(sfft.rfft2((mov - ref) * window, workers=-1)) ** 2
     gv = np.fft.fftfreq(ref.shape[0])[:, None]

@@ -41,6 +41,7 @@ import numpy as np
 from psfkit.errors import ConfigurationError
 
 WeightFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
+AxisFunction = Callable[[np.ndarray], np.ndarray]
 
 
 def _half_sin2(x: np.ndarray) -> np.ndarray:
@@ -51,19 +52,57 @@ def _half_sin(x: np.ndarray) -> np.ndarray:
     return 0.5 * np.sin(0.5 * np.pi * x)
 
 
-_GROUPS: dict[str, tuple[tuple[str, WeightFunction], ...]] = {
-    "paper": (("v", lambda u, v: _half_sin2(v)), ("h", lambda u, v: _half_sin2(u))),
-    "odd": (("v_odd", lambda u, v: _half_sin(v)), ("h_odd", lambda u, v: _half_sin(u))),
-    "cross": (("hv", lambda u, v: 2.0 * _half_sin(u) * _half_sin(v)),),
+@dataclass(frozen=True)
+class WeightTerm:
+    """One correction weight, a product of a function of ``u_n`` and one of ``v_n``:
+    ``φ(u, v) = s · f(u) · g(v)`` (``None`` stands for 1).
+
+    Every weight of the bases here is such a product; the eigen-kernel fit uses the factors
+    to sum the weights' products over a grid as matrix products (:mod:`psfkit.eigen`).
+    """
+
+    name: str
+    of_u: AxisFunction | None = None
+    of_v: AxisFunction | None = None
+    scale: float = 1.0
+
+    def __call__(self, u_norm: np.ndarray, v_norm: np.ndarray) -> np.ndarray:
+        fu = self.of_u(u_norm) if self.of_u is not None else None
+        fv = self.of_v(v_norm) if self.of_v is not None else None
+        if fu is None:
+            out = np.ones_like(u_norm) if fv is None else fv
+        else:
+            out = fu if fv is None else fu * fv
+        return self.scale * out if self.scale != 1.0 else out
+
+    def factors(self, u_norm: np.ndarray, v_norm: np.ndarray
+                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(f(u)·s, g(v))`` on 1-D coordinate arrays (``None`` where the factor is 1)."""
+        fu = self.of_u(u_norm) if self.of_u is not None else None
+        fv = self.of_v(v_norm) if self.of_v is not None else None
+        if self.scale != 1.0:
+            fu = np.full_like(u_norm, self.scale, dtype=np.float64) if fu is None \
+                else self.scale * fu
+        return fu, fv
+
+
+_GROUPS: dict[str, tuple[WeightTerm, ...]] = {
+    "paper": (WeightTerm("v", of_v=_half_sin2), WeightTerm("h", of_u=_half_sin2)),
+    "odd": (WeightTerm("v_odd", of_v=_half_sin), WeightTerm("h_odd", of_u=_half_sin)),
+    "cross": (WeightTerm("hv", of_u=_half_sin, of_v=_half_sin, scale=2.0),),
 }
 
 
-def _poly_terms(order: int) -> tuple[tuple[str, WeightFunction], ...]:
+def _power(exponent: int) -> AxisFunction | None:
+    return None if exponent == 0 else (lambda x: x**exponent)
+
+
+def _poly_terms(order: int) -> tuple[WeightTerm, ...]:
     terms = []
     for degree in range(1, order + 1):
         for a in range(degree, -1, -1):
             b = degree - a
-            terms.append((f"u{a}v{b}", lambda u, v, a=a, b=b: u**a * v**b))
+            terms.append(WeightTerm(f"u{a}v{b}", of_u=_power(a), of_v=_power(b)))
     return tuple(terms)
 
 
@@ -75,17 +114,17 @@ class WeightBasis:
     ----------
     name : str
         Canonical name, e.g. ``"paper"`` or ``"paper+odd"``.
-    terms : tuple of (str, callable)
-        ``(kernel name, φ)`` of each correction term.
+    terms : tuple of WeightTerm
+        The correction terms (kernel name and separable weight ``φ``).
     """
 
     name: str
-    terms: tuple[tuple[str, WeightFunction], ...]
+    terms: tuple[WeightTerm, ...]
 
     @property
     def kernel_names(self) -> tuple[str, ...]:
         """``("base", <term names>...)``, the order of kernels in a kernel file."""
-        return ("base", *(name for name, _ in self.terms))
+        return ("base", *(term.name for term in self.terms))
 
     @property
     def n_kernels(self) -> int:
@@ -101,7 +140,7 @@ class WeightBasis:
         u_norm = np.asarray(u_norm, dtype=np.float64)
         v_norm = np.asarray(v_norm, dtype=np.float64)
         shape = np.broadcast_shapes(u_norm.shape, v_norm.shape)
-        phis = [np.broadcast_to(f(u_norm, v_norm), shape) for _, f in self.terms]
+        phis = [np.broadcast_to(term(u_norm, v_norm), shape) for term in self.terms]
         out = np.empty((1 + len(phis), *shape))
         out[0] = 1.0
         for k, phi in enumerate(phis, start=1):
@@ -174,7 +213,7 @@ def get_basis(name: str) -> WeightBasis:
         return WeightBasis("si", ())
     if name.startswith("poly:"):
         return WeightBasis(name, _poly_terms(int(name.split(":")[1])))
-    terms: tuple[tuple[str, WeightFunction], ...] = ()
+    terms: tuple[WeightTerm, ...] = ()
     for group in name.split("+"):
         terms += _GROUPS[group]
     return WeightBasis(name, terms)

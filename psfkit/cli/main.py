@@ -12,6 +12,7 @@ import zipfile
 from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
+from psfkit.allocator import reuse_freed_memory
 from psfkit.errors import PsfkitError
 from psfkit.validation import OneLineArgumentParser
 
@@ -122,6 +123,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     if not hasattr(args, "func"):
         parser.print_help(sys.stderr)
         return 2
+    reuse_freed_memory()         # fewer page faults in the full-resolution passes
     try:
         with terminate_like_interrupt():
             return int(args.func(args) or 0)

@@ -127,6 +127,17 @@ def test_building_the_parser_imports_neither_torch_nor_ekdun():
     assert result.stdout.strip() == "[]"
 
 
+def test_the_characterization_modules_do_not_import_scipy_signal():
+    # scipy.signal (with scipy.stats and scipy.interpolate) costs ~0.4 s of start-up per
+    # command, for one window function (psfkit.windows)
+    code = ("import sys, psfkit.grid_fit, psfkit.characterize, psfkit.cli.fit_cmd; "
+            "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', "
+            "'scipy.stats'))))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == "[]"
+
+
 def test_info_on_a_grid_imports_neither_torch_nor_ekdun(grid_3x3):
     code = ("import sys; from psfkit.cli import main; code = main(['info', sys.argv[1]]); "
             "print(code, sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'ekdun'}))")

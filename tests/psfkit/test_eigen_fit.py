@@ -108,6 +108,90 @@ def test_blocked_accumulation_and_vectorized_solve_match_the_whole_image_path(co
     assert np.abs(kernels - reference).max() <= 1e-5 * np.abs(reference).max()
 
 
+def _rectangle_mask(shape, rng):
+    valid = np.zeros(shape, bool)
+    valid[rng.integers(0, 8):shape[0] - rng.integers(0, 8),
+          rng.integers(0, 8):shape[1] - rng.integers(0, 8)] = True
+    return valid
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+@pytest.mark.parametrize("basis_name", ["paper", "paper+odd+cross", "poly:2"])
+def test_rectangle_masks_give_the_whole_image_sums(convention, basis_name):
+    """Rectangular valid masks take the factored path (Gram sums as matrix products, base
+    right-hand side from the masked image): the same sums as the per-pixel products, mixed
+    with PSFs that take the masked path, and through the cross-validation's minus/plus."""
+    basis = get_basis(basis_name)
+    rng = np.random.default_rng(7)
+    shape = (2, 37, 300)                       # wider than a block: several row blocks
+    shifts = _grid_shifts(n=4, step=(25, 7))
+    images, valids = [], []
+    for p in range(len(shifts)):
+        images.append(rng.random(shape))
+        valid = _rectangle_mask(shape[1:], rng)
+        if p % 5 == 0:                         # some masks with holes: the per-pixel path
+            valid &= rng.random(shape[1:]) > 0.1
+        valids.append(valid)
+    eq = NormalEquations(basis, convention, shape)
+    for image, valid, shift in zip(images, valids, shifts, strict=True):
+        eq.add(image, valid, tuple(shift))
+    gram, rhs, kernels = _unblocked_normal_equations(basis, convention, images, valids, shifts)
+    np.testing.assert_allclose(eq.gram, gram, rtol=1e-12, atol=1e-12 * np.abs(gram).max())
+    np.testing.assert_allclose(eq.rhs, rhs, rtol=1e-12, atol=1e-12 * np.abs(rhs).max())
+    assert eq.count == len(shifts)
+    solved, smallest = eq.solve()
+    well_posed = smallest > 1e-4    # small shifts: weights barely vary at many pixels
+    assert well_posed.mean() > 0.2
+    assert np.abs(solved - kernels)[..., well_posed].max() <= \
+        1e-8 * np.abs(kernels)[..., well_posed].max()
+    # a fold: all PSFs minus a group equals the equations of the rest
+    group = NormalEquations(basis, convention, shape)
+    rest = NormalEquations(basis, convention, shape)
+    for p, (image, valid, shift) in enumerate(zip(images, valids, shifts, strict=True)):
+        (group if p % 3 == 0 else rest).add(image, valid, tuple(shift))
+    difference = eq.minus(group)
+    np.testing.assert_allclose(difference.gram, rest.gram, atol=1e-12 * np.abs(gram).max())
+    np.testing.assert_allclose(difference.rhs, rest.rhs, atol=1e-12 * np.abs(rhs).max())
+    rest += group
+    np.testing.assert_allclose(rest.rhs, rhs, atol=1e-12 * np.abs(rhs).max())
+    assert rest.count == len(shifts)
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+def test_known_kernels_are_recovered_through_rectangle_masks(convention):
+    basis = get_basis("paper+odd+cross")
+    truth = _kernels(basis.n_kernels)
+    eq = NormalEquations(basis, convention, SHAPE)
+    rng = np.random.default_rng(2)
+    for shift in _grid_shifts():
+        eq.add(predict_aligned(truth, basis, tuple(shift), convention),
+               _rectangle_mask(SHAPE[1:], rng), tuple(shift))
+    kernels, conditioning = eq.solve(ridge=0.0)
+    constrained = conditioning > 1e-6
+    assert constrained.mean() > 0.5
+    err = np.abs(kernels - truth)[..., constrained].max() / np.abs(truth).max()
+    assert err < 1e-9
+
+
+def test_float32_gram_sums_stay_positive_semidefinite_where_one_psf_is_seen():
+    """A pixel seen by a single PSF has a rank-one Gram matrix: float64 matrix products keep
+    it positive semi-definite (float32 sums did not), so the ridge sets its kernels calmly."""
+    basis = get_basis("paper")
+    shape = (1, 20, 30)
+    rng = np.random.default_rng(0)
+    eq = NormalEquations(basis, "sensor", shape)
+    for shift in _grid_shifts(n=3, step=(4, 3)):
+        valid = np.zeros(shape[1:], bool)
+        valid[:, 5:] = True
+        if shift[0] < 0:
+            valid[:, :] = True           # only these PSFs see the first five columns
+        if shift[0] < 0 and shift[1] != 0:
+            continue
+        eq.add(rng.random(shape).astype(np.float32), valid, tuple(shift))
+    _, smallest = eq.solve()
+    assert smallest is not None and smallest.min() > -1e-12
+
+
 def test_the_other_convention_does_not_fit_exactly():
     basis = get_basis("paper")
     truth = _kernels(3)

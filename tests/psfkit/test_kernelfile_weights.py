@@ -42,6 +42,20 @@ def test_every_basis_sums_to_one(name):
     assert maps.shape[0] == get_basis(name).n_kernels
 
 
+@pytest.mark.parametrize("name", BASIS_NAMES)
+def test_every_weight_is_the_product_of_its_row_and_column_factors(name):
+    # the eigen-kernel fit sums Gram terms as matrix products of these factors
+    basis = get_basis(name)
+    u = np.linspace(-1.3, 1.2, 17)
+    v = np.linspace(-1.1, 1.4, 11)
+    for term in basis.terms:
+        fu, fv = term.factors(u, v)
+        fu = np.ones_like(u) if fu is None else fu
+        fv = np.ones_like(v) if fv is None else fv
+        expected = np.broadcast_to(term(u[None, :], v[:, None]), (len(v), len(u)))
+        np.testing.assert_allclose(fv[:, None] * fu[None, :], expected, rtol=1e-14, atol=1e-15)
+
+
 def test_odd_terms_see_left_right_asymmetry_that_sin2_cannot():
     maps = get_basis("paper+odd").maps((5, 9))
     assert np.allclose(maps[2], maps[2][:, ::-1])            # Wh even in u

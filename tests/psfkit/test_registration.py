@@ -90,3 +90,24 @@ def test_a_constant_background_does_not_pin_the_shift(caustic):
     moving = _moved(caustic, -180.4, 129.6) + 1000.0
     du, dv = register_shift(caustic + 1000.0, moving)
     assert (du, dv) == pytest.approx((-180.4, 129.6), abs=0.05)
+
+
+def test_binned_preparation_equals_binning_the_prepared_image():
+    from psfkit.registration import _prepared, _prepared_binned
+    from psfkit.resample import bin_image
+
+    rng = np.random.default_rng(5)
+    image = (rng.random((101, 130)) * 50 + 7).astype(np.float32)
+    expected = bin_image(_prepared(image), 2)
+    np.testing.assert_allclose(_prepared_binned(image, 2), expected, rtol=0, atol=1e-14)
+
+
+def test_tukey_window_equals_scipys():
+    from scipy.signal.windows import tukey
+
+    from psfkit.windows import tukey_window
+
+    for length in (0, 1, 2, 3, 10, 101, 540):
+        for alpha in (0.0, 0.25, 0.3, 0.5, 1.0, 1.5):
+            np.testing.assert_allclose(tukey_window(length, alpha), tukey(length, alpha),
+                                       rtol=0, atol=1e-15)

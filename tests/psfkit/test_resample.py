@@ -45,3 +45,13 @@ def test_binning_factor():
     assert binning_factor((480, 640), 160) == 4
     assert binning_factor((480, 641), 160) == 5
     assert binning_factor((100, 80), 160) == 1
+
+
+def test_bin_image_sums_in_the_requested_precision():
+    rng = np.random.default_rng(3)
+    image = rng.random((2, 31, 45)).astype(np.float32) * 1e3
+    sums = bin_image(image, 3, dtype=np.float64)
+    assert sums.dtype == np.float64
+    # float64 sums of the float32 values: exactly those of a float64 copy
+    assert np.array_equal(sums, bin_image(image.astype(np.float64), 3))
+    assert bin_image(image, 1, dtype=np.float64).dtype == np.float64
