@@ -210,7 +210,9 @@ display(figure_displacements(flow_cmp))
 #   gives pixels outside the caustic almost as much gradient as those on it and Adam moves
 #   both by the same step. `Kv`, `Kh` get 24× less gradient than `Kbase`.
 # - `physical` and `flow` keep the pedestal at ≤ 5 % (0 % of the light outside), but cost
-#   0.2–0.5 dB of test PSNR on the tiny bench: the 0.1 dB target is not met.
+#   0.2–0.5 dB of test PSNR on the tiny bench: the 0.1 dB target is not met. Over three
+#   training seeds the gap is real: `physical` −0.25 dB (measured seed), `physical` with a
+#   learned gain −0.60 dB (one PSF), the same sign for every seed (spread ±0.15–0.20 dB).
 # - From one PSF, `physical` learns displacements in the measured direction (correlation
 #   +0.62 / +0.81) but 4× too small and cannot learn the gain that dominates the measured
 #   `Kv − Kbase` (difference NCC 0.1); `flow` learns the gain (NCC 0.86) but a tiny,
