@@ -10,12 +10,18 @@ runs (torch vs NumPy).
     python benchmarks/bench_simulate_grid.py                 # full resolution, 3 runs each
     python benchmarks/bench_simulate_grid.py --downsample 4  # the test-sized grid
     python benchmarks/bench_simulate_grid.py --backends torch
+    python benchmarks/bench_simulate_grid.py --backends old,torch --old-ref f660dda
+
+``old`` is the code at git ``--old-ref`` (default: f660dda, the start of issue 15), exported
+with ``git archive`` and run with its own default backend: the "today's time" of issue 15,
+measured in the same run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -27,8 +33,8 @@ import json, resource, sys, time
 from psfkit.bench import BenchConfig, simulate_grid
 out, ds, backend = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 t0 = time.perf_counter()
-simulate_grid(out, BenchConfig(downsample=ds), grid_shape=(9, 9), progress=False,
-              backend=backend)
+extra = {} if backend == "old" else {"backend": backend}   # old code: no backend argument
+simulate_grid(out, BenchConfig(downsample=ds), grid_shape=(9, 9), progress=False, **extra)
 wall = time.perf_counter() - t0
 peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 cpu = resource.getrusage(resource.RUSAGE_SELF)
@@ -56,18 +62,31 @@ def main() -> None:
     parser.add_argument("--downsample", type=int, default=1)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--backends", default="numpy,torch",
-                        help="comma-separated, alternated in this order (default numpy,torch)")
+                        help="comma-separated, alternated in this order (default numpy,torch); "
+                             "'old': the code at --old-ref")
+    parser.add_argument("--old-ref", default="f660dda")
     args = parser.parse_args()
     backends = args.backends.split(",")
+    env = dict(os.environ)
     runs: dict[str, list[dict]] = {b: [] for b in backends}
     with tempfile.TemporaryDirectory() as tmp:
+        codes = {b: None for b in backends}
+        if "old" in backends:
+            from bench_fit_eigen import export_code  # same folder as this script
+
+            codes["old"] = export_code(args.old_ref, Path(tmp) / "old")
         last: dict[str, Path] = {}
         for i in range(args.repeat):
             for backend in backends:
                 out = Path(tmp) / f"grid_{backend}_{i}"
+                code = codes[backend]
+                # the old code's own folder first on sys.path (``python -c`` puts the working
+                # directory there)
                 res = subprocess.run([sys.executable, "-c", CHILD, str(out),
                                       str(args.downsample), backend],
-                                     check=True, capture_output=True, text=True)
+                                     check=True, capture_output=True, text=True,
+                                     cwd=code, env={**env, "PYTHONPATH": str(code)}
+                                     if code else env)
                 run = json.loads(res.stdout.strip().splitlines()[-1])
                 run["disk_mib"] = sum(f.stat().st_size for f in out.rglob("*")
                                       if f.is_file()) / 2**20
@@ -91,9 +110,10 @@ def main() -> None:
         print(f"simulate 9x9 RGB grid, downsample {args.downsample}, {backend}: median "
               f"{medians[backend]:.1f} s wall, {cpu:.1f} s CPU over {len(rs)} run(s) "
               f"(target < 180 s at full resolution), peak RSS {peak:.2f} GiB (target < 4 GiB)")
-    if {"numpy", "torch"} <= set(medians):
-        print(f"ratio torch / numpy (median wall): {medians['torch'] / medians['numpy']:.3f} "
-              "(target <= 0.5)")
+    for reference in ("numpy", "old"):
+        if {reference, "torch"} <= set(medians):
+            print(f"ratio torch / {reference} (median wall): "
+                  f"{medians['torch'] / medians[reference]:.3f} (target <= 0.5)")
 
 
 if __name__ == "__main__":
