@@ -193,15 +193,13 @@ class NormalEquations:
         self._factors.append(factors)
         # right-hand sides inside the rectangle, in blocks of rows that stay in the cache:
         # Σ m·a (slot 0) and Σ m·φ_j·a, each product with the row factor, then the column one
-        width = cols.stop - cols.start
-        scaling = []
+        n_rows, width = rows.stop - rows.start, cols.stop - cols.start
+        scaling = []                             # per term: ((R, 1) or None, (W,) or None)
         for ((fv, fu),) in weights[1:]:
-            steps = []
-            if fv is not None:
-                steps.append(dtype.type(fv) if np.isscalar(fv) else fv[rows].astype(dtype)[:, None])
-            if fu is not None:
-                steps.append(fu[cols].astype(dtype))
-            scaling.append(steps)
+            row = None if fv is None else np.broadcast_to(
+                np.asarray(fv, dtype)[rows] if np.ndim(fv) else dtype.type(fv), (n_rows,))
+            scaling.append((None if row is None else row[:, None],
+                            None if fu is None else fu[cols].astype(dtype)))
         block_rows = max(1, BLOCK_ELEMENTS // width)
         buffer = np.empty((block_rows, width), dtype)
         acc = self._rect_rhs
@@ -212,11 +210,10 @@ class NormalEquations:
             for c in range(self.channels):
                 data = image[c, block, cols]
                 acc[c, 0, block, cols] += data
-                for k, steps in enumerate(scaling, start=1):
-                    first = steps[0]
-                    np.multiply(data, first[local] if np.ndim(first) == 2 else first, out=tmp)
-                    for factor in steps[1:]:
-                        tmp *= factor[local] if np.ndim(factor) == 2 else factor
+                for k, (row, col) in enumerate(scaling, start=1):
+                    np.multiply(data, col if row is None else row[local], out=tmp)
+                    if row is not None and col is not None:
+                        tmp *= col
                     acc[c, k, block, cols] += tmp
 
     def _add_masked(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float],
@@ -297,7 +294,6 @@ class NormalEquations:
                                  self.count - other.count)
 
     def __iadd__(self, other: NormalEquations) -> NormalEquations:
-        self._materialize()
         self._gram = self.gram + other.gram     # may change precision: not in place
         self._rhs = self.rhs + other.rhs
         self.count += other.count

@@ -40,7 +40,6 @@ import numpy as np
 
 from psfkit.errors import ConfigurationError
 
-WeightFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 AxisFunction = Callable[[np.ndarray], np.ndarray]
 
 
@@ -67,17 +66,15 @@ class WeightTerm:
     scale: float = 1.0
 
     def __call__(self, u_norm: np.ndarray, v_norm: np.ndarray) -> np.ndarray:
-        fu = self.of_u(u_norm) if self.of_u is not None else None
-        fv = self.of_v(v_norm) if self.of_v is not None else None
+        fu, fv = self.factors(u_norm, v_norm)
         if fu is None:
-            out = np.ones_like(u_norm) if fv is None else fv
-        else:
-            out = fu if fv is None else fu * fv
-        return self.scale * out if self.scale != 1.0 else out
+            return np.ones_like(u_norm) if fv is None else fv
+        return fu if fv is None else fu * fv
 
     def factors(self, u_norm: np.ndarray, v_norm: np.ndarray
                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(f(u)·s, g(v))`` on 1-D coordinate arrays (``None`` where the factor is 1)."""
+        """``(s·f(u), g(v))`` (``None`` where the factor is 1); on 1-D coordinate arrays for
+        the factors themselves, or on broadcasting ones for their product (``__call__``)."""
         fu = self.of_u(u_norm) if self.of_u is not None else None
         fv = self.of_v(v_norm) if self.of_v is not None else None
         if self.scale != 1.0:

@@ -116,31 +116,33 @@ def test_console_scripts_are_installed(script):
     assert result.stdout.startswith(f"{script} 0.")
 
 
+def _child_output(code: str, *args: str) -> str:
+    """Last line printed by ``code`` run in a fresh interpreter (its own ``sys.modules``)."""
+    result = subprocess.run([sys.executable, "-c", code, *args], capture_output=True,
+                            text=True, check=True)
+    return result.stdout.strip().splitlines()[-1]
+
+
 def test_building_the_parser_imports_neither_torch_nor_ekdun():
     # psfkit --help and psfkit info must not pay for torch (seconds) nor reach into ekdun
     # (psfkit never imports ekdun); the commands import their heavy modules when they run.
-    code = ("import sys; from psfkit.cli import main; from psfkit.cli.main import build_parser; "
-            "build_parser(); print(sorted({m.split('.')[0] for m in sys.modules} "
-            "& {'torch', 'ekdun', 'matplotlib', 'scipy', 'cv2'}))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True)
-    assert result.stdout.strip() == "[]"
+    assert _child_output(
+        "import sys; from psfkit.cli import main; from psfkit.cli.main import build_parser; "
+        "build_parser(); print(sorted({m.split('.')[0] for m in sys.modules} "
+        "& {'torch', 'ekdun', 'matplotlib', 'scipy', 'cv2'}))") == "[]"
 
 
 def test_the_characterization_modules_do_not_import_scipy_signal():
     # scipy.signal (with scipy.stats and scipy.interpolate) costs ~0.4 s of start-up per
     # command, for one window function (psfkit.windows)
-    code = ("import sys, psfkit.grid_fit, psfkit.characterize, psfkit.cli.fit_cmd; "
-            "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', "
-            "'scipy.stats'))))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True)
-    assert result.stdout.strip() == "[]"
+    assert _child_output(
+        "import sys, psfkit.grid_fit, psfkit.characterize, psfkit.cli.fit_cmd; "
+        "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', "
+        "'scipy.stats'))))") == "[]"
 
 
 def test_info_on_a_grid_imports_neither_torch_nor_ekdun(grid_3x3):
-    code = ("import sys; from psfkit.cli import main; code = main(['info', sys.argv[1]]); "
-            "print(code, sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'ekdun'}))")
-    result = subprocess.run([sys.executable, "-c", code, str(grid_3x3)], capture_output=True,
-                            text=True, check=True)
-    assert result.stdout.strip().splitlines()[-1] == "0 []"
+    assert _child_output(
+        "import sys; from psfkit.cli import main; code = main(['info', sys.argv[1]]); "
+        "print(code, sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'ekdun'}))",
+        str(grid_3x3)) == "0 []"
