@@ -1,22 +1,29 @@
 """Benchmark: classical reconstruction of real DLMD measurements with fitted SI and EK models.
 
 Leave-one-out over the shared DiffuserCam Lensless Mirflickr pairs: for each pair, the SI and
-the eigen-kernel (``paper`` basis, sensor side) models are fitted on the other pairs
-(:func:`psfkit.pairs_fit.fit_pairs`, as ``psfkit fit-pairs``), the TV weight of every method is
-chosen on two of those fit pairs only, and the held-out measurement is reconstructed. PSNR and
-SSIM are against the lensed ground truth after a least-squares scale (then clipped to [0, 1]);
-s/image is the wall time of one reconstruction on one thread (the model's operator built
-outside the timer, as a batch run does once). Methods:
+the eigen-kernel (``paper`` basis, source side by default) models are fitted on the other pairs
+(:func:`psfkit.pairs_fit.fit_pairs`, as ``psfkit fit-pairs``), the TV weight and then the
+iteration count of every method are chosen on two of those fit pairs only, and the held-out
+measurement is reconstructed. PSNR and SSIM are against the lensed ground truth after a
+least-squares scale (then clipped to [0, 1]); s/image is the wall time of one reconstruction on
+one thread (the model's operator built outside the timer, as a batch run does once), as the
+mean over the held-out reconstructions and as the median of ``--timing-repeats`` interleaved
+rounds on the last pair, with each method at the median of its chosen iteration counts. Methods:
 
 * ``EK admm`` / ``SI admm``: :class:`ekdun.reconstruction.classical.ModelReconstructor`
-  (``ekdun admm --kernels``), closed-form ADMM-TV, ``--iterations`` (default 100);
+  (``ekdun admm --kernels``), closed-form ADMM-TV;
 * ``EK pdhg`` / ``SI pdhg``: the same models with PDHG, ``--pdhg-iterations`` (default 300),
   the ADMM's TV weight;
 * ``SI admm_tv f64``: the older :func:`ekdun.reconstruction.admm_tv` (float64, the fitted PSF
-  as is), the SI ADMM's TV weight;
+  as is), the SI ADMM's TV weight and iterations;
 * ``LenslessPiCam ADMM``: ``lensless`` 1.0.8's ADMM with the SI PSF, if importable (install it
   outside the project, e.g. ``pip install --no-deps --target /tmp/lensless_site lensless==1.0.8``
-  and ``--lensless /tmp/lensless_site``); its ``tau`` chosen likewise.
+  and ``--lensless /tmp/lensless_site``); its ``tau`` and iterations chosen likewise.
+
+Iterations: the fewest of ``--iteration-grid`` (default 40,60,80,100; the TV weight is chosen at
+the largest) whose mean PSNR on the tuning pairs is within ``--iteration-tolerance`` dB of the
+best count's, for each method alike (early stopping is part of the regularisation, and the
+methods converge at different speeds). ``--iteration-grid 100`` runs every method at 100.
 
     python benchmarks/bench_real_reconstruction.py --downsample 2 --lensless /tmp/lensless_site
 """
@@ -47,6 +54,11 @@ def psnr_ssim(image: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     mse = float(np.mean((scaled - truth) ** 2))
     ssim = structural_similarity(scaled, truth, channel_axis=0, data_range=1.0)
     return 10 * np.log10(1.0 / max(mse, 1e-30)), float(ssim)
+
+
+def mean_psnr(reconstruct, pairs: list[int], meas: np.ndarray, scenes: np.ndarray) -> float:
+    """Mean PSNR of ``reconstruct(measurement)`` over ``pairs`` (the tuning score)."""
+    return float(np.mean([psnr_ssim(reconstruct(meas[j]), scenes[j])[0] for j in pairs]))
 
 
 class Lensless:
@@ -88,10 +100,28 @@ def lensless_alignment(model, scene: np.ndarray) -> tuple[tuple[int, int], float
     return best
 
 
-def solver_runs(args: argparse.Namespace) -> list[tuple[str, int]]:
+def solver_runs(args: argparse.Namespace, admm_iterations: int) -> list[tuple[str, int]]:
     """``(solver, iterations)`` of the project's methods (PDHG left out at 0 iterations)."""
-    runs = [("admm", args.iterations)]
+    runs = [("admm", admm_iterations)]
     return [*runs, ("pdhg", args.pdhg_iterations)] if args.pdhg_iterations > 0 else runs
+
+
+def choose(score, values: list, prefer_smallest_within: float | None = None):
+    """The value of ``values`` with the best ``score(value)`` (mean tuning PSNR), or with
+    ``prefer_smallest_within``, the first (smallest) value within that many dB of the best."""
+    scores = [score(v) for v in values]
+    best = max(scores)
+    if prefer_smallest_within is None:
+        return values[int(np.argmax(scores))]
+    return next(v for v, s in zip(values, scores, strict=True)
+                if s >= best - prefer_smallest_within)
+
+
+def typical_iterations(rows: list[dict]) -> int:
+    """The median of the iteration counts chosen over the folds (the lower one of an even
+    number, so that it is one of the counts)."""
+    counts = sorted(r["it"] for r in rows)
+    return counts[(len(counts) - 1) // 2]
 
 
 def interleaved_timings(models: dict, chosen: dict, peer: tuple | None, y: np.ndarray,
@@ -102,14 +132,15 @@ def interleaved_timings(models: dict, chosen: dict, peer: tuple | None, y: np.nd
 
     methods = {}
     for name, model in models.items():
-        for solver, its in solver_runs(args):
-            recon = ModelReconstructor(model, ClassicalOptions(solver=solver, tv=chosen[name],
-                                                               iterations=its))
+        tv, its = chosen[name]
+        for solver, n in solver_runs(args, its):
+            recon = ModelReconstructor(model, ClassicalOptions(solver=solver, tv=tv,
+                                                               iterations=n))
             recon(y)                                            # ‖A‖ once, warm-up
             methods[f"{name} {solver}"] = lambda r=recon: r(y)
     if peer is not None:
-        solver = Lensless(models["SI"].kernels[0], *peer)
-        methods["LenslessPiCam ADMM"] = lambda s=solver: s(y, args.iterations)
+        solver = Lensless(models["SI"].kernels[0], *peer[:2])
+        methods["LenslessPiCam ADMM"] = lambda s=solver, n=peer[2]: s(y, n)
     times: dict[str, list[float]] = {name: [] for name in methods}
     for _ in range(args.timing_repeats):
         for name, run in methods.items():
@@ -123,7 +154,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=os.environ.get("PSFKIT_DLMD", str(DEFAULT_DATA)))
     parser.add_argument("--downsample", type=int, default=2)
-    parser.add_argument("--iterations", type=int, default=100)
+    parser.add_argument("--iteration-grid", default="40,60,80,100",
+                        help="iteration counts to choose from on the tuning pairs (the TV "
+                             "weight is chosen at the largest); one value: fixed")
+    parser.add_argument("--iteration-tolerance", type=float, default=0.05,
+                        help="choose the fewest iterations within this many dB of the best")
     parser.add_argument("--pdhg-iterations", type=int, default=300,
                         help="PDHG iterations (0: leave PDHG out)")
     parser.add_argument("--tv", default="1e-5,3e-5,1e-4,3e-4,1e-3",
@@ -135,8 +170,9 @@ def main() -> None:
     parser.add_argument("--lensless", help="folder holding the lensless package (PYTHONPATH)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--ek-basis", default="paper",
-                        help="weight basis of the sensor-side eigen-kernel model (default paper; "
-                             "source-side models need PDHG, which is not converged at 300 it)")
+                        help="weight basis of the eigen-kernel model (default paper)")
+    parser.add_argument("--ek-convention", default="source", choices=("source", "sensor"),
+                        help="where the eigen-kernel model's weights act (default source)")
     parser.add_argument("--timing-repeats", type=int, default=5,
                         help="interleaved timing rounds on the last held-out pair (medians)")
     parser.add_argument("--json", help="write the per-pair results here")
@@ -163,6 +199,7 @@ def main() -> None:
     n = len(scenes)
     folds = range(n) if not args.folds else [int(f) for f in args.folds.split(",")]
     tvs = [float(t) for t in args.tv.split(",")]
+    its_grid = sorted(int(k) for k in args.iteration_grid.split(","))
     taus = [float(t) for t in args.lensless_tau.split(",")]
     print(f"{n} pairs {scenes.shape[-2]}x{scenes.shape[-1]} (downsample {args.downsample}), "
           f"{args.threads} thread(s), load average at start {load[0]:.1f}", flush=True)
@@ -179,59 +216,72 @@ def main() -> None:
         keep = [j for j in range(n) if j != i]
         tune = keep[:args.tune_pairs]
         models, fit_s = {}, {}
-        for name, basis in (("SI", "si"), ("EK", args.ek_basis)):
+        for name, basis, convention in (("SI", "si", "sensor"),
+                                        ("EK", args.ek_basis, args.ek_convention)):
             t0 = time.perf_counter()
-            models[name] = fit_pairs(scenes[keep], meas[keep],
-                                     PairFitOptions(basis=basis)).kernel_model()
+            models[name] = fit_pairs(scenes[keep], meas[keep], PairFitOptions(
+                basis=basis, convention=convention)).kernel_model()
             fit_s[name] = time.perf_counter() - t0
         print(f"pair {i}: fits SI {fit_s['SI']:.1f} s, EK {fit_s['EK']:.1f} s; tuning on "
               f"pairs {tune}", flush=True)
         chosen = {}
         for name, model in models.items():
-            scores = []
-            for tv in tvs:
+            def tuned(tv: float, its: int, model=model, tune=tune) -> float:
+                recon = ModelReconstructor(model, ClassicalOptions(solver="admm", tv=tv,
+                                                                   iterations=its))
+                return mean_psnr(lambda y: recon(y).image, tune, meas, scenes)
+            tv = choose(lambda t, f=tuned: f(t, its_grid[-1]), tvs)
+            its = choose(lambda k, f=tuned, t=tv: f(t, k), its_grid, args.iteration_tolerance)
+            chosen[name] = (tv, its)
+            for solver, n_its in solver_runs(args, its):
                 recon = ModelReconstructor(model, ClassicalOptions(
-                    solver="admm", tv=tv, iterations=args.iterations))
-                scores.append(np.mean([psnr_ssim(recon(meas[j]).image, scenes[j])[0]
-                                       for j in tune]))
-            chosen[name] = tvs[int(np.argmax(scores))]
-            for solver, its in solver_runs(args):
-                recon = ModelReconstructor(model, ClassicalOptions(
-                    solver=solver, tv=chosen[name], iterations=its))
+                    solver=solver, tv=tv, iterations=n_its))
                 recon(meas[keep[0]])          # ‖A‖ (PDHG's power iteration) once per model
                 result = recon(meas[i])
                 record(f"{name} {solver}", result.image, result.seconds, i,
-                       {"tv": chosen[name], "it": its})
+                       {"tv": tv, "it": n_its})
         psf = models["SI"].kernels[0]
         # admm_tv's tau is relative to a unit-gain PSF: scale by this one's gain.
         gain = float(np.abs(np.fft.rfft2(psf, s=(2 * psf.shape[-2], 2 * psf.shape[-1]))).max())
+        tv, its = chosen["SI"]
         t0 = time.perf_counter()
-        image = admm_tv(meas[i], psf, iterations=args.iterations, tau=chosen["SI"] * gain,
-                        normalize_psf=False).numpy()
-        record("SI admm_tv f64", image, time.perf_counter() - t0, i, {"tv": chosen["SI"]})
+        image = admm_tv(meas[i], psf, iterations=its, tau=tv * gain, normalize_psf=False).numpy()
+        record("SI admm_tv f64", image, time.perf_counter() - t0, i, {"tv": tv, "it": its})
         if have_lensless:
             roll, err = lensless_alignment(models["SI"], scenes[i])
             if i == folds[0]:
                 print(f"  lensless's forward model with the PSF rolled by {roll} agrees with "
                       f"psfkit's to {err:.1e} (float64)")
-            scores = [np.mean([psnr_ssim(Lensless(psf, tau, roll)(meas[j], args.iterations),
-                                         scenes[j])[0] for j in tune]) for tau in taus]
-            tau = taus[int(np.argmax(scores))]
+
+            def peer_tuned(tau: float, its: int, roll=roll, psf=psf, tune=tune) -> float:
+                solver = Lensless(psf, tau, roll)
+                return mean_psnr(lambda y: solver(y, its), tune, meas, scenes)
+            tau = choose(lambda t: peer_tuned(t, its_grid[-1]), taus)
+            peer_its = choose(lambda k, t=tau: peer_tuned(t, k), its_grid,
+                              args.iteration_tolerance)
             solver = Lensless(psf, tau, roll)
             t0 = time.perf_counter()
-            image = solver(meas[i], args.iterations)
-            record("LenslessPiCam ADMM", image, time.perf_counter() - t0, i, {"tau": tau})
-    medians = interleaved_timings(models, chosen, (tau, roll) if have_lensless else None,
-                                  meas[i], args) if args.timing_repeats else {}
+            image = solver(meas[i], peer_its)
+            record("LenslessPiCam ADMM", image, time.perf_counter() - t0, i,
+                   {"tau": tau, "it": peer_its})
+    # Time each method at the iteration count it chose most typically (the median over the
+    # folds), not at the last fold's choice alone.
+    typical = {name: typical_iterations(rows[f"{name} admm"]) for name in models}
+    chosen = {name: (chosen[name][0], typical[name]) for name in models}
+    peer = (tau, roll, typical_iterations(rows["LenslessPiCam ADMM"])) if have_lensless else None
+    medians = interleaved_timings(models, chosen, peer, meas[i],
+                                  args) if args.timing_repeats else {}
     load_end = os.getloadavg()
     print(f"\nLeave-one-out over pairs {list(folds)} at {scenes.shape[-2]}x{scenes.shape[-1]}, "
-          f"{args.threads} thread(s); load average {load[0]:.1f} at start, {load_end[0]:.1f} "
-          "at end (2 shared cores)\n")
-    print("| method | iterations | PSNR dB | SSIM | s/image (mean of pairs) | s/image (median, "
-          "interleaved) |")
+          f"{args.threads} thread(s); EK = {args.ek_basis} basis, {args.ek_convention} side; "
+          f"load average {load[0]:.1f} at start, {load_end[0]:.1f} at end\n")
+    print("| method | iterations (per pair) | PSNR dB | SSIM | s/image (mean of pairs) | "
+          "s/image (median, interleaved) |")
     print("| --- | --- | --- | --- | --- | --- |")
     for name, r in rows.items():
-        its = r[0].get("it", args.iterations)
+        its = "/".join(str(x["it"]) for x in r)
+        if name in medians and "pdhg" not in name:
+            its += f" (timed: {typical_iterations(r)})"
         med = f"{medians[name]:.2f}" if name in medians else "-"
         print(f"| {name} | {its} | {np.mean([x['psnr'] for x in r]):.2f} | "
               f"{np.mean([x['ssim'] for x in r]):.3f} | {np.mean([x['s'] for x in r]):.2f} | "

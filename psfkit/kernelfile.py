@@ -225,10 +225,12 @@ class KernelModel:
         """Size of the grid on which the convolutions run (:func:`psfkit.forward.padded_shape`)."""
         return padded_shape(self.sensor_shape, self.scene_padding)
 
-    def weight_maps(self) -> np.ndarray:
+    def weight_maps(self, extent: tuple[int, int] | None = None) -> np.ndarray:
         """``(K, H', W')`` float64 weights (of the sensor pixels or of the scene pixels,
-        depending on ``convention``; both arrays have the sensor's size)."""
-        return self.weight_basis.maps(self.sensor_shape, self.optical_center)
+        depending on ``convention``; both arrays have the sensor's size), or ``(K, H, W)`` on a
+        larger centred grid ``extent`` with the edge weights continued outside the sensor
+        (:meth:`psfkit.weights.WeightBasis.maps`)."""
+        return self.weight_basis.maps(self.sensor_shape, self.optical_center, extent)
 
     @classmethod
     def shift_invariant(cls, psf: np.ndarray, **kwargs: Any) -> KernelModel:

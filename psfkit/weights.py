@@ -146,15 +146,32 @@ class WeightBasis:
         return out
 
     def maps(self, sensor_shape: tuple[int, int],
-             optical_center: tuple[float, float] | None = None) -> np.ndarray:
+             optical_center: tuple[float, float] | None = None,
+             extent: tuple[int, int] | None = None) -> np.ndarray:
         """Weight maps on the ``(H', W')`` grid, ``(K, H', W')`` float64.
 
         With the sensor-side convention they multiply each kernel's image on the sensor; with
         the source-side one they multiply the scene, whose array has the sensor's size and
         coordinates (``y = crop(K * pad(x))``).
+
+        With ``extent`` ``(H, W)`` (at least the sensor's size) the maps cover that larger grid
+        centred on the sensor, as the padded scene grid is (:func:`psfkit.forward.convolution.pad`),
+        and outside the sensor each pixel takes the weights of the nearest sensor pixel: the
+        model is fitted on the sensor-sized field only, so the edge kernels continue beyond it
+        rather than the periodic ``sin²`` terms turning back towards the base kernel. A
+        source-side model of a scene on the whole padded grid (light from outside the view)
+        needs them.
         """
-        u_norm, v_norm = normalized_coordinates(sensor_shape, optical_center)
-        return self.evaluate(u_norm, v_norm)
+        u_norm, v_norm = separable_coordinates(sensor_shape, optical_center)
+        maps = self.evaluate(u_norm, v_norm)                  # (K, H', W')
+        if extent is None:
+            return maps
+        h, w = sensor_shape
+        eh, ew = extent
+        if eh < h or ew < w:
+            raise ConfigurationError(f"extent {eh}x{ew} is smaller than the sensor {h}x{w}")
+        top, left = (eh - h) // 2, (ew - w) // 2        # as psfkit.forward.geometry.centre_offset
+        return np.pad(maps, ((0, 0), (top, eh - h - top), (left, ew - w - left)), mode="edge")
 
 
 def normalized_coordinates(sensor_shape: tuple[int, int],

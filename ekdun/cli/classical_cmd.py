@@ -48,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="TV weight relative to the measurement's peak and the model's gain "
                         "(default 1e-3 with a PSF image, 3e-4 with --kernels)")
     p.add_argument("--solver", choices=SOLVERS, default="auto",
-                   help="--kernels: admm (SI and sensor-side EK), pdhg (any), auto (default)")
+                   help="--kernels: admm (closed-form ADMM-TV, any model), pdhg, auto (default: "
+                        "admm)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help="--kernels: constrain the image to >= 0 (default on)")
     p.add_argument("--tol", type=nonnegative_float, default=0.0,

@@ -6,17 +6,21 @@ and no per-channel renormalisation (both change the model; fit-pairs kernels car
 camera's channel gains and may have negative lobes). Solvers:
 
 ``admm``
-    :func:`~ekdun.reconstruction.ek_admm.ek_admm_tv`: ADMM-TV with closed-form steps (one
-    split per kernel), for shift-invariant and sensor-side eigen-kernel models.
+    ADMM-TV with closed-form steps, for every model:
+    :func:`~ekdun.reconstruction.ek_admm.ek_admm_tv` (one split per kernel) for
+    shift-invariant and sensor-side eigen-kernel models,
+    :func:`~ekdun.reconstruction.source_admm.source_admm_tv` (splits of the weighted scenes
+    as well) for source-side ones.
 ``pdhg``
     :func:`~ekdun.reconstruction.pdhg_tv.pdhg_tv` (Chambolle–Pock), any model, only ``A`` and
     ``Aᵀ``; needs several times more iterations than ``admm`` on DLMD.
 ``auto``
-    ``admm`` where it applies, else ``pdhg``.
+    ``admm``.
 
-Both solve for the scene on the padded grid (light from outside the view) by default.
-Images are ``(C, H', W')`` in the model's channel order (RGB); files are converted at the
-boundary (:func:`reconstruct_folder`).
+Both solve for the scene on the padded grid (light from outside the view) by default; a
+source-side model's weights continue their edge values outside the view
+(:meth:`psfkit.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the model's
+channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from ekdun.physics.operators import EigenKernelOperator
 from ekdun.reconstruction.ek_admm import ek_admm_tv
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import pdhg_tv
+from ekdun.reconstruction.source_admm import source_admm_tv
 from psfkit.kernelfile import KernelModel
 
 SOLVERS = ("auto", "admm", "pdhg")
@@ -59,8 +64,8 @@ class ClassicalOptions:
     dtype : {"float32", "float64"}
     extended : bool, optional
         Solve for the scene on the whole padded grid (light from outside the view) and return
-        its central block; needs a sensor-side (or shift-invariant) model. ``admm`` always
-        does; ``None`` (default): wherever the model allows.
+        its central block. ``admm`` always does; ``None`` (default) or ``True``: so does
+        ``pdhg``; ``False``: ``pdhg`` on the sensor-sized scene.
     """
 
     solver: str = "auto"
@@ -105,21 +110,19 @@ class ModelReconstructor:
         self.model = model
         self.options = options or ClassicalOptions()
         self.dtype = DTYPES[self.options.dtype]
-        self.operator = EigenKernelOperator.from_kernel_model(model, dtype=self.dtype)
-        self.prepared = self.operator.prepare()
-        sensor_side = model.kernels.shape[0] == 1 or model.convention == "sensor"
-        solver = self.options.solver
-        if solver == "auto":
-            solver = "admm" if sensor_side else "pdhg"
-        if not sensor_side and (solver == "admm" or self.options.extended):
-            raise ConfigurationError(
-                f"a source-side eigen-kernel model ({model.basis!r}) needs solver 'pdhg' "
-                "without the extended scene (its weights exist only inside the view)")
+        solver = "admm" if self.options.solver == "auto" else self.options.solver
+        if solver == "admm" and self.options.extended is False:
+            raise ConfigurationError("the admm solver always solves on the padded grid "
+                                     "(extended=False needs solver 'pdhg')")
         self.solver = solver
-        extended = self.options.extended
-        self.extended = solver == "admm" or (sensor_side if extended is None else extended)
-        self.solver_operator = (ExtendedSceneOperator(self.prepared) if self.extended
-                                else self.prepared)
+        self.extended = self.options.extended is not False
+        if self.extended:
+            self.solver_operator = ExtendedSceneOperator.from_kernel_model(model, self.dtype)
+            self.prepared = self.solver_operator.base
+        else:
+            self.prepared = EigenKernelOperator.from_kernel_model(model,
+                                                                  dtype=self.dtype).prepare()
+            self.solver_operator = self.prepared
         self._norm: float | None = None
 
     @property
@@ -144,7 +147,12 @@ class ModelReconstructor:
         t0 = time.perf_counter()
         with torch.no_grad():
             y = torch.as_tensor(measurement, dtype=self.dtype)
-            solve = ek_admm_tv if self.solver == "admm" else pdhg_tv
+            if self.solver == "pdhg":
+                solve = pdhg_tv
+            elif self.solver_operator.convention == "source":
+                solve = source_admm_tv
+            else:
+                solve = ek_admm_tv
             result = solve(y, self.solver_operator, tv=o.tv, iterations=o.iterations,
                            nonneg=o.nonneg, tol=o.tol, norm=self._norm, callback=callback)
             self._norm = result.operator_norm              # measured once per model

@@ -30,6 +30,7 @@ the ``μ`` are scale-free; with the same ``norm`` the objective is PDHG's on the
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -52,6 +53,49 @@ def spectral_gain(op: ExtendedSceneOperator) -> float:
     (no FFT: the spectra are cached), unlike a power iteration."""
     power = (op.base.spectra.abs() ** 2).mean(dim=0)
     return float(power.amax().sqrt())
+
+
+@dataclass
+class NormalisedProblem:
+    """A measurement and a model in the scale-free units of the ADMM solvers: ``y`` divided by
+    its ``peak``, the kernel spectra (and their conjugates) by the gain ``norm``."""
+
+    y: Tensor
+    peak: float
+    norm: float
+    spectra: Tensor
+    conj: Tensor
+
+
+def normalised_problem(measurement: Tensor, op: ExtendedSceneOperator, tv: float, tol: float,
+                       iterations: int, penalties: tuple[float, ...],
+                       norm: float | None) -> NormalisedProblem:
+    """Check the arguments common to the ADMM solvers and scale the problem (see the module
+    docstring); raises :class:`~ekdun.errors.ConfigurationError` or
+    :class:`~ekdun.errors.TensorShapeError`."""
+    if tv < 0 or tol < 0 or iterations < 1 or min(penalties) <= 0:
+        raise ConfigurationError("need tv >= 0, tol >= 0, iterations >= 1 and positive mu")
+    if measurement.ndim != 3:
+        raise TensorShapeError(f"measurement must be (C, H, W), got {tuple(measurement.shape)}")
+    op.check(measurement[None], "measurement")
+    norm = spectral_gain(op) if norm is None else norm
+    peak = float(measurement.abs().max().clamp_min(1e-30))
+    return NormalisedProblem(measurement / peak, peak, norm, op.base.spectra / norm,
+                             op.base.conj_spectra / norm)
+
+
+def record_change(result: TVResult, iteration: int, x_new: Tensor, x: Tensor, tol: float,
+                  callback: Callable[[int, float], None] | None) -> bool:
+    """Log ``‖x_new − x‖/‖x_new‖`` in ``result`` (and to ``callback``); whether the stopping
+    rule ``change < tol`` holds (``result.converged`` is set then). An iterate of zero counts as
+    no convergence (the source-side ADMM's first ``x`` is 0)."""
+    size = float(x_new.norm())
+    change = float((x_new - x).norm()) / size if size > 0 else 1.0
+    result.relative_change.append(change)
+    if callback is not None:
+        callback(iteration, change)
+    result.converged = tol > 0 and change < tol
+    return result.converged
 
 
 def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
@@ -91,18 +135,12 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         ``image`` is the ``(C, PH, PW)`` padded-grid scene in the units of ``y = A x``
         (``op.crop`` gives the sensor-sized block).
     """
-    if tv < 0 or tol < 0 or iterations < 1 or min(mu1, mu2, mu3) <= 0:
-        raise ConfigurationError("need tv >= 0, tol >= 0, iterations >= 1 and positive mu")
-    if measurement.ndim != 3:
-        raise TensorShapeError(f"measurement must be (C, H, W), got {tuple(measurement.shape)}")
-    op.check(measurement[None], "measurement")
-    if norm is None:
-        norm = spectral_gain(op)
-    peak = float(measurement.abs().max().clamp_min(1e-30))
-    y = measurement / peak
+    if op.convention != "sensor":
+        raise ConfigurationError("ek_admm_tv needs a sensor-side or shift-invariant model "
+                                 "(source-side models: source_admm_tv)")
+    problem = normalised_problem(measurement, op, tv, tol, iterations, (mu1, mu2, mu3), norm)
+    y, spectra, conj = problem.y, problem.spectra, problem.conj   # (K, C, PH, PW//2+1)
     grid, sensor = op.grid_shape, op.sensor_shape
-    spectra = op.base.spectra / norm                              # (K, C, PH, PW//2+1)
-    conj = op.base.conj_spectra / norm
     n_kernels = int(spectra.shape[0])
     weights = (torch.ones((n_kernels, *sensor), dtype=y.dtype, device=y.device)
                if op.weights is None else op.weights)[:, None]    # (K, 1, H', W')
@@ -122,7 +160,7 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     alpha1, alpha3 = torch.zeros_like(hx), torch.zeros_like(x)
     alpha2 = torch.zeros((2, *x.shape), dtype=y.dtype, device=y.device)
     track = tol > 0 or callback is not None
-    result = TVResult(image=x, iterations=0, converged=False, operator_norm=norm)
+    result = TVResult(image=x, iterations=0, converged=False, operator_norm=problem.norm)
     for k in range(1, iterations + 1):
         s = torch.nn.functional.softshrink(dx + alpha2 / mu2, tv / mu2)
         # u_k = b_k + pad(W_k r), b_k = H_k x + α_k/μ1 (Sherman–Morrison inside the view).
@@ -152,16 +190,10 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         if nonneg:
             alpha3 = alpha3 + mu3 * (x_new - w)
         result.iterations = k
-        if track:
-            change = float((x_new - x).norm() / x_new.norm().clamp_min(1e-30))
-            result.relative_change.append(change)
-            if callback is not None:
-                callback(k, change)
-            if tol > 0 and change < tol:
-                x = x_new
-                result.converged = True
-                break
+        stop = track and record_change(result, k, x_new, x, tol, callback)
         x = x_new
+        if stop:
+            break
     image = x.clamp_min(0) if nonneg else x
-    result.image = image * (peak / norm)
+    result.image = image * (problem.peak / problem.norm)
     return result

@@ -24,15 +24,18 @@ HELD_OUT = 3                     # im394 (pairs sorted by name): never used to f
 
 @pytest.fixture(scope="module")
 def dlmd(real_data, tmp_path_factory):
-    """The DLMD pairs at 67x120 and SI / EK (sensor side) models fitted on all but one."""
+    """The DLMD pairs at 67x120 and SI / EK (sensor and source side) models fitted on all but
+    one."""
     root = real_data("dlmd_mirflickr")
     pairs = read_pairs(root)
     scenes, meas = downsample_pairs(*pairs.load_all(), 4)
     keep = np.arange(len(scenes)) != HELD_OUT
     out = tmp_path_factory.mktemp("dlmd_models")
     models = {}
-    for name, basis in (("si", "si"), ("ek", "paper")):
-        fit = fit_pairs(scenes[keep], meas[keep], PairFitOptions(basis=basis))
+    for name, basis, convention in (("si", "si", "sensor"), ("ek", "paper", "sensor"),
+                                    ("ek_source", "paper", "source")):
+        fit = fit_pairs(scenes[keep], meas[keep], PairFitOptions(basis=basis,
+                                                                 convention=convention))
         models[name] = save_kernels(out / f"{name}.npz", fit.kernel_model())
     measurement = root / pairs.measurement_dir / pairs.measurement_files[HELD_OUT]
     return {"root": root, "scene": scenes[HELD_OUT], "measurement": measurement,
@@ -55,19 +58,22 @@ def test_cli_defaults_are_the_library_defaults():
     assert classical_cmd.SOLVERS == classical.SOLVERS
 
 
-def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path):
+@pytest.mark.parametrize("name", ["ek", "ek_source"])
+def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
     from psfkit.kernelfile import load_kernels
 
     out = tmp_path / "rec.npy"
-    assert ekdun_main(["admm", "--kernels", str(dlmd["models"]["ek"]), str(dlmd["measurement"]),
+    assert ekdun_main(["admm", "--kernels", str(dlmd["models"][name]), str(dlmd["measurement"]),
                        "--out", str(out), "--downsample", "4", "--channel-order", "BGR",
                        "--iterations", "40", "--quiet"]) == 0
     stored = np.load(out)                                     # H x W x C, BGR like the input
     assert stored.shape == (67, 120, 3) and stored.dtype == np.float32
     assert out.with_suffix(".png").is_file()
     y = read_classical_measurement(dlmd["measurement"], "BGR", downsample=4)
-    library = ModelReconstructor(load_kernels(dlmd["models"]["ek"]),
-                                 ClassicalOptions(iterations=40, tv=3e-4))(y).image
+    recon = ModelReconstructor(load_kernels(dlmd["models"][name]),
+                               ClassicalOptions(iterations=40, tv=3e-4))
+    assert recon.solver == "admm" and recon.extended
+    library = recon(y).image
     np.testing.assert_array_equal(stored, np.moveaxis(library[::-1], 0, -1))
     # Orientation: the reconstruction matches the ground truth better than its mirror images.
     truth = dlmd["scene"]
@@ -98,7 +104,7 @@ def test_bgr_measurement_gives_bgr_output_and_rgb_preview(dlmd, tmp_path):
     assert preview[0].mean() > 5 * max(preview[1].mean(), preview[2].mean())
 
 
-@pytest.mark.parametrize("name", ["si", "ek"])
+@pytest.mark.parametrize("name", ["si", "ek", "ek_source"])
 def test_real_reconstructions_beat_the_adjoint_baseline(dlmd, name):
     from psfkit.kernelfile import load_kernels
 

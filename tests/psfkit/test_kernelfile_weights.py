@@ -218,3 +218,19 @@ def test_from_metadata_reads_the_older_checkpoint_form_and_names_the_problem():
                                   where="seed")
     with pytest.raises(ModelFileError, match=r"^seed: metadata is not a JSON object"):
         KernelModel.from_metadata(kernels, ["paper"], where="seed")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("basis", ["paper", "paper+odd+cross", "poly:2"])
+def test_weight_maps_on_a_larger_grid_continue_the_edge_weights(basis):
+    b = get_basis(basis)
+    centre = (3.0, 4.5)                                     # off the sensor centre
+    maps = b.maps((7, 10), centre)
+    big = b.maps((7, 10), centre, extent=(14, 21))
+    assert big.shape == (b.n_kernels, 14, 21)
+    top, left = (14 - 7) // 2, (21 - 10) // 2               # where pad() puts the sensor
+    np.testing.assert_array_equal(big[:, top:top + 7, left:left + 10], maps)
+    np.testing.assert_array_equal(big[:, :top, left:left + 10],
+                                  np.repeat(maps[:, :1], top, axis=1))
+    np.testing.assert_array_equal(big[:, -1, -1], maps[:, -1, -1])
+    with pytest.raises(ConfigurationError, match="smaller than the sensor"):
+        b.maps((7, 10), extent=(6, 21))
