@@ -140,11 +140,10 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
     c = zeros(2, channels, *grid)
     hr_view, a_view = torch.zeros_like(y), torch.zeros_like(y)
     g_hat = torch.zeros(spectra.shape[1:], dtype=spectra.dtype, device=y.device)
-    hr_hat = torch.zeros_like(g_hat)
     planes = zeros(n_kernels + 2, channels, *grid)                # one batched rfft
     data_view = crop(planes[n_kernels], sensor)                   # zero outside the view
-    products = torch.empty_like(spectra)
-    inverse = torch.empty((n_kernels + 2, *g_hat.shape), dtype=spectra.dtype, device=y.device)
+    inverse = torch.zeros((n_kernels + 2, *g_hat.shape), dtype=spectra.dtype, device=y.device)
+    hr_hat = inverse[n_kernels]                                   # F(Σ_k H_k r_k)
     dx = finite_differences(x)
     track = tol > 0 or callback is not None
     result = TVResult(image=x, iterations=0, converged=False, operator_norm=problem.norm)
@@ -158,17 +157,24 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
         # Block 2: r (Sherman–Morrison per frequency) and x (Fourier-diagonal).
         torch.mul(weights, z, out=planes[:n_kernels])
         torch.sub(v_view, a_view, out=data_view).sub_(hr_view)
-        planes[n_kernels + 1] = mu2 * finite_differences_adjoint(s - c) + mu3 * (z + d)
+        torch.add(z, d, out=planes[n_kernels + 1]).mul_(mu3).add_(
+            finite_differences_adjoint(s - c), alpha=mu2)
         f = rfft2(planes)
-        kvz = torch.mul(spectra, f[:n_kernels], out=products).sum(dim=0)   # Σ_k K̂_k F(V_k z)
+        kvz = spectra[0] * f[0]                                   # Σ_k K̂_k F(V_k z)
+        for j in range(1, n_kernels):
+            kvz.addcmul_(spectra[j], f[j])
         pg_old = _scale_complex(power, g_hat)
-        g_hat = _scale_complex(g_gain, hr_hat + f[n_kernels] - kvz + pg_old)
-        hr_hat = kvz.sub_(pg_old).add_(_scale_complex(power, g_hat))
+        g_hat = (hr_hat + f[n_kernels]).sub_(kvz).add_(pg_old)
+        _scale_complex(g_gain, g_hat, out=g_hat)
+        # Σ_k K̂_k r̂_k = Σ_k K̂_k F(V_k z) − P ĝ_old + P ĝ, written straight into the inverse
+        # batch (whose c2r leaves its input as it is, so it is still there next iteration).
+        torch.sub(kvz, pg_old, out=hr_hat).add_(_scale_complex(power, g_hat))
         torch.mul(conj, g_hat, out=inverse[:n_kernels])
-        inverse[n_kernels] = hr_hat
         _scale_complex(x_gain, f[n_kernels + 1], out=inverse[n_kernels + 1])
         images = irfft2(inverse, grid)
-        q_old, q = q, (weights * images[:n_kernels]).sum(dim=0)
+        q_old, q = q, images[0] * weights[0]
+        for j in range(1, n_kernels):
+            q.addcmul_(images[j], weights[j])
         hr_view = crop(images[n_kernels], sensor)
         x_new = images[n_kernels + 1]
         dx = finite_differences(x_new)
