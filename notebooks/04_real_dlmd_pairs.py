@@ -201,12 +201,12 @@ if HAVE_DATA:
 # | method (iterations chosen per pair on the fit pairs) | PSNR dB | SSIM | s/image |
 # | --- | --- | --- | --- |
 # | SI kernel file, ADMM (60-80 it) | 18.20 | 0.480 | 0.22 |
-# | **EK kernel file, source side, ADMM** (60-80 it) | **19.03** | **0.546** | 0.36 |
-# | LenslessPiCam 1.0.8 ADMM, the same SI PSF (60-100 it) | 17.25 | 0.414 | 0.26 |
+# | **EK kernel file, source side, ADMM** (60-80 it) | **19.03** | **0.546** | 0.32 |
+# | LenslessPiCam 1.0.8 ADMM, the same SI PSF (60-100 it) | 17.25 | 0.414 | 0.25 |
 #
-# The eigen-kernel model gains 0.83 dB over one PSF (better on 6 of 7 pairs) at 1.61 times its
+# The eigen-kernel model gains 0.83 dB over one PSF (better on 6 of 7 pairs) at 1.47 times its
 # time per image; one PSF with this project's ADMM gains 0.95 dB over LenslessPiCam's (7 of 7)
-# at 0.86 times its time.
+# at 0.88 times its time.
 
 # %% [markdown]
 # ## From the pairs to a trained network and a reconstruction of an unseen measurement
