@@ -103,11 +103,15 @@ def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path):
                           str(tmp_path / "one"), *common[1:]], env=env, capture_output=True,
                          text=True, timeout=300)
     assert one.returncode == 0, one.stderr
+    logs = tmp_path / "rank_logs"              # each rank's own output, for a failure report
     two = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone",
-                          "--nproc_per_node", "2", "-m", "ekdun.cli", "train", *common[:1],
+                          "--nproc_per_node", "2", "--log-dir", str(logs), "--redirects", "3",
+                          "-m", "ekdun.cli", "train", *common[:1],
                           str(tmp_path / "two"), *common[1:]], env=env, capture_output=True,
                          text=True, timeout=300)
-    assert two.returncode == 0, two.stderr[-2000:]
+    ranks = "".join(f"\n--- {f.relative_to(logs)}\n{f.read_text(errors='replace')[-1500:]}"
+                    for f in sorted(logs.rglob("*.log")))
+    assert two.returncode == 0, two.stderr[-1500:] + ranks
     a = load_checkpoint(tmp_path / "one" / "checkpoint.pt")
     b = load_checkpoint(tmp_path / "two" / "checkpoint.pt")
     assert b["metadata"]["world_size"] == 2 and a["metadata"]["world_size"] == 1
