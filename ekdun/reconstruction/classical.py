@@ -116,13 +116,9 @@ class ModelReconstructor:
                                      "(extended=False needs solver 'pdhg')")
         self.solver = solver
         self.extended = self.options.extended is not False
-        if self.extended:
-            self.solver_operator = ExtendedSceneOperator.from_kernel_model(model, self.dtype)
-            self.prepared = self.solver_operator.base
-        else:
-            self.prepared = EigenKernelOperator.from_kernel_model(model,
-                                                                  dtype=self.dtype).prepare()
-            self.solver_operator = self.prepared
+        self.solver_operator = (
+            ExtendedSceneOperator.from_kernel_model(model, self.dtype) if self.extended
+            else EigenKernelOperator.from_kernel_model(model, dtype=self.dtype).prepare())
         self._norm: float | None = None
 
     @property
