@@ -29,6 +29,7 @@ from psfkit.eigen import (
 from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
 from psfkit.io.grid import PsfGrid
+from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
 from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
@@ -102,6 +103,7 @@ class GridEigenResult:
     kernel_scale: float = 1.0
     cv: dict[str, Any] | None = None
     pca: PcaResult | None = None
+    channel_order: str = "RGB"   # of the grid's files on disk (recorded in the kernel file)
     angles_deg: np.ndarray | None = None
 
     @property
@@ -119,7 +121,9 @@ class GridEigenResult:
                           + (", PSFs gain-compensated before the fit" if
                              self.options.gain_compensate else "") + ")",
             provenance={"source": "psfkit fit-eigen", "grid": self.grid_root,
-                        "fit": self.summary()})
+                        "fit": self.summary()},
+            # measurements of this camera are taken to be stored like its PSF grid
+            read_options=ReadOptions(channel_order=self.channel_order))
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready numbers of the fit."""
@@ -231,7 +235,8 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
         channels=grid.channels, center=center, options=options, convention=convention,
         full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
-        kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv)
+        kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv,
+        channel_order=grid.channel_order)
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() >= 2:
         result.pca = stack_pca(stack.images, stack.valid, reliable)

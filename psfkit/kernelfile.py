@@ -13,7 +13,11 @@ One ``.npz`` file (NumPy, no pickles) holds
     convolution), ``kernel_names``, ``channels``, ``sensor_shape`` ``[H', W']`` (measurement
     size, and the grid on which the weights are defined), ``optical_center`` ``[v_c, u_c]``,
     ``scene_padding`` (the convolution runs on a ``scene_padding × sensor_shape`` grid),
-    ``normalization`` (how the kernels were scaled), and free-form ``provenance``.
+    ``normalization`` (how the kernels were scaled), ``kernel_origin`` (checked on reading),
+    ``read_options`` (how the data the model was fitted on was read: channel order on disk,
+    flip, binning, white level; :class:`psfkit.io.read_options.ReadOptions`; every command
+    that consumes the file reads its inputs this way by default), and free-form
+    ``provenance``.
 
 Forward model (``shared/design.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
 ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` for the sensor-side convention and
@@ -35,6 +39,7 @@ import numpy as np
 from psfkit.errors import ModelFileError, PsfkitError
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.io.atomic import atomic_file
+from psfkit.io.read_options import ReadOptions
 from psfkit.validation import (
     MAX_IMAGE_PIXELS,
     MAX_SCENE_PADDING,
@@ -47,6 +52,7 @@ from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
 KERNEL_VERSION = 1
+KERNEL_ORIGIN = "array centre (H//2, W//2)"   # the one convention (shared/design.md)
 _DEFAULT_WHERE = "kernel model"   # how a model without a file names itself in errors
 
 
@@ -74,6 +80,9 @@ class KernelModel:
         Description of the kernels' scale (e.g. ``"base kernel sums to 1 per channel"``).
     provenance : dict
         Where the model came from (input files, fit residuals, ...).
+    read_options : ReadOptions or None
+        How the data it was fitted on was read (``None``: not recorded, as in files written
+        before issue 21; see :meth:`data_read_options`).
     """
 
     kernels: np.ndarray
@@ -85,6 +94,7 @@ class KernelModel:
     scene_padding: int = 2
     normalization: str = "unspecified"
     provenance: dict[str, Any] = field(default_factory=dict)
+    read_options: ReadOptions | None = None
 
     def __post_init__(self) -> None:
         kernels = np.asarray(self.kernels)
@@ -170,9 +180,21 @@ class KernelModel:
             "optical_center": None if self.optical_center is None
             else [float(c) for c in self.optical_center],
             "scene_padding": self.scene_padding, "normalization": self.normalization,
-            "kernel_origin": "array centre (H//2, W//2)",
+            "kernel_origin": KERNEL_ORIGIN,
             "provenance": self.provenance,
+            **({} if self.read_options is None
+               else {"read_options": self.read_options.to_json()}),
         }
+
+    def data_read_options(self) -> ReadOptions:
+        """How inputs for this model are read by default: the recorded :attr:`read_options`,
+        or for older files the binning recorded in ``provenance['downsample']`` (channel order
+        not recorded)."""
+        if self.read_options is not None:
+            return self.read_options
+        factor = self.provenance.get("downsample")
+        ok = isinstance(factor, int) and not isinstance(factor, bool) and 1 <= factor <= 64
+        return ReadOptions(downsample=factor if ok else None)
 
     @classmethod
     def from_metadata(cls, kernels: np.ndarray, meta: dict[str, Any],
@@ -266,6 +288,13 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
     provenance = meta.get("provenance", {})
     if not isinstance(provenance, dict):
         raise ModelFileError(f"{where}: 'provenance' must be an object, got {provenance!r}")
+    origin = meta.get("kernel_origin", KERNEL_ORIGIN)
+    if origin != KERNEL_ORIGIN:
+        raise ModelFileError(f"{where}: 'kernel_origin' is {origin!r}; this toolkit stores "
+                             f"kernels with their origin at the {KERNEL_ORIGIN}")
+    read_options = meta.get("read_options")
+    if read_options is not None:
+        read_options = ReadOptions.from_json(read_options, where)
     padding = meta.get("scene_padding", 2)
     if isinstance(padding, bool) or not isinstance(padding, int):
         raise ModelFileError(f"{where}: 'scene_padding' must be an integer, got {padding!r}")
@@ -274,7 +303,7 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
                 sensor_shape=sensor, channels=tuple(channels), optical_center=center,
                 scene_padding=padding,
                 normalization=text("normalization", meta.get("normalization", "unspecified")),
-                provenance=provenance)
+                provenance=provenance, read_options=read_options)
 
 
 def _two_finite_numbers(values: Any) -> bool:

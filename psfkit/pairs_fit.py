@@ -41,6 +41,7 @@ from psfkit.errors import InvalidInputError
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zero_workspace
 from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
 from psfkit.pairs_options import PairFitOptions
@@ -83,13 +84,16 @@ class PairFit:
                                 "energy": o.energy},
                 **kernel_summary(self.kernels)}
 
-    def kernel_model(self, provenance: dict[str, Any] | None = None) -> KernelModel:
+    def kernel_model(self, provenance: dict[str, Any] | None = None,
+                     read_options: ReadOptions | None = None) -> KernelModel:
+        """The kernel file content; ``read_options``: how the fitted pairs were read
+        (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
         channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
         return KernelModel(kernels=self.kernels, basis=self.basis, convention=self.convention,
                            sensor_shape=self.kernels.shape[-2:], channels=channels,
                            scene_padding=self.options.scene_padding,
                            normalization="fitted in the pairs' own units: y = A x",
-                           provenance=provenance or {})
+                           provenance=provenance or {}, read_options=read_options)
 
 
 def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int

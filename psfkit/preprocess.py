@@ -248,3 +248,80 @@ def normalization_scale(reference: np.ndarray, normalization: str) -> float:
         return float(np.sum(reference))
     raise ConfigurationError(f"normalization must be one of {NORMALIZATIONS}")
 
+
+
+# --------------------------------------------------------------------------- single PSF images
+
+BACKGROUNDS = ("none", "corner")
+CORNER = (slice(5, 15), slice(5, 15))   # the DiffuserCam tutorial's dark patch, rows/cols 5..14
+
+
+def subtract_background(image: np.ndarray, background: str = "corner") -> np.ndarray:
+    """``image`` ``(C, H, W)`` minus its background: ``"corner"`` subtracts each channel's mean
+    over ``[5:15, 5:15]`` (as the DiffuserCam tutorial does for PSFs and raw captures),
+    ``"none"`` returns it unchanged.
+
+    Raises
+    ------
+    ConfigurationError
+        Unknown ``background``.
+    """
+    if background not in BACKGROUNDS:
+        raise ConfigurationError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    if background == "none":
+        return image
+    return image - image[(slice(None), *CORNER)].mean(axis=(1, 2), keepdims=True,
+                                                       dtype=np.float64).astype(image.dtype)
+
+
+def load_psf_image(path: str, channel_order: str = "RGB", background: str = "corner",
+                   downsample: int = 1, white_level: float | None = None) -> np.ndarray:
+    """A measured point-source image as a shift-invariant kernel: the one PSF loader.
+
+    ``ekdun admm PSF RAW`` and ``ekdun train --psf`` both read PSF images through it, so a
+    PSF file gives the same kernel in both. Steps: read in the toolkit's units
+    (:func:`psfkit.io.images.read_image_float`), subtract the background
+    (:func:`subtract_background`), bin ``downsample × downsample`` blocks (block mean), clip to
+    ``>= 0`` (negative values are noise after background subtraction) and scale each channel to
+    unit sum (a PSF conserves energy; reconstructions come out in measurement units).
+
+    Parameters
+    ----------
+    path : str
+        ``.npy``, PNG or TIFF image of the point source, the sensor's size.
+    channel_order : {"RGB", "BGR"}
+        Order of the channels in ``.npy``/TIFF files.
+    background : {"corner", "none"}
+    downsample : int
+        Binning factor (as for the measurements).
+    white_level : float, optional
+        Full-scale stored value of integer files.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(C, H, W)`` float32, non-negative, each channel summing to 1.
+
+    Raises
+    ------
+    InvalidInputError
+        Unreadable file, NaN/Inf, or a channel with no signal left after the background.
+    """
+    from psfkit.io.images import read_image_float
+    from psfkit.resample import bin_mean
+
+    if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
+        raise ConfigurationError(f"downsample must be a positive integer, got {downsample!r}")
+    image = read_image_float(path, channel_order, white_level).astype(np.float64)
+    image = subtract_background(image, background)
+    if downsample > 1:
+        if min(image.shape[-2:]) // downsample < 1:
+            raise InvalidInputError(f"{path}: binning {image.shape[-2]}x{image.shape[-1]} by "
+                                    f"{downsample} leaves no pixel")
+        image = bin_mean(image, downsample)
+    psf = np.clip(image, 0, None)
+    sums = psf.sum(axis=(1, 2), keepdims=True)
+    if not np.all(sums > 0):
+        raise InvalidInputError(f"{path}: a channel of the PSF has no signal above the "
+                                f"background ({background}); not a point-source image")
+    return (psf / sums).astype(np.float32)

@@ -57,14 +57,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "this (default 0: run all iterations)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                    help="--kernels: precision (default float32)")
-    p.add_argument("--downsample", type=positive_int, default=1,
-                   help="box-downsample the inputs first")
+    p.add_argument("--downsample", type=positive_int,
+                   help="box-downsample the inputs first (default: with --kernels, the factor "
+                        "recorded in the kernel file; else 1)")
     p.add_argument("--background", choices=("none", "corner"),
                    help="subtract the mean of the [5:15, 5:15] corner (default: corner with a "
                         "PSF image, none with --kernels)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"), default="RGB",
-                   help=".npy/TIFF channel order of the inputs (DLMD: BGR); with --kernels the "
-                        "output .npy is written in the same order")
+    p.add_argument("--channel-order", choices=("RGB", "BGR"),
+                   help=".npy/TIFF channel order of the inputs (default: with --kernels, the "
+                        "order recorded in the kernel file, e.g. BGR for a model fitted on the "
+                        "DLMD pairs; else RGB); outputs are always RGB")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (file and preview, or folder)")
     p.add_argument("--threads", type=positive_int, help="torch CPU threads")
@@ -92,9 +94,17 @@ def run_with_kernels(args: argparse.Namespace) -> int:
         reconstruct_folder,
         write_reconstruction,
     )
+    from psfkit.io.read_options import choose
     from psfkit.kernelfile import load_kernels
 
     model = load_kernels(args.kernels)
+    # inputs are read the way the model's data was, unless a flag says otherwise
+    recorded = model.data_read_options()
+    order, order_notice = choose(args.channel_order, recorded.channel_order, "RGB",
+                                 "--channel-order", args.kernels)
+    factor, factor_notice = choose(args.downsample, recorded.downsample, 1, "--downsample",
+                                   args.kernels)
+    notices = [n for n in (order_notice, factor_notice) if n]
     options = ClassicalOptions(solver=args.solver, tv=args.tv, iterations=args.iterations,
                                nonneg=args.nonneg, tol=args.tol, dtype=args.dtype)
     out = Path(args.out)
@@ -105,23 +115,32 @@ def run_with_kernels(args: argparse.Namespace) -> int:
         # the image and its preview are checked first and appear together
         with OutputTransaction(overwrite=args.overwrite) as outputs:
             staged, preview = outputs.file(out), outputs.file(out.with_suffix(".png"))
-            y = read_classical_measurement(args.inputs[0], args.channel_order,
-                                           args.downsample, args.background)
+            y = read_classical_measurement(args.inputs[0], order, factor, args.background,
+                                           recorded.white_level)
             require_finite(y, args.inputs[0])
             recon = ModelReconstructor(model, options)
             recon.check(y, args.inputs[0])
             result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
-            write_reconstruction(staged, result.image, args.channel_order, preview)
+            write_reconstruction(staged, result.image, preview)
         print(f"{recon.solver} reconstruction {y.shape[1]}x{y.shape[2]} "
               f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
+        _say_all(notices)
         return 0
     if out.suffix:
         raise InvalidInputError(f"{out}: several measurements need an output folder, not a file")
-    written = reconstruct_folder(model, args.inputs, out, options, args.channel_order,
+    written = reconstruct_folder(model, args.inputs, out, options, order,
                                  args.overwrite, progress=not args.quiet,
-                                 downsample=args.downsample, background=args.background)
+                                 downsample=factor, background=args.background,
+                                 white_level=recorded.white_level)
     print(f"{len(written)} reconstruction(s) in {out}", file=sys.stderr)
+    _say_all(notices)
     return 0
+
+
+def _say_all(notices: list[str]) -> None:
+    """Notices after the work, so that an error stays the one line on stderr."""
+    for text in notices:
+        print(text, file=sys.stderr)
 
 
 def _iteration_bar(total: int):  # a tqdm-driven callback
@@ -161,27 +180,27 @@ def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
     import numpy as np
 
     from ekdun.reconstruction import admm_tv
+    from ekdun.reconstruction.classical import read_classical_measurement
     from ekdun.reconstruction.reconstruct import to_preview
-    from psfkit.io.images import read_image, write_image
-    from psfkit.resample import bin_mean
+    from psfkit.io.images import write_image
+    from psfkit.preprocess import load_psf_image
 
-    images = []
-    for path in args.inputs:
-        image = require_finite(read_image(path, args.channel_order), path).astype(np.float64)
-        if min(image.shape[-2:]) // args.downsample < 8:
-            raise InvalidInputError(f"--downsample {args.downsample}: {path} "
-                                    f"({image.shape[-2]}x{image.shape[-1]}) would be smaller "
-                                    "than 8x8 pixels")
-        if args.background == "corner":
-            image = image - image[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
-        images.append(image if args.downsample <= 1 else bin_mean(image, args.downsample))
-    psf, y = images
+    order = args.channel_order or "RGB"
+    factor = args.downsample or 1
+    psf_path, measurement_path = args.inputs
+    # the one PSF loader (background, binning, clipping, unit sum), as ekdun train --psf
+    psf = load_psf_image(psf_path, order, args.background, factor)
+    y = read_classical_measurement(measurement_path, order, factor, args.background)
+    for path, image in ((psf_path, psf), (measurement_path, y)):
+        if min(image.shape[-2:]) < 8:
+            raise InvalidInputError(f"--downsample {factor}: {path} would be "
+                                    f"{image.shape[-2]}x{image.shape[-1]}, smaller than 8x8 "
+                                    "pixels")
     if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
-        raise InvalidInputError(f"{args.inputs[0]}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
+        raise InvalidInputError(f"{psf_path}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
                                 f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")
-    # A measured point-source image: negative values are noise after background subtraction.
-    psf = np.clip(psf, 0, None)
-    result = admm_tv(y, psf, iterations=args.iterations, tau=args.tv).numpy()
+    result = admm_tv(y.astype(np.float64), psf.astype(np.float64), iterations=args.iterations,
+                     tau=args.tv).numpy()
     write_image(out, result.astype(np.float32))
     preview = result / max(float(result.max()), 1e-12)
     write_image(preview_path, to_preview(preview))

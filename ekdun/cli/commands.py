@@ -189,7 +189,6 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    import numpy as np
 
     if args.iterations and args.iterations > MAX_UNROLLED_ITERATIONS:
         raise InvalidInputError(f"--iterations {args.iterations} exceeds the limit of "
@@ -197,23 +196,31 @@ def run_train(args: argparse.Namespace) -> int:
     from ekdun.data.pairs import PairsDataset, match_downsample
     from ekdun.training import TrainOptions, train
     from ekdun.training.builder import seed_kernel_model
+    from psfkit.io.pairs import read_pairs
+    from psfkit.io.read_options import choose
 
     root = resolve_split(args.data, "train")
     source = args.kernels or args.psf
-    if args.psf and (args.downsample or 1) > 1:
-        # a measured PSF is binned like the pairs (block mean, as `ekdun admm --downsample`)
-        from psfkit.io.images import read_image
-        from psfkit.resample import bin_mean
+    notices: list[str] = []
+    if args.psf:
+        # the one PSF loader (as ekdun admm PSF), binned like the pairs, in their channel order
+        from psfkit.preprocess import load_psf_image
 
-        seed = seed_kernel_model(bin_mean(read_image(args.psf).astype(np.float32),
-                                          args.downsample).astype(np.float32))
+        probe = read_pairs(root, args.channel_order, check_pixels=False)
+        seed = seed_kernel_model(load_psf_image(args.psf, probe.channel_order, "corner",
+                                                args.downsample or 1, probe.white_level))
     else:
         seed = seed_kernel_model(source)
-    probe = read_pairs_shape(root, args.channel_order)
-    factor = match_downsample(probe, seed, args.downsample, where=f"the pairs in {root}",
-                              model_name=str(source))
+        # pairs are read the way the kernels' data was, unless the folder or a flag says so
+        recorded = seed.data_read_options()
+        notices += [n for n in [choose(args.channel_order, recorded.channel_order, "RGB",
+                                       "--channel-order", str(source))[1]] if n]
+        probe = read_pairs(root, args.channel_order, check_pixels=False, recorded=recorded)
+    factor = match_downsample(probe.shape[1:], seed, args.downsample,
+                              where=f"the pairs in {root}", model_name=str(source))
     dataset = PairsDataset(root, args.channel_order, holdout=args.holdout or (),
-                           downsample=factor)
+                           downsample=factor,
+                           recorded=None if args.psf else seed.data_read_options())
     if factor > 1 or dataset.holdout:
         _say(args, f"training on {len(dataset)} pairs of {root}"
                    + (f" (held out: {', '.join(dataset.holdout)})" if dataset.holdout else "")
@@ -242,15 +249,9 @@ def run_train(args: argparse.Namespace) -> int:
                f"{last.get('train_loss', float('nan')):.4g}; {args.run_dir}")
     if "compile_warmup_s" in result:
         _say(args, f"torch.compile warm-up (first step): {result['compile_warmup_s']:.1f} s")
+    for text in notices:   # after the work, so that an error stays the one line
+        print(text, file=sys.stderr)
     return 0
-
-
-def read_pairs_shape(root: Path, channel_order: str | None) -> tuple[int, int]:
-    """``(H, W)`` of a pairs folder's images as stored (reads the first pair only)."""
-    from psfkit.io.pairs import read_pairs
-
-    shape = read_pairs(root, channel_order, check_pixels=False).shape
-    return int(shape[1]), int(shape[2])
 
 
 def _checkpoint_path(item: str) -> Path:
@@ -279,10 +280,13 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_reconstruct(args: argparse.Namespace) -> int:
     from ekdun.reconstruction import reconstruct_files
 
+    notices: list[str] = []
     written = reconstruct_files(args.checkpoint, args.measurements, args.out,
                                 args.channel_order, args.device, args.overwrite,
-                                args.amp, downsample=args.downsample)
+                                args.amp, downsample=args.downsample, notify=notices.append)
     print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
+    for text in notices:
+        print(text, file=sys.stderr)
     return 0
 
 

@@ -23,6 +23,7 @@ from torch.utils.data import Dataset
 
 from ekdun.errors import InvalidInputError
 from psfkit.io.pairs import PairSet, read_pairs
+from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.resample import bin_mean
 
@@ -39,13 +40,25 @@ def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
-def recorded_read_options(data: dict[str, Any]) -> tuple[str | None, int]:
-    """``(channel_order, downsample)`` with which a checkpoint's training pairs were read, from
-    its ``metadata["data"]`` (:meth:`PairsDataset.describe`); ``(None, 1)`` where a checkpoint
-    does not record them (``None``: the caller's default order)."""
+def recorded_read_options(data: dict[str, Any], where: str = "checkpoint") -> ReadOptions:
+    """The :class:`~psfkit.io.read_options.ReadOptions` with which a checkpoint's training
+    pairs were read, from its ``metadata["data"]`` (:meth:`PairsDataset.describe`).
+
+    Checkpoints written before the options were recorded as one object give what they have
+    (channel order, flip, downsample); what is missing is ``None``/default.
+
+    Raises
+    ------
+    InvalidInputError
+        A recorded option out of range (the message names ``where``).
+    """
+    if isinstance(data.get("read_options"), dict):
+        return ReadOptions.from_json(data["read_options"], where)
     order = data.get("channel_order") if data.get("channel_order") in ("RGB", "BGR") else None
+    flip = data.get("flip") if data.get("flip") in ("none", "ud", "lr", "both") else "none"
     factor = data.get("downsample")
-    return order, factor if isinstance(factor, int) and factor >= 1 else 1
+    factor = factor if isinstance(factor, int) and 1 <= factor <= 64 else None
+    return ReadOptions(channel_order=order, flip=flip, downsample=factor)
 
 
 class PairsDataset(Dataset):
@@ -61,6 +74,10 @@ class PairsDataset(Dataset):
         Pairs folder.
     channel_order : {"RGB", "BGR"}, optional
         Overrides the folder's channel order.
+    recorded : ReadOptions, optional
+        Read options recorded with the model (kernel file, checkpoint): the channel order,
+        flip and white level that the folder itself does not declare
+        (:func:`psfkit.io.pairs.read_pairs`).
     preload : bool
         Read every pair once into memory (small datasets).
     holdout : iterable of str
@@ -81,8 +98,9 @@ class PairsDataset(Dataset):
 
     def __init__(self, root: str | os.PathLike, channel_order: str | None = None,
                  preload: bool = True, holdout: Iterable[str] = (), downsample: int = 1,
-                 only: Iterable[str] = ()) -> None:
-        self.pairs: PairSet = read_pairs(root, channel_order, check_pixels=False)
+                 only: Iterable[str] = (), recorded: ReadOptions | None = None) -> None:
+        self.pairs: PairSet = read_pairs(root, channel_order, check_pixels=False,
+                                         recorded=recorded)
         self.holdout = parse_names(holdout)
         selected = parse_names(only)
         for names, what in ((self.holdout, "to hold out"), (selected, "to evaluate")):
@@ -128,10 +146,16 @@ class PairsDataset(Dataset):
     def describe(self) -> dict[str, Any]:
         """What the dataset is, JSON-able (recorded in checkpoints so that ``ekdun
         reconstruct`` reads measurements the way training did)."""
+        options = self.read_options
         return {"root": str(Path(self.pairs.root).resolve()), "names": list(self.names),
-                "holdout": list(self.holdout), "channel_order": self.pairs.channel_order,
-                "flip": self.pairs.flip, "downsample": self.downsample,
-                "image_shape": list(self.image_shape)}
+                "holdout": list(self.holdout), "channel_order": options.channel_order,
+                "flip": options.flip, "downsample": options.downsample,
+                "read_options": options.to_json(), "image_shape": list(self.image_shape)}
+
+    @property
+    def read_options(self) -> ReadOptions:
+        """How the pairs are read (channel order, flip, binning, white level)."""
+        return self.pairs.read_options(self.downsample)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -167,8 +191,7 @@ def match_downsample(image_shape: tuple[int, int], model: KernelModel,
     """
     h, w = int(image_shape[0]), int(image_shape[1])
     sensor = (int(model.sensor_shape[0]), int(model.sensor_shape[1]))
-    fitted = model.provenance.get("downsample")
-    fitted = int(fitted) if isinstance(fitted, (int, float)) and fitted >= 1 else None
+    fitted = model.data_read_options().downsample
     if requested is None:
         candidates = [1] + ([fitted] if fitted and fitted > 1 else [])
         for factor in candidates:

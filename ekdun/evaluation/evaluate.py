@@ -122,7 +122,8 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
     from ekdun.data.virtual_bench import resolve_split
 
     root = resolve_split(data, "test")
-    order, factor = recorded_read_options(trained)
+    recorded = recorded_read_options(trained)
+    factor = recorded.downsample or 1
     same = bool(trained.get("root")) and Path(trained["root"]).resolve() == root.resolve()
     held = list(trained.get("holdout") or [])
     if same and not include_training:
@@ -131,11 +132,11 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
                 f"{data}: the checkpoint was trained on every pair of this folder, so its "
                 "scores would be training scores; hold pairs out (ekdun train --holdout NAME), "
                 "evaluate on another folder, or pass --include-training")
-        return (PairsDataset(root, order, downsample=factor, only=held),
+        return (PairsDataset(root, downsample=factor, only=held, recorded=recorded),
                 f"the {len(held)} pair(s) training held out: {', '.join(held)}")
     note = ("every pair, training pairs included" if same
             else f"every pair of {root}")
-    return PairsDataset(root, order, downsample=factor), note
+    return PairsDataset(root, downsample=factor, recorded=recorded), note
 
 
 def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | os.PathLike,

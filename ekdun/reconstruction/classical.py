@@ -169,20 +169,21 @@ def reconstruct_with_model(measurement: np.ndarray, model: KernelModel,
 
 
 def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RGB",
-                               downsample: int = 1, background: str = "none") -> np.ndarray:
-    """A measurement file as ``(C, H, W)`` float32 RGB, optionally box-downsampled by
+                               downsample: int = 1, background: str = "none",
+                               white_level: float | None = None) -> np.ndarray:
+    """A measurement file as ``(C, H, W)`` float32 RGB in the toolkit's units (integer files
+    divided by ``white_level``, default the dtype's maximum), optionally box-downsampled by
     ``downsample`` and with the mean of its ``[5:15, 5:15]`` corner subtracted
     (``background="corner"``, before downsampling)."""
     from ekdun.reconstruction.reconstruct import read_measurement
+    from psfkit.preprocess import BACKGROUNDS, subtract_background
     from psfkit.resample import bin_mean
 
-    if background not in ("none", "corner"):
+    if background not in BACKGROUNDS:
         raise ConfigurationError(f"background must be 'none' or 'corner', got {background!r}")
     if downsample < 1:
         raise ConfigurationError(f"downsample must be >= 1, got {downsample}")
-    y = read_measurement(path, channel_order)
-    if background == "corner":
-        y = y - y[:, 5:15, 5:15].mean(axis=(1, 2), keepdims=True)
+    y = subtract_background(read_measurement(path, channel_order, white_level), background)
     if downsample > 1:
         y = bin_mean(y, downsample)
     return np.ascontiguousarray(y, dtype=np.float32)
@@ -192,12 +193,14 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
                        out_dir: str | os.PathLike, options: ClassicalOptions | None = None,
                        channel_order: str = "RGB", overwrite: bool = False,
                        progress: bool = False, downsample: int = 1,
-                       background: str = "none") -> list[Path]:
+                       background: str = "none", white_level: float | None = None
+                       ) -> list[Path]:
     """Reconstruct measurement files and folders into ``out_dir``, atomically.
 
-    Every input is read (:func:`read_classical_measurement`) and checked before anything is
-    computed. Each ``NAME`` gives ``NAME.npy`` (``H × W × C`` float32, in ``channel_order``,
-    like the input) and an 8-bit RGB ``NAME.png`` preview scaled to its maximum.
+    Every input is read (:func:`read_classical_measurement`, ``channel_order`` being the
+    order of the input files on disk) and checked before anything is computed. Each ``NAME``
+    gives ``NAME.npy`` (``H × W × C`` float32, RGB: the toolkit's one output convention) and
+    an 8-bit RGB ``NAME.png`` preview scaled to its maximum.
     """
     from ekdun.reconstruction.reconstruct import measurement_files
     from psfkit.io.atomic import atomic_directory
@@ -206,7 +209,7 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
     recon = ModelReconstructor(model, options)
     images = []
     for f in files:
-        y = read_classical_measurement(f, channel_order, downsample, background)
+        y = read_classical_measurement(f, channel_order, downsample, background, white_level)
         recon.check(y, str(f))
         images.append(y)
     written = []
@@ -214,7 +217,7 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
             image = recon(y, callback=_iteration_callback(bar, f.stem)).image
-            write_reconstruction(tmp / f"{f.stem}.npy", image, channel_order)
+            write_reconstruction(tmp / f"{f.stem}.npy", image)
             written.append(Path(out_dir) / f"{f.stem}.npy")
             if bar is not None:
                 bar.update(1)
@@ -223,17 +226,16 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
     return written
 
 
-def write_reconstruction(path: Path, image: np.ndarray, channel_order: str = "RGB",
-                         preview: Path | None = None) -> None:
-    """``path`` (``.npy``, in ``channel_order``) and its RGB ``.png`` preview (at ``preview``,
-    default ``path`` with the suffix ``.png``), each atomic."""
+def write_reconstruction(path: Path, image: np.ndarray, preview: Path | None = None) -> None:
+    """``path`` (``.npy``, ``H × W × C`` float32 RGB, whatever order the input was stored in)
+    and its RGB ``.png`` preview (at ``preview``, default ``path`` with the suffix ``.png``),
+    each atomic."""
     from ekdun.reconstruction.reconstruct import to_preview
     from psfkit.io.images import write_image
 
     if path.suffix != ".npy":
         raise InvalidInputError(f"{path}: the output must be a .npy file")
-    stored = image[::-1] if channel_order == "BGR" and image.shape[0] == 3 else image
-    write_image(path, np.ascontiguousarray(stored, dtype=np.float32))
+    write_image(path, np.ascontiguousarray(image, dtype=np.float32))
     write_image(preview if preview is not None else path.with_suffix(".png"),
                 to_preview(image / max(float(image.max()), 1e-12)))
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -14,19 +14,17 @@ from ekdun.errors import InvalidInputError, TensorShapeError
 from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
 from psfkit.io.atomic import atomic_directory
-from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
+from psfkit.io.images import IMAGE_SUFFIXES, read_image_float, write_image
+from psfkit.io.read_options import ReadOptions, choose
 from psfkit.resample import bin_mean
 
 
-def read_measurement(path: str | os.PathLike, channel_order: str = "RGB") -> np.ndarray:
-    """A measurement as ``(C, H, W)`` float32 (integer files are scaled to ``[0, 1]``)."""
-    image = read_image(path, channel_order)
-    if np.issubdtype(image.dtype, np.integer):
-        image = image.astype(np.float32) / float(np.iinfo(image.dtype).max)
-    image = image.astype(np.float32)
-    if not np.all(np.isfinite(image)):
-        raise InvalidInputError(f"{path}: contains NaN/Inf values")
-    return image
+def read_measurement(path: str | os.PathLike, channel_order: str = "RGB",
+                     white_level: float | None = None) -> np.ndarray:
+    """A measurement as ``(C, H, W)`` float32 RGB in the toolkit's units
+    (:func:`psfkit.io.images.read_image_float`: integer files divided by ``white_level``,
+    default their dtype's maximum; float files kept)."""
+    return read_image_float(path, channel_order, white_level)
 
 
 def measurement_files(inputs: Sequence[str | os.PathLike]) -> list[Path]:
@@ -57,18 +55,18 @@ def to_preview(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def training_read_options(doc: dict) -> tuple[str, int]:
-    """``(channel_order, downsample)`` with which a checkpoint's training pairs were read
-    (``("RGB", 1)`` for checkpoints that do not record it)."""
-    order, factor = recorded_read_options(doc.get("metadata", {}).get("data") or {})
-    return order or "RGB", factor
+def training_read_options(doc: dict, where: str = "checkpoint") -> ReadOptions:
+    """The read options of a checkpoint's training pairs (channel order ``None`` where the
+    checkpoint does not record it)."""
+    return recorded_read_options(doc.get("metadata", {}).get("data") or {}, where)
 
 
 @torch.no_grad()
 def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
                       out_dir: str | os.PathLike, channel_order: str | None = None,
                       device: str = "cpu", overwrite: bool = False, amp: str = "off",
-                      downsample: int | None = None) -> list[Path]:
+                      downsample: int | None = None,
+                      notify: Callable[[str], None] | None = None) -> list[Path]:
     """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 RGB and an
     8-bit ``NAME.png`` preview), in the orientation of the training scenes. All inputs are
     checked against the model before anything is written; the output folder appears
@@ -76,15 +74,20 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
 
     ``channel_order`` (of ``.npy``/TIFF inputs) and ``downsample`` (block mean, as in
     training) default to how the checkpoint's training pairs were read, so a model trained on
-    DLMD pairs (BGR, binned) reads DLMD measurements as they are stored. ``amp`` (``"off"``,
+    DLMD pairs (BGR, binned) reads DLMD measurements as they are stored; integer files are
+    scaled by the recorded white level. A flag that contradicts the record is applied, and
+    ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"off"``,
     ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the physics FFTs stay
     float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
     """
     precision = acc.resolve_amp(amp, torch.device(device))
     model, doc = network_from_checkpoint(checkpoint)
-    trained_order, trained_factor = training_read_options(doc)
-    channel_order = channel_order or trained_order
-    factor = trained_factor if downsample is None else int(downsample)
+    recorded = training_read_options(doc, str(checkpoint))
+    channel_order, order_notice = choose(channel_order, recorded.channel_order, "RGB",
+                                         "--channel-order", str(checkpoint))
+    factor, factor_notice = choose(downsample, recorded.downsample, 1, "--downsample",
+                                   str(checkpoint))
+    factor = int(factor)
     if factor < 1:
         raise InvalidInputError(f"downsample must be >= 1, got {factor}")
     model = model.to(device).eval()
@@ -93,7 +96,7 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     files = measurement_files(inputs)
     images = []
     for f in files:
-        y = read_measurement(f, channel_order)
+        y = read_measurement(f, channel_order, recorded.white_level)
         if factor > 1:
             y = bin_mean(y, factor).astype(np.float32)
         if tuple(y.shape[-2:]) != sensor or y.shape[0] != channels:
@@ -111,4 +114,7 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
             write_image(tmp / f"{f.stem}.npy", out.astype(np.float32))
             write_image(tmp / f"{f.stem}.png", to_preview(out))
             written.append(Path(out_dir) / f"{f.stem}.npy")
+    for text in (order_notice, factor_notice):
+        if text and notify is not None:
+            notify(text)
     return written

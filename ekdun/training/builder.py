@@ -20,21 +20,22 @@ from psfkit.weights import get_basis
 
 
 def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> KernelModel:
-    """A kernel model from a kernel file, a loaded model or a measured PSF ``(C, H, W)``."""
+    """A kernel model from a kernel file, a loaded model, a measured PSF image file (read by
+    the one PSF loader, :func:`psfkit.preprocess.load_psf_image`: corner background, clipped,
+    unit sum per channel) or a PSF array ``(C, H, W)`` (used as given)."""
     if isinstance(source, KernelModel):
         return source
     if isinstance(source, (str, os.PathLike)):
         path = str(source)
         if path.endswith(".npz"):
             return load_kernels(path)
-        from psfkit.io.images import read_image
-        from psfkit.validation import require_finite
+        from psfkit.preprocess import load_psf_image
 
-        source = require_finite(read_image(path), str(path)).astype(np.float32)
+        source = load_psf_image(path)
     psf = np.asarray(source, dtype=np.float32)
     if psf.ndim == 2:
         psf = psf[None]
-    return KernelModel.shift_invariant(psf, normalization="measured PSF as given",
+    return KernelModel.shift_invariant(psf, normalization="measured PSF",
                                        provenance={"source": "measured PSF"})
 
 

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from torch import nn
 
+from ekdun.data.pairs import recorded_read_options
 from ekdun.errors import CheckpointError, ConfigurationError
 from ekdun.training.builder import network_from_checkpoint
 from ekdun.training.checkpoint import load_checkpoint
@@ -41,10 +42,10 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     if isinstance(model_or_checkpoint, nn.Module):
         model = model_or_checkpoint
         model = getattr(model, "module", model)         # unwrap DistributedDataParallel
-        epoch = None
+        epoch, data = None, None
     else:
         model, doc = network_from_checkpoint(model_or_checkpoint)
-        epoch = doc["metadata"].get("epoch")
+        epoch, data = doc["metadata"].get("epoch"), doc["metadata"].get("data")
     from ekdun.models.ekdun_net import EKDUN
 
     if not isinstance(model, EKDUN):
@@ -63,7 +64,10 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     provenance = {"source": "ekdun training (learned kernels)", "epoch": epoch,
                   "kernel_param": model.config.kernel_param,
                   "seed_provenance": seed.provenance}
-    return replace(seed, kernels=kernels, provenance=provenance,
+    # learned on the training pairs: their read options are the model's (else the seed's)
+    read_options = recorded_read_options(data, where.rstrip(": ") or "checkpoint") \
+        if isinstance(data, dict) and data else seed.read_options
+    return replace(seed, kernels=kernels, provenance=provenance, read_options=read_options,
                    normalization=f"learned (initialised from: {seed.normalization})")
 
 

@@ -4,6 +4,7 @@ pairs, and their prediction error on pairs they never saw."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -12,9 +13,10 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
+from psfkit.io.read_options import CHANNEL_ORDERS, ReadOptions, choose
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
-from psfkit.validation import dumps_finite, exact_int, nonnegative_float, positive_int
+from psfkit.validation import dumps_finite, nonnegative_float, positive_int
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -40,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "predicts held-out real pairs better and costs one FFT pair per "
                         "iteration) or sensor (Eq. 7; K FFT pairs per iteration)")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
+    _add_channel_order(p, "default: the folder's (pairs.json; BGR for the DLMD layout "
+                          "lensed/ + diffuser/), else RGB; recorded in the kernel file")
     _add_fit_options(p)
     p.add_argument("--leave-one-out", action="store_true",
                    help="also report each pair's error when it is left out of the fit")
@@ -59,9 +63,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--downsample", type=positive_int, default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
+    _add_channel_order(e, "default: the folder's (pairs.json, DLMD layout), else the one "
+                          "recorded in the kernel file, else RGB")
     e.add_argument("--out", metavar="JSON", help="write the errors to this JSON file")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     e.set_defaults(func=run_eval_model)
+
+
+def _add_channel_order(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument("--channel-order", choices=CHANNEL_ORDERS,
+                   help=f"channel order of the pairs' .npy/TIFF files ({default})")
 
 
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
@@ -113,12 +124,14 @@ def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> N
                                     "(nothing to fit or predict)")
 
 
-def _load(folder: str, factor: int) -> tuple[Any, np.ndarray, np.ndarray]:
+def _load(folder: str, factor: int, channel_order: str | None = None,
+          recorded: ReadOptions | None = None) -> tuple[Any, np.ndarray, np.ndarray]:
     from psfkit.pairs_fit import downsample_pairs
 
     if factor < 1:
         raise InvalidInputError(f"--downsample must be >= 1, got {factor}")
-    pairs = read_pairs(folder, check_pixels=False)   # load_all() checks every pair
+    # load_all() checks every pair
+    pairs = read_pairs(folder, channel_order, check_pixels=False, recorded=recorded)
     scenes, measurements = pairs.load_all()
     _refuse_blank(pairs, scenes, measurements)
     scenes, measurements = downsample_pairs(scenes, measurements, factor)
@@ -169,7 +182,7 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
     # torch is imported here, by the commands that use it, not when the parser is built
     from psfkit.pairs_fit import fit_pairs, leave_one_out
 
-    pairs, scenes, measurements = _load(args.pairs, args.downsample)
+    pairs, scenes, measurements = _load(args.pairs, args.downsample, args.channel_order)
     mask = _support_mask(args.support_mask, args.downsample, scenes.shape[-2:])
     fit = fit_pairs(scenes, measurements, options, progress=not args.quiet,
                     support_mask=mask)
@@ -190,7 +203,7 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
                   [round(float(e), 6) for e in fit.training_error], "physics": physics}
     if args.support_mask:
         provenance["support_mask"] = str(args.support_mask)
-    save_kernels(kernels, fit.kernel_model(provenance))
+    save_kernels(kernels, fit.kernel_model(provenance, pairs.read_options(args.downsample)))
     if report is not None:
         report.write_text(dumps_finite(jsonable(summary), args.report, indent=1) + "\n",
                           encoding="utf-8")
@@ -224,24 +237,29 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
 def run_eval_model(args: argparse.Namespace) -> int:
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         out = outputs.file(args.out) if args.out else None
-        result = _evaluate(args)
+        result, notices = _evaluate(args)
         if out is not None:
             out.write_text(dumps_finite(result, args.out, indent=1) + "\n", encoding="utf-8")
     print(f"{'pair':>16s}  {'raw':>8s}  {'scaled':>8s}")
     for name, row in result["per_pair"].items():
         print(f"{name:>16s}  {row['raw']:8.4f}  {row['scaled']:8.4f}")
     print(f"{'mean':>16s}  {result['mean_raw']:8.4f}  {result['mean_scaled']:8.4f}")
+    for text in notices:   # after the work: an error stays the one line on stderr
+        print(text, file=sys.stderr)
     return 0
 
 
-def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
+def _evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], list[str]]:
     from psfkit.pairs_fit import predict, relative_errors
 
     model = load_kernels(args.model)
-    factor = args.downsample if args.downsample is not None else exact_int(
-        model.provenance.get("downsample", 1) or 1, f"{args.model}: provenance 'downsample'",
-        1, 64)
-    pairs, scenes, measurements = _load(args.pairs, factor)
+    recorded = model.data_read_options()
+    factor, notice = choose(args.downsample, recorded.downsample, 1, "--downsample",
+                            args.model)
+    notices = [text for text in (notice, choose(args.channel_order, recorded.channel_order,
+                                                "RGB", "--channel-order", args.model)[1])
+               if text]
+    pairs, scenes, measurements = _load(args.pairs, factor, args.channel_order, recorded)
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
         raise InvalidInputError(
             f"{args.pairs}: pairs are {scenes.shape[-2]}x{scenes.shape[-1]} (after "
@@ -256,4 +274,4 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
                            for i, name in enumerate(pairs.names)},
               "mean_raw": float(errors["raw"].mean()),
               "mean_scaled": float(errors["scaled"].mean())}
-    return result
+    return result, notices

@@ -147,6 +147,76 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
     return out
 
 
+def unit_range(image: np.ndarray, where: str, white_level: float | None = None) -> np.ndarray:
+    """An image as float32 in the toolkit's units: ``[0, 1]`` for integer files.
+
+    The one conversion from stored pixel values to numbers (the data contract of
+    ``docs/inputs-and-errors.md``): integer data is divided by ``white_level`` (the value a
+    saturated pixel stores; default the dtype's maximum, 255 for 8-bit and 65535 for 16-bit
+    files); floating-point data is kept as it is (it already carries its units).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(C, H, W)`` as read by :func:`read_image`.
+    where : str
+        Names the file in messages.
+    white_level : float, optional
+        Stored value of full scale, e.g. 4095 for 12-bit data in 16-bit files.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, same shape, finite.
+
+    Raises
+    ------
+    InvalidInputError
+        NaN/Inf values, or a white level that is not a positive number.
+    """
+    if np.issubdtype(image.dtype, np.integer):
+        level = float(np.iinfo(image.dtype).max) if white_level is None else float(white_level)
+        if not (np.isfinite(level) and level > 0):
+            raise InvalidInputError(f"{where}: white level must be a positive number, got "
+                                    f"{white_level!r}")
+        # float32 ÷ float32 is correctly rounded: q/255 from an 8-bit file and 257·q/65535
+        # from the same values in a 16-bit file give the same float32, bit for bit
+        out = image.astype(np.float32)
+        out /= np.float32(level)
+        return out
+    out = image.astype(np.float32, copy=False)
+    bad = int(np.count_nonzero(~np.isfinite(out)))
+    if bad:
+        raise InvalidInputError(f"{where}: contains NaN/Inf values ({bad} of them)")
+    return out
+
+
+def read_image_float(path: str | os.PathLike, channel_order: str = "RGB",
+                     white_level: float | None = None) -> np.ndarray:
+    """Read one image as ``(C, H, W)`` float32 RGB in the toolkit's units.
+
+    :func:`read_image` followed by :func:`unit_range`: integer files are divided by
+    ``white_level`` (default: the dtype's maximum), float files are kept. Every command that
+    reads a scene, a measurement or a PSF image reads it through this function, so a file gives
+    the same numbers whichever command reads it, whatever its format (``.npy``, 8-bit PNG,
+    16-bit TIFF).
+
+    Parameters
+    ----------
+    path : path-like
+    channel_order : {"RGB", "BGR"}
+        Order of the channels as stored in ``.npy``/TIFF files (PNG is always RGB).
+    white_level : float, optional
+        Full-scale stored value of integer files.
+
+    Raises
+    ------
+    InvalidInputError
+        Unreadable file, NaN/Inf values, bad white level.
+    """
+    return unit_range(read_image(path, channel_order), str(path), white_level)
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write a ``(C, H, W)`` array atomically as TIFF, PNG or ``.npy`` (stored ``(H, W[, C])``).
 

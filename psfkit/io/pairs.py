@@ -11,9 +11,14 @@ Sub-folder names are recognised without a manifest: ``scene|scenes|gt|ground_tru
 and ``measurement|measurements|meas|raw|diffuser``. The DiffuserCam Lensless Mirflickr layout
 (``lensed/`` + ``diffuser/``, ``.npy`` in OpenCV's BGR order) is recognised and read as RGB.
 ``pairs.json`` may set ``scene_dir``, ``measurement_dir``, ``channel_order`` (``"RGB"`` or
-``"BGR"``) and ``flip`` of the scene (``"none"``, ``"ud"``, ``"lr"``, ``"both"``) when a dataset
+``"BGR"``), ``flip`` of the scene (``"none"``, ``"ud"``, ``"lr"``, ``"both"``) when a dataset
 stores it mirrored relative to the forward model ``y = crop(K * pad(x))``, which needs scenes
-and measurements of the same size.
+and measurements of the same size, and ``white_level`` (a number: the stored value of full
+scale of integer files, e.g. 4095 for 12-bit data in 16-bit PNG/TIFF files).
+
+Units: every image is read as float32 by :func:`psfkit.io.images.unit_range`: integer files
+(8-bit PNG, 16-bit TIFF...) are divided by the white level (default the dtype's maximum), float
+files are kept, so the same pairs stored as ``.npy``, PNG or TIFF give the same numbers.
 """
 
 from __future__ import annotations
@@ -26,19 +31,20 @@ from pathlib import Path
 import numpy as np
 
 from psfkit.errors import InvalidInputError
-from psfkit.io.images import IMAGE_SUFFIXES, read_image
-from psfkit.validation import load_json_document
+from psfkit.io.images import IMAGE_SUFFIXES, read_image, unit_range
+from psfkit.io.read_options import FLIPS, ReadOptions
+from psfkit.validation import finite_number, load_json_document
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
 MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")
-FLIPS = ("none", "ud", "lr", "both")
 MANIFEST = "pairs.json"
-_MANIFEST_KEYS = ("scene_dir", "measurement_dir", "channel_order", "flip")
+_MANIFEST_KEYS = ("scene_dir", "measurement_dir", "channel_order", "flip", "white_level")
 
 
 @dataclass(frozen=True)
 class PairSet:
-    """A validated pairs folder; images are read on demand as ``(C, H, W)`` float32 (RGB)."""
+    """A validated pairs folder; images are read on demand as ``(C, H, W)`` float32 (RGB,
+    integer files scaled to ``[0, 1]`` by ``white_level``)."""
 
     root: Path
     scene_dir: str
@@ -50,6 +56,7 @@ class PairSet:
     flip: str
     shape: tuple[int, int, int]
     dtypes: tuple[str, str] = ("", "")  # pixel types of the scenes and of the measurements
+    white_level: float | None = None    # full scale of integer files (None: dtype maximum)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -74,11 +81,8 @@ class PairSet:
                 raise InvalidInputError(f"{path}: pixel type {raw.dtype} differs from the "
                                         f"other files' ({dtype}, as {self.names[0]}); convert "
                                         "them to one type")
-        scene = raw_scene.astype(np.float32)
-        measurement = raw_measurement.astype(np.float32)
-        for path, image in ((scene_path, scene), (measurement_path, measurement)):
-            if not np.all(np.isfinite(image)):
-                raise InvalidInputError(f"{path}: contains NaN/Inf values")
+        scene = unit_range(raw_scene, str(scene_path), self.white_level)
+        measurement = unit_range(raw_measurement, str(measurement_path), self.white_level)
         if scene.shape != measurement.shape:
             raise InvalidInputError(
                 f"{scene_path}: scene {scene.shape[1]}×{scene.shape[2]}×{scene.shape[0]} "
@@ -93,6 +97,11 @@ class PairSet:
         if self.flip in ("lr", "both"):
             scene = scene[:, :, ::-1]
         return np.ascontiguousarray(scene), measurement
+
+    def read_options(self, downsample: int = 1) -> ReadOptions:
+        """How this folder's files are read (recorded in kernel files and checkpoints)."""
+        return ReadOptions(channel_order=self.channel_order, flip=self.flip,
+                           downsample=int(downsample), white_level=self.white_level)
 
     def load_all(self) -> tuple[np.ndarray, np.ndarray]:
         """All pairs as two ``(N, C, H, W)`` float32 arrays."""
@@ -132,6 +141,12 @@ def _read_manifest(path: Path) -> dict:
         raise InvalidInputError(f"{path}: unknown key(s) {', '.join(unknown)} (allowed: "
                                 f"{', '.join(_MANIFEST_KEYS)})")
     for key, value in manifest.items():
+        if key == "white_level":
+            level = finite_number(value, f"{path}: 'white_level'")
+            if level <= 0:
+                raise InvalidInputError(f"{path}: 'white_level' must be positive, got {value!r}")
+            manifest[key] = level
+            continue
         if not isinstance(value, str) or not value:
             raise InvalidInputError(f"{path}: '{key}' must be a non-empty string, got {value!r}")
         if key.endswith("_dir") and Path(value).name != value:
@@ -140,7 +155,7 @@ def _read_manifest(path: Path) -> dict:
 
 
 def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
-               check_pixels: bool = True) -> PairSet:
+               check_pixels: bool = True, recorded: ReadOptions | None = None) -> PairSet:
     """Read and validate a pairs folder.
 
     Parameters
@@ -149,6 +164,11 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
         The folder.
     channel_order : {"RGB", "BGR"}, optional
         Overrides ``pairs.json`` and the layout's default.
+    recorded : ReadOptions, optional
+        The read options recorded with the model these pairs are read for (kernel file,
+        checkpoint): they give the channel order, flip and white level that neither
+        ``channel_order``, ``pairs.json`` nor the layout (DLMD: BGR) declares. Defaults
+        otherwise: RGB, no flip, the dtype's maximum.
     check_pixels : bool
         Read every image now to refuse NaN/Inf values and mismatched shapes (otherwise only
         the first pair is read here; :meth:`PairSet.load` checks each pair as it is read).
@@ -172,10 +192,12 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
         if not (root / name).is_dir():
             raise InvalidInputError(f"{root / name}: no such folder")
     dlmd = scene_dir == "lensed" and measurement_dir == "diffuser"
-    order = channel_order or manifest.get("channel_order") or ("BGR" if dlmd else "RGB")
+    recorded = recorded or ReadOptions()
+    order = (channel_order or manifest.get("channel_order") or ("BGR" if dlmd else None)
+             or recorded.channel_order or "RGB")
     if order not in ("RGB", "BGR"):
         raise InvalidInputError(f"{root}: channel_order must be RGB or BGR, got {order!r}")
-    flip = manifest.get("flip", "none")
+    flip = manifest.get("flip", recorded.flip)
     if flip not in FLIPS:
         raise InvalidInputError(f"{root / MANIFEST}: flip must be one of {FLIPS}")
 
@@ -193,7 +215,8 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
     pairs = PairSet(root=root, scene_dir=scene_dir, measurement_dir=measurement_dir,
                     names=names, scene_files=tuple(scenes[n] for n in names),
                     measurement_files=tuple(measurements[n] for n in names),
-                    channel_order=order, flip=flip, shape=(0, 0, 0))
+                    channel_order=order, flip=flip, shape=(0, 0, 0),
+                    white_level=manifest.get("white_level", recorded.white_level))
     # every image is validated as it is loaded: the first fixes the set's size and pixel type
     dtypes = tuple(str(read_image(root / folder / files[0], order).dtype) for folder, files in
                    ((scene_dir, pairs.scene_files), (measurement_dir, pairs.measurement_files)))

@@ -66,7 +66,7 @@ def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
     assert ekdun_main(["admm", "--kernels", str(dlmd["models"][name]), str(dlmd["measurement"]),
                        "--out", str(out), "--downsample", "4", "--channel-order", "BGR",
                        "--iterations", "40", "--quiet"]) == 0
-    stored = np.load(out)                                     # H x W x C, BGR like the input
+    stored = np.load(out)                          # H x W x C, RGB (the output convention)
     assert stored.shape == (67, 120, 3) and stored.dtype == np.float32
     assert out.with_suffix(".png").is_file()
     y = read_classical_measurement(dlmd["measurement"], "BGR", downsample=4)
@@ -74,7 +74,7 @@ def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
                                ClassicalOptions(iterations=40, tv=3e-4))
     assert recon.solver == "admm" and recon.extended
     library = recon(y).image
-    np.testing.assert_array_equal(stored, np.moveaxis(library[::-1], 0, -1))
+    np.testing.assert_array_equal(stored, np.moveaxis(library, 0, -1))
     # Orientation: the reconstruction matches the ground truth better than its mirror images.
     truth = dlmd["scene"]
     right = _psnr(library, truth)
@@ -82,9 +82,9 @@ def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
         assert right > _psnr(np.ascontiguousarray(wrong), truth) + 0.3
 
 
-def test_bgr_measurement_gives_bgr_output_and_rgb_preview(dlmd, tmp_path):
-    """A red-only scene through the real EK model, stored BGR like DLMD: the output .npy
-    keeps BGR (red last) and the PNG preview is RGB (red first)."""
+def test_bgr_measurement_gives_rgb_output_and_preview(dlmd, tmp_path):
+    """A red-only scene through the real EK model, stored BGR like DLMD: the output .npy and
+    the PNG preview are RGB (red first), the toolkit's one output convention."""
     from psfkit.io.images import read_image
     from psfkit.kernelfile import load_kernels
 
@@ -99,7 +99,7 @@ def test_bgr_measurement_gives_bgr_output_and_rgb_preview(dlmd, tmp_path):
     assert ekdun_main(["admm", "--kernels", str(dlmd["models"]["ek"]), str(path), "--out",
                        str(out), "--channel-order", "BGR", "--iterations", "50", "--quiet"]) == 0
     energy = (np.load(out) ** 2).sum(axis=(0, 1))
-    assert energy[2] > 10 * max(energy[0], energy[1]), energy    # red is last in BGR
+    assert energy[0] > 10 * max(energy[1], energy[2]), energy    # red is first in RGB
     preview = read_image(out.with_suffix(".png")).astype(float)
     assert preview[0].mean() > 5 * max(preview[1].mean(), preview[2].mean())
 

@@ -187,3 +187,17 @@ def test_match_downsample_uses_the_kernel_files_fit_factor():
         match_downsample((270, 480), model((67, 120), 4), requested=2)
     with pytest.raises(InvalidInputError, match="fit the kernels on these images"):
         match_downsample((270, 480), model((50, 50)))
+
+
+def test_train_psf_seed_is_the_psf_loaders_kernel(tmp_path):
+    from ekdun.training.builder import seed_kernel_model
+    from psfkit.io import write_image
+    from psfkit.preprocess import load_psf_image
+
+    psf = np.zeros((3, 16, 16), np.float32)
+    psf[:, 6:9, 7:10] = 1.0
+    psf[2] *= 3                                                   # channel gains differ
+    write_image(tmp_path / "p.npy", psf)
+    seed = seed_kernel_model(str(tmp_path / "p.npy"))
+    np.testing.assert_array_equal(seed.kernels[0], load_psf_image(str(tmp_path / "p.npy")))
+    np.testing.assert_allclose(seed.kernels[0].sum(axis=(1, 2)), 1, rtol=1e-6)
