@@ -295,6 +295,12 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
     read_options = meta.get("read_options")
     if read_options is not None:
         read_options = ReadOptions.from_json(read_options, where)
+    elif isinstance(meta.get("provenance"), dict) and "downsample" in meta["provenance"]:
+        # files written before read_options: their binning is read from here
+        factor = meta["provenance"]["downsample"]
+        if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= 64:
+            raise ModelFileError(f"{where}: provenance 'downsample' must be an integer in "
+                                 f"1..64, got {factor!r}")
     padding = meta.get("scene_padding", 2)
     if isinstance(padding, bool) or not isinstance(padding, int):
         raise ModelFileError(f"{where}: 'scene_padding' must be an integer, got {padding!r}")

@@ -274,16 +274,51 @@ def subtract_background(image: np.ndarray, background: str = "corner") -> np.nda
                                                        dtype=np.float64).astype(image.dtype)
 
 
+def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 1,
+               where: str = "PSF") -> np.ndarray:
+    """A point-source image ``(C, H, W)`` (in the toolkit's units) as a shift-invariant kernel.
+
+    Subtract the background (:func:`subtract_background`), bin ``downsample × downsample``
+    blocks (block mean), clip to ``>= 0`` (negative values are noise after background
+    subtraction) and scale each channel to unit sum (a PSF conserves energy; reconstructions
+    come out in measurement units).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(C, H // downsample, W // downsample)`` float32, non-negative, channels summing to 1.
+
+    Raises
+    ------
+    InvalidInputError
+        A binning that leaves no pixel, or a channel with no signal left after the background
+        (``where`` names the input).
+    """
+    from psfkit.resample import bin_mean
+
+    if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
+        raise ConfigurationError(f"downsample must be a positive integer, got {downsample!r}")
+    if min(image.shape[-2:]) // downsample < 1:
+        raise InvalidInputError(f"{where}: binning {image.shape[-2]}x{image.shape[-1]} by "
+                                f"{downsample} leaves no pixel")
+    image = subtract_background(np.asarray(image, dtype=np.float64), background)
+    if downsample > 1:
+        image = bin_mean(image, downsample)
+    psf = np.clip(image, 0, None)
+    sums = psf.sum(axis=(1, 2), keepdims=True)
+    if not np.all(sums > 0):
+        raise InvalidInputError(f"{where}: a channel of the PSF has no signal above the "
+                                f"background ({background}); not a point-source image")
+    return (psf / sums).astype(np.float32)
+
+
 def load_psf_image(path: str, channel_order: str = "RGB", background: str = "corner",
                    downsample: int = 1, white_level: float | None = None) -> np.ndarray:
-    """A measured point-source image as a shift-invariant kernel: the one PSF loader.
+    """A measured point-source image file as a shift-invariant kernel: the one PSF loader.
 
     ``ekdun admm PSF RAW`` and ``ekdun train --psf`` both read PSF images through it, so a
-    PSF file gives the same kernel in both. Steps: read in the toolkit's units
-    (:func:`psfkit.io.images.read_image_float`), subtract the background
-    (:func:`subtract_background`), bin ``downsample × downsample`` blocks (block mean), clip to
-    ``>= 0`` (negative values are noise after background subtraction) and scale each channel to
-    unit sum (a PSF conserves energy; reconstructions come out in measurement units).
+    PSF file gives the same kernel in both: :func:`psfkit.io.images.read_image_float` (the
+    toolkit's units and channel order), then :func:`psf_kernel`.
 
     Parameters
     ----------
@@ -308,20 +343,6 @@ def load_psf_image(path: str, channel_order: str = "RGB", background: str = "cor
         Unreadable file, NaN/Inf, or a channel with no signal left after the background.
     """
     from psfkit.io.images import read_image_float
-    from psfkit.resample import bin_mean
 
-    if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
-        raise ConfigurationError(f"downsample must be a positive integer, got {downsample!r}")
-    image = read_image_float(path, channel_order, white_level).astype(np.float64)
-    image = subtract_background(image, background)
-    if downsample > 1:
-        if min(image.shape[-2:]) // downsample < 1:
-            raise InvalidInputError(f"{path}: binning {image.shape[-2]}x{image.shape[-1]} by "
-                                    f"{downsample} leaves no pixel")
-        image = bin_mean(image, downsample)
-    psf = np.clip(image, 0, None)
-    sums = psf.sum(axis=(1, 2), keepdims=True)
-    if not np.all(sums > 0):
-        raise InvalidInputError(f"{path}: a channel of the PSF has no signal above the "
-                                f"background ({background}); not a point-source image")
-    return (psf / sums).astype(np.float32)
+    return psf_kernel(read_image_float(path, channel_order, white_level), background,
+                      downsample, str(path))

@@ -182,20 +182,20 @@ def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
     from ekdun.reconstruction import admm_tv
     from ekdun.reconstruction.classical import read_classical_measurement
     from ekdun.reconstruction.reconstruct import to_preview
-    from psfkit.io.images import write_image
-    from psfkit.preprocess import load_psf_image
+    from psfkit.io.images import read_image_float, write_image
+    from psfkit.preprocess import psf_kernel
 
     order = args.channel_order or "RGB"
     factor = args.downsample or 1
     psf_path, measurement_path = args.inputs
-    # the one PSF loader (background, binning, clipping, unit sum), as ekdun train --psf
-    psf = load_psf_image(psf_path, order, args.background, factor)
+    raw_psf = read_image_float(psf_path, order)
+    if min(raw_psf.shape[-2:]) // factor < 8:
+        raise InvalidInputError(f"--downsample {factor}: {psf_path} "
+                                f"({raw_psf.shape[-2]}x{raw_psf.shape[-1]}) would be smaller "
+                                "than 8x8 pixels")
+    # the one PSF treatment (background, binning, clipping, unit sum), as ekdun train --psf
+    psf = psf_kernel(raw_psf, args.background, factor, psf_path)
     y = read_classical_measurement(measurement_path, order, factor, args.background)
-    for path, image in ((psf_path, psf), (measurement_path, y)):
-        if min(image.shape[-2:]) < 8:
-            raise InvalidInputError(f"--downsample {factor}: {path} would be "
-                                    f"{image.shape[-2]}x{image.shape[-1]}, smaller than 8x8 "
-                                    "pixels")
     if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
         raise InvalidInputError(f"{psf_path}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
                                 f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")

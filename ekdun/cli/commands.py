@@ -199,6 +199,18 @@ def run_train(args: argparse.Namespace) -> int:
     from psfkit.io.pairs import read_pairs
     from psfkit.io.read_options import choose
 
+    # flags are checked before any data is read
+    overrides: dict[str, Any] = {}
+    if args.schedule:
+        if args.model != "ekdun":
+            raise InvalidInputError("--schedule applies to --model ekdun only")
+        overrides["schedule"] = args.schedule
+    if args.iterations:
+        overrides["iterations"] = args.iterations
+    if args.kernel_param:
+        if args.model != "ekdun":
+            raise InvalidInputError("--kernel-param applies to --model ekdun only")
+        overrides["kernel_param"] = args.kernel_param
     root = resolve_split(args.data, "train")
     source = args.kernels or args.psf
     notices: list[str] = []
@@ -226,17 +238,6 @@ def run_train(args: argparse.Namespace) -> int:
                    + (f" (held out: {', '.join(dataset.holdout)})" if dataset.holdout else "")
                    + (f", binned {factor}x{factor} to {dataset.image_shape[1]}x"
                       f"{dataset.image_shape[2]}" if factor > 1 else ""))
-    overrides: dict[str, Any] = {}
-    if args.schedule:
-        if args.model != "ekdun":
-            raise InvalidInputError("--schedule applies to --model ekdun only")
-        overrides["schedule"] = args.schedule
-    if args.iterations:
-        overrides["iterations"] = args.iterations
-    if args.kernel_param:
-        if args.model != "ekdun":
-            raise InvalidInputError("--kernel-param applies to --model ekdun only")
-        overrides["kernel_param"] = args.kernel_param
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                            seed=args.seed, amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,

@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import os
 import re
+import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,8 +29,16 @@ def test_training_benchmark_prints_the_trainer_to_bare_step_ratio():
     assert "amp bf16" in out
     ratios = re.findall(r"\| ratio trainer / bare \(target >= 0.9\) \| ([\d.]+) \| ([\d.]+) \|",
                         out)
-    assert len(ratios) == 1 and all(float(r) > 0 for r in ratios[0])
+    assert len(ratios) == 1
     assert "median of 2 epoch pairs" in out
+    # The target itself is a measurement (docs/training.md), not a timed test; what is tested
+    # is that the printed ratio is trainer / bare throughput (not its inverse, not another
+    # median): the median of the per-epoch ratios of the throughputs printed for each run.
+    runs = [(float(t), float(b)) for t, b in
+            re.findall(r"trainer ([\d.]+) / bare ([\d.]+) img/s", out)]
+    assert len(runs) == 2
+    expected = statistics.median(t / b for t, b in runs)
+    assert float(ratios[0][0]) == pytest.approx(expected, rel=0.01, abs=2e-3), (ratios, runs)
 
 
 def test_inference_benchmark_reports_the_autocast_psnr_change():

@@ -4,6 +4,8 @@ import platform
 import subprocess
 import sys
 
+import pytest
+
 from psfkit.allocator import reuse_freed_memory
 
 
@@ -16,5 +18,31 @@ def test_reuse_freed_memory_takes_effect_on_glibc_and_is_a_no_op_elsewhere():
     assert result.stdout.strip() == str(glibc)
 
 
-def test_reuse_freed_memory_can_be_called_again():
-    assert reuse_freed_memory() == reuse_freed_memory()
+# Allocate and free arrays of growing size (2..30 MiB), as a full-resolution PSF pass does,
+# and count the page faults: glibc's default serves each new size with fresh pages, the
+# setting reuses the freed heap (measured on glibc 2.36: 18657 vs 7678 minor faults).
+_FAULTS = """
+import resource, sys, numpy as np
+if sys.argv[1] == "on":
+    from psfkit.allocator import reuse_freed_memory
+    assert reuse_freed_memory()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for mb in range(2, 31):
+    a = np.ones(mb * 2**20 // 8)
+    del a
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _page_faults(setting: str) -> int:
+    done = subprocess.run([sys.executable, "-c", _FAULTS, setting], capture_output=True,
+                          text=True, check=True)
+    return int(done.stdout.strip())
+
+
+def test_freed_blocks_are_reused_instead_of_faulted_in_again():
+    if not (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"):
+        pytest.skip("the setting applies to glibc only (a no-op elsewhere, tested above)")
+    off, on = _page_faults("off"), _page_faults("on")
+    assert on < 0.6 * off, (on, off)
+    assert reuse_freed_memory() and reuse_freed_memory()     # calling it again is harmless
