@@ -190,23 +190,17 @@ if HAVE_DATA:
     ax.set_title("ground truth", fontsize=7)
     ax.axis("off")
     display(fig)
+    print(f"classical {CLASSICAL_PAIR}: " + ", ".join(
+        f"{label} {scaled_psnr(result.image, scenes[i]):.2f} dB"
+        for label, result in classical.items()))
 
 # %% [markdown]
 # One pair says little. `benchmarks/bench_real_reconstruction.py` does this for every pair in
 # turn (leave-one-out), chooses each method's TV weight and iteration count on two of the fit
-# pairs only, and adds LenslessPiCam's ADMM with the same SI PSF as a peer. Its table, at this
-# notebook's size (`--downsample 4 --lensless /tmp/lensless_site`, one thread, idle 2-core
-# machine; [docs/reconstruction.md](../docs/reconstruction.md) has 135 × 240 and the details):
-#
-# | method (iterations chosen per pair on the fit pairs) | PSNR dB | SSIM | s/image |
-# | --- | --- | --- | --- |
-# | SI kernel file, ADMM (60-80 it) | 18.20 | 0.480 | 0.22 |
-# | **EK kernel file, source side, ADMM** (60-80 it) | **19.03** | **0.546** | 0.32 |
-# | LenslessPiCam 1.0.8 ADMM, the same SI PSF (60-100 it) | 17.25 | 0.414 | 0.25 |
-#
-# The eigen-kernel model gains 0.83 dB over one PSF (better on 6 of 7 pairs) at 1.47 times its
-# time per image; one PSF with this project's ADMM gains 0.95 dB over LenslessPiCam's (7 of 7)
-# at 0.88 times its time.
+# pairs only, and adds LenslessPiCam's ADMM with the same SI PSF as a peer; its measured tables
+# (at this notebook's size and larger, with the machine they were measured on) are in
+# [docs/reconstruction.md](../docs/reconstruction.md), and are not repeated here: a number in
+# a notebook should be one the notebook computes.
 
 # %% [markdown]
 # ## From the pairs to a trained network and a reconstruction of an unseen measurement

@@ -7,6 +7,8 @@ the same environment as the tests, whatever kernels the machine has installed.
 from __future__ import annotations
 
 import json
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -18,6 +20,9 @@ pytest.importorskip("ipykernel")
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[2] / "notebooks").glob("[0-9][0-9]_*.py"))
 KERNEL = "ekdun-tests"
+# where notebook 04 looks for the DLMD pairs when no variable is set (as tests/conftest.py)
+REAL_DATA = Path(os.environ.get("EKDUN_SHARED_DATA") or os.environ.get("PSFKIT_SHARED_DATA")
+                 or Path(__file__).resolve().parents[3] / "shared" / "data")
 
 
 @pytest.fixture()
@@ -57,9 +62,19 @@ def test_notebook_runs(path, kernel_env):
         assert "illustrative" in path.read_text().lower() and "learned {" in text
         assert "epoch 3: train loss" in text and "held-out PSNR" in text
         assert "flow, from one PSF: pedestal share of the change" in text
-    if path.stem.startswith("04") and "not available" not in text:
+    if path.stem.startswith("04"):
+        if not (REAL_DATA / "dlmd_mirflickr").is_dir():
+            # no silent pass: the notebook must say so (the other test checks how it stops)
+            assert "not available" in text
+            pytest.skip(f"real data not available: {REAL_DATA / 'dlmd_mirflickr'}")
+        assert "not available" not in text
         assert "held-out relative error" in text
         assert "held-out im65: EK-DUN" in text
+        # the eigen-kernel model beats one PSF on the unseen pair (measured: SI 17.89 dB,
+        # EK 19.06 dB at 100 iterations)
+        found = re.search(r"classical im65: SI ([\d.]+) dB, EK, source side ([\d.]+) dB", text)
+        assert found, text[-2000:]
+        assert float(found.group(2)) > float(found.group(1)) + 0.5, found.group(0)
 
 
 @pytest.mark.slow

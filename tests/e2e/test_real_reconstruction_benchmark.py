@@ -20,7 +20,7 @@ def test_benchmark_reports_both_models_with_iterations_chosen_from_the_grid(real
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
         [sys.executable, "benchmarks/bench_real_reconstruction.py", "--pairs", str(pairs),
-         "--downsample", "8", "--folds", "3", "--tv", "1e-4", "--iteration-grid", "10,30",
+         "--downsample", "8", "--folds", "2", "--tv", "1e-4", "--iteration-grid", "10,30",
          "--pdhg-iterations", "0", "--timing-repeats", "1", "--lensless", str(tmp_path),
          "--json", str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -30,7 +30,12 @@ def test_benchmark_reports_both_models_with_iterations_chosen_from_the_grid(real
     assert set(rows) == {"SI admm", "EK admm", "SI admm_tv f64"}
     for name in ("SI admm", "EK admm"):
         (row,) = rows[name]
-        assert row["pair"] == 3 and row["it"] in (10, 30) and row["tv"] == 1e-4
+        assert row["pair"] == 2 and row["it"] in (10, 30) and row["tv"] == 1e-4
         assert 10 < row["psnr"] < 40 and 0 < row["ssim"] < 1
     assert rows["SI admm_tv f64"][0]["it"] == rows["SI admm"][0]["it"]
-    assert "EK − SI (admm):" in proc.stdout
+    # The eigen-kernel model's gain on a pair it was not fitted on (im326, 33x60): measured
+    # +1.8 dB (SI 22.03, EK 23.82 dB); it is +0.27..+1.93 dB on the other folds but one (im394,
+    # -0.8 dB at full resolution: docs/reconstruction.md), so this fold is a test of the gain.
+    gain = rows["EK admm"][0]["psnr"] - rows["SI admm"][0]["psnr"]
+    assert gain > 0.5, gain
+    assert f"EK − SI (admm): {gain:+.2f} dB" in proc.stdout
