@@ -19,6 +19,7 @@ import numpy as np
 from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.choices import CV_BASES
 from psfkit.eigen import (
+    DEFAULT_RIDGE,
     NormalEquations,
     WorkingStack,
     check_design,
@@ -61,7 +62,9 @@ class EigenFitOptions:
     working_size : int
         Longest side (px) of the binned working copy used for CV, residuals and PCA.
     ridge : float
-        Relative weight of the prior pulling correction kernels towards the base kernel.
+        Relative weight of the prior pulling correction kernels towards the base kernel
+        (:data:`psfkit.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that the
+        pixels the data do not constrain are well-conditioned).
     """
 
     basis: str = "paper"
@@ -70,7 +73,7 @@ class EigenFitOptions:
     cv_bases: tuple[str, ...] = CV_BASES
     folds: int = 9
     working_size: int = 256
-    ridge: float = 1e-9
+    ridge: float = DEFAULT_RIDGE
     upsample: int = 100
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
 

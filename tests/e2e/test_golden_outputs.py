@@ -1,22 +1,46 @@
-"""Regression: restructuring the code must not change what the commands compute.
+"""Regression: restructuring the code must not change what the commands compute, on any machine.
 
-``golden/`` holds outputs written by the code before the architecture change of issue 11
-(commit 9fdec94), on the same inputs and options as below (the demo's two files were written
-again by issue 15's third fit-eigen pass, a deliberate change: see CHANGELOG):
+``golden/`` holds the outputs of the commands below, on the same inputs and options:
 
 - ``psfkit demo --downsample 8`` (virtual bench, seed 0): the report's ``results.json`` and the
-  eigen-kernel file ``kernels.npz``;
+  eigen-kernel file ``kernels.npz`` (written again by issue 21: the eigen fit's ridge became
+  well-conditioned, a deliberate change, see CHANGELOG);
 - ``psfkit fit-pairs`` (``--model si`` and ``--model ek``, ``--downsample 4``) on the real
-  DiffuserCam Mirflickr pairs of ``../shared/data``, and ``psfkit eval-model`` of both files.
+  DiffuserCam Mirflickr pairs of ``../shared/data``, and ``psfkit eval-model`` of both files
+  (written by issue 11's code on another machine; kept).
 
-Every number must agree to 1e-6 (relative to the array's largest value for kernels); strings that
-hold paths are ignored. A deliberate change of the numbers means regenerating these files with the
-commands above and saying why in the CHANGELOG.
+Tolerances come from a measured spread, not a guess: ``benchmarks/golden_spread.py`` runs the
+same commands with one and two threads, with torch/MKL/numpy's AVX2 code paths instead of
+AVX-512, and with every float32 input moved by one ulp (two random draws), and compares every
+number with the one-thread run; the pairs outputs are also compared with these golden files (a
+machine other than the one that wrote them). ``golden/tolerances.json`` holds, for every group
+of numbers (list indices as ``*``; grid positions whose PSF overlaps the centre PSF by less than
+the report's ``reliable_overlap`` as ``positions[unreliable]``), the absolute tolerance beside
+the measured deviations: tolerance = 10 × the largest deviation measured, rounded up, and at
+least 1e-9 of the group's largest value (counts and inputs must agree exactly). Two groups are
+treated apart, both explained in the script:
+
+- the warp statistics (ECC and dense flow) of unreliable positions are not compared: a one-ulp
+  change of the PSFs moves them by up to 0.25° (rotation) and 0.15 px (residual), as much as
+  their values; the report marks them unreliable and the compared warp-growth fit leaves them
+  out;
+- the SNR's one-ulp spread (17 %) breaks ties of 12-bit quantised values in a median, which no
+  machine does (threads and ISA spread 0); its tolerance follows the machine spread.
+
+Kernel arrays are compared by ``max |ΔK| / max |K|`` where that is well-conditioned (the demo's
+eigen-kernels) and always by ``‖ΔK‖ / ‖K‖``; the pairs fits, whose float32 early-stopped CG
+moves single pixels by up to 1.5 % of the peak under rounding alone, are compared in the norm
+the fit minimises: the relative change of their predictions ``A_K x`` on the 7 pairs.
+
+A deliberate change of the numbers means regenerating these files with the commands above and
+saying why in the CHANGELOG; a change of the commands' conditioning means running the script
+again (``--tolerances tests/e2e/golden/tolerances.json``).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -26,36 +50,91 @@ import pytest
 from psfkit.cli.main import main
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
-TOLERANCE = 1e-6
+TOLERANCES = json.loads((GOLDEN / "tolerances.json").read_text())
 PATH_KEYS = {"grid", "model", "pairs", "software"}
 
 
-def assert_numbers_equal(new: Any, old: Any, where: str = "") -> None:
-    """Recursively compare two JSON documents: numbers to ``TOLERANCE``, keys and lengths
-    exactly, path-valued strings skipped."""
+def group_of(path: str, unreliable: frozenset[int]) -> str:
+    """The tolerance group of a number (as ``benchmarks/golden_spread.py`` names it)."""
+    match = re.match(r"positions\[(\d+)\]", path)
+    if match and int(match.group(1)) in unreliable:
+        path = "positions[unreliable]" + path[match.end():]
+    return re.sub(r"\[\d+\]", "[*]", re.sub(r"^per_pair\.[^.]+\.", "per_pair.*.", path))
+
+
+def assert_numbers_equal(new: Any, old: Any, table: dict[str, Any], where: str = "",
+                         unreliable: frozenset[int] | None = None) -> None:
+    """Recursively compare two JSON documents: keys, lengths and strings exactly (path-valued
+    strings skipped), numbers to their group's tolerance in ``table``."""
+    if unreliable is None:
+        unreliable = frozenset()
+        if isinstance(old, dict) and "positions" in old:
+            unreliable = frozenset(i for i, p in enumerate(old["positions"])
+                                   if p["overlap"] < old["reliable_overlap"])
     if isinstance(old, dict):
         assert isinstance(new, dict), where
         assert set(new) == set(old), f"{where}: keys {sorted(set(new) ^ set(old))} differ"
         for key in old:
             if key not in PATH_KEYS:
-                assert_numbers_equal(new[key], old[key], f"{where}.{key}")
+                assert_numbers_equal(new[key], old[key], table,
+                                     f"{where}.{key}" if where else key, unreliable)
     elif isinstance(old, list):
         assert isinstance(new, list) and len(new) == len(old), where
         for i, (a, b) in enumerate(zip(new, old, strict=True)):
-            assert_numbers_equal(a, b, f"{where}[{i}]")
+            assert_numbers_equal(a, b, table, f"{where}[{i}]", unreliable)
     elif isinstance(old, bool) or old is None or isinstance(old, str):
         assert new == old, f"{where}: {new!r} != {old!r}"
     else:
-        assert new == pytest.approx(old, rel=TOLERANCE, abs=TOLERANCE), where
+        entry = table[group_of(where, unreliable)]
+        if entry["abs"] is None:           # ill-conditioned, not compared (module docstring)
+            return
+        assert abs(new - old) <= entry["abs"], \
+            f"{where}: {new!r} vs golden {old!r}; tolerance {entry['abs']:g} (measured " \
+            f"spread {entry['measured']})"
 
 
-def assert_kernel_files_equal(new_file: Path, old_file: Path) -> None:
+def assert_kernel_files_equal(new_file: Path, old_file: Path,
+                              scenes: np.ndarray | None = None) -> None:
+    """Kernels to their tolerances (pixels, L2 and, given ``scenes``, predictions); metadata
+    like any JSON document."""
+    name = old_file.name
+    table = TOLERANCES[name]["kernels"]
     new, old = np.load(new_file), np.load(old_file)
-    assert new["kernels"].shape == old["kernels"].shape
-    scale = float(np.abs(old["kernels"]).max())
-    np.testing.assert_allclose(new["kernels"], old["kernels"], rtol=0, atol=TOLERANCE * scale)
+    new_k, old_k = new["kernels"].astype(np.float64), old["kernels"].astype(np.float64)
+    assert new_k.shape == old_k.shape
+    pixels = table["rel_to_max"]["tolerance"]
+    if pixels is not None:
+        assert np.abs(new_k - old_k).max() <= pixels * np.abs(old_k).max(), \
+            f"{name}: pixels differ by more than {pixels:g} of the peak"
+    l2 = np.linalg.norm(new_k - old_k) / np.linalg.norm(old_k)
+    assert l2 <= table["rel_l2"]["tolerance"], f"{name}: ‖ΔK‖/‖K‖ = {l2:.3g}"
+    if scenes is not None:
+        from psfkit.kernelfile import load_kernels
+        from psfkit.pairs_fit import predict
+
+        a = predict(load_kernels(new_file), scenes).astype(np.float64)
+        b = predict(load_kernels(old_file), scenes).astype(np.float64)
+        change = np.linalg.norm(a - b) / np.linalg.norm(b)
+        assert change <= table["prediction"]["tolerance"], \
+            f"{name}: predictions differ by {change:.3g} (relative)"
     new_meta, old_meta = json.loads(str(new["metadata"])), json.loads(str(old["metadata"]))
-    assert_numbers_equal(new_meta, old_meta, "metadata")
+    assert_numbers_equal(new_meta, old_meta, TOLERANCES[name + ":metadata"], "")
+
+
+def test_tolerances_cover_every_group_and_are_tight():
+    """The table has been derived for these files: every tolerance is finite and far below
+    the quantity it guards (a tolerance of the order of the values would test nothing)."""
+    for name in ("demo_ds8_results.json", "dlmd_ds4_si_errors.json", "dlmd_ds4_ek_errors.json"):
+        doc = json.loads((GOLDEN / name).read_text())
+        table = TOLERANCES[name]
+        assert_numbers_equal(doc, doc, table, "")       # raises KeyError on a missing group
+    for name in ("demo_ds8_kernels.npz", "dlmd_ds4_si.npz", "dlmd_ds4_ek.npz"):
+        kernels = TOLERANCES[name]["kernels"]
+        assert kernels["rel_l2"]["tolerance"] <= 0.1
+        assert kernels.get("prediction", {"tolerance": 0})["tolerance"] <= 2e-3
+    growth = TOLERANCES["demo_ds8_results.json"]
+    floor = json.loads((GOLDEN / "demo_ds8_results.json").read_text())["warp_growth"]["floor"]
+    assert growth["warp_growth.floor"]["abs"] <= 0.01 * floor
 
 
 def test_demo_outputs_are_unchanged(tmp_path, capsys):
@@ -64,25 +143,27 @@ def test_demo_outputs_are_unchanged(tmp_path, capsys):
     capsys.readouterr()
     results = json.loads((out / "report" / "results.json").read_text())
     assert_numbers_equal(results, json.loads((GOLDEN / "demo_ds8_results.json").read_text()),
-                         "results")
+                         TOLERANCES["demo_ds8_results.json"], "")
     assert_kernel_files_equal(out / "kernels.npz", GOLDEN / "demo_ds8_kernels.npz")
 
 
 @pytest.mark.parametrize("model", ["si", "ek"])
 def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, model, capsys,
                                                         torch_one_thread):
-    # One torch thread, as when the golden files were written: the float32 conjugate-gradient
-    # fit stops after a fixed number of iterations, so the summation order of a multi-threaded
-    # FFT changes its last digits (about 1e-3 relative on near-zero kernel pixels).
+    # one torch thread only to keep the other pytest-xdist worker's core free: the tolerances
+    # hold for one and two threads (measured)
+    from psfkit.cli.pairs_cmd import _load
+
     pairs = real_data("dlmd_mirflickr")
     kernels = tmp_path / f"{model}.npz"
     assert main(["fit-pairs", str(pairs), "--model", model, "--downsample", "4",
                  "--out", str(kernels), "--quiet"]) == 0
-    assert_kernel_files_equal(kernels, GOLDEN / f"dlmd_ds4_{model}.npz")
+    _, scenes, _ = _load(str(pairs), 4)
+    assert_kernel_files_equal(kernels, GOLDEN / f"dlmd_ds4_{model}.npz", scenes)
     errors = tmp_path / "errors.json"
     assert main(["eval-model", str(kernels), str(pairs), "--downsample", "4",
                  "--out", str(errors)]) == 0
     capsys.readouterr()
+    name = f"dlmd_ds4_{model}_errors.json"
     assert_numbers_equal(json.loads(errors.read_text()),
-                         json.loads((GOLDEN / f"dlmd_ds4_{model}_errors.json").read_text()),
-                         "errors")
+                         json.loads((GOLDEN / name).read_text()), TOLERANCES[name], "")

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from psfkit.eigen import NormalEquations, check_design, position_weights, predict_aligned
+from psfkit.eigen import (
+    DEFAULT_RIDGE,
+    NormalEquations,
+    check_design,
+    position_weights,
+    predict_aligned,
+)
 from psfkit.errors import InvalidInputError
 from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import GridWriter, read_grid
@@ -76,7 +82,8 @@ def _unblocked_normal_equations(basis, convention, images, valids, shifts):
     full[:, iu[1], iu[0]] = flat
     scale = np.maximum(np.trace(full, axis1=1, axis2=2) / k, 1e-300)
     prior = sum(np.outer(e, e) for e in (np.eye(k)[j] - np.eye(k)[0] for j in range(1, k)))
-    system = full / scale[:, None, None] + 1e-9 * prior + 1e-12 * np.eye(k)
+    # the library's default ridge, as NormalEquations.solve() uses it
+    system = full / scale[:, None, None] + DEFAULT_RIDGE * prior + 1e-12 * np.eye(k)
     b = rhs.reshape(c, k, -1).transpose(2, 1, 0) / scale[:, None, None]
     solution = np.linalg.solve(system, b)
     return gram, rhs, np.moveaxis(solution, 0, -1).reshape(k, c, h, w)
