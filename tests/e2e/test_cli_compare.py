@@ -48,6 +48,29 @@ def test_compare_writes_figures_json_and_html(setup, tmp_path, capsys):
     assert "<section id=\"learned-vs-measured\">" in html and "data:image/png;base64" in html
 
 
+def test_compare_sees_a_known_difference(setup, tmp_path, capsys):
+    """A 'learned' model that differs from the measured one in a known way: its corrections
+    are the measured ones negated (``Kv' = 2 Kbase − Kv``, likewise ``Kh``). The difference
+    kernels are then exactly anti-correlated (NCC −1: luminance and resampling are linear) and
+    the caustic moves the other way: the displacement maps correlate negatively (measured −0.22
+    for Kv, −0.77 for Kh; not −1, since the displacement of a kernel with negative lobes is not
+    linear in it), while a comparison of the fitted file with itself gives +1 (the test
+    above)."""
+    grid, _, _, model = setup
+    k = model.kernels
+    negated = tmp_path / "negated.npz"
+    save_kernels(negated, KernelModel(kernels=np.stack([k[0], 2 * k[0] - k[1], 2 * k[0] - k[2]]),
+                                      sensor_shape=model.sensor_shape))
+    out = tmp_path / "cmp"
+    assert main(["compare", str(negated), str(grid), "--out", str(out), "--quiet"]) == 0
+    capsys.readouterr()
+    doc = json.loads((out / "compare.json").read_text())
+    headline = doc["headline"]["learned"]
+    for name in ("v", "h"):
+        assert headline[f"{name}_difference_ncc"] == pytest.approx(-1.0, abs=1e-6), headline
+        assert headline[f"{name}_vs_kernels"] < -0.1, headline
+
+
 def _bad_version(path, model):
     meta = {"format": "ekdun-kernels", "version": 99, "basis": "paper"}
     np.savez(path, kernels=model.kernels, metadata=np.array(json.dumps(meta)))

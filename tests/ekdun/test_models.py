@@ -75,6 +75,12 @@ def test_output_shapes_with_the_paper_architecture(psf, name, overrides):
     out = model(y)
     assert out.shape == y.shape and out.dtype == y.dtype
     assert torch.isfinite(out).all()
+    # each image of a batch is reconstructed on its own (no mixing across the batch), and the
+    # output depends on the measurement
+    with torch.no_grad():
+        alone = torch.cat([model(y[i:i + 1]) for i in range(len(y))])
+    torch.testing.assert_close(out.detach(), alone, rtol=1e-4, atol=1e-5 * float(alone.abs().max()))
+    assert (out[0] - out[1]).abs().max() > 1e-3 * out.abs().max()
 
 
 @pytest.mark.parametrize("name", ["ekdun", "le-admm-u", "updn"])
@@ -84,6 +90,14 @@ def test_mono_odd_sizes_and_float64(name):
     y = torch.rand(1, 1, 21, 27, dtype=torch.float64)
     out = model(y)
     assert out.shape == (1, 1, 21, 27) and out.dtype == torch.float64
+    # the same network in float32 computes the same thing, to float32 precision
+    single = build_model(name, mono, "paper")
+    single.load_state_dict({k: v.float() if v.is_floating_point() else v
+                            for k, v in model.state_dict().items()})
+    with torch.no_grad():
+        out32 = single(y.float()).double()
+    scale = float(out.abs().max())
+    assert scale > 0 and float((out32 - out.detach()).abs().max()) < 1e-3 * scale
 
 
 def test_parameter_counts_follow_the_layer_spec(psf):

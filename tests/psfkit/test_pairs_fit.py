@@ -281,10 +281,12 @@ def test_dlmd_held_out_error_eigen_kernel_vs_shift_invariant(real_data) -> None:
     assert ek["mean_scaled"] <= 0.9 * si["mean_scaled"]
     assert ek["mean_raw"] <= 0.95 * si["mean_raw"]
     # Non-negativity helps held out: measured si 0.0636 vs 0.0646 scaled, 0.0864 vs 0.0873
-    # raw; ek 0.0520 vs 0.0543, 0.0767 vs 0.0779. Margin: no worse by more than 0.0005.
+    # raw; ek 0.0520 vs 0.0543, 0.0767 vs 0.0779 (gains 0.9e-3 .. 2.3e-3). The errors move by
+    # at most 3e-5 between threads or for a one-ulp change of the inputs
+    # (tests/e2e/golden/tolerances.json), so a gain of 2e-4 is required, not merely no loss.
     for constrained, free in ((si, si_free), (ek, ek_free)):
         for kind in ("mean_raw", "mean_scaled"):
-            assert constrained[kind] <= free[kind] + 5e-4, kind
+            assert constrained[kind] < free[kind] - 2e-4, (kind, constrained[kind], free[kind])
     fit = fit_pairs(x, y, PairFitOptions(basis="paper", convention="source"))
     physics = fit.physics()
     assert physics["negative_pixels"] == 0 and physics["nonfinite_pixels"] == 0
