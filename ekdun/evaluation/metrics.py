@@ -64,12 +64,55 @@ def ssim(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
     return s.flatten(1).mean(dim=1)
 
 
-class LPIPSMetric:
-    """LPIPS if the ``lpips`` package and its backbone weights are available locally.
+# torchvision AlexNet ``features`` convolutions → the slices of ``lpips``' AlexNet backbone
+# (lpips.pretrained_networks.alexnet keeps torchvision's layer indices inside five slices)
+_ALEXNET_SLICES = {0: 1, 3: 2, 6: 3, 8: 4, 10: 5}
+_ALEXNET_SHAPES = {0: (64, 3, 11, 11), 3: (192, 64, 5, 5), 6: (384, 192, 3, 3),
+                   8: (256, 384, 3, 3), 10: (256, 256, 3, 3)}
 
-    The backbone weights cannot be downloaded here: give their path (a torchvision AlexNet
-    state dict) with ``weights`` or ``$EKDUN_LPIPS_WEIGHTS``; otherwise ``available`` is False
-    and :attr:`reason` says why (reported as "LPIPS unavailable" in the tables).
+
+def alexnet_backbone_state(state: dict[str, Tensor], where: str) -> dict[str, Tensor]:
+    """A torchvision AlexNet state dict as the state of the ``lpips`` package's backbone.
+
+    Strict: every convolution of ``features`` (weights and biases, with AlexNet's shapes) must
+    be there; the ``classifier`` layers, which LPIPS does not use, are dropped; any other key
+    is an error. A file that is not AlexNet's weights is refused, so LPIPS never runs on a
+    partly random backbone.
+
+    Raises
+    ------
+    ValueError
+        Names the missing, misshapen or unknown keys and ``where``.
+    """
+    out: dict[str, Tensor] = {}
+    for index, sl in _ALEXNET_SLICES.items():
+        for part, shape in (("weight", _ALEXNET_SHAPES[index]),
+                            ("bias", _ALEXNET_SHAPES[index][:1])):
+            key = f"features.{index}.{part}"
+            if key not in state:
+                raise ValueError(f"{where}: not a torchvision AlexNet state dict ({key} missing)")
+            if tuple(state[key].shape) != shape:
+                raise ValueError(f"{where}: {key} has shape {tuple(state[key].shape)}, AlexNet's "
+                                 f"is {shape}")
+            out[f"slice{sl}.{index}.{part}"] = state[key]
+    unknown = sorted(k for k in state
+                     if not k.startswith("classifier.") and k not in
+                     {f"features.{i}.{p}" for i in _ALEXNET_SLICES for p in ("weight", "bias")})
+    if unknown:
+        raise ValueError(f"{where}: unexpected keys for AlexNet: {', '.join(unknown[:4])}")
+    return out
+
+
+class LPIPSMetric:
+    """LPIPS (Zhang et al. 2018; AlexNet backbone, linear layers v0.1), or "n/a".
+
+    Computed only when it can be computed as published: the ``lpips`` package (its linear
+    layers, loaded strictly by the package itself) and the AlexNet backbone as a local
+    torchvision state dict (``weights`` or ``$EKDUN_LPIPS_WEIGHTS``; nothing is downloaded),
+    loaded strictly by :func:`alexnet_backbone_state`. Anything missing or mismatched leaves
+    ``available`` False and :attr:`reason` saying why, and the tables print "n/a"; a random
+    or partly loaded backbone is never used. (``lpips`` imports torchvision, which the CPU
+    build of torch used by CI cannot import: there LPIPS is always n/a.)
     """
 
     def __init__(self, weights: str | os.PathLike | None = None,
@@ -80,24 +123,31 @@ class LPIPSMetric:
         path = weights or os.environ.get(LPIPS_ENV)
         try:
             import lpips  # type: ignore[import-not-found]
-        except ImportError:
-            self.reason = "LPIPS unavailable: the 'lpips' package is not installed"
+        except Exception as exc:   # absent, or its torchvision does not import beside torch
+            self.reason = (f"LPIPS n/a: the 'lpips' package cannot be imported "
+                           f"({type(exc).__name__})")
             return
         if not path or not Path(path).is_file():
-            self.reason = (f"LPIPS unavailable: no local backbone weights (set {LPIPS_ENV} "
-                           "or --lpips-weights to an AlexNet state dict)")
+            self.reason = (f"LPIPS n/a: no local AlexNet weights (set {LPIPS_ENV} or "
+                           "--lpips-weights to a torchvision AlexNet state dict)")
             return
         try:
-            model = lpips.LPIPS(net="alex", pretrained=True, pnet_rand=True, verbose=False)
             state = torch.load(path, map_location="cpu", weights_only=True)
-            model.net.load_state_dict(state, strict=False)
-            self.model = model.to(device).eval()
-            self.available = True
+            if not isinstance(state, dict):
+                raise ValueError(f"{path}: not a state dict")
+            backbone = alexnet_backbone_state(state, str(path))
+            model = lpips.LPIPS(net="alex", version="0.1", pretrained=True, pnet_rand=True,
+                                verbose=False)
+            model.net.load_state_dict(backbone, strict=True)
         except Exception as exc:
-            self.reason = f"LPIPS unavailable: {type(exc).__name__}: {str(exc)[:100]}"
+            self.reason = f"LPIPS n/a: {str(exc).splitlines()[0][:160]}"
+            return
+        self.model = model.to(device).eval()
+        self.available = True
 
     @torch.no_grad()
     def __call__(self, output: Tensor, target: Tensor) -> Tensor:
+        """Per-image LPIPS of ``(B, 3, H, W)`` images in ``[0, 1]`` (NaN when unavailable)."""
         if not self.available:
             return torch.full((output.shape[0],), math.nan, dtype=torch.float64)
         d = self.model(output.float() * 2 - 1, target.float() * 2 - 1)
