@@ -43,7 +43,7 @@ from psfkit.bench import BenchConfig, simulate_grid
 from psfkit.bench.camera import VirtualCamera, place_patch
 from psfkit.bench.simulate import grid_monitor_positions
 from psfkit.io.atomic import atomic_directory, atomic_file
-from psfkit.validation import load_json_document
+from psfkit.validation import read_json_file
 
 FORMAT = "ekdun-virtual-bench"
 VERSION = 1
@@ -249,7 +249,7 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        doc = load_json_document(path.read_bytes(), str(path))
+        doc = read_json_file(path)
     except InvalidInputError:
         return None
     return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None

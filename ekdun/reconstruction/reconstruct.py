@@ -80,7 +80,8 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the physics FFTs stay
     float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
     """
-    precision = acc.resolve_amp(amp, torch.device(device))
+    device = acc.resolve_device(device)
+    precision = acc.resolve_amp(amp, device)
     model, doc = network_from_checkpoint(checkpoint)
     trained_order, trained_factor = training_read_options(doc)
     channel_order = channel_order or trained_order
@@ -105,7 +106,7 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     written = []
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
-            with acc.autocast(precision, torch.device(device)):
+            with acc.autocast(precision, device):
                 out = model(torch.from_numpy(y)[None].to(device))
             out = out[0].float().cpu().numpy()
             write_image(tmp / f"{f.stem}.npy", out.astype(np.float32))
