@@ -181,6 +181,9 @@ def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
                                 f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")
     # A measured point-source image: negative values are noise after background subtraction.
     psf = np.clip(psf, 0, None)
+    if not np.all(psf.sum(axis=(1, 2)) > 0):   # it is scaled to unit sum per channel
+        raise InvalidInputError(f"{args.inputs[0]}: the PSF has no light in some channel "
+                                "(all zero after --background and clipping to >= 0)")
     result = admm_tv(y, psf, iterations=args.iterations, tau=args.tv).numpy()
     write_image(out, result.astype(np.float32))
     preview = result / max(float(result.max()), 1e-12)

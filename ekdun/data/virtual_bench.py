@@ -43,6 +43,7 @@ from psfkit.bench import BenchConfig, simulate_grid
 from psfkit.bench.camera import VirtualCamera, place_patch
 from psfkit.bench.simulate import grid_monitor_positions
 from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.io.images import write_image
 from psfkit.validation import read_json_file
 
 FORMAT = "ekdun-virtual-bench"
@@ -327,8 +328,8 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                 folder = tmp / split / sub
                 folder.mkdir(parents=True)
                 for i, image in enumerate(arrays):
-                    np.save(folder / f"{split}{i:04d}.npy",
-                            np.ascontiguousarray(np.moveaxis(image, 0, -1)), allow_pickle=False)
+                    # the one image writer: refuses NaN/Inf (e.g. --photons 1e-300)
+                    write_image(folder / f"{split}{i:04d}.npy", image.astype(np.float32))
         files = _data_files(tmp)
         manifest = {
             "format": FORMAT, "version": VERSION, "spec": spec.to_dict(),

@@ -16,6 +16,7 @@ from collections.abc import Iterator, Sequence
 from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
 from psfkit.errors import PsfkitError
+from psfkit.io.temps import public_name
 from psfkit.validation import OneLineArgumentParser, escape_line
 
 
@@ -44,10 +45,11 @@ def error_line(prog: str, exc: BaseException) -> tuple[str, int]:
 
     Bad input (project errors, unreadable files, absurd sizes, malformed JSON or archives)
     gives status 2; anything else is an internal error (status 1) with a request to report it.
-    Control characters (a newline in a file name) are escaped: the line stays one line.
+    Control characters (a newline in a file name) are escaped: the line stays one line; a
+    temporary output is named as the output it would have become.
     """
     line, status = _error_line(prog, exc)
-    return escape_line(line), status
+    return escape_line(public_name(line)), status
 
 
 def _error_line(prog: str, exc: BaseException) -> tuple[str, int]:
