@@ -13,6 +13,7 @@ from ekdun.data.pairs import recorded_read_options
 from ekdun.errors import InvalidInputError, TensorShapeError
 from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
+from ekdun.training.checkpoint import checkpoint_sensor, load_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, write_image
 from psfkit.resample import bin_mean
@@ -82,15 +83,15 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     """
     device = acc.resolve_device(device)
     precision = acc.resolve_amp(amp, device)
-    model, doc = network_from_checkpoint(checkpoint)
+    doc = load_checkpoint(checkpoint)
     trained_order, trained_factor = training_read_options(doc)
     channel_order = channel_order or trained_order
     factor = trained_factor if downsample is None else int(downsample)
     if factor < 1:
         raise InvalidInputError(f"downsample must be >= 1, got {factor}")
-    model = model.to(device).eval()
-    sensor = tuple(model.physics.sensor_shape)
-    channels = model.physics.channels
+    # the inputs are checked against the checkpoint's sensor before its network is built
+    channels, *sensor_hw = checkpoint_sensor(doc)
+    sensor = tuple(sensor_hw)
     files = measurement_files(inputs)
     images = []
     for f in files:
@@ -103,6 +104,8 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
                 + (f" after binning by {factor}" if factor > 1 else "")
                 + f" but the model expects {sensor[0]}x{sensor[1]}x{channels}")
         images.append(y)
+    model, doc = network_from_checkpoint(doc, where=str(checkpoint))
+    model = model.to(device).eval()
     written = []
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
