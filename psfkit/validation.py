@@ -418,25 +418,29 @@ class FlagRange:
     """The type and range of one numeric flag.
 
     ``kind`` is ``int`` or ``float``; ``low``/``high`` are inclusive bounds (``None``: none),
-    except that ``low`` is excluded when ``low_open`` (``> 0`` rather than ``>= 0``).
+    except that ``low`` is excluded when ``low_open`` (``> 0`` rather than ``>= 0``), and
+    ``high`` when ``high_open``.
     """
 
     kind: type
     low: float | None = None
     high: float | None = None
     low_open: bool = False
+    high_open: bool = False
 
     def describe(self) -> str:
         """``"an integer in [1, 64]"``, ``"a number in (0, 1]"``..."""
         noun = "an integer" if self.kind is int else "a number"
         low = "-inf" if self.low is None else _number_text(self.low)
         high = "inf" if self.high is None else _number_text(self.high)
-        return f"{noun} in {'(' if self.low_open or self.low is None else '['}{low}, {high}]"
+        return (f"{noun} in {'(' if self.low_open or self.low is None else '['}{low}, {high}"
+                f"{')' if self.high_open or self.high is None else ']'}")
 
     def _in_range(self, value: float) -> bool:
         if self.low is not None and (value <= self.low if self.low_open else value < self.low):
             return False
-        return self.high is None or value <= self.high
+        return self.high is None or (value < self.high if self.high_open
+                                     else value <= self.high)
 
     def parse(self, text: str) -> int | float:
         """The ``argparse`` conversion: a finite number of the right kind, in range."""
@@ -456,7 +460,7 @@ class FlagRange:
             return exact_int(value, what, -2**63 if self.low is None else int(self.low)
                              + int(self.low_open),
                              None if self.high is None else int(self.high))
-        number = finite_number(value, what, None, self.high)
+        number = finite_number(value, what)
         if not self._in_range(number):
             raise InvalidInputError(f"{what} must be {self.describe()}, got {value!r}")
         return number
@@ -491,8 +495,8 @@ FLAGS: dict[str, FlagRange] = {
     "--folds": FlagRange(int, 2, MAX_GRID_SIDE ** 2),
     "--tikhonov": _WEIGHT,
     "--difference": _WEIGHT,
-    "--support-threshold": FlagRange(float, 0, 1),
-    "--projected-iterations": FlagRange(int, 0, MAX_ITERATIONS),
+    "--support-threshold": FlagRange(float, 0, 1, high_open=True),
+    "--projected-iterations": _ITERATIONS,
     # psfkit: the virtual bench (BenchConfig checks the same ranges for --bench-config files)
     "--rows": _SIDE,
     "--cols": _SIDE,
