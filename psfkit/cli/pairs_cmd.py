@@ -14,7 +14,7 @@ from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
-from psfkit.validation import dumps_finite, exact_int, flag
+from psfkit.validation import dumps_finite, exact_int, flag, require_finite
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -134,7 +134,10 @@ def _support_mask(path: str | None, factor: int, shape: tuple[int, int]) -> np.n
     from psfkit.io.images import read_image
     from psfkit.resample import bin_mean
 
-    mask = read_image(path).astype(np.float64).max(axis=0) != 0
+    image = require_finite(read_image(path), str(path))
+    mask = image.astype(np.float64).max(axis=0) != 0
+    if not mask.any():   # would constrain every kernel to zero
+        raise InvalidInputError(f"{path}: the support mask is empty (no nonzero pixel)")
     if factor > 1 and mask.shape[0] >= shape[0] * factor and mask.shape[1] >= shape[1] * factor:
         mask = bin_mean(mask.astype(np.float32), factor) > 0
     if tuple(mask.shape) != tuple(shape):
