@@ -976,3 +976,73 @@ def test_debug_shows_the_traceback_and_internal_errors_say_so(tmp_path, capsys, 
                            str(tmp_path / "missing")], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=120)
     assert done.returncode != 0 and "Traceback" in done.stderr and "GridFormatError" in done.stderr
+
+
+def _numeric_actions(parser: Any, prog: str) -> list[tuple[str, Any]]:
+    """``(command flag, action)`` of every option of ``parser`` and its sub-commands that
+    converts its value (``type=``), other than ``--device`` (a name, see ``device_name``)."""
+    import argparse
+
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found += _numeric_actions(sub, f"{prog} {name}")
+        elif action.type is not None and action.option_strings:
+            found.append((f"{prog} {action.option_strings[0]}", action))
+    return found
+
+
+def test_every_numeric_flag_of_both_clis_takes_its_range_from_the_one_table():
+    from ekdun.cli import build_parser as ekdun_parser
+    from psfkit.cli.main import build_parser as psfkit_parser
+    from psfkit.validation import FLAGS, device_name
+
+    actions = (_numeric_actions(psfkit_parser(), "psfkit")
+               + _numeric_actions(ekdun_parser(), "ekdun"))
+    assert len(actions) > 40
+    for where, action in actions:
+        if action.option_strings[0] == "--device":
+            assert action.type is device_name, where
+            continue
+        spec = getattr(action.type, "flag_range", None)
+        assert spec is not None, f"{where}: its type is not from psfkit.validation.FLAGS"
+        assert spec in FLAGS.values(), where
+        assert spec.high is not None, f"{where}: no upper bound"
+
+
+def test_warnings_and_library_logging_never_reach_stderr(capsys):
+    """The runner collects them for every command: a failing command prints its one line,
+    a succeeding one nothing of theirs."""
+    import argparse
+    import logging
+    import warnings
+
+    from psfkit.cli.main import run_cli
+    from psfkit.errors import InvalidInputError
+
+    def noisy(args: argparse.Namespace) -> int:
+        np.log(np.zeros(1))                                   # numpy RuntimeWarning
+        warnings.warn("a library's UserWarning", UserWarning, stacklevel=1)
+        logging.getLogger("tifffile").warning("a library's log record")
+        if args.fail:
+            raise InvalidInputError("bad\nname.npy: refused")
+        return 0
+
+    parser = argparse.ArgumentParser(prog="psfkit")
+    parser.add_argument("--fail", action="store_true")
+    parser.set_defaults(func=noisy)
+    assert run_cli("psfkit", parser, []) == 0
+    assert capsys.readouterr().err == ""
+    assert run_cli("psfkit", parser, ["--fail"]) == 2
+    assert capsys.readouterr().err == "psfkit: error: bad\\nname.npy: refused\n"
+
+
+def test_kernel_files_of_zeros_are_refused_when_written(tmp_path):
+    from psfkit.errors import ModelFileError
+    from psfkit.kernelfile import KernelModel, save_kernels
+
+    with pytest.raises(ModelFileError, match="every kernel is zero"):
+        save_kernels(tmp_path / "k.npz", KernelModel(kernels=np.zeros((1, 1, 4, 4), np.float32),
+                                                     basis="si", channels=("L",)))
+    assert list(tmp_path.iterdir()) == []
