@@ -77,8 +77,9 @@ def run_tiny_benchmark(out: str | os.PathLike, spec: VirtualBenchSpec | None = N
         t0 = time.perf_counter()
         done = ckpt.is_file() and load_checkpoint(ckpt)["metadata"].get("epoch", 0) >= epochs
         if not done:
+            # the benchmark's own folder: a run killed before its first checkpoint restarts
             train(run_dir, model_name, kernels, train_set, preset, overrides, options,
-                  resume=ckpt.is_file())
+                  resume=ckpt.is_file(), overwrite=not ckpt.is_file())
         timings[f"train_{run_name}_s"] = time.perf_counter() - t0
         model, doc = network_from_checkpoint(ckpt)
         meta = doc["metadata"]

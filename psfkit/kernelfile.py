@@ -42,11 +42,14 @@ from psfkit.io.atomic import atomic_file
 from psfkit.io.read_options import ReadOptions
 from psfkit.validation import (
     MAX_IMAGE_PIXELS,
+    MAX_JSON_BYTES,
     MAX_SCENE_PADDING,
     bounded_size,
+    check_array_shape,
     dumps_finite,
     finite_number,
     load_json_document,
+    npy_header,
 )
 from psfkit.weights import WeightBasis, get_basis
 
@@ -131,7 +134,8 @@ class KernelModel:
         ModelFileError
             Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
             than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
-            convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``.
+            convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels
+            that are all zero.
         """
         try:
             basis = get_basis(self.basis)
@@ -143,6 +147,11 @@ class KernelModel:
             raise ModelFileError(f"{where}: sensor_shape {list(shape)} is not a valid size")
         check_kernels(self.kernels, shape, where)
         k = self.kernels
+        if not np.any(k):
+            # a model that predicts a black image for every scene: a fit that went wrong (an
+            # empty support mask), never a camera; refused when written and when read
+            raise ModelFileError(f"{where}: every kernel is zero (the model predicts a black "
+                                 "image for every scene)")
         if k.shape[0] != basis.n_kernels:
             raise ModelFileError(f"{where}: basis {self.basis!r} needs {basis.n_kernels} "
                                  f"kernels {basis.kernel_names}, the file has {k.shape[0]}")
@@ -376,12 +385,39 @@ def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
     return path
 
 
+def _check_declared_members(path: Path) -> None:
+    """Refuse a kernel file whose members declare absurd sizes, from their ``.npy`` headers
+    (only those bytes are decompressed) and the zip's declared sizes: a few kilobytes of
+    compressed zeros cannot make :func:`numpy.load` inflate gigabytes."""
+    # bytes: kernels of MAX_IMAGE_PIXELS float64 values, metadata of MAX_JSON_BYTES characters
+    limits = {"kernels": 8 * MAX_IMAGE_PIXELS, "metadata": 4 * MAX_JSON_BYTES}
+    with zipfile.ZipFile(path) as archive:
+        for name, max_bytes in limits.items():
+            try:
+                info = archive.getinfo(f"{name}.npy")
+            except KeyError:
+                continue            # np.load reports the missing member
+            what = f"{path}: member '{name}'"
+            with archive.open(info) as member:
+                shape, _, dtype = npy_header(member, what)
+                header_bytes = member.tell()
+            elements = check_array_shape(shape, dtype, what, MAX_IMAGE_PIXELS)
+            declared = int(np.prod(elements, dtype=np.int64)) * dtype.itemsize
+            if declared > max_bytes:
+                raise ModelFileError(f"{what}: declares {declared} bytes, more than the "
+                                     f"{max_bytes} a kernel file may hold")
+            if info.file_size > header_bytes + declared:
+                raise ModelFileError(f"{what}: the archive declares {info.file_size} bytes for "
+                                     f"an array of {declared}")
+
+
 def load_kernels(path: str | os.PathLike) -> KernelModel:
     """Read and validate a kernel file; never executes code (no pickles)."""
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such kernel file")
     try:
+        _check_declared_members(path)
         with np.load(path, allow_pickle=False) as data:
             if "kernels" not in data.files or "metadata" not in data.files:
                 raise ModelFileError(f"{path}: not a kernel file (needs 'kernels' and "

@@ -116,6 +116,10 @@ class PairFitOptions:
             raise ConfigurationError(f"support must be one of {SUPPORTS}, got {self.support!r}")
         if self.energy not in ENERGIES:
             raise ConfigurationError(f"energy must be one of {ENERGIES}, got {self.energy!r}")
-        if not 0 <= self.support_threshold < 1 or self.final_projected_iterations < 1:
-            raise ConfigurationError("support_threshold must be in [0, 1) and "
-                                     "projected_iterations >= 1")
+        # one message per field, named as the flag (the ranges of FLAGS in psfkit.validation)
+        if not 0 <= self.support_threshold < 1:
+            raise ConfigurationError(f"--support-threshold must be in [0, 1), got "
+                                     f"{self.support_threshold}")
+        if self.final_projected_iterations < 1:
+            raise ConfigurationError(f"--projected-iterations must be >= 1, got "
+                                     f"{self.projected_iterations}")

@@ -234,6 +234,12 @@ class GridCalibration:
         scale = 1.0
         if self.exposures is not None and self.reference_exposure is not None:
             scale = self.reference_exposure / float(self.exposures[row, col])
+            if not 1e-6 <= scale <= 1e6:
+                # blame the manifest's number, not the image it would scale to nothing
+                raise InvalidInputError(
+                    f"{grid.path(row, col)}: manifest exposure_s "
+                    f"{float(self.exposures[row, col]):g} differs from the centre's "
+                    f"({self.reference_exposure:g}) by more than 10^6x; check exposure_s")
         return prepare_psf(grid.load(row, col), dark=self.dark, black_level=self.black_level,
                            hot_pixels=self.hot_pixels, saturation_level=self.saturation_level,
                            exposure_scale=scale, options=options, name=str(grid.path(row, col)),

@@ -9,8 +9,15 @@ work is done, and a non-finite result can never be written:
 - :func:`load_json_document`: strict JSON (duplicate keys, NaN/Infinity literals and absurd
   nesting refused) that names the file;
 - :func:`dumps_finite`: JSON for outputs, refusing NaN/Inf instead of writing bare ``NaN``;
-- :func:`finite_float`, :func:`positive_float`, :func:`nonnegative_float`, :func:`fraction`,
-  :func:`positive_int`: ``argparse`` types for command-line numbers.
+- :func:`read_json_file`: :func:`load_json_document` of a file whose size is checked first;
+- :func:`npy_header` / :func:`check_array_shape`: the shape an ``.npy`` file (or an ``.npz``
+  member) declares, read and checked before a byte of its data is read or decompressed;
+- :data:`FLAGS` and :func:`flag`: the one table of every numeric flag of both command-line
+  interfaces (``psfkit`` and ``ekdun``) with its range; :func:`flag` gives the ``argparse``
+  type, :meth:`FlagRange.check` the same range for the same value read from a file;
+- :func:`device_name`: ``argparse`` type of ``--device``;
+- :func:`escape_line`: control characters (a newline in a file name) made visible, so that
+  an error stays one line.
 
 The limits (``MAX_*``) are generous for real hardware and small enough that a 20-byte edit
 of a manifest cannot make a command allocate gigabytes.
@@ -21,8 +28,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import re
 import sys
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -35,6 +47,11 @@ MAX_SCENE_PADDING = 8         # convolution grid as a multiple of the sensor siz
 MAX_ITERATIONS = 10_000       # solver iterations (ADMM, conjugate gradients)
 MAX_UNROLLED_ITERATIONS = 100  # unrolled iterations of a network (the paper uses 10)
 MAX_JSON_DEPTH = 64           # nesting of a JSON document we read
+MAX_JSON_BYTES = 16 * 2**20   # size of a JSON document we read (a 64 x 64 manifest: ~1 MB)
+MAX_ARRAY_ELEMENTS = 4 * MAX_IMAGE_PIXELS  # elements of one array read from a file
+MAX_DOWNSAMPLE = 64           # binning factor
+MAX_SEED = 2**32 - 1          # numpy's and torch's seeds agree on [0, 2**32)
+MAX_THREADS = 256             # CPU threads (libgomp aborts the process on absurd counts)
 
 
 def require_finite(array: Any, what: str) -> np.ndarray:
@@ -131,6 +148,62 @@ def bounded_size(shape: Any, what: str, max_side: int = MAX_IMAGE_SIDE,
     return sides
 
 
+def check_array_shape(shape: Any, dtype: Any, what: str,
+                      max_elements: int = MAX_ARRAY_ELEMENTS) -> tuple[int, ...]:
+    """Every axis of a declared array shape and its total size, before anything is allocated.
+
+    Parameters
+    ----------
+    shape : sequence of int
+        As declared by a file header (``.npy``, ``.npz`` member, TIFF series).
+    dtype : numpy dtype or None
+        Its element type (the message gives the bytes it would take).
+    what : str
+        Names the file (or ``"FILE: member"``) in the message.
+    max_elements : int
+        At most this many elements in all (every axis also at most ``MAX_IMAGE_SIDE``).
+
+    Raises
+    ------
+    InvalidInputError
+        ``"{what} declares shape [...] (N elements, X GB); the limit is ..."``.
+    """
+    sides = tuple(int(s) for s in shape)
+    total = math.prod(sides)
+    if any(s > MAX_IMAGE_SIDE for s in sides) or total > max_elements:
+        size = total * (np.dtype(dtype).itemsize if dtype is not None else 1)
+        raise InvalidInputError(f"{what} declares shape {list(sides)} ({total} elements, "
+                                f"{size / 1e9:.3g} GB); the limit is {MAX_IMAGE_SIDE} per axis "
+                                f"and {max_elements} elements")
+    return sides
+
+
+def npy_header(stream: IO[bytes], what: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """``(shape, fortran_order, dtype)`` from the header of an ``.npy`` stream (a file, or an
+    ``.npz`` member opened with :mod:`zipfile`: only the header bytes are decompressed).
+
+    Raises
+    ------
+    InvalidInputError
+        Not an ``.npy`` header (``what`` names the file).
+    """
+    try:
+        version = np.lib.format.read_magic(stream)
+        if version == (1, 0):
+            return np.lib.format.read_array_header_1_0(stream)
+        return np.lib.format.read_array_header_2_0(stream)
+    except ValueError as exc:   # numpy's message for a bad magic string or header
+        reason = str(exc).splitlines()[0] if str(exc) else "bad header"
+        raise InvalidInputError(f"{what}: not a readable .npy array ({reason[:120]})") from None
+
+
+def escape_line(text: str) -> str:
+    """``text`` with its control characters written as escapes (``\\n``, ``\\x1b``...), so
+    that a file name holding a newline cannot split a one-line message or colour a terminal."""
+    return re.sub(r"[\x00-\x1f\x7f\x85\u2028\u2029]",
+                  lambda m: repr(m.group())[1:-1], text)
+
+
 # --------------------------------------------------------------------------- JSON
 
 
@@ -209,6 +282,30 @@ def load_json_document(text: str | bytes, where: str) -> Any:
             from None
     except RecursionError:
         raise InvalidInputError(f"{where}: JSON nested too deeply") from None
+
+
+def read_json_file(path: str | os.PathLike, where: str | None = None,
+                   max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """:func:`load_json_document` of a file, its size checked before it is read (a sparse
+    1 GB ``manifest.json`` is refused from its size, not read).
+
+    Raises
+    ------
+    InvalidInputError
+        Missing, larger than ``max_bytes``, or not valid JSON; ``where`` (default: the path)
+        names it.
+    """
+    path = Path(path)
+    where = where or str(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InvalidInputError(f"{where}: no such file") from None
+    if size > max_bytes:
+        raise InvalidInputError(f"{where}: {size} bytes is larger than the {max_bytes} bytes a "
+                                "JSON document of this toolkit may have")
+    with open(path, "rb") as fh:
+        return load_json_document(fh.read(max_bytes + 1), where)
 
 
 def dumps_finite(doc: Any, what: str, **kwargs: Any) -> str:
@@ -313,11 +410,156 @@ def positive_int(text: str) -> int:
     return value
 
 
+# --------------------------------------------------------------------------- the flag table
+
+
+@dataclass(frozen=True)
+class FlagRange:
+    """The type and range of one numeric flag.
+
+    ``kind`` is ``int`` or ``float``; ``low``/``high`` are inclusive bounds (``None``: none),
+    except that ``low`` is excluded when ``low_open`` (``> 0`` rather than ``>= 0``), and
+    ``high`` when ``high_open``.
+    """
+
+    kind: type
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def describe(self) -> str:
+        """``"an integer in [1, 64]"``, ``"a number in (0, 1]"``..."""
+        noun = "an integer" if self.kind is int else "a number"
+        low = "-inf" if self.low is None else _number_text(self.low)
+        high = "inf" if self.high is None else _number_text(self.high)
+        return (f"{noun} in {'(' if self.low_open or self.low is None else '['}{low}, {high}"
+                f"{')' if self.high_open or self.high is None else ']'}")
+
+    def _in_range(self, value: float) -> bool:
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or (value < self.high if self.high_open
+                                     else value <= self.high)
+
+    def parse(self, text: str) -> int | float:
+        """The ``argparse`` conversion: a finite number of the right kind, in range."""
+        try:
+            value: int | float = int(text) if self.kind is int else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {self.describe()}, got "
+                                             f"{escape_line(repr(text))}") from None
+        if not math.isfinite(value) or not self._in_range(value):
+            raise argparse.ArgumentTypeError(f"must be {self.describe()}, got "
+                                             f"{escape_line(text)}")
+        return value
+
+    def check(self, value: Any, what: str) -> int | float:
+        """The same range for a value read from a file (``what`` names the file and field)."""
+        if self.kind is int:
+            return exact_int(value, what, -2**63 if self.low is None else int(self.low)
+                             + int(self.low_open),
+                             None if self.high is None else int(self.high))
+        number = finite_number(value, what)
+        if not self._in_range(number):
+            raise InvalidInputError(f"{what} must be {self.describe()}, got {value!r}")
+        return number
+
+
+def _number_text(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() and abs(value) < 1e10 else f"{value:g}"
+
+
+_ITERATIONS = FlagRange(int, 1, MAX_ITERATIONS)
+_POSITIVE_COUNT = FlagRange(int, 1, 1_000_000)
+_SIDE = FlagRange(int, 1, MAX_GRID_SIDE)
+_WEIGHT = FlagRange(float, 0, 1e6)
+_SIGMA_PX = FlagRange(float, 0, 64)
+
+#: Every numeric flag of ``psfkit`` and ``ekdun`` with its range, declared once. A key
+#: ``"COMMAND --flag"`` overrides ``"--flag"`` for that command. ``tests/e2e/test_bad_inputs.py``
+#: checks that no numeric flag of either parser escapes this table.
+FLAGS: dict[str, FlagRange] = {
+    # shared
+    "--seed": FlagRange(int, 0, MAX_SEED),
+    "--threads": FlagRange(int, 1, MAX_THREADS),
+    "--workers": FlagRange(int, 1, MAX_THREADS),
+    "--downsample": FlagRange(int, 1, MAX_DOWNSAMPLE),
+    "--iterations": _ITERATIONS,
+    # psfkit: preprocessing, characterization, fits
+    "--saturation-level": FlagRange(float, 0, 1e12, low_open=True),
+    "--hot-pixel-sigma": FlagRange(float, 0, 1e6, low_open=True),
+    "--upsample": FlagRange(int, 1, 1000),
+    "--mae-smoothing": _SIGMA_PX,
+    "--smooth": _SIGMA_PX,
+    "--folds": FlagRange(int, 2, MAX_GRID_SIDE ** 2),
+    "--tikhonov": _WEIGHT,
+    "--difference": _WEIGHT,
+    "--support-threshold": FlagRange(float, 0, 1, high_open=True),
+    "--projected-iterations": _ITERATIONS,
+    # psfkit: the virtual bench (BenchConfig checks the same ranges for --bench-config files)
+    "--rows": _SIDE,
+    "--cols": _SIDE,
+    "--extent": FlagRange(float, 0, 1, low_open=True),
+    "--diffusion-angle": FlagRange(float, 0, 20, low_open=True),
+    "--gap-mm": FlagRange(float, 0, 1000, low_open=True),
+    "--peak-fraction": FlagRange(float, 0, 100, low_open=True),
+    # ekdun
+    "--sensor": FlagRange(int, 16, 4096),
+    "--grid": _SIDE,
+    "--n-train": _POSITIVE_COUNT,
+    "--n-test": _POSITIVE_COUNT,
+    "--half-fov": FlagRange(float, 0, 80, low_open=True),
+    "--aperture": FlagRange(float, 0, 100, low_open=True),
+    "--photons": FlagRange(float, 0, 1e12, low_open=True),
+    "train --iterations": FlagRange(int, 1, MAX_UNROLLED_ITERATIONS),
+    "--epochs": FlagRange(int, 1, 100_000),
+    "--batch-size": FlagRange(int, 1, 65_536),
+    "--lr": FlagRange(float, 0, 1, low_open=True),
+    "--tv": _WEIGHT,
+    "--tol": FlagRange(float, 0, 1),
+}
+
+
+def flag_range(name: str, command: str | None = None) -> FlagRange:
+    """The :data:`FLAGS` entry of ``name`` (``"COMMAND NAME"`` first)."""
+    return FLAGS.get(f"{command} {name}") or FLAGS[name]
+
+
+def flag(name: str, command: str | None = None) -> Callable[[str], int | float]:
+    """``argparse`` type of the numeric flag ``name`` (its range from :data:`FLAGS`).
+
+    The returned function carries ``flag_range`` so that the parsers can be checked against
+    the table.
+    """
+    spec = flag_range(name, command)
+
+    def parse(text: str) -> int | float:
+        return spec.parse(text)
+
+    parse.__name__ = spec.kind.__name__   # argparse's "invalid int value" wording
+    parse.flag_range = spec               # type: ignore[attr-defined]
+    return parse
+
+
+DEVICE_PATTERN = re.compile(r"(auto|cpu|mps|cuda(:[0-9]{1,3})?)")
+
+
+def device_name(text: str) -> str:
+    """``argparse`` type of ``--device``: ``auto``, ``cpu``, ``cuda``, ``cuda:N`` or ``mps``
+    (whether that device exists is checked when it is used)."""
+    if not DEVICE_PATTERN.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda, cuda:N or mps, got "
+                                         f"{escape_line(repr(text))}")
+    return text
+
+
 class OneLineArgumentParser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose usage errors are one line on stderr (exit status 2), like
     every other error of the command-line interfaces; ``--help`` still shows the usage."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         command = self.prog.split()[0]   # "psfkit: error: ..." like every other error
-        sys.stderr.write(f"{command}: error: {message} (see {self.prog} --help)\n")
+        sys.stderr.write(escape_line(f"{command}: error: {message} (see {self.prog} --help)")
+                         + "\n")
         sys.exit(2)

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from ekdun.errors import InvalidInputError
-from psfkit.validation import nonnegative_float, positive_int, require_finite
+from psfkit.validation import flag, require_finite
 
 _DEFAULTS = {"psf": {"iterations": 100, "tv": 1e-3, "background": "corner"},
              "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
@@ -43,8 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True,
                    help="output .npy (a .png preview is written next to it); with --kernels "
                         "and a folder or several measurements: an output folder")
-    p.add_argument("--iterations", type=positive_int, help="iterations (default 100)")
-    p.add_argument("--tv", "--tau", dest="tv", type=nonnegative_float,
+    p.add_argument("--iterations", type=flag("--iterations"), help="iterations (default 100)")
+    p.add_argument("--tv", "--tau", dest="tv", type=flag("--tv"),
                    help="TV weight relative to the measurement's peak and the model's gain "
                         "(default 1e-3 with a PSF image, 3e-4 with --kernels)")
     p.add_argument("--solver", choices=SOLVERS, default="auto",
@@ -52,12 +52,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "admm)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help="--kernels: constrain the image to >= 0 (default on)")
-    p.add_argument("--tol", type=nonnegative_float, default=0.0,
+    p.add_argument("--tol", type=flag("--tol"), default=0.0,
                    help="--kernels: stop when the relative change of the image falls below "
                         "this (default 0: run all iterations)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                    help="--kernels: precision (default float32)")
-    p.add_argument("--downsample", type=positive_int,
+    p.add_argument("--downsample", type=flag("--downsample"),
                    help="box-downsample the inputs first (default: with --kernels, the factor "
                         "recorded in the kernel file; else 1)")
     p.add_argument("--background", choices=("none", "corner"),
@@ -69,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "DLMD pairs; else RGB); outputs are always RGB")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (file and preview, or folder)")
-    p.add_argument("--threads", type=positive_int, help="torch CPU threads")
+    p.add_argument("--threads", type=flag("--threads"), help="torch CPU threads")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_admm)
 

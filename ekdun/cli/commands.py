@@ -10,13 +10,7 @@ from typing import Any
 
 from ekdun.errors import InvalidInputError
 from ekdun.model_names import MODEL_NAMES
-from psfkit.validation import (
-    MAX_GRID_SIDE,
-    MAX_UNROLLED_ITERATIONS,
-    bounded_size,
-    positive_float,
-    positive_int,
-)
+from psfkit.validation import MAX_GRID_SIDE, bounded_size, device_name, flag
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -46,18 +40,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "measurements through a dense shift-variant model with "
                                    "sensor noise. Reused when the manifest matches.")
     p.add_argument("out", help="dataset folder")
-    p.add_argument("--sensor", type=positive_int, nargs=2, default=(64, 64), metavar=("H", "W"))
-    p.add_argument("--n-train", type=positive_int, default=96)
-    p.add_argument("--n-test", type=positive_int, default=24)
-    p.add_argument("--grid", type=positive_int, nargs=2, default=(9, 9), metavar=("N", "M"),
+    p.add_argument("--sensor", type=flag("--sensor"), nargs=2, default=(64, 64), metavar=("H", "W"))
+    p.add_argument("--n-train", type=flag("--n-train"), default=96)
+    p.add_argument("--n-test", type=flag("--n-test"), default=24)
+    p.add_argument("--grid", type=flag("--grid"), nargs=2, default=(9, 9), metavar=("N", "M"),
                    help="PSF grid (and dense-model nodes), default 9 9")
-    p.add_argument("--half-fov", type=positive_float, default=30.0,
+    p.add_argument("--half-fov", type=flag("--half-fov"), default=30.0,
                    help="field angle (deg) at the sensor edge (default 30)")
-    p.add_argument("--aperture", type=positive_float, default=1.3,
+    p.add_argument("--aperture", type=flag("--aperture"), default=1.3,
                    help="side of the square aperture in mm (default 1.3)")
-    p.add_argument("--photons", type=positive_float, default=2000.0,
+    p.add_argument("--photons", type=flag("--photons"), default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=flag("--seed"), default=0)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_make_dataset)
 
@@ -76,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--holdout", action="append", metavar="NAME[,NAME]",
                    help="leave these pairs (file stems, e.g. im65) out of training; "
                         "repeatable")
-    p.add_argument("--downsample", type=int, metavar="N",
+    p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the pairs N x N (default: 1 if they have the kernels' size, else "
                         "the factor the kernel file was fitted with)")
     p.add_argument("--channel-order", choices=("RGB", "BGR"),
@@ -84,15 +78,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "BGR for the DLMD layout lensed/ + diffuser/, else RGB)")
     p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
-    p.add_argument("--iterations", type=positive_int, help="override the preset's iterations")
+    p.add_argument("--iterations", type=flag("--iterations", "train"),
+                   help="override the preset's iterations")
     p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
                    help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
-    p.add_argument("--epochs", type=positive_int)
-    p.add_argument("--batch-size", type=positive_int, help="global batch size")
-    p.add_argument("--lr", type=positive_float)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto", help="auto (cuda if present), cpu, cuda:0 ...")
-    p.add_argument("--threads", type=positive_int, help="torch CPU threads")
+    p.add_argument("--epochs", type=flag("--epochs"))
+    p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")
+    p.add_argument("--lr", type=flag("--lr"))
+    p.add_argument("--seed", type=flag("--seed"), default=0)
+    p.add_argument("--device", type=device_name, default="auto",
+                   help="auto (cuda if present), cpu, cuda, cuda:N or mps")
+    p.add_argument("--threads", type=flag("--threads"), help="torch CPU threads")
     p.add_argument("--amp", choices=("auto", "off", "bf16", "fp16"), default="auto",
                    help="autocast precision of the network (the physics FFTs stay float32): "
                         "auto = fp16 on CUDA, off on CPU; bf16 works on CPU too")
@@ -101,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="U-Net convolutions in channels_last format (default: on CUDA only)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the network (reports its warm-up time)")
-    p.add_argument("--workers", type=positive_int, default=2,
+    p.add_argument("--workers", type=flag("--workers"), default=2,
                    help="DataLoader workers when the dataset does not fit on the device")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
@@ -123,8 +119,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--include-training", action="store_true",
                    help="on the folder a run was trained on, score every pair, training pairs "
                         "included (default: only the pairs it held out)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=positive_int)
+    p.add_argument("--device", type=device_name, default="cpu",
+                   help="cpu (default), cuda, cuda:N, mps or auto")
+    p.add_argument("--threads", type=flag("--threads"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_eval)
 
@@ -136,9 +133,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--channel-order", choices=("RGB", "BGR"),
                    help="channel order of .npy/TIFF measurements (default: that of the "
                         "training pairs, e.g. BGR for DLMD; else RGB)")
-    p.add_argument("--downsample", type=int, metavar="N",
+    p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the measurements N x N (default: as the training pairs were)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=device_name, default="cpu",
+                   help="cpu (default), cuda, cuda:N, mps or auto")
     p.add_argument("--amp", choices=("off", "bf16", "fp16"), default="off",
                    help="autocast precision of the network (fp16: CUDA only; the physics "
                         "FFTs stay float32)")
@@ -162,12 +160,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("benchmark-tiny", help="dataset, fit, 5 trainings, Tables 1 and 2 "
                                               "(tiny preset, CPU)")
     p.add_argument("out", help="benchmark folder (resumable)")
-    p.add_argument("--epochs", type=positive_int)
-    p.add_argument("--n-train", type=positive_int, default=96)
-    p.add_argument("--n-test", type=positive_int, default=24)
-    p.add_argument("--threads", type=positive_int, default=1,
+    p.add_argument("--epochs", type=flag("--epochs"))
+    p.add_argument("--n-train", type=flag("--n-train"), default=96)
+    p.add_argument("--n-test", type=flag("--n-test"), default=24)
+    p.add_argument("--threads", type=flag("--threads"), default=1,
                    help="torch threads (default 1: fastest on a shared 2-core machine)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=flag("--seed"), default=0,
                    help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
     p.add_argument("--lpips-weights")
     p.add_argument("--quiet", action="store_true")
@@ -190,9 +188,6 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 
 def run_train(args: argparse.Namespace) -> int:
 
-    if args.iterations and args.iterations > MAX_UNROLLED_ITERATIONS:
-        raise InvalidInputError(f"--iterations {args.iterations} exceeds the limit of "
-                                f"{MAX_UNROLLED_ITERATIONS} unrolled iterations")
     from ekdun.data.pairs import PairsDataset, match_downsample
     from ekdun.training import TrainOptions, train
     from ekdun.training.builder import seed_kernel_model

@@ -43,7 +43,8 @@ from psfkit.bench import BenchConfig, simulate_grid
 from psfkit.bench.camera import VirtualCamera, place_patch
 from psfkit.bench.simulate import grid_monitor_positions
 from psfkit.io.atomic import atomic_directory, atomic_file
-from psfkit.validation import load_json_document
+from psfkit.io.images import write_image
+from psfkit.validation import read_json_file
 
 FORMAT = "ekdun-virtual-bench"
 VERSION = 1
@@ -249,7 +250,7 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        doc = load_json_document(path.read_bytes(), str(path))
+        doc = read_json_file(path)
     except InvalidInputError:
         return None
     return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None
@@ -327,8 +328,8 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                 folder = tmp / split / sub
                 folder.mkdir(parents=True)
                 for i, image in enumerate(arrays):
-                    np.save(folder / f"{split}{i:04d}.npy",
-                            np.ascontiguousarray(np.moveaxis(image, 0, -1)), allow_pickle=False)
+                    # the one image writer: refuses NaN/Inf (e.g. --photons 1e-300)
+                    write_image(folder / f"{split}{i:04d}.npy", image.astype(np.float32))
         files = _data_files(tmp)
         manifest = {
             "format": FORMAT, "version": VERSION, "spec": spec.to_dict(),

@@ -15,6 +15,7 @@ from torch.utils.data import Dataset
 from ekdun.errors import InvalidInputError
 from ekdun.evaluation.metrics import LPIPSMetric, psnr, ssim
 from ekdun.models.unrolled import UnrolledNetwork
+from ekdun.training.acceleration import resolve_device
 
 
 def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
@@ -46,7 +47,7 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
     Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and, on CPU, the peak of
     torch's allocations during one profiled forward pass (:func:`cpu_peak_memory`).
     """
-    device = torch.device(device)
+    device = resolve_device(device)
     model = model.to(device).eval()
     n = len(dataset)  # type: ignore[arg-type]
     psnrs, ssims, lpipss, times = [], [], [], []
@@ -174,6 +175,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         sensor size of a model (checked for every run before any evaluation).
     """
     from ekdun.evaluation.tables import label_for
+
+    device = resolve_device(device)   # an unavailable device is refused before any work
     from ekdun.training.builder import network_from_checkpoint
 
     models = [(path, *network_from_checkpoint(path))

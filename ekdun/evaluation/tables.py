@@ -9,7 +9,7 @@ from typing import Any
 
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.io.atomic import atomic_file
-from psfkit.validation import dumps_finite, load_json_document
+from psfkit.validation import dumps_finite, read_json_file
 
 MODEL_LABELS = {"le-admm-u": "Le-ADMM-U", "updn": "UPDN", "ekdun": "EK-DUN"}
 SCHEDULE_LABELS = {"base": "base only", "last-2": "last-2", "last-k": "last-2", "all": "all"}
@@ -173,7 +173,7 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict[str, Any]], list[st
         path = path / "results.json"
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such results file")
-    doc = load_json_document(path.read_bytes(), str(path))
+    doc = read_json_file(path)
     rows = doc.get("results") if isinstance(doc, dict) else None
     if not isinstance(rows, list) or not all(
             isinstance(r, dict) and "model" in r and "psnr" in r for r in rows):

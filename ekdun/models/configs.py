@@ -192,6 +192,7 @@ def parse_schedule(schedule: str, iterations: int,
     """
     if iterations < 1:
         raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
+    given = schedule
     if schedule.startswith("last-") and schedule[5:].isdigit():
         eigen_last, schedule = int(schedule[5:]), "last-k"
     if schedule == "base":
@@ -200,7 +201,8 @@ def parse_schedule(schedule: str, iterations: int,
         return True, (True,) * iterations
     if schedule == "last-k":
         if not 0 <= eigen_last <= iterations:
-            raise ConfigurationError(f"eigen_last must be in [0, {iterations}], got "
-                                     f"{eigen_last}")
+            # named as the user wrote it (--schedule last-N), not as the config field
+            raise ConfigurationError(f"schedule {given!r} (--schedule): N must be in "
+                                     f"[0, {iterations}], the iterations")
         return False, (False,) * (iterations - eigen_last) + (True,) * eigen_last
     raise ConfigurationError(f"unknown schedule {schedule!r} (use base, last-k, last-N or all)")

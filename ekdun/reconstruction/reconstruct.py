@@ -13,6 +13,7 @@ from ekdun.data.pairs import recorded_read_options
 from ekdun.errors import InvalidInputError, TensorShapeError
 from ekdun.training import acceleration as acc
 from ekdun.training.builder import network_from_checkpoint
+from ekdun.training.checkpoint import checkpoint_sensor, load_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image_float, write_image
 from psfkit.io.read_options import ReadOptions, choose
@@ -80,8 +81,9 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the physics FFTs stay
     float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
     """
-    precision = acc.resolve_amp(amp, torch.device(device))
-    model, doc = network_from_checkpoint(checkpoint)
+    device = acc.resolve_device(device)
+    precision = acc.resolve_amp(amp, device)
+    doc = load_checkpoint(checkpoint)
     recorded = training_read_options(doc, str(checkpoint))
     channel_order, order_notice = choose(channel_order, recorded.channel_order, "RGB",
                                          "--channel-order", str(checkpoint))
@@ -90,9 +92,9 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     factor = int(factor)
     if factor < 1:
         raise InvalidInputError(f"downsample must be >= 1, got {factor}")
-    model = model.to(device).eval()
-    sensor = tuple(model.physics.sensor_shape)
-    channels = model.physics.channels
+    # the inputs are checked against the checkpoint's sensor before its network is built
+    channels, *sensor_hw = checkpoint_sensor(doc)
+    sensor = tuple(sensor_hw)
     files = measurement_files(inputs)
     images = []
     for f in files:
@@ -105,10 +107,12 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
                 + (f" after binning by {factor}" if factor > 1 else "")
                 + f" but the model expects {sensor[0]}x{sensor[1]}x{channels}")
         images.append(y)
+    model, doc = network_from_checkpoint(doc, where=str(checkpoint))
+    model = model.to(device).eval()
     written = []
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
-            with acc.autocast(precision, torch.device(device)):
+            with acc.autocast(precision, device):
                 out = model(torch.from_numpy(y)[None].to(device))
             out = out[0].float().cpu().numpy()
             write_image(tmp / f"{f.stem}.npy", out.astype(np.float32))

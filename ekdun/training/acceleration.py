@@ -33,6 +33,38 @@ AMP_CHOICES = ("auto", "off", "bf16", "fp16")
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
+def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.device:
+    """The torch device named by ``--device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``, ``mps``),
+    refused in one line when this machine does not have it.
+
+    Raises
+    ------
+    ConfigurationError
+        ``"--device cuda:3: ..."``: unknown name, no CUDA, no such GPU, no MPS.
+    """
+    if isinstance(device, torch.device):
+        return device
+    if device == "auto":
+        return torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
+    from psfkit.validation import DEVICE_PATTERN, escape_line
+
+    if not DEVICE_PATTERN.fullmatch(device):
+        raise ConfigurationError(f"--device {escape_line(device)}: expected auto, cpu, cuda, "
+                                 "cuda:N or mps")
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigurationError(f"--device {device}: CUDA is not available on this "
+                                     "machine (use --device cpu)")
+        if (dev.index or 0) >= torch.cuda.device_count():
+            raise ConfigurationError(f"--device {device}: this machine has "
+                                     f"{torch.cuda.device_count()} CUDA device(s)")
+    if dev.type == "mps" and not (getattr(torch.backends, "mps", None)
+                                  and torch.backends.mps.is_available()):
+        raise ConfigurationError(f"--device {device}: MPS is not available on this machine")
+    return dev
+
+
 def resolve_amp(amp: str | bool, device: torch.device) -> str:
     """``"off"``, ``"bf16"`` or ``"fp16"`` for ``device``; ``True`` means ``"auto"`` and
     ``False`` ``"off"`` (the former boolean option).

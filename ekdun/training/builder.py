@@ -79,16 +79,16 @@ def build_network(name: str, seed: KernelModel, preset: str,
     return model
 
 
-def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any]
-                            ) -> tuple[UnrolledNetwork, dict[str, Any]]:
+def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any],
+                            where: str | None = None) -> tuple[UnrolledNetwork, dict[str, Any]]:
     """Rebuild the network of a checkpoint and load its weights.
 
     Returns ``(model, checkpoint dict)``; raises :class:`CheckpointError` when the file is not
-    a usable ekdun checkpoint.
+    a usable ekdun checkpoint. ``where`` names a checkpoint given as a loaded dict.
     """
     doc = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     meta = doc["metadata"]
-    where = "checkpoint" if isinstance(checkpoint, dict) else str(checkpoint)
+    where = where or ("checkpoint" if isinstance(checkpoint, dict) else str(checkpoint))
     try:
         seed = KernelModel.from_metadata(doc["initial_kernels"].numpy(),
                                          meta["kernel_metadata"],

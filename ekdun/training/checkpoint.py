@@ -38,7 +38,12 @@ import torch
 from ekdun.errors import CheckpointError
 from psfkit.errors import PsfkitError
 from psfkit.io.atomic import atomic_file
-from psfkit.validation import MAX_UNROLLED_ITERATIONS, exact_int, load_json_document
+from psfkit.validation import (
+    MAX_UNROLLED_ITERATIONS,
+    bounded_size,
+    exact_int,
+    load_json_document,
+)
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "load_checkpoint", "rng_state",
            "save_checkpoint", "set_rng_state"]  # CheckpointError: defined in ekdun.errors
@@ -119,6 +124,7 @@ def _check_contents(doc: dict[str, Any], path: Path) -> None:
                       MAX_UNROLLED_ITERATIONS)
         except PsfkitError as exc:
             raise CheckpointError(str(exc)) from None
+    _check_declared_network(meta, doc["model"], path)
     for key in ("model", "initial_kernels"):
         tensors = doc.get(key)
         items = tensors.items() if isinstance(tensors, dict) else [(key, tensors)]
@@ -128,6 +134,61 @@ def _check_contents(doc: dict[str, Any], path: Path) -> None:
                 bad = int((~torch.isfinite(tensor)).sum())
                 raise CheckpointError(f"{path}: {key} tensor {name!r} contains {bad} "
                                       "NaN/Inf value(s)")
+
+
+def _declared_widths(value: Any, key: str = "") -> list[tuple[str, Any]]:
+    """Every ``widths`` list in the metadata's configuration overrides, with its key."""
+    if isinstance(value, dict):
+        return [found for k, v in value.items()
+                for found in ([(f"{key}{k}", v)] if k == "widths"
+                              else _declared_widths(v, f"{key}{k}."))]
+    return []
+
+
+def _check_declared_network(meta: dict[str, Any], state: Any, path: Path) -> None:
+    """The network that the metadata describes, checked against the weights the file stores
+    before it is built: building it allocates what the metadata says (``widths [4, 6000]``
+    or a 4096 x 4096 sensor take gigabytes), while the stored weights are what the file
+    holds. Every layer the widths declare must fit in the largest stored tensor, and the
+    declared sensor must be that of the stored weight maps."""
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: checkpoint 'model' is not a dict of tensors")
+    sizes = [t.numel() for t in state.values() if isinstance(t, torch.Tensor)]
+    largest = max(sizes, default=0)
+    try:
+        for key, widths in _declared_widths(meta.get("overrides", {})):
+            what = f"{path}: metadata '{key}'"
+            if not isinstance(widths, list) or not 1 <= len(widths) <= 8:
+                raise CheckpointError(f"{what} must be a list of 1 to 8 integers")
+            values = [exact_int(w, what, 1, 4096) for w in widths]
+            # a 3 x 3 convolution between consecutive widths (and within one width)
+            layer = max(9 * a * b for a, b in zip(values, values[1:] + values[-1:], strict=True))
+            if layer > largest:
+                raise CheckpointError(f"{what} {values} declares a layer of {layer} weights, "
+                                      f"but the file's largest tensor has {largest}")
+        sensor = bounded_size(meta.get("sensor_shape", ()), f"{path}: metadata 'sensor_shape'")
+        kernel_meta = meta.get("kernel_metadata")
+        if not isinstance(kernel_meta, dict) or \
+                list(kernel_meta.get("sensor_shape") or ()) != list(sensor):
+            raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} is not its "
+                                  "kernel metadata's")
+        maps = state.get("physics.weights")   # EK-DUN's weight maps have the sensor's size
+        if isinstance(maps, torch.Tensor) and tuple(maps.shape[-2:]) != tuple(sensor):
+            raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} differs from "
+                                  f"the stored weight maps {list(maps.shape[-2:])}")
+    except CheckpointError:
+        raise
+    except PsfkitError as exc:
+        raise CheckpointError(str(exc)) from None
+
+
+def checkpoint_sensor(doc: dict[str, Any]) -> tuple[int, int, int]:
+    """``(C, H', W')`` of the measurements a checkpoint's network takes (from its metadata,
+    checked by :func:`load_checkpoint`), for checking inputs before the network is built."""
+    meta = doc["metadata"]
+    channels = len(meta.get("kernel_metadata", {}).get("channels") or ()) or 3
+    height, width = meta["sensor_shape"]
+    return channels, int(height), int(width)
 
 
 def rng_state() -> dict[str, Any]:

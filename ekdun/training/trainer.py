@@ -151,6 +151,12 @@ def _check_dataset(dataset: Dataset, model: UnrolledNetwork) -> None:
             f"{sensor[0]}x{sensor[1]} (build the model from a kernel file of the data's size)")
 
 
+def _overlaps(a: Path, b: Path) -> bool:
+    """One folder is (inside) the other, after resolving ``..`` and links."""
+    a, b = a.resolve(), b.resolve()
+    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
+
+
 def train(run_dir: str | os.PathLike, model_name: str,
           seed: KernelModel | np.ndarray | str | os.PathLike, dataset: Dataset,
           preset: str = "tiny", overrides: dict[str, Any] | None = None,
@@ -197,6 +203,16 @@ def train(run_dir: str | os.PathLike, model_name: str,
     if not resume and ckpt_path.exists() and not overwrite:
         raise InvalidInputError(f"{run_dir}: holds a checkpoint already (use --resume to "
                                 "continue or --overwrite to start over)")
+    if not resume and not overwrite and run_dir.is_dir() and any(run_dir.iterdir()):
+        # the run writes log.csv and kernel files: never over a user's files unasked
+        found = sorted(p.name for p in run_dir.iterdir())
+        raise InvalidInputError(f"{run_dir}: the run folder is not empty ({', '.join(found[:3])}"
+                                f"{', ...' if len(found) > 3 else ''}); choose a new folder or "
+                                "use --overwrite to start over in it")
+    data_root = getattr(getattr(dataset, "pairs", None), "root", None)   # a PairsDataset's
+    if data_root is not None and _overlaps(run_dir, Path(data_root)):
+        raise InvalidInputError(f"{run_dir}: the run folder overlaps the training data "
+                                f"{data_root}; choose a folder outside it")
     if cfg.batch_size % ctx.world_size:
         raise ConfigurationError(f"batch size {cfg.batch_size} is not divisible by the "
                                  f"{ctx.world_size} processes")

@@ -41,13 +41,20 @@ from psfkit.bench.propagation import (
 )
 from psfkit.bench.propagation_torch import resolve_backend
 from psfkit.bench.sensor import SensorModel, relative_illumination
-from psfkit.errors import ConfigurationError
+from psfkit.errors import ConfigurationError, PsfkitError
 from psfkit.resample import bin_image
+from psfkit.validation import bounded_size, flag_range
 
 if TYPE_CHECKING:
     from psfkit.bench.propagation_torch import TorchOptics
 
 CHANNEL_NAMES = {1: ("L",), 3: ("R", "G", "B")}
+#: BenchConfig fields set by command-line flags: the flags' ranges (``psfkit.validation.FLAGS``)
+#: apply to them wherever they come from
+MAX_PROPAGATION_PIXELS = 2**26   # samples of one propagation grid (complex128: 1 GB)
+BENCH_FLAGS = {"diffusion_angle_deg": "--diffusion-angle", "gap_mm": "--gap-mm",
+               "peak_fraction": "--peak-fraction", "seed": "--seed",
+               "downsample": "--downsample"}
 
 
 @dataclass(frozen=True)
@@ -119,6 +126,12 @@ class BenchConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        # the ranges of the command-line flags (one table), for --bench-config files too
+        for name, flag_name in BENCH_FLAGS.items():
+            try:
+                flag_range(flag_name).check(getattr(self, name), f"{name} ({flag_name})")
+            except PsfkitError as exc:
+                raise ConfigurationError(str(exc)) from None
         positive = ["diffusion_angle_deg", "gap_mm", "monitor_distance_mm",
                     "monitor_pixel_pitch_mm", "pixel_pitch_um", "peak_fraction"]
         for name in positive:
@@ -259,9 +272,20 @@ class VirtualCamera:
         # Block: aperture + spread of the scattered light + astigmatic growth at the FoV edge
         margin_um = self.gap_um * 1.15 * np.tan(max_angle) + 4 * self.pixel_um
         blur_um = self.source_blur_um()
-        self.block_pixels = tuple(
-            _fast_block(int(np.ceil((a + 2 * margin_um + blur_um) / self.pixel_um)), s % 2, q)
-            for a, s in zip(aperture_um, self.sensor_shape, strict=True))
+        minimum = tuple(int(np.ceil((a + 2 * margin_um + blur_um) / self.pixel_um))
+                        for a in aperture_um)
+        # the propagation grid follows from the geometry: sized before anything is allocated
+        # (a wide diffusion angle or a long gap would otherwise run out of memory or time)
+        try:
+            bounded_size(tuple(q * m for m in minimum), "the virtual bench's propagation grid",
+                         max_side=2**14, max_total=MAX_PROPAGATION_PIXELS)
+        except PsfkitError as exc:
+            raise ConfigurationError(f"{exc} (from gap_mm {config.gap_mm:g}, "
+                                     f"diffusion_angle_deg {config.diffusion_angle_deg:g}, "
+                                     f"aperture_mm {list(config.aperture_mm)}, oversample {q}); "
+                                     "use a smaller gap, angle or aperture") from None
+        self.block_pixels = tuple(_fast_block(m, s % 2, q)
+                                  for m, s in zip(minimum, self.sensor_shape, strict=True))
         n_y, n_x = (q * b for b in self.block_pixels)
         self.y_um = (np.arange(n_y) - (n_y - 1) / 2.0) * self.sim_pitch_um
         self.x_um = (np.arange(n_x) - (n_x - 1) / 2.0) * self.sim_pitch_um

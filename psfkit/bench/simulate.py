@@ -32,7 +32,7 @@ import numpy as np
 from psfkit.bench.camera import BenchConfig, VirtualCamera
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_writer import GridWriter
-from psfkit.validation import load_json_document
+from psfkit.validation import read_json_file
 
 TRUTH_DIR = "ground_truth"
 NOMINAL_EXPOSURE_S = 0.01
@@ -236,7 +236,7 @@ def read_ground_truth(grid_dir: str | os.PathLike) -> GroundTruth:
     truth_file = folder / "truth.json"
     if not truth_file.is_file():
         raise InvalidInputError(f"{grid_dir}: no {TRUTH_DIR}/truth.json (not a simulated grid)")
-    info = load_json_document(truth_file.read_bytes(), str(truth_file))
+    info = read_json_file(truth_file)
     n_rows, n_cols = info["grid_shape"]
 
     def table(key: str) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import add_grid_options, preprocess_options
 from psfkit.io import OutputTransaction, read_grid
-from psfkit.validation import nonnegative_float, positive_int
+from psfkit.validation import flag
 
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).
@@ -23,7 +23,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     add_grid_options(p)
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour)")
-    p.add_argument("--workers", type=positive_int, default=None,
+    p.add_argument("--workers", type=flag("--workers"), default=None,
                    help="positions processed concurrently (default 2)")
 
 
@@ -86,7 +86,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "(and gain) compensation: the error of a shift-invariant "
                                    "model (paper Fig. 2).")
     _common(m)
-    m.add_argument("--mae-smoothing", type=nonnegative_float, default=1.0, metavar="SIGMA",
+    m.add_argument("--mae-smoothing", type=flag("--mae-smoothing"), default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) applied before the MAE to suppress sensor noise "
                         "(0 = raw pixels; default 1)")
     m.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
@@ -112,7 +112,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--out", required=True, help="output folder (created atomically)")
     r.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the warp residual (default dis)")
-    r.add_argument("--mae-smoothing", type=nonnegative_float, default=1.0, metavar="SIGMA",
+    r.add_argument("--mae-smoothing", type=flag("--mae-smoothing"), default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) before the MAE (default 1)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     r.set_defaults(func=run_report)

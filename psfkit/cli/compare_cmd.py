@@ -11,7 +11,7 @@ from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import preprocess_options
 from psfkit.io import OutputTransaction
 from psfkit.kernelfile import load_kernels
-from psfkit.validation import nonnegative_float, positive_float
+from psfkit.validation import flag
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "learned ones")
     p.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method of the displacement maps (default dis)")
-    p.add_argument("--smooth", type=nonnegative_float, default=3.0, metavar="PX",
+    p.add_argument("--smooth", type=flag("--smooth"), default=3.0, metavar="PX",
                    help="sigma of the masked Gaussian smoothing of displacement maps (px, "
                         "default 3)")
     p.add_argument("--warp-positions", choices=("axes", "all"), default="axes",
@@ -42,9 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     g = p.add_argument_group("preprocessing of the grid")
     g.add_argument("--normalization", choices=("max", "sum"), default="max")
-    g.add_argument("--saturation-level", type=positive_float, default=None, metavar="VALUE")
+    g.add_argument("--saturation-level", type=flag("--saturation-level"), default=None,
+                   metavar="VALUE")
     g.add_argument("--allow-saturated", action="store_true")
-    g.add_argument("--hot-pixel-sigma", type=positive_float, default=8.0)
+    g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_compare)
 

@@ -13,7 +13,7 @@ from psfkit.errors import InvalidInputError
 from psfkit.io import OutputTransaction, atomic_directory, read_grid
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
-from psfkit.validation import positive_int
+from psfkit.validation import flag
 from psfkit.weights import BASIS_NAMES
 
 # The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated bases compared by cross-validation with the fitted "
                         f"one (default {','.join(CV_BASES)}; 'all' = {','.join(CV_BASES_ALL)}; "
                         "'none' to skip)")
-    p.add_argument("--folds", type=positive_int, default=9,
+    p.add_argument("--folds", type=flag("--folds"), default=9,
                    help="cross-validation folds (default 9)")
     p.add_argument("--figures", metavar="DIR",
                    help="also write Fig. 7 (kernels), Fig. 3 (weights), diagnostics and a JSON "

@@ -5,16 +5,19 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import signal
 import sys
+import warnings
 import zipfile
 from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
 from psfkit.errors import PsfkitError
-from psfkit.validation import OneLineArgumentParser
+from psfkit.io.temps import public_name
+from psfkit.validation import OneLineArgumentParser, escape_line
 
 
 def _debug_requested(prog: str, argv: Sequence[str] | None) -> bool:
@@ -42,7 +45,14 @@ def error_line(prog: str, exc: BaseException) -> tuple[str, int]:
 
     Bad input (project errors, unreadable files, absurd sizes, malformed JSON or archives)
     gives status 2; anything else is an internal error (status 1) with a request to report it.
+    Control characters (a newline in a file name) are escaped: the line stays one line; a
+    temporary output is named as the output it would have become.
     """
+    line, status = _error_line(prog, exc)
+    return escape_line(public_name(line)), status
+
+
+def _error_line(prog: str, exc: BaseException) -> tuple[str, int]:
     if isinstance(exc, PsfkitError):
         return f"{prog}: error: {exc}", 2
     if isinstance(exc, OSError):
@@ -104,12 +114,42 @@ def terminate_like_interrupt() -> Iterator[None]:
             signal.signal(sig, old)
 
 
+@contextlib.contextmanager
+def quiet_libraries() -> Iterator[list[str]]:
+    """Within the block, Python warnings (numpy ``RuntimeWarning``, torch ``UserWarning``...)
+    and library logging (tifffile, OpenCV's Python-side messages) are collected instead of
+    printed, so that a command's stderr holds its own lines only: its progress, its messages
+    and, on failure, the one error line. Yields the collected messages (``--debug`` shows
+    them as they happen instead).
+
+    What OpenCV and libpng print from C is captured where PNG files are decoded
+    (:func:`psfkit.io.images.read_image`).
+    """
+    collected: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            collected.append(f"{record.name}: {record.getMessage()}")
+
+    root = logging.getLogger()
+    handler = Collect(logging.WARNING)
+    root.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield collected
+        collected.extend(f"{w.category.__name__}: {w.message}" for w in caught)
+    finally:
+        root.removeHandler(handler)
+
+
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     """Parse ``argv`` and run the chosen sub-command.
 
     Every failure is one line on stderr: bad input (:class:`~psfkit.errors.PsfkitError`,
     file-system errors, malformed files, sizes that do not fit in memory) exits with status 2,
-    an unexpected internal error with status 1 and a request to report it. Ctrl-C gives
+    an unexpected internal error with status 1 and a request to report it. Warnings and
+    library logging are collected, not printed (:func:`quiet_libraries`). Ctrl-C gives
     status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
     have been removed. ``--debug`` (or ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``) shows the full
     traceback instead. Outputs are written through
@@ -125,7 +165,8 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
         return 2
     reuse_freed_memory()         # fewer page faults in the full-resolution passes
     try:
-        with terminate_like_interrupt():
+        with terminate_like_interrupt(), \
+                (contextlib.nullcontext() if debug else quiet_libraries()):
             return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)

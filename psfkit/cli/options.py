@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from psfkit.preprocess import PreprocessOptions
-from psfkit.validation import positive_float, positive_int
+from psfkit.validation import flag
 
 
 def add_grid_options(p: argparse.ArgumentParser) -> None:
@@ -15,13 +15,14 @@ def add_grid_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--normalization", choices=("max", "sum"), default="max",
                    help="scale PSFs by the centre PSF's peak (max) or total (sum); "
                         "default max")
-    g.add_argument("--saturation-level", type=positive_float, default=None, metavar="VALUE",
+    g.add_argument("--saturation-level", type=flag("--saturation-level"), default=None,
+                   metavar="VALUE",
                    help="raw value at which the sensor clips (default: from dtype/bit_depth)")
     g.add_argument("--allow-saturated", action="store_true",
                    help="mask heavily saturated PSFs instead of refusing them")
-    g.add_argument("--hot-pixel-sigma", type=positive_float, default=8.0,
+    g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0,
                    help="dark-frame outlier threshold in robust std (default 8)")
-    g.add_argument("--upsample", type=positive_int, default=100,
+    g.add_argument("--upsample", type=flag("--upsample"), default=100,
                    help="registration precision is 1/UPSAMPLE px (default 100)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 

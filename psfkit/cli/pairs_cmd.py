@@ -16,7 +16,7 @@ from psfkit.io.jsonable import jsonable
 from psfkit.io.read_options import CHANNEL_ORDERS, ReadOptions, choose
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
-from psfkit.validation import dumps_finite, nonnegative_float, positive_int
+from psfkit.validation import dumps_finite, flag, require_finite
 from psfkit.weights import BASIS_NAMES
 
 MODEL_ALIASES = {"ek": "paper"}
@@ -60,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "with the best per-pair scale (for per-image normalised datasets).")
     e.add_argument("model", help="kernel file (.npz) from fit-pairs or fit-eigen")
     e.add_argument("pairs", help="pairs folder")
-    e.add_argument("--downsample", type=positive_int, default=None, metavar="N",
+    e.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
     _add_channel_order(e, "default: the folder's (pairs.json, DLMD layout), else the one "
@@ -78,14 +78,14 @@ def _add_channel_order(p: argparse.ArgumentParser, default: str) -> None:
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     d = PairFitOptions()
     g = p.add_argument_group("solver")
-    g.add_argument("--downsample", type=positive_int, default=1, metavar="N",
+    g.add_argument("--downsample", type=flag("--downsample"), default=1, metavar="N",
                    help="bin scenes and measurements N x N before fitting (default 1)")
-    g.add_argument("--tikhonov", type=nonnegative_float, default=d.tikhonov,
+    g.add_argument("--tikhonov", type=flag("--tikhonov"), default=d.tikhonov,
                    help=f"ridge weight relative to the mean scene power (default {d.tikhonov:g})")
-    g.add_argument("--difference", type=nonnegative_float, default=d.difference,
+    g.add_argument("--difference", type=flag("--difference"), default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
                         f"likewise (default {d.difference:g})")
-    g.add_argument("--iterations", type=positive_int, default=None,
+    g.add_argument("--iterations", type=flag("--iterations"), default=None,
                    help="conjugate-gradient iterations of the final solve (default 30 for si, "
                         "60 for eigen-kernel models)")
     g.add_argument("--no-scale", action="store_true",
@@ -99,7 +99,8 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="auto: kernels are zero outside the caustic footprint of the "
                         "unconstrained base kernel (smoothed |K| above --support-threshold of "
                         "its maximum, dilated 2 pixels); default none")
-    c.add_argument("--support-threshold", type=float, default=d.support_threshold,
+    c.add_argument("--support-threshold", type=flag("--support-threshold"),
+                   default=d.support_threshold,
                    help=f"fraction of the maximum for --support auto (default "
                         f"{d.support_threshold:g})")
     c.add_argument("--support-mask", metavar="FILE",
@@ -109,7 +110,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="per-kernel energy (sum per channel): free (default), fit (fixed to "
                         "the unconstrained fit's sums) or base (every kernel carries the "
                         "unconstrained base kernel's)")
-    c.add_argument("--projected-iterations", type=int, default=None,
+    c.add_argument("--projected-iterations", type=flag("--projected-iterations"), default=None,
                    help="iterations of the constrained solve (default 100)")
 
 
@@ -146,7 +147,10 @@ def _support_mask(path: str | None, factor: int, shape: tuple[int, int]) -> np.n
     from psfkit.io.images import read_image
     from psfkit.resample import bin_mean
 
-    mask = read_image(path).astype(np.float64).max(axis=0) != 0
+    image = require_finite(read_image(path), str(path))
+    mask = image.astype(np.float64).max(axis=0) != 0
+    if not mask.any():   # would constrain every kernel to zero
+        raise InvalidInputError(f"{path}: the support mask is empty (no nonzero pixel)")
     if factor > 1 and mask.shape[0] >= shape[0] * factor and mask.shape[1] >= shape[1] * factor:
         mask = bin_mean(mask.astype(np.float32), factor) > 0
     if tuple(mask.shape) != tuple(shape):

@@ -13,7 +13,7 @@ import numpy as np
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, PsfGrid, read_grid
 from psfkit.io.atomic import check_output
-from psfkit.validation import load_json_document, positive_float, positive_int
+from psfkit.validation import flag, read_json_file
 
 # The virtual bench (scipy) is imported by the commands that run it, not when the parser is
 # built (``psfkit --help`` stays fast).
@@ -26,14 +26,16 @@ def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
     g = p.add_argument_group("virtual camera")
     g.add_argument("--bench-config", metavar="JSON",
                    help="JSON file of BenchConfig parameters (options below override it)")
-    g.add_argument("--downsample", type=positive_int, default=None,
+    g.add_argument("--downsample", type=flag("--downsample"), default=None,
                    help=f"sensor binning factor for fast runs (default {downsample})")
-    g.add_argument("--seed", type=int, default=None, help="diffuser and noise seed (default 0)")
-    g.add_argument("--diffusion-angle", type=positive_float, default=None, metavar="DEG",
+    g.add_argument("--seed", type=flag("--seed"), default=None,
+                   help="diffuser and noise seed (default 0)")
+    g.add_argument("--diffusion-angle", type=flag("--diffusion-angle"), default=None,
+                   metavar="DEG",
                    help="diffuser FWHM scattering angle (default 1.0)")
-    g.add_argument("--gap-mm", type=positive_float, default=None,
+    g.add_argument("--gap-mm", type=flag("--gap-mm"), default=None,
                    help="diffuser-sensor distance (default 14.6)")
-    g.add_argument("--peak-fraction", type=positive_float, default=None,
+    g.add_argument("--peak-fraction", type=flag("--peak-fraction"), default=None,
                    help="exposure: brightest on-axis pixel as a fraction of full well "
                         "(default 0.8; >1 saturates)")
     g.add_argument("--mono", action="store_true", help="monochrome camera (530 nm)")
@@ -48,10 +50,7 @@ def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
     values: dict = {}
     if args.bench_config:
         path = Path(args.bench_config)
-        try:
-            values = load_json_document(path.read_bytes(), str(path))
-        except FileNotFoundError:
-            raise InvalidInputError(f"{path}: no such file") from None
+        values = read_json_file(path)
         if not isinstance(values, dict):
             raise InvalidInputError(f"{path}: expected a JSON object of BenchConfig parameters")
     config = BenchConfig.from_dict(values)
@@ -76,9 +75,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "propagation, sensor noise) and write an N x M grid of point-source images "
                     "in the PSF-grid format, with ground truth in DIR/ground_truth/.")
     p.add_argument("--out", required=True, help="output grid folder (created atomically)")
-    p.add_argument("--rows", type=positive_int, default=9, help="grid rows (default 9)")
-    p.add_argument("--cols", type=positive_int, default=9, help="grid columns (default 9)")
-    p.add_argument("--extent", type=positive_float, default=1.0,
+    p.add_argument("--rows", type=flag("--rows"), default=9, help="grid rows (default 9)")
+    p.add_argument("--cols", type=flag("--cols"), default=9, help="grid columns (default 9)")
+    p.add_argument("--extent", type=flag("--extent"), default=1.0,
                    help="fraction of the field of view the grid spans (default 1.0)")
     p.add_argument("--format", choices=("tiff", "png", "npy"), default="tiff",
                    help="image file type (default tiff, 16-bit)")

@@ -17,7 +17,13 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_file
-from psfkit.validation import bounded_size, require_finite_output
+from psfkit.io.png import decode_png, png_declared_shape
+from psfkit.validation import (
+    bounded_size,
+    check_array_shape,
+    npy_header,
+    require_finite_output,
+)
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -55,13 +61,19 @@ def _tifffile_messages() -> Iterator[list[str]]:
         logger.propagate = propagate
 
 
-def _check_declared_size(shape: tuple[int, ...], path: Path) -> None:
-    """Refuse an image whose header declares an absurd size, before decoding it."""
+def _check_declared_size(shape: tuple[int, ...], path: Path, dtype: object = None) -> None:
+    """Refuse an image whose header declares an absurd size, before decoding it: every axis
+    (a TIFF page stack or a huge third ``.npy`` axis included) and the element count."""
+    shape = tuple(int(s) for s in shape)
     if len(shape) not in (2, 3):
         raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {shape}")
-    height, width = (shape[1], shape[2]) if len(shape) == 3 and shape[0] in (1, 3) \
+    if len(shape) == 3 and min(shape[0], shape[2]) > 4:
+        raise InvalidInputError(f"{path}: shape {list(shape)} has no colour axis of 1 or 3 "
+                                "channels (a stack of pages or planes is not an image)")
+    height, width = (shape[1], shape[2]) if len(shape) == 3 and shape[0] <= 4 < shape[2] \
         else (shape[0], shape[1])
     bounded_size((height, width), f"{path}: image size", unit="pixels")
+    check_array_shape(shape, dtype, str(path))
 
 
 def read_image(path: str | os.PathLike, channel_order: str = "RGB",
@@ -105,27 +117,24 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
                     raise InvalidInputError(f"{path}: not a readable image ("
                                             f"{messages[0] if messages else 'no image data'})")
                 series = tif.series[0]
-                _check_declared_size(series.shape, path)
+                _check_declared_size(series.shape, path, series.dtype)
                 array = series.asarray()
                 axes = series.axes
             channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
             chw = _to_chw(array, path, channels_last)
         elif suffix == ".png":
-            import cv2
-
-            array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if array is None:
-                raise ValueError("OpenCV could not decode it")
+            height, width, channels = png_declared_shape(path)
+            _check_declared_size((height, width, channels), path, np.uint16)
+            array = decode_png(path)
             if array.ndim == 3 and array.shape[2] == 3:
                 array = array[..., ::-1]
             chw = _to_chw(array, path)
             channel_order = "RGB"
         elif suffix == ".npy":
-            header = np.load(path, mmap_mode="r", allow_pickle=False)  # reads the header only
-            _check_declared_size(header.shape, path)
-            array = np.array(header)
-            del header
-            chw = _to_chw(array, path)
+            with open(path, "rb") as fh:     # the header only: the size is checked first
+                shape, _, dtype = npy_header(fh, str(path))
+            _check_declared_size(shape, path, dtype)
+            chw = _to_chw(np.load(path, allow_pickle=False), path)
         else:
             raise InvalidInputError(
                 f"{path}: unsupported image type '{suffix}' (use {', '.join(IMAGE_SUFFIXES)})")

@@ -18,7 +18,7 @@ from psfkit.io.grid import (
     MANIFEST_JSON,
     GridPosition,
 )
-from psfkit.validation import MAX_GRID_SIDE, load_json_document
+from psfkit.validation import MAX_GRID_SIDE, read_json_file
 
 CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")
@@ -94,7 +94,7 @@ def position_from_dict(entry: Any, where: str) -> GridPosition:
 
 def _parse_json(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     try:
-        doc = load_json_document(path.read_bytes(), str(path))
+        doc = read_json_file(path)
     except GridFormatError:
         raise
     except InvalidInputError as exc:

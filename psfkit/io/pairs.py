@@ -33,7 +33,7 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, unit_range
 from psfkit.io.read_options import FLIPS, ReadOptions
-from psfkit.validation import finite_number, load_json_document
+from psfkit.validation import finite_number, read_json_file
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
 MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")
@@ -133,7 +133,7 @@ def _pick(root: Path, choices: tuple[str, ...], what: str) -> str:
 
 def _read_manifest(path: Path) -> dict:
     """``pairs.json``: strict JSON, known keys, each a string (names the bad field)."""
-    manifest = load_json_document(path.read_bytes(), str(path))
+    manifest = read_json_file(path)
     if not isinstance(manifest, dict):
         raise InvalidInputError(f"{path}: must be a JSON object")
     unknown = sorted(k for k in manifest if k not in _MANIFEST_KEYS)
@@ -149,8 +149,12 @@ def _read_manifest(path: Path) -> dict:
             continue
         if not isinstance(value, str) or not value:
             raise InvalidInputError(f"{path}: '{key}' must be a non-empty string, got {value!r}")
-        if key.endswith("_dir") and Path(value).name != value:
-            raise InvalidInputError(f"{path}: '{key}' must be a sub-folder name, got {value!r}")
+        if key.endswith("_dir"):
+            # resolved ("..", symbolic links): the folder must lie inside the pairs folder
+            root, inside = path.parent.resolve(), (path.parent / value).resolve()
+            if Path(value).name != value or inside == root or not inside.is_relative_to(root):
+                raise InvalidInputError(f"{path}: '{key}' must name a sub-folder inside "
+                                        f"{path.parent}, got {value!r}")
     return manifest
 
 

@@ -24,6 +24,15 @@ STALE_AGE_S = 24 * 3600.0
 have been reused, or belong to another machine sharing the folder)."""
 _TEMP_PID = re.compile(re.escape(TEMP_TAG) + r"(\d+)@([0-9a-f]{6})\.")
 HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
+# ".<name>.psfkit-tmp.<pid>@<host>.<8 random>": group 1 is the output's name (its suffix
+# follows the random part)
+_TEMP_NAME = re.compile(r"\.([^/\s]*?)" + re.escape(TEMP_TAG) + r"\d+@[0-9a-f]{6}\.[a-z0-9_]{8}")
+
+
+def public_name(text: str) -> str:
+    """``text`` with every temporary output name replaced by the name of the output it
+    becomes, so that a message never names a hidden file the user cannot see."""
+    return _TEMP_NAME.sub(r"\1", text)
 
 
 def owner(pid: int | None = None) -> str:

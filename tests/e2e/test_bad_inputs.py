@@ -15,6 +15,15 @@ under ``work`` and returns the argument list; the builders below (``grid_case``,
 shapes. Classes (issue 12): 1 non-finite values, 2 tracebacks, 3 resource exhaustion,
 4 a bad second output, 5 an existing output without ``--overwrite``, 7 invalid values and
 misleading messages (6, leftovers after a kill, is ``test_output_policy.py``'s kill test).
+Classes of issue 21 (each fixed at one root): 8 sizes declared by headers (bombs: tiny or
+sparse files that declare gigabytes), 9 numeric flags outside their range (one table,
+``psfkit.validation.FLAGS``), 10 library warnings and logging, 11 control characters in
+names, 12 non-finite or empty results, 13 paths outside their folder, 14 a run folder holding
+foreign files.
+
+A case with ``bomb=True`` also runs under :data:`PEAK_WRAPPER`, a fresh Python process that
+reports the peak resident memory of the command (its only child), which must stay under
+:data:`BOMB_PEAK_BYTES`.
 """
 
 from __future__ import annotations
@@ -22,9 +31,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import struct
 import subprocess
 import sys
 import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +68,9 @@ class Case:
     cli: str                                            # "psfkit" or "ekdun"
     build: Callable[[Path, Fixtures], list[str]]        # makes the input, returns the argv
     names: str                                          # the error line must contain this
-    cls: int = 0                                        # class of issue 12 (documentation)
+    cls: int = 0                                        # class of issue 12 or 21
+    bomb: bool = False                                  # also: peak memory < BOMB_PEAK_BYTES
+    absent: str = ""                                    # the error line must not contain this
 
 
 # --------------------------------------------------------------------------- builders
@@ -346,6 +359,125 @@ def _ckpt_meta(edit: Callable[[dict], Any] | None = None, text: str | None = Non
     return apply
 
 
+# bombs (issue 21): tiny or sparse files whose headers declare gigabytes -------------------
+
+
+def _sparse_npy(path: Path, shape: tuple[int, ...], descr: str = "<f4") -> None:
+    """A valid ``.npy`` of ``shape`` whose data is a hole: kilobytes on disk, gigabytes read."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": descr, "fortran_order": False, "shape": shape})
+        fh.truncate(fh.tell() + int(np.prod(shape)) * np.dtype(descr).itemsize)
+
+
+def _zlib_zeros(n: int) -> bytes:
+    """A zlib stream of ``n`` zero bytes (``n`` >= 2 MiB), built in milliseconds: after a full
+    flush the compressor forgets its history, so every further MiB compresses alike."""
+    mib = 1 << 20
+    c = zlib.compressobj(9)
+    head = c.compress(bytes(mib)) + c.flush(zlib.Z_FULL_FLUSH)
+    block = c.compress(bytes(mib)) + c.flush(zlib.Z_FULL_FLUSH)
+    full, rest = divmod(n - mib, mib)
+    tail = c.compress(bytes(rest)) + c.flush()
+    adler = ((n % 65521) << 16) | 1             # Adler-32 of n zero bytes
+    return head + block * full + tail[:-4] + struct.pack(">I", adler)
+
+
+def _png(path: Path, side: int, idat: bytes) -> None:
+    """An 8-bit RGB PNG of ``side`` x ``side`` pixels with the given compressed data."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data)))
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat)
+                     + chunk(b"IEND", b""))
+
+
+def _png_bomb(path: Path, side: int = 30_000) -> None:
+    """An 8-bit RGB PNG of ``side`` x ``side`` zeros (2.7 GB decoded) in about 3 MB."""
+    _png(path, side, _zlib_zeros(side * (3 * side + 1)))
+
+
+def _tiff_page_stack(path: Path) -> None:
+    """40 pages of 4096 x 4096 uint16 (1.3 GB) in a sparse file: each page passes a 2-D size
+    check, the stack does not."""
+    import tifffile
+
+    tifffile.imwrite(path, shape=(40, 4096, 4096), dtype="uint16", photometric="minisblack",
+                     metadata=None)
+
+
+def _kernels_zip_bomb(path: Path) -> None:
+    """A kernel file whose ``kernels`` member inflates to 1.2 GB (6 x 3 x 4096 x 4096 float32
+    zeros) from about 5 MB; its metadata is valid."""
+    meta = json.dumps({"format": "ekdun-kernels", "version": 1, "basis": "si",
+                       "channels": ["R", "G", "B"], "sensor_shape": [4096, 4096]})
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        with archive.open("kernels.npy", "w", force_zip64=True) as member:
+            np.lib.format.write_array_header_1_0(
+                member, {"descr": "<f4", "fortran_order": False, "shape": (6, 3, 4096, 4096)})
+            block = bytes(1 << 24)
+            for _ in range(6 * 3 * 4096 * 4096 * 4 // len(block)):
+                member.write(block)
+        with archive.open("metadata.npy", "w") as member:
+            np.lib.format.write_array(member, np.array(meta))
+
+
+def _sparse_json(path: Path, size: int = 2**30) -> None:
+    with open(path, "wb") as fh:
+        fh.write(b'{"a": "')
+        fh.truncate(size)
+
+
+def bomb_pairs_case(make: Callable[[Path], Any], name: str
+                    ) -> Callable[[Path, Fixtures], list[str]]:
+    """``eval-model`` on pairs whose scene ``name`` (replacing im0) is a bomb."""
+    def prepare(pairs: Path) -> None:
+        (pairs / "scene" / "im0.npy").unlink()
+        make(pairs / "scene" / name)
+    return pairs_case(prepare)
+
+
+def admm_kernels_case(kernels: Callable[[np.ndarray], np.ndarray] | None = None,
+                      raw: Callable[[Path], Any] | None = None
+                      ) -> Callable[[Path, Fixtures], list[str]]:
+    """``ekdun admm --kernels K.npz MEAS --out X.npy`` with a modified kernel file."""
+    def build(work: Path, fx: Fixtures) -> list[str]:
+        target = work / "k.npz"
+        if raw is not None:
+            raw(target)
+        else:
+            _rewrite_kernels(fx.kernels, target, kernels=kernels)
+        meas = work / "m.npy"
+        np.save(meas, np.load(fx.pairs / "measurement" / "im0.npy"))
+        return ["admm", "--kernels", str(target), str(meas), "--out", str(work / "x.npy"),
+                "--iterations", "2", "--quiet"]
+    return build
+
+
+def _save_array(relative: str, array: np.ndarray) -> Callable[[Path], Any]:
+    """``prepare`` for pairs cases: an array at ``pairs/../relative``."""
+    return lambda pairs: np.save(pairs.parent / relative, array)
+
+
+def _ckpt_sensor(size: int) -> Callable[[dict], Any]:
+    def edit(meta: dict) -> None:
+        meta["sensor_shape"] = [size, size]
+        meta["kernel_metadata"]["sensor_shape"] = [size, size]
+    return edit
+
+
+def _newline_named_scene(pairs: Path) -> None:
+    """A scene whose file name holds a newline (and a NaN, so that it is refused by name)."""
+    scene = _nan_pixel(np.load(pairs / "scene" / "im2.npy"))
+    (pairs / "scene" / "im2.npy").unlink()
+    (pairs / "measurement" / "im2.npy").rename(pairs / "measurement" / "im\n2.npy")
+    np.save(pairs / "scene" / "im\n2.npy", scene)
+
+
+TRAIN = ("train", "{pairs}", "{work}/run", "--kernels", "{kernels}", "--quiet", "--epochs", "1")
+
+
 # --------------------------------------------------------------------------- the table
 
 CASES: list[Case] = [
@@ -573,6 +705,135 @@ CASES: list[Case] = [
     Case("fit-pairs-out-exists", "psfkit",
          pairs_case(lambda pairs: (pairs.parent / "model.npz").write_text("x"), "fit-pairs"),
          "model.npz", 5),
+
+    # ---- issue 21, class 8: sizes declared by headers, checked before any allocation ----
+    Case("png-declares-30000-squared", "psfkit", bomb_pairs_case(_png_bomb, "im0.png"),
+         "im0.png", 8, bomb=True),
+    Case("tiff-page-stack", "psfkit", bomb_pairs_case(_tiff_page_stack, "im0.tiff"),
+         "im0.tiff", 8, bomb=True),
+    Case("npy-huge-third-axis", "psfkit",
+         bomb_pairs_case(lambda p: _sparse_npy(p, (16, 16, 2_000_000)), "im0.npy"),
+         "im0.npy", 8, bomb=True),
+    Case("npz-kernels-zip-bomb", "ekdun", admm_kernels_case(raw=_kernels_zip_bomb),
+         "kernels", 8, bomb=True),
+    Case("manifest-json-sparse-1gb", "psfkit",
+         grid_case(prepare=lambda g: _sparse_json(g / "manifest.json")), "manifest.json", 8,
+         bomb=True),
+    Case("pairs-json-sparse-1gb", "psfkit",
+         pairs_case(lambda p: _sparse_json(p / "pairs.json")), "pairs.json", 8, bomb=True),
+    Case("checkpoint-widths-4000", "ekdun",
+         checkpoint_case(_ckpt_meta(lambda m: m["overrides"]["prior"].update(
+             widths=[4, 4000]))), "widths", 8, bomb=True),
+    Case("checkpoint-sensor-4096", "ekdun", checkpoint_case(_ckpt_meta(_ckpt_sensor(4096))),
+         "checkpoint.pt", 8, bomb=True),
+    Case("checkpoint-sensor-4096-export", "ekdun",
+         checkpoint_case(_ckpt_meta(_ckpt_sensor(4096)), "export-kernels"), "sensor_shape", 8,
+         bomb=True),
+
+    # ---- class 9: every numeric flag has its range (one table); --device is checked ------
+    Case("train-device-bogus", "ekdun", ekdun_case(*TRAIN, "--device", "bogus"), "--device", 9),
+    Case("train-device-missing-gpu", "ekdun", ekdun_case(*TRAIN, "--device", "cuda:99"),
+         "--device", 9),
+    Case("eval-device-missing-gpu", "ekdun",
+         lambda work, fx: [*checkpoint_case(None, "eval")(work, fx), "--device", "cuda:99"],
+         "--device", 9),
+    Case("reconstruct-device-bogus", "ekdun",
+         ekdun_case("reconstruct", "{ckpt}", "{meas}", "--out", "{work}/r", "--device", "gpu"),
+         "--device", 9),
+    Case("train-downsample-zero", "ekdun", ekdun_case(*TRAIN, "--downsample", "0"),
+         "--downsample", 9),
+    Case("train-downsample-negative", "ekdun", ekdun_case(*TRAIN, "--downsample", "-2"),
+         "--downsample", 9),
+    Case("train-lr-1e308", "ekdun", ekdun_case(*TRAIN, "--lr", "1e308"), "--lr", 9),
+    Case("train-threads-100000", "ekdun", ekdun_case(*TRAIN, "--threads", "100000"),
+         "--threads", 9),
+    Case("train-seed-2-70", "ekdun", ekdun_case(*TRAIN, "--seed", str(2**70)), "--seed", 9),
+    Case("train-seed-negative", "ekdun", ekdun_case(*TRAIN, "--seed", "-1"), "--seed", 9),
+    Case("train-iterations-above-max", "ekdun", ekdun_case(*TRAIN, "--iterations", "101"),
+         "--iterations", 9),
+    Case("mae-smoothing-1e308", "psfkit", grid_case("--mae-smoothing", "1e308", command="mae"),
+         "--mae-smoothing", 9),
+    Case("mae-smoothing-1e6", "psfkit", grid_case("--mae-smoothing", "1e6", command="mae"),
+         "--mae-smoothing", 9),
+    Case("simulate-gap-1e308", "psfkit",
+         ekdun_case("simulate-grid", "--out", "{work}/g", "--gap-mm", "1e308"), "--gap-mm", 9),
+    Case("simulate-diffusion-angle-90", "psfkit",
+         ekdun_case("simulate-grid", "--out", "{work}/g", "--diffusion-angle", "90"),
+         "--diffusion-angle", 9),
+    Case("simulate-rows-65", "psfkit",
+         ekdun_case("simulate-grid", "--out", "{work}/g", "--rows", "65", "--cols", "3"),
+         "--rows", 9),
+    Case("bench-config-diffusion-angle-90", "psfkit",
+         bench_config_case('{"diffusion_angle_deg": 90}'), "--diffusion-angle", 9),
+    Case("bench-config-gap-1000-grid-too-large", "psfkit",
+         bench_config_case('{"gap_mm": 1000}'), "gap_mm", 9),
+    Case("fit-pairs-iterations-above-max", "psfkit",
+         pairs_case(None, "fit-pairs", "--iterations", "100000"), "--iterations", 9),
+    Case("admm-iterations-above-max", "ekdun",
+         ekdun_case("admm", "{psf}", "{meas}", "--out", "{work}/x.npy", "--iterations",
+                    "100000"), "--iterations", 9),
+    Case("admm-kernels-all-zero", "ekdun", admm_kernels_case(kernels=np.zeros_like), "k.npz",
+         12),
+
+    # ---- class 10: warnings and library logging become the one line (or nothing) -------
+    Case("manifest-exposure-huge", "psfkit",
+         manifest_case(position_edit("exposure_s", 1e300, index=2), command="mae"),
+         "exposure_s", 10),
+    Case("manifest-exposure-tiny", "psfkit",
+         manifest_case(position_edit("exposure_s", 1e-300, index=2), command="mae"),
+         "exposure_s", 10),
+    Case("png-libpng-warning-then-error", "psfkit",
+         bomb_pairs_case(lambda p: _png(p, 16, b"garbage!" * 4), "im0.png"),   # libpng error
+         "im0.png", 10),
+
+    # ---- class 11: names escaped: a newline in a file name does not split the line ------
+    Case("pairs-newline-in-name", "psfkit", pairs_case(_newline_named_scene), "im\\n2.npy",
+         11),
+    Case("grid-newline-in-name", "psfkit",
+         lambda work, fx: ["info", str(work / "no\nsuch grid")], "no\\nsuch grid", 11),
+
+    # ---- class 12: results checked finite (and not empty) before they are committed ----
+    Case("make-dataset-photons-1e-300", "ekdun",
+         ekdun_case("make-dataset", "{work}/ds", "--photons", "1e-300", "--sensor", "16", "16",
+                    "--grid", "3", "3", "--n-train", "1", "--n-test", "1", "--quiet"),
+         "measurement", 12, absent="psfkit-tmp"),
+    Case("fit-pairs-support-mask-all-zero", "psfkit",
+         pairs_case(_save_array("mask.npy", np.zeros((16, 16), np.float32)), "fit-pairs",
+                    "--support-mask", "{work}/mask.npy"), "mask.npy", 12),
+    Case("fit-pairs-support-mask-nan", "psfkit",
+         pairs_case(_save_array("mask.npy", np.full((16, 16), np.nan, np.float32)),
+                    "fit-pairs", "--support-mask", "{work}/mask.npy"), "mask.npy", 12),
+
+    # ---- class 13: paths resolved and contained ------------------------------------
+    Case("pairs-json-scene-dir-parent", "psfkit", pairs_case(pairs_json('{"scene_dir": ".."}')),
+         "scene_dir", 13),
+    Case("pairs-json-scene-dir-link-outside", "psfkit",
+         pairs_case(lambda p: ((p / "outside").symlink_to(p.parent),
+                               (p / "pairs.json").write_text('{"scene_dir": "outside"}'))),
+         "scene_dir", 13),
+
+    # ---- class 14: a run folder holding foreign files is refused without --overwrite ---
+    Case("train-into-folder-with-user-log", "ekdun",
+         lambda work, fx: ((work / "run").mkdir(), (work / "run" / "log.csv").write_text("x"),
+                           ekdun_case(*TRAIN)(work, fx))[-1], "run", 14),
+    Case("train-into-the-data-folder", "ekdun",
+         lambda work, fx: (shutil.copytree(fx.pairs, work / "pairs"),
+                           ["train", str(work / "pairs"), str(work / "pairs"), "--kernels",
+                            str(fx.kernels), "--quiet", "--epochs", "1", "--overwrite"])[-1],
+         "training data", 14),
+
+    # ---- class 7 (issue 21): messages that mislead ------------------------------------
+    Case("admm-psf-all-zero", "ekdun",
+         lambda work, fx: (_tiny_admm_inputs(work), np.save(work / "psf.npy",
+                                                            np.zeros((32, 32), np.float32)),
+                           ["admm", str(work / "psf.npy"), str(work / "meas.npy"), "--out",
+                            str(work / "x.npy"), "--iterations", "2"])[-1],
+         "psf.npy", 7, absent="psfkit-tmp"),
+    Case("train-schedule-names-the-flag", "ekdun",
+         ekdun_case(*TRAIN, "--schedule", "last-50"), "--schedule", 7, absent="eigen_last"),
+    Case("fit-pairs-support-threshold-names-the-flag", "psfkit",
+         pairs_case(None, "fit-pairs", "--support-threshold", "1"), "--support-threshold", 7,
+         absent="support_threshold"),
 ]
 
 
@@ -613,20 +874,37 @@ def _listing(folder: Path) -> dict[str, int]:
                                for p in folder.rglob("*") if p.is_dir()}
 
 
-def _run(cli: str, args: list[str]) -> subprocess.CompletedProcess:
+#: Runs ``argv[2:]`` as its only child and writes the child's peak resident memory (bytes) to
+#: the file ``argv[1]``; a fresh process, so that no earlier child of pytest counts.
+PEAK_WRAPPER = """
+import resource, subprocess, sys
+done = subprocess.run(sys.argv[2:])
+peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+scale = 1 if sys.platform == "darwin" else 1024   # bytes on macOS, kilobytes on Linux
+open(sys.argv[1], "w").write(str(peak * scale))
+sys.exit(done.returncode)
+"""
+BOMB_PEAK_BYTES = 2**30
+
+
+def _run(cli: str, args: list[str], peak_file: Path | None = None
+         ) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     for key in ("PSFKIT_DEBUG", "EKDUN_DEBUG"):
         env.pop(key, None)
     module = "psfkit.cli" if cli == "psfkit" else "ekdun.cli"
-    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True,
-                          text=True, env=env, cwd=REPO, timeout=300)
+    command = [sys.executable, "-m", module, *args]
+    if peak_file is not None:
+        command = [sys.executable, "-c", PEAK_WRAPPER, str(peak_file), *command]
+    return subprocess.run(command, capture_output=True, text=True, env=env, cwd=REPO,
+                          timeout=300)
 
 
 def test_table_is_large_and_covers_every_class():
     assert len(CASES) >= 60
     assert len({c.id for c in CASES}) == len(CASES)
     # class 6 (leftovers after a kill) is tested by tests/e2e/test_output_policy.py
-    assert {c.cls for c in CASES} == {1, 2, 3, 4, 5, 7}
+    assert {c.cls for c in CASES} == {1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 12, 13, 14}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
@@ -636,7 +914,8 @@ def test_bad_input_is_one_line_naming_the_culprit(case: Case, fixtures: Fixtures
     work.mkdir()
     args = case.build(work, fixtures)
     before = _listing(work)
-    done = _run(case.cli, args)
+    peak_file = tmp_path / "peak" if case.bomb else None
+    done = _run(case.cli, args, peak_file)
     assert "Traceback" not in done.stderr + done.stdout
     lines = done.stderr.splitlines()
     assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
@@ -644,7 +923,12 @@ def test_bad_input_is_one_line_naming_the_culprit(case: Case, fixtures: Fixtures
     assert lines[0].startswith(f"{case.cli}"), lines[0]
     assert case.names in lines[0], lines[0]
     assert "internal error" not in lines[0]
+    assert not case.absent or case.absent not in lines[0], lines[0]
     assert _listing(work) == before, "the failed command left output behind"
+    if peak_file is not None:
+        peak = int(peak_file.read_text())
+        print(f"{case.id}: peak resident memory {peak / 2**20:.0f} MiB")
+        assert 0 < peak < BOMB_PEAK_BYTES, f"{case.id}: peak {peak / 2**20:.0f} MiB"
 
 
 # --------------------------------------------------------------------------- outputs
@@ -692,3 +976,73 @@ def test_debug_shows_the_traceback_and_internal_errors_say_so(tmp_path, capsys, 
                            str(tmp_path / "missing")], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, timeout=120)
     assert done.returncode != 0 and "Traceback" in done.stderr and "GridFormatError" in done.stderr
+
+
+def _numeric_actions(parser: Any, prog: str) -> list[tuple[str, Any]]:
+    """``(command flag, action)`` of every option of ``parser`` and its sub-commands that
+    converts its value (``type=``), other than ``--device`` (a name, see ``device_name``)."""
+    import argparse
+
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found += _numeric_actions(sub, f"{prog} {name}")
+        elif action.type is not None and action.option_strings:
+            found.append((f"{prog} {action.option_strings[0]}", action))
+    return found
+
+
+def test_every_numeric_flag_of_both_clis_takes_its_range_from_the_one_table():
+    from ekdun.cli import build_parser as ekdun_parser
+    from psfkit.cli.main import build_parser as psfkit_parser
+    from psfkit.validation import FLAGS, device_name
+
+    actions = (_numeric_actions(psfkit_parser(), "psfkit")
+               + _numeric_actions(ekdun_parser(), "ekdun"))
+    assert len(actions) > 40
+    for where, action in actions:
+        if action.option_strings[0] == "--device":
+            assert action.type is device_name, where
+            continue
+        spec = getattr(action.type, "flag_range", None)
+        assert spec is not None, f"{where}: its type is not from psfkit.validation.FLAGS"
+        assert spec in FLAGS.values(), where
+        assert spec.high is not None, f"{where}: no upper bound"
+
+
+def test_warnings_and_library_logging_never_reach_stderr(capsys):
+    """The runner collects them for every command: a failing command prints its one line,
+    a succeeding one nothing of theirs."""
+    import argparse
+    import logging
+    import warnings
+
+    from psfkit.cli.main import run_cli
+    from psfkit.errors import InvalidInputError
+
+    def noisy(args: argparse.Namespace) -> int:
+        np.log(np.zeros(1))                                   # numpy RuntimeWarning
+        warnings.warn("a library's UserWarning", UserWarning, stacklevel=1)
+        logging.getLogger("tifffile").warning("a library's log record")
+        if args.fail:
+            raise InvalidInputError("bad\nname.npy: refused")
+        return 0
+
+    parser = argparse.ArgumentParser(prog="psfkit")
+    parser.add_argument("--fail", action="store_true")
+    parser.set_defaults(func=noisy)
+    assert run_cli("psfkit", parser, []) == 0
+    assert capsys.readouterr().err == ""
+    assert run_cli("psfkit", parser, ["--fail"]) == 2
+    assert capsys.readouterr().err == "psfkit: error: bad\\nname.npy: refused\n"
+
+
+def test_kernel_files_of_zeros_are_refused_when_written(tmp_path):
+    from psfkit.errors import ModelFileError
+    from psfkit.kernelfile import KernelModel, save_kernels
+
+    with pytest.raises(ModelFileError, match="every kernel is zero"):
+        save_kernels(tmp_path / "k.npz", KernelModel(kernels=np.zeros((1, 1, 4, 4), np.float32),
+                                                     basis="si", channels=("L",)))
+    assert list(tmp_path.iterdir()) == []

@@ -147,7 +147,7 @@ def test_schedules():
     assert parse_schedule("all", 10) == (True, (True,) * 10)
     with pytest.raises(ConfigurationError, match="unknown schedule 'first-2'"):
         parse_schedule("first-2", 10)
-    with pytest.raises(ConfigurationError, match="eigen_last must be in"):
+    with pytest.raises(ConfigurationError, match=r"N must be in \[0, 10\]"):
         parse_schedule("last-k", 10, 11)
 
 
