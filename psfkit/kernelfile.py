@@ -401,6 +401,9 @@ def _check_declared_members(path: Path) -> None:
             with archive.open(info) as member:
                 shape, _, dtype = npy_header(member, what)
                 header_bytes = member.tell()
+            if dtype.hasobject:    # pickled objects: never loaded (np.load would refuse too)
+                raise ModelFileError(f"{path}: not a readable kernel file (member '{name}' "
+                                     "holds Python objects)")
             elements = check_array_shape(shape, dtype, what, MAX_IMAGE_PIXELS)
             declared = int(np.prod(elements, dtype=np.int64)) * dtype.itemsize
             if declared > max_bytes:

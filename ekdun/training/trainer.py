@@ -213,6 +213,10 @@ def train(run_dir: str | os.PathLike, model_name: str,
     if data_root is not None and _overlaps(run_dir, Path(data_root)):
         raise InvalidInputError(f"{run_dir}: the run folder overlaps the training data "
                                 f"{data_root}; choose a folder outside it")
+    if ctx.distributed:
+        # every rank has checked the folder before the main one writes into it (else another
+        # rank could find the main rank's first files and refuse alone)
+        torch.distributed.barrier()
     if cfg.batch_size % ctx.world_size:
         raise ConfigurationError(f"batch size {cfg.batch_size} is not divisible by the "
                                  f"{ctx.world_size} processes")

@@ -39,11 +39,11 @@ def test_simulate_grid_mono_npy_with_bench_config(tmp_path, capsys):
 @pytest.mark.parametrize("argv,message", [
     (["info", "{tmp}/missing"], "missing: no such grid folder"),
     (["simulate-grid", "--out", "{tmp}/g", "--downsample", "0", "--quiet"],
-     "argument --downsample: must be >= 1"),
+     "argument --downsample: must be an integer in [1, 64]"),
     (["simulate-grid", "--out", "{tmp}/g", "--bench-config", "{tmp}/nope.json"],
      "nope.json: no such file"),
     (["simulate-grid", "--out", "{tmp}/g", "--rows", "0", "--quiet"],
-     "argument --rows: must be >= 1"),
+     "argument --rows: must be an integer in [1, 64]"),
 ])
 def test_errors_are_one_line_with_nonzero_exit(tmp_path, capsys, argv, message):
     argv = [a.format(tmp=tmp_path) for a in argv]

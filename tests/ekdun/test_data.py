@@ -174,7 +174,7 @@ def test_evaluation_scores_only_what_training_held_out(tmp_path):
 
 def test_match_downsample_uses_the_kernel_files_fit_factor():
     def model(shape, factor=None):
-        return KernelModel(kernels=np.zeros((1, 3, *shape), np.float32), basis="si",
+        return KernelModel(kernels=np.ones((1, 3, *shape), np.float32), basis="si",
                            sensor_shape=shape,
                            provenance={"downsample": factor} if factor else {})
 
