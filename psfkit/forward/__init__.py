@@ -9,12 +9,14 @@ ADMM-TV and Le-ADMM-U.
 Modules
 -------
 :mod:`psfkit.forward.geometry`
-    ``CONVENTIONS``, :func:`padded_shape`, :func:`centre_offset` (no torch).
+    ``CONVENTIONS``, :func:`padded_shape`, :func:`centre_offset`, :func:`kernel_origin`
+    (no torch).
 :mod:`psfkit.forward.fft`
     :func:`rfft2` / :func:`irfft2`, the only FFT entry points, and :func:`count_ffts`.
 :mod:`psfkit.forward.convolution`
     ``pad``/``crop``, kernel embedding and spectra, :func:`eigen_kernel_forward` /
-    :func:`eigen_kernel_adjoint`.
+    :func:`eigen_kernel_adjoint` (sensor-sized scene) and :func:`padded_scene_forward` /
+    :func:`padded_scene_adjoint` (scene on the whole padded grid): Eq. 7, written once.
 :mod:`psfkit.forward.operator`
     :class:`SpectralOperator`: ``A``/``Aᵀ`` bound to precomputed kernel spectra (what ekdun's
     operator modules hand to the unrolled networks).
@@ -30,7 +32,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from psfkit.forward.geometry import CONVENTIONS, centre_offset, padded_shape
+from psfkit.forward.geometry import CONVENTIONS, centre_offset, kernel_origin, padded_shape
 
 _LAZY = {
     "FFTCount": "fft", "count_ffts": "fft", "rfft2": "fft", "irfft2": "fft",
@@ -38,13 +40,14 @@ _LAZY = {
     "pad_adjoint": "convolution", "embed_kernel": "convolution",
     "extract_kernel": "convolution", "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
+    "padded_scene_forward": "convolution", "padded_scene_adjoint": "convolution",
     "zero_workspace": "convolution", "PaddingWorkspace": "operator",
     "SpectralOperator": "operator",
     "records_graph": "convolution",
     "KernelSpaceOperator": "kernel_space", "linear_convolution_grid": "kernel_space",
 }
 
-__all__ = ["CONVENTIONS", "centre_offset", "padded_shape", *_LAZY]
+__all__ = ["CONVENTIONS", "centre_offset", "kernel_origin", "padded_shape", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

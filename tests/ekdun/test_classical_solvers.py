@@ -14,6 +14,7 @@ from ekdun.reconstruction.ek_admm import ek_admm_tv
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import operator_norm, pdhg_tv, tv_objective
 from ekdun.reconstruction.source_admm import source_admm_tv
+from psfkit.forward.convolution import padded_scene_adjoint, padded_scene_forward
 from psfkit.forward.geometry import centre_offset
 from psfkit.kernelfile import KernelModel
 
@@ -55,6 +56,16 @@ def test_extended_operator_matches_the_sensor_sized_model_and_is_adjoint(convent
     y = torch.randn((2, 1, *SENSOR), generator=g, dtype=torch.float64)
     lhs, rhs = float((ext.A(big) * y).sum()), float((big * ext.A_adjoint(y)).sum())
     assert abs(lhs - rhs) < 1e-10 * abs(lhs)
+    # the operator is psfkit's padded-grid Eq. 7 with the model's (edge-continued) weights
+    weights = (torch.as_tensor(model.weight_maps(extent=ext.grid_shape)) if convention == "source"
+               else torch.as_tensor(model.weight_maps()))
+    spectra = op.spectra
+    torch.testing.assert_close(
+        ext.A(big), padded_scene_forward(big, spectra, weights, SENSOR, convention),
+        rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        ext.A_adjoint(y), padded_scene_adjoint(y, spectra.conj(), weights, ext.grid_shape,
+                                               convention), rtol=0, atol=1e-12)
 
 
 def test_source_side_scene_weights_continue_the_edge_weights():
