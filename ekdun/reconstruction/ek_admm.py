@@ -22,9 +22,9 @@ One iteration costs ``2K + 2`` FFTs (SI: 4, exactly the steps of
 :func:`~ekdun.models.tv_admm_steps.admm_tv_iteration`). The scene lives on the padded grid
 (light from outside the view, as in :mod:`ekdun.reconstruction.extended_scene`) and the
 central block is returned. Units are those of :mod:`ekdun.reconstruction.pdhg_tv`: the
-measurement is divided by its peak and the operator by its gain (:func:`spectral_gain`, which
-needs no FFT, instead of PDHG's power-iteration ``‖A‖``; equal for SI models), so ``tv`` and
-the ``μ`` are scale-free; with the same ``norm`` the objective is PDHG's on the extended scene.
+measurement is divided by its peak and the operator by ``‖A‖``
+(:func:`psfkit.forward.norm.operator_norm`, the one estimate, cached on the operator), so
+``tv`` and the ``μ`` are scale-free and the objective is PDHG's at the same ``tv`` (tested).
 """
 
 from __future__ import annotations
@@ -45,14 +45,7 @@ from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
 from psfkit.forward.convolution import crop, pad
 from psfkit.forward.fft import irfft2, rfft2
-
-
-def spectral_gain(op: ExtendedSceneOperator) -> float:
-    """``max_{c,ω} sqrt(mean_k |K̂_k(ω)|²)``: ``‖A‖`` of a shift-invariant model exactly, and
-    of an eigen-kernel model whose kernels are close and whose weights sum to 1 nearly; free
-    (no FFT: the spectra are cached), unlike a power iteration."""
-    power = (op.base.spectra.abs() ** 2).mean(dim=0)
-    return float(power.amax().sqrt())
+from psfkit.forward.norm import operator_norm
 
 
 @dataclass
@@ -78,7 +71,7 @@ def normalised_problem(measurement: Tensor, op: ExtendedSceneOperator, tv: float
     if measurement.ndim != 3:
         raise TensorShapeError(f"measurement must be (C, H, W), got {tuple(measurement.shape)}")
     op.check(measurement[None], "measurement")
-    norm = spectral_gain(op) if norm is None else norm
+    norm = operator_norm(op) if norm is None else norm
     peak = float(measurement.abs().max().clamp_min(1e-30))
     return NormalisedProblem(measurement / peak, peak, norm, op.base.spectra / norm,
                              op.base.conj_spectra / norm)
@@ -124,8 +117,8 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         the speed, not the minimiser; the defaults were the fastest at 100 iterations on two
         DLMD pairs at 67x120, among 0.003-0.3 for ``μ1``, ``μ3`` and 0.003-0.03 for ``μ2``).
     norm : float, optional
-        The operator's gain that sets the units (default :func:`spectral_gain`; any positive
-        value gives the same minimiser for the correspondingly scaled ``tv``).
+        ``‖A‖``, which sets the units (default :func:`psfkit.forward.norm.operator_norm`; any
+        positive value gives the same minimiser for the correspondingly scaled ``tv``).
     callback : callable, optional
         ``callback(iteration, relative_change)``.
 

@@ -60,6 +60,8 @@ class ExtendedSceneOperator:
         self.base = base
         self.sensor_shape = base.sensor_shape
         self.grid_shape = base.grid_shape
+        self.scene_shape = base.grid_shape          # the scene lives on the whole padded grid
+        self.device = base.device
         self.channels = base.channels
         self.dtype = base.dtype
         self.scene_weights: Tensor | None = None

@@ -34,7 +34,7 @@ correction, the right-hand side of ``x``) and one batched inverse of ``K + 2`` (
 ``Σ_k H_k r_k``, ``x``): ``2K + 4`` transforms against 4 for the shift-invariant model.
 
 Units as in :mod:`ekdun.reconstruction.ek_admm`: ``y`` divided by its peak and the operator by
-:func:`~ekdun.reconstruction.ek_admm.spectral_gain`, so ``tv`` and the ``μ`` are scale-free and
+``‖A‖`` (:func:`psfkit.forward.norm.operator_norm`), so ``tv`` and the ``μ`` are scale-free and
 the objective is PDHG's on the same operator (tested).
 """
 
@@ -94,8 +94,7 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
         0.05 dB of 1000), among ``μ1`` 0.02-1, ``μ2`` 0.003-0.03, ``μ3`` 0.0003-0.01 and
         ``μ4`` 0.005-0.15.
     norm : float, optional
-        The operator's gain that sets the units (default
-        :func:`~ekdun.reconstruction.ek_admm.spectral_gain`).
+        ``‖A‖``, which sets the units (default :func:`psfkit.forward.norm.operator_norm`).
     callback : callable, optional
         ``callback(iteration, relative_change)``.
 

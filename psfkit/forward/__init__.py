@@ -22,6 +22,11 @@ Modules
     operator modules hand to the unrolled networks).
 :mod:`psfkit.forward.kernel_space`
     :class:`KernelSpaceOperator` (``B: K ↦ (A_K x_i)_i`` and ``Bᵀ``), the fit-pairs form.
+:mod:`psfkit.forward.norm`
+    :func:`operator_norm` (``‖A‖`` by power iteration on the actual operator, cached per
+    operator) and :func:`largest_eigenvalue`: the one estimator, used by ADMM, PDHG and the
+    constrained kernel fit; :func:`spectral_bound`, the bound from above that the unrolled
+    networks' initial step sizes use.
 
 Importing this package loads only the geometry; the torch parts load on first use of one of
 their names (``psfkit --help`` and the kernel file stay free of torch).
@@ -45,6 +50,7 @@ _LAZY = {
     "SpectralOperator": "operator",
     "records_graph": "convolution",
     "KernelSpaceOperator": "kernel_space", "linear_convolution_grid": "kernel_space",
+    "operator_norm": "norm", "largest_eigenvalue": "norm", "spectral_bound": "norm",
 }
 
 __all__ = ["CONVENTIONS", "centre_offset", "kernel_origin", "padded_shape", *_LAZY]

@@ -13,6 +13,8 @@ from psfkit.forward import (
     count_ffts,
     eigen_kernel_forward,
     kernel_spectra,
+    largest_eigenvalue,
+    operator_norm,
     pad,
     padded_scene_adjoint,
     padded_scene_forward,
@@ -115,3 +117,64 @@ def test_padded_scene_model_of_a_scene_inside_the_view_is_the_sensor_sized_model
                                sensor_weights if convention == "sensor" else grid_weights,
                                SENSOR, convention)
     torch.testing.assert_close(big, small, rtol=0, atol=1e-12)
+
+
+class _TinyOperator:
+    """Eq. 7 on the padded grid with the crop, bound to random kernels (for the norm tests)."""
+
+    def __init__(self, convention: str, seed: int = 7) -> None:
+        rng = np.random.default_rng(seed)
+        self.channels, self.dtype = 2, torch.float64
+        self.sensor_shape, self.scene_shape = SENSOR, GRID
+        kernels = torch.as_tensor(rng.random((3, 2, 3, 4)))
+        self.spectra = kernel_spectra(kernels, GRID)
+        self.weights = torch.as_tensor(rng.random((3, *(SENSOR if convention == "sensor"
+                                                         else GRID))))
+        self.convention = convention
+        self.calls = 0
+
+    def A(self, x):
+        self.calls += 1
+        return padded_scene_forward(x, self.spectra, self.weights, SENSOR, self.convention)
+
+    def A_adjoint(self, y):
+        return padded_scene_adjoint(y, self.spectra.conj(), self.weights, GRID, self.convention)
+
+    def matrix(self) -> np.ndarray:
+        n = 2 * GRID[0] * GRID[1]
+        basis = torch.eye(n, dtype=torch.float64).reshape(n, 2, *GRID)
+        return self.A(basis).reshape(n, -1).numpy().T           # (measurements, scene pixels)
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+def test_operator_norm_is_the_largest_singular_value_of_the_cropped_operator(convention):
+    op = _TinyOperator(convention)
+    sigma = np.linalg.svd(op.matrix(), compute_uv=False)[0]
+    estimate = operator_norm(op, tol=1e-8, max_iterations=5000)
+    # power iteration from below, to its tolerance
+    assert estimate <= sigma * (1 + 1e-12)
+    assert estimate == pytest.approx(sigma, rel=1e-6)
+    # the default tolerance (1e-3)
+    default = operator_norm(op)
+    assert default <= sigma * (1 + 1e-12) and default == pytest.approx(sigma, rel=1e-3)
+    # the crop lowers the norm below the kernels' spectral gain on the padded grid
+    gain = float((op.spectra.abs() ** 2).sum(dim=0).amax().sqrt()) * float(op.weights.max())
+    assert sigma < gain
+    # cached on the operator (no A applied the second time) and deterministic
+    calls = op.calls
+    assert operator_norm(op) == default and op.calls == calls
+    assert operator_norm(_TinyOperator(convention)) == default
+
+
+def test_largest_eigenvalue_per_block_of_a_block_diagonal_operator():
+    rng = np.random.default_rng(2)
+    blocks = [rng.standard_normal((6, 6)) for _ in range(3)]
+    blocks = [torch.as_tensor(b @ b.T) for b in blocks]           # PSD, one per channel
+
+    def normal(v):                                                # v (2, 3, 6)
+        return torch.stack([v[:, c] @ blocks[c].T for c in range(3)], dim=1)
+
+    values = largest_eigenvalue(normal, (2, 3, 6), torch.float64, block_dim=1, tol=1e-10,
+                                max_iterations=10000)
+    expected = [float(torch.linalg.eigvalsh(b)[-1]) for b in blocks]
+    np.testing.assert_allclose(values.numpy(), expected, rtol=1e-6)
