@@ -116,8 +116,14 @@ class KernelSpaceOperator:
         return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
 
     def precondition(self, kernels: Tensor, regulariser: float) -> Tensor:
-        """Approximate inverse of the normal operator: divide by the scene power per
-        frequency (the circulant part of ``BᵀB``)."""
+        """Approximate inverse of the normal operator ``BᵀB + λ``, per kernel and frequency.
+
+        Divides each kernel's spectrum by ``w̄ · P(ω) + regulariser``, with ``P`` the summed
+        power of the scene spectra the kernels see (:attr:`power`: the scenes, or a source-side
+        model's weighted scenes summed over the weights too) and ``w̄`` the mean of the
+        squared weight maps (1 for the SI model). That is the circulant part of ``BᵀB`` for
+        one kernel under a spatially averaged weight; the coupling between kernels is ignored.
+        """
         spectra = kernel_spectra(kernels, self.grid)
         mean_weight = 1.0 if self.weights is None else float(self.weights.pow(2).mean())
         filtered = spectra / (self.power * mean_weight + regulariser)
