@@ -43,7 +43,7 @@ from ekdun.models.tv_admm_steps import (
 )
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
-from psfkit.forward.convolution import crop, pad
+from psfkit.forward.convolution import kernel_images, padded_scene_adjoint_spectrum
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.norm import operator_norm
 
@@ -141,9 +141,9 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     m3 = mu3 if nonneg else 0.0
     power = (spectra.abs() ** 2).sum(dim=0)                       # Σ_k |K̂_k|²
     inverse = 1.0 / (mu1 * power + mu2 * finite_difference_spectrum(grid, y.dtype) + m3)
-    # x̂⁺ = inverse·F(rhs) + keep·x̂ + Σ_k lift_k·F(pad(W_k r)) (see the loop).
+    # x̂⁺ = inverse·F(rhs) + keep·x̂ + lift·F(Aᵀr) (see the loop).
     keep = mu1 * power * inverse
-    lift = (mu1 * inverse) * conj                                 # (K, C, PH, PW//2+1)
+    lift = mu1 * inverse                                          # (C, PH, PW//2+1)
     shift_invariant = op.weights is None
     x = torch.zeros((op.channels, *grid), dtype=y.dtype, device=y.device)
     x_hat = rfft2(x)
@@ -159,8 +159,8 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         # u_k = b_k + pad(W_k r), b_k = H_k x + α_k/μ1 (Sherman–Morrison inside the view).
         b = hx + alpha1 / mu1
         if shift_invariant:
-            correction = (y - b[0]) * gain                                 # (1, C, H', W')
-            correction = correction[None]
+            residual = (y - b[0]) * gain                                   # (C, H', W')
+            correction = residual[None]                                    # (1, C, H', W')
         else:
             residual = (y - (weights * b).sum(dim=0)) * gain               # (C, H', W')
             correction = weights * residual                                # (K, C, H', W')
@@ -169,13 +169,12 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
             w = torch.relu(x + alpha3 / mu3)
             rhs += mu3 * w - alpha3
         # μ1 u_k − α_k = μ1 (H_k x + pad(W_k r)) everywhere: the duals cancel, and
-        # F(H_k x) = K̂_k x̂, so the data part of the right-hand side costs K FFTs of the
-        # in-view corrections only.
-        lifted = lift * rfft2(pad(correction, grid))
+        # F(H_k x) = K̂_k x̂, so the data part of the right-hand side is F(Aᵀr): K FFTs of
+        # the in-view corrections only (Eq. 7's adjoint, psfkit.forward).
         x_hat = rfft2(rhs).mul_(inverse).addcmul_(keep, x_hat)
-        x_hat += lifted[0] if n_kernels == 1 else lifted.sum(dim=0)
+        x_hat += lift * padded_scene_adjoint_spectrum(residual, conj, op.weights, grid)
         x_new = irfft2(x_hat, grid)
-        hx_new = crop(irfft2(spectra * x_hat, grid), sensor)
+        hx_new = kernel_images(x_hat, spectra, grid, sensor)     # crop(H_k x⁺), (K, C, H', W')
         alpha1 = mu1 * (hx_new - hx - correction)      # α_k + μ1 (H_k x⁺ − u_k), in view
         hx = hx_new
         dx = finite_differences(x_new)                 # also the next iteration's Ψx

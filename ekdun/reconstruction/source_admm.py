@@ -54,7 +54,7 @@ from ekdun.models.tv_admm_steps import (
 from ekdun.reconstruction.ek_admm import normalised_problem, record_change
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
-from psfkit.forward.convolution import crop
+from psfkit.forward.convolution import crop, sum_of_kernel_products
 from psfkit.forward.fft import irfft2, rfft2
 
 
@@ -159,9 +159,9 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
         torch.add(z, d, out=planes[n_kernels + 1]).mul_(mu3).add_(
             finite_differences_adjoint(s - c), alpha=mu2)
         f = rfft2(planes)
-        kvz = spectra[0] * f[0]                                   # Σ_k K̂_k F(V_k z)
-        for j in range(1, n_kernels):
-            kvz.addcmul_(spectra[j], f[j])
+        # Σ_k K̂_k F(V_k z): the source-side model's sum before the crop, by psfkit.forward's
+        # one sum of kernel-scene products (it overwrites f[0], not needed after this)
+        kvz = sum_of_kernel_products(f.__getitem__, spectra, graph=False)
         pg_old = _scale_complex(power, g_hat)
         g_hat = (hr_hat + f[n_kernels]).sub_(kvz).add_(pg_old)
         _scale_complex(g_gain, g_hat, out=g_hat)

@@ -46,6 +46,8 @@ _LAZY = {
     "extract_kernel": "convolution", "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
     "padded_scene_forward": "convolution", "padded_scene_adjoint": "convolution",
+    "padded_scene_adjoint_spectrum": "convolution", "kernel_images": "convolution",
+    "sum_of_kernel_products": "convolution",
     "zero_workspace": "convolution", "PaddingWorkspace": "operator",
     "SpectralOperator": "operator",
     "records_graph": "convolution",

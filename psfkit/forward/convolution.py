@@ -183,13 +183,13 @@ def _fan_out(x_hat: Tensor, spectra: Tensor, weights: Tensor | None,
     return out
 
 
-def _fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
-            grid_shape: tuple[int, int], block: tuple[int, int], graph: bool) -> Tensor:
-    r"""``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT.
+def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
+                           graph: bool) -> Tensor:
+    """``Σ_k Ŝ_k · spectrum_of(k)``: the kernel-by-input products of Eq. 7 summed in the
+    Fourier domain (source-side forward, sensor-side adjoint, before the inverse FFT).
 
-    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
-    (source-side forward, sensor-side adjoint); ``spectrum_of(k)`` is the spectrum of the
-    ``k``-th weighted input (a fresh array: it is overwritten outside autograd).
+    ``spectrum_of(k)`` gives the spectrum of the ``k``-th (weighted) input ``(..., C, PH,
+    PW//2+1)``; outside autograd (``graph`` false) the first is overwritten with the sum.
     """
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
@@ -202,7 +202,18 @@ def _fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
         else:
             acc.addcmul_(term, spectra[k])
     assert acc is not None
-    return irfft2(acc, grid_shape, block)
+    return acc
+
+
+def _fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
+            grid_shape: tuple[int, int], block: tuple[int, int], graph: bool) -> Tensor:
+    r"""``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT.
+
+    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
+    (source-side forward, sensor-side adjoint); ``spectrum_of(k)`` is the spectrum of the
+    ``k``-th weighted input (a fresh array: it is overwritten outside autograd).
+    """
+    return irfft2(sum_of_kernel_products(spectrum_of, spectra, graph), grid_shape, block)
 
 
 def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
@@ -371,6 +382,63 @@ def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
         corner = _fan_out(rfft2(y, grid_shape), conj_spectra, scene_weights, grid_shape,
                           grid_shape, graph)
     return _from_corner(corner, sensor)
+
+
+def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int, int],
+                  sensor_shape: tuple[int, int] | None = None) -> Tensor:
+    r"""``crop(K_k ⊛ x)`` for every kernel, from the spectrum of a padded-grid scene.
+
+    The images that sensor-side weights multiply in Eq. 7 (:func:`padded_scene_forward` sums
+    them weighted), for solvers that keep them apart (ADMM's split ``u_k = H_k x``) and that
+    already hold ``x̂`` (after a Fourier-diagonal update).
+
+    Parameters
+    ----------
+    scene_spectrum : Tensor
+        ``(..., C, PH, PW//2 + 1)``, ``rfft2`` of the ``(..., C, PH, PW)`` scene.
+    spectra : Tensor
+        Kernel spectra broadcastable against it, e.g. ``(K, C, PH, PW//2 + 1)``.
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+    sensor_shape : (int, int), optional
+        Keep the centred ``(H', W')`` view (the crop); ``None``: the whole grid (``H_k x``).
+
+    Returns
+    -------
+    Tensor
+        ``(K, ..., H', W')`` (or the grid) real.
+    """
+    images = irfft2(spectra * scene_spectrum, grid_shape)
+    return images if sensor_shape is None else crop(images, sensor_shape)
+
+
+def padded_scene_adjoint_spectrum(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                                  grid_shape: tuple[int, int]) -> Tensor:
+    r"""``rfft2`` of the sensor-side :func:`padded_scene_adjoint`:
+    ``Σ_k K̂_k^* · F(pad(W_k ⊙ y))`` (K FFTs, no inverse).
+
+    For solvers that apply a Fourier-diagonal inverse to ``Aᵀy`` before transforming back
+    (ADMM's ``x`` update), which saves the inverse FFT.
+
+    Parameters
+    ----------
+    y : Tensor
+        ``(..., C, H', W')``.
+    conj_spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` conjugated kernel spectra.
+    weights : Tensor or None
+        ``(K, H', W')`` sensor weights, or ``None`` (one kernel, weight 1).
+    grid_shape : (int, int)
+
+    Returns
+    -------
+    Tensor
+        ``(..., C, PH, PW//2 + 1)`` complex.
+    """
+    graph = _records(y, conj_spectra, weights)
+    return sum_of_kernel_products(
+        lambda k: rfft2(pad(y if weights is None else y * weights[k], grid_shape)),
+        conj_spectra, graph)
 
 
 def _records(t: Tensor, spectra: Tensor, weights: Tensor | None) -> bool:
