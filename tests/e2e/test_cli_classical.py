@@ -55,6 +55,7 @@ def test_cli_defaults_are_the_library_defaults():
 
     options = classical.ClassicalOptions()
     assert classical_cmd._DEFAULTS["kernels"]["tv"] == options.tv
+    assert classical_cmd._DEFAULTS["psf"]["tv"] == options.tv         # one solver, one default
     assert classical_cmd._DEFAULTS["kernels"]["iterations"] == options.iterations
     assert classical_cmd.SOLVERS == classical.SOLVERS
 
