@@ -14,8 +14,9 @@ rounds on the last pair, with each method at the median of its chosen iteration 
   (``ekdun admm --kernels``), closed-form ADMM-TV;
 * ``EK pdhg`` / ``SI pdhg``: the same models with PDHG, ``--pdhg-iterations`` (default 300),
   the ADMM's TV weight;
-* ``SI admm_tv f64``: the older :func:`ekdun.reconstruction.admm_tv` (float64, the fitted PSF
-  as is), the SI ADMM's TV weight and iterations;
+* ``SI admm_tv f64``: :func:`ekdun.reconstruction.admm_tv` (float64, the fitted PSF as is),
+  the SI ADMM's TV weight and iterations: since issue 22 the PSF form of the same solver
+  (before, the DiffuserCam tutorial's separate ADMM);
 * ``LenslessPiCam ADMM``: ``lensless`` 1.0.8's ADMM with the SI PSF, if importable (install it
   outside the project, e.g. ``pip install --no-deps --target /tmp/lensless_site lensless==1.0.8``
   and ``--lensless /tmp/lensless_site``); its ``tau`` and iterations chosen likewise.
@@ -241,11 +242,10 @@ def main() -> None:
                 record(f"{name} {solver}", result.image, result.seconds, i,
                        {"tv": tv, "it": n_its})
         psf = models["SI"].kernels[0]
-        # admm_tv's tau is relative to a unit-gain PSF: scale by this one's gain.
-        gain = float(np.abs(np.fft.rfft2(psf, s=(2 * psf.shape[-2], 2 * psf.shape[-1]))).max())
+        # since issue 22 admm_tv is the PSF form of the one solver: tau means tv
         tv, its = chosen["SI"]
         t0 = time.perf_counter()
-        image = admm_tv(meas[i], psf, iterations=its, tau=tv * gain, normalize_psf=False).numpy()
+        image = admm_tv(meas[i], psf, iterations=its, tau=tv, normalize_psf=False).numpy()
         record("SI admm_tv f64", image, time.perf_counter() - t0, i, {"tv": tv, "it": its})
         if have_lensless:
             roll, err = lensless_alignment(models["SI"], scenes[i])

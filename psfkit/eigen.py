@@ -31,6 +31,7 @@ import numpy as np
 
 from psfkit.alignment import AlignedPsf
 from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.forward.geometry import kernel_origin
 from psfkit.kernelfile import CONVENTIONS
 from psfkit.resample import bin_image
 from psfkit.weights import WeightBasis, get_basis, separable_coordinates
@@ -61,8 +62,9 @@ def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
         return basis.evaluate(u_n + du / (w / 2.0), v_n + dv / (h / 2.0))
     if convention == "source":
         v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
-        u_n = (w // 2 + du - u_c) / (w / 2.0)
-        v_n = (h // 2 + dv - v_c) / (h / 2.0)
+        origin_v, origin_u = kernel_origin(sensor_shape)      # where the PSF's origin is
+        u_n = (origin_u + du - u_c) / (w / 2.0)
+        v_n = (origin_v + dv - v_c) / (h / 2.0)
         return basis.evaluate(np.array([[u_n]]), np.array([[v_n]]))
     raise ConfigurationError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
 

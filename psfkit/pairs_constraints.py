@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from psfkit.errors import InvalidInputError
+from psfkit.forward.norm import largest_eigenvalue
 
 Normal = Callable[[Tensor], Tensor]
 
@@ -120,19 +121,18 @@ def _per_channel_norm(a: Tensor) -> Tensor:
     return a.pow(2).sum(dim=(0, 2, 3)).sqrt()                                  # (C,)
 
 
-def lipschitz(normal: Normal, like: Tensor, iterations: int = 15, seed: int = 0) -> Tensor:
+#: Relative accuracy of the step-size eigenvalue (a step size needs no more).
+LIPSCHITZ_TOLERANCE = 1e-2
+
+
+def lipschitz(normal: Normal, like: Tensor, seed: int = 0) -> Tensor:
     """Largest eigenvalue of the (per-channel block-diagonal, positive semi-definite) normal
-    operator, per channel ``(C,)``, by power iteration from a random start, times 1.05 (the
-    estimate approaches the eigenvalue from below)."""
-    generator = torch.Generator(device="cpu").manual_seed(seed)
-    v = torch.rand(like.shape, generator=generator, dtype=like.dtype).to(like.device)
-    estimate = torch.ones(like.shape[1], dtype=like.dtype, device=like.device)
-    for _ in range(iterations):
-        v = v / _per_channel_norm(v).clamp_min(1e-30)[None, :, None, None]
-        w = normal(v)
-        estimate = _per_channel_norm(w)
-        v = w
-    return 1.05 * estimate
+    operator, per channel ``(C,)``, times 1.05: :func:`psfkit.forward.norm.largest_eigenvalue`
+    (the one estimator; to ``LIPSCHITZ_TOLERANCE``) approaches it from below, and a step of
+    ``1/L`` needs ``L`` at least the eigenvalue."""
+    value = largest_eigenvalue(normal, tuple(like.shape), like.dtype, like.device, block_dim=1,
+                               tol=LIPSCHITZ_TOLERANCE, seed=seed)
+    return 1.05 * value.to(dtype=like.dtype, device=like.device)
 
 
 def projected_fit(normal: Normal, rhs: Tensor, start: Tensor, iterations: int,
@@ -150,7 +150,8 @@ def projected_fit(normal: Normal, rhs: Tensor, start: Tensor, iterations: int,
     start : Tensor
         Warm start (projected first), e.g. the unconstrained solution.
     iterations : int
-        Gradient steps (one application of ``normal`` each, plus 15 for the step size).
+        Gradient steps (one application of ``normal`` each, plus those of the step size's power
+        iteration, :func:`lipschitz`).
     nonneg, support, energy
         The constraints (:func:`project`).
     tolerance : float

@@ -13,8 +13,14 @@ least squares (in the kernel-space form :class:`~psfkit.forward.kernel_space.Ker
 which is linear in ``K``: with :math:`B_i: K \mapsto A_K x_i` the normal equations
 :math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved by
 preconditioned conjugate gradients, every ``B_i`` and ``B_i^\top`` applied with real FFTs on the
-padded grid (the scene spectra are computed once). The preconditioner is the inverse of the
-circulant part of the normal operator, :math:`1/(\sum_i|\hat x_i|^2 + \lambda)` per frequency.
+padded grid (the scene spectra are computed once). The preconditioner divides each kernel's
+spectrum by :math:`\bar w\,\sum_i\sum_j|\hat s_{ij}|^2 + \lambda` per frequency
+(:meth:`~psfkit.forward.kernel_space.KernelSpaceOperator.precondition`), with :math:`\hat s_{ij}`
+the spectra of the scenes as the kernels see them (:math:`j` runs over the one unweighted scene,
+or over the K weighted scenes :math:`W_j x_i` of a source-side model) and :math:`\bar w` the
+mean of the squared weight maps (1 for the SI model): the circulant part of the normal operator
+for one kernel with a spatially averaged weight; it ignores the coupling between kernels and
+the difference prior.
 ``λ`` and ``μ`` are relative to the mean of :math:`\sum_i|\hat x_i|^2`, so they do not depend
 on the data's units. Datasets whose ground truth was normalised image by image (the DiffuserCam
 Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated in a few
@@ -37,6 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from psfkit.eigen import _difference_prior as difference_prior
 from psfkit.errors import InvalidInputError
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zero_workspace
 from psfkit.forward.geometry import padded_shape
@@ -47,15 +54,6 @@ from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
 from psfkit.pairs_options import PairFitOptions
 from psfkit.resample import bin_mean
 from psfkit.weights import get_basis
-
-
-def _difference_prior(kernels: Tensor) -> Tensor:
-    """``D K`` for ``Σ_{k≥1}‖K_k − K_0‖²/2``'s gradient."""
-    out = torch.zeros_like(kernels)
-    for k in range(1, kernels.shape[0]):
-        out[k] += kernels[k] - kernels[0]
-        out[0] -= kernels[k] - kernels[0]
-    return out
 
 
 def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
@@ -153,6 +151,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     n, c, h, w = x.shape
     kernel_shape = (h, w)
     n_kernels = get_basis(options.basis).n_kernels
+    # D of Σ_{k≥1}‖K_k − K_0‖²/2 (the one definition, shared with fit-eigen), (K, K)
+    prior = torch.as_tensor(difference_prior(n_kernels), dtype=dtype, device=device)
     scales = torch.ones(n, dtype=dtype, device=device)
     if initial is None and n_kernels > 1 and options.seed_with_si:
         seed = fit_pairs(scenes, measurements,
@@ -185,7 +185,9 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         def normal(k: Tensor, op: KernelSpaceOperator = op, lam: float = lam,
                    mu: float = mu) -> Tensor:
             out = op.adjoint(op.forward(k)) + lam * k
-            return out + mu * _difference_prior(k) if n_kernels > 1 else out
+            if n_kernels == 1:
+                return out
+            return out + mu * torch.tensordot(prior, k, dims=([1], [0]))
 
         rhs = op.adjoint(y)
         kernels, info = _conjugate_gradients(

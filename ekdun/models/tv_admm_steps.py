@@ -1,8 +1,9 @@
 r"""The steps of ADMM with total-variation regularisation, written once.
 
-Used by the classical solver (:func:`ekdun.reconstruction.admm_tv.admm_tv`, ``ekdun admm``) and
-by the unrolled Le-ADMM-U (:class:`ekdun.models.le_admm_u.LeADMMU`, learned ``μ1, μ2, μ3, τ``
-per iteration). The problem (DiffuserCam, Antipa et al. 2018) is
+Used by the unrolled Le-ADMM-U (:class:`ekdun.models.le_admm_u.LeADMMU`, learned ``μ1, μ2, μ3, τ``
+per iteration; the classical solvers, ``ekdun admm``, are :mod:`ekdun.reconstruction.ek_admm`
+and :mod:`ekdun.reconstruction.source_admm`, which share its finite differences). The problem
+(DiffuserCam, Antipa et al. 2018) is
 
 .. math::
 
@@ -40,7 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from psfkit.forward.convolution import pad
+from psfkit.forward.convolution import kernel_images, pad
 from psfkit.forward.fft import irfft2, rfft2
 
 #: State of an iteration: ``x``, ``hx`` (``Hx``), and the duals ``alpha1..3``.
@@ -118,10 +119,11 @@ def admm_tv_iteration(state: AdmmState, context: dict[str, Any], mu1: Tensor | f
     w = torch.relu(x + alpha3 / mu3)
 
     rhs = (mu3 * w - alpha3) + finite_differences_adjoint(mu2 * u - alpha2)
+    # the x update's Fourier-diagonal solve (Hᵀ of the split variable, no crop: not Eq. 7)
     numerator = rfft2(rhs) + context["conj_spectrum"] * rfft2(mu1 * v - alpha1)
     x_hat = numerator / (mu1 * context["hth"] + mu2 * tv_spectrum + mu3)
     x = irfft2(x_hat, context["grid"])
-    hx = irfft2(context["spectrum"] * x_hat, context["grid"])
+    hx = kernel_images(x_hat, context["spectrum"], context["grid"])        # H x on the grid
 
     return {"x": x, "hx": hx,
             "alpha1": alpha1 + mu1 * (hx - v),

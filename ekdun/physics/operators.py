@@ -36,6 +36,7 @@ from torch import Tensor, nn
 from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
+from psfkit.forward.norm import spectral_bound
 from psfkit.forward.operator import SpectralOperator
 from psfkit.kernelfile import KernelModel, check_kernels
 from psfkit.weights import get_basis
@@ -216,14 +217,16 @@ class FFTConvolutionOperator(nn.Module):
                                 self.convention, conj_spectra)
 
     def lipschitz_bound(self) -> float:
-        r"""``max_{k,c,ω} |K̂_k(ω)|²``, an estimate of ``‖AᵀA‖``.
+        r"""``max_{k,c,ω} |K̂_k(ω)|²``, an upper bound of ``‖AᵀA‖`` for one kernel: the
+        unrolled networks' initial step-size scale.
 
-        An upper bound for one kernel (crop and pad have norm 1); with convex weights and
-        similar kernels, as in eigen-kernel models, ``‖AᵀA‖`` is close to it. Used to scale
-        initial step sizes.
+        :func:`psfkit.forward.norm.spectral_bound` squared. Not an estimate of ``‖A‖`` (the
+        crop lowers the norm: :func:`psfkit.forward.norm.operator_norm` measures it); a
+        network's initial gradient step wants a bound from above, and one that does not
+        depend on an iteration.
         """
         with torch.no_grad():
-            return float(self.spectra().abs().amax().item() ** 2)
+            return spectral_bound(self.spectra()) ** 2
 
     def A(self, x: Tensor) -> Tensor:
         """Forward model ``y = A x`` (takes the kernel FFTs when the kernels are trainable)."""

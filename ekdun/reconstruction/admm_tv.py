@@ -1,17 +1,11 @@
-r"""Classical ADMM with total-variation regularisation for a shift-invariant PSF.
+"""``admm_tv(measurement, psf)``: ADMM-TV with a PSF, a thin alias of the one solver.
 
-For users without a trained network (the DiffuserCam tutorial's algorithm, Antipa et al.
-2018): solve
-
-.. math::
-
-    \min_{v \ge 0}\ \tfrac12 \lVert y - C(h * v)\rVert^2 + \tau \lVert \nabla v \rVert_1
-
-with ``v`` on the padded grid (``scene_padding × H'``), ``C`` the crop to the sensor and
-``h * ·`` a circular FFT convolution (exactly ``y = crop(K * pad(x))`` of ``design.md`` for a
-scene inside the central block). Every update is closed-form; they are the steps of
-:mod:`ekdun.models.tv_admm_steps`, shared with Le-ADMM-U (which learns ``μ`` and ``τ``
-per iteration), and every FFT goes through :mod:`psfkit.forward`.
+Kept for callers of the DiffuserCam tutorial's function. It builds the shift-invariant kernel
+model of the PSF (:func:`~ekdun.reconstruction.classical.psf_model`) and runs
+:class:`~ekdun.reconstruction.classical.ModelReconstructor`, the solver of
+``ekdun admm --kernels`` and ``ekdun admm PSF RAW`` (:func:`~ekdun.reconstruction.ek_admm.
+ek_admm_tv`; the scene on the padded grid, ``tau`` relative to the measurement's peak and
+``‖A‖``).
 """
 
 from __future__ import annotations
@@ -20,80 +14,45 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ekdun.errors import TensorShapeError
-from ekdun.models.tv_admm_steps import (
-    admm_tv_context,
-    admm_tv_initial_state,
-    admm_tv_iteration,
-    finite_difference_spectrum,
-)
-from psfkit.forward.convolution import crop, kernel_spectra
-from psfkit.forward.geometry import padded_shape
+from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor, psf_model
+
+_DTYPE_NAMES = {torch.float32: "float32", torch.float64: "float64"}
 
 
 def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iterations: int = 100,
-            tau: float = 1e-3, mu1: float = 0.1, mu2: float = 0.01, mu3: float = 0.1,
-            scene_padding: int = 2, normalize_psf: bool = True,
-            full_grid: bool = False, dtype: torch.dtype = torch.float64) -> Tensor:
-    """Reconstruct a scene from one measurement with ADMM-TV.
+            tau: float = 1e-3, scene_padding: int = 2, normalize_psf: bool = True,
+            dtype: torch.dtype = torch.float64) -> Tensor:
+    """Reconstruct a scene from one measurement with ADMM-TV and a shift-invariant PSF.
 
     Parameters
     ----------
     measurement : array ``(C, H', W')`` or ``(H', W')``
         Background-subtracted measurement.
     psf : array ``(C, Hk, Wk)`` or ``(Hk, Wk)``
-        Measured PSF (origin at its centre), ``Hk <= H'``, ``Wk <= W'``; mono PSFs are used
-        for every channel.
+        PSF (origin at its centre), ``Hk <= H'``, ``Wk <= W'``; a mono PSF is used for every
+        channel.
     iterations : int
         ADMM iterations.
     tau : float
-        TV weight relative to the peak of the measurement (scale-free).
-    mu1, mu2, mu3 : float
-        Penalties of the data, TV and non-negativity splits, relative to ``max |ĥ|²``
-        (``mu2`` relative to 1).
+        TV weight relative to the measurement's peak and ``‖A‖`` (``--tv``).
     scene_padding : int
-        Padded-grid factor (2: the scene may be as large as the sensor).
+        Padded-grid factor.
     normalize_psf : bool
         Scale each PSF channel to unit sum first (reconstruction in measurement units).
-    full_grid : bool
-        Return the whole padded grid instead of its central ``H' × W'`` block.
-    dtype : torch.dtype
-        Working precision (float64 by default; float32 is about twice as fast).
+    dtype : torch.float32 or torch.float64
 
     Returns
     -------
     Tensor
-        ``(C, H', W')`` in ``dtype`` (or the padded grid).
+        ``(C, H', W')`` in ``dtype``.
     """
-    y = torch.as_tensor(np.asarray(measurement), dtype=dtype)
-    h = torch.as_tensor(np.asarray(psf), dtype=dtype)
-    if y.ndim == 2:
-        y = y[None]
-    if h.ndim == 2:
-        h = h[None]
-    if y.ndim != 3 or h.ndim != 3:
-        raise TensorShapeError("measurement and PSF must be (C, H, W) or (H, W)")
-    if h.shape[0] == 1 and y.shape[0] > 1:
-        h = h.expand(y.shape[0], -1, -1)
-    if h.shape[0] != y.shape[0]:
-        raise TensorShapeError(f"PSF has {h.shape[0]} channels, measurement {y.shape[0]}")
-    sensor = (int(y.shape[-2]), int(y.shape[-1]))
-    if h.shape[-2] > sensor[0] or h.shape[-1] > sensor[1]:
-        raise TensorShapeError(f"PSF {h.shape[-2]}x{h.shape[-1]} is larger than the "
-                               f"measurement {sensor[0]}x{sensor[1]}")
+    y = np.asarray(measurement, dtype=np.float64)
+    y = y[None] if y.ndim == 2 else y
+    h = np.asarray(psf, dtype=np.float64)
     if normalize_psf:
-        h = h / h.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
-    grid = padded_shape(sensor, scene_padding)
-    scale = float(y.abs().max().clamp_min(1e-12))
-    y = y / scale
-    H = kernel_spectra(h, grid)                         # (C, PH, PW//2+1)
-    lipschitz = float((H.abs() ** 2).max())
-    context = admm_tv_context(y, H, H.conj().resolve_conj(), grid)
-    tv_spectrum = finite_difference_spectrum(grid, dtype)
-    mu1, mu3 = mu1 * lipschitz, mu3 * lipschitz
-    state = admm_tv_initial_state(context)
-    for _ in range(iterations):
-        state = admm_tv_iteration(state, context, mu1, mu2, mu3, tau, tv_spectrum)
-    v = state["x"]
-    out = v.clamp_min(0) * scale
-    return out if full_grid else crop(out, sensor).contiguous()
+        h = h / np.maximum(h.sum(axis=(-2, -1), keepdims=True), 1e-12)
+    model = psf_model(h, y.shape[-2:], y.shape[0], scene_padding)
+    options = ClassicalOptions(solver="admm", tv=tau, iterations=iterations,
+                               dtype=_DTYPE_NAMES[dtype])
+    image = ModelReconstructor(model, options)(y).image
+    return torch.as_tensor(image, dtype=dtype)

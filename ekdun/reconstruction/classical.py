@@ -159,6 +159,46 @@ class ModelReconstructor:
                                result.converged, time.perf_counter() - t0)
 
 
+def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | None = None,
+              scene_padding: int = 2) -> KernelModel:
+    """The shift-invariant kernel model of a PSF kernel, for measurements of ``sensor_shape``.
+
+    What ``ekdun admm PSF RAW`` reconstructs with (the PSF from
+    :func:`psfkit.preprocess.load_psf_image`), so that the PSF form and ``--kernels`` run one
+    solver.
+
+    Parameters
+    ----------
+    psf : numpy.ndarray
+        ``(C, Hk, Wk)`` or ``(Hk, Wk)`` kernel, origin at its centre, used as given.
+    sensor_shape : (int, int)
+        ``(H', W')`` of the measurements (at least the PSF's size).
+    channels : int, optional
+        Channels of the measurements: a mono PSF is used for each of them.
+    scene_padding : int
+        Padded-grid factor.
+
+    Raises
+    ------
+    TensorShapeError
+        A PSF larger than the measurement or with a channel count that does not fit.
+    """
+    kernel = np.asarray(psf, dtype=np.float32)
+    kernel = kernel[None] if kernel.ndim == 2 else kernel
+    if kernel.ndim != 3:
+        raise TensorShapeError(f"a PSF must be (C, H, W) or (H, W), got {kernel.shape}")
+    if channels is not None and kernel.shape[0] != channels:
+        if kernel.shape[0] != 1:
+            raise TensorShapeError(f"PSF has {kernel.shape[0]} channels, measurement {channels}")
+        kernel = np.repeat(kernel, channels, axis=0)
+    if kernel.shape[-2] > sensor_shape[0] or kernel.shape[-1] > sensor_shape[1]:
+        raise TensorShapeError(f"PSF {kernel.shape[-2]}x{kernel.shape[-1]} is larger than the "
+                               f"measurement {sensor_shape[0]}x{sensor_shape[1]}")
+    return KernelModel.shift_invariant(kernel, sensor_shape=tuple(sensor_shape),
+                                       scene_padding=scene_padding,
+                                       normalization="as given (PSF image)")
+
+
 def reconstruct_with_model(measurement: np.ndarray, model: KernelModel,
                            options: ClassicalOptions | None = None) -> np.ndarray:
     """Reconstruct one measurement ``(C, H', W')`` (RGB, the model's size) with a kernel model.

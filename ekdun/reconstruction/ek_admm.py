@@ -22,9 +22,9 @@ One iteration costs ``2K + 2`` FFTs (SI: 4, exactly the steps of
 :func:`~ekdun.models.tv_admm_steps.admm_tv_iteration`). The scene lives on the padded grid
 (light from outside the view, as in :mod:`ekdun.reconstruction.extended_scene`) and the
 central block is returned. Units are those of :mod:`ekdun.reconstruction.pdhg_tv`: the
-measurement is divided by its peak and the operator by its gain (:func:`spectral_gain`, which
-needs no FFT, instead of PDHG's power-iteration ``‖A‖``; equal for SI models), so ``tv`` and
-the ``μ`` are scale-free; with the same ``norm`` the objective is PDHG's on the extended scene.
+measurement is divided by its peak and the operator by ``‖A‖``
+(:func:`psfkit.forward.norm.operator_norm`, the one estimate, cached on the operator), so
+``tv`` and the ``μ`` are scale-free and the objective is PDHG's at the same ``tv`` (tested).
 """
 
 from __future__ import annotations
@@ -43,16 +43,9 @@ from ekdun.models.tv_admm_steps import (
 )
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
-from psfkit.forward.convolution import crop, pad
+from psfkit.forward.convolution import kernel_images, padded_scene_adjoint_spectrum
 from psfkit.forward.fft import irfft2, rfft2
-
-
-def spectral_gain(op: ExtendedSceneOperator) -> float:
-    """``max_{c,ω} sqrt(mean_k |K̂_k(ω)|²)``: ``‖A‖`` of a shift-invariant model exactly, and
-    of an eigen-kernel model whose kernels are close and whose weights sum to 1 nearly; free
-    (no FFT: the spectra are cached), unlike a power iteration."""
-    power = (op.base.spectra.abs() ** 2).mean(dim=0)
-    return float(power.amax().sqrt())
+from psfkit.forward.norm import operator_norm
 
 
 @dataclass
@@ -78,7 +71,7 @@ def normalised_problem(measurement: Tensor, op: ExtendedSceneOperator, tv: float
     if measurement.ndim != 3:
         raise TensorShapeError(f"measurement must be (C, H, W), got {tuple(measurement.shape)}")
     op.check(measurement[None], "measurement")
-    norm = spectral_gain(op) if norm is None else norm
+    norm = operator_norm(op) if norm is None else norm
     peak = float(measurement.abs().max().clamp_min(1e-30))
     return NormalisedProblem(measurement / peak, peak, norm, op.base.spectra / norm,
                              op.base.conj_spectra / norm)
@@ -124,8 +117,8 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         the speed, not the minimiser; the defaults were the fastest at 100 iterations on two
         DLMD pairs at 67x120, among 0.003-0.3 for ``μ1``, ``μ3`` and 0.003-0.03 for ``μ2``).
     norm : float, optional
-        The operator's gain that sets the units (default :func:`spectral_gain`; any positive
-        value gives the same minimiser for the correspondingly scaled ``tv``).
+        ``‖A‖``, which sets the units (default :func:`psfkit.forward.norm.operator_norm`; any
+        positive value gives the same minimiser for the correspondingly scaled ``tv``).
     callback : callable, optional
         ``callback(iteration, relative_change)``.
 
@@ -148,9 +141,9 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     m3 = mu3 if nonneg else 0.0
     power = (spectra.abs() ** 2).sum(dim=0)                       # Σ_k |K̂_k|²
     inverse = 1.0 / (mu1 * power + mu2 * finite_difference_spectrum(grid, y.dtype) + m3)
-    # x̂⁺ = inverse·F(rhs) + keep·x̂ + Σ_k lift_k·F(pad(W_k r)) (see the loop).
+    # x̂⁺ = inverse·F(rhs) + keep·x̂ + lift·F(Aᵀr) (see the loop).
     keep = mu1 * power * inverse
-    lift = (mu1 * inverse) * conj                                 # (K, C, PH, PW//2+1)
+    lift = mu1 * inverse                                          # (C, PH, PW//2+1)
     shift_invariant = op.weights is None
     x = torch.zeros((op.channels, *grid), dtype=y.dtype, device=y.device)
     x_hat = rfft2(x)
@@ -166,8 +159,8 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
         # u_k = b_k + pad(W_k r), b_k = H_k x + α_k/μ1 (Sherman–Morrison inside the view).
         b = hx + alpha1 / mu1
         if shift_invariant:
-            correction = (y - b[0]) * gain                                 # (1, C, H', W')
-            correction = correction[None]
+            residual = (y - b[0]) * gain                                   # (C, H', W')
+            correction = residual[None]                                    # (1, C, H', W')
         else:
             residual = (y - (weights * b).sum(dim=0)) * gain               # (C, H', W')
             correction = weights * residual                                # (K, C, H', W')
@@ -176,13 +169,12 @@ def ek_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
             w = torch.relu(x + alpha3 / mu3)
             rhs += mu3 * w - alpha3
         # μ1 u_k − α_k = μ1 (H_k x + pad(W_k r)) everywhere: the duals cancel, and
-        # F(H_k x) = K̂_k x̂, so the data part of the right-hand side costs K FFTs of the
-        # in-view corrections only.
-        lifted = lift * rfft2(pad(correction, grid))
+        # F(H_k x) = K̂_k x̂, so the data part of the right-hand side is F(Aᵀr): K FFTs of
+        # the in-view corrections only (Eq. 7's adjoint, psfkit.forward).
         x_hat = rfft2(rhs).mul_(inverse).addcmul_(keep, x_hat)
-        x_hat += lifted[0] if n_kernels == 1 else lifted.sum(dim=0)
+        x_hat += lift * padded_scene_adjoint_spectrum(residual, conj, op.weights, grid)
         x_new = irfft2(x_hat, grid)
-        hx_new = crop(irfft2(spectra * x_hat, grid), sensor)
+        hx_new = kernel_images(x_hat, spectra, grid, sensor)     # crop(H_k x⁺), (K, C, H', W')
         alpha1 = mu1 * (hx_new - hx - correction)      # α_k + μ1 (H_k x⁺ − u_k), in view
         hx = hx_new
         dx = finite_differences(x_new)                 # also the next iteration's Ψx

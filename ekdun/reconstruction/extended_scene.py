@@ -2,20 +2,18 @@ r"""The forward model with the scene on the whole padded grid (light from outsid
 
 A real measurement also records scene points outside the ``H' × W'`` field that the sensor-sized
 model ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` assumes; a reconstruction restricted to that field
-has to explain their light with in-field pixels (artefacts at the borders). ADMM-TV
-(:mod:`ekdun.reconstruction.admm_tv`) therefore solves on the padded grid, and so can PDHG with
-this operator. Sensor-side eigen-kernel models need nothing more (their weights multiply each
-kernel's image on the sensor); source-side ones weight the scene, so they need weights on the
-whole grid: :meth:`psfkit.kernelfile.KernelModel.weight_maps` with ``extent``, which continues
-the edge weights outside the view (the model is fitted on the view only)::
+has to explain their light with in-field pixels (artefacts at the borders). The ADMM-TV solvers
+(:mod:`ekdun.reconstruction.ek_admm`, :mod:`ekdun.reconstruction.source_admm`) therefore solve
+on the padded grid, and so does PDHG with this operator. Sensor-side eigen-kernel models need
+nothing more (their weights multiply each kernel's image on the sensor); source-side ones
+weight the scene, so they need weights on the whole grid:
+:meth:`psfkit.kernelfile.KernelModel.weight_maps` with ``extent``, which continues the edge
+weights outside the view (the model is fitted on the view only).
 
-    sensor side:  A x = Σ_k W_k ⊙ crop(K_k * x)       Aᵀ y = Σ_k K_k ⋆ pad(W_k ⊙ y)
-                  1 + K FFTs                           K + 1 FFTs
-    source side:  A x = crop(Σ_k K_k * (V_k ⊙ x))     Aᵀ y = Σ_k V_k ⊙ (K_k ⋆ pad(y))
-                  K + 1 FFTs                           1 + K FFTs
-
-for ``x`` ``(B, C, PH, PW)`` and ``V_k`` the ``(PH, PW)`` scene weights. ``A pad(x)`` equals the
-sensor-sized model's ``A x`` (tested). Every FFT goes through :mod:`psfkit.forward.fft`.
+The maths is :func:`psfkit.forward.convolution.padded_scene_forward` /
+:func:`~psfkit.forward.convolution.padded_scene_adjoint` (Eq. 7, written once); this class
+binds a model's spectra and weights to it and checks inputs. ``A pad(x)`` equals the
+sensor-sized model's ``A x`` (tested).
 """
 
 from __future__ import annotations
@@ -25,8 +23,12 @@ from torch import Tensor
 
 from ekdun.errors import ConfigurationError, TensorShapeError
 from ekdun.physics.operators import EigenKernelOperator
-from psfkit.forward.convolution import crop, pad
-from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.convolution import (
+    crop,
+    pad,
+    padded_scene_adjoint,
+    padded_scene_forward,
+)
 from psfkit.forward.operator import SpectralOperator
 from psfkit.kernelfile import KernelModel
 
@@ -58,6 +60,8 @@ class ExtendedSceneOperator:
         self.base = base
         self.sensor_shape = base.sensor_shape
         self.grid_shape = base.grid_shape
+        self.scene_shape = base.grid_shape          # the scene lives on the whole padded grid
+        self.device = base.device
         self.channels = base.channels
         self.dtype = base.dtype
         self.scene_weights: Tensor | None = None
@@ -96,30 +100,17 @@ class ExtendedSceneOperator:
 
     def A(self, x: Tensor) -> Tensor:
         """Scene ``(B, C, PH, PW)`` → measurement ``(B, C, H', W')``."""
-        if self.scene_weights is not None:                 # source side: weight, then blur
-            spectra = rfft2(x[:, None] * self.scene_weights[None, :, None])
-            return crop(irfft2((self.base.spectra * spectra).sum(dim=1), self.grid_shape),
-                        self.sensor_shape)
-        spectrum = rfft2(x)[:, None]                               # (B, 1, C, PH, PW//2+1)
-        images = crop(irfft2(self.base.spectra * spectrum, self.grid_shape),
-                      self.sensor_shape)                           # (B, K, C, H', W')
-        if self.weights is None:
-            return images.sum(dim=1)
-        return (images * self.weights[None, :, None]).sum(dim=1)
+        return padded_scene_forward(x, self.base.spectra, self._weights(), self.sensor_shape,
+                                    self.convention)
 
     def A_adjoint(self, y: Tensor) -> Tensor:
         """Measurement ``(B, C, H', W')`` → scene ``(B, C, PH, PW)``."""
-        if self.scene_weights is not None:
-            spectrum = rfft2(pad(y, self.grid_shape))[:, None]
-            images = irfft2(self.base.conj_spectra * spectrum, self.grid_shape)
-            return (images * self.scene_weights[None, :, None]).sum(dim=1)
-        if self.weights is None:
-            weighted = y[:, None]
-        else:
-            weighted = y[:, None] * self.weights[None, :, None]        # (B, K, C, H', W')
-        spectra = rfft2(pad(weighted, self.grid_shape))
-        total = (self.base.conj_spectra * spectra).sum(dim=1)
-        return irfft2(total, self.grid_shape)
+        return padded_scene_adjoint(y, self.base.conj_spectra, self._weights(), self.grid_shape,
+                                    self.convention)
+
+    def _weights(self) -> Tensor | None:
+        """The weights where they act: on the sensor (sensor side) or the padded scene."""
+        return self.scene_weights if self.convention == "source" else self.weights
 
     def crop(self, x: Tensor) -> Tensor:
         """The sensor-sized central block of a padded-grid scene."""

@@ -12,10 +12,12 @@ gradient method needs only ``A`` and its exact adjoint ``Aᵀ``:
 with ``x`` the scene on the sensor's grid ``(C, H', W')`` and ``∇`` circular forward
 differences (anisotropic TV, as in :mod:`ekdun.models.tv_admm_steps`). Scale-free
 parametrisation: the measurement is divided by its peak and the operator by its norm
-``‖A‖`` (power iteration), so ``tv`` means the same for any model and units; with a
-non-negative PSF of unit sum (``‖A‖ = 1``) it is :func:`~ekdun.reconstruction.admm_tv`'s
-``tau``. In those units ``K = [A/‖A‖; ∇/√8]`` has norm ``≤ √2`` and the steps
-``σ = t = 0.99/√2`` satisfy ``σ t ‖K‖² < 1`` (Chambolle & Pock 2011, Algorithm 1, θ = 1)::
+``‖A‖`` (:func:`psfkit.forward.norm.operator_norm`, power iteration on the operator itself,
+crop included), so ``tv`` means the same for any model and units, and the same objective as
+the ADMM solvers' (:mod:`ekdun.reconstruction.ek_admm`, which use the same estimate). In those
+units ``K = [A/‖A‖; ∇/√8]`` has norm ``≤ √(1.05² + 1)`` (the estimate is from below; 5 %
+margin) and the steps ``σ = t = 0.99/√(1.05² + 1)`` satisfy ``σ t ‖K‖² < 1`` (Chambolle & Pock
+2011, Algorithm 1, θ = 1)::
 
     p ← (p + σ(A x̄ − y)) / (1 + σ)            prox of the data term's conjugate
     q ← clip(q + σ ∇x̄/√8, ±√8·tv)              prox of the TV term's conjugate
@@ -38,10 +40,12 @@ from ekdun.errors import ConfigurationError, TensorShapeError
 from ekdun.models.tv_admm_steps import finite_differences, finite_differences_adjoint
 from ekdun.physics.operators import PreparedOperator
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
+from psfkit.forward.norm import operator_norm
 
 Operator = PreparedOperator | ExtendedSceneOperator
 
 _TV_NORM = math.sqrt(8.0)     # ‖∇‖ bound of the 2-D forward differences
+_STEP_MARGIN = 1.05           # the step sizes allow ‖A‖ up to 5 % above its estimate
 
 
 @dataclass
@@ -71,21 +75,6 @@ class TVResult:
     relative_change: list[float] = field(default_factory=list)
     objective: list[float] = field(default_factory=list)
     operator_norm: float = 1.0
-
-
-def operator_norm(op: Operator, shape: tuple[int, ...], dtype: torch.dtype,
-                  iterations: int = 15, seed: int = 0) -> float:
-    """``‖A‖`` by power iteration on ``AᵀA`` from a fixed random start (an estimate from
-    below; :func:`pdhg_tv` adds a safety margin)."""
-    g = torch.Generator().manual_seed(seed)
-    x = torch.rand(shape, generator=g, dtype=torch.float64).to(dtype)
-    x = x / x.norm()
-    value = 0.0
-    for _ in range(iterations):
-        z = op.A_adjoint(op.A(x))
-        value = float(z.norm())
-        x = z / max(value, 1e-30)
-    return math.sqrt(value)
 
 
 def tv_objective(op: Operator, x: Tensor, y: Tensor, weight: float) -> float:
@@ -119,7 +108,8 @@ def pdhg_tv(measurement: Tensor, op: Operator, tv: float = 1e-3,
         Stop once the relative change ``‖x_k − x_{k−1}‖/‖x_k‖`` falls below ``tol``
         (0: run all ``iterations``).
     norm : float, optional
-        ``‖A‖`` if known (skips the power iteration; used as given).
+        ``‖A‖`` if known (default :func:`psfkit.forward.norm.operator_norm`, cached on
+        ``op``); sets the units of ``tv``.
     track_objective : bool
         Record the objective every iteration (one more ``A`` per iteration).
     callback : callable, optional
@@ -145,12 +135,12 @@ def pdhg_tv(measurement: Tensor, op: Operator, tv: float = 1e-3,
     op.check(y, "measurement")
     peak = float(y.abs().max().clamp_min(1e-30))
     if norm is None:
-        # Power iteration under-estimates ‖A‖; 5 % margin keeps σ t ‖K‖² < 1.
-        norm = 1.05 * operator_norm(op, tuple(op.A_adjoint(y).shape), y.dtype)
+        norm = operator_norm(op)                        # the one estimate, cached on op
     y_n = y / peak                                      # peak 1
     scene = op.A_adjoint(y_n)                           # the scene's shape (sensor or grid)
-    scale_a = 1.0 / norm                                # A' = A/‖A‖, ‖A'‖ <= 1
-    step = 0.99 / math.sqrt(2.0)
+    scale_a = 1.0 / norm                                # A' = A/‖A‖, ‖A'‖ ≈ 1
+    # the estimate approaches ‖A‖ from below: steps for ‖A'‖ <= 1.05 keep σ t ‖K‖² < 1
+    step = 0.99 / math.sqrt(_STEP_MARGIN ** 2 + 1.0)
     bound = tv * _TV_NORM
     x = torch.zeros_like(scene)
     x_bar = x

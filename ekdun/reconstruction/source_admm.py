@@ -34,7 +34,7 @@ correction, the right-hand side of ``x``) and one batched inverse of ``K + 2`` (
 ``Σ_k H_k r_k``, ``x``): ``2K + 4`` transforms against 4 for the shift-invariant model.
 
 Units as in :mod:`ekdun.reconstruction.ek_admm`: ``y`` divided by its peak and the operator by
-:func:`~ekdun.reconstruction.ek_admm.spectral_gain`, so ``tv`` and the ``μ`` are scale-free and
+``‖A‖`` (:func:`psfkit.forward.norm.operator_norm`), so ``tv`` and the ``μ`` are scale-free and
 the objective is PDHG's on the same operator (tested).
 """
 
@@ -54,7 +54,7 @@ from ekdun.models.tv_admm_steps import (
 from ekdun.reconstruction.ek_admm import normalised_problem, record_change
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from ekdun.reconstruction.pdhg_tv import TVResult
-from psfkit.forward.convolution import crop
+from psfkit.forward.convolution import crop, sum_of_kernel_products
 from psfkit.forward.fft import irfft2, rfft2
 
 
@@ -94,8 +94,7 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
         0.05 dB of 1000), among ``μ1`` 0.02-1, ``μ2`` 0.003-0.03, ``μ3`` 0.0003-0.01 and
         ``μ4`` 0.005-0.15.
     norm : float, optional
-        The operator's gain that sets the units (default
-        :func:`~ekdun.reconstruction.ek_admm.spectral_gain`).
+        ``‖A‖``, which sets the units (default :func:`psfkit.forward.norm.operator_norm`).
     callback : callable, optional
         ``callback(iteration, relative_change)``.
 
@@ -160,9 +159,9 @@ def source_admm_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1
         torch.add(z, d, out=planes[n_kernels + 1]).mul_(mu3).add_(
             finite_differences_adjoint(s - c), alpha=mu2)
         f = rfft2(planes)
-        kvz = spectra[0] * f[0]                                   # Σ_k K̂_k F(V_k z)
-        for j in range(1, n_kernels):
-            kvz.addcmul_(spectra[j], f[j])
+        # Σ_k K̂_k F(V_k z): the source-side model's sum before the crop, by psfkit.forward's
+        # one sum of kernel-scene products (it overwrites f[0], not needed after this)
+        kvz = sum_of_kernel_products(f.__getitem__, spectra, graph=False)
         pg_old = _scale_complex(power, g_hat)
         g_hat = (hr_hat + f[n_kernels]).sub_(kvz).add_(pg_old)
         _scale_complex(g_gain, g_hat, out=g_hat)

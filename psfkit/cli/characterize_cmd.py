@@ -22,7 +22,8 @@ if TYPE_CHECKING:
 def _common(p: argparse.ArgumentParser) -> None:
     add_grid_options(p)
     p.add_argument("--per-channel", action="store_true",
-                   help="also register each colour channel separately (lateral colour)")
+                   help="also register each colour channel separately (lateral colour): "
+                        "printed as one shift grid per channel, and in --out")
     p.add_argument("--workers", type=flag("--workers"), default=None,
                    help="positions processed concurrently (default 2)")
 
@@ -136,9 +137,30 @@ def print_registration(result: GridCharacterization) -> None:
     print(f"registration quality (NCC): min {np.min(result.table('quality')):.3f}")
 
 
+def print_channel_shifts(result: GridCharacterization) -> None:
+    """``--per-channel``: each colour channel's shift against the same channel of the centre
+    PSF (lateral colour), one grid per channel and axis."""
+    records = [p.channel_shifts for p in result.positions]
+    if any(r is None for r in records):
+        print("per-channel shifts: none (the grid has one channel)")
+        return
+    n, m = result.grid_shape
+    shifts = np.array(records, dtype=np.float64).reshape(n, m, len(records[0]), 2)
+    for c in range(shifts.shape[2]):
+        for axis, name in ((0, "du"), (1, "dv")):
+            print(f"channel {c} shift {name} (px):")
+            _grid_print(shifts[:, :, c, axis], "8.2f")
+
+
+def _print_per_channel(args: argparse.Namespace, result: GridCharacterization) -> None:
+    if args.per_channel:
+        print_channel_shifts(result)
+
+
 def run_register(args: argparse.Namespace) -> int:
     result = _run_and_write_numbers(args, ("register",))
     print_registration(result)
+    _print_per_channel(args, result)
     _print_warnings(result)
     return 0
 
@@ -150,6 +172,7 @@ def run_mae(args: argparse.Namespace) -> int:
     _grid_print(result.table("mae") * 1e3, "7.3f")
     print("after gain compensation, x 1e-3:")
     _grid_print(result.table("mae_gain_compensated") * 1e3, "7.3f")
+    _print_per_channel(args, result)
     _print_warnings(result)
     return 0
 
@@ -170,6 +193,7 @@ def run_warp(args: argparse.Namespace) -> int:
     if anis is not None:
         print(f"tangential/sagittal: measured {anis['median_measured']:.2f}, geometric optics "
               f"{anis['median_geometric']:.2f} (median of {anis['positions']} positions)")
+    _print_per_channel(args, result)
     _print_warnings(result)
     return 0
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.errors import InvalidInputError
+from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.io.read_options import CHANNEL_ORDERS, ReadOptions, choose
@@ -99,10 +99,9 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="auto: kernels are zero outside the caustic footprint of the "
                         "unconstrained base kernel (smoothed |K| above --support-threshold of "
                         "its maximum, dilated 2 pixels); default none")
-    c.add_argument("--support-threshold", type=flag("--support-threshold"),
-                   default=d.support_threshold,
+    c.add_argument("--support-threshold", type=flag("--support-threshold"), default=None,
                    help=f"fraction of the maximum for --support auto (default "
-                        f"{d.support_threshold:g})")
+                        f"{d.support_threshold:g}; refused without --support auto)")
     c.add_argument("--support-mask", metavar="FILE",
                    help="footprint image (.npy/.png/.tif, nonzero = inside) of the sensor's "
                         "size, binned by --downsample; overrides --support")
@@ -165,11 +164,16 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
     basis = MODEL_ALIASES.get(args.model, args.model)
+    if args.support_threshold is not None and (args.support != "auto" or args.support_mask):
+        raise ConfigurationError("--support-threshold acts only with --support auto (and no "
+                                 "--support-mask)")
+    threshold = (PairFitOptions.support_threshold if args.support_threshold is None
+                 else args.support_threshold)
     options = PairFitOptions(basis=basis, convention=args.convention, tikhonov=args.tikhonov,
                              difference=args.difference, iterations=args.iterations,
                              fit_scale=not args.no_scale, nonneg=args.nonneg,
                              support="mask" if args.support_mask else args.support,
-                             support_threshold=args.support_threshold, energy=args.energy,
+                             support_threshold=threshold, energy=args.energy,
                              projected_iterations=args.projected_iterations)
     # both outputs are checked before the fit and appear together, or neither does
     with OutputTransaction(overwrite=args.overwrite) as outputs:

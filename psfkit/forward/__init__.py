@@ -9,17 +9,24 @@ ADMM-TV and Le-ADMM-U.
 Modules
 -------
 :mod:`psfkit.forward.geometry`
-    ``CONVENTIONS``, :func:`padded_shape`, :func:`centre_offset` (no torch).
+    ``CONVENTIONS``, :func:`padded_shape`, :func:`centre_offset`, :func:`kernel_origin`
+    (no torch).
 :mod:`psfkit.forward.fft`
     :func:`rfft2` / :func:`irfft2`, the only FFT entry points, and :func:`count_ffts`.
 :mod:`psfkit.forward.convolution`
     ``pad``/``crop``, kernel embedding and spectra, :func:`eigen_kernel_forward` /
-    :func:`eigen_kernel_adjoint`.
+    :func:`eigen_kernel_adjoint` (sensor-sized scene) and :func:`padded_scene_forward` /
+    :func:`padded_scene_adjoint` (scene on the whole padded grid): Eq. 7, written once.
 :mod:`psfkit.forward.operator`
     :class:`SpectralOperator`: ``A``/``Aᵀ`` bound to precomputed kernel spectra (what ekdun's
     operator modules hand to the unrolled networks).
 :mod:`psfkit.forward.kernel_space`
     :class:`KernelSpaceOperator` (``B: K ↦ (A_K x_i)_i`` and ``Bᵀ``), the fit-pairs form.
+:mod:`psfkit.forward.norm`
+    :func:`operator_norm` (``‖A‖`` by power iteration on the actual operator, cached per
+    operator) and :func:`largest_eigenvalue`: the one estimator, used by ADMM, PDHG and the
+    constrained kernel fit; :func:`spectral_bound`, the bound from above that the unrolled
+    networks' initial step sizes use.
 
 Importing this package loads only the geometry; the torch parts load on first use of one of
 their names (``psfkit --help`` and the kernel file stay free of torch).
@@ -30,7 +37,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from psfkit.forward.geometry import CONVENTIONS, centre_offset, padded_shape
+from psfkit.forward.geometry import CONVENTIONS, centre_offset, kernel_origin, padded_shape
 
 _LAZY = {
     "FFTCount": "fft", "count_ffts": "fft", "rfft2": "fft", "irfft2": "fft",
@@ -38,13 +45,17 @@ _LAZY = {
     "pad_adjoint": "convolution", "embed_kernel": "convolution",
     "extract_kernel": "convolution", "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
+    "padded_scene_forward": "convolution", "padded_scene_adjoint": "convolution",
+    "padded_scene_adjoint_spectrum": "convolution", "kernel_images": "convolution",
+    "sum_of_kernel_products": "convolution",
     "zero_workspace": "convolution", "PaddingWorkspace": "operator",
     "SpectralOperator": "operator",
     "records_graph": "convolution",
     "KernelSpaceOperator": "kernel_space", "linear_convolution_grid": "kernel_space",
+    "operator_norm": "norm", "largest_eigenvalue": "norm", "spectral_bound": "norm",
 }
 
-__all__ = ["CONVENTIONS", "centre_offset", "padded_shape", *_LAZY]
+__all__ = ["CONVENTIONS", "centre_offset", "kernel_origin", "padded_shape", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

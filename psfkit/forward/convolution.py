@@ -41,12 +41,14 @@ thin :class:`torch.nn.Module` wrappers over :func:`eigen_kernel_forward` and
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from psfkit.forward.fft import irfft2, rfft2
-from psfkit.forward.geometry import centre_offset
+from psfkit.forward.geometry import centre_offset, kernel_origin
 
 
 def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
@@ -103,14 +105,15 @@ def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     """
     hk, wk = kernels.shape[-2:]
     grown = F.pad(kernels, (0, grid_shape[1] - wk, 0, grid_shape[0] - hk))
-    return torch.roll(grown, shifts=(-(hk // 2), -(wk // 2)), dims=(-2, -1))
+    row, col = kernel_origin((hk, wk))
+    return torch.roll(grown, shifts=(-row, -col), dims=(-2, -1))
 
 
 def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
     """Adjoint of :func:`embed_kernel`: the centred ``(Hk, Wk)`` kernel window of a
     ``(..., PH, PW)`` array whose origin is at index ``(0, 0)``, ``(..., Hk, Wk)``."""
     hk, wk = kernel_shape
-    rolled = torch.roll(full, shifts=(hk // 2, wk // 2), dims=(-2, -1))
+    rolled = torch.roll(full, shifts=kernel_origin((hk, wk)), dims=(-2, -1))
     return rolled[..., :hk, :wk]
 
 
@@ -146,30 +149,28 @@ def records_graph(*tensors: Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
-def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
-             workspace: Tensor | None = None) -> Tensor:
-    r"""``Σ_k W_k ⊙ crop(irfft2(X̂ · Ŝ_k))`` with ``X̂ = rfft2(pad(x))``: 1 FFT, K inverse FFTs.
+def _fan_out(x_hat: Tensor, spectra: Tensor, weights: Tensor | None,
+             grid_shape: tuple[int, int], block: tuple[int, int], graph: bool,
+             overwrite: bool = True) -> Tensor:
+    r"""``Σ_k W_k ⊙ irfft2(X̂ · Ŝ_k)[:h, :w]``: K inverse FFTs of one input spectrum.
 
-    Implementation: ``x`` is zero-padded at the end of the grid (inside the FFT) and the
-    top-left ``H' × W'`` block is kept. This is the centred ``crop ∘ (K ⊛ ·) ∘ pad`` exactly:
-    centring is a circular shift by :func:`centre_offset`, which commutes with the circular
-    convolution and cancels between ``pad`` and ``crop``. Outside autograd the spectrum
-    products reuse one buffer (allocating large arrays costs more than multiplying them).
+    The one place where a scene's spectrum meets the kernel spectra one kernel at a time
+    (sensor-side forward, source-side adjoint, shift-invariant both). Only the top-left
+    ``block`` ``(h, w)`` of each image is computed and weighted (``W_k`` ``(K, h, w)``).
+    Outside autograd the spectrum products reuse one buffer (allocating large arrays costs more
+    than multiplying them), and ``x_hat`` itself when ``overwrite`` allows.
     """
-    sensor = (x.shape[-2], x.shape[-1])
-    graph = records_graph(x, spectra) or (weights is not None and weights.requires_grad)
-    x_hat = _spectrum_of_corner(x, grid_shape, None if graph else workspace)
     n_kernels = spectra.shape[0]
     product: Tensor | None = None
     out: Tensor | None = None
     for k in range(n_kernels):
         if graph:
             product = x_hat * spectra[k]
-        elif n_kernels == 1:
+        elif n_kernels == 1 and overwrite:
             product = x_hat.mul_(spectra[k])           # x_hat is not needed any more
         else:
             product = torch.mul(x_hat, spectra[k], out=product)
-        image = irfft2(product, grid_shape, sensor)
+        image = irfft2(product, grid_shape, block)
         if weights is None:
             out = image if out is None else out + image
         elif out is None:
@@ -182,34 +183,43 @@ def _fan_out(x: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tup
     return out
 
 
-def _fan_in(y: Tensor, spectra: Tensor, weights: Tensor | None, grid_shape: tuple[int, int],
-            workspace: Tensor | None = None) -> Tensor:
-    r"""``crop(irfft2(Σ_k Ŝ_k · rfft2(pad(W_k ⊙ y))))``: K FFTs, 1 inverse FFT.
+def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
+                           graph: bool) -> Tensor:
+    """``Σ_k Ŝ_k · spectrum_of(k)``: the kernel-by-input products of Eq. 7 summed in the
+    Fourier domain (source-side forward, sensor-side adjoint, before the inverse FFT).
 
-    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
-    (padding and cropping as in :func:`_fan_out`).
+    ``spectrum_of(k)`` gives the spectrum of the ``k``-th (weighted) input ``(..., C, PH,
+    PW//2+1)``; outside autograd (``graph`` false) the first is overwritten with the sum.
     """
-    h, w = y.shape[-2], y.shape[-1]
-    graph = records_graph(y, spectra) or (weights is not None and weights.requires_grad)
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
-        y_hat = _spectrum_of_corner(y, grid_shape, None if graph else workspace,
-                                    None if weights is None else weights[k])
+        term = spectrum_of(k)
         if graph:
-            term = y_hat * spectra[k]
+            term = term * spectra[k]
             acc = term if acc is None else acc + term
         elif acc is None:
-            acc = y_hat.mul_(spectra[k])
+            acc = term.mul_(spectra[k])
         else:
-            acc.addcmul_(y_hat, spectra[k])
+            acc.addcmul_(term, spectra[k])
     assert acc is not None
-    return irfft2(acc, grid_shape, (h, w))
+    return acc
+
+
+def _fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
+            grid_shape: tuple[int, int], block: tuple[int, int], graph: bool) -> Tensor:
+    r"""``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT.
+
+    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
+    (source-side forward, sensor-side adjoint); ``spectrum_of(k)`` is the spectrum of the
+    ``k``-th weighted input (a fresh array: it is overwritten outside autograd).
+    """
+    return irfft2(sum_of_kernel_products(spectrum_of, spectra, graph), grid_shape, block)
 
 
 def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
                          grid_shape: tuple[int, int], convention: str = "sensor",
                          workspace: Tensor | None = None) -> Tensor:
-    r"""Apply the eigen-kernel forward model ``A`` (Eq. 7).
+    r"""Apply the eigen-kernel forward model ``A`` (Eq. 7) to a sensor-sized scene.
 
     .. math::
 
@@ -219,7 +229,11 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
         \mathrm{pad}(W_k \odot x)\Big).
 
     The sensor side takes 1 FFT and K inverse FFTs, the source side K FFTs and 1 inverse FFT
-    (each call transforms all ``B × C`` planes at once).
+    (each call transforms all ``B × C`` planes at once). Implementation: ``x`` is zero-padded
+    at the end of the grid (inside the FFT) and the top-left ``H' × W'`` block is kept. This is
+    the centred ``crop ∘ (K ⊛ ·) ∘ pad`` exactly: centring is a circular shift by
+    :func:`centre_offset`, which commutes with the circular convolution and cancels between
+    ``pad`` and ``crop``.
 
     Parameters
     ----------
@@ -242,10 +256,19 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     -------
     Tensor
         Measurement ``(B, C, H', W')``.
+
+    See Also
+    --------
+    padded_scene_forward : the same model with the scene on the whole padded grid.
     """
+    sensor = (x.shape[-2], x.shape[-1])
+    graph = _records(x, spectra, weights)
+    ws = None if graph else workspace
     if convention == "sensor" or weights is None:
-        return _fan_out(x, spectra, weights, grid_shape, workspace)
-    return _fan_in(x, spectra, weights, grid_shape, workspace)
+        return _fan_out(_spectrum_of_corner(x, grid_shape, ws), spectra, weights, grid_shape,
+                        sensor, graph)
+    return _fan_in(lambda k: _spectrum_of_corner(x, grid_shape, ws, weights[k]), spectra,
+                   grid_shape, sensor, graph)
 
 
 def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
@@ -266,9 +289,160 @@ def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
     kernel spectra (``spectra.conj().resolve_conj()``: multiplying by a lazy conjugate view
     costs an extra copy in every call, so callers conjugate once per forward pass).
     """
+    sensor = (y.shape[-2], y.shape[-1])
+    graph = _records(y, conj_spectra, weights)
+    ws = None if graph else workspace
     if convention == "sensor" and weights is not None:
-        return _fan_in(y, conj_spectra, weights, grid_shape, workspace)
-    return _fan_out(y, conj_spectra, weights, grid_shape, workspace)
+        return _fan_in(lambda k: _spectrum_of_corner(y, grid_shape, ws, weights[k]),
+                       conj_spectra, grid_shape, sensor, graph)
+    return _fan_out(_spectrum_of_corner(y, grid_shape, ws), conj_spectra, weights,
+                    grid_shape, sensor, graph)
+
+
+def _to_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """Circularly shift a padded-grid array so that its centred view block is top-left."""
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return torch.roll(z, shifts=(-top, -left), dims=(-2, -1))
+
+
+def _from_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """Inverse of :func:`_to_corner` (its adjoint too: a circular shift is orthogonal)."""
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return torch.roll(z, shifts=(top, left), dims=(-2, -1))
+
+
+def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
+                         sensor_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""Eq. 7 with the scene on the whole padded grid (light from outside the view).
+
+    .. math::
+
+        \text{sensor:}\quad y = \sum_k W_k \odot \mathrm{crop}(K_k \circledast x),
+        \qquad
+        \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
+        (V_k \odot x)\Big),
+
+    with ``W_k`` ``(K, H', W')`` the sensor weights and ``V_k`` ``(K, PH, PW)`` the scene
+    weights on the whole grid (edge-continued outside the view:
+    :meth:`psfkit.kernelfile.KernelModel.weight_maps` with ``extent``). For a scene zero outside
+    the view, ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``. Sensor side: 1 FFT
+    and K inverse FFTs; source side: K FFTs and 1 inverse FFT.
+
+    Parameters
+    ----------
+    x : Tensor
+        Scene ``(B, C, PH, PW)``.
+    spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` kernel spectra (:func:`kernel_spectra`).
+    weights : Tensor or None
+        Sensor side ``(K, H', W')``, source side ``(K, PH, PW)``; ``None`` for one kernel with
+        weight 1.
+    sensor_shape : (int, int)
+        ``(H', W')``.
+    convention : {"sensor", "source"}
+
+    Returns
+    -------
+    Tensor
+        Measurement ``(B, C, H', W')``.
+    """
+    grid = (x.shape[-2], x.shape[-1])
+    graph = _records(x, spectra, weights)
+    # the crop is centred: shift the view to the top-left corner, where irfft2 crops cheaply
+    shifted = _to_corner(x, sensor_shape)
+    if convention == "sensor" or weights is None:
+        return _fan_out(rfft2(shifted), spectra, weights, grid, sensor_shape, graph)
+    scene_weights = _to_corner(weights, sensor_shape)
+    return _fan_in(lambda k: rfft2(shifted * scene_weights[k]), spectra, grid, sensor_shape,
+                   graph)
+
+
+def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""The exact adjoint of :func:`padded_scene_forward`.
+
+    .. math::
+
+        \text{sensor:}\quad A^\top y = \sum_k K_k \star \mathrm{pad}(W_k \odot y),
+        \qquad
+        \text{source:}\quad A^\top y = \sum_k V_k \odot \big(K_k \star
+        \mathrm{pad}(y)\big).
+
+    ``y`` is ``(B, C, H', W')``, ``conj_spectra`` the conjugated kernel spectra, ``weights``
+    as in :func:`padded_scene_forward`; returns the ``(B, C, PH, PW)`` scene. Sensor side:
+    K FFTs and 1 inverse FFT; source side: 1 FFT and K inverse FFTs.
+    """
+    sensor = (y.shape[-2], y.shape[-1])
+    graph = _records(y, conj_spectra, weights)
+    if convention == "sensor" and weights is not None:
+        corner = _fan_in(lambda k: rfft2(y * weights[k], grid_shape), conj_spectra,
+                         grid_shape, grid_shape, graph)
+    else:
+        scene_weights = None if weights is None else _to_corner(weights, sensor)
+        corner = _fan_out(rfft2(y, grid_shape), conj_spectra, scene_weights, grid_shape,
+                          grid_shape, graph)
+    return _from_corner(corner, sensor)
+
+
+def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int, int],
+                  sensor_shape: tuple[int, int] | None = None) -> Tensor:
+    r"""``crop(K_k ⊛ x)`` for every kernel, from the spectrum of a padded-grid scene.
+
+    The images that sensor-side weights multiply in Eq. 7 (:func:`padded_scene_forward` sums
+    them weighted), for solvers that keep them apart (ADMM's split ``u_k = H_k x``) and that
+    already hold ``x̂`` (after a Fourier-diagonal update).
+
+    Parameters
+    ----------
+    scene_spectrum : Tensor
+        ``(..., C, PH, PW//2 + 1)``, ``rfft2`` of the ``(..., C, PH, PW)`` scene.
+    spectra : Tensor
+        Kernel spectra broadcastable against it, e.g. ``(K, C, PH, PW//2 + 1)``.
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+    sensor_shape : (int, int), optional
+        Keep the centred ``(H', W')`` view (the crop); ``None``: the whole grid (``H_k x``).
+
+    Returns
+    -------
+    Tensor
+        ``(K, ..., H', W')`` (or the grid) real.
+    """
+    images = irfft2(spectra * scene_spectrum, grid_shape)
+    return images if sensor_shape is None else crop(images, sensor_shape)
+
+
+def padded_scene_adjoint_spectrum(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                                  grid_shape: tuple[int, int]) -> Tensor:
+    r"""``rfft2`` of the sensor-side :func:`padded_scene_adjoint`:
+    ``Σ_k K̂_k^* · F(pad(W_k ⊙ y))`` (K FFTs, no inverse).
+
+    For solvers that apply a Fourier-diagonal inverse to ``Aᵀy`` before transforming back
+    (ADMM's ``x`` update), which saves the inverse FFT.
+
+    Parameters
+    ----------
+    y : Tensor
+        ``(..., C, H', W')``.
+    conj_spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` conjugated kernel spectra.
+    weights : Tensor or None
+        ``(K, H', W')`` sensor weights, or ``None`` (one kernel, weight 1).
+    grid_shape : (int, int)
+
+    Returns
+    -------
+    Tensor
+        ``(..., C, PH, PW//2 + 1)`` complex.
+    """
+    graph = _records(y, conj_spectra, weights)
+    return sum_of_kernel_products(
+        lambda k: rfft2(pad(y if weights is None else y * weights[k], grid_shape)),
+        conj_spectra, graph)
+
+
+def _records(t: Tensor, spectra: Tensor, weights: Tensor | None) -> bool:
+    return records_graph(t, spectra) or (weights is not None and weights.requires_grad)
 
 
 def zero_workspace(like: Tensor, grid_shape: tuple[int, int]) -> Tensor:

@@ -25,6 +25,13 @@ def padded_shape(sensor_shape: tuple[int, int], scene_padding: int = 2) -> tuple
     return (scene_padding * int(sensor_shape[0]), scene_padding * int(sensor_shape[1]))
 
 
+def kernel_origin(kernel_shape: tuple[int, int]) -> tuple[int, int]:
+    """``(row, column)`` of a kernel's origin in its array: the centre pixel ``(Hk//2, Wk//2)``,
+    the way a PSF image looks (the one definition; the kernel file records it as
+    :data:`psfkit.kernelfile.KERNEL_ORIGIN`)."""
+    return (int(kernel_shape[0]) // 2, int(kernel_shape[1]) // 2)
+
+
 def centre_offset(sensor_shape: tuple[int, int],
                   grid_shape: tuple[int, int]) -> tuple[int, int]:
     """``(top, left)`` index of the sensor-sized block in the centre of ``grid_shape``."""

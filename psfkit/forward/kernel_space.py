@@ -14,7 +14,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from psfkit.forward.convolution import crop, extract_kernel, kernel_spectra, pad
+from psfkit.forward.convolution import (
+    _fan_in,
+    _fan_out,
+    extract_kernel,
+    kernel_spectra,
+    records_graph,
+)
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.geometry import padded_shape
 from psfkit.weights import get_basis
@@ -70,47 +76,54 @@ class KernelSpaceOperator:
         self.weights = None if basis == "si" else torch.as_tensor(
             wb.maps((h, w)), dtype=scenes.dtype, device=scenes.device)
         self.channels = c
+        # Scenes sit at the top-left of the grid and the view is read there (as in
+        # eigen_kernel_forward: the centring shift cancels between pad and crop).
         if self.weights is None or convention == "sensor":
             # (N, 1, C, ...) spectra of the scenes: one per pair
-            self.scene_spectra = rfft2(pad(scenes, self.grid))[:, None]
+            self.scene_spectra = rfft2(scenes, self.grid)[:, None]
         else:
             # source side: spectra of every weighted scene (N, K, C, ...)
-            weighted = scenes[:, None] * self.weights[None, :, None]
-            self.scene_spectra = rfft2(pad(weighted, self.grid))
+            self.scene_spectra = rfft2(scenes[:, None] * self.weights[None, :, None], self.grid)
         self.power = (self.scene_spectra.abs() ** 2).sum(dim=(0, 1))       # (C, PH, PW//2+1)
 
     def forward(self, kernels: Tensor) -> Tensor:
-        """``(K, C, Hk, Wk) → (N, C, H', W')``."""
+        """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 by the one implementation
+        (:mod:`psfkit.forward.convolution`), with the scenes' spectra taken once."""
         spectra = kernel_spectra(kernels, self.grid)                   # (K, C, ...)
-        if self.weights is None:
-            return crop(irfft2(self.scene_spectra[:, 0] * spectra[0], self.grid),
-                           self.sensor)
-        if self.convention == "sensor":
-            out = None
-            for k in range(self.n_kernels):
-                image = crop(irfft2(self.scene_spectra[:, 0] * spectra[k], self.grid),
-                                self.sensor) * self.weights[k]
-                out = image if out is None else out + image
-            return out
-        total = (self.scene_spectra * spectra[None]).sum(dim=1)
-        return crop(irfft2(total, self.grid), self.sensor)
+        graph = records_graph(spectra)
+        if self.weights is None or self.convention == "sensor":
+            return _fan_out(self.scene_spectra[:, 0], spectra, self.weights, self.grid,
+                            self.sensor, graph, overwrite=False)
+        return _fan_in(lambda k: self.scene_spectra[:, k].clone(), spectra, self.grid,
+                       self.sensor, graph)
 
     def adjoint(self, residuals: Tensor) -> Tensor:
-        """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each residual with its scene."""
+        """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each (weighted) residual with its
+        (weighted) scene and sum over the pairs.
+
+        This is the adjoint with respect to the kernels (a map into kernel space, summed over
+        the pairs), not Eq. 7's adjoint ``Aᵀ`` (a map into scene space).
+        """
         if self.weights is not None and self.convention == "sensor":
             spectra = []
             for k in range(self.n_kernels):
-                r_hat = rfft2(pad(residuals * self.weights[k], self.grid))
+                r_hat = rfft2(residuals * self.weights[k], self.grid)
                 spectra.append((r_hat * self.scene_spectra[:, 0].conj()).sum(dim=0))
             spectrum = torch.stack(spectra)
         else:
-            r_hat = rfft2(pad(residuals, self.grid))[:, None]            # (N, 1, C, ...)
+            r_hat = rfft2(residuals, self.grid)[:, None]                  # (N, 1, C, ...)
             spectrum = (r_hat * self.scene_spectra.conj()).sum(dim=0)          # (K or 1, C, ...)
         return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
 
     def precondition(self, kernels: Tensor, regulariser: float) -> Tensor:
-        """Approximate inverse of the normal operator: divide by the scene power per
-        frequency (the circulant part of ``BᵀB``)."""
+        """Approximate inverse of the normal operator ``BᵀB + λ``, per kernel and frequency.
+
+        Divides each kernel's spectrum by ``w̄ · P(ω) + regulariser``, with ``P`` the summed
+        power of the scene spectra the kernels see (:attr:`power`: the scenes, or a source-side
+        model's weighted scenes summed over the weights too) and ``w̄`` the mean of the
+        squared weight maps (1 for the SI model). That is the circulant part of ``BᵀB`` for
+        one kernel under a spatially averaged weight; the coupling between kernels is ignored.
+        """
         spectra = kernel_spectra(kernels, self.grid)
         mean_weight = 1.0 if self.weights is None else float(self.weights.pow(2).mean())
         filtered = spectra / (self.power * mean_weight + regulariser)

@@ -93,6 +93,11 @@ class SpectralOperator:
         self._workspace = PaddingWorkspace(self.grid_shape)
 
     @property
+    def device(self) -> torch.device:
+        """Where the spectra (and so the inputs) live."""
+        return self.spectra.device
+
+    @property
     def n_kernels(self) -> int:
         """Number of kernels ``K`` (1 for the shift-invariant model)."""
         return int(self.spectra.shape[0])

@@ -93,3 +93,16 @@ def test_saturated_grid_passes_with_allow_saturated(tmp_path, capsys):
     _saturated_grid(tmp_path / "sat")
     assert main(["register", str(tmp_path / "sat"), "--allow-saturated", "--quiet"]) == 0
     assert "saturated pixels" in capsys.readouterr().out
+
+
+def test_per_channel_prints_each_channels_shifts(grid_3x3, capsys):
+    """Without --out, --per-channel still acts: one shift grid per channel and axis."""
+    assert main(["register", str(grid_3x3), "--quiet"]) == 0
+    plain = capsys.readouterr().out
+    assert main(["register", str(grid_3x3), "--per-channel", "--quiet"]) == 0
+    per_channel = capsys.readouterr().out
+    assert per_channel.startswith(plain.split("registration quality")[0])
+    for c in range(3):
+        for axis in ("du", "dv"):
+            assert f"channel {c} shift {axis} (px):" in per_channel
+    assert "channel 0 shift" not in plain

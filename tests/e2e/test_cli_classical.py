@@ -13,6 +13,7 @@ from ekdun.physics.operators import EigenKernelOperator
 from ekdun.reconstruction.classical import (
     ClassicalOptions,
     ModelReconstructor,
+    psf_model,
     read_classical_measurement,
 )
 from psfkit.io import read_pairs
@@ -54,6 +55,7 @@ def test_cli_defaults_are_the_library_defaults():
 
     options = classical.ClassicalOptions()
     assert classical_cmd._DEFAULTS["kernels"]["tv"] == options.tv
+    assert classical_cmd._DEFAULTS["psf"]["tv"] == options.tv         # one solver, one default
     assert classical_cmd._DEFAULTS["kernels"]["iterations"] == options.iterations
     assert classical_cmd.SOLVERS == classical.SOLVERS
 
@@ -183,3 +185,56 @@ def test_fit_pairs_cli_file_reconstructs_with_the_source_side_admm(dlmd, tmp_pat
     y = read_classical_measurement(dlmd["measurement"], "BGR", downsample=4)
     back = EigenKernelOperator.from_kernel_model(model).A_adjoint(torch.as_tensor(y)[None])[0]
     assert _psnr(image, dlmd["scene"]) > _psnr(back.numpy(), dlmd["scene"]) + 2.0
+
+
+@pytest.fixture()
+def psf_and_measurement(tmp_path):
+    """A caustic-like RGB PSF image with a background, and a measurement of a scene through
+    its shift-invariant model, as .npy (H, W, C) files."""
+    rng = np.random.default_rng(4)
+    psf = np.full((24, 32, 3), 0.02, np.float32)                       # background level
+    psf[rng.integers(4, 20, 40), rng.integers(4, 28, 40)] += rng.random((40, 3)).astype(
+        np.float32)
+    kernel = psf.transpose(2, 0, 1) - 0.02
+    kernel /= kernel.sum(axis=(-2, -1), keepdims=True)
+    op = EigenKernelOperator.from_kernel_model(psf_model(kernel, (24, 32), 3),
+                                               dtype=torch.float64)
+    scene = torch.zeros((1, 3, 24, 32), dtype=torch.float64)
+    scene[..., 6:18, 8:24] = torch.as_tensor([0.9, 0.5, 0.2], dtype=torch.float64)[:, None, None]
+    y = op.A(scene)[0].numpy()
+    y = y + 0.01 * y.max() * rng.standard_normal(y.shape)
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "meas.npy", y.transpose(1, 2, 0).astype(np.float32))
+    return tmp_path / "psf.npy", tmp_path / "meas.npy"
+
+
+def test_admm_with_a_psf_is_admm_with_the_si_kernel_file_of_that_psf(psf_and_measurement,
+                                                                      tmp_path):
+    from psfkit.preprocess import load_psf_image
+
+    psf, meas = psf_and_measurement
+    kernel = load_psf_image(str(psf), background="corner")            # the one PSF loader
+    model_path = save_kernels(tmp_path / "si.npz", psf_model(kernel, (24, 32), 3))
+    common = ["--tv", "1e-3", "--iterations", "30", "--quiet"]
+    assert ekdun_main(["admm", str(psf), str(meas), "--out", str(tmp_path / "a.npy"),
+                       *common]) == 0
+    assert ekdun_main(["admm", "--kernels", str(model_path), str(meas), "--out",
+                       str(tmp_path / "b.npy"), "--background", "corner", *common]) == 0
+    a, b = np.load(tmp_path / "a.npy"), np.load(tmp_path / "b.npy")
+    assert a.shape == (24, 32, 3) and float(np.abs(a).max()) > 0
+    assert float(np.abs(a - b).max()) <= 1e-5 * float(np.abs(b).max())
+
+
+@pytest.mark.parametrize("flags", [("--solver", "pdhg"), ("--no-nonneg",), ("--tol", "0.5"),
+                                   ("--dtype", "float64")])
+def test_every_solver_option_acts_on_the_psf_form(psf_and_measurement, tmp_path, flags):
+    psf, meas = psf_and_measurement
+    common = ["--tv", "1e-3", "--iterations", "30", "--quiet"]
+    assert ekdun_main(["admm", str(psf), str(meas), "--out", str(tmp_path / "d.npy"),
+                       *common]) == 0
+    assert ekdun_main(["admm", str(psf), str(meas), "--out", str(tmp_path / "f.npy"), *flags,
+                       *common]) == 0
+    default, flagged = np.load(tmp_path / "d.npy"), np.load(tmp_path / "f.npy")
+    assert not np.array_equal(default, flagged), flags
+    if flags == ("--no-nonneg",):
+        assert flagged.min() < 0 <= default.min()

@@ -138,6 +138,11 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
     np.save(tmp_path / "small_mask.npy", np.ones((5, 5), np.uint8))
     cases.append((["fit-pairs", str(fit_dir), "--out", str(out), "--support-mask",
                    str(tmp_path / "small_mask.npy")], "5x5"))
+    # an option that would do nothing is refused, naming it (issue 22)
+    cases.append((["fit-pairs", str(fit_dir), "--out", str(out), "--support-threshold", "0.3"],
+                  "--support-threshold"))
+    cases.append((["fit-pairs", str(fit_dir), "--out", str(out), "--support", "none",
+                   "--support-threshold", "0.3"], "--support-threshold"))
     unpaired = tmp_path / "unpaired"
     _write_pairs(unpaired, np.zeros((1, 3, 16, 24), np.float32),
                  np.ones((1, 3, 16, 24), np.float32))

@@ -3,9 +3,24 @@
 import subprocess
 import sys
 
+import numpy as np
+import pytest
 import torch
 
-from psfkit.forward import KernelSpaceOperator, count_ffts, kernel_spectra, padded_shape, rfft2
+from psfkit.forward import (
+    KernelSpaceOperator,
+    centre_offset,
+    count_ffts,
+    eigen_kernel_forward,
+    kernel_spectra,
+    largest_eigenvalue,
+    operator_norm,
+    pad,
+    padded_scene_adjoint,
+    padded_scene_forward,
+    padded_shape,
+    rfft2,
+)
 
 
 def test_geometry_and_kernel_file_load_without_torch():
@@ -32,3 +47,134 @@ def test_count_ffts_counts_every_user_and_nests():
     assert outer.as_tuple() == (4, 1)
     rfft2(x)                               # outside every block: not counted
     assert outer.as_tuple() == (4, 1)
+
+
+# --- Eq. 7 with the scene on the padded grid ------------------------------------------------
+
+SENSOR, GRID = (4, 5), (8, 10)
+
+
+def _dense_reference(x, kernels, weights, convention):
+    """Eq. 7 from its definition, one output pixel at a time (numpy loops, no FFT): the scene
+    on the whole grid, the view its centred block, kernel origins at their centre pixels."""
+    top, left = (GRID[0] - SENSOR[0]) // 2, (GRID[1] - SENSOR[1]) // 2
+    n_k, channels, hk, wk = kernels.shape
+    out = np.zeros((x.shape[0], channels, *SENSOR))
+    for k in range(n_k):
+        for i in range(SENSOR[0]):
+            for j in range(SENSOR[1]):
+                for a in range(hk):
+                    for b in range(wk):
+                        # y[i, j] gets K[a, b]·x at the grid pixel displaced by (a, b) − origin
+                        p = (top + i - (a - hk // 2)) % GRID[0]
+                        q = (left + j - (b - wk // 2)) % GRID[1]
+                        if convention == "source":
+                            value = weights[k, p, q] * x[:, :, p, q]
+                            out[:, :, i, j] += kernels[k, :, a, b] * value
+                        else:
+                            out[:, :, i, j] += (weights[k, i, j] * kernels[k, :, a, b]
+                                                * x[:, :, p, q])
+    return out
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+def test_padded_scene_forward_is_eq7_and_its_adjoint_is_exact(convention):
+    rng = np.random.default_rng(5)
+    kernels = rng.standard_normal((3, 2, 3, 4))
+    shape = SENSOR if convention == "sensor" else GRID
+    weights = rng.random((3, *shape))
+    x = rng.standard_normal((2, 2, *GRID))
+    y = rng.standard_normal((2, 2, *SENSOR))
+    spectra = kernel_spectra(torch.as_tensor(kernels), GRID)
+    w = torch.as_tensor(weights)
+    forward = padded_scene_forward(torch.as_tensor(x), spectra, w, SENSOR, convention)
+    np.testing.assert_allclose(forward.numpy(), _dense_reference(x, kernels, weights, convention),
+                               rtol=0, atol=1e-12)
+    adjoint = padded_scene_adjoint(torch.as_tensor(y), spectra.conj().resolve_conj(), w, GRID,
+                                   convention)
+    assert adjoint.shape == (2, 2, *GRID)
+    lhs, rhs = float((forward.numpy() * y).sum()), float((x * adjoint.numpy()).sum())
+    assert abs(lhs - rhs) < 1e-12 * max(abs(lhs), 1.0)
+    # one kernel with no weights: the shift-invariant model in either convention
+    si = padded_scene_forward(torch.as_tensor(x), spectra[:1], None, SENSOR, convention)
+    np.testing.assert_allclose(si.numpy(), _dense_reference(x, kernels[:1], np.ones((1, *shape)),
+                                                            convention), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+def test_padded_scene_model_of_a_scene_inside_the_view_is_the_sensor_sized_model(convention):
+    rng = np.random.default_rng(6)
+    kernels = torch.as_tensor(rng.standard_normal((3, 1, 3, 5)))
+    sensor_weights = torch.as_tensor(rng.random((3, *SENSOR)))
+    # source side: scene weights that are the sensor-sized ones in the view, anything outside
+    grid_weights = torch.as_tensor(rng.random((3, *GRID)))
+    top, left = centre_offset(SENSOR, GRID)
+    grid_weights[:, top:top + SENSOR[0], left:left + SENSOR[1]] = sensor_weights
+    spectra = kernel_spectra(kernels, GRID)
+    x = torch.as_tensor(rng.standard_normal((2, 1, *SENSOR)))
+    small = eigen_kernel_forward(x, spectra, sensor_weights, GRID, convention)
+    big = padded_scene_forward(pad(x, GRID), spectra,
+                               sensor_weights if convention == "sensor" else grid_weights,
+                               SENSOR, convention)
+    torch.testing.assert_close(big, small, rtol=0, atol=1e-12)
+
+
+class _TinyOperator:
+    """Eq. 7 on the padded grid with the crop, bound to random kernels (for the norm tests)."""
+
+    def __init__(self, convention: str, seed: int = 7) -> None:
+        rng = np.random.default_rng(seed)
+        self.channels, self.dtype = 2, torch.float64
+        self.sensor_shape, self.scene_shape = SENSOR, GRID
+        kernels = torch.as_tensor(rng.random((3, 2, 3, 4)))
+        self.spectra = kernel_spectra(kernels, GRID)
+        self.weights = torch.as_tensor(rng.random((3, *(SENSOR if convention == "sensor"
+                                                         else GRID))))
+        self.convention = convention
+        self.calls = 0
+
+    def A(self, x):
+        self.calls += 1
+        return padded_scene_forward(x, self.spectra, self.weights, SENSOR, self.convention)
+
+    def A_adjoint(self, y):
+        return padded_scene_adjoint(y, self.spectra.conj(), self.weights, GRID, self.convention)
+
+    def matrix(self) -> np.ndarray:
+        n = 2 * GRID[0] * GRID[1]
+        basis = torch.eye(n, dtype=torch.float64).reshape(n, 2, *GRID)
+        return self.A(basis).reshape(n, -1).numpy().T           # (measurements, scene pixels)
+
+
+@pytest.mark.parametrize("convention", ["sensor", "source"])
+def test_operator_norm_is_the_largest_singular_value_of_the_cropped_operator(convention):
+    op = _TinyOperator(convention)
+    sigma = np.linalg.svd(op.matrix(), compute_uv=False)[0]
+    estimate = operator_norm(op, tol=1e-8, max_iterations=5000)
+    # power iteration from below, to its tolerance
+    assert estimate <= sigma * (1 + 1e-12)
+    assert estimate == pytest.approx(sigma, rel=1e-6)
+    # the default tolerance (1e-3)
+    default = operator_norm(op)
+    assert default <= sigma * (1 + 1e-12) and default == pytest.approx(sigma, rel=1e-3)
+    # the crop lowers the norm below the kernels' spectral gain on the padded grid
+    gain = float((op.spectra.abs() ** 2).sum(dim=0).amax().sqrt()) * float(op.weights.max())
+    assert sigma < gain
+    # cached on the operator (no A applied the second time) and deterministic
+    calls = op.calls
+    assert operator_norm(op) == default and op.calls == calls
+    assert operator_norm(_TinyOperator(convention)) == default
+
+
+def test_largest_eigenvalue_per_block_of_a_block_diagonal_operator():
+    rng = np.random.default_rng(2)
+    blocks = [rng.standard_normal((6, 6)) for _ in range(3)]
+    blocks = [torch.as_tensor(b @ b.T) for b in blocks]           # PSD, one per channel
+
+    def normal(v):                                                # v (2, 3, 6)
+        return torch.stack([v[:, c] @ blocks[c].T for c in range(3)], dim=1)
+
+    values = largest_eigenvalue(normal, (2, 3, 6), torch.float64, block_dim=1, tol=1e-10,
+                                max_iterations=10000)
+    expected = [float(torch.linalg.eigvalsh(b)[-1]) for b in blocks]
+    np.testing.assert_allclose(values.numpy(), expected, rtol=1e-6)
