@@ -185,8 +185,8 @@ def unit_range(image: np.ndarray, where: str, white_level: float | None = None) 
     """
     if np.issubdtype(image.dtype, np.integer):
         level = float(np.iinfo(image.dtype).max) if white_level is None else float(white_level)
-        if not (np.isfinite(level) and level > 0):
-            raise InvalidInputError(f"{where}: white level must be a positive number, got "
+        if not (np.isfinite(level) and 0 < level <= 2.0**32):
+            raise InvalidInputError(f"{where}: white level must be a number in (0, 2^32], got "
                                     f"{white_level!r}")
         # float32 ÷ float32 is correctly rounded: q/255 from an 8-bit file and 257·q/65535
         # from the same values in a 16-bit file give the same float32, bit for bit

@@ -32,7 +32,7 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, unit_range
-from psfkit.io.read_options import FLIPS, ReadOptions
+from psfkit.io.read_options import FLIPS, MAX_WHITE_LEVEL, ReadOptions
 from psfkit.validation import finite_number, read_json_file
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
@@ -142,7 +142,8 @@ def _read_manifest(path: Path) -> dict:
                                 f"{', '.join(_MANIFEST_KEYS)})")
     for key, value in manifest.items():
         if key == "white_level":
-            level = finite_number(value, f"{path}: 'white_level'")
+            # at most what an integer file can store: a larger one would scale images to 0
+            level = finite_number(value, f"{path}: 'white_level'", maximum=MAX_WHITE_LEVEL)
             if level <= 0:
                 raise InvalidInputError(f"{path}: 'white_level' must be positive, got {value!r}")
             manifest[key] = level

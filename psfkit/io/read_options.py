@@ -19,6 +19,7 @@ from psfkit.errors import InvalidInputError
 CHANNEL_ORDERS = ("RGB", "BGR")
 FLIPS = ("none", "ud", "lr", "both")
 MAX_DOWNSAMPLE = 64
+MAX_WHITE_LEVEL = 2.0**32   # the largest value a 32-bit integer file can store
 
 
 @dataclass(frozen=True)
@@ -59,8 +60,9 @@ class ReadOptions:
         if self.white_level is not None and (
                 isinstance(self.white_level, bool)
                 or not isinstance(self.white_level, (int, float))
-                or not math.isfinite(self.white_level) or self.white_level <= 0):
-            raise InvalidInputError(f"white level must be a positive number, got "
+                or not math.isfinite(self.white_level)
+                or not 0 < self.white_level <= MAX_WHITE_LEVEL):
+            raise InvalidInputError(f"white level must be a number in (0, 2^32], got "
                                     f"{self.white_level!r}")
 
     def to_json(self) -> dict[str, Any]:
