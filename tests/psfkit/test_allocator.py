@@ -1,6 +1,7 @@
 """The allocator setting of the image-heavy commands (psfkit.allocator)."""
 
 import platform
+import resource
 import subprocess
 import sys
 
@@ -19,8 +20,10 @@ def test_reuse_freed_memory_takes_effect_on_glibc_and_is_a_no_op_elsewhere():
 
 
 # Allocate and free arrays of growing size (2..30 MiB), as a full-resolution PSF pass does,
-# and count the page faults: glibc's default serves each new size with fresh pages, the
-# setting reuses the freed heap (measured on glibc 2.36: 18657 vs 7678 minor faults).
+# and count the page faults. With the setting each freed block is reused and only the heap's
+# growth is faulted in: the pages of the largest array, 30 MiB (measured: 7677 faults of
+# 4 KiB pages, every run). glibc's default serves new sizes with fresh pages: measured 18657,
+# and 12014 in some runs (its adaptive threshold depends on the order of events).
 _FAULTS = """
 import resource, sys, numpy as np
 if sys.argv[1] == "on":
@@ -43,6 +46,8 @@ def _page_faults(setting: str) -> int:
 def test_freed_blocks_are_reused_instead_of_faulted_in_again():
     if not (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"):
         pytest.skip("the setting applies to glibc only (a no-op elsewhere, tested above)")
+    largest = 30 * 2**20 // resource.getpagesize()
     off, on = _page_faults("off"), _page_faults("on")
-    assert on < 0.6 * off, (on, off)
+    assert on <= 1.1 * largest, (on, largest)
+    assert off > 1.3 * largest, (off, largest)        # the default does fault more in
     assert reuse_freed_memory() and reuse_freed_memory()     # calling it again is harmless
