@@ -27,7 +27,7 @@ from pathlib import Path
 CHILD = """
 import resource, sys
 from psfkit.cli import main
-code = main(["fit-pairs", sys.argv[1], "--model", sys.argv[2], "--out", sys.argv[3],
+code = main(["fit-pairs", sys.argv[1], "--basis", sys.argv[2], "--out", sys.argv[3],
              "--downsample", sys.argv[4], "--quiet", *sys.argv[5:]])
 usage = resource.getrusage(resource.RUSAGE_SELF)
 print("CPU", usage.ru_utime + usage.ru_stime)
@@ -64,7 +64,7 @@ def main() -> None:
                     print(f"{model} {variant} run {i + 1}: {times[-1]:.1f} s ({cpus[-1]:.1f} s "
                           f"CPU), peak RSS {peaks[-1]:.2f} GiB", flush=True)
                 medians[model, variant] = statistics.median(times)
-                print(f"fit-pairs --model {model} ({variant}): median "
+                print(f"fit-pairs --basis {model} ({variant}): median "
                       f"{medians[model, variant]:.1f} s over {len(times)} runs (target <= "
                       f"{target:.0f} s; CPU {statistics.median(cpus):.1f} s), peak RSS "
                       f"{max(peaks):.2f} GiB", flush=True)

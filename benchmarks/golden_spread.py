@@ -17,11 +17,12 @@ of every output is compared with the baseline run (one thread, inputs as stored)
   code paths of a machine without AVX-512 (only meaningful where the CPU has AVX-512).
 
 The commands are those of the golden test: ``psfkit demo --downsample 8``, ``psfkit fit-pairs
---model si|ek --downsample 4`` on ``../shared/data/dlmd_mirflickr`` and ``psfkit eval-model`` of
-both kernel files. The report (``spread.json`` in ``--out``, and a table on stdout) gives, per
-group of numbers (list indices replaced by ``*``), the largest absolute deviation from the
-baseline, and the largest deviation relative to each number's own magnitude, for each variant;
-for kernel arrays the largest absolute pixel deviation relative to the array's largest value.
+--basis si|ek --downsample 4 --convention source`` on ``../shared/data/dlmd_mirflickr`` and
+``psfkit eval-model`` of both kernel files. The report (``spread.json`` in ``--out``, and a
+table on stdout) gives, per group of numbers (list indices replaced by ``*``), the largest
+absolute deviation from the baseline, and the largest deviation relative to each number's own
+magnitude, for each variant; for kernel arrays the largest absolute pixel deviation relative
+to the array's largest value.
 
     python benchmarks/golden_spread.py --out /tmp/golden-spread
     python benchmarks/golden_spread.py --out /tmp/golden-spread --variants base threads2
@@ -128,8 +129,8 @@ def run_variant(out: Path, data: Path, threads: int, seed: int | None) -> None:
         shutil.copy(demo / "kernels.npz", out / "demo_ds8_kernels.npz")
         for model in ("si", "ek"):
             kernels = out / f"dlmd_ds4_{model}.npz"
-            assert main(["fit-pairs", str(pairs), "--model", model, "--downsample", "4",
-                         "--out", str(kernels), "--quiet"]) == 0
+            assert main(["fit-pairs", str(pairs), "--basis", model, "--downsample", "4",
+                         "--convention", "source", "--out", str(kernels), "--quiet"]) == 0
             assert main(["eval-model", str(kernels), str(pairs), "--downsample", "4",
                          "--out", str(out / f"dlmd_ds4_{model}_errors.json")]) == 0
 

@@ -78,13 +78,21 @@ class EigenFitOptions:
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
 
     def __post_init__(self) -> None:
-        get_basis(self.basis)
-        for name in self.cv_bases:
-            get_basis(name)
+        # every message names the flag of psfkit fit-eigen, never a Python field
+        for flag_name, names in (("--basis", (self.basis,)), ("--cv-bases", self.cv_bases)):
+            for name in names:
+                try:
+                    get_basis(name)
+                except ConfigurationError as exc:
+                    raise ConfigurationError(f"{flag_name}: {exc}") from None
         if self.convention not in (*CONVENTIONS, "auto"):
-            raise ConfigurationError(f"convention must be one of {CONVENTIONS} or 'auto'")
-        if self.folds < 2 or self.working_size < 32:
-            raise ConfigurationError("folds must be >= 2 and working_size >= 32")
+            raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)} "
+                                     f"or auto, got {self.convention!r}")
+        if self.folds < 2:
+            raise ConfigurationError(f"--folds must be >= 2, got {self.folds}")
+        if self.working_size < 32:
+            raise ConfigurationError("EigenFitOptions: working_size must be >= 32 (no flag "
+                                     "sets it)")
 
 
 @dataclass

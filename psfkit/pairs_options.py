@@ -104,19 +104,28 @@ class PairFitOptions:
         return 100
 
     def __post_init__(self) -> None:
-        get_basis(self.basis)
+        # every message names the flag of psfkit fit-pairs (the ranges of FLAGS in
+        # psfkit.validation), never a Python field
+        try:
+            get_basis(self.basis)
+        except ConfigurationError as exc:
+            raise ConfigurationError(f"--basis: {exc}") from None
         if self.convention not in CONVENTIONS:
-            raise ConfigurationError(f"convention must be one of {CONVENTIONS}")
+            raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)}, "
+                                     f"got {self.convention!r}")
         if self.tikhonov < 0 or self.difference < 0:
-            raise ConfigurationError("tikhonov and difference must be >= 0")
-        if min(self.final_iterations, self.scale_iterations, self.rounds) < 1 \
-                or self.scene_padding < 2:
-            raise ConfigurationError("iterations and rounds must be >= 1, scene_padding >= 2")
+            raise ConfigurationError("--tikhonov and --difference must be >= 0")
+        if self.final_iterations < 1:
+            raise ConfigurationError(f"--iterations must be >= 1, got {self.iterations}")
+        if self.scale_iterations < 1 or self.rounds < 1 or self.scene_padding < 2:
+            raise ConfigurationError("PairFitOptions: scale_iterations and rounds must be >= 1, "
+                                     "scene_padding >= 2 (no flag sets them)")
         if self.support not in SUPPORTS:
-            raise ConfigurationError(f"support must be one of {SUPPORTS}, got {self.support!r}")
+            raise ConfigurationError(f"--support must be one of {', '.join(SUPPORTS)}, got "
+                                     f"{self.support!r}")
         if self.energy not in ENERGIES:
-            raise ConfigurationError(f"energy must be one of {ENERGIES}, got {self.energy!r}")
-        # one message per field, named as the flag (the ranges of FLAGS in psfkit.validation)
+            raise ConfigurationError(f"--energy must be one of {', '.join(ENERGIES)}, got "
+                                     f"{self.energy!r}")
         if not 0 <= self.support_threshold < 1:
             raise ConfigurationError(f"--support-threshold must be in [0, 1), got "
                                      f"{self.support_threshold}")

@@ -483,7 +483,7 @@ FLAGS: dict[str, FlagRange] = {
     # shared
     "--seed": FlagRange(int, 0, MAX_SEED),
     "--threads": FlagRange(int, 1, MAX_THREADS),
-    "--workers": FlagRange(int, 1, MAX_THREADS),
+    "--loader-workers": FlagRange(int, 1, MAX_THREADS),
     "--downsample": FlagRange(int, 1, MAX_DOWNSAMPLE),
     "--iterations": _ITERATIONS,
     # psfkit: preprocessing, characterization, fits

@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 from ekdun.errors import InvalidInputError
+from psfkit.cli.vocabulary import add_flag
 from psfkit.validation import flag, require_finite
 
 # One TV default for both forms (the same solver and units since issue 22; 3e-4 was the best of
@@ -51,10 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output .npy (a .png preview is written next to it); with --kernels "
                         "and a folder or several measurements: an output folder")
     p.add_argument("--iterations", type=flag("--iterations"), help="iterations (default 100)")
-    p.add_argument("--tv", "--tau", dest="tv", type=flag("--tv"),
-                   help="TV weight relative to the measurement's peak and the operator norm "
-                        "||A|| (power iteration, crop included): the same objective for every "
-                        "model and solver (default 3e-4)")
+    add_flag(p, "--tv", "admm")
     p.add_argument("--solver", choices=SOLVERS, default="auto",
                    help="admm (closed-form ADMM-TV, any model), pdhg (Chambolle-Pock), auto "
                         "(default: admm)")
@@ -71,13 +69,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--background", choices=("none", "corner"),
                    help="subtract the mean of the [5:15, 5:15] corner (default: corner with a "
                         "PSF image, none with --kernels)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"),
-                   help=".npy/TIFF channel order of the inputs (default: with --kernels, the "
-                        "order recorded in the kernel file, e.g. BGR for a model fitted on the "
-                        "DLMD pairs; else RGB); outputs are always RGB")
+    add_flag(p, "--channel-order", "admm",
+             note="with --kernels, the order recorded in the kernel file, e.g. BGR for a "
+                  "model fitted on the DLMD pairs; else RGB; outputs are always RGB")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (file and preview, or folder)")
-    p.add_argument("--threads", type=flag("--threads"), help="torch CPU threads")
+    add_flag(p, "--threads", "admm")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_admm)
 

@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from ekdun.errors import InvalidInputError
-from ekdun.model_names import MODEL_NAMES
-from psfkit.validation import MAX_GRID_SIDE, bounded_size, device_name, flag
+from psfkit.cli.vocabulary import add_flag
+from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -40,9 +40,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "measurements through a dense shift-variant model with "
                                    "sensor noise. Reused when the manifest matches.")
     p.add_argument("out", help="dataset folder")
-    p.add_argument("--sensor", type=flag("--sensor"), nargs=2, default=(64, 64), metavar=("H", "W"))
-    p.add_argument("--n-train", type=flag("--n-train"), default=96)
-    p.add_argument("--n-test", type=flag("--n-test"), default=24)
+    p.add_argument("--sensor", type=flag("--sensor"), nargs=2, default=(64, 64), metavar=("H", "W"),
+                   help="sensor size in pixels (default 64 64)")
+    p.add_argument("--n-train", type=flag("--n-train"), default=96,
+                   help="training scenes (default 96)")
+    p.add_argument("--n-test", type=flag("--n-test"), default=24, help="test scenes (default 24)")
     p.add_argument("--grid", type=flag("--grid"), nargs=2, default=(9, 9), metavar=("N", "M"),
                    help="PSF grid (and dense-model nodes), default 9 9")
     p.add_argument("--half-fov", type=flag("--half-fov"), default=30.0,
@@ -63,7 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "global batch).")
     p.add_argument("data", help="pairs folder, or a virtual-bench dataset (uses its train/)")
     p.add_argument("run_dir", help="output folder (checkpoint.pt, log.csv, kernel files)")
-    p.add_argument("--model", choices=MODEL_NAMES, default="ekdun")
+    add_flag(p, "--network", "train")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--kernels", help="kernel file (.npz, e.g. from psfkit fit-eigen)")
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
@@ -73,32 +75,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the pairs N x N (default: 1 if they have the kernels' size, else "
                         "the factor the kernel file was fitted with)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"),
-                   help="channel order of the pairs' .npy/TIFF files (default: the folder's: "
-                        "BGR for the DLMD layout lensed/ + diffuser/, else RGB)")
-    p.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
+    add_flag(p, "--channel-order", "train",
+             note="the folder's (pairs.json; BGR for the DLMD layout lensed/ + diffuser/), "
+                  "else the kernel file's record, else RGB")
+    p.add_argument("--preset", choices=("tiny", "paper"), default="tiny",
+                   help="network size and training schedule (default tiny)")
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=flag("--iterations", "train"),
                    help="override the preset's iterations")
     p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
                    help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
-    p.add_argument("--epochs", type=flag("--epochs"))
+    p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
     p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")
-    p.add_argument("--lr", type=flag("--lr"))
+    p.add_argument("--lr", type=flag("--lr"), help="override the preset's learning rate")
     p.add_argument("--seed", type=flag("--seed"), default=0)
-    p.add_argument("--device", type=device_name, default="auto",
-                   help="auto (cuda if present), cpu, cuda, cuda:N or mps")
-    p.add_argument("--threads", type=flag("--threads"), help="torch CPU threads")
-    p.add_argument("--amp", choices=("auto", "off", "bf16", "fp16"), default="auto",
-                   help="autocast precision of the network (the physics FFTs stay float32): "
-                        "auto = fp16 on CUDA, off on CPU; bf16 works on CPU too")
+    add_flag(p, "--device", "train")
+    add_flag(p, "--threads", "train")
+    add_flag(p, "--amp", "train")
     p.add_argument("--no-amp", action="store_true", help="same as --amp off")
     p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
                    help="U-Net convolutions in channels_last format (default: on CUDA only)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the network (reports its warm-up time)")
-    p.add_argument("--workers", type=flag("--workers"), default=2,
-                   help="DataLoader workers when the dataset does not fit on the device")
+    add_flag(p, "--loader-workers", "train")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -119,9 +118,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--include-training", action="store_true",
                    help="on the folder a run was trained on, score every pair, training pairs "
                         "included (default: only the pairs it held out)")
-    p.add_argument("--device", type=device_name, default="cpu",
-                   help="cpu (default), cuda, cuda:N, mps or auto")
-    p.add_argument("--threads", type=flag("--threads"))
+    add_flag(p, "--channel-order", "eval",
+             note="the folder's (pairs.json; BGR for the DLMD layout), else the order each "
+                  "checkpoint's training pairs were read in, else RGB")
+    add_flag(p, "--device", "eval")
+    add_flag(p, "--threads", "eval")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_eval)
 
@@ -130,16 +131,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("checkpoint")
     p.add_argument("measurements", nargs="+", help="image files (npy, png, tiff) or folders")
     p.add_argument("--out", required=True, help="output folder (NAME.npy + NAME.png)")
-    p.add_argument("--channel-order", choices=("RGB", "BGR"),
-                   help="channel order of .npy/TIFF measurements (default: that of the "
-                        "training pairs, e.g. BGR for DLMD; else RGB)")
+    add_flag(p, "--channel-order", "reconstruct",
+             note="that of the training pairs, e.g. BGR for DLMD; else RGB")
     p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the measurements N x N (default: as the training pairs were)")
-    p.add_argument("--device", type=device_name, default="cpu",
-                   help="cpu (default), cuda, cuda:N, mps or auto")
-    p.add_argument("--amp", choices=("off", "bf16", "fp16"), default="off",
-                   help="autocast precision of the network (fp16: CUDA only; the physics "
-                        "FFTs stay float32)")
+    add_flag(p, "--device", "reconstruct")
+    add_flag(p, "--amp", "reconstruct")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=run_reconstruct)
 
@@ -163,8 +160,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epochs", type=flag("--epochs"))
     p.add_argument("--n-train", type=flag("--n-train"), default=96)
     p.add_argument("--n-test", type=flag("--n-test"), default=24)
-    p.add_argument("--threads", type=flag("--threads"), default=1,
-                   help="torch threads (default 1: fastest on a shared 2-core machine)")
+    add_flag(p, "--threads", "benchmark-tiny", note="1, fastest on a shared 2-core machine")
     p.add_argument("--seed", type=flag("--seed"), default=0,
                    help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
     p.add_argument("--lpips-weights")
@@ -197,14 +193,14 @@ def run_train(args: argparse.Namespace) -> int:
     # flags are checked before any data is read
     overrides: dict[str, Any] = {}
     if args.schedule:
-        if args.model != "ekdun":
-            raise InvalidInputError("--schedule applies to --model ekdun only")
+        if args.network != "ekdun":
+            raise InvalidInputError("--schedule applies to --network ekdun only")
         overrides["schedule"] = args.schedule
     if args.iterations:
         overrides["iterations"] = args.iterations
     if args.kernel_param:
-        if args.model != "ekdun":
-            raise InvalidInputError("--kernel-param applies to --model ekdun only")
+        if args.network != "ekdun":
+            raise InvalidInputError("--kernel-param applies to --network ekdun only")
         overrides["kernel_param"] = args.kernel_param
     root = resolve_split(args.data, "train")
     source = args.kernels or args.psf
@@ -237,11 +233,11 @@ def run_train(args: argparse.Namespace) -> int:
                            seed=args.seed, amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
                            channels_last=args.channels_last, compile=args.compile,
-                           workers=args.workers)
-    result = train(args.run_dir, args.model, seed, dataset, args.preset,
+                           workers=args.loader_workers)
+    result = train(args.run_dir, args.network, seed, dataset, args.preset,
                    overrides, options, resume=args.resume, overwrite=args.overwrite)
     last = result["history"][-1] if result["history"] else {}
-    _say(args, f"trained {args.model}: {len(result['history'])} epochs, final loss "
+    _say(args, f"trained {args.network}: {len(result['history'])} epochs, final loss "
                f"{last.get('train_loss', float('nan')):.4g}; {args.run_dir}")
     if "compile_warmup_s" in result:
         _say(args, f"torch.compile warm-up (first step): {result['compile_warmup_s']:.1f} s")
@@ -266,7 +262,8 @@ def run_eval(args: argparse.Namespace) -> int:
         lpips = LPIPSMetric(args.lpips_weights)
         results = evaluate_checkpoints(args.checkpoints, args.data, lpips, args.device,
                                        log=lambda line: _say(args, line),
-                                       include_training=args.include_training)
+                                       include_training=args.include_training,
+                                       channel_order=args.channel_order)
         if not lpips.available:  # said after the work, so that an input error stays one line
             _say(args, lpips.reason)
         write_tables(folder, results, [lpips.reason] if lpips.reason else [])

@@ -92,7 +92,8 @@ def checkpoint_path(item: str | os.PathLike) -> Path:
 
 
 def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
-                     include_training: bool = False) -> tuple[Any, str]:
+                     include_training: bool = False,
+                     channel_order: str | None = None) -> tuple[Any, str]:
     """The pairs of ``data`` on which a checkpoint may be scored, read as it was trained.
 
     A checkpoint records how its training pairs were read (``metadata["data"]``: folder,
@@ -108,6 +109,9 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
         The checkpoint's ``metadata["data"]`` (``{}`` for checkpoints that predate it).
     include_training : bool
         Score every pair of the training folder anyway (the training error).
+    channel_order : {"RGB", "BGR"}, optional
+        ``--channel-order``: the order of the pairs' ``.npy``/TIFF files (default: the
+        folder's declaration, else the checkpoint's record, else RGB).
 
     Returns
     -------
@@ -133,17 +137,19 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
                 f"{data}: the checkpoint was trained on every pair of this folder, so its "
                 "scores would be training scores; hold pairs out (ekdun train --holdout NAME), "
                 "evaluate on another folder, or pass --include-training")
-        return (PairsDataset(root, downsample=factor, only=held, recorded=recorded),
+        return (PairsDataset(root, channel_order, downsample=factor, only=held,
+                             recorded=recorded),
                 f"the {len(held)} pair(s) training held out: {', '.join(held)}")
     note = ("every pair, training pairs included" if same
             else f"every pair of {root}")
-    return PairsDataset(root, downsample=factor, recorded=recorded), note
+    return PairsDataset(root, channel_order, downsample=factor, recorded=recorded), note
 
 
 def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | os.PathLike,
-                         lpips: LPIPSMetric | None = None, device: str | torch.device = "cpu",
+                         lpips: LPIPSMetric | None = None, device: str | torch.device = "auto",
                          log: Callable[[str], Any] | None = None,
-                         include_training: bool = False) -> list[dict[str, Any]]:
+                         include_training: bool = False,
+                         channel_order: str | None = None) -> list[dict[str, Any]]:
     """Evaluate trained runs on held-out pairs: the rows of Tables 1 and 2.
 
     Parameters
@@ -162,6 +168,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         Called with one line per evaluated run.
     include_training : bool
         On the training folder, score every pair (training pairs included).
+    channel_order : {"RGB", "BGR"}, optional
+        ``--channel-order`` of the pairs (:func:`evaluation_pairs`).
 
     Returns
     -------
@@ -184,7 +192,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     datasets = []        # every run's pairs are checked before any evaluation
     for path, model, doc in models:
         dataset, note = evaluation_pairs(data, doc["metadata"].get("data") or {},
-                                         include_training)
+                                         include_training, channel_order)
         sensor = tuple(model.physics.sensor_shape)
         if tuple(dataset.image_shape[1:]) != sensor:
             raise InvalidInputError(f"{data}: pairs are {dataset.image_shape[1]}x"

@@ -78,11 +78,18 @@ class ClassicalOptions:
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
-            raise ConfigurationError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+            raise ConfigurationError(f"--solver must be one of {', '.join(SOLVERS)}, got "
+                                     f"{self.solver!r}")
         if self.dtype not in DTYPES:
-            raise ConfigurationError(f"dtype must be one of {tuple(DTYPES)}, got {self.dtype!r}")
-        if self.tv < 0 or self.tol < 0 or self.iterations < 1:
-            raise ConfigurationError("tv and tol must be >= 0 and iterations >= 1")
+            raise ConfigurationError(f"--dtype must be one of {', '.join(DTYPES)}, got "
+                                     f"{self.dtype!r}")
+        # named as the flags of ekdun admm, never as the fields
+        if self.tv < 0:
+            raise ConfigurationError(f"--tv must be >= 0, got {self.tv}")
+        if self.tol < 0:
+            raise ConfigurationError(f"--tol must be >= 0, got {self.tol}")
+        if self.iterations < 1:
+            raise ConfigurationError(f"--iterations must be >= 1, got {self.iterations}")
 
 
 @dataclass
@@ -220,9 +227,9 @@ def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RG
     from psfkit.resample import bin_mean
 
     if background not in BACKGROUNDS:
-        raise ConfigurationError(f"background must be 'none' or 'corner', got {background!r}")
+        raise ConfigurationError(f"--background must be none or corner, got {background!r}")
     if downsample < 1:
-        raise ConfigurationError(f"downsample must be >= 1, got {downsample}")
+        raise ConfigurationError(f"--downsample must be >= 1, got {downsample}")
     y = subtract_background(read_measurement(path, channel_order, white_level), background)
     if downsample > 1:
         y = bin_mean(y, downsample)

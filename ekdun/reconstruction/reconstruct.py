@@ -65,7 +65,7 @@ def training_read_options(doc: dict, where: str = "checkpoint") -> ReadOptions:
 @torch.no_grad()
 def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
                       out_dir: str | os.PathLike, channel_order: str | None = None,
-                      device: str = "cpu", overwrite: bool = False, amp: str = "off",
+                      device: str = "auto", overwrite: bool = False, amp: str = "auto",
                       downsample: int | None = None,
                       notify: Callable[[str], None] | None = None) -> list[Path]:
     """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 RGB and an
@@ -77,8 +77,9 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     training) default to how the checkpoint's training pairs were read, so a model trained on
     DLMD pairs (BGR, binned) reads DLMD measurements as they are stored; integer files are
     scaled by the recorded white level. A flag that contradicts the record is applied, and
-    ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"off"``,
-    ``"bf16"``, ``"fp16"`` on CUDA) runs the network under autocast; the physics FFTs stay
+    ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"auto"`` = fp16
+    on CUDA and off on CPU, ``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under
+    autocast; the physics FFTs stay
     float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
     """
     device = acc.resolve_device(device)

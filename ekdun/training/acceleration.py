@@ -79,7 +79,7 @@ def resolve_amp(amp: str | bool, device: torch.device) -> str:
     elif amp is False or amp is None:
         amp = "off"
     if amp not in AMP_CHOICES:
-        raise ConfigurationError(f"amp must be one of {', '.join(AMP_CHOICES)}, got {amp!r}")
+        raise ConfigurationError(f"--amp must be one of {', '.join(AMP_CHOICES)}, got {amp!r}")
     cuda = device.type == "cuda"
     if amp == "auto":
         return "fp16" if cuda else "off"

@@ -57,10 +57,10 @@ def global_batches(n_items: int, global_batch: int, seed: int, epoch: int) -> li
     batches of ``global_batch`` (an incomplete last batch is dropped, so that every step
     averages the same number of images on every rank)."""
     if global_batch < 1:
-        raise ConfigurationError(f"batch size must be >= 1, got {global_batch}")
+        raise ConfigurationError(f"--batch-size must be >= 1, got {global_batch}")
     if n_items < global_batch:
-        raise ConfigurationError(f"the dataset has {n_items} pairs, fewer than one batch of "
-                                 f"{global_batch}")
+        raise ConfigurationError(f"the dataset has {n_items} pairs, fewer than one batch "
+                                 f"(--batch-size {global_batch})")
     generator = torch.Generator().manual_seed(int(seed) * 100_003 + int(epoch))
     order = torch.randperm(n_items, generator=generator).tolist()
     return [order[i:i + global_batch]

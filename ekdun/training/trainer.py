@@ -218,7 +218,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
         # rank could find the main rank's first files and refuse alone)
         torch.distributed.barrier()
     if cfg.batch_size % ctx.world_size:
-        raise ConfigurationError(f"batch size {cfg.batch_size} is not divisible by the "
+        raise ConfigurationError(f"--batch-size {cfg.batch_size} is not divisible by the "
                                  f"{ctx.world_size} processes")
 
     torch.manual_seed(options.seed)

@@ -10,6 +10,7 @@ import numpy as np
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.options import add_grid_options, preprocess_options
+from psfkit.cli.vocabulary import add_flag, command_name
 from psfkit.io import OutputTransaction, read_grid
 from psfkit.validation import flag
 
@@ -24,8 +25,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour): "
                         "printed as one shift grid per channel, and in --out")
-    p.add_argument("--workers", type=flag("--workers"), default=None,
-                   help="positions processed concurrently (default 2)")
+    add_flag(p, "--threads", command_name(p), note="2 positions processed concurrently")
 
 
 def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
@@ -43,7 +43,7 @@ def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterizati
 
     grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
     return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
-                             workers=args.workers)
+                             workers=args.threads)
 
 
 def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 from psfkit.choices import CV_BASES, CV_BASES_ALL
 from psfkit.cli.options import add_grid_options, preprocess_options
+from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.errors import InvalidInputError
 from psfkit.io import OutputTransaction, atomic_directory, read_grid
 from psfkit.io.jsonable import jsonable
@@ -31,13 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "kernel file that ekdun trains from.")
     add_grid_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
-    p.add_argument("--basis", default="paper",
-                   help=f"weight basis (default paper; one of {', '.join(BASIS_NAMES)}, "
-                        "or 'auto' for the best cross-validated one)")
-    p.add_argument("--convention", choices=("sensor", "source", "auto"), default="sensor",
-                   help="where the weights live in the written model: sensor (Eq. 7, default), "
-                        "source, or auto (fit both, write the one with the lower "
-                        "cross-validated error)")
+    add_flag(p, "--basis", "fit-eigen",
+             note=f"paper; one of ek (= paper), {', '.join(BASIS_NAMES)}, or 'auto' for the "
+                  "best cross-validated one")
+    add_flag(p, "--convention", "fit-eigen",
+             note="sensor; auto fits both and writes the one with the lower cross-validated "
+                  "error")
     p.add_argument("--gain-compensate", action="store_true",
                    help="divide every PSF by its gain first (kernels then carry shape only)")
     p.add_argument("--cv-bases", default=",".join(CV_BASES),
@@ -108,7 +108,7 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     from psfkit.grid_fit import fit_eigen_grid
 
     grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
-    basis = args.basis
+    basis = BASIS_ALIASES.get(args.basis, args.basis)
     if basis == "auto":
         # cross-validate every basis first (the chosen one is then fitted in a second pass)
         args.cv_bases = "all" if args.cv_bases == ",".join(CV_BASES) else args.cv_bases

@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
+from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
 from psfkit.io.temps import public_name
 from psfkit.validation import OneLineArgumentParser, escape_line
@@ -167,7 +168,11 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     try:
         with terminate_like_interrupt(), \
                 (contextlib.nullcontext() if debug else quiet_libraries()):
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        # after the work, so that an error stays the one line on stderr
+        for line in deprecation_notices(args):
+            print(line, file=sys.stderr)
+        return status
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "

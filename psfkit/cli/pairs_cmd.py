@@ -10,16 +10,15 @@ from typing import Any
 
 import numpy as np
 
+from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, command_name
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
-from psfkit.io.read_options import CHANNEL_ORDERS, ReadOptions, choose
+from psfkit.io.read_options import ReadOptions, choose
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_options import PairFitOptions
 from psfkit.validation import dumps_finite, flag, require_finite
 from psfkit.weights import BASIS_NAMES
-
-MODEL_ALIASES = {"ek": "paper"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,16 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "read; its provenance records the constraints, energies and support.")
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
-    p.add_argument("--model", default="si",
-                   help="si (one PSF), ek (= paper: Kbase, Kv, Kh) or any weight basis: "
-                        f"{', '.join(BASIS_NAMES)} (default si)")
-    p.add_argument("--convention", choices=("sensor", "source"), default="source",
-                   help="where the weights of an eigen-kernel model live: source (default: "
-                        "predicts held-out real pairs better and costs one FFT pair per "
-                        "iteration) or sensor (Eq. 7; K FFT pairs per iteration)")
+    add_flag(p, "--basis", "fit-pairs",
+             note=f"si; one of si, ek, {', '.join(BASIS_NAMES)}")
+    add_flag(p, "--convention", "fit-pairs",
+             note="sensor, Eq. 7, K FFT pairs per iteration; source costs one FFT pair per "
+                  "iteration and predicts held-out real pairs better (docs/your-camera.md)")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
-    _add_channel_order(p, "default: the folder's (pairs.json; BGR for the DLMD layout "
-                          "lensed/ + diffuser/), else RGB; recorded in the kernel file")
+    _add_channel_order(p, "the folder's (pairs.json; BGR for the DLMD layout lensed/ + "
+                          "diffuser/), else RGB; recorded in the kernel file")
     _add_fit_options(p)
     p.add_argument("--leave-one-out", action="store_true",
                    help="also report each pair's error when it is left out of the fit")
@@ -63,22 +60,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
-    _add_channel_order(e, "default: the folder's (pairs.json, DLMD layout), else the one "
-                          "recorded in the kernel file, else RGB")
+    _add_channel_order(e, "the folder's (pairs.json, DLMD layout), else the one recorded "
+                          "in the kernel file, else RGB")
     e.add_argument("--out", metavar="JSON", help="write the errors to this JSON file")
     e.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     e.set_defaults(func=run_eval_model)
 
 
 def _add_channel_order(p: argparse.ArgumentParser, default: str) -> None:
-    p.add_argument("--channel-order", choices=CHANNEL_ORDERS,
-                   help=f"channel order of the pairs' .npy/TIFF files ({default})")
+    add_flag(p, "--channel-order", command_name(p), note=default)
 
 
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     d = PairFitOptions()
     g = p.add_argument_group("solver")
-    g.add_argument("--downsample", type=flag("--downsample"), default=1, metavar="N",
+    g.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin scenes and measurements N x N before fitting (default 1)")
     g.add_argument("--tikhonov", type=flag("--tikhonov"), default=d.tikhonov,
                    help=f"ridge weight relative to the mean scene power (default {d.tikhonov:g})")
@@ -163,7 +159,8 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
-    basis = MODEL_ALIASES.get(args.model, args.model)
+    args.downsample = args.downsample or 1
+    basis = BASIS_ALIASES.get(args.basis, args.basis)
     if args.support_threshold is not None and (args.support != "auto" or args.support_mask):
         raise ConfigurationError("--support-threshold acts only with --support auto (and no "
                                  "--support-mask)")

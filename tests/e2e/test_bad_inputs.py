@@ -642,8 +642,8 @@ CASES: list[Case] = [
                                                          "100000", "100000"), "--sensor", 3),
 
     # ---- class 7: invalid values, misleading messages --------------------------------
-    Case("register-workers-negative", "psfkit", grid_case("--workers", "-1", command="register"),
-         "--workers", 7),
+    Case("register-workers-negative", "psfkit", grid_case("--threads", "-1", command="register"),
+         "--threads", 7),
     Case("register-saturation-negative", "psfkit",
          grid_case("--saturation-level", "-5", command="register"), "--saturation-level", 7),
     Case("register-upsample-zero", "psfkit", grid_case("--upsample", "0", command="register"),

@@ -159,8 +159,9 @@ def test_stopping_rule_from_the_cli(dlmd, tmp_path, capsys):
 
 
 def test_fit_pairs_cli_file_reconstructs_with_the_source_side_admm(dlmd, tmp_path):
-    """The documented path: ``psfkit fit-pairs --model ek`` (source-side weights by default)
-    on six pairs, then ``ekdun admm --kernels`` on the seventh, from the CLIs."""
+    """The documented path: ``psfkit fit-pairs --basis ek --convention source`` (source-side
+    weights, as docs/your-camera.md recommends for real pairs) on six pairs, then ``ekdun admm
+    --kernels`` on the seventh, from the CLIs."""
     from psfkit.cli import main as psfkit_main
     from psfkit.kernelfile import load_kernels
 
@@ -173,8 +174,8 @@ def test_fit_pairs_cli_file_reconstructs_with_the_source_side_admm(dlmd, tmp_pat
             if k != HELD_OUT:
                 (fit6 / sub / name).symlink_to(dlmd["root"] / sub / name)
     model_path = tmp_path / "ek.npz"
-    assert psfkit_main(["fit-pairs", str(fit6), "--model", "ek", "--downsample", "4",
-                        "--out", str(model_path), "--quiet"]) == 0
+    assert psfkit_main(["fit-pairs", str(fit6), "--basis", "ek", "--downsample", "4",
+                        "--convention", "source", "--out", str(model_path), "--quiet"]) == 0
     model = load_kernels(model_path)
     assert model.convention == "source" and model.kernels.shape[0] == 3
     out = tmp_path / "rec.npy"

@@ -47,7 +47,7 @@ def test_fit_pairs_then_eval_model_on_unseen_pairs(eigen_pairs, tmp_path: Path, 
     results = {}
     for name in ("si", "ek"):
         out = tmp_path / f"{name}.npz"
-        assert main(["fit-pairs", str(fit_dir), "--model", name, "--out", str(out),
+        assert main(["fit-pairs", str(fit_dir), "--basis", name, "--out", str(out),
                      "--no-scale", "--tikhonov", "1e-8", "--difference", "0",
                      "--iterations", "300", "--quiet", "--convention", "sensor",
                      "--report", str(tmp_path / f"{name}.json")]) == 0
@@ -75,9 +75,9 @@ def test_fit_pairs_downsample_is_remembered_by_eval_model(eigen_pairs, tmp_path:
                  "--iterations", "20", "--quiet"]) == 0
     assert load_kernels(out).sensor_shape == (8, 12)
     ek = tmp_path / "ek2.npz"
-    assert main(["fit-pairs", str(fit_dir), "--model", "ek", "--out", str(ek), "--downsample",
+    assert main(["fit-pairs", str(fit_dir), "--basis", "ek", "--out", str(ek), "--downsample",
                  "2", "--iterations", "5", "--quiet"]) == 0
-    assert load_kernels(ek).convention == "source"            # fit-pairs' default
+    assert load_kernels(ek).convention == "sensor"            # one default: Eq. 7
     assert main(["eval-model", str(out), str(held_dir)]) == 0
     # a model of the wrong size is refused, naming both sizes
     capsys.readouterr()
@@ -92,7 +92,7 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
     the kernel file's provenance; --no-nonneg gives the old unconstrained fit (negative
     lobes); --support-mask and --energy are honoured."""
     fit_dir, _, _ = eigen_pairs
-    common = ["--model", "ek", "--convention", "sensor", "--iterations", "40", "--quiet"]
+    common = ["--basis", "ek", "--convention", "sensor", "--iterations", "40", "--quiet"]
     default, free = tmp_path / "default.npz", tmp_path / "free.npz"
     assert main(["fit-pairs", str(fit_dir), "--out", str(default), *common]) == 0
     assert "0 negative pixels" in capsys.readouterr().out
@@ -130,7 +130,7 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
     out = tmp_path / "k.npz"
     cases = [
         (["fit-pairs", str(tmp_path / "missing"), "--out", str(out)], "no such pairs folder"),
-        (["fit-pairs", str(fit_dir), "--model", "zernike", "--out", str(out)], "zernike"),
+        (["fit-pairs", str(fit_dir), "--basis", "zernike", "--out", str(out)], "zernike"),
         (["fit-pairs", str(fit_dir), "--out", str(tmp_path / "k.txt")], ".npz"),
         (["fit-pairs", str(fit_dir), "--out", str(out), "--downsample", "0"], "downsample"),
         (["eval-model", str(tmp_path / "none.npz"), str(fit_dir)], "none.npz"),

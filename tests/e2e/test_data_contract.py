@@ -84,7 +84,7 @@ def test_the_three_formats_read_as_the_same_float32_arrays(variants):
 
 def _fit(pairs: Path, out: Path, *extra: str) -> dict:
     report = out.with_suffix(".json")
-    assert psfkit_main(["fit-pairs", str(pairs), "--model", "si", "--downsample", str(FACTOR),
+    assert psfkit_main(["fit-pairs", str(pairs), "--basis", "si", "--downsample", str(FACTOR),
                         "--iterations", "20", "--projected-iterations", "20",
                         "--out", str(out), "--report", str(report), "--quiet", *extra]) == 0
     return json.loads(report.read_text())

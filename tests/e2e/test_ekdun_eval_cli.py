@@ -77,7 +77,7 @@ def test_one_list_of_model_names_offered_without_importing_torch():
     code = ("import sys, json\n"
             "from ekdun.cli import build_parser\n"
             "sub = build_parser()._subparsers._group_actions[0].choices\n"
-            "model = [a for a in sub['train']._actions if a.dest == 'model'][0]\n"
+            "model = [a for a in sub['train']._actions if a.dest == 'network'][0]\n"
             "print(json.dumps([list(model.choices), 'torch' in sys.modules]))")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True)

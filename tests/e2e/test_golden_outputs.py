@@ -5,9 +5,9 @@
 - ``psfkit demo --downsample 8`` (virtual bench, seed 0): the report's ``results.json`` and the
   eigen-kernel file ``kernels.npz`` (written again by issue 21: the eigen fit's ridge became
   well-conditioned, a deliberate change, see CHANGELOG);
-- ``psfkit fit-pairs`` (``--model si`` and ``--model ek``, ``--downsample 4``) on the real
-  DiffuserCam Mirflickr pairs of ``../shared/data``, and ``psfkit eval-model`` of both files
-  (written by issue 11's code on another machine; kept).
+- ``psfkit fit-pairs`` (``--basis si`` and ``--basis ek``, ``--downsample 4``, ``--convention
+  source``) on the real DiffuserCam Mirflickr pairs of ``../shared/data``, and ``psfkit
+  eval-model`` of both files (written by issue 11's code on another machine; kept).
 
 Tolerances come from a measured spread, not a guess: ``benchmarks/golden_spread.py`` runs the
 same commands with one and two threads, with torch/MKL/numpy's AVX2 code paths instead of
@@ -156,8 +156,9 @@ def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, mod
 
     pairs = real_data("dlmd_mirflickr")
     kernels = tmp_path / f"{model}.npz"
-    assert main(["fit-pairs", str(pairs), "--model", model, "--downsample", "4",
-                 "--out", str(kernels), "--quiet"]) == 0
+    # the golden files were written with fit-pairs' former default, source-side weights
+    assert main(["fit-pairs", str(pairs), "--basis", model, "--downsample", "4",
+                 "--convention", "source", "--out", str(kernels), "--quiet"]) == 0
     _, scenes, _ = _load(str(pairs), 4)
     assert_kernel_files_equal(kernels, GOLDEN / f"dlmd_ds4_{model}.npz", scenes)
     errors = tmp_path / "errors.json"

@@ -66,7 +66,7 @@ def dlmd_fit_folder(real_data, tmp_path_factory) -> tuple[Path, Path]:
 def test_fit_pairs_train_reconstruct_on_dlmd(dlmd_fit_folder, tmp_path, capsys):
     root, fit = dlmd_fit_folder
     kernels = tmp_path / "si.npz"
-    assert psfkit_main(["fit-pairs", str(fit), "--model", "si", "--downsample", str(FACTOR),
+    assert psfkit_main(["fit-pairs", str(fit), "--basis", "si", "--downsample", str(FACTOR),
                         "--out", str(kernels), "--quiet"]) == 0
     model = load_kernels(kernels)
     assert model.sensor_shape == (270 // FACTOR, 480 // FACTOR)       # 67 x 120, non-square
@@ -74,7 +74,7 @@ def test_fit_pairs_train_reconstruct_on_dlmd(dlmd_fit_folder, tmp_path, capsys):
     # the full folder at full size, with the held-out pair named: the binning comes from the
     # kernel file's provenance, the BGR order from the DLMD layout
     run = tmp_path / "run"
-    assert ekdun_main(["train", str(root), str(run), "--model", "ekdun", "--kernels",
+    assert ekdun_main(["train", str(root), str(run), "--network", "ekdun", "--kernels",
                        str(kernels), "--holdout", HELD_OUT, "--epochs", "2",
                        "--batch-size", "2", "--threads", "1", "--quiet"]) == 0
     meta = load_checkpoint(run / "checkpoint.pt")["metadata"]
@@ -129,7 +129,7 @@ def test_train_refuses_pairs_that_do_not_match_the_kernels(dlmd_fit_folder, tmp_
                                                            capsys):
     root, fit = dlmd_fit_folder
     kernels = tmp_path / "si.npz"
-    assert psfkit_main(["fit-pairs", str(fit), "--model", "si", "--downsample", "8",
+    assert psfkit_main(["fit-pairs", str(fit), "--basis", "si", "--downsample", "8",
                         "--iterations", "2", "--out", str(kernels), "--quiet"]) == 0
     capsys.readouterr()
     assert ekdun_main(["train", str(root), str(tmp_path / "run"), "--kernels", str(kernels),

@@ -171,6 +171,6 @@ def test_cli_kernel_param(tiny_data, tmp_path, capsys):
     assert ekdun_main(args) == 0
     learned = load_kernels(tmp_path / "run" / "kernels_learned.npz")
     assert learned.provenance["kernel_param"] == "flow"
-    assert ekdun_main(["train", str(pairs), str(tmp_path / "r2"), "--model", "updn", "--psf",
+    assert ekdun_main(["train", str(pairs), str(tmp_path / "r2"), "--network", "updn", "--psf",
                        str(kernels), "--kernel-param", "flow"]) == 2
-    assert "--kernel-param applies to --model ekdun only" in capsys.readouterr().err
+    assert "--kernel-param applies to --network ekdun only" in capsys.readouterr().err

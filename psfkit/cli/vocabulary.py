@@ -1,0 +1,184 @@
+"""One flag vocabulary for both command-line interfaces (``psfkit`` and ``ekdun``).
+
+Every flag that more than one command uses, or whose meaning the two CLIs once disagreed on,
+is declared here once: its meaning, its destination, its default and its choices
+(:data:`VOCABULARY`). Both CLIs add these flags with :func:`add_flag`, so that ``--threads``
+means CPU threads and ``--device`` defaults to ``auto`` wherever they appear. A command may
+differ from the declaration only where the declaration itself says so (``per_command``: e.g.
+``fit-eigen --convention`` also offers ``auto``).
+
+Deprecated spellings (:data:`DEPRECATED`) keep their old meaning for their command, are
+hidden from ``--help`` and, once the command has done its work, print one line
+(``note: --model is deprecated here, use --basis``) on stderr (:func:`deprecation_notices`,
+printed by :func:`psfkit.cli.main.run_cli`), so that an error stays the one line on stderr.
+
+Numeric ranges stay in :data:`psfkit.validation.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
+walks both parsers and checks them against this table and ``docs/cli-flags.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from psfkit.io.read_options import CHANNEL_ORDERS
+from psfkit.validation import device_name, flag
+
+#: ``namespace`` attribute that collects the notices of deprecated spellings.
+NOTICES = "deprecation_notices"
+
+#: The networks of ``ekdun`` (:data:`ekdun.model_names.MODEL_NAMES`, checked equal by the test;
+#: psfkit never imports ekdun).
+NETWORKS = ("ekdun", "le-admm-u", "updn")
+#: ``--amp`` (:data:`ekdun.training.acceleration.AMP_CHOICES`, checked equal by the test).
+AMP_CHOICES = ("auto", "off", "bf16", "fp16")
+#: Values of ``--basis`` that name another (``ek`` is the paper's basis).
+BASIS_ALIASES = {"ek": "paper"}
+
+
+@dataclass(frozen=True)
+class SharedFlag:
+    """One flag of the vocabulary.
+
+    ``default`` is the parser's default (``None``: not given; the command decides, as
+    ``default_text`` says); ``per_command`` maps a command to the keys (``default``,
+    ``choices``) in which that command deliberately differs.
+    """
+
+    name: str
+    dest: str
+    meaning: str
+    default_text: str
+    default: Any = None
+    choices: tuple[str, ...] | None = None
+    kind: str = "text"          # "text", "number" (type from FLAGS) or "device"
+    metavar: str | None = None
+    per_command: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def spec(self, command: str) -> dict[str, Any]:
+        """``default`` and ``choices`` of this flag in ``command``."""
+        spec = {"default": self.default, "choices": self.choices}
+        spec.update(self.per_command.get(command, {}))
+        return spec
+
+
+VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
+    SharedFlag("--basis", "basis",
+               "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
+               "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
+               "si (fit-pairs), paper (fit-eigen)", default="si",
+               per_command={"fit-eigen": {"default": "paper"}}),
+    SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
+               "ekdun", default="ekdun", choices=NETWORKS),
+    SharedFlag("--convention", "convention",
+               "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
+               "or source (fit-eigen: also auto = the lower cross-validated error)",
+               "sensor", default="sensor", choices=("sensor", "source"),
+               per_command={"fit-eigen": {"choices": ("sensor", "source", "auto")}}),
+    SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
+               "positions processed concurrently in psfkit register/mae/warp/report)",
+               "2 (psfkit), torch's default (ekdun), 1 (benchmark-tiny)", kind="number",
+               metavar="N", per_command={"benchmark-tiny": {"default": 1}}),
+    SharedFlag("--loader-workers", "loader_workers",
+               "DataLoader worker processes when the dataset does not fit on the device",
+               "2", default=2, kind="number", metavar="N"),
+    SharedFlag("--device", "device", "torch device: auto (cuda if present, else cpu), cpu, "
+               "cuda, cuda:N or mps", "auto", default="auto", kind="device"),
+    SharedFlag("--amp", "amp", "autocast precision of the network (the physics FFTs stay "
+               "float32): auto = fp16 on CUDA, off on CPU; bf16 also works on CPU; fp16 "
+               "needs CUDA", "auto", default="auto", choices=AMP_CHOICES),
+    SharedFlag("--channel-order", "channel_order",
+               "channel order of the .npy/TIFF files on disk (RGB or BGR)",
+               "the data's declaration (pairs.json, the DLMD layout: BGR) or the model's "
+               "record, else RGB", choices=CHANNEL_ORDERS),
+    SharedFlag("--tv", "tv", "TV weight relative to the measurement's peak and the operator "
+               "norm ||A|| (power iteration, crop included): the same objective for every "
+               "model and solver", "3e-4", kind="number"),
+    SharedFlag("--seed", "seed", "random seed", "0 (simulate-grid, demo: the --bench-config "
+               "file's, else 0)", default=0, kind="number",
+               per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
+    SharedFlag("--out", "out", "where the outputs go (a file or folder, per command)",
+               "required, or none (demo: psfkit-demo)",
+               per_command={"demo": {"default": "psfkit-demo"}}),
+)}
+
+#: Deprecated spellings: ``(command, alias) -> canonical flag``. An alias keeps the old meaning
+#: for its command (same destination) and prints one notice after the work.
+DEPRECATED: dict[tuple[str, str], str] = {
+    ("fit-pairs", "--model"): "--basis",
+    ("register", "--workers"): "--threads",
+    ("mae", "--workers"): "--threads",
+    ("warp", "--workers"): "--threads",
+    ("report", "--workers"): "--threads",
+    ("train", "--model"): "--network",
+    ("train", "--workers"): "--loader-workers",
+    ("admm", "--tau"): "--tv",
+}
+
+
+def command_name(parser: argparse.ArgumentParser) -> str:
+    """The sub-command of a sub-parser (``"psfkit fit-pairs"`` -> ``"fit-pairs"``)."""
+    return parser.prog.split()[-1]
+
+
+def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
+             command: str, note: str = "", **extra: Any) -> argparse.Action:
+    """Add the vocabulary's flag ``name`` to ``parser`` for ``command``, and its deprecated
+    spellings for that command (:data:`DEPRECATED`).
+
+    ``note`` is appended to the help (what the default means for this command); ``extra``
+    passes other ``add_argument`` keywords (``type`` for a per-command range, ``required``).
+    """
+    entry = VOCABULARY[name]
+    spec = entry.spec(command)
+    kwargs: dict[str, Any] = {"dest": entry.dest, "default": spec["default"]}
+    if spec["choices"] is not None:
+        kwargs["choices"] = spec["choices"]
+    if entry.kind == "number":
+        kwargs["type"] = flag(name, command)
+    elif entry.kind == "device":
+        kwargs["type"] = device_name
+    if entry.metavar:
+        kwargs["metavar"] = entry.metavar
+    kwargs["help"] = f"{entry.meaning} (default: {note or entry.default_text})"
+    kwargs.update(extra)
+    action = parser.add_argument(name, **kwargs)
+    for (cmd, alias), canonical in DEPRECATED.items():
+        if cmd == command and canonical == name:
+            add_deprecated(parser, alias, action)
+    return action
+
+
+class _DeprecatedAlias(argparse.Action):
+    """Stores like the canonical flag and records one notice in the namespace."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, canonical: str = "",
+                 **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.canonical = canonical
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, values)
+        notices = list(getattr(namespace, NOTICES, None) or [])
+        line = f"note: {option_string} is deprecated here, use {self.canonical}"
+        if line not in notices:
+            notices.append(line)
+        setattr(namespace, NOTICES, notices)
+
+
+def add_deprecated(parser: argparse.ArgumentParser | argparse._ArgumentGroup, alias: str,
+                   canonical: argparse.Action) -> argparse.Action:
+    """``alias``: a hidden spelling of ``canonical`` (same destination, type and choices) that
+    prints one notice after the work."""
+    return parser.add_argument(alias, action=_DeprecatedAlias, dest=canonical.dest,
+                               canonical=canonical.option_strings[0], type=canonical.type,
+                               choices=canonical.choices, metavar=canonical.metavar,
+                               default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
+def deprecation_notices(args: argparse.Namespace) -> list[str]:
+    """The notice lines of the deprecated spellings ``args`` was parsed from."""
+    return list(getattr(args, NOTICES, None) or [])
