@@ -1,4 +1,5 @@
-"""``psfkit compare``: learned eigen-kernels (a trained EK-DUN's) vs the measured PSF grid."""
+"""``psfkit compare``: learned eigen-kernels (a trained EK-DUN's) vs the measured PSF grid, or
+any kernel file against another (``psfkit compare A.npz B.npz``, B as the measured side)."""
 
 from __future__ import annotations
 
@@ -16,14 +17,19 @@ from psfkit.validation import flag
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "compare", help="compare learned eigen-kernels with the measured PSF grid (Fig. 7)",
+        "compare", help="compare learned eigen-kernels with the measured PSF grid or another "
+                        "kernel file (Fig. 7)",
         description="Did the network learn the physics? Measures the local sub-pixel "
                     "displacement of the caustic in each learned correction kernel (Kv, Kh) "
                     "relative to Kbase and compares it with the eigen-kernels fitted to the "
                     "grid, with the warps between the centre and edge PSFs, and with the "
-                    "grid's PCA modes. Writes figures, compare.json and compare.html.")
+                    "grid's PCA modes; or, given a second kernel file instead of a grid, "
+                    "with that file's kernels (no warps or PCA then). Writes figures, "
+                    "compare.json and compare.html.")
     p.add_argument("learned", help="kernel file of the trained model (.npz)")
-    p.add_argument("grid", help="PSF-grid folder of the same camera")
+    p.add_argument("grid", metavar="MEASURED",
+                   help="PSF-grid folder of the same camera, or a kernel file (.npz: a grid "
+                        "fit, a pairs fit, an oracle) as the measured side")
     p.add_argument("--out", required=True, help="output folder (created; must not exist or "
                                                 "be empty unless --overwrite)")
     p.add_argument("--initial", metavar="KERNELS",
@@ -74,7 +80,8 @@ def _compare(args: argparse.Namespace) -> tuple[Any, Any]:
     learned = load_kernels(args.learned)
     check_learned(learned, args.learned)
     initial = load_kernels(args.initial) if args.initial else None
-    grid = load_grid(args.grid)
+    # a kernel file is compared as it is; a grid folder is validated first
+    grid = args.grid if Path(args.grid).suffix == ".npz" else load_grid(args.grid)
     options = CompareOptions(flow_method=args.method, smooth_px=args.smooth,
                              warp_positions=args.warp_positions, align=not args.no_align,
                              preprocess=preprocess_options(args))
@@ -85,8 +92,9 @@ def _compare(args: argparse.Namespace) -> tuple[Any, Any]:
 
 def _print_comparison(args: argparse.Namespace, comparison: Any, learned: Any, out: Path
                       ) -> None:
-    print(f"compared {args.learned} ({', '.join(learned.kernel_names)}) with grid {args.grid}; "
-          f"wrote {out}")
+    what = "kernel file" if Path(args.grid).suffix == ".npz" else "grid"
+    print(f"compared {args.learned} ({', '.join(learned.kernel_names)}) with {what} "
+          f"{args.grid}; wrote {out}")
     print("  displacement-map correlation (Pearson; n/a = no displacement):")
     for label, row in comparison.headline().items():
         print(f"    {label:8s} " + "  ".join(f"{k} {_fmt(v)}" for k, v in row.items()))

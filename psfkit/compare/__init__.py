@@ -21,6 +21,10 @@ Measured side (:func:`measure_modes`), from a PSF grid:
   symmetrisation. (``CompareOptions.warp_positions="all"``: every reliable position, all
   correction kernels solved jointly.)
 
+Measured side from another kernel file (:func:`modes_from_kernel_file`; ``psfkit compare
+A.npz B.npz``): B's kernels are the measured ones (a grid fit, a pairs fit, an oracle), on A's
+sensor grid; a kernel file has no warps and no PCA modes, so those comparisons are absent.
+
 Learned side: the kernels of a kernel file (after training), padded to the sensor size and
 registered to the measured ``Kbase`` by one global sub-pixel shift.
 
@@ -63,7 +67,12 @@ from psfkit.compare.displacement import (
     displacement_map,
     masked_smooth,
 )
-from psfkit.compare.measured import MeasuredModes, load_grid, measure_modes
+from psfkit.compare.measured import (
+    MeasuredModes,
+    load_grid,
+    measure_modes,
+    modes_from_kernel_file,
+)
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import ASPECT_TOLERANCE, check_shapes, pad_kernels, resample
 from psfkit.compare.results import KernelComparison, KernelSetComparison
@@ -74,6 +83,7 @@ __all__ = [
     "ASPECT_TOLERANCE", "MIN_WEIGHT_CHANGE", "WARP_AXES", "CompareOptions", "DisplacementMap",
     "KernelComparison", "KernelSetComparison", "MeasuredModes", "check_learned",
     "check_shapes", "compare_kernels", "compare_model", "comparison_mask", "displacement_map",
-    "load_grid", "map_agreement", "masked_smooth", "measure_modes", "normalized_correlation",
+    "load_grid", "map_agreement", "masked_smooth", "measure_modes", "modes_from_kernel_file",
+    "normalized_correlation",
     "pad_kernels", "pearson", "resample",
 ]

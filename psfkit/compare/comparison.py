@@ -9,12 +9,13 @@ difference kernels and span are compared with the measured ones.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
 from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
 from psfkit.compare.kernel_change import caustic_support, split_kernel_changes
-from psfkit.compare.measured import MeasuredModes, measure_modes
+from psfkit.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import pad_kernels, resample
 from psfkit.compare.results import KernelComparison, KernelSetComparison
@@ -119,7 +120,7 @@ def check_learned(model: KernelModel, where: str) -> None:
 
 
 def compare_kernels(learned: KernelModel | str | os.PathLike,
-                    measured: PsfGrid | str | os.PathLike | MeasuredModes,
+                    measured: PsfGrid | KernelModel | str | os.PathLike | MeasuredModes,
                     initial: KernelModel | str | os.PathLike | None = None,
                     options: CompareOptions | None = None, progress: bool = False
                     ) -> KernelComparison:
@@ -129,9 +130,11 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     ----------
     learned : KernelModel or path
         The trained model's kernels (a kernel file with at least two kernels).
-    measured : PsfGrid, path or MeasuredModes
-        The camera's PSF grid (or modes already measured by :func:`measure_modes` on the
-        learned file's sensor grid, to compare several models without refitting).
+    measured : PsfGrid, path, KernelModel or MeasuredModes
+        The camera's PSF grid, or another kernel file (``.npz`` or a model: a grid fit, a pairs
+        fit, an oracle; its kernels are the measured ones, and there are no warps or PCA modes),
+        or modes already measured by :func:`measure_modes` on the learned file's sensor grid
+        (to compare several models without refitting).
     initial : KernelModel or path, optional
         The kernels before training: the same numbers are reported for them.
     options : CompareOptions, optional
@@ -165,6 +168,14 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
                                      f"from the learned file's {getattr(learned_model, attr)!r}")
     if isinstance(measured, MeasuredModes):
         modes = measured
+    elif isinstance(measured, KernelModel) or (isinstance(measured, (str, os.PathLike))
+                                               and Path(measured).suffix == ".npz"):
+        # another kernel file as the measured side (a grid fit, a pairs fit, an oracle)
+        reference = _as_model(measured)
+        modes = modes_from_kernel_file(
+            reference, "measured kernels" if isinstance(measured, KernelModel)
+            else str(measured), learned_model.basis, learned_model.convention,
+            tuple(learned_model.sensor_shape))
     else:
         modes = measure_modes(measured, learned_model.basis, learned_model.convention,
                               tuple(learned_model.sensor_shape), options, progress)

@@ -1,10 +1,16 @@
-"""The measured side of a comparison (:func:`measure_modes`): what a PSF grid says about the
-eigen-kernels, on the comparison grid.
+"""The measured side of a comparison: what a PSF grid (:func:`measure_modes`) or another
+kernel file (:func:`modes_from_kernel_file`) says about the eigen-kernels, on the comparison
+grid.
+
+From a grid:
 
 - the eigen-kernels fitted to the grid (:func:`psfkit.grid_fit.fit_eigen_grid`) with the
   learned file's basis and weight convention;
 - the top PCA modes of the registered grid (:mod:`psfkit.pca`);
 - warp fields at the outermost reliable positions (:mod:`psfkit.compare.warps`).
+
+From a kernel file (a grid fit, a pairs fit, an oracle): its kernels only; a kernel file has
+no warps and no PCA modes, so those comparisons are absent (``null`` in ``compare.json``).
 """
 
 from __future__ import annotations
@@ -19,9 +25,9 @@ import numpy as np
 from psfkit.alignment import GridAligner
 from psfkit.compare.displacement import DisplacementMap, comparison_mask
 from psfkit.compare.options import CompareOptions
-from psfkit.compare.resampling import check_shapes, resample
+from psfkit.compare.resampling import check_shapes, pad_kernels, resample
 from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
-from psfkit.errors import InvalidInputError
+from psfkit.errors import InvalidInputError, ModelFileError
 from psfkit.grid_fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
 from psfkit.io.grid import PsfGrid
 from psfkit.io.grid_validation import read_grid
@@ -51,9 +57,12 @@ class MeasuredModes:
         ``(r, C, h, w)`` top uncentred PCA modes on the fit's binned working grid.
     pca_region : numpy.ndarray or None
         ``(h, w)`` bool, pixels the PCA used.
-    fit : GridEigenResult
+    fit : GridEigenResult or None
+        The grid fit (``None`` when the measured side is a kernel file).
     notes : list of str
         What was resampled, skipped or approximated.
+    source : str
+        The grid folder or kernel file the modes come from.
     """
 
     model: KernelModel
@@ -62,10 +71,16 @@ class MeasuredModes:
     warp_positions: dict[str, list[dict[str, Any]]]
     pca_components: np.ndarray | None
     pca_region: np.ndarray | None
-    fit: GridEigenResult = field(repr=False)
+    fit: GridEigenResult | None = field(repr=False)
     notes: list[str] = field(default_factory=list)
+    source: str = ""
 
     def to_dict(self) -> dict[str, Any]:
+        if self.fit is None:   # a kernel file: its kernels only
+            return {"kernels": self.source, "comparison_shape": list(self.sensor_shape),
+                    "basis": self.model.basis, "convention": self.model.convention,
+                    "warp_positions": {}, "warp_rms_px": {}, "pca_modes": None, "fit": None,
+                    "notes": self.notes}
         return {"grid": self.fit.grid_root, "grid_shape": list(self.fit.grid_shape),
                 "image_shape": list(self.fit.image_shape),
                 "comparison_shape": list(self.sensor_shape),
@@ -153,4 +168,53 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
     return MeasuredModes(model=model, sensor_shape=tuple(sensor_shape), warps=warps,
                          warp_positions=positions,
                          pca_components=None if pca is None else pca.components,
-                         pca_region=None if pca is None else pca.region, fit=fit, notes=notes)
+                         pca_region=None if pca is None else pca.region, fit=fit, notes=notes,
+                         source=str(grid.root))
+
+
+def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, convention: str,
+                           sensor_shape: tuple[int, int]) -> MeasuredModes:
+    """The measured side from a kernel file: its kernels on the comparison grid.
+
+    Parameters
+    ----------
+    measured : KernelModel
+        The reference model (a grid fit, a pairs fit, an oracle's kernels).
+    where : str
+        Names it in messages and in ``compare.json``.
+    basis, convention : str
+        Those of the learned file: the two files must agree on both.
+    sensor_shape : (int, int)
+        The comparison grid (the learned file's sensor); ``measured``'s kernels are zero-padded
+        to its sensor and resampled to this grid when the sizes differ (same aspect ratio).
+
+    Raises
+    ------
+    ModelFileError
+        Basis or convention differ, or a single kernel (nothing to compare).
+    InvalidInputError
+        Aspect ratios differ.
+    """
+    if measured.kernels.shape[0] < 2:
+        raise ModelFileError(f"{where}: has a single kernel: nothing to compare the "
+                             "corrections with")
+    if measured.basis != basis or measured.convention != convention:
+        raise ModelFileError(f"{where}: basis/convention {measured.basis}/{measured.convention} "
+                             f"differ from the learned file's {basis}/{convention}")
+    own = tuple(measured.sensor_shape)
+    check_shapes(tuple(sensor_shape), own, where)
+    kernels = pad_kernels(measured.kernels, own)
+    notes = []
+    if own != tuple(sensor_shape):
+        kernels = resample(kernels, tuple(sensor_shape))
+        notes.append(f"{where}: kernels {own[0]}x{own[1]} resampled to the learned file's sensor "
+                     f"{sensor_shape[0]}x{sensor_shape[1]}; displacements are in learned-file "
+                     "pixels")
+    notes.append("the measured side is a kernel file: no warps and no PCA modes to compare with")
+    model = KernelModel(kernels=kernels.astype(np.float32), basis=measured.basis,
+                        convention=measured.convention, sensor_shape=tuple(sensor_shape),
+                        channels=measured.channels, normalization=measured.normalization,
+                        provenance=measured.provenance)
+    return MeasuredModes(model=model, sensor_shape=tuple(sensor_shape), warps={},
+                         warp_positions={}, pca_components=None, pca_region=None, fit=None,
+                         notes=notes, source=where)

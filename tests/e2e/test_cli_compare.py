@@ -71,6 +71,52 @@ def test_compare_sees_a_known_difference(setup, tmp_path, capsys):
         assert headline[f"{name}_vs_kernels"] < -0.1, headline
 
 
+def test_compare_two_kernel_files(setup, tmp_path, capsys):
+    """``psfkit compare A.npz B.npz``: B's kernels are the measured side. A file against itself
+    agrees exactly; against its negated corrections the difference kernels anti-correlate
+    exactly; the same JSON, figures and HTML as the grid form; files that cannot be compared
+    are refused in one line."""
+    _, fitted, _, model = setup
+    out = tmp_path / "self"
+    assert main(["compare", str(fitted), str(fitted), "--out", str(out), "--quiet"]) == 0
+    assert f"with kernel file {fitted}" in capsys.readouterr().out
+    doc = json.loads((out / "compare.json").read_text())
+    headline = doc["headline"]["learned"]
+    for name in ("v", "h"):
+        assert headline[f"{name}_difference_ncc"] == pytest.approx(1.0, abs=1e-9)
+        assert headline[f"{name}_vs_kernels"] == pytest.approx(1.0, abs=1e-6)
+        assert f"{name}_vs_warp" not in headline            # a kernel file has no warps
+    assert doc["measured"]["kernels"] == str(fitted) and doc["measured"]["pca_modes"] is None
+    for stem in ("fig7_learned_vs_measured", "displacements"):
+        assert (out / "figures" / f"{stem}.png").stat().st_size > 10_000
+    assert "data:image/png;base64" in (out / "compare.html").read_text()
+
+    k = model.kernels
+    negated = tmp_path / "negated.npz"
+    save_kernels(negated, KernelModel(kernels=np.stack([k[0], 2 * k[0] - k[1], 2 * k[0] - k[2]]),
+                                      sensor_shape=model.sensor_shape))
+    out = tmp_path / "negated"
+    assert main(["compare", str(negated), str(fitted), "--out", str(out), "--quiet"]) == 0
+    capsys.readouterr()
+    headline = json.loads((out / "compare.json").read_text())["headline"]["learned"]
+    assert headline["v_difference_ncc"] == pytest.approx(-1.0, abs=1e-6)
+    assert headline["h_difference_ncc"] == pytest.approx(-1.0, abs=1e-6)
+
+    source_side = tmp_path / "source.npz"
+    save_kernels(source_side, KernelModel(kernels=k, convention="source",
+                                          sensor_shape=model.sensor_shape))
+    single = tmp_path / "si.npz"
+    save_kernels(single, KernelModel(kernels=k[:1], basis="si", sensor_shape=model.sensor_shape))
+    for measured, message in ((source_side, "basis/convention paper/source differ"),
+                              (single, "single kernel")):
+        target = tmp_path / f"bad-{measured.stem}"
+        assert main(["compare", str(fitted), str(measured), "--out", str(target),
+                     "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0] and str(measured) in err[0], err
+        assert not target.exists()
+
+
 def _bad_version(path, model):
     meta = {"format": "ekdun-kernels", "version": 99, "basis": "paper"}
     np.savez(path, kernels=model.kernels, metadata=np.array(json.dumps(meta)))
