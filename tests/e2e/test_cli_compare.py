@@ -48,6 +48,15 @@ def test_compare_writes_figures_json_and_html(setup, tmp_path, capsys):
     assert "<section id=\"learned-vs-measured\">" in html and "data:image/png;base64" in html
 
 
+def _negated_corrections(model: KernelModel, path):
+    """``model`` with its corrections negated (``Kv' = 2 Kbase − Kv``, likewise ``Kh``),
+    written to ``path``: a model that differs from the measured one in a known way."""
+    k = model.kernels
+    return save_kernels(path, KernelModel(kernels=np.stack([k[0], 2 * k[0] - k[1],
+                                                            2 * k[0] - k[2]]),
+                                          sensor_shape=model.sensor_shape))
+
+
 def test_compare_sees_a_known_difference(setup, tmp_path, capsys):
     """A 'learned' model that differs from the measured one in a known way: its corrections
     are the measured ones negated (``Kv' = 2 Kbase − Kv``, likewise ``Kh``). The difference
@@ -57,10 +66,7 @@ def test_compare_sees_a_known_difference(setup, tmp_path, capsys):
     linear in it), while a comparison of the fitted file with itself gives +1 (the test
     above)."""
     grid, _, _, model = setup
-    k = model.kernels
-    negated = tmp_path / "negated.npz"
-    save_kernels(negated, KernelModel(kernels=np.stack([k[0], 2 * k[0] - k[1], 2 * k[0] - k[2]]),
-                                      sensor_shape=model.sensor_shape))
+    negated = _negated_corrections(model, tmp_path / "negated.npz")
     out = tmp_path / "cmp"
     assert main(["compare", str(negated), str(grid), "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
@@ -91,10 +97,7 @@ def test_compare_two_kernel_files(setup, tmp_path, capsys):
         assert (out / "figures" / f"{stem}.png").stat().st_size > 10_000
     assert "data:image/png;base64" in (out / "compare.html").read_text()
 
-    k = model.kernels
-    negated = tmp_path / "negated.npz"
-    save_kernels(negated, KernelModel(kernels=np.stack([k[0], 2 * k[0] - k[1], 2 * k[0] - k[2]]),
-                                      sensor_shape=model.sensor_shape))
+    negated = _negated_corrections(model, tmp_path / "negated.npz")
     out = tmp_path / "negated"
     assert main(["compare", str(negated), str(fitted), "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
@@ -102,6 +105,7 @@ def test_compare_two_kernel_files(setup, tmp_path, capsys):
     assert headline["v_difference_ncc"] == pytest.approx(-1.0, abs=1e-6)
     assert headline["h_difference_ncc"] == pytest.approx(-1.0, abs=1e-6)
 
+    k = model.kernels
     source_side = tmp_path / "source.npz"
     save_kernels(source_side, KernelModel(kernels=k, convention="source",
                                           sensor_shape=model.sensor_shape))
