@@ -516,6 +516,7 @@ FLAGS: dict[str, FlagRange] = {
     "--epochs": FlagRange(int, 1, 100_000),
     "--batch-size": FlagRange(int, 1, 65_536),
     "--lr": FlagRange(float, 0, 1, low_open=True),
+    "--physics-weight": _WEIGHT,
     "--tv": _WEIGHT,
     "--tol": FlagRange(float, 0, 1),
 }

@@ -54,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--photons", type=flag("--photons"), default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
     p.add_argument("--seed", type=flag("--seed"), default=0)
+    add_flag(p, "--device", "make-dataset",
+             note="auto; where the noise-free measurements are computed, in float64 on any "
+                  "device; the noise is drawn on the CPU")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_make_dataset)
 
@@ -88,6 +91,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
     p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")
     p.add_argument("--lr", type=flag("--lr"), help="override the preset's learning rate")
+    p.add_argument("--physics-weight", type=flag("--physics-weight"), metavar="LAMBDA",
+                   help="EK-DUN: add LAMBDA x the measurement consistency of the network's own "
+                        "forward model on the training pairs to the loss (the fit-pairs "
+                        "objective; docs/training.md); default 0, the paper's loss")
     p.add_argument("--seed", type=flag("--seed"), default=0)
     add_flag(p, "--device", "train")
     add_flag(p, "--threads", "train")
@@ -177,7 +184,10 @@ def run_make_dataset(args: argparse.Namespace) -> int:
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
                             photons=args.photons, seed=args.seed)
-    root = make_virtual_bench(args.out, spec, progress=not args.quiet)
+    from ekdun.training.acceleration import resolve_device
+
+    root = make_virtual_bench(args.out, spec, progress=not args.quiet,
+                              device=resolve_device(args.device))
     _say(args, f"dataset: {root}")
     return 0
 
@@ -230,7 +240,8 @@ def run_train(args: argparse.Namespace) -> int:
                    + (f", binned {factor}x{factor} to {dataset.image_shape[1]}x"
                       f"{dataset.image_shape[2]}" if factor > 1 else ""))
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                           seed=args.seed, amp="off" if args.no_amp else args.amp,
+                           physics_weight=args.physics_weight, seed=args.seed,
+                           amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
                            channels_last=args.channels_last, compile=args.compile,
                            workers=args.loader_workers)

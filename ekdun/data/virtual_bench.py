@@ -214,11 +214,20 @@ def make_scenes(spec: VirtualBenchSpec, split: str) -> np.ndarray:
 
 
 def simulate_measurements(model: DenseShiftVariantModel, scenes: np.ndarray,
-                          spec: VirtualBenchSpec, split_id: int, batch: int = 8) -> np.ndarray:
-    """Noisy measurements of ``scenes`` (Poisson–Gaussian, deterministic by seed)."""
+                          spec: VirtualBenchSpec, split_id: int, batch: int = 8,
+                          progress: bool = False) -> np.ndarray:
+    """Noisy measurements of ``scenes`` (Poisson–Gaussian, deterministic by seed).
+
+    The noise is drawn on the CPU from per-image seeds, so the result does not depend on the
+    model's device beyond the rounding of the noise-free image.
+    """
+    from tqdm.auto import tqdm
+
     out = np.empty_like(scenes)
-    for start in range(0, len(scenes), batch):
-        clean = model(torch.as_tensor(scenes[start:start + batch])).numpy()
+    starts = range(0, len(scenes), batch)
+    for start in tqdm(starts, desc=f"measurements ({'test' if split_id else 'train'})",
+                      unit="batch", disable=not progress, leave=False):
+        clean = model(torch.as_tensor(scenes[start:start + batch])).cpu().numpy()
         for j, y in enumerate(clean):
             i = start + j
             rng = np.random.default_rng([spec.seed, split_id, i, 7])
@@ -287,7 +296,8 @@ def dataset_is_current(root: str | os.PathLike, spec: VirtualBenchSpec,
 
 
 def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = None,
-                       progress: bool = True, verify_hash: bool = True) -> Path:
+                       progress: bool = True, verify_hash: bool = True,
+                       device: str | torch.device = "cpu") -> Path:
     """Build the dataset at ``root`` unless an identical one is already there.
 
     Parameters
@@ -300,6 +310,9 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
         Progress bars.
     verify_hash : bool
         Re-hash the files of an existing dataset before reusing it.
+    device : str or torch.device
+        Where the dense model computes the noise-free measurements (float64 on any device;
+        a GPU makes a 256² dataset of thousands of pairs take minutes, not hours).
 
     Returns
     -------
@@ -320,10 +333,11 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
     with atomic_directory(root, overwrite=True) as tmp:
         simulate_grid(tmp / "grid", spec.bench_config(), grid_shape=spec.grid_shape,
                       suffix=".npy", progress=progress)
-        model = dense_model_for(spec)
+        model = dense_model_for(spec).to(device)
         for split_id, split in enumerate(("train", "test")):
             scenes = make_scenes(spec, split)
-            measurements = simulate_measurements(model, scenes, spec, split_id)
+            measurements = simulate_measurements(model, scenes, spec, split_id,
+                                                 progress=progress)
             for sub, arrays in (("scene", scenes), ("measurement", measurements)):
                 folder = tmp / split / sub
                 folder.mkdir(parents=True)

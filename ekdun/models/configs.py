@@ -143,6 +143,7 @@ class TrainingConfig:
     lr: float = 1e-4
     gamma: float = 0.95
     kernel_lr_scale: float = 1e-2
+    physics_weight: float = 0.0
 
 
 @dataclass(frozen=True)

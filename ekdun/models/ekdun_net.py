@@ -46,7 +46,7 @@ from ekdun.models.configs import EKDUNConfig, parse_schedule
 from ekdun.models.unet import UNet
 from ekdun.models.unrolled import State, UnrolledNetwork
 from ekdun.physics.kernel_parameterisation import build_parameterisation
-from ekdun.physics.operators import EigenKernelOperator
+from ekdun.physics.operators import EigenKernelOperator, PreparedOperator
 from psfkit.forward.convolution import kernel_spectra
 
 
@@ -118,6 +118,14 @@ class EKDUN(UnrolledNetwork):
     def uses_eigen_kernels(self) -> bool:
         """Whether any step (``f⁰`` or an iteration) uses the eigen-kernel model."""
         return self.eigen_initial or any(self.eigen_schedule)
+
+    def forward_model(self) -> PreparedOperator:
+        """``A_θ``: the network's forward model with its current kernels (differentiable while
+        training): the eigen-kernel model, or ``Kbase`` alone when no step uses it (``base``).
+        """
+        if self.uses_eigen_kernels:
+            return self.physics.prepare(self._spectra())
+        return self.physics.prepare_base(self._spectra(first=1))
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
         # One kernel FFT batch per forward pass, reused by every iteration; the base model

@@ -11,12 +11,16 @@ from typing import Any
 from psfkit.io.atomic import atomic_file
 
 COLUMNS = ("epoch", "train_loss", "lr", "seconds", "images_per_second")
+#: written after :data:`COLUMNS` when a row has it (training with ``--physics-weight``)
+OPTIONAL_COLUMNS = ("physics_loss",)
 
 
 def write_csv_log(path: str | os.PathLike, history: list[dict[str, Any]]) -> Path:
-    """Write the per-epoch ``history`` as CSV (columns :data:`COLUMNS`)."""
+    """Write the per-epoch ``history`` as CSV (columns :data:`COLUMNS`, then those of
+    :data:`OPTIONAL_COLUMNS` that any row has)."""
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore")
+    extra = tuple(c for c in OPTIONAL_COLUMNS if any(c in row for row in history))
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS + extra, extrasaction="ignore")
     writer.writeheader()
     for row in history:
         writer.writerow(row)

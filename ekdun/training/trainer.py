@@ -52,6 +52,7 @@ from ekdun.training.checkpoint import (
 )
 from ekdun.training.export import export_kernels
 from ekdun.training.logs import write_csv_log
+from ekdun.training.physics_loss import PhysicsObjective
 from psfkit.kernelfile import KernelModel, save_kernels
 
 CHECKPOINT = "checkpoint.pt"
@@ -79,6 +80,7 @@ class TrainOptions:
     lr: float | None = None
     gamma: float | None = None
     kernel_lr_scale: float | None = None
+    physics_weight: float | None = None
     seed: int = 0
     amp: bool | str = True
     device: str = "auto"
@@ -105,6 +107,10 @@ def check_training_config(cfg: TrainingConfig) -> None:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigurationError(f"--{name.replace('_', '-')} must be an integer >= 1, "
                                      f"got {value!r}")
+    weight = float(cfg.physics_weight)
+    if not np.isfinite(weight) or weight < 0:
+        raise ConfigurationError(f"--physics-weight must be a finite number >= 0, got "
+                                 f"{cfg.physics_weight!r}")
     for name in ("lr", "gamma", "kernel_lr_scale"):
         value = float(getattr(cfg, name))
         # kernel_lr_scale 0 freezes the physics kernels, a valid choice
@@ -226,6 +232,9 @@ def train(run_dir: str | os.PathLike, model_name: str,
     random.seed(options.seed)
     seed_model = seed_kernel_model(seed)
     model = build_network(model_name, seed_model, preset, overrides)
+    if cfg.physics_weight > 0 and not hasattr(model, "forward_model"):
+        raise ConfigurationError(f"--physics-weight needs EK-DUN's own eigen-kernel forward "
+                                 f"model; {model_name} has none (use --network ekdun)")
     seed_kernels = model.seed_kernels
     assert seed_kernels is not None       # build_network sets it: what the network starts from
     _check_dataset(dataset, model)
@@ -275,10 +284,12 @@ def train(run_dir: str | os.PathLike, model_name: str,
         if model_name == "ekdun":
             save_kernels(run_dir / KERNELS_INITIAL, seed_kernels)
 
-    net: nn.Module = model
+    # λ > 0: the network and its measurement consistency in one forward pass (one DDP graph)
+    physics_weight = float(cfg.physics_weight)
+    net: nn.Module = PhysicsObjective(model) if physics_weight > 0 else model
     if ctx.distributed:
         net = nn.parallel.DistributedDataParallel(
-            model, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
+            net, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
             find_unused_parameters=True)
     if options.compile:
         net = torch.compile(net)
@@ -298,13 +309,21 @@ def train(run_dir: str | os.PathLike, model_name: str,
         # The epoch's loss is summed on the device: reading it (.item()) makes the host wait
         # for the device, so that happens only at log points and at the end of the epoch.
         total = torch.zeros((), dtype=torch.float64, device=ctx.device)
+        total_physics = torch.zeros((), dtype=torch.float64, device=ctx.device)
         count = 0
         for x, y in source.epoch(epoch):
             optimizer.zero_grad(set_to_none=True)
             with acc.autocast(amp, ctx.device):
-                out = net(y)
+                if physics_weight > 0:
+                    out, consistency = net(y, x)
+                else:
+                    out = net(y)
             loss = nn.functional.mse_loss(out.float(), x)
-            scaler.scale(loss).backward()
+            if physics_weight > 0:
+                total_physics += consistency.detach()
+                scaler.scale(loss + physics_weight * consistency).backward()
+            else:
+                scaler.scale(loss).backward()
             scaler.step(optimizer)
             scaler.update()
             total += loss.detach()
@@ -322,9 +341,12 @@ def train(run_dir: str | os.PathLike, model_name: str,
         scheduler.step()
         mean_loss = D.all_mean(total.item() / max(count, 1), ctx)
         seconds = time.perf_counter() - t0
-        metadata["history"].append({
-            "epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
-            "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)})
+        row = {"epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
+               "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)}
+        if physics_weight > 0:
+            # the MSE stays train_loss (comparable across λ); the consistency term beside it
+            row["physics_loss"] = D.all_mean(total_physics.item() / max(count, 1), ctx)
+        metadata["history"].append(row)
         metadata["epoch"] = epoch
         if ctx.is_main:
             save_checkpoint(ckpt_path, {

@@ -103,7 +103,7 @@ def test_shared_flags_where_the_vocabulary_says():
     for _cli, command, action in all_options():
         for option in action.option_strings:
             where[option].add(command)
-    assert where["--device"] == {"train", "eval", "reconstruct"}
+    assert where["--device"] == {"train", "eval", "reconstruct", "make-dataset"}
     assert where["--amp"] == {"train", "reconstruct"}
     assert {"fit-pairs", "eval-model", "train", "eval", "reconstruct", "admm"} \
         <= where["--channel-order"]

@@ -93,11 +93,13 @@ def test_resume_equals_an_uninterrupted_run(tiny_data, tmp_path):
     assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == 4
 
 
-def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path):
+@pytest.mark.parametrize("physics_weight", ["0", "0.5"])
+def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path, physics_weight):
+    # with --physics-weight the consistency term is part of the one forward pass DDP wraps
     pairs, kernels = tiny_data
     common = [str(pairs), "--kernels", str(kernels), "--iterations", "2", "--epochs", "2",
               "--batch-size", "4", "--lr", "1e-3", "--threads", "1", "--quiet",
-              "--device", "cpu"]
+              "--device", "cpu", "--physics-weight", physics_weight]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     one = subprocess.run([sys.executable, "-m", "ekdun.cli", "train", *common[:1],
                           str(tmp_path / "one"), *common[1:]], env=env, capture_output=True,
@@ -115,6 +117,10 @@ def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path):
     a = load_checkpoint(tmp_path / "one" / "checkpoint.pt")
     b = load_checkpoint(tmp_path / "two" / "checkpoint.pt")
     assert b["metadata"]["world_size"] == 2 and a["metadata"]["world_size"] == 1
+    assert a["metadata"]["training"]["physics_weight"] == float(physics_weight)
+    if float(physics_weight) > 0:
+        assert a["metadata"]["history"][-1]["physics_loss"] == pytest.approx(
+            b["metadata"]["history"][-1]["physics_loss"], rel=1e-4)
     for name, p in a["model"].items():
         torch.testing.assert_close(b["model"][name], p, rtol=1e-5, atol=1e-5, msg=name)
 
