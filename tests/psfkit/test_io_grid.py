@@ -1,6 +1,7 @@
 """The PSF-grid format: round trips and every refusal the reader promises."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -161,8 +162,17 @@ BAD_CASES = ["missing file", "duplicate index", "missing index", "mixed shapes",
 def test_reader_refuses_bad_input_with_one_clear_line(grid_dir, case):
     expected = _corrupt(grid_dir, case)
     with pytest.raises(GridFormatError, match=expected) as info:
-        read_grid(grid_dir)
+        read_grid(grid_dir, strict=True)
     assert "\n" not in str(info.value)
+    if case in ("missing index", "nan", "all zero"):     # flagged, not refused (issue 26)
+        grid = read_grid(grid_dir)
+        if case == "missing index":
+            assert grid.layout == "incomplete lattice"
+            assert grid.missing() == [(2, 1)]
+        else:
+            assert grid.layout == "full lattice"
+            assert len(grid.frame_problems) == 1
+            assert re.search(expected, next(iter(grid.frame_problems.values())))
 
 
 def test_not_a_folder(tmp_path):
