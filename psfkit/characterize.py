@@ -275,7 +275,7 @@ def _fig2_positions(grid: PsfGrid, center: tuple[int, int]) -> list[tuple[int, i
         assert coords is not None
         radius = np.hypot(*np.moveaxis(coords[0] - coords[center], -1, 0))
         far = int(np.argmax(radius))
-        half = int(np.argmin(np.abs(radius - radius[far] / 2) + (radius == 0) * np.inf))
+        half = int(np.argmin(np.where(radius > 0, np.abs(radius - radius[far] / 2), np.inf)))
         return list(dict.fromkeys([(0, half), (0, far)]))
     n, m = grid.grid_shape
     r0, c0 = center

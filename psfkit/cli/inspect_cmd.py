@@ -6,6 +6,7 @@ import argparse
 
 import numpy as np
 
+from psfkit.cli.options import STRICT_HELP
 from psfkit.io import read_grid
 from psfkit.io.grid import IRREGULAR
 
@@ -17,8 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("grid", help="PSF-grid folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
-                   help="refuse an incomplete lattice, an irregular scan and frames with "
-                        "NaN/Inf or all-zero pixels (instead of reporting them)")
+                   help=STRICT_HELP)
     p.set_defaults(func=run)
 
 

@@ -38,13 +38,17 @@ def preprocess_options(args: argparse.Namespace) -> PreprocessOptions:
                              allow_saturated=args.allow_saturated)
 
 
+#: ``--strict`` (``psfkit info`` and the commands that analyse a grid).
+STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan and any "
+               "unusable capture (saturated, no signal, NaN/Inf, failed registration) instead "
+               "of excluding it with its reason")
+
+
 def add_coverage_options(p: argparse.ArgumentParser) -> None:
     """How positions that fail a quality check, and the reference, are handled (issue 26)."""
     g = p.add_argument_group("bad positions and the reference")
     g.add_argument("--strict", action="store_true",
-                   help="all or nothing: refuse an incomplete or irregular grid, and stop at "
-                        "the first position that fails a quality check (saturated, no signal, "
-                        "NaN/Inf, registration) instead of excluding it with its reason")
+                   help=STRICT_HELP)
     g.add_argument("--reference", metavar="R,C",
                    help="compare every PSF with this position instead of the centre one: "
                         "grid row and column R,C, the I-th position of an irregular scan, or a "
