@@ -202,3 +202,47 @@ def test_writer_is_atomic(tmp_path):
     with pytest.raises(GridFormatError, match="never written"), GridWriter(out, (2, 2)) as w:
         w.add(0, 0, _psf(0))
     assert not out.exists()
+
+
+def test_an_irregular_scan_in_json_and_csv(grid_dir):
+    doc = _manifest(grid_dir)
+    doc.pop("grid_shape")
+    for p in doc["positions"]:
+        del p["row"], p["col"]
+    _write_manifest(grid_dir, doc)
+    grid = read_grid(grid_dir)
+    assert grid.layout == "irregular" and grid.grid_shape == (1, 9)
+    assert [p.col for p in grid.positions] == list(range(9))
+    assert grid.center_index == (0, 4)       # the position at field (0, 0)
+    assert grid.find_reference("#2") == (0, 2) == grid.find_reference(doc["positions"][2]["file"])
+    (grid_dir / "manifest.json").unlink()
+    lines = ["file,monitor_x_px,monitor_y_px,role", *(
+        f"{p['file']},{p['monitor_px'][0]},{p['monitor_px'][1]},psf" for p in doc["positions"]),
+        "dark.tiff,,,dark"]
+    (grid_dir / "manifest.csv").write_text("\n".join(lines) + "\n")
+    assert read_grid(grid_dir).layout == "irregular"
+
+
+@pytest.mark.parametrize("case", ["mixed", "no coordinates", "grid_shape", "half index"])
+def test_irregular_manifests_that_are_refused(grid_dir, case):
+    doc = _manifest(grid_dir)
+    if case == "mixed":
+        del doc["positions"][3]["row"], doc["positions"][3]["col"]
+        expected = "psf_r01_c00.tiff has no row/col but other positions do"
+    else:
+        for p in doc["positions"]:
+            del p["row"], p["col"]
+        if case == "no coordinates":
+            doc.pop("grid_shape")
+            del doc["positions"][5]["monitor_px"], doc["positions"][5]["field_deg"]
+            expected = "an irregular scan needs 'monitor_px' or 'field_deg' for every position"
+        elif case == "grid_shape":
+            expected = "'grid_shape' describes a lattice"
+        else:
+            doc.pop("grid_shape")
+            doc["positions"][0]["row"] = 0
+            expected = "give both 'row' and 'col'"
+    _write_manifest(grid_dir, doc)
+    with pytest.raises(GridFormatError, match=expected) as info:
+        read_grid(grid_dir)
+    assert "\n" not in str(info.value)
