@@ -14,17 +14,22 @@ from typing import Any
 import cv2
 import numpy as np
 
-from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
-from psfkit.errors import ConfigurationError
+from psfkit.alignment import (
+    MIN_QUALITY,
+    REJECTION_REASONS,
+    RELIABLE_OVERLAP,
+    ExcludedPosition,
+    GridAligner,
+)
+from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.gain import GainFit, fit_gain, overlap_gain
-from psfkit.io.grid import GridPosition, PsfGrid
+from psfkit.io.grid import FULL_LATTICE, IRREGULAR, GridPosition, PsfGrid
 from psfkit.mae import mean_absolute_error
 from psfkit.parallel import bounded_map
 from psfkit.preprocess import PreprocessOptions
 from psfkit.registration import (
     ShiftMapFit,
     fit_shift_map,
-    normalized_cross_correlation,
 )
 from psfkit.resample import bin_image, binning_factor
 from psfkit.warp import (
@@ -61,6 +66,11 @@ class CharacterizeOptions:
     mae_smoothing_px : float
         Gaussian σ (px) applied to both PSFs before the MAE, so that sensor noise does not
         swamp the model error near the axis (0: raw pixels).
+    min_quality : float
+        Positions whose registration quality (NCC) is below this are excluded ("low NCC").
+    strict : bool
+        All or nothing: a position that fails a quality check ends the run (as before
+        issue 26) instead of being excluded with its reason.
     """
 
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
@@ -69,6 +79,8 @@ class CharacterizeOptions:
     flow_method: str = "dis"
     per_channel: bool = False
     mae_smoothing_px: float = 1.0
+    min_quality: float = MIN_QUALITY
+    strict: bool = False
 
     def __post_init__(self) -> None:
         unknown = set(self.steps) - set(STEPS)
@@ -80,6 +92,8 @@ class CharacterizeOptions:
             raise ConfigurationError("upsample must be >= 1")
         if self.mae_smoothing_px < 0:
             raise ConfigurationError("mae_smoothing_px must be >= 0")
+        if not 0 <= self.min_quality <= 1:
+            raise ConfigurationError(f"--min-ncc must be in [0, 1], got {self.min_quality}")
 
 
 @dataclass
@@ -111,7 +125,13 @@ class PositionResult:
 
 @dataclass
 class GridCharacterization:
-    """Everything :func:`characterize_grid` measured, plus images for the figures."""
+    """Everything :func:`characterize_grid` measured, plus images for the figures.
+
+    ``positions`` holds the measured positions; ``excluded`` the captured ones left out, with
+    their reasons; ``missing`` the cells of the declared lattice that were never captured.
+    Per-position tables (:meth:`table`) are ``(N, M)`` lattices (``(1, P)`` for an irregular
+    scan) with NaN in the cells of excluded and missing positions.
+    """
 
     grid_root: str
     grid_shape: tuple[int, int]
@@ -130,36 +150,66 @@ class GridCharacterization:
         default_factory=dict, repr=False)   # (aligned image, valid mask) for Fig. 2
     thumbnails: np.ndarray | None = field(default=None, repr=False)
     flows: dict[tuple[int, int], np.ndarray] = field(default_factory=dict, repr=False)
+    layout: str = FULL_LATTICE
+    excluded: list[ExcludedPosition] = field(default_factory=list)
+    missing: list[tuple[int, int]] = field(default_factory=list)
+
+    def _lattice(self, items: list[Any], values: list[Any]) -> np.ndarray:
+        n, m = self.grid_shape
+        extra = np.shape(values[0]) if values else ()
+        out = np.full((n, m, *extra), np.nan)
+        for item, value in zip(items, values, strict=True):
+            out[item.row, item.col] = value
+        return out
 
     def table(self, key: str) -> np.ndarray:
-        """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity."""
-        n, m = self.grid_shape
-        values = [getattr(p, key) for p in self.positions]
-        return np.array(values, dtype=np.float64).reshape(n, m, *np.shape(values[0]))
+        """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity (NaN where not
+        measured)."""
+        return self._lattice(self.positions, [getattr(p, key) for p in self.positions])
 
     def warp_table(self, key: str) -> np.ndarray:
         """``(N, M)`` array of a warp statistic (NaN where no warp was measured)."""
-        n, m = self.grid_shape
-        return np.array([p.warp[key] if p.warp else np.nan for p in self.positions],
-                        dtype=np.float64).reshape(n, m)
+        return self._lattice(self.positions, [p.warp[key] if p.warp else np.nan
+                                              for p in self.positions])
+
+    @property
+    def captured(self) -> list[PositionResult | ExcludedPosition]:
+        """Measured and excluded positions (every position of the manifest)."""
+        return [*self.positions, *self.excluded]
+
+    def status(self) -> np.ndarray:
+        """``(N, M)`` str array: ``"ok"``, ``"excluded"`` or ``"missing"``."""
+        out = np.full(self.grid_shape, "missing", dtype=object)
+        for p in self.positions:
+            out[p.row, p.col] = "ok"
+        for e in self.excluded:
+            out[e.row, e.col] = "excluded"
+        return out
 
     def field_coordinates(self) -> np.ndarray:
-        """``(N, M, 2)`` field positions in :attr:`field_units`."""
+        """``(N, M, 2)`` field positions in :attr:`field_units` (NaN where not captured)."""
         n, m = self.grid_shape
+        items = self.captured
         if self.field_units == "monitor px":
-            return np.array([p.monitor_px for p in self.positions]).reshape(n, m, 2)
+            return self._lattice(items, [p.monitor_px for p in items])
         if self.field_units == "tan(field angle)":
-            return np.tan(np.deg2rad(np.array([p.field_deg for p in self.positions])
-                                     )).reshape(n, m, 2)
+            return np.tan(np.deg2rad(self._lattice(items, [p.field_deg for p in items])))
         rows, cols = np.mgrid[0:n, 0:m]
         return np.stack([cols - self.center[1], rows - self.center[0]], axis=-1).astype(float)
 
     def field_angle_deg(self) -> np.ndarray | None:
-        """``(N, M)`` total field angle θ, or ``None`` without field angles."""
-        if any(p.field_deg is None for p in self.positions):
+        """``(N, M)`` total field angle θ (NaN where not captured), or ``None`` without field
+        angles."""
+        items = self.captured
+        if any(p.field_deg is None for p in items):
             return None
-        t = np.tan(np.deg2rad(np.array([p.field_deg for p in self.positions])))
-        return np.rad2deg(np.arctan(np.hypot(t[:, 0], t[:, 1]))).reshape(self.grid_shape)
+        t = np.tan(np.deg2rad(self._lattice(items, [p.field_deg for p in items])))
+        return np.rad2deg(np.arctan(np.hypot(t[..., 0], t[..., 1])))
+
+    @property
+    def is_complete(self) -> bool:
+        """A full lattice with every position measured (the pre-issue-26 case)."""
+        return self.layout == FULL_LATTICE and not self.excluded
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary and per-position numbers."""
@@ -190,7 +240,21 @@ class GridCharacterization:
             "warp_anisotropy": self.warp_anisotropy,
             "reliable_overlap": RELIABLE_OVERLAP,
             "positions": [p.to_dict() for p in self.positions],
+            **self.coverage(),
         }
+
+    def coverage(self) -> dict[str, Any]:
+        """The layout, the cells never captured and the excluded positions with their
+        reasons; empty for a complete full lattice (its documents stay as before issue 26)."""
+        if self.is_complete and self.options.min_quality == MIN_QUALITY:
+            return {}
+        return {"layout": self.layout,
+                "positions_measured": len(self.positions),
+                "missing": [list(index) for index in self.missing],
+                "excluded": [e.to_dict() for e in self.excluded],
+                "exclusion_reasons": {r: REJECTION_REASONS[r]
+                                      for r in sorted({e.reason for e in self.excluded})},
+                "min_quality": self.options.min_quality}
 
 
 def _field_units(grid: PsfGrid) -> str:
@@ -201,10 +265,19 @@ def _field_units(grid: PsfGrid) -> str:
     return "grid steps"
 
 
-def _fig2_positions(grid_shape: tuple[int, int], center: tuple[int, int]) -> list[tuple[int, int]]:
+def _fig2_positions(grid: PsfGrid, center: tuple[int, int]) -> list[tuple[int, int]]:
     """Off-axis positions B and C of Fig. 2: halfway to the farther edge and at that edge,
-    along the vertical through the centre as in the paper (horizontal for a one-row grid)."""
-    n, m = grid_shape
+    along the vertical through the centre as in the paper (horizontal for a one-row grid);
+    of an irregular scan, the position farthest from the centre and the one nearest halfway
+    to it."""
+    if grid.is_irregular:
+        coords = grid.monitor_px() if grid.monitor_px() is not None else grid.field_deg()
+        assert coords is not None
+        radius = np.hypot(*np.moveaxis(coords[0] - coords[center], -1, 0))
+        far = int(np.argmax(radius))
+        half = int(np.argmin(np.where(radius > 0, np.abs(radius - radius[far] / 2), np.inf)))
+        return list(dict.fromkeys([(0, half), (0, far)]))
+    n, m = grid.grid_shape
     r0, c0 = center
     if n > 1:
         far = 0 if r0 >= n - 1 - r0 else n - 1
@@ -260,23 +333,27 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         file).
     """
     options = options or CharacterizeOptions()
-    aligner = GridAligner(grid, options.preprocess, options.upsample)
+    aligner = GridAligner(grid, options.preprocess, options.upsample,
+                          min_quality=options.min_quality, strict=options.strict)
     center = aligner.center
     reference, ref_lum = aligner.reference, aligner.reference_luminance
     ref_total = reference.sum(axis=0)
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
     steps = set(options.steps)
-    fig2 = set(_fig2_positions(grid.grid_shape, center))
+    fig2 = set(_fig2_positions(grid, center))
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
 
     result = GridCharacterization(
         grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
         channels=grid.channels, center=center, options=options, positions=[],
-        field_units=_field_units(grid), reference=reference)
+        field_units=_field_units(grid), reference=reference, layout=grid.layout,
+        missing=grid.missing())
 
-    def measure(pos: GridPosition) -> tuple[PositionResult, dict[str, Any]]:
+    def measure(pos: GridPosition) -> tuple[PositionResult | ExcludedPosition, dict[str, Any]]:
         here = (pos.row, pos.col)
-        item = aligner.align(pos)
+        item = aligner.try_align(pos)
+        if isinstance(item, ExcludedPosition):
+            return item, {}
         aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
         extras: dict[str, Any] = {"thumbnail": _thumbnail(prep.luminance / np.float32(
             aligner.scale))}
@@ -284,7 +361,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         record = PositionResult(
             row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
             monitor_px=pos.monitor_px, shift=shift,
-            quality=normalized_cross_correlation(ref_lum, al_lum, valid), overlap=item.overlap,
+            quality=item.quality, overlap=item.overlap,
             n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
             snr=prep.snr)
         if options.per_channel and aligned.shape[0] > 1:
@@ -308,22 +385,25 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
             extras["flow"] = _coarse_flow(residual, mask)
         return record, extras
 
-    records: list[PositionResult | None] = [None] * len(grid.positions)
+    records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
     bar: Any = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(grid.positions), desc="characterizing PSFs", unit="psf")
-    def collect(index: int, record: PositionResult, extras: dict[str, Any]) -> None:
+    def collect(index: int, record: PositionResult | ExcludedPosition,
+                extras: dict[str, Any]) -> None:
         records[index] = record
+        if bar is not None:
+            bar.update()
+        if isinstance(record, ExcludedPosition):
+            return
         here = (record.row, record.col)
         thumbnails[here] = extras["thumbnail"]
         if "example" in extras:
             result.examples[here] = extras["example"]
         if "flow" in extras:
             result.flows[here] = extras["flow"]
-        if bar is not None:
-            bar.update()
 
     try:
         for index, (record, extras) in bounded_map(measure, grid.positions, workers):
@@ -331,13 +411,20 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     finally:
         if bar is not None:
             bar.close()
-    result.positions = [r for r in records if r is not None]
+    result.positions = [r for r in records if isinstance(r, PositionResult)]
+    result.excluded = [r for r in records if isinstance(r, ExcludedPosition)]
 
     result.thumbnails = thumbnails
     coords = result.field_coordinates()
     overlaps = result.table("overlap")
-    result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
-                                     weights=overlaps) if min(grid.grid_shape) > 1 else None
+    if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
+        result.shift_fit = None
+    else:   # over the measured positions; None when they do not span two directions
+        try:
+            result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
+                                             weights=overlaps)
+        except InvalidInputError:
+            result.shift_fit = None
     if "gain" in steps:
         result.gain_fit = fit_gain(result.table("gain"), grid.field_deg(), coords,
                                    weights=overlaps)

@@ -405,8 +405,11 @@ def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float,
 
 
 def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int, int],
-                 where: str) -> None:
+                 where: str, left_out: str = "") -> None:
     """Refuse a basis that the grid positions cannot determine.
+
+    ``shifts`` may hold NaN rows (positions not measured); ``left_out`` is appended to the
+    count in the message (e.g. `` (2 excluded, 4 not captured)``).
 
     Raises
     ------
@@ -415,9 +418,12 @@ def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int
         the positions (e.g. all positions on one row).
     """
     shifts = np.asarray(shifts, dtype=np.float64).reshape(-1, 2)
+    shifts = shifts[np.isfinite(shifts).all(axis=1)]     # gaps and excluded positions
     if len(shifts) < basis.n_kernels:
-        raise InvalidInputError(f"{where}: basis {basis.name!r} has {basis.n_kernels} kernels "
-                                f"but the grid has only {len(shifts)} positions")
+        raise InvalidInputError(f"{where}: basis {basis.name!r} needs at least "
+                                f"{basis.n_kernels} positions ({basis.n_kernels} kernels) but "
+                                f"only {len(shifts)} {'remain' if len(shifts) != 1 else 'remains'}"
+                                f"{left_out}; use a smaller basis (--basis)")
     design = np.concatenate([position_weights(basis, sensor_shape, tuple(s), "source")[:, 0, 0][
         None] for s in shifts])
     for k, name in enumerate(basis.kernel_names[1:], start=1):
@@ -446,7 +452,8 @@ class WorkingStack:
     """The aligned grid binned by ``factor`` (kept in memory for residuals, CV and PCA).
 
     ``images`` ``(P, C, h, w)``, ``valid`` ``(P, h, w)``, ``shifts`` ``(P, 2)`` in binned
-    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)``.
+    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)``: one entry per
+    measured position (an excluded one is dropped by :meth:`subset`).
     """
 
     factor: int
@@ -464,6 +471,29 @@ class WorkingStack:
         return cls(factor=factor, images=np.zeros((n, c, *shape), np.float32),
                    valid=np.zeros((n, *shape), bool), shifts=np.zeros((n, 2)),
                    index=np.zeros((n, 2), int), overlap=np.zeros(n), gains=np.zeros(n))
+
+    def subset(self, members: np.ndarray) -> WorkingStack:
+        """The stack of the ``members`` (bool ``(P,)``) only (the same arrays when all)."""
+        if members.all():
+            return self
+        return WorkingStack(factor=self.factor, images=self.images[members],
+                            valid=self.valid[members], shifts=self.shifts[members],
+                            index=self.index[members], overlap=self.overlap[members],
+                            gains=self.gains[members])
+
+    def row_of(self, index: tuple[int, int]) -> int:
+        """The stack entry of grid index ``(row, col)``."""
+        hits = np.flatnonzero((self.index == np.asarray(index)).all(axis=1))
+        if len(hits) == 0:
+            raise InvalidInputError(f"grid index {index} is not among the measured positions")
+        return int(hits[0])
+
+    def lattice(self, values: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
+        """Per-entry ``values`` ``(P, ...)`` placed on the ``(N, M, ...)`` lattice (NaN
+        elsewhere)."""
+        out = np.full((*grid_shape, *np.shape(values)[1:]), np.nan)
+        out[self.index[:, 0], self.index[:, 1]] = values
+        return out
 
     def put(self, p: int, aligned: AlignedPsf, image: np.ndarray, gain: float) -> None:
         """Store position ``p`` binned (``image`` may be the gain-compensated version)."""

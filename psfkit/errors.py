@@ -20,6 +20,16 @@ class GridFormatError(InvalidInputError):
     """A PSF-grid folder or its manifest does not follow the grid format."""
 
 
+class PositionRejected(InvalidInputError):
+    """One PSF of a grid fails a quality check (``reason``: one of
+    :data:`psfkit.alignment.REJECTION_REASONS`). The grid analyses exclude that position and
+    carry on (unless ``strict``, or it is the reference PSF)."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 class ModelFileError(InvalidInputError):
     """A kernel or model file is of the wrong format, version or shape."""
 

@@ -71,7 +71,9 @@ def fit_gain(gains: np.ndarray, field_deg: np.ndarray | None, positions: np.ndar
     """
     g = gains.reshape(-1).astype(np.float64)
     w = np.ones_like(g) if weights is None else np.clip(weights.reshape(-1), 0, None)
-    ok = np.isfinite(g) & (g > 0) & (w > 0)
+    p = positions.reshape(-1, 2).astype(np.float64)
+    # NaN gains (gaps, excluded positions) and unknown positions are left out
+    ok = np.isfinite(g) & (g > 0) & (w > 0) & np.isfinite(p).all(axis=1)
     exponent, cos_rms = float("nan"), float("nan")
     if field_deg is not None:
         t = np.tan(np.deg2rad(field_deg.reshape(-1, 2)))
@@ -81,8 +83,8 @@ def fit_gain(gains: np.ndarray, field_deg: np.ndarray | None, positions: np.ndar
             exponent = float(np.sum(w[use] * log_cos[use] * np.log(g[use]))
                              / np.sum(w[use] * log_cos[use] ** 2))
             cos_rms = float(np.sqrt(np.mean((g[ok] - np.exp(exponent * log_cos[ok])) ** 2)))
-    p = positions.reshape(-1, 2).astype(np.float64)
-    p = p / max(float(np.max(np.abs(p))), 1e-30)
+    known = np.isfinite(p).all(axis=1)
+    p = p / max(float(np.max(np.abs(p[known]), initial=0.0)), 1e-30)
     x, y = p[:, 0], p[:, 1]
     design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
     if ok.sum() >= design.shape[1] and np.linalg.matrix_rank(design[ok]) == design.shape[1]:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
+from psfkit.alignment import MIN_QUALITY, RELIABLE_OVERLAP, ExcludedPosition, GridAligner
 from psfkit.choices import CV_BASES
 from psfkit.eigen import (
     DEFAULT_RIDGE,
@@ -29,7 +29,7 @@ from psfkit.eigen import (
 )
 from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
-from psfkit.io.grid import PsfGrid
+from psfkit.io.grid import FULL_LATTICE, PsfGrid
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
@@ -65,6 +65,10 @@ class EigenFitOptions:
         Relative weight of the prior pulling correction kernels towards the base kernel
         (:data:`psfkit.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that the
         pixels the data do not constrain are well-conditioned).
+    min_quality : float
+        Positions whose registration quality (NCC) is below this are excluded.
+    strict : bool
+        All or nothing: a position that fails a quality check ends the fit.
     """
 
     basis: str = "paper"
@@ -76,6 +80,8 @@ class EigenFitOptions:
     ridge: float = DEFAULT_RIDGE
     upsample: int = 100
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
+    min_quality: float = MIN_QUALITY
+    strict: bool = False
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-eigen, never a Python field
@@ -116,6 +122,14 @@ class GridEigenResult:
     pca: PcaResult | None = None
     channel_order: str = "RGB"   # of the grid's files on disk (recorded in the kernel file)
     angles_deg: np.ndarray | None = None
+    layout: str = FULL_LATTICE
+    excluded: list[ExcludedPosition] = field(default_factory=list)
+    missing: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def n_positions(self) -> int:
+        """Positions the kernels were fitted to."""
+        return len(self.stack.images)
 
     @property
     def kernels(self) -> np.ndarray:
@@ -155,6 +169,11 @@ class GridEigenResult:
             out["pca"] = self.pca.to_dict()
         if self.angles_deg is not None:
             out["principal_angles_deg_eigen_vs_pca"] = self.angles_deg.tolist()
+        if self.layout != FULL_LATTICE or self.excluded:    # (a full grid's record as before)
+            out["layout"] = self.layout
+            out["positions_fitted"] = self.n_positions
+            out["missing"] = [list(index) for index in self.missing]
+            out["excluded"] = [e.to_dict() for e in self.excluded]
         return out
 
 
@@ -177,17 +196,17 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     """
     options = options or EigenFitOptions()
     basis = get_basis(options.basis)
-    n_rows, n_cols = grid.grid_shape
     c, h, w = grid.image_shape
     center = grid.require_center()
-    # refuse an undeterminable basis before any image is read (grid indices as a proxy for
-    # the shifts), and again with the measured shifts below
-    rows, cols = np.mgrid[0:n_rows, 0:n_cols]
-    proxy = np.stack([(cols - center[1]) * w / max(n_cols, 2),
-                      (rows - center[0]) * h / max(n_rows, 2)], axis=-1)
-    check_design(basis, proxy, (h, w), str(grid.root))
+    missing = grid.missing()
+    not_captured = f", {len(missing)} not captured" if missing else ""
+    # refuse an undeterminable basis before any image is read (grid indices or field positions
+    # as a proxy for the shifts), and again with the measured shifts below
+    check_design(basis, _proxy_shifts(grid, center), (h, w), str(grid.root),
+                 f" ({len(grid.positions)} captured{not_captured})")
 
-    aligner = GridAligner(grid, options.preprocess, options.upsample)
+    aligner = GridAligner(grid, options.preprocess, options.upsample,
+                          min_quality=options.min_quality, strict=options.strict)
     full_res = CONVENTIONS if options.convention == "auto" else (options.convention,)
     equations = {conv: NormalEquations(basis, conv, (c, h, w)) for conv in full_res}
     stack = WorkingStack.empty(len(grid.positions), (c, h, w),
@@ -199,8 +218,16 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
 
         bar = tqdm(total=len(grid.positions), desc="fitting eigen-kernels", unit="psf")
     # registration and alignment in worker threads; the accumulation (not thread-safe) here
+    excluded: list[ExcludedPosition] = []
+    kept = np.ones(len(grid.positions), bool)
     try:
-        for p, aligned in bounded_map(aligner.align, grid.positions, workers):
+        for p, aligned in bounded_map(aligner.try_align, grid.positions, workers):
+            if isinstance(aligned, ExcludedPosition):
+                excluded.append(aligned)
+                kept[p] = False
+                if bar is not None:
+                    bar.update()
+                continue
             gain = overlap_gain(reference_total, aligned.image.sum(axis=0), aligned.valid)
             image = aligned.image / np.float32(gain) if options.gain_compensate \
                 else aligned.image
@@ -213,9 +240,11 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     finally:
         if bar is not None:
             bar.close()
+    stack = stack.subset(kept)
     factor = stack.factor
-    shifts = (stack.shifts * factor).reshape(n_rows, n_cols, 2)
-    check_design(basis, shifts, (h, w), str(grid.root))
+    shifts = stack.lattice(stack.shifts * factor, grid.grid_shape)
+    check_design(basis, shifts, (h, w), str(grid.root),
+                 f" ({len(excluded)} excluded{not_captured})" if excluded or missing else "")
 
     # the full-resolution solve (large vector operations, mostly outside the GIL) runs beside
     # the working-copy fits and the cross-validation (many small ones)
@@ -224,9 +253,9 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         residuals, conditioning = {}, {}
         for conv in CONVENTIONS:             # both conventions, compared on the working copy
             kernels, conditioning[conv] = fit_stack(stack, basis, conv, ridge=options.ridge)
-            residuals[conv] = stack_residuals(stack, kernels, basis, conv).reshape(n_rows,
-                                                                                   n_cols)
-        center_row = center[0] * n_cols + center[1]
+            residuals[conv] = stack.lattice(stack_residuals(stack, kernels, basis, conv),
+                                            grid.grid_shape)
+        center_row = stack.row_of(center)
         cv = cross_validate(stack, list(dict.fromkeys([options.basis, *options.cv_bases])),
                             CONVENTIONS, center_row, options.folds) if options.cv_bases else None
         full_kernels = solving.result()
@@ -238,7 +267,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         convention = min(CONVENTIONS, key=lambda conv: errs.get(f"{options.basis}/{conv}",
                                                                 math.inf))
     else:
-        convention = min(CONVENTIONS, key=lambda conv: float(np.median(residuals[conv])))
+        convention = min(CONVENTIONS, key=lambda conv: float(np.nanmedian(residuals[conv])))
     base_sums = full_kernels[convention][0].sum(axis=(1, 2))
     kernel_scale = float(np.mean(base_sums)) or 1.0
 
@@ -247,7 +276,8 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         channels=grid.channels, center=center, options=options, convention=convention,
         full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
         kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv,
-        channel_order=grid.channel_order)
+        channel_order=grid.channel_order, layout=grid.layout, excluded=excluded,
+        missing=missing)
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() >= 2:
         result.pca = stack_pca(stack.images, stack.valid, reliable)
@@ -260,3 +290,20 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                                                  result.pca.components[:k][:, :, region])
     return result
 
+
+
+def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:
+    """Stand-ins for the shifts of the captured positions before any image is read: grid
+    indices spread over the sensor (a lattice), or field positions scaled likewise (an
+    irregular scan). ``(P, 2)``."""
+    _, h, w = grid.image_shape
+    if grid.is_irregular:
+        coords = grid.monitor_px() if grid.monitor_px() is not None else grid.field_deg()
+        assert coords is not None
+        rel = coords[0] - coords[center]
+        span = np.maximum(np.abs(rel).max(axis=0), 1e-12)
+        return rel / span * np.array([w, h]) / 2
+    n_rows, n_cols = grid.grid_shape
+    index = np.array([(p.row, p.col) for p in grid.positions], dtype=np.float64)
+    return np.stack([(index[:, 1] - center[1]) * w / max(n_cols, 2),
+                     (index[:, 0] - center[0]) * h / max(n_rows, 2)], axis=-1)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.errors import ConfigurationError, InvalidInputError, PositionRejected
 from psfkit.io.grid import PsfGrid
 
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)  # Rec. 709
@@ -166,14 +166,14 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
 
     Raises
     ------
-    InvalidInputError
+    PositionRejected
         NaN/Inf values, too much of the PSF saturated, or no point-source signal above the noise
-        (an all-zero frame included).
+        (an all-zero frame included); its ``reason`` says which.
     """
     options = options or PreprocessOptions()
     if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):
-        raise InvalidInputError(f"{name}: contains {int(np.count_nonzero(~np.isfinite(raw)))} "
-                                "NaN/Inf pixel value(s)")
+        raise PositionRejected(f"{name}: contains {int(np.count_nonzero(~np.isfinite(raw)))} "
+                               "NaN/Inf pixel value(s)", "non-finite")
     image = raw.astype(np.float32, copy=not overwrite_raw)
     level = options.saturation_level if options.saturation_level is not None \
         else saturation_level
@@ -192,17 +192,17 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     peak = float(np.percentile(lum[::2, ::2], 99.99))
     snr = peak / noise
     if not np.isfinite(snr) or snr < options.min_snr:
-        raise InvalidInputError(
+        raise PositionRejected(
             f"{name}: no point-source signal (peak/noise = {snr:.1f} < {options.min_snr:g}); "
-            "empty or wrongly exposed capture")
+            "empty or wrongly exposed capture", "no signal")
     n_saturated = int(saturated.sum())
     bright = int(np.count_nonzero(lum > 0.1 * peak)) or 1
     fraction = n_saturated / bright
     if fraction > options.max_saturated_fraction and not options.allow_saturated:
-        raise InvalidInputError(
+        raise PositionRejected(
             f"{name}: {n_saturated} saturated pixels ({100 * fraction:.1f}% of the bright PSF, "
             f"limit {100 * options.max_saturated_fraction:g}%); lower the exposure, or pass "
-            "--allow-saturated to mask them")
+            "--allow-saturated to mask them", "saturated")
     return PreparedPsf(image=image, luminance=lum, saturated=saturated,
                        n_saturated=n_saturated, saturated_fraction=fraction, snr=snr)
 

@@ -328,7 +328,7 @@ class ShiftMapFit:
 
     @property
     def rms_residual(self) -> float:
-        return float(np.sqrt(np.mean(np.sum(self.residuals**2, axis=-1))))
+        return float(np.sqrt(np.nanmean(np.sum(self.residuals**2, axis=-1))))
 
     def to_dict(self) -> dict:
         return {"field_units": self.field_units, "matrix": self.matrix.tolist(),
@@ -352,21 +352,29 @@ def fit_shift_map(positions: np.ndarray, shifts: np.ndarray, field_units: str,
         Unit of ``positions`` (recorded with the result).
     weights : numpy.ndarray, optional
         ``(N, M)`` non-negative weights (e.g. registration quality).
+
+    Positions whose coordinates, shift or weight is NaN are left out of the fit (their
+    residual is NaN).
     """
     p = positions.reshape(-1, 2).astype(np.float64)
     s = shifts.reshape(-1, 2).astype(np.float64)
-    wts = np.ones(len(p)) if weights is None else np.clip(weights.reshape(-1), 0, None)
+    wts = np.ones(len(p)) if weights is None else weights.reshape(-1).astype(np.float64)
+    # positions not measured (NaN: a gap of an incomplete grid, an excluded PSF) are left out
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(s).all(axis=1) & np.isfinite(wts)
+    wts = np.where(ok, np.clip(np.where(ok, wts, 0.0), 0, None), 0.0)
     design = np.column_stack([p, np.ones(len(p))])
     if np.linalg.matrix_rank(design[wts > 0]) < 3:
         raise InvalidInputError("the field positions do not span two directions; cannot fit "
                                 "the shift map (need a 2-D grid)")
-    sw = np.sqrt(wts)[:, None]
-    coef, *_ = np.linalg.lstsq(design * sw, s * sw, rcond=None)
+    sw = np.sqrt(wts)[ok, None]
+    coef, *_ = np.linalg.lstsq(design[ok] * sw, s[ok] * sw, rcond=None)
     matrix, offset = coef[:2].T, coef[2]
     unitary, positive = linalg.polar(matrix)
     mirrored = bool(np.linalg.det(unitary) < 0)
     rotation = float(np.degrees(np.arctan2(unitary[1, 0], unitary[0, 0])))
-    residuals = (s - design @ coef).reshape(shifts.shape)
+    residuals = np.full_like(s, np.nan)
+    residuals[ok] = s[ok] - design[ok] @ coef
+    residuals = residuals.reshape(shifts.shape)
     return ShiftMapFit(matrix=matrix, offset=offset, field_units=field_units,
                        rotation_deg=rotation, magnification_u=float(positive[0, 0]),
                        magnification_v=float(positive[1, 1]), shear=float(positive[0, 1]),

@@ -32,13 +32,23 @@ CSV_COLUMNS = (
     "overlap", "gain", "mae", "mae_gain_compensated", "n_saturated", "warp_residual_rms_px",
     "warp_rms_tangential_px", "warp_rms_sagittal_px", "warp_anisotropy", "affine_scale_u",
     "affine_scale_v", "affine_shear", "affine_rotation_deg", "affine_scale_tangential",
-    "affine_scale_sagittal")
+    "affine_scale_sagittal", "status", "reason")
 
 
 def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
-    """One dictionary per position with the :data:`CSV_COLUMNS`."""
+    """One dictionary per captured position with the :data:`CSV_COLUMNS` (excluded positions
+    too: ``status`` ``excluded`` with the ``reason``, their numbers empty; row and col empty
+    for an irregular scan, whose positions the file and field columns name)."""
     residuals = result.shift_fit.residuals if result.shift_fit is not None else None
+    irregular = result.layout == "irregular"
     rows = []
+    for e in result.excluded:
+        fx, fy = e.field_deg if e.field_deg is not None else (None, None)
+        mx, my = e.monitor_px if e.monitor_px is not None else (None, None)
+        rows.append(jsonable({**dict.fromkeys(CSV_COLUMNS), "row": e.row, "col": e.col,
+                              "file": e.file, "field_x_deg": fx, "field_y_deg": fy,
+                              "monitor_x_px": mx, "monitor_y_px": my, "status": "excluded",
+                              "reason": e.reason}))
     for p in result.positions:
         warp = p.warp or {}
         affine = warp.get("affine", {})
@@ -58,7 +68,12 @@ def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
             "affine_scale_u": affine.get("scale_u"), "affine_scale_v": affine.get("scale_v"),
             "affine_shear": affine.get("shear"), "affine_rotation_deg": affine.get("rotation_deg"),
             "affine_scale_tangential": affine.get("scale_tangential"),
-            "affine_scale_sagittal": affine.get("scale_sagittal")}))
+            "affine_scale_sagittal": affine.get("scale_sagittal"), "status": "ok",
+            "reason": None}))
+    rows.sort(key=lambda r: (r["row"], r["col"]))
+    if irregular:
+        for r in rows:
+            r["row"] = r["col"] = None
     return rows
 
 
@@ -103,6 +118,16 @@ def write_numbers(result: GridCharacterization, path: str | os.PathLike) -> Path
 def warnings_for(result: GridCharacterization) -> list[str]:
     """Plain-language warnings a lab should read before trusting the numbers."""
     out = []
+    if result.missing:
+        n, m = result.grid_shape
+        out.append(f"incomplete lattice: {len(result.missing)} of the {n}×{m} positions were "
+                   "not captured (hatched grey on the maps); the fits use the "
+                   f"{len(result.positions)} measured positions.")
+    if result.excluded:
+        listed = ", ".join(f"{e.file} ({e.reason})" for e in result.excluded[:8])
+        more = f" and {len(result.excluded) - 8} more" if len(result.excluded) > 8 else ""
+        out.append(f"{len(result.excluded)} position(s) excluded after a failed quality check "
+                   f"(red × on the maps): {listed}{more}.")
     saturated = [p for p in result.positions if p.n_saturated]
     if saturated:
         worst = max(saturated, key=lambda p: p.saturated_fraction)
@@ -168,9 +193,15 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
     gain = doc.get("gain_fit") or {}
     growth = doc.get("warp_growth") or {}
     anis = doc.get("warp_anisotropy") or {}
+    if result.layout == "irregular":
+        layout = f"irregular scan of {len(result.captured)} positions"
+    else:
+        layout = f"{result.grid_shape[0]} × {result.grid_shape[1]} ({result.layout})"
     summary = html_table([
         ("grid", result.grid_root),
-        ("positions", f"{result.grid_shape[0]} × {result.grid_shape[1]}"),
+        ("positions", layout),
+        ("measured / excluded / not captured",
+         f"{len(result.positions)} / {len(result.excluded)} / {len(result.missing)}"),
         ("images", f"{h} × {w} × {c} ({'/'.join(result.channels)})"),
         ("centre (row, col)", str(result.center)),
         ("normalization", doc["conventions"]["normalization"]),
@@ -202,12 +233,13 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
     warnings = "".join(f"<li>{html.escape(m)}</li>" for m in doc["warnings"]) or \
         "<li>none</li>"
     figs = figures_html(figures)
-    head = ("file", "row", "col", "shift_du_px", "shift_dv_px", "quality", "overlap", "gain",
-            "mae", "warp_residual_rms_px", "warp_anisotropy")
+    head = ("file", "row", "col", "status", "shift_du_px", "shift_dv_px", "quality", "overlap",
+            "gain", "mae", "warp_residual_rms_px", "warp_anisotropy")
     body = "".join("<tr>" + "".join(f"<td>{format_value(r[k])}</td>" for k in head) + "</tr>"
                    for r in csv_rows(result))
     positions = (f"<table class='grid'><tr>{''.join(f'<th>{k}</th>' for k in head)}</tr>"
                  f"{body}</table>")
+    excluded = _excluded_html(result)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>PSF grid report</title>
 <style>{REPORT_CSS}</style></head><body>
@@ -217,6 +249,7 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
 relative to the centre PSF, in sensor pixels (u = column, v = row).</p>
 {summary}
 <div class="warn"><b>Warnings</b><ul>{warnings}</ul></div>
+{excluded}
 <h2>Registration and shift map</h2>{registration}
 <h2>Gain (relative illumination)</h2>{gains}
 <h2>Warp: distortion and oblique-incidence astigmatism</h2>
@@ -228,3 +261,27 @@ components mix the two directions on caustic lines.</p>{warp}
 <h2>Positions</h2>{positions}
 </body></html>
 """
+
+
+def _excluded_html(result: GridCharacterization) -> str:
+    """The section listing excluded positions (reason and detail) and the cells never
+    captured; empty for a complete full lattice."""
+    from psfkit.alignment import REJECTION_REASONS
+
+    if not result.excluded and not result.missing:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(e.file)}</td><td>{format_value(e.row)}</td>"
+        f"<td>{format_value(e.col)}</td><td>{html.escape(e.reason)}</td>"
+        f"<td>{html.escape(REJECTION_REASONS.get(e.reason, ''))}</td>"
+        f"<td>{html.escape(e.detail)}</td></tr>" for e in result.excluded)
+    table = ("<table class='excluded'><tr><th>file</th><th>row</th><th>col</th>"
+             f"<th>reason</th><th>check</th><th>detail</th></tr>{rows}</table>"
+             if result.excluded else "<p>No position was excluded.</p>")
+    missing = ""
+    if result.missing:
+        cells = ", ".join(f"({r}, {c})" for r, c in result.missing)
+        missing = (f"<p>Not captured ({len(result.missing)} of the "
+                   f"{result.grid_shape[0]} × {result.grid_shape[1]} lattice): {cells}.</p>")
+    return (f"<h2 id='excluded'>Excluded and missing positions</h2>{table}{missing}"
+            "<p>Maps: hatched grey = not captured, hatched red with × = excluded.</p>")

@@ -493,6 +493,7 @@ FLAGS: dict[str, FlagRange] = {
     "--mae-smoothing": _SIGMA_PX,
     "--smooth": _SIGMA_PX,
     "--folds": FlagRange(int, 2, MAX_GRID_SIDE ** 2),
+    "--min-ncc": FlagRange(float, 0, 1),
     "--tikhonov": _WEIGHT,
     "--difference": _WEIGHT,
     "--support-threshold": FlagRange(float, 0, 1, high_open=True),

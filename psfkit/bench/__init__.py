@@ -1,13 +1,16 @@
 """The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
 
 from psfkit.bench.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.bench.degrade import degrade_grid
 from psfkit.bench.sensor import SensorModel
 from psfkit.bench.simulate import (
     GroundTruth,
     grid_monitor_positions,
     read_ground_truth,
     simulate_grid,
+    simulate_scan,
 )
 
 __all__ = ["BenchConfig", "GroundTruth", "PsfPatch", "SensorModel", "VirtualCamera",
-           "grid_monitor_positions", "place_patch", "read_ground_truth", "simulate_grid"]
+           "degrade_grid", "grid_monitor_positions", "place_patch", "read_ground_truth",
+           "simulate_grid", "simulate_scan"]

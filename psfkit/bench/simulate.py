@@ -122,8 +122,40 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
         The grid folder.
     """
     config = config or BenchConfig()
-    n_rows, n_cols = grid_shape
     monitor = grid_monitor_positions(config, grid_shape, extent)
+    return _simulate(out_dir, config, monitor, False, dark_frame, suffix, overwrite, progress,
+                     backend)
+
+
+def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
+                  config: BenchConfig | None = None, dark_frame: bool = True,
+                  suffix: str = ".tiff", overwrite: bool = False, progress: bool = True,
+                  backend: str = "numpy") -> Path:
+    """Simulate an irregular scan: the point source at the given monitor positions (a line
+    scan, scattered beads, a jittered lattice), written as a grid folder without grid indices
+    (``docs/grid-format.md``), with ground truth as :func:`simulate_grid` (a ``1 × P`` row in
+    the given order). Include ``(0, 0)`` for the reference PSF.
+
+    Parameters
+    ----------
+    monitor_px : numpy.ndarray
+        ``(P, 2)`` source positions ``(x, y)`` in monitor pixels from the optical axis.
+    Other parameters as :func:`simulate_grid`.
+    """
+    config = config or BenchConfig()
+    monitor = np.asarray(monitor_px, dtype=np.float64)
+    if monitor.ndim != 2 or monitor.shape[1] != 2 or len(monitor) < 1:
+        raise ConfigurationError(f"monitor_px must be (P, 2), got {monitor.shape}")
+    return _simulate(out_dir, config, monitor[None], True, dark_frame, suffix, overwrite,
+                     progress, backend)
+
+
+def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
+              scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
+              backend: str) -> Path:
+    """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
+    positions (``scan``: an irregular scan, ``N = 1``)."""
+    n_rows, n_cols = grid_shape = monitor.shape[:2]
     sensor = config.sensor
     header: dict[str, Any] = {
         "bit_depth": sensor.bit_depth,
@@ -135,7 +167,7 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     }
     truth_positions = []
     # Enter the writer first: an existing output folder is reported before any work.
-    with GridWriter(out_dir, grid_shape, suffix=suffix, overwrite=overwrite,
+    with GridWriter(out_dir, None if scan else grid_shape, suffix=suffix, overwrite=overwrite,
                     **header) as writer:
         camera = VirtualCamera(config, backend=backend)
         writer.header["pixel_pitch_um"] = camera.pixel_um
@@ -161,8 +193,12 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
             """Capture, write and record one position (in order: the noise stream is shared)."""
             raw = sensor.capture(electrons, noise_rng)
             clean[r, c] = sensor.expected_file_units(electrons)
-            writer.add(r, c, raw, monitor_px=tuple(monitor[r, c]), field_deg=field,
-                       exposure_s=NOMINAL_EXPOSURE_S)
+            fields = {"monitor_px": tuple(monitor[r, c]), "field_deg": field,
+                      "exposure_s": NOMINAL_EXPOSURE_S}
+            if scan:
+                writer.add_scan(c, raw, **fields)
+            else:
+                writer.add(r, c, raw, **fields)
             du, dv = camera.true_shift_px(field)
             truth_positions.append({
                 "row": r, "col": c, "field_deg": list(field),
@@ -194,6 +230,7 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
                            "of each PSF relative to the on-axis PSF (a source at +x moves its "
                            "PSF to -u); gain is the relative illumination (1 on axis)",
             "grid_shape": [n_rows, n_cols],
+            "layout": "irregular" if scan else "full lattice",
             "channels": list(camera.channels),
             "sensor_shape": [h, w],
             "pixel_pitch_um": camera.pixel_um,

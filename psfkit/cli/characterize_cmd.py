@@ -9,9 +9,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psfkit.choices import FLOW_METHODS
-from psfkit.cli.options import add_grid_options, preprocess_options
+from psfkit.cli.options import (
+    add_coverage_options,
+    add_grid_options,
+    open_grid,
+    preprocess_options,
+    print_coverage,
+)
 from psfkit.cli.vocabulary import add_flag, command_name
-from psfkit.io import OutputTransaction, read_grid
+from psfkit.io import OutputTransaction
 from psfkit.validation import flag
 
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
@@ -22,6 +28,7 @@ if TYPE_CHECKING:
 
 def _common(p: argparse.ArgumentParser) -> None:
     add_grid_options(p)
+    add_coverage_options(p)
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour): "
                         "printed as one shift grid per channel, and in --out")
@@ -35,13 +42,14 @@ def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOp
                                upsample=args.upsample,
                                flow_method=getattr(args, "method", "dis"),
                                per_channel=args.per_channel,
-                               mae_smoothing_px=getattr(args, "mae_smoothing", 1.0))
+                               mae_smoothing_px=getattr(args, "mae_smoothing", 1.0),
+                               min_quality=args.min_ncc, strict=args.strict)
 
 
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
     from psfkit.characterize import characterize_grid
 
-    grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
+    grid = open_grid(args)   # every image is checked as it is processed
     return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
                              workers=args.threads)
 
@@ -60,10 +68,28 @@ def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
     return result
 
 
-def _grid_print(values: np.ndarray, fmt: str) -> None:
-    for row in values:
-        print("  " + " ".join(format(v, fmt) if np.isfinite(v) else " " * len(format(0, fmt))
-                              for v in row))
+def _grid_print(values: np.ndarray, fmt: str,
+                result: GridCharacterization | None = None) -> None:
+    """A per-position table as the lattice (``·``: not captured, ``x``: excluded; blank: not
+    measured), or one line per position for an irregular scan."""
+    width = len(format(0, fmt))
+    status = result.status() if result is not None else np.full(values.shape, "ok")
+    if result is not None and result.layout == "irregular":
+        files = {(p.row, p.col): p.file for p in result.captured}
+        for c, v in enumerate(values[0]):
+            text = format(v, fmt) if np.isfinite(v) else "excluded".rjust(width)
+            print(f"  #{c:<3d} {files[(0, c)]:24s} {text}")
+        return
+
+    def cell(v: float, state: str) -> str:
+        if state == "missing":
+            return "·".rjust(width)
+        if state == "excluded":
+            return "x".rjust(width)
+        return format(v, fmt) if np.isfinite(v) else " " * width
+
+    for row, states in zip(values, status, strict=True):
+        print("  " + " ".join(cell(v, st) for v, st in zip(row, states, strict=True)))
 
 
 def _print_warnings(result: GridCharacterization) -> None:
@@ -121,8 +147,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def print_registration(result: GridCharacterization) -> None:
     fit = result.shift_fit
-    print(f"registered {len(result.positions)} PSFs of {result.grid_root} to the centre "
-          f"{result.center}")
+    print(f"registered {len(result.positions)} PSFs of {result.grid_root} ({result.layout}) "
+          f"to the centre {result.center}")
     if fit is not None:
         print(f"shift map: magnification {fit.magnification:.6g} px per {fit.field_units} "
               f"(u {fit.magnification_u:.6g}, v {fit.magnification_v:.6g}), rotation "
@@ -131,10 +157,11 @@ def print_registration(result: GridCharacterization) -> None:
               f"{fit.rms_residual:.3f} px rms")
     shifts = result.table("shift")
     print("shift du (px):")
-    _grid_print(shifts[..., 0], "8.2f")
+    _grid_print(shifts[..., 0], "8.2f", result)
     print("shift dv (px):")
-    _grid_print(shifts[..., 1], "8.2f")
-    print(f"registration quality (NCC): min {np.min(result.table('quality')):.3f}")
+    _grid_print(shifts[..., 1], "8.2f", result)
+    print(f"registration quality (NCC): min {np.nanmin(result.table('quality')):.3f}")
+    print_coverage(result)
 
 
 def print_channel_shifts(result: GridCharacterization) -> None:
@@ -144,12 +171,12 @@ def print_channel_shifts(result: GridCharacterization) -> None:
     if any(r is None for r in records):
         print("per-channel shifts: none (the grid has one channel)")
         return
-    n, m = result.grid_shape
-    shifts = np.array(records, dtype=np.float64).reshape(n, m, len(records[0]), 2)
+    shifts = result._lattice(result.positions, [np.asarray(r, dtype=np.float64)
+                                                for r in records])
     for c in range(shifts.shape[2]):
         for axis, name in ((0, "du"), (1, "dv")):
             print(f"channel {c} shift {name} (px):")
-            _grid_print(shifts[:, :, c, axis], "8.2f")
+            _grid_print(shifts[:, :, c, axis], "8.2f", result)
 
 
 def _print_per_channel(args: argparse.Namespace, result: GridCharacterization) -> None:
@@ -169,9 +196,10 @@ def run_mae(args: argparse.Namespace) -> int:
     result = _run_and_write_numbers(args, ("register", "gain", "mae"))
     print(f"MAE vs the centre PSF (normalization: centre {args.normalization} = 1; "
           f"smoothing {args.mae_smoothing:g} px), x 1e-3:")
-    _grid_print(result.table("mae") * 1e3, "7.3f")
+    _grid_print(result.table("mae") * 1e3, "7.3f", result)
     print("after gain compensation, x 1e-3:")
-    _grid_print(result.table("mae_gain_compensated") * 1e3, "7.3f")
+    _grid_print(result.table("mae_gain_compensated") * 1e3, "7.3f", result)
+    print_coverage(result)
     _print_per_channel(args, result)
     _print_warnings(result)
     return 0
@@ -182,9 +210,10 @@ def run_warp(args: argparse.Namespace) -> int:
 
     result = _run_and_write_numbers(args, ("register", "gain", "warp"))
     print("residual displacement rms (px) after the affine part:")
-    _grid_print(result.warp_table("residual_rms"), "6.3f")
+    _grid_print(result.warp_table("residual_rms"), "6.3f", result)
     print("tangential / sagittal anisotropy:")
-    _grid_print(result.warp_table("anisotropy"), "6.2f")
+    _grid_print(result.warp_table("anisotropy"), "6.2f", result)
+    print_coverage(result)
     growth, anis = result.warp_growth, result.warp_anisotropy
     if growth is not None:
         print(f"residual grows as theta^{growth.exponent:.2f} (+/- {growth.exponent_std:.2f}) "

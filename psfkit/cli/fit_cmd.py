@@ -8,10 +8,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from psfkit.choices import CV_BASES, CV_BASES_ALL
-from psfkit.cli.options import add_grid_options, preprocess_options
+from psfkit.cli.options import (
+    add_coverage_options,
+    add_grid_options,
+    open_grid,
+    preprocess_options,
+    print_coverage,
+)
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.errors import InvalidInputError
-from psfkit.io import OutputTransaction, atomic_directory, read_grid
+from psfkit.io import OutputTransaction, atomic_directory
 from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import save_kernels
 from psfkit.validation import flag
@@ -31,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "cross-validated against richer bases and compared with a PCA. Writes the "
                     "kernel file that ekdun trains from.")
     add_grid_options(p)
+    add_coverage_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_flag(p, "--basis", "fit-eigen",
              note=f"paper; one of ek (= paper), {', '.join(BASIS_NAMES)}, or 'auto' for the "
@@ -63,7 +70,8 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
     return EigenFitOptions(basis=basis, convention=args.convention,
                            gain_compensate=args.gain_compensate,
                            cv_bases=cv, folds=args.folds, upsample=args.upsample,
-                           preprocess=preprocess_options(args))
+                           preprocess=preprocess_options(args), min_quality=args.min_ncc,
+                           strict=args.strict)
 
 
 def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = False) -> None:
@@ -107,7 +115,7 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     """Fit, and write the kernel file (and figures) to the given temporary paths."""
     from psfkit.grid_fit import fit_eigen_grid
 
-    grid = read_grid(args.grid, check_pixels=False)  # every image is checked as it is processed
+    grid = open_grid(args)   # every image is checked as it is processed
     basis = BASIS_ALIASES.get(args.basis, args.basis)
     if basis == "auto":
         # cross-validate every basis first (the chosen one is then fitted in a second pass)
@@ -129,8 +137,16 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
     model = result.kernel_model()
     grid_shape = result.grid_shape
     summary = result.summary()
-    print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {grid_shape[0]}x"
-          f"{grid_shape[1]} PSFs; wrote {out} ({model.convention}-side weights)")
+    if result.layout == "full lattice" and not result.excluded:
+        fitted = f"{grid_shape[0]}x{grid_shape[1]} PSFs"
+    elif result.layout == "irregular":
+        fitted = f"{result.n_positions} PSFs of an irregular scan"
+    else:
+        fitted = f"{result.n_positions} PSFs of the {grid_shape[0]}x{grid_shape[1]} " \
+                 f"{result.layout}"
+    print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {fitted}; wrote "
+          f"{out} ({model.convention}-side weights)")
+    print_coverage(result)
     for conv, res in summary["in_sample_relative_error"].items():
         print(f"  {conv}-side weights: in-sample relative error median {res['median']:.4f}, "
               f"max {res['max']:.4f}")

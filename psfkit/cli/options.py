@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING, Any
 
 from psfkit.preprocess import PreprocessOptions
 from psfkit.validation import flag
+
+if TYPE_CHECKING:
+    from psfkit.io.grid import PsfGrid
 
 
 def add_grid_options(p: argparse.ArgumentParser) -> None:
@@ -32,3 +36,50 @@ def preprocess_options(args: argparse.Namespace) -> PreprocessOptions:
                              hot_pixel_sigma=args.hot_pixel_sigma,
                              saturation_level=args.saturation_level,
                              allow_saturated=args.allow_saturated)
+
+
+#: ``--strict`` (``psfkit info`` and the commands that analyse a grid).
+STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan and any "
+               "unusable capture (saturated, no signal, NaN/Inf, failed registration) instead "
+               "of excluding it with its reason")
+
+
+def add_coverage_options(p: argparse.ArgumentParser) -> None:
+    """How positions that fail a quality check, and the reference, are handled (issue 26)."""
+    g = p.add_argument_group("bad positions and the reference")
+    g.add_argument("--strict", action="store_true",
+                   help=STRICT_HELP)
+    g.add_argument("--reference", metavar="R,C",
+                   help="compare every PSF with this position instead of the centre one: "
+                        "grid row and column R,C, the I-th position of an irregular scan, or a "
+                        "file name of the manifest")
+    g.add_argument("--min-ncc", type=flag("--min-ncc"), default=0.5, metavar="NCC",
+                   help="exclude positions whose registration quality (normalized "
+                        "cross-correlation with the reference after alignment) is below NCC "
+                        "(default 0.5)")
+
+
+def open_grid(args: argparse.Namespace) -> PsfGrid:
+    """The grid of ``args.grid`` (pixels checked as each image is processed), with the
+    ``--reference`` of the command line."""
+    from psfkit.io import read_grid
+
+    grid = read_grid(args.grid, check_pixels=False, strict=args.strict)
+    if args.reference:
+        grid = grid.with_reference(grid.find_reference(args.reference))
+    return grid
+
+
+def print_coverage(result: Any) -> None:
+    """The terminal summary of what was left out: cells never captured and positions
+    excluded, each with its reason."""
+    if result.missing:
+        cells = ", ".join(f"({r}, {c})" for r, c in result.missing[:12])
+        more = f" and {len(result.missing) - 12} more" if len(result.missing) > 12 else ""
+        print(f"not captured: {len(result.missing)} position(s) of the "
+              f"{result.grid_shape[0]}x{result.grid_shape[1]} lattice: {cells}{more}")
+    if result.excluded:
+        print(f"excluded: {len(result.excluded)} position(s) failed a quality check:")
+        for e in result.excluded:
+            where = f"#{e.col}" if result.layout == "irregular" else f"({e.row}, {e.col})"
+            print(f"  {where} {e.file}: {e.reason} ({e.detail})")

@@ -9,6 +9,12 @@ in short::
       psf_r00_c00.tiff ...     one image per grid position: 16-bit TIFF/PNG or .npy, mono or RGB
       dark.tiff                optional dark / black frame, same shape and type
 
+Three layouts are read (``docs/grid-format.md``): a **full lattice** (every index of the declared
+``grid_shape`` captured), an **incomplete lattice** (the manifest lists the captured indices of
+the declared lattice; the others are gaps) and an **irregular scan** (positions given by their
+field or monitor coordinates only: a line scan, scattered beads, a jittered lattice), held as a
+``1 × P`` row in manifest order.
+
 This module holds the grid's data classes (:class:`GridPosition`, :class:`PsfGrid`).
 :func:`psfkit.io.grid_validation.read_grid` validates the whole folder before anything is
 computed and raises :class:`~psfkit.errors.GridFormatError` naming the file and the problem
@@ -19,7 +25,8 @@ are importable from :mod:`psfkit.io`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +40,11 @@ FORMAT_NAME = "psfkit-grid"
 FORMAT_VERSION = 1
 MANIFEST_JSON = "manifest.json"
 MANIFEST_CSV = "manifest.csv"
+FULL_LATTICE = "full lattice"
+INCOMPLETE_LATTICE = "incomplete lattice"
+IRREGULAR = "irregular"
+#: The layouts a grid can have (:attr:`PsfGrid.layout`).
+LAYOUTS = (FULL_LATTICE, INCOMPLETE_LATTICE, IRREGULAR)
 
 
 @dataclass(frozen=True)
@@ -45,6 +57,8 @@ class GridPosition:
         Image file name, relative to the grid folder.
     row, col : int
         Grid index; ``row`` grows with the field's ``y`` (down), ``col`` with its ``x`` (right).
+        An irregular scan has none in its manifest; it is held as row 0, column = the
+        position's place in the manifest.
     monitor_px : (float, float) or None
         Source position ``(x, y)`` on the monitor in monitor pixels, relative to the point on
         the camera's optical axis, in the displayed image's frame (x right, y down).
@@ -69,6 +83,11 @@ class PsfGrid:
 
     Use :func:`read_grid` to create one. Images are returned as ``(C, H, W)`` float32 in the
     stored units (no dark subtraction; see :mod:`psfkit.preprocess` for that).
+
+    ``positions`` are the captured positions (sorted by index); ``grid_shape`` is the declared
+    lattice (``(1, P)`` for an irregular scan), so an incomplete lattice has fewer positions
+    than cells. Per-position arrays (:meth:`field_deg`, ...) are ``(N, M, ...)`` with NaN in
+    the cells that were not captured.
     """
 
     root: Path
@@ -84,6 +103,43 @@ class PsfGrid:
     pixel_pitch_um: float | None = None
     center_index: tuple[int, int] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    layout: str = FULL_LATTICE
+
+    @cached_property
+    def _by_index(self) -> dict[tuple[int, int], GridPosition]:
+        return {(p.row, p.col): p for p in self.positions}
+
+    @property
+    def frame_problems(self) -> dict[str, str]:
+        """File → problem of the PSF frames :func:`read_grid` found unusable (NaN/Inf, all
+        zero) without ``strict``."""
+        return dict(self.metadata.get("_frame_problems", {}))
+
+    @property
+    def is_irregular(self) -> bool:
+        return self.layout == IRREGULAR
+
+    def has(self, row: int, col: int) -> bool:
+        """Whether grid index ``(row, col)`` was captured."""
+        return (row, col) in self._by_index
+
+    def missing(self) -> list[tuple[int, int]]:
+        """The cells of the declared lattice that were not captured (row-major)."""
+        n_rows, n_cols = self.grid_shape
+        return [(r, c) for r in range(n_rows) for c in range(n_cols) if not self.has(r, c)]
+
+    def describe_index(self, index: tuple[int, int]) -> str:
+        """``(row, col)`` of a lattice, or ``#i (file)`` of an irregular scan."""
+        if self.is_irregular:
+            pos = self._by_index.get(index)
+            return f"#{index[1]}" + (f" ({pos.file})" if pos is not None else "")
+        return f"({index[0]}, {index[1]})"
+
+    def _lattice(self, values: list[Any], extra: tuple[int, ...]) -> np.ndarray:
+        out = np.full((*self.grid_shape, *extra), np.nan)
+        for p, v in zip(self.positions, values, strict=True):
+            out[p.row, p.col] = v
+        return out
 
     @property
     def manifest_name(self) -> str:
@@ -95,7 +151,11 @@ class PsfGrid:
         if not (0 <= row < n_rows and 0 <= col < n_cols):
             raise InvalidInputError(
                 f"{self.root}: grid index ({row}, {col}) outside the {n_rows}×{n_cols} grid")
-        return self.positions[row * n_cols + col]
+        try:
+            return self._by_index[(row, col)]
+        except KeyError:
+            raise InvalidInputError(f"{self.root}: grid index ({row}, {col}) was not captured "
+                                    f"(not in {self.manifest_name})") from None
 
     def path(self, row: int, col: int) -> Path:
         return self.root / self.position(row, col).file
@@ -112,34 +172,73 @@ class PsfGrid:
         return checked_dark(path, read_image(path, self.channel_order)).astype(np.float32)
 
     def field_deg(self) -> np.ndarray | None:
-        """Field angles as an ``(N, M, 2)`` array of ``(θx, θy)`` degrees, or ``None``."""
+        """Field angles as an ``(N, M, 2)`` array of ``(θx, θy)`` degrees (NaN where not
+        captured), or ``None``."""
         if any(p.field_deg is None for p in self.positions):
             return None
-        return np.array([p.field_deg for p in self.positions], dtype=np.float64).reshape(
-            *self.grid_shape, 2)
+        return self._lattice([p.field_deg for p in self.positions], (2,))
 
     def monitor_px(self) -> np.ndarray | None:
-        """Monitor positions as an ``(N, M, 2)`` array of ``(x, y)``, or ``None``."""
+        """Monitor positions as an ``(N, M, 2)`` array of ``(x, y)`` (NaN where not
+        captured), or ``None``."""
         if any(p.monitor_px is None for p in self.positions):
             return None
-        return np.array([p.monitor_px for p in self.positions], dtype=np.float64).reshape(
-            *self.grid_shape, 2)
+        return self._lattice([p.monitor_px for p in self.positions], (2,))
 
     def exposures(self) -> np.ndarray | None:
-        """Exposure times as an ``(N, M)`` array, or ``None`` when any is missing."""
+        """Exposure times as an ``(N, M)`` array (NaN where not captured), or ``None`` when
+        any is missing."""
         if any(p.exposure_s is None for p in self.positions):
             return None
-        return np.array([p.exposure_s for p in self.positions], dtype=np.float64).reshape(
-            self.grid_shape)
+        return self._lattice([p.exposure_s for p in self.positions], ())
+
+    def with_reference(self, index: tuple[int, int]) -> PsfGrid:
+        """This grid with another reference ("centre") position; refused when it was not
+        captured."""
+        row, col = index
+        if not self.has(row, col):
+            raise InvalidInputError(f"{self.root}: reference {self.describe_index(index)} is "
+                                    f"not a captured position of this {self.layout}")
+        return replace(self, center_index=(row, col))
+
+    def find_reference(self, text: str) -> tuple[int, int]:
+        """The grid index named by ``--reference``: ``R,C`` (a lattice), ``#I`` or ``I`` (the
+        I-th position of an irregular scan), or a file name of the manifest."""
+        text = text.strip()
+        for p in self.positions:
+            if p.file == text:
+                return p.row, p.col
+        parts = [t.strip() for t in text.lstrip("#").split(",")]
+        try:
+            numbers = [int(t) for t in parts]
+        except ValueError:
+            numbers = []
+        if len(numbers) == 1 and self.is_irregular:
+            numbers = [0, numbers[0]]
+        if len(numbers) != 2:
+            raise InvalidInputError(f"--reference: expected R,C (grid row and column), a "
+                                    f"position number of an irregular scan or a file name, "
+                                    f"got {text!r}")
+        index = (numbers[0], numbers[1])
+        if not self.has(*index):
+            raise InvalidInputError(f"--reference {text}: no captured position "
+                                    f"{self.describe_index(index)} in {self.root}")
+        return index
 
     def require_center(self) -> tuple[int, int]:
         """Grid index of the on-axis (reference) PSF; raises when the grid has none."""
         if self.center_index is None:
             n_rows, n_cols = self.grid_shape
+            what = "irregular scan" if self.is_irregular else f"{n_rows}×{n_cols} grid"
             raise GridFormatError(
-                f"{self.root / self.manifest_name}: the {n_rows}×{n_cols} grid has no centre "
+                f"{self.root / self.manifest_name}: the {what} has no centre "
                 "position (no position at field (0, 0) and no odd-sized middle); add "
-                "\"center\": [row, col] to the manifest")
+                "\"center\" to the manifest or name one with --reference")
+        if not self.has(*self.center_index):
+            raise GridFormatError(
+                f"{self.root / self.manifest_name}: the centre position "
+                f"{self.describe_index(self.center_index)} was not captured; name another "
+                "reference with --reference R,C")
         return self.center_index
 
 

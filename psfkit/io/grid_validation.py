@@ -11,9 +11,16 @@ from typing import Any
 import numpy as np
 
 from psfkit.errors import GridFormatError, InvalidInputError
-from psfkit.io.grid import PsfGrid, checked_dark
+from psfkit.io.grid import (
+    FULL_LATTICE,
+    INCOMPLETE_LATTICE,
+    IRREGULAR,
+    PsfGrid,
+    checked_dark,
+)
 from psfkit.io.images import IMAGE_SUFFIXES, read_image
 from psfkit.io.manifest import (
+    NO_INDEX,
     find_manifest,
     locate_center,
     parse_index,
@@ -23,13 +30,15 @@ from psfkit.io.manifest import (
 from psfkit.validation import MAX_GRID_SIDE, finite_number
 
 
-def _check_pixels(path: Path, image: np.ndarray) -> None:
+def pixel_problem(path: Path, image: np.ndarray) -> str | None:
+    """The one-line problem of a PSF frame's pixel values (NaN/Inf, all zero), or ``None``."""
     if np.issubdtype(image.dtype, np.floating):
         bad = int(np.count_nonzero(~np.isfinite(image)))
         if bad:
-            raise GridFormatError(f"{path}: contains {bad} NaN/Inf pixel value(s)")
+            return f"{path}: contains {bad} NaN/Inf pixel value(s)"
     if not np.any(image):
-        raise GridFormatError(f"{path}: all-zero frame (nothing was captured)")
+        return f"{path}: all-zero frame (nothing was captured)"
+    return None
 
 
 def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
@@ -38,7 +47,7 @@ def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
 
 
 def read_grid(root: str | os.PathLike, check_pixels: bool = True,
-              progress: bool = False) -> PsfGrid:
+              progress: bool = False, strict: bool = False) -> PsfGrid:
     """Read and validate a PSF-grid folder.
 
     Parameters
@@ -46,10 +55,15 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     root : path-like
         The grid folder (holding ``manifest.json`` or ``manifest.csv``).
     check_pixels : bool
-        Also read every image to reject NaN/Inf values and all-zero frames (one image in
-        memory at a time). Without it only headers, shapes and dtypes are checked.
+        Also read every image to find NaN/Inf values and all-zero frames (one image in
+        memory at a time): refused with ``strict``, else listed in
+        :attr:`PsfGrid.frame_problems` (the analyses exclude those positions). Without it only
+        headers, shapes and dtypes are checked.
     progress : bool
         Show a progress bar while checking images.
+    strict : bool
+        Refuse an incomplete lattice (every index of ``grid_shape`` must be listed) and an
+        irregular scan, and PSF frames with NaN/Inf values or all zeros, as before issue 26.
 
     Returns
     -------
@@ -58,7 +72,8 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     Raises
     ------
     GridFormatError
-        Missing or malformed manifest, missing/duplicate grid index or file, missing image,
+        Missing or malformed manifest, duplicate grid index or file (missing index with
+        ``strict``), positions with and without grid indices, missing image,
         files in the folder that the manifest does not list, non-image files, mixed shapes or
         dtypes, NaN/Inf values, all-zero frames.
     """
@@ -69,6 +84,15 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         raise GridFormatError(f"{root}: not a folder (a PSF grid is a folder with a manifest)")
     manifest = find_manifest(root)
     header, positions = parse_manifest(manifest)
+    indexed = [p.row != NO_INDEX for p in positions]
+    if any(indexed) and not all(indexed):
+        bare = positions[indexed.index(False)].file
+        raise GridFormatError(f"{manifest}: {bare} has no row/col but other positions do; give "
+                              "every position a grid index (a lattice) or none (an irregular "
+                              "scan)")
+    irregular = not any(indexed)
+    if irregular:
+        positions = _irregular_positions(positions, header, manifest, strict)
 
     seen_index: dict[tuple[int, int], str] = {}
     seen_file: set[str] = set()
@@ -96,7 +120,7 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         raise GridFormatError(f"{manifest}: grid of {n_rows} x {n_cols} positions exceeds the "
                               f"limit of {MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
     missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
-    if missing:
+    if missing and strict:
         listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
         more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
         raise GridFormatError(f"{manifest}: grid index {listed}{more} missing from the "
@@ -130,6 +154,7 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     ref_dtype: np.dtype | None = None
     ref_file = ""
     files = [p.file for p in positions] + ([dark_file] if dark_file else [])
+    frame_problems: dict[str, str] = {}
     iterator: Any = files
     if progress:
         from tqdm.auto import tqdm
@@ -153,7 +178,11 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
                 f"{path}: {what} {_describe(shape, dtype)} differs from {ref_file} "
                 f"({_describe(ref_shape, ref_dtype)})")
         if check_pixels and name != dark_file:
-            _check_pixels(path, image)
+            problem = pixel_problem(path, image)
+            if problem is not None and strict:
+                raise GridFormatError(problem)
+            if problem is not None:    # flagged: the analyses exclude this position
+                frame_problems[name] = problem
         if check_pixels and name == dark_file:
             checked_dark(path, image)
     assert ref_shape is not None and ref_dtype is not None
@@ -176,6 +205,8 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
              "dark_frame", "pixel_pitch_um", "center"}
     metadata = {k: v for k, v in header.items() if k not in known}
     metadata["_manifest"] = manifest.name
+    if frame_problems:
+        metadata["_frame_problems"] = frame_problems
     return PsfGrid(
         root=root,
         positions=tuple(positions),
@@ -188,9 +219,31 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         black_level=None if black_level is None else float(black_level),
         bit_depth=bit_depth,
         pixel_pitch_um=pitch,
-        center_index=locate_center(positions, (n_rows, n_cols), header, manifest),
+        center_index=locate_center(positions, (n_rows, n_cols), header, manifest, irregular),
         metadata=metadata,
+        layout=IRREGULAR if irregular else INCOMPLETE_LATTICE if missing else FULL_LATTICE,
     )
+
+
+def _irregular_positions(positions: list[Any], header: dict[str, Any], manifest: Path,
+                         strict: bool) -> list[Any]:
+    """The positions of an irregular scan as row 0, column = place in the manifest; each must
+    be located in the field (all by ``monitor_px`` or all by ``field_deg``)."""
+    from dataclasses import replace
+
+    if strict:
+        raise GridFormatError(f"{manifest}: positions have no row/col (an irregular scan); "
+                              "--strict needs a full lattice")
+    if header.get("grid_shape") is not None:
+        raise GridFormatError(f"{manifest}: 'grid_shape' describes a lattice, but the "
+                              "positions have no row/col (an irregular scan); remove one")
+    if not (all(p.monitor_px is not None for p in positions)
+            or all(p.field_deg is not None for p in positions)):
+        lacking = next(p.file for p in positions if p.monitor_px is None or p.field_deg is None)
+        raise GridFormatError(f"{manifest}: an irregular scan needs 'monitor_px' or 'field_deg' "
+                              f"for every position ({lacking} has neither, or the positions "
+                              "mix the two)")
+    return [replace(p, row=0, col=i) for i, p in enumerate(positions)]
 
 
 def _peek(path: Path, channel_order: str) -> tuple[tuple[int, int, int], np.dtype]:

@@ -33,8 +33,9 @@ class GridWriter:
     ----------
     root : path-like
         Destination folder (must not exist or be empty, unless ``overwrite``).
-    grid_shape : (int, int)
-        Number of rows and columns.
+    grid_shape : (int, int) or None
+        Number of rows and columns of the lattice; ``None`` writes an irregular scan
+        (positions added with :meth:`add_scan`, no grid indices in the manifest).
     suffix : {".tiff", ".png", ".npy"}
         Image file type.
     overwrite : bool
@@ -44,12 +45,13 @@ class GridWriter:
         ``monitor``, free-form metadata such as ``simulation``).
     """
 
-    def __init__(self, root: str | os.PathLike, grid_shape: tuple[int, int],
+    def __init__(self, root: str | os.PathLike, grid_shape: tuple[int, int] | None,
                  suffix: str = ".tiff", overwrite: bool = False, **header: Any) -> None:
         if suffix not in (".tif", ".tiff", ".png", ".npy"):
             raise InvalidInputError(f"unsupported grid image type {suffix!r}")
         self.root = Path(root)
-        self.grid_shape = (int(grid_shape[0]), int(grid_shape[1]))
+        self.grid_shape = None if grid_shape is None else (int(grid_shape[0]),
+                                                            int(grid_shape[1]))
         self.suffix = suffix
         self.overwrite = overwrite
         self.header = header
@@ -73,24 +75,39 @@ class GridWriter:
         self._positions[(row, col)] = position
         return position
 
+    def add_scan(self, index: int, image: np.ndarray, **fields: Any) -> GridPosition:
+        """Write the ``(C, H, W)`` image of position ``index`` of an irregular scan (give
+        ``monitor_px`` or ``field_deg``)."""
+        if self.grid_shape is not None:
+            raise InvalidInputError(f"{self.root}: add_scan needs GridWriter(grid_shape=None)")
+        name = f"psf_{index:03d}{self.suffix}"
+        write_image(self.folder / name, image)
+        position = replace(GridPosition(file=name, row=0, col=index), **{
+            k: (tuple(float(x) for x in v) if k in ("monitor_px", "field_deg") and v is not None
+                else v) for k, v in fields.items()})
+        self._positions[(0, index)] = position
+        return position
+
     def add_dark(self, image: np.ndarray) -> None:
         """Write the dark frame (same shape and dtype as the PSFs)."""
         self._dark = f"dark{self.suffix}"
         write_image(self.folder / self._dark, image)
 
     def _write_manifest(self) -> None:
-        n_rows, n_cols = self.grid_shape
-        missing = [(r, c) for r in range(n_rows) for c in range(n_cols)
-                   if (r, c) not in self._positions]
-        if missing:
-            raise GridFormatError(f"{self.root}: grid incomplete, index {missing[0]} was "
-                                    "never written")
-        doc: dict[str, Any] = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
-                               "grid_shape": list(self.grid_shape)}
+        doc: dict[str, Any] = {"format": FORMAT_NAME, "version": FORMAT_VERSION}
+        if self.grid_shape is not None:
+            n_rows, n_cols = self.grid_shape
+            missing = [(r, c) for r in range(n_rows) for c in range(n_cols)
+                       if (r, c) not in self._positions]
+            if missing:
+                raise GridFormatError(f"{self.root}: grid incomplete, index {missing[0]} was "
+                                      "never written")
+            doc["grid_shape"] = list(self.grid_shape)
         if self._dark:
             doc["dark_frame"] = self._dark
         doc.update(self.header)
-        doc["positions"] = [_position_to_dict(self._positions[k]) for k in sorted(self._positions)]
+        doc["positions"] = [_position_to_dict(self._positions[k], self.grid_shape is None)
+                            for k in sorted(self._positions)]
         (self.folder / MANIFEST_JSON).write_text(json.dumps(doc, indent=1) + "\n",
                                                  encoding="utf-8")
 
@@ -104,8 +121,9 @@ class GridWriter:
         return bool(self._context.__exit__(exc_type, exc, tb))
 
 
-def _position_to_dict(p: GridPosition) -> dict[str, Any]:
-    out: dict[str, Any] = {"file": p.file, "row": p.row, "col": p.col}
+def _position_to_dict(p: GridPosition, scan: bool = False) -> dict[str, Any]:
+    out: dict[str, Any] = {"file": p.file} if scan else {"file": p.file, "row": p.row,
+                                                           "col": p.col}
     if p.monitor_px is not None:
         out["monitor_px"] = [round(v, 6) for v in p.monitor_px]
     if p.field_deg is not None:

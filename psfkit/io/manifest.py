@@ -23,6 +23,9 @@ from psfkit.validation import MAX_GRID_SIDE, read_json_file
 CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")
 CENTRE_TOLERANCE = 1e-6
+#: ``row``/``col`` of a parsed position of an irregular scan (no grid index in the manifest);
+#: :func:`psfkit.io.grid_validation.read_grid` replaces it by ``(0, i)``.
+NO_INDEX = -1
 POSITION_KEYS = ("file", "row", "col", "monitor_px", "field_deg", "exposure_s")
 
 
@@ -82,10 +85,14 @@ def position_from_dict(entry: Any, where: str) -> GridPosition:
     if unknown:
         raise GridFormatError(f"{where} ({file}): unknown key(s) {', '.join(unknown)} "
                               f"(allowed: {', '.join(POSITION_KEYS)})")
+    has_row, has_col = (entry.get(k) not in (None, "") for k in ("row", "col"))
+    if has_row != has_col:
+        raise GridFormatError(f"{where} ({file}): give both 'row' and 'col' (a lattice) or "
+                              "neither (an irregular scan)")
     return GridPosition(
         file=file,
-        row=parse_index(entry.get("row"), f"{where} ({file})", "row"),
-        col=parse_index(entry.get("col"), f"{where} ({file})", "col"),
+        row=parse_index(entry.get("row"), f"{where} ({file})", "row") if has_row else NO_INDEX,
+        col=parse_index(entry.get("col"), f"{where} ({file})", "col") if has_col else NO_INDEX,
         monitor_px=parse_pair(entry.get("monitor_px"), f"{where} ({file})", "monitor_px"),
         field_deg=parse_pair(entry.get("field_deg"), f"{where} ({file})", "field_deg"),
         exposure_s=parse_positive(entry.get("exposure_s"), f"{where} ({file})", "exposure_s"),
@@ -127,7 +134,9 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
     if not rows:
         raise GridFormatError(f"{path}: no rows (needs a header line with file,row,col)")
     columns = {c for c in rows[0] if c is not None}
-    missing = {"file", "row", "col"} - columns
+    missing = {"file"} - columns
+    if ("row" in columns) != ("col" in columns):
+        missing |= {"row", "col"} - columns
     if missing:
         raise GridFormatError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
     unknown = columns - set(CSV_COLUMNS)
@@ -183,11 +192,17 @@ def find_manifest(root: Path) -> Path:
 
 
 def locate_center(positions: list[GridPosition], grid_shape: tuple[int, int],
-                   header: dict[str, Any], manifest: Path) -> tuple[int, int] | None:
+                   header: dict[str, Any], manifest: Path, irregular: bool = False
+                   ) -> tuple[int, int] | None:
     """Grid index of the on-axis PSF: the header's ``center``, else the one position at field
-    (or monitor) ``(0, 0)``, else the middle of an odd-sized grid; ``None`` when none applies."""
+    (or monitor) ``(0, 0)``, else the middle of an odd-sized lattice; ``None`` when none applies."""
     if header.get("center") is not None:
         value = header["center"]
+        if isinstance(value, str):      # a file name (the way to name it in an irregular scan)
+            named = [p for p in positions if p.file == value]
+            if not named:
+                raise GridFormatError(f"{manifest}: 'center' {value!r} is not a listed file")
+            return named[0].row, named[0].col
         if not isinstance(value, list) or len(value) != 2:
             raise GridFormatError(f"{manifest}: 'center' must be [row, col], got {value!r}")
         row, col = (parse_index(v, str(manifest), "center") for v in value)
@@ -204,6 +219,6 @@ def locate_center(positions: list[GridPosition], grid_shape: tuple[int, int],
             if len(on_axis) > 1:
                 raise GridFormatError(f"{manifest}: several positions at field (0, 0): "
                                       f"{', '.join(p.file for p in on_axis)}")
-    if grid_shape[0] % 2 == 1 and grid_shape[1] % 2 == 1:
+    if not irregular and grid_shape[0] % 2 == 1 and grid_shape[1] % 2 == 1:
         return grid_shape[0] // 2, grid_shape[1] // 2
     return None

@@ -34,7 +34,8 @@ def test_fit_eigen_source_convention_and_richer_basis(grid_3x3, tmp_path):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--basis", "poly:3"], "basis 'poly:3' has 10 kernels but the grid has only 9 positions"),
+    (["--basis", "poly:3"],
+     "basis 'poly:3' needs at least 10 positions (10 kernels) but only 9 remain"),
     (["--basis", "papr"], "unknown weight basis 'papr'"),
     (["--out", "{tmp}/k.txt"], "k.txt: kernel files are .npz"),
 ])

@@ -234,7 +234,8 @@ def test_design_refusals():
     row = np.stack([np.arange(-2, 3) * 6.0, np.zeros(5)], axis=-1)
     with pytest.raises(InvalidInputError, match=r"singular design: the weight of kernel 'v'"):
         check_design(basis, row, (40, 48), "grid")
-    with pytest.raises(InvalidInputError, match="has 10 kernels but the grid has only 9"):
+    with pytest.raises(InvalidInputError,
+                       match=r"needs at least 10 positions \(10 kernels\) but only 9 remain"):
         check_design(get_basis("poly:3"), _grid_shifts(3), (40, 48), "grid")
     check_design(basis, _grid_shifts(3), (40, 48), "grid")
 

@@ -1,6 +1,7 @@
 """The PSF-grid format: round trips and every refusal the reader promises."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -161,8 +162,17 @@ BAD_CASES = ["missing file", "duplicate index", "missing index", "mixed shapes",
 def test_reader_refuses_bad_input_with_one_clear_line(grid_dir, case):
     expected = _corrupt(grid_dir, case)
     with pytest.raises(GridFormatError, match=expected) as info:
-        read_grid(grid_dir)
+        read_grid(grid_dir, strict=True)
     assert "\n" not in str(info.value)
+    if case in ("missing index", "nan", "all zero"):     # flagged, not refused (issue 26)
+        grid = read_grid(grid_dir)
+        if case == "missing index":
+            assert grid.layout == "incomplete lattice"
+            assert grid.missing() == [(2, 1)]
+        else:
+            assert grid.layout == "full lattice"
+            assert len(grid.frame_problems) == 1
+            assert re.search(expected, next(iter(grid.frame_problems.values())))
 
 
 def test_not_a_folder(tmp_path):
@@ -192,3 +202,47 @@ def test_writer_is_atomic(tmp_path):
     with pytest.raises(GridFormatError, match="never written"), GridWriter(out, (2, 2)) as w:
         w.add(0, 0, _psf(0))
     assert not out.exists()
+
+
+def test_an_irregular_scan_in_json_and_csv(grid_dir):
+    doc = _manifest(grid_dir)
+    doc.pop("grid_shape")
+    for p in doc["positions"]:
+        del p["row"], p["col"]
+    _write_manifest(grid_dir, doc)
+    grid = read_grid(grid_dir)
+    assert grid.layout == "irregular" and grid.grid_shape == (1, 9)
+    assert [p.col for p in grid.positions] == list(range(9))
+    assert grid.center_index == (0, 4)       # the position at field (0, 0)
+    assert grid.find_reference("#2") == (0, 2) == grid.find_reference(doc["positions"][2]["file"])
+    (grid_dir / "manifest.json").unlink()
+    lines = ["file,monitor_x_px,monitor_y_px,role", *(
+        f"{p['file']},{p['monitor_px'][0]},{p['monitor_px'][1]},psf" for p in doc["positions"]),
+        "dark.tiff,,,dark"]
+    (grid_dir / "manifest.csv").write_text("\n".join(lines) + "\n")
+    assert read_grid(grid_dir).layout == "irregular"
+
+
+@pytest.mark.parametrize("case", ["mixed", "no coordinates", "grid_shape", "half index"])
+def test_irregular_manifests_that_are_refused(grid_dir, case):
+    doc = _manifest(grid_dir)
+    if case == "mixed":
+        del doc["positions"][3]["row"], doc["positions"][3]["col"]
+        expected = "psf_r01_c00.tiff has no row/col but other positions do"
+    else:
+        for p in doc["positions"]:
+            del p["row"], p["col"]
+        if case == "no coordinates":
+            doc.pop("grid_shape")
+            del doc["positions"][5]["monitor_px"], doc["positions"][5]["field_deg"]
+            expected = "an irregular scan needs 'monitor_px' or 'field_deg' for every position"
+        elif case == "grid_shape":
+            expected = "'grid_shape' describes a lattice"
+        else:
+            doc.pop("grid_shape")
+            doc["positions"][0]["row"] = 0
+            expected = "give both 'row' and 'col'"
+    _write_manifest(grid_dir, doc)
+    with pytest.raises(GridFormatError, match=expected) as info:
+        read_grid(grid_dir)
+    assert "\n" not in str(info.value)
