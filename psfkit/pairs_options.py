@@ -41,12 +41,12 @@ class PairFitOptions:
         stops at ``tolerance``; default 2000 (a cap, not an early stop: the fit records its
         relative residual and whether it converged).
     scale_iterations : int
-        Most conjugate-gradient iterations of each earlier round that re-estimates the scales.
+        Most conjugate-gradient iterations of each earlier round that re-estimates the scales
+        (each round is solved to ``tolerance`` too: scales fitted to loosely solved kernels
+        are off by a percent, and the next warm-started round then has nothing to do).
     tolerance : float
         Stop when the relative residual of the normal equations falls below this (default
         1e-6, in the float64 working precision).
-    scale_tolerance : float
-        The same for the rounds that re-estimate the scales (only a rough estimate is needed).
     fit_scale : bool
         Estimate one scale per pair (per-image normalised ground truth).
     rounds : int
@@ -82,9 +82,8 @@ class PairFitOptions:
     tikhonov: float = 0.0
     difference: float = 0.0
     iterations: int | None = None
-    scale_iterations: int = 200
+    scale_iterations: int = 2000
     tolerance: float = 1e-6
-    scale_tolerance: float = 1e-3
     fit_scale: bool = True
     rounds: int = 3
     scene_padding: int = 2
