@@ -145,8 +145,21 @@ def _versions() -> dict[str, str]:
             "torch": torch.__version__.split("+")[0], "scikit-image": skimage.__version__}
 
 
-def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
-    """The dense forward model of the spec's bench (noise-free node PSFs, QE colour balance)."""
+def node_psfs(spec: VirtualBenchSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The bench's noise-free node PSFs and where they land (what the dense model is built of).
+
+    Returns
+    -------
+    kernels : numpy.ndarray
+        ``(N, M, C, H', W')`` float64: each node's PSF re-centred on its chief ray (origin at
+        the array centre), in measurement units per unit scene radiance (QE colour balance).
+    shifts : numpy.ndarray
+        ``(N, M, 2)``: the true chief-ray shift ``(du, dv)`` of each node from the sensor
+        centre, in sensor pixels (same node order as ``kernels``).
+    rows, cols : numpy.ndarray
+        Sensor row coordinates of the node rows and column coordinates of the node columns,
+        increasing (the node order is reversed where the optics flip the image).
+    """
     config = spec.bench_config()
     camera = VirtualCamera(config)
     monitor = grid_monitor_positions(config, spec.grid_shape)
@@ -170,10 +183,16 @@ def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
     cols = w // 2 + shifts[:, :, 0].mean(axis=0)
     # A source at +x (+y) images to -u (-v): node order is reversed on the sensor.
     if rows[0] > rows[-1]:
-        rows, kernels = rows[::-1], kernels[::-1]
+        rows, kernels, shifts = rows[::-1], kernels[::-1], shifts[::-1]
     if cols[0] > cols[-1]:
-        cols, kernels = cols[::-1], kernels[:, ::-1]
-    return DenseShiftVariantModel(kernels, rows, cols, (h, w), spec.convention)
+        cols, kernels, shifts = cols[::-1], kernels[:, ::-1], shifts[:, ::-1]
+    return kernels, shifts, rows, cols
+
+
+def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
+    """The dense forward model of the spec's bench (noise-free node PSFs, QE colour balance)."""
+    kernels, _shifts, rows, cols = node_psfs(spec)
+    return DenseShiftVariantModel(kernels, rows, cols, spec.sensor_shape, spec.convention)
 
 
 def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
@@ -198,11 +217,17 @@ def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -
     return np.clip(np.moveaxis(out, -1, 0), 0, 1).astype(np.float32)
 
 
-def make_scenes(spec: VirtualBenchSpec, split: str) -> np.ndarray:
-    """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``)."""
-    n = spec.n_train if split == "train" else spec.n_test
+def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
+                stream: int | None = None) -> np.ndarray:
+    """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``).
+
+    ``count`` scenes (default the split's size) from random stream ``stream`` (default the
+    split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
+    (the oracle's, :mod:`ekdun.data.oracle`).
+    """
+    n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
     names = TRAIN_IMAGES if split == "train" else TEST_IMAGES
-    split_id = 0 if split == "train" else 1
+    split_id = (0 if split == "train" else 1) if stream is None else stream
     out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
     for i in range(n):
         rng = np.random.default_rng([spec.seed, split_id, i])
