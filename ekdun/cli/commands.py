@@ -54,6 +54,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--photons", type=flag("--photons"), default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
     p.add_argument("--seed", type=flag("--seed"), default=0)
+    p.add_argument("--no-oracle", action="store_true",
+                   help="do not compute the eigen-kernel oracles (DATASET/oracle/: the best "
+                        "paper-basis models of the bench, both conventions)")
+    p.add_argument("--oracle-scenes", type=flag("--oracle-scenes"), default=0,
+                   help="scenes of the operator oracle (default 4 x --n-train, at least 128)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_make_dataset)
 
@@ -176,7 +181,8 @@ def run_make_dataset(args: argparse.Namespace) -> int:
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
-                            photons=args.photons, seed=args.seed)
+                            photons=args.photons, seed=args.seed, oracle=not args.no_oracle,
+                            oracle_scenes=args.oracle_scenes)
     root = make_virtual_bench(args.out, spec, progress=not args.quiet)
     _say(args, f"dataset: {root}")
     return 0

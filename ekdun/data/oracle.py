@@ -43,7 +43,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ekdun.data.virtual_bench import VirtualBenchSpec, dense_model_for, make_scenes, node_psfs
+from ekdun.data.virtual_bench import (
+    VirtualBenchSpec,
+    dense_model_for,
+    make_scenes,
+    node_psfs,
+)
 from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
@@ -62,8 +67,8 @@ Forward = Callable[[Tensor], Tensor]
 
 
 def default_oracle_scenes(spec: VirtualBenchSpec) -> int:
-    """Scenes of the operator oracle by default: 4 × the training pairs, at least 256."""
-    return max(256, 4 * spec.n_train)
+    """Scenes of the operator oracle by default: 4 × the training pairs, at least 128."""
+    return max(128, 4 * spec.n_train)
 
 
 @dataclass
@@ -204,10 +209,11 @@ def difference_nccs(a: np.ndarray, b: np.ndarray, basis: str = "paper") -> dict[
 
 
 def compare_oracles(a: KernelModel, b: KernelModel, spec: VirtualBenchSpec,
-                    n_test: int = 32, forward: Forward | None = None) -> dict[str, Any]:
+                    n_test: int = 32, forward: Forward | None = None,
+                    labels: tuple[str, str] = ("a", "b")) -> dict[str, Any]:
     """How much two eigen-kernel models differ: difference-kernel and base NCC, kernel error
-    ``‖a − b‖/‖b‖``, and the relative prediction errors of both (and of their difference) on
-    ``n_test`` noise-free test pairs of the dense model (new scenes)."""
+    ``‖a − b‖/‖b‖``, and the mean relative prediction errors of both against the dense model
+    (and of ``a`` against ``b``) on ``n_test`` noise-free test pairs (new scenes)."""
     forward = forward or _dense_forward(spec)
     x = oracle_scenes(spec, n_test, stream=COMPARE_STREAM)
     with torch.no_grad():
@@ -222,7 +228,8 @@ def compare_oracles(a: KernelModel, b: KernelModel, spec: VirtualBenchSpec,
     ka, kb = a.kernels.astype(np.float64), b.kernels.astype(np.float64)
     return {"difference_ncc": difference_nccs(ka, kb, a.basis),
             "kernel_error": float(np.linalg.norm(ka - kb) / np.linalg.norm(kb)),
-            "prediction_error": {"a": rel(pa, y), "b": rel(pb, y), "a_vs_b": rel(pa, pb)},
+            "prediction_error": {labels[0]: rel(pa, y), labels[1]: rel(pb, y),
+                                 f"{labels[0]}_vs_{labels[1]}": rel(pa, pb)},
             "n_test": n_test}
 
 
@@ -242,7 +249,8 @@ def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
         out["files"][convention] = {
             "operator": name, "psf": psf_name, "operator_record": op.record,
             "psf_record": psf.record,
-            "operator_vs_psf": compare_oracles(psf.model, op.model, spec, forward=dense)}
+            "psf_vs_operator": compare_oracles(psf.model, op.model, spec, forward=dense,
+                                               labels=("psf", "operator"))}
     return out
 
 

@@ -9,6 +9,9 @@
       train/scene/*.npy    ground-truth scenes (H', W', 3) float32 in [0, 1], RGB
       train/measurement/*.npy   simulated measurements (H', W', 3) float32
       test/...             held-out scenes (other natural images, other dead-leaves seeds)
+      oracle/              the best paper-basis eigen-kernel models, both conventions
+                           (:mod:`ekdun.data.oracle`): ``paper_{source,sensor}.npz`` (operator
+                           oracle) and ``psf_paper_{source,sensor}.npz`` (PSF oracle)
 
 Scenes: dead-leaves images (:mod:`ekdun.data.deadleaves`) and random crops of the natural
 images that ship inside scikit-image (different images for train and test). Measurements:
@@ -91,6 +94,11 @@ class VirtualBenchSpec:
         Where the dense model's interpolation weights act.
     seed : int
         Seed of the diffuser, scenes and noise.
+    oracle : bool
+        Also write the eigen-kernel oracles (paper basis, both conventions) under
+        ``oracle/`` (:mod:`ekdun.data.oracle`).
+    oracle_scenes : int
+        Scenes of the operator oracle (0: :func:`ekdun.data.oracle.default_oracle_scenes`).
     """
 
     sensor_shape: tuple[int, int] = (64, 64)
@@ -106,6 +114,8 @@ class VirtualBenchSpec:
     read_noise_e: float = 2.0
     convention: str = "source"
     seed: int = 0
+    oracle: bool = True
+    oracle_scenes: int = 0
 
     def __post_init__(self) -> None:
         if min(self.grid_shape) < 3:
@@ -355,6 +365,11 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                 for i, image in enumerate(arrays):
                     # the one image writer: refuses NaN/Inf (e.g. --photons 1e-300)
                     write_image(folder / f"{split}{i:04d}.npy", image.astype(np.float32))
+        oracle = None
+        if spec.oracle:
+            from ekdun.data.oracle import write_oracles
+
+            oracle = write_oracles(tmp / "oracle", spec, n_scenes=spec.oracle_scenes or None)
         files = _data_files(tmp)
         manifest = {
             "format": FORMAT, "version": VERSION, "spec": spec.to_dict(),
@@ -364,6 +379,8 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                              "weights) + Poisson-Gaussian noise",
             "files": files, "content_hash": content_hash(tmp, files),
         }
+        if oracle is not None:
+            manifest["oracle"] = oracle
         with atomic_file(tmp / MANIFEST) as out:
             out.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
     return root
