@@ -77,7 +77,7 @@ from psfkit.weights import get_basis
 
 #: Default bytes of scene spectra kept between passes (beyond it, they are recomputed per
 #: batch in every pass: bounded memory, a few more FFTs).
-DEFAULT_CACHE_BYTES = 768 * 2**20
+DEFAULT_CACHE_BYTES = 3 * 2**29
 #: Default pairs per batch of the streaming passes.
 DEFAULT_BATCH = 16
 

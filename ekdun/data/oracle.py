@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ekdun.data.virtual_bench import (
+from ekdun.data.bench_spec import (
     VirtualBenchSpec,
     dense_model_for,
     make_scenes,
