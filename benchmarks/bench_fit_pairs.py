@@ -11,12 +11,39 @@ targets: EK ≤ 0.75 × SI; constrained no worse than unconstrained) at the chos
 
     python benchmarks/bench_fit_pairs.py
     python benchmarks/bench_fit_pairs.py --repeat 1 --leave-one-out --downsample 2
+
+``--scaling DATA`` (issue 23) instead times ``psfkit fit-pairs DATA/train --basis ek
+--convention source`` (defaults otherwise) against pairs × size, on the first N pairs of a
+128 × 128 virtual-bench dataset (``ekdun make-dataset DATA --sensor 128 128 --n-train 384
+--photons 20000 --no-oracle``), binned 2 × 2 for the 64 × 64 rows: the exact streaming solver
+of this tree ("new") and, where ``N·H·W`` is at most ``--old-max`` pixels, the early-stopped CG
+of the code at ``--old-ref`` ("old", run from a ``git archive`` of that commit in the same run),
+each in a fresh process; wall time, CPU time and peak RSS.
+
+    python benchmarks/bench_fit_pairs.py --scaling /tmp/ds128 --old-max 1572864
+
+Measured (issue 23, 2 shared cores, one run; old = 89f2aa1):
+
+| pairs | size | solver | wall s | CPU s | peak RSS GiB |
+|---|---|---|---|---|---|
+| 96 | 64 | old | 7.6 | 14.0 | 0.50 |
+| 96 | 64 | new | 7.4 | 13.7 | 0.50 |
+| 96 | 128 | old | 70.7 | 139.7 | 0.80 |
+| 96 | 128 | new | 61.7 | 121.9 | 0.80 |
+| 192 | 128 | new | 140.3 | 277.5 | 1.14 |
+| 384 | 128 | new | 208.0 | 409.7 | 1.90 |
+
+The new solver runs to a relative residual of 1e-6 (the old one stopped after 60 CG and 100
+projected iterations, unconverged) in about the old one's time per pair; the acceptance setting
+(384 pairs of 128 × 128 × 3, paper basis) takes 3.5 min and 1.9 GiB (the issue measured
+11 min 52 s and 2.6 GB for the old solver, on a busier machine; not re-run here).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -38,13 +65,85 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "dlmd_m
 VARIANTS = {"constrained": [], "unconstrained": ["--no-nonneg"]}
 
 
+SCALING_CHILD = """
+import resource, sys, time
+from psfkit.cli import main
+t0 = time.perf_counter()
+code = main(["fit-pairs", sys.argv[1], "--basis", "ek", "--convention", "source",
+             "--out", sys.argv[2], "--quiet"])
+print("WALL", time.perf_counter() - t0)
+usage = resource.getrusage(resource.RUSAGE_SELF)
+print("CPU", usage.ru_utime + usage.ru_stime)
+print("PEAK", usage.ru_maxrss / 2**20)
+sys.exit(code)
+"""
+#: (pairs, sensor side) of the scaling rows; the last is the issue's acceptance setting
+SCALING = ((96, 64), (96, 128), (192, 128), (384, 128))
+
+
+def scaling(data: str, old_ref: str, old_max: int) -> None:
+    """Time and peak memory of fit-pairs against pairs × size, old vs new, in one run."""
+    import numpy as np
+
+    from psfkit.cli.pairs_cmd import _load
+
+    full = {}
+    repo = Path(__file__).resolve().parents[1]
+    print("| pairs | size | solver | wall s | CPU s | peak RSS GiB |")
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        old_tree = Path(tmp) / "old"
+        old_tree.mkdir()
+        archive = subprocess.run(["git", "-C", str(repo), "archive", old_ref, "psfkit"],
+                                 capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(old_tree)], input=archive, check=True)
+        for n, side in SCALING:
+            pairs = Path(tmp) / f"pairs{n}_{side}"
+            (pairs / "scene").mkdir(parents=True)
+            (pairs / "measurement").mkdir()
+            if side not in full:
+                full.clear()
+                full[side] = _load(str(Path(data) / "train"), 128 // side)[1:]
+            x, y = full[side]
+            for i in range(n):
+                np.save(pairs / "scene" / f"p{i:04d}.npy", np.moveaxis(x[i], 0, -1))
+                np.save(pairs / "measurement" / f"p{i:04d}.npy", np.moveaxis(y[i], 0, -1))
+            for solver in ("old", "new"):
+                if solver == "old" and n * side * side > old_max:
+                    print(f"| {n} | {side} | old | (not run: > --old-max) | | |", flush=True)
+                    continue
+                env = dict(os.environ)
+                if solver == "old":
+                    env["PYTHONPATH"] = str(old_tree) + os.pathsep + env.get("PYTHONPATH", "")
+                with tempfile.TemporaryDirectory() as work:
+                    res = subprocess.run([sys.executable, "-c", SCALING_CHILD, str(pairs),
+                                          str(Path(work) / "k.npz")],
+                                         capture_output=True, text=True, env=env)
+                if res.returncode:
+                    sys.exit(res.stderr.strip())
+                value = {key: float(res.stdout.split(key)[-1].split()[0])
+                         for key in ("WALL", "CPU", "PEAK")}
+                print(f"| {n} | {side} | {solver} | {value['WALL']:.1f} | {value['CPU']:.1f} "
+                      f"| {value['PEAK']:.2f} |", flush=True)
+            shutil.rmtree(pairs)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=os.environ.get("PSFKIT_DLMD", str(DEFAULT_DATA)))
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--downsample", type=int, default=1)
     parser.add_argument("--leave-one-out", action="store_true")
+    parser.add_argument("--scaling", metavar="DATA",
+                        help="virtual-bench dataset: time fit-pairs against pairs x size")
+    parser.add_argument("--old-ref", default="89f2aa1",
+                        help="commit of the old solver for --scaling (default: before issue 23)")
+    parser.add_argument("--old-max", type=int, default=96 * 128 * 128,
+                        help="run the old solver only up to this many pixels N*H*W")
     args = parser.parse_args()
+    if args.scaling:
+        scaling(args.scaling, args.old_ref, args.old_max)
+        return
     medians = {}
     with tempfile.TemporaryDirectory() as tmp:
         for model, target in (("si", 30.0), ("ek", 60.0)):

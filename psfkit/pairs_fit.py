@@ -11,25 +11,25 @@ least squares (in the kernel-space form :class:`~psfkit.forward.kernel_space.Ker
            + \mu \sum_{k\ge1}\lVert K_k - K_0\rVert^2 ,
 
 which is linear in ``K``: with :math:`B_i: K \mapsto A_K x_i` the normal equations
-:math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved by
-preconditioned conjugate gradients, every ``B_i`` and ``B_i^\top`` applied with real FFTs on the
-padded grid (the scene spectra are computed once). The preconditioner divides each kernel's
-spectrum by :math:`\bar w\,\sum_i\sum_j|\hat s_{ij}|^2 + \lambda` per frequency
-(:meth:`~psfkit.forward.kernel_space.KernelSpaceOperator.precondition`), with :math:`\hat s_{ij}`
-the spectra of the scenes as the kernels see them (:math:`j` runs over the one unweighted scene,
-or over the K weighted scenes :math:`W_j x_i` of a source-side model) and :math:`\bar w` the
-mean of the squared weight maps (1 for the SI model): the circulant part of the normal operator
-for one kernel with a spatially averaged weight; it ignores the coupling between kernels and
-the difference prior.
-``λ`` and ``μ`` are relative to the mean of :math:`\sum_i|\hat x_i|^2`, so they do not depend
-on the data's units. Datasets whose ground truth was normalised image by image (the DiffuserCam
-Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated in a few
-alternating rounds (``fit_scale``).
+:math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved **to
+convergence** (relative residual ``PairFitOptions.tolerance``, recorded in the history) by
+conjugate gradients preconditioned with the per-frequency ``K × K`` Gram blocks of the scenes,
+streaming the pairs in batches (:mod:`psfkit.pairs_solver`, which says what is exact and what
+only preconditions). Both weights default to 0 (issue 23): a ridge or a pull of the
+corrections towards the base kernel biases the kernels where the scenes carry little power,
+and early stopping did the same; with neither, noise-free pairs of an eigen-kernel model give
+back its kernels.
+``λ`` and ``μ`` are relative to the mean of :math:`\sum_i\sum_j|\hat s_{ij}|^2` (the spectra
+of the scenes as the kernels see them: the K weighted scenes of a source-side model), so they do
+not depend on the data's units. Datasets whose ground truth was normalised image by image (the
+DiffuserCam Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated
+in a few alternating rounds (``fit_scale``).
 
 By default the kernels are then made physical: the final solve continues, warm-started from the
-CG solution, by accelerated projected gradient under non-negativity and optionally a support
-and per-kernel energies (:mod:`psfkit.pairs_constraints`; ``PairFitOptions.nonneg``,
-``support``, ``energy``). :meth:`PairFit.physics` is what the kernel file records about them.
+converged unconstrained solution, by accelerated projected gradient under non-negativity and
+optionally a support and per-kernel energies (:mod:`psfkit.pairs_constraints`;
+``PairFitOptions.nonneg``, ``support``, ``energy``). :meth:`PairFit.physics` is what the kernel
+file records about them.
 """
 
 from __future__ import annotations
@@ -43,7 +43,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psfkit.eigen import _difference_prior as difference_prior
 from psfkit.errors import InvalidInputError
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zero_workspace
 from psfkit.forward.geometry import padded_shape
@@ -52,12 +51,11 @@ from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
 from psfkit.pairs_options import PairFitOptions
+from psfkit.pairs_solver import DEFAULT_BATCH, DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
 from psfkit.resample import bin_mean
-from psfkit.weights import get_basis
 
-
-def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(dim=(0, 2, 3))                                        # (C,)
+__all__ = ["KernelSpaceOperator", "PairFit", "PairFitOptions", "downsample_pairs",
+           "fit_pairs", "leave_one_out", "predict", "relative_errors"]
 
 
 @dataclass
@@ -114,9 +112,16 @@ def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
 
 def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
               options: PairFitOptions | None = None, initial: np.ndarray | None = None,
-              dtype: torch.dtype = torch.float32, device: str = "cpu",
-              progress: bool = False, support_mask: np.ndarray | None = None) -> PairFit:
+              dtype: torch.dtype = torch.float64, device: str = "cpu",
+              progress: bool = False, support_mask: np.ndarray | None = None,
+              batch_size: int = DEFAULT_BATCH, cache_bytes: int = DEFAULT_CACHE_BYTES
+              ) -> PairFit:
     """Fit a forward model to ``(N, C, H, W)`` scenes and measurements.
+
+    The least squares is solved to ``options.tolerance`` (relative residual of the normal
+    equations) by conjugate gradients preconditioned with the per-frequency Gram blocks of
+    the scenes (:mod:`psfkit.pairs_solver`), streaming the pairs in batches: memory is that of
+    the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
 
     Parameters
     ----------
@@ -124,10 +129,17 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         ``(N, C, H', W')`` each (scene and measurement of a pair have the sensor's size).
     options : PairFitOptions
     initial : numpy.ndarray, optional
-        ``(K, C, Hk, Wk)`` starting kernels (e.g. a shift-invariant fit for an EK model).
+        ``(K, C, Hk, Wk)`` starting kernels (only a warm start: the solution does not depend
+        on it).
+    dtype : torch.dtype
+        Working precision (float64 by default: the solve is run to a relative residual that
+        float32 cannot reach on ill-conditioned data).
     support_mask : numpy.ndarray, optional
         ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
         "mask"``; nonzero = inside).
+    batch_size, cache_bytes
+        Pairs per batch, and bytes of scene spectra kept between passes
+        (:class:`~psfkit.pairs_solver.PairBatches`).
 
     Raises
     ------
@@ -146,79 +158,67 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         raise InvalidInputError(f"the support mask is {support_mask.shape[0]}x"
                                 f"{support_mask.shape[1]}, the kernels "
                                 f"{scenes.shape[-2]}x{scenes.shape[-1]}")
-    x = torch.as_tensor(scenes, dtype=dtype, device=device)
-    y = torch.as_tensor(measurements, dtype=dtype, device=device)
-    n, c, h, w = x.shape
-    kernel_shape = (h, w)
-    n_kernels = get_basis(options.basis).n_kernels
-    # D of Σ_{k≥1}‖K_k − K_0‖²/2 (the one definition, shared with fit-eigen), (K, K)
-    prior = torch.as_tensor(difference_prior(n_kernels), dtype=dtype, device=device)
-    scales = torch.ones(n, dtype=dtype, device=device)
-    if initial is None and n_kernels > 1 and options.seed_with_si:
-        seed = fit_pairs(scenes, measurements,
-                         dataclasses.replace(options, basis="si", iterations=None,
-                                             nonneg=False, support="none", energy="free"),
-                         dtype=dtype, device=device, progress=progress)
-        initial = np.repeat(seed.kernels, n_kernels, axis=0)
-        scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
-    kernels = torch.zeros((n_kernels, c, *kernel_shape), dtype=dtype, device=device) \
-        if initial is None else torch.as_tensor(initial, dtype=dtype, device=device).clone()
+    h, w = scenes.shape[-2:]
+    kernel_shape = (int(h), int(w))
+    batches = PairBatches(scenes, options.basis, options.convention, kernel_shape,
+                          options.scene_padding, batch_size, cache_bytes, dtype, device)
+    n_kernels = batches.n_kernels
     history: list[dict[str, Any]] = []
-    # Scale rounds need only a rough kernel estimate (warm-started each time); the final solve
-    # with the scales fixed gets the full iteration count.
+    kernels: Tensor | None = None
+    if initial is not None:
+        kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
+    elif n_kernels > 1 and options.seed_with_si:
+        seed = fit_pairs(scenes, measurements,
+                         dataclasses.replace(options, basis="si", nonneg=False,
+                                             support="none", energy="free"),
+                         dtype=dtype, device=device, progress=progress,
+                         batch_size=batch_size, cache_bytes=cache_bytes)
+        kernels = torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
+                                  device=device)
+        batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
+    # Every round is solved to the tolerance (warm-started from the previous one): scales
+    # fitted to loosely solved kernels are biased by a percent (measured), and then stay so.
     scale_rounds = options.rounds - 1 if options.fit_scale else 0
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=scale_rounds * options.scale_iterations + options.final_iterations,
-                   unit="it", leave=False, desc=f"fit {options.basis}")
+        bar = tqdm(unit="it", leave=False, desc=f"fit {options.basis}")
     round_index = 0
     while True:
         final_round = round_index >= scale_rounds
-        op = KernelSpaceOperator(x * scales[:, None, None, None], options.basis,
-                                 options.convention, kernel_shape, options.scene_padding)
-        reference = float(op.power.mean())
-        lam = options.tikhonov * reference
-        mu = options.difference * reference
-
-        def normal(k: Tensor, op: KernelSpaceOperator = op, lam: float = lam,
-                   mu: float = mu) -> Tensor:
-            out = op.adjoint(op.forward(k)) + lam * k
-            if n_kernels == 1:
-                return out
-            return out + mu * torch.tensordot(prior, k, dims=([1], [0]))
-
-        rhs = op.adjoint(y)
-        kernels, info = _conjugate_gradients(
-            normal, rhs, kernels, lambda r, op=op, lam=lam: op.precondition(r, lam),
-            options.final_iterations if final_round else options.scale_iterations,
-            options.tolerance, bar)
-        info["round"] = round_index
-        history.append(info)
+        kernels, info, system = solve_kernels(
+            batches, measurements, options.tikhonov, options.difference, start=kernels,
+            tolerance=options.tolerance,
+            max_iterations=options.final_iterations if final_round
+            else options.scale_iterations, bar=bar)
+        record = info.as_dict()
+        record.update(round=round_index, passes=batches.passes,
+                      **{k: system[k] for k in ("lambda", "mu", "reference")})
+        history.append(record)
         if final_round:
             break
-        # the model is linear in the scene: the unscaled prediction is the scaled one / scale
-        prediction = op.forward(kernels) / scales[:, None, None, None]
-        num = (prediction * y).sum(dim=(1, 2, 3))
-        den = (prediction * prediction).sum(dim=(1, 2, 3)).clamp_min(1e-30)
-        new = num / den
+        # the model is linear in the scene: fit the best scale to each unscaled prediction
+        _err, _norm, num, den = batches.residual_norms(kernels, measurements)
+        new = num / den.clamp_min(1e-30)
         new = new / new.mean()                       # the overall scale stays in the kernels
-        if float((new - scales).abs().max()) < 1e-4:
+        if float((new - batches.scales).abs().max()) < 1e-6:
             scale_rounds = round_index + 1           # converged: go to the final solve
-        scales = new
+        batches.scales = new
         round_index += 1
     support = None
     if options.constrained:
-        kernels, support, info = _constrained_solve(normal, rhs, kernels, options,
-                                                    support_mask, progress)
-        history.append(info)
+        kernels, support, info_c = _constrained_solve(system["normal"], system["rhs"],
+                                                      kernels, options, support_mask,
+                                                      progress)
+        info_c["passes"] = batches.passes
+        history.append(info_c)
     if bar is not None:
         bar.close()
-    residual = op.forward(kernels) - y
-    errors = residual.pow(2).sum(dim=(1, 2, 3)).sqrt() / y.pow(2).sum(dim=(1, 2, 3)).sqrt()
+    err, norm, _num, _den = batches.residual_norms(kernels, measurements)
+    errors = err / norm.clamp_min(1e-300)
     return PairFit(kernels=kernels.cpu().numpy(), basis=options.basis,
-                   convention=options.convention, scales=scales.cpu().numpy(),
+                   convention=options.convention, scales=batches.scales.cpu().numpy(),
                    training_error=errors.cpu().numpy(), history=history, options=options,
                    support=support)
 
@@ -227,7 +227,8 @@ def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
                        options: PairFitOptions, support_mask: np.ndarray | None,
                        progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
     """The final solve under ``options``' constraints, warm-started from the unconstrained
-    (CG) kernels, whose base kernel also gives the automatic support and the energies."""
+    (converged) kernels, whose base kernel also gives the automatic support and the
+    energies."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
@@ -255,37 +256,6 @@ def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
         bar.close()
     info["support_fraction"] = 1.0 if support is None else float(support.mean())
     return kernels, support, info
-
-
-def _conjugate_gradients(apply: Any, rhs: Tensor, start: Tensor, precondition: Any,
-                         iterations: int, tolerance: float, bar: Any = None
-                         ) -> tuple[Tensor, dict[str, Any]]:
-    """Preconditioned CG, independent per colour channel (per-channel step sizes)."""
-    x = start.clone()
-    r = rhs - apply(x)
-    z = precondition(r)
-    p = z.clone()
-    rz = _per_channel_dot(r, z)
-    norm_rhs = _per_channel_dot(rhs, rhs).sqrt().clamp_min(1e-30)
-    done = 0
-    relative = float("nan")
-    while done < iterations:
-        done += 1
-        ap = apply(p)
-        alpha = rz / _per_channel_dot(p, ap).clamp_min(1e-30)
-        x += alpha[None, :, None, None] * p
-        r -= alpha[None, :, None, None] * ap
-        relative = float((_per_channel_dot(r, r).sqrt() / norm_rhs).max())
-        if bar is not None:
-            bar.update(1)
-        if relative < tolerance:
-            break
-        z = precondition(r)
-        rz_new = _per_channel_dot(r, z)
-        beta = rz_new / rz.clamp_min(1e-30)
-        p = z + beta[None, :, None, None] * p
-        rz = rz_new
-    return x, {"iterations": done, "relative_residual": relative}
 
 
 def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32

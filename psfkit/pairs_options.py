@@ -27,19 +27,26 @@ class PairFitOptions:
     convention : {"sensor", "source"}
         Where the weights of an eigen-kernel model live.
     tikhonov : float
-        ``λ`` relative to the mean scene power.
+        ``λ`` relative to the mean scene power (the mean over frequencies of the summed power
+        of the scene spectra the kernels see). Default 0: any ridge shrinks the kernels'
+        spectra where the scenes carry little power and biases them (issue 23: at 1e-2 the
+        kernels of noise-free eigen-kernel pairs came out 46 % wrong); set it for very few
+        or very noisy pairs.
     difference : float
         ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
+        Default 0: at the earlier default 1 it damped ``Kv − Kbase`` and ``Kh − Kbase`` at
+        every frequency where the scenes' power is below the mean, which is most of them.
     iterations : int, optional
-        Conjugate-gradient iterations of the final solve (scales fixed); default 30 for a
-        shift-invariant model (better conditioned: more iterations change nothing measurable
-        on DLMD) and 60 for eigen-kernel models. The projected solve that follows by default
-        needs this full warm start: with 10 / 20 iterations the held-out error on DLMD is the
-        same at 1/4 resolution but loses most of the constraint's gain at 1/2.
+        Most conjugate-gradient iterations of the final solve (scales fixed), which otherwise
+        stops at ``tolerance``; default 2000 (a cap, not an early stop: the fit records its
+        relative residual and whether it converged).
     scale_iterations : int
-        Conjugate-gradient iterations of each earlier round that re-estimates the scales.
+        Most conjugate-gradient iterations of each earlier round that re-estimates the scales
+        (each round is solved to ``tolerance`` too: scales fitted to loosely solved kernels
+        are off by a percent, and the next warm-started round then has nothing to do).
     tolerance : float
-        Stop when the relative residual of the normal equations falls below this.
+        Stop when the relative residual of the normal equations falls below this (default
+        1e-6, in the float64 working precision).
     fit_scale : bool
         Estimate one scale per pair (per-image normalised ground truth).
     rounds : int
@@ -48,8 +55,8 @@ class PairFitOptions:
         Convolution grid as a multiple of the sensor size.
     seed_with_si : bool
         Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
-        scales): the CG then only has to find the corrections. From zero kernels, 60
-        iterations leave a full-resolution DLMD fit under-converged and worse than the PSF.
+        scales). Only a warm start: the solve runs to ``tolerance`` from any start (default
+        off since issue 23; it was needed by the earlier early-stopped solver).
     nonneg : bool
         Constrain the kernels to be non-negative (a measured PSF is). Any constraint makes the
         final solve accelerated projected gradient (:mod:`psfkit.pairs_constraints`), warm
@@ -65,21 +72,22 @@ class PairFitOptions:
         (``"fit"``); or every kernel of a channel fixed to the unconstrained base kernel's sum
         (``"base"``: Kv and Kh carry Kbase's energy).
     projected_iterations : int, optional
-        Iterations of the projected-gradient solve; default 100 (where the held-out error on
-        DLMD at 1/4 resolution stops improving).
+        Most iterations of the projected-gradient solve (which stops when the kernels change
+        by less than 1e-6 of themselves); default 100 (where the held-out error on DLMD at 1/4
+        resolution stops improving).
     """
 
     basis: str = "si"
     convention: str = "sensor"
-    tikhonov: float = 1e-2
-    difference: float = 1.0
+    tikhonov: float = 0.0
+    difference: float = 0.0
     iterations: int | None = None
-    scale_iterations: int = 20
-    tolerance: float = 1e-4
+    scale_iterations: int = 2000
+    tolerance: float = 1e-6
     fit_scale: bool = True
     rounds: int = 3
     scene_padding: int = 2
-    seed_with_si: bool = True
+    seed_with_si: bool = False
     nonneg: bool = True
     support: str = "none"
     support_threshold: float = 0.1
@@ -93,9 +101,7 @@ class PairFitOptions:
 
     @property
     def final_iterations(self) -> int:
-        if self.iterations is not None:
-            return self.iterations
-        return 30 if self.basis == "si" else 60
+        return self.iterations if self.iterations is not None else 2000
 
     @property
     def final_projected_iterations(self) -> int:

@@ -510,6 +510,7 @@ FLAGS: dict[str, FlagRange] = {
     "--grid": _SIDE,
     "--n-train": _POSITIVE_COUNT,
     "--n-test": _POSITIVE_COUNT,
+    "--oracle-scenes": FlagRange(int, 0, 1_000_000),
     "--half-fov": FlagRange(float, 0, 80, low_open=True),
     "--aperture": FlagRange(float, 0, 100, low_open=True),
     "--photons": FlagRange(float, 0, 1e12, low_open=True),

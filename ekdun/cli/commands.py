@@ -57,6 +57,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_flag(p, "--device", "make-dataset",
              note="auto; where the noise-free measurements are computed, in float64 on any "
                   "device; the noise is drawn on the CPU")
+    p.add_argument("--no-oracle", action="store_true",
+                   help="do not compute the eigen-kernel oracles (DATASET/oracle/: the best "
+                        "paper-basis models of the bench, both conventions)")
+    p.add_argument("--oracle-scenes", type=flag("--oracle-scenes"), default=0,
+                   help="scenes of the operator oracle (default 4 x --n-train, at least 128)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_make_dataset)
 
@@ -183,7 +188,8 @@ def run_make_dataset(args: argparse.Namespace) -> int:
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
-                            photons=args.photons, seed=args.seed)
+                            photons=args.photons, seed=args.seed, oracle=not args.no_oracle,
+                            oracle_scenes=args.oracle_scenes)
     from ekdun.training.acceleration import resolve_device
 
     root = make_virtual_bench(args.out, spec, progress=not args.quiet,

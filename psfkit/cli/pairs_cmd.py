@@ -82,8 +82,9 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="pull of the correction kernels towards the base kernel, relative "
                         f"likewise (default {d.difference:g})")
     g.add_argument("--iterations", type=flag("--iterations"), default=None,
-                   help="conjugate-gradient iterations of the final solve (default 30 for si, "
-                        "60 for eigen-kernel models)")
+                   help="most conjugate-gradient iterations of the final solve, which "
+                        f"stops at a relative residual of {d.tolerance:g} (default "
+                        f"{d.final_iterations})")
     g.add_argument("--no-scale", action="store_true",
                    help="do not estimate a scale per pair (use when the pairs share one "
                         "exposure and normalisation)")
@@ -106,7 +107,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         "the unconstrained fit's sums) or base (every kernel carries the "
                         "unconstrained base kernel's)")
     c.add_argument("--projected-iterations", type=flag("--projected-iterations"), default=None,
-                   help="iterations of the constrained solve (default 100)")
+                   help="most iterations of the constrained solve (default 100)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:

@@ -164,3 +164,28 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
         assert err.count("\n") == 0 and words in err, (argv, err)
         assert "Traceback" not in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("convention", ["source", "sensor"])
+def test_fit_pairs_defaults_give_back_the_kernels_of_eigen_kernel_pairs(
+        tmp_path: Path, capsys, convention: str) -> None:
+    """Issue 23 item 5, by the command: noise-free pairs of a known eigen-kernel model (bench
+    scene statistics) → ``psfkit fit-pairs --basis ek`` with its defaults returns the kernels
+    (difference NCC ≥ 0.99, base NCC ≥ 0.999; the earlier defaults gave 0.6–0.9)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "psfkit"))
+    from test_pairs_solver import _metrics, bench_scenes, known_eigen_kernels
+
+    model = KernelModel(kernels=known_eigen_kernels().astype(np.float32), basis="paper",
+                        convention=convention, sensor_shape=(32, 32),
+                        channels=("R", "G", "B"))
+    x = bench_scenes(40).astype(np.float32)
+    pairs = _write_pairs(tmp_path / "pairs", x, predict(model, x))
+    out = tmp_path / "fit.npz"
+    assert main(["fit-pairs", str(pairs), "--basis", "ek", "--convention", convention,
+                 "--out", str(out), "--quiet"]) == 0
+    capsys.readouterr()
+    m = _metrics(load_kernels(out).kernels.astype(np.float64),
+                 model.kernels.astype(np.float64))
+    assert m["base"] >= 0.999 and m["v"] >= 0.99 and m["h"] >= 0.99, m

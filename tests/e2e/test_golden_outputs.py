@@ -5,9 +5,10 @@
 - ``psfkit demo --downsample 8`` (virtual bench, seed 0): the report's ``results.json`` and the
   eigen-kernel file ``kernels.npz`` (written again by issue 21: the eigen fit's ridge became
   well-conditioned, a deliberate change, see CHANGELOG);
-- ``psfkit fit-pairs`` (``--basis si`` and ``--basis ek``, ``--downsample 4``, ``--convention
-  source``) on the real DiffuserCam Mirflickr pairs of ``../shared/data``, and ``psfkit
-  eval-model`` of both files (written by issue 11's code on another machine; kept).
+- ``psfkit fit-pairs`` (``--basis si`` and ``--basis ek --difference 1``, ``--downsample 4``,
+  ``--convention source``) on the real DiffuserCam Mirflickr pairs of ``../shared/data``, and
+  ``psfkit eval-model`` of both files (written by issue 11's code on another machine; written
+  again by issue 23: the exact solver, and the defaults ``--tikhonov 0 --difference 0``).
 
 Tolerances come from a measured spread, not a guess: ``benchmarks/golden_spread.py`` runs the
 same commands with one and two threads, with torch/MKL/numpy's AVX2 code paths instead of
@@ -52,6 +53,8 @@ from psfkit.cli.main import main
 GOLDEN = Path(__file__).resolve().parent / "golden"
 TOLERANCES = json.loads((GOLDEN / "tolerances.json").read_text())
 PATH_KEYS = {"grid", "model", "pairs", "software"}
+#: extra fit-pairs flags of the golden pairs fits (as benchmarks/golden_spread.py runs them)
+PAIRS_FLAGS = {"si": [], "ek": ["--difference", "1"]}
 
 
 def group_of(path: str, unreliable: frozenset[int]) -> str:
@@ -156,9 +159,11 @@ def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, mod
 
     pairs = real_data("dlmd_mirflickr")
     kernels = tmp_path / f"{model}.npz"
-    # the golden files were written with fit-pairs' former default, source-side weights
+    # the golden files were written with fit-pairs' former default, source-side weights, and
+    # (issue 23, where the default became 0) the difference prior that seven pairs need
     assert main(["fit-pairs", str(pairs), "--basis", model, "--downsample", "4",
-                 "--convention", "source", "--out", str(kernels), "--quiet"]) == 0
+                 "--convention", "source", *PAIRS_FLAGS[model], "--out", str(kernels),
+                 "--quiet"]) == 0
     _, scenes, _ = _load(str(pairs), 4)
     assert_kernel_files_equal(kernels, GOLDEN / f"dlmd_ds4_{model}.npz", scenes)
     errors = tmp_path / "errors.json"

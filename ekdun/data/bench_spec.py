@@ -1,0 +1,210 @@
+"""The virtual bench's camera, scenes and dense forward model (what a dataset is made of).
+
+:class:`VirtualBenchSpec` (what a dataset contains), :func:`node_psfs` (the noise-free PSF of
+every grid node and its true chief-ray position), :func:`dense_model_for` (the dense
+shift-variant operator that makes the measurements) and :func:`make_scenes` (the scene
+distribution). :mod:`ekdun.data.virtual_bench` builds datasets from them and
+:mod:`ekdun.data.oracle` the best eigen-kernel models.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from ekdun.data.deadleaves import dead_leaves
+from ekdun.data.dense_model import DenseShiftVariantModel
+from ekdun.errors import ConfigurationError
+from psfkit.bench import BenchConfig
+from psfkit.bench.camera import VirtualCamera, place_patch
+from psfkit.bench.simulate import grid_monitor_positions
+
+TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camera", "coins",
+                "brick", "grass", "moon")
+TEST_IMAGES = ("rocket", "gravel", "clock", "hubble_deep_field")
+FULL_PIXEL_UM = 3.45
+
+
+@dataclass(frozen=True)
+class VirtualBenchSpec:
+    """What a virtual-bench dataset contains (everything that changes its bytes).
+
+    Attributes
+    ----------
+    sensor_shape : (int, int)
+        ``(H', W')`` of scenes and measurements.
+    n_train, n_test : int
+        Numbers of pairs.
+    grid_shape : (int, int)
+        Field points of the simulated PSF grid (and nodes of the dense model), ≥ 9 × 9.
+    half_fov_deg : float
+        Field angle at the sensor's horizontal edge: the bench geometry (diffuser–sensor gap)
+        is chosen so that the grid's outermost points land on the sensor edges. Wide fields of
+        view make the PSF vary strongly (vignetting ``cos⁴θ``, oblique-incidence
+        astigmatism, shrinking projected aperture).
+    monitor_distance_mm : float
+        Distance of the (virtual) display.
+    aperture_mm : float
+        Side of the square aperture in front of the diffuser (sets the PSF's extent on the
+        sensor: 1.3 mm covers about 37 % of the width of the default 3.5 mm sensor, a
+        better-conditioned camera than 2.6 mm, which covers 3/4 of it).
+    binning : int
+        Sensor binning of the bench (full-resolution sensor = ``binning × sensor_shape`` of
+        3.45 µm pixels).
+    natural_fraction : float
+        Fraction of scenes cropped from scikit-image's natural images (rest: dead leaves).
+    photons : float
+        Photo-electrons for a measurement value of 1 (Poisson noise).
+    read_noise_e : float
+        Gaussian read noise (electrons).
+    convention : {"source", "sensor"}
+        Where the dense model's interpolation weights act.
+    seed : int
+        Seed of the diffuser, scenes and noise.
+    oracle : bool
+        Also write the eigen-kernel oracles (paper basis, both conventions) under
+        ``oracle/`` (:mod:`ekdun.data.oracle`).
+    oracle_scenes : int
+        Scenes of the operator oracle (0: :func:`ekdun.data.oracle.default_oracle_scenes`).
+    """
+
+    sensor_shape: tuple[int, int] = (64, 64)
+    n_train: int = 96
+    n_test: int = 24
+    grid_shape: tuple[int, int] = (9, 9)
+    half_fov_deg: float = 30.0
+    monitor_distance_mm: float = 200.0
+    aperture_mm: float = 1.3
+    binning: int = 16
+    natural_fraction: float = 0.5
+    photons: float = 2000.0
+    read_noise_e: float = 2.0
+    convention: str = "source"
+    seed: int = 0
+    oracle: bool = True
+    oracle_scenes: int = 0
+
+    def __post_init__(self) -> None:
+        if min(self.grid_shape) < 3:
+            raise ConfigurationError("grid_shape must be at least 3 x 3 (9 x 9 recommended)")
+        if min(self.sensor_shape) < 16 or self.n_train < 1 or self.n_test < 1:
+            raise ConfigurationError("sensor_shape must be >= 16 px and n_train, n_test >= 1")
+        if not 0 < self.half_fov_deg < 60:
+            raise ConfigurationError("half_fov_deg must be in (0, 60)")
+        if not 0 <= self.natural_fraction <= 1:
+            raise ConfigurationError("natural_fraction must be in [0, 1]")
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(asdict(self)))
+
+    def bench_config(self) -> BenchConfig:
+        """The virtual camera: grid edge points at ±``half_fov_deg`` land on the sensor edges."""
+        h, w = self.sensor_shape
+        half_w_mm = w * self.binning * FULL_PIXEL_UM * 1e-3 / 2
+        gap_mm = half_w_mm / math.tan(math.radians(self.half_fov_deg))
+        half_h_mm = h * self.binning * FULL_PIXEL_UM * 1e-3 / 2
+        pitch = BenchConfig().monitor_pixel_pitch_mm
+        fov = tuple(round(2 * self.monitor_distance_mm * half / gap_mm / pitch)
+                    for half in (half_h_mm, half_w_mm))
+        return BenchConfig(sensor_shape=(h * self.binning, w * self.binning),
+                           downsample=self.binning, gap_mm=gap_mm,
+                           monitor_distance_mm=self.monitor_distance_mm,
+                           aperture_mm=(self.aperture_mm, self.aperture_mm),
+                           fov_monitor_px=fov, seed=self.seed)
+
+
+def node_psfs(spec: VirtualBenchSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The bench's noise-free node PSFs and where they land (what the dense model is built of).
+
+    Returns
+    -------
+    kernels : numpy.ndarray
+        ``(N, M, C, H', W')`` float64: each node's PSF re-centred on its chief ray (origin at
+        the array centre), in measurement units per unit scene radiance (QE colour balance).
+    shifts : numpy.ndarray
+        ``(N, M, 2)``: the true chief-ray shift ``(du, dv)`` of each node from the sensor
+        centre, in sensor pixels (same node order as ``kernels``).
+    rows, cols : numpy.ndarray
+        Sensor row coordinates of the node rows and column coordinates of the node columns,
+        increasing (the node order is reversed where the optics flip the image).
+    """
+    config = spec.bench_config()
+    camera = VirtualCamera(config)
+    monitor = grid_monitor_positions(config, spec.grid_shape)
+    fx, fy = camera.field_from_monitor(monitor[..., 0], monitor[..., 1])
+    h, w = camera.sensor_shape
+    qe = config.sensor.qe(len(camera.channels))
+    qe = (qe / qe.mean())[:, None, None]
+    n, m = spec.grid_shape
+    kernels = np.zeros((n, m, len(camera.channels), h, w), dtype=np.float64)
+    shifts = np.zeros((n, m, 2))
+    for r in range(n):
+        for c in range(m):
+            field = (float(fx[r, c]), float(fy[r, c]))
+            patch = camera.psf_patch(field, subpixel_shift=False)
+            bh, bw = patch.image.shape[-2:]
+            centred = type(patch)(image=patch.image, offset=((h - bh) // 2, (w - bw) // 2),
+                                  shift_px=(0.0, 0.0))
+            kernels[r, c] = place_patch(centred, (h, w)) * qe
+            shifts[r, c] = camera.true_shift_px(field)
+    rows = h // 2 + shifts[:, :, 1].mean(axis=1)
+    cols = w // 2 + shifts[:, :, 0].mean(axis=0)
+    # A source at +x (+y) images to -u (-v): node order is reversed on the sensor.
+    if rows[0] > rows[-1]:
+        rows, kernels, shifts = rows[::-1], kernels[::-1], shifts[::-1]
+    if cols[0] > cols[-1]:
+        cols, kernels, shifts = cols[::-1], kernels[:, ::-1], shifts[:, ::-1]
+    return kernels, shifts, rows, cols
+
+
+def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
+    """The dense forward model of the spec's bench (noise-free node PSFs, QE colour balance)."""
+    kernels, _shifts, rows, cols = node_psfs(spec)
+    return DenseShiftVariantModel(kernels, rows, cols, spec.sensor_shape, spec.convention)
+
+
+def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    import skimage.data
+    from skimage.transform import resize
+
+    image = np.asarray(getattr(skimage.data, name)(), dtype=np.float64)
+    if image.max() > 1:
+        image = image / 255.0
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)
+    image = image[..., :3]
+    ih, iw = image.shape[:2]
+    aspect = shape[1] / shape[0]
+    side = rng.uniform(0.3, 1.0) * min(ih, iw / aspect)
+    ch, cw = int(side), int(side * aspect)
+    y0, x0 = rng.integers(0, ih - ch + 1), rng.integers(0, iw - cw + 1)
+    crop = image[y0:y0 + ch, x0:x0 + cw]
+    if rng.random() < 0.5:
+        crop = crop[:, ::-1]
+    out = resize(crop, shape, order=1, anti_aliasing=True)
+    return np.clip(np.moveaxis(out, -1, 0), 0, 1).astype(np.float32)
+
+
+def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
+                stream: int | None = None) -> np.ndarray:
+    """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``).
+
+    ``count`` scenes (default the split's size) from random stream ``stream`` (default the
+    split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
+    (the oracle's, :mod:`ekdun.data.oracle`).
+    """
+    n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
+    names = TRAIN_IMAGES if split == "train" else TEST_IMAGES
+    split_id = (0 if split == "train" else 1) if stream is None else stream
+    out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
+    for i in range(n):
+        rng = np.random.default_rng([spec.seed, split_id, i])
+        if rng.random() < spec.natural_fraction:
+            out[i] = _natural_crop(names[int(rng.integers(len(names)))], spec.sensor_shape, rng)
+        else:
+            out[i] = dead_leaves(spec.sensor_shape, rng)
+    return out

@@ -1,0 +1,259 @@
+r"""The eigen-kernel oracles of a virtual bench: the best eigen-kernel model, known from the
+simulator (issue 23, item 1).
+
+The virtual bench knows the truth: the noise-free PSF of every grid node and the dense
+shift-variant operator ``A_dense`` that makes its measurements (:mod:`ekdun.data.dense_model`).
+For a weight basis and convention it defines two "best" eigen-kernel models:
+
+**operator oracle** (:func:`operator_oracle`, the main one)
+    the kernels minimising the expected prediction error over the dataset's own scene
+    distribution, noise-free,
+
+    .. math::
+
+        K^\star = \arg\min_K\ \mathbb E_x\,\lVert A_\mathrm{dense}\,x - A_K\,x\rVert^2
+        \approx \arg\min_K \sum_{i=1}^{n}\lVert A_\mathrm{dense}\,x_i - A_K\,x_i\rVert^2 ,
+
+    with ``n`` fresh scenes of :func:`~ekdun.data.virtual_bench.make_scenes` (a random stream
+    of their own, not the training scenes), solved to convergence by the exact pairs solver
+    (:mod:`psfkit.pairs_solver`: no ridge, no prior, no constraint, no per-pair scale). Its
+    convergence in ``n`` is measured: the same solve on the first ``n/2`` scenes, and the
+    difference-kernel NCC between the two (``convergence`` in the result);
+
+**PSF oracle** (:func:`psf_oracle`)
+    the grid fit of :mod:`psfkit.eigen` (the closed-form per-pixel fit behind ``psfkit
+    fit-eigen``) of the noise-free node PSFs at their true chief-ray positions
+    (:func:`~ekdun.data.virtual_bench.node_psfs`): no registration, no noise, no normalisation.
+
+Both are kernel files (:class:`psfkit.kernelfile.KernelModel`) in the dense model's units
+(measurement per unit scene radiance), readable by ``psfkit compare``, ``psfkit eval-model``
+and ``ekdun train --kernels``. :func:`compare_oracles` says how much two models differ
+(difference-kernel NCC, kernel error, prediction error on noise-free test pairs).
+``ekdun make-dataset`` writes them under ``DATASET/oracle/`` (:func:`write_oracles`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ekdun.data.bench_spec import (
+    VirtualBenchSpec,
+    dense_model_for,
+    make_scenes,
+    node_psfs,
+)
+from psfkit.compare.statistics import normalized_correlation
+from psfkit.forward.geometry import CONVENTIONS
+from psfkit.kernelfile import KernelModel, save_kernels
+from psfkit.pairs_fit import predict
+from psfkit.pairs_solver import PairBatches, solve_kernels
+from psfkit.weights import get_basis
+
+#: Random stream of the oracle's scenes (train 0, test 1): same distribution, new scenes.
+ORACLE_STREAM = 2
+#: Random stream of the noise-free test scenes the oracles are compared on.
+COMPARE_STREAM = 3
+#: Default relative residual of the oracle's normal equations (float64).
+ORACLE_TOLERANCE = 1e-7
+
+Forward = Callable[[Tensor], Tensor]
+
+
+def default_oracle_scenes(spec: VirtualBenchSpec) -> int:
+    """Scenes of the operator oracle by default: 4 × the training pairs, at least 128."""
+    return max(128, 4 * spec.n_train)
+
+
+@dataclass
+class OracleResult:
+    """An oracle model and how it was obtained.
+
+    ``record`` is what the dataset manifest keeps (JSON-able): kind, scenes, solver
+    iterations and relative residual, the relative prediction error of the oracle on its own
+    scenes, and (operator oracle) its convergence between ``n/2`` and ``n`` scenes.
+    """
+
+    model: KernelModel
+    record: dict[str, Any] = field(default_factory=dict)
+
+
+def oracle_scenes(spec: VirtualBenchSpec, count: int, stream: int = ORACLE_STREAM
+                  ) -> np.ndarray:
+    """``count`` scenes ``(n, 3, H', W')`` of the dataset's training distribution, from a
+    random stream of their own."""
+    return make_scenes(spec, "train", count=count, stream=stream)
+
+
+def _dense_forward(spec: VirtualBenchSpec) -> Forward:
+    model = dense_model_for(spec)
+    return lambda x: model(x)
+
+
+def _kernel_model(kernels: np.ndarray, basis: str, convention: str,
+                  spec: VirtualBenchSpec, provenance: dict[str, Any]) -> KernelModel:
+    return KernelModel(kernels=np.asarray(kernels, dtype=np.float32), basis=basis,
+                       convention=convention, sensor_shape=spec.sensor_shape,
+                       channels=("R", "G", "B"),
+                       normalization="dense bench model units: measurement per unit scene "
+                                     "radiance (no normalisation)",
+                       provenance=provenance)
+
+
+def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
+                    n_scenes: int | None = None, forward: Forward | None = None,
+                    tolerance: float = ORACLE_TOLERANCE, max_iterations: int = 3000,
+                    batch_size: int = 16, check_convergence: bool = True) -> OracleResult:
+    """The eigen-kernel model closest to the dense operator over the scene distribution.
+
+    Parameters
+    ----------
+    spec : VirtualBenchSpec
+        The bench (its dense model, scene distribution and sensor).
+    convention : {"source", "sensor"}
+        Convention of the eigen-kernel model (the dense model keeps ``spec.convention``).
+    basis : str
+        Weight basis (default the paper's).
+    n_scenes : int, optional
+        Scenes (default :func:`default_oracle_scenes`).
+    forward : callable, optional
+        ``(B, C, H', W')`` float64 scenes → noise-free measurements; default the bench's dense
+        model. (Tests pass an exact eigen-kernel model, whose oracle is itself.)
+    tolerance, max_iterations
+        Of the preconditioned CG (relative residual of the normal equations).
+    check_convergence : bool
+        Also solve on the first half of the scenes and record the agreement.
+
+    Returns
+    -------
+    OracleResult
+    """
+    if convention not in CONVENTIONS:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    n = n_scenes or default_oracle_scenes(spec)
+    forward = forward or _dense_forward(spec)
+    x = oracle_scenes(spec, n)
+    h, w = spec.sensor_shape
+
+    def measurements(start: int, stop: int) -> Tensor:
+        with torch.no_grad():
+            return forward(torch.as_tensor(x[start:stop], dtype=torch.float64))
+
+    record: dict[str, Any] = {"kind": "operator", "basis": basis, "convention": convention,
+                              "dense_convention": spec.convention, "n_scenes": n,
+                              "scene_stream": ORACLE_STREAM, "tolerance": tolerance}
+    half = None
+    if check_convergence and n >= 2:
+        hb = PairBatches(x[: n // 2], basis, convention, (h, w), batch_size=batch_size)
+        half, info_half, _ = solve_kernels(hb, measurements, tolerance=tolerance,
+                                           max_iterations=max_iterations)
+    batches = PairBatches(x, basis, convention, (h, w), batch_size=batch_size)
+    kernels, info, _ = solve_kernels(batches, measurements, start=half, tolerance=tolerance,
+                                     max_iterations=max_iterations)
+    err, norm, _num, _den = batches.residual_norms(kernels, measurements)
+    record.update(iterations=info.iterations, relative_residual=info.relative_residual,
+                  converged=info.converged,
+                  relative_prediction_error=float((err / norm).mean()))
+    if half is not None:
+        record["convergence"] = {
+            "scenes": [n // 2, n],
+            **{f"{k}_difference_ncc": v for k, v in
+               difference_nccs(half.numpy(), kernels.numpy(), basis).items()},
+            "kernel_change": float((half - kernels).norm() / kernels.norm()),
+            "iterations_half": info_half.iterations}
+    provenance = {"source": "ekdun oracle (operator)", **record}
+    return OracleResult(_kernel_model(kernels.numpy(), basis, convention, spec, provenance),
+                        record)
+
+
+def psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
+               ridge: float | None = None) -> OracleResult:
+    """The grid fit of the noise-free node PSFs at their true chief-ray positions.
+
+    The per-pixel least squares of :mod:`psfkit.eigen` (``psfkit fit-eigen``'s solver), fed
+    with each node's noise-free PSF re-centred on its chief ray (full valid mask) and the true
+    chief-ray shift; ``ridge`` defaults to fit-eigen's.
+    """
+    from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
+
+    kernels, shifts, _rows, _cols = node_psfs(spec)
+    n, m, c, h, w = kernels.shape
+    equations = NormalEquations(get_basis(basis), convention, (c, h, w))
+    valid = np.ones((h, w), bool)
+    for r in range(n):
+        for q in range(m):
+            equations.add(kernels[r, q], valid, (float(shifts[r, q, 0]),
+                                                 float(shifts[r, q, 1])))
+    ridge = DEFAULT_RIDGE if ridge is None else ridge
+    fitted, _ = equations.solve(ridge, conditioning=False)
+    record = {"kind": "psf", "basis": basis, "convention": convention,
+              "nodes": [n, m], "ridge": ridge}
+    return OracleResult(_kernel_model(fitted, basis, convention, spec,
+                                      {"source": "ekdun oracle (psf)", **record}), record)
+
+
+def difference_nccs(a: np.ndarray, b: np.ndarray, basis: str = "paper") -> dict[str, float]:
+    """Uncentred NCC of ``K_k − K_0`` between two kernel stacks (all channels), per
+    correction kernel (``v``, ``h`` for the paper basis), and of the base kernels."""
+    names = get_basis(basis).kernel_names
+    out = {"base": normalized_correlation(a[0], b[0])}
+    for k in range(1, len(a)):
+        out[names[k]] = normalized_correlation(a[k] - a[0], b[k] - b[0])
+    return out
+
+
+def compare_oracles(a: KernelModel, b: KernelModel, spec: VirtualBenchSpec,
+                    n_test: int = 32, forward: Forward | None = None,
+                    labels: tuple[str, str] = ("a", "b")) -> dict[str, Any]:
+    """How much two eigen-kernel models differ: difference-kernel and base NCC, kernel error
+    ``‖a − b‖/‖b‖``, and the mean relative prediction errors of both against the dense model
+    (and of ``a`` against ``b``) on ``n_test`` noise-free test pairs (new scenes)."""
+    forward = forward or _dense_forward(spec)
+    x = oracle_scenes(spec, n_test, stream=COMPARE_STREAM)
+    with torch.no_grad():
+        y = forward(torch.as_tensor(x, dtype=torch.float64)).numpy()
+    pa = predict(a, x, dtype=torch.float64)
+    pb = predict(b, x, dtype=torch.float64)
+
+    def rel(p: np.ndarray, q: np.ndarray) -> float:
+        axes = (1, 2, 3)
+        return float(np.mean(np.sqrt(((p - q) ** 2).sum(axes) / (q**2).sum(axes))))
+
+    ka, kb = a.kernels.astype(np.float64), b.kernels.astype(np.float64)
+    return {"difference_ncc": difference_nccs(ka, kb, a.basis),
+            "kernel_error": float(np.linalg.norm(ka - kb) / np.linalg.norm(kb)),
+            "prediction_error": {labels[0]: rel(pa, y), labels[1]: rel(pb, y),
+                                 f"{labels[0]}_vs_{labels[1]}": rel(pa, pb)},
+            "n_test": n_test}
+
+
+def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
+                  n_scenes: int | None = None) -> dict[str, Any]:
+    """Write ``{basis}_{convention}.npz`` (operator oracle) and ``psf_{basis}_{convention}.npz``
+    (PSF oracle) for both conventions into ``folder``; returns the manifest's record."""
+    folder.mkdir(parents=True, exist_ok=True)
+    dense = _dense_forward(spec)
+    out: dict[str, Any] = {"basis": basis, "dense_convention": spec.convention, "files": {}}
+    for convention in CONVENTIONS:
+        op = operator_oracle(spec, convention, basis, n_scenes, forward=dense)
+        psf = psf_oracle(spec, convention, basis)
+        name, psf_name = f"{basis}_{convention}.npz", f"psf_{basis}_{convention}.npz"
+        save_kernels(folder / name, op.model)
+        save_kernels(folder / psf_name, psf.model)
+        out["files"][convention] = {
+            "operator": name, "psf": psf_name, "operator_record": op.record,
+            "psf_record": psf.record,
+            "psf_vs_operator": compare_oracles(psf.model, op.model, spec, forward=dense,
+                                               labels=("psf", "operator"))}
+    return out
+
+
+__all__ = ["COMPARE_STREAM", "ORACLE_STREAM", "ORACLE_TOLERANCE", "OracleResult",
+           "compare_oracles", "default_oracle_scenes", "difference_nccs", "operator_oracle",
+           "oracle_scenes", "psf_oracle", "write_oracles"]
