@@ -10,7 +10,8 @@
 #    skipped and logged): Table 2 (measured seed: SCHEDULES) and Fig. 7 (one-PSF seed, free
 #    kernels, last-2, --physics-weight for each value of LAMBDAS).
 # 3. `ekdun eval` of every finished run on the test split (PSNR, SSIM, inference time), and
-#    `psfkit compare` of every learned kernel file against the measured fit.
+#    `psfkit compare` of every learned kernel file against the measured fit and against the
+#    dataset's operator oracle (DATA/oracle/paper_source.npz), and of the measured fit too.
 # Results: OUT/summary.json (+ OUT/eval/, OUT/compare-*/ and each run's log.csv).
 set -uo pipefail
 OUT=${1:?usage: scale_experiment.sh OUT}
@@ -75,24 +76,38 @@ if (( ${#done_runs[@]} == 0 )); then log "no run finished"; exit 1; fi
 log "eval ${#done_runs[@]} runs"
 $PY -m ekdun.cli eval "${done_runs[@]}" --data "$DATA" --out "$OUT/eval" --overwrite \
     >>"$OUT/eval.log" 2>&1 || log "eval failed (see eval.log)"
+ORACLE="$DATA/oracle/paper_source.npz"     # written by make-dataset (operator oracle)
+if [[ -f "$ORACLE" ]]; then
+    $PY -m psfkit.cli compare "$OUT/measured.npz" "$ORACLE" --out "$OUT/oracle-measured" \
+        --overwrite --quiet >>"$OUT/compare.log" 2>&1 || log "compare measured vs oracle failed"
+fi
 for run in "${done_runs[@]}"; do
     name=$(basename "$run")
     $PY -m psfkit.cli compare "$run/kernels_learned.npz" "$OUT/measured.npz" \
         --initial "$run/kernels_initial.npz" --out "$OUT/compare-$name" --overwrite --quiet \
         >>"$OUT/compare.log" 2>&1 || log "compare $name failed"
+    if [[ -f "$ORACLE" ]]; then
+        $PY -m psfkit.cli compare "$run/kernels_learned.npz" "$ORACLE" \
+            --initial "$run/kernels_initial.npz" --out "$OUT/oracle-$name" --overwrite \
+            --quiet >>"$OUT/compare.log" 2>&1 || log "compare $name vs oracle failed"
+    fi
 done
 $PY - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
 summary = {"runs": {}}
+measured = out / "oracle-measured" / "compare.json"
+if measured.is_file():
+    summary["measured_vs_oracle"] = json.loads(measured.read_text()).get("headline")
 for run in sorted(out.glob("*/log.csv")):
     name = run.parent.name
     rows = run.read_text().strip().splitlines()
     entry = {"last_epoch": rows[-1]}
-    cmp_file = out / f"compare-{name}" / "compare.json"
-    if cmp_file.is_file():
-        entry["compare_headline"] = json.loads(cmp_file.read_text()).get("headline")
+    for key, folder in (("vs_measured", f"compare-{name}"), ("vs_oracle", f"oracle-{name}")):
+        cmp_file = out / folder / "compare.json"
+        if cmp_file.is_file():
+            entry[key] = json.loads(cmp_file.read_text()).get("headline")
     summary["runs"][name] = entry
 for f in ("table2.json", "table1.json", "results.json"):
     p = out / "eval" / f

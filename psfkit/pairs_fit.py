@@ -217,10 +217,13 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         bar.close()
     err, norm, _num, _den = batches.residual_norms(kernels, measurements)
     errors = err / norm.clamp_min(1e-300)
-    return PairFit(kernels=kernels.cpu().numpy(), basis=options.basis,
-                   convention=options.convention, scales=batches.scales.cpu().numpy(),
-                   training_error=errors.cpu().numpy(), history=history, options=options,
-                   support=support)
+    # solved in ``dtype`` (float64 by default); handed over as psfkit's float32 arrays
+    # (design.md), so that a PairFit's kernels build the same operators as a kernel file's
+    return PairFit(kernels=kernels.to(torch.float32).cpu().numpy(), basis=options.basis,
+                   convention=options.convention,
+                   scales=batches.scales.to(torch.float32).cpu().numpy(),
+                   training_error=errors.to(torch.float32).cpu().numpy(), history=history,
+                   options=options, support=support)
 
 
 def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
