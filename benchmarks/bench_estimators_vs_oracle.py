@@ -1,0 +1,180 @@
+"""Benchmark: every eigen-kernel estimator against the oracle (issue 23, item 3).
+
+On a virtual-bench dataset (``ekdun make-dataset``, with its oracles under ``DATA/oracle/``):
+
+- the grid fit, ``psfkit fit-eigen DATA/grid --convention {source,sensor}`` (``--cv-bases
+  none``: the cross-validation does not change the kernels);
+- the pairs fit, ``psfkit fit-pairs DATA/train --basis ek --convention {source,sensor}``,
+  constrained (the default: non-negative, per-pair scale) and unconstrained (``--no-nonneg``);
+- optionally learned kernel files (``--learned RUN/kernels_learned.npz ...``, EK-DUN),
+
+each compared (``psfkit.compare.compare_kernels(A, B)``, B the reference) with the operator
+oracle of its convention (``oracle/paper_{c}.npz``) and the PSF oracle
+(``oracle/psf_paper_{c}.npz``), and the grid fit with the pairs fits. Metrics per correction
+kernel ``v`` / ``h``: difference-kernel NCC, displacement-map correlation and mean end-point
+error (px), principal angles (°) between the two kernel spans, and the mean relative
+prediction error of A on the dataset's test scenes through the dense model, noise-free
+(``A_dense x``; raw, and with the best scale per pair).
+
+    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds64          # made if absent
+    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds128 --sensor 128 128 \\
+        --n-train 384 --photons 20000
+    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds64 --learned runs/x/kernels_learned.npz
+
+Prints one Markdown table, measured in this run, and the fit times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _fit(args: list[str]) -> float:
+    from psfkit.cli import main
+
+    t0 = time.perf_counter()
+    code = main(args)
+    if code:
+        raise SystemExit(f"psfkit {' '.join(args)} failed ({code})")
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", help="virtual-bench dataset (made with the options below if absent)")
+    ap.add_argument("--sensor", type=int, nargs=2, default=None)
+    ap.add_argument("--n-train", type=int, default=None)
+    ap.add_argument("--photons", type=float, default=None)
+    ap.add_argument("--oracle-scenes", type=int, default=None)
+    ap.add_argument("--learned", nargs="*", default=[], help="more kernel files to score")
+    ap.add_argument("--work", help="folder for the fitted kernel files (default: temporary)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", help="also write every number to this JSON file")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
+    from ekdun.data.virtual_bench import make_virtual_bench, read_manifest
+    from psfkit.compare import compare_kernels
+    from psfkit.kernelfile import load_kernels
+    from psfkit.pairs_fit import predict, relative_errors
+
+    data = Path(args.data)
+    t0 = time.perf_counter()
+    if read_manifest(data) is None:
+        overrides = {k: v for k, v in (("sensor_shape", tuple(args.sensor) if args.sensor
+                                        else None), ("n_train", args.n_train),
+                                       ("photons", args.photons),
+                                       ("oracle_scenes", args.oracle_scenes)) if v is not None}
+        make_virtual_bench(data, VirtualBenchSpec(**overrides), progress=False)
+        print(f"made {data} in {time.perf_counter() - t0:.0f} s", flush=True)
+    manifest = read_manifest(data)
+    assert manifest is not None
+    raw = dict(manifest["spec"])
+    for key in ("sensor_shape", "grid_shape"):
+        raw[key] = tuple(raw[key])
+    spec = VirtualBenchSpec(**raw)
+    if "oracle" not in manifest:
+        raise SystemExit(f"{data}: made with --no-oracle; no oracle to compare with")
+    oracle_files = manifest["oracle"]["files"]
+
+    work_ctx = tempfile.TemporaryDirectory() if args.work is None else None
+    work = Path(args.work or work_ctx.name)   # type: ignore[union-attr]
+    work.mkdir(parents=True, exist_ok=True)
+    models: dict[str, Path] = {}
+    times: dict[str, float] = {}
+    for c in ("source", "sensor"):
+        models[f"grid fit ({c})"] = work / f"grid_{c}.npz"
+        times[f"grid fit ({c})"] = _fit(["fit-eigen", str(data / "grid"), "--convention", c,
+                                         "--cv-bases", "none", "--quiet", "--overwrite",
+                                         "--out", str(models[f"grid fit ({c})"])])
+        for label, extra in (("pairs fit", []), ("pairs fit, --no-nonneg", ["--no-nonneg"])):
+            name = f"{label} ({c})"
+            models[name] = work / f"pairs_{c}{'_free' if extra else ''}.npz"
+            times[name] = _fit(["fit-pairs", str(data / "train"), "--basis", "ek",
+                                "--convention", c, "--quiet", "--overwrite", *extra,
+                                "--out", str(models[name])])
+        print(f"{c}: fitted", flush=True)
+    for path in args.learned:
+        models[f"learned {path}"] = Path(path)
+
+    test = make_scenes(spec, "test").astype(np.float64)
+    with torch.no_grad():
+        clean = dense_model_for(spec)(torch.as_tensor(test)).numpy()
+
+    def prediction_error(model) -> str:
+        err = relative_errors(predict(model, test, dtype=torch.float64), clean)
+        return f"{err['raw'].mean():.4f} / {err['scaled'].mean():.4f}"
+
+    loaded = {name: load_kernels(p) for name, p in models.items()}
+    refs = {}
+    for c in ("source", "sensor"):
+        refs[f"operator oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["operator"])
+        refs[f"PSF oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["psf"])
+    pairs = []
+    for name, model in loaded.items():
+        for ref_name, ref in refs.items():
+            if ref.convention == model.convention:
+                pairs.append((name, model, ref_name, ref))
+    for c in ("source", "sensor"):
+        pairs.append((f"PSF oracle ({c})", refs[f"PSF oracle ({c})"],
+                      f"operator oracle ({c})", refs[f"operator oracle ({c})"]))
+        for label in ("pairs fit", "pairs fit, --no-nonneg"):
+            pairs.append((f"grid fit ({c})", loaded[f"grid fit ({c})"], f"{label} ({c})",
+                          loaded[f"{label} ({c})"]))
+
+    header = ("| A | B (reference) | diff. NCC Kv / Kh | disp. corr Kv / Kh | EPE px Kv / Kh | "
+              "principal angles ° | pred. error of A, noise-free test (raw / scaled) |")
+    rows, records = [], []
+    pred_cache: dict[str, str] = {}
+    for name, model, ref_name, ref in pairs:
+        cmp = compare_kernels(model, ref).learned
+        m = cmp.metrics
+        disp = {k: m[k]["vs_measured_kernels"] for k in ("v", "h")}
+        if name not in pred_cache:
+            pred_cache[name] = prediction_error(model)
+        record = {"a": name, "b": ref_name,
+                  "difference_ncc": {k: m[k]["difference_ncc"] for k in ("v", "h")},
+                  "disp_corr": {k: disp[k]["corr"] for k in ("v", "h")},
+                  "epe_px": {k: disp[k]["epe_px"] for k in ("v", "h")},
+                  "angles_deg": [float(a) for a in cmp.angles_eigen_deg],
+                  "prediction_error": pred_cache[name]}
+        records.append(record)
+        rows.append(
+            f"| {name} | {ref_name} | "
+            f"{record['difference_ncc']['v']:.3f} / {record['difference_ncc']['h']:.3f} | "
+            f"{record['disp_corr']['v']:+.2f} / {record['disp_corr']['h']:+.2f} | "
+            f"{record['epe_px']['v']:.3f} / {record['epe_px']['h']:.3f} | "
+            f"{', '.join(f'{a:.1f}' for a in record['angles_deg'])} | {pred_cache[name]} |")
+        print(rows[-1], flush=True)
+    for ref_name, ref in refs.items():
+        if ref_name.startswith("operator"):
+            pred_cache[ref_name] = prediction_error(ref)
+    print()
+    print(f"dataset {data}: {spec.sensor_shape[0]}x{spec.sensor_shape[1]}, {spec.n_train} "
+          f"train / {spec.n_test} test pairs, photons {spec.photons:g}; threads {args.threads}")
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    for row in rows:
+        print(row)
+    print()
+    print("prediction error of the operator oracles (raw / scaled): " + "; ".join(
+        f"{k}: {v}" for k, v in pred_cache.items() if k.startswith("operator")))
+    print("fit times (s): " + ", ".join(f"{k} {v:.0f}" for k, v in times.items()))
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({"records": records, "times": times, "spec": spec.to_dict()}, fh,
+                      indent=1)
+    if work_ctx is not None:
+        work_ctx.cleanup()
+
+
+if __name__ == "__main__":
+    main()
