@@ -20,6 +20,11 @@ prediction error of A on the dataset's test scenes through the dense model, nois
     python benchmarks/bench_estimators_vs_oracle.py /tmp/ds128 --sensor 128 128 \\
         --n-train 384 --photons 20000
     python benchmarks/bench_estimators_vs_oracle.py /tmp/ds64 --learned runs/x/kernels_learned.npz
+    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds128 --work W --reuse --white-scenes 384
+
+``--white-scenes N`` adds the operator oracle of N white-noise scenes (source side), which a
+grid fit estimates (``benchmarks/bench_oracle_gap.py``: the PSF oracle and the white-scene
+operator oracle are the same least squares up to the field sampling and the crop).
 
 Prints one Markdown table, measured in this run, and the fit times.
 """
@@ -36,9 +41,11 @@ import numpy as np
 import torch
 
 
-def _fit(args: list[str]) -> float:
+def _fit(args: list[str], reuse: bool = False) -> float:
     from psfkit.cli import main
 
+    if reuse and Path(args[args.index("--out") + 1]).is_file():
+        return float("nan")
     t0 = time.perf_counter()
     code = main(args)
     if code:
@@ -57,13 +64,19 @@ def main() -> None:
     ap.add_argument("--work", help="folder for the fitted kernel files (default: temporary)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", help="also write every number to this JSON file")
+    ap.add_argument("--white-scenes", type=int, default=0,
+                    help="also compare with the operator oracle of N white-noise scenes "
+                         "(source side): the estimand of a grid fit (bench_oracle_gap.py)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="reuse the kernel files already in --work instead of refitting")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
+    from ekdun.data.oracle import operator_oracle, white_scenes
     from ekdun.data.virtual_bench import make_virtual_bench, read_manifest
     from psfkit.compare import compare_kernels
-    from psfkit.kernelfile import load_kernels
+    from psfkit.kernelfile import load_kernels, save_kernels
     from psfkit.pairs_fit import predict, relative_errors
 
     data = Path(args.data)
@@ -94,13 +107,14 @@ def main() -> None:
         models[f"grid fit ({c})"] = work / f"grid_{c}.npz"
         times[f"grid fit ({c})"] = _fit(["fit-eigen", str(data / "grid"), "--convention", c,
                                          "--cv-bases", "none", "--quiet", "--overwrite",
-                                         "--out", str(models[f"grid fit ({c})"])])
+                                         "--out", str(models[f"grid fit ({c})"])],
+                                        args.reuse)
         for label, extra in (("pairs fit", []), ("pairs fit, --no-nonneg", ["--no-nonneg"])):
             name = f"{label} ({c})"
             models[name] = work / f"pairs_{c}{'_free' if extra else ''}.npz"
             times[name] = _fit(["fit-pairs", str(data / "train"), "--basis", "ek",
                                 "--convention", c, "--quiet", "--overwrite", *extra,
-                                "--out", str(models[name])])
+                                "--out", str(models[name])], args.reuse)
         print(f"{c}: fitted", flush=True)
     for path in args.learned:
         models[f"learned {path}"] = Path(path)
@@ -118,11 +132,24 @@ def main() -> None:
     for c in ("source", "sensor"):
         refs[f"operator oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["operator"])
         refs[f"PSF oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["psf"])
+    if args.white_scenes:
+        white = work / f"white_oracle_source_{args.white_scenes}.npz"
+        if not white.is_file():
+            t1 = time.perf_counter()
+            save_kernels(white, operator_oracle(
+                spec, "source", scenes=white_scenes(spec, args.white_scenes),
+                check_convergence=False).model)
+            times["white-scene oracle"] = time.perf_counter() - t1
+        refs["operator oracle, white scenes (source)"] = load_kernels(white)
     pairs = []
     for name, model in loaded.items():
         for ref_name, ref in refs.items():
             if ref.convention == model.convention:
                 pairs.append((name, model, ref_name, ref))
+    if args.white_scenes:
+        for name in ("PSF oracle (source)", "operator oracle (source)"):
+            pairs.append((name, refs[name], "operator oracle, white scenes (source)",
+                          refs["operator oracle, white scenes (source)"]))
     for c in ("source", "sensor"):
         pairs.append((f"PSF oracle ({c})", refs[f"PSF oracle ({c})"],
                       f"operator oracle ({c})", refs[f"operator oracle ({c})"]))

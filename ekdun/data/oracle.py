@@ -49,6 +49,7 @@ from ekdun.data.bench_spec import (
     make_scenes,
     node_psfs,
 )
+from ekdun.data.dense_model import hat_weights
 from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
@@ -109,7 +110,8 @@ def _kernel_model(kernels: np.ndarray, basis: str, convention: str,
 def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
                     n_scenes: int | None = None, forward: Forward | None = None,
                     tolerance: float = ORACLE_TOLERANCE, max_iterations: int = 3000,
-                    batch_size: int = 16, check_convergence: bool = True) -> OracleResult:
+                    batch_size: int = 16, check_convergence: bool = True,
+                    scenes: np.ndarray | None = None) -> OracleResult:
     """The eigen-kernel model closest to the dense operator over the scene distribution.
 
     Parameters
@@ -129,6 +131,10 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         Of the preconditioned CG (relative residual of the normal equations).
     check_convergence : bool
         Also solve on the first half of the scenes and record the agreement.
+    scenes : numpy.ndarray, optional
+        ``(n, C, H', W')`` scenes to use instead of the dataset's distribution (e.g.
+        :func:`white_scenes`: the oracle of a flat scene spectrum); ``n_scenes`` is then
+        ignored.
 
     Returns
     -------
@@ -136,9 +142,17 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
     """
     if convention not in CONVENTIONS:
         raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
-    n = n_scenes or default_oracle_scenes(spec)
     forward = forward or _dense_forward(spec)
-    x = oracle_scenes(spec, n)
+    if scenes is None:
+        n = n_scenes or default_oracle_scenes(spec)
+        x = oracle_scenes(spec, n)
+        scene_record: Any = ORACLE_STREAM
+    else:
+        x = np.asarray(scenes)
+        if x.ndim != 4 or x.shape[2:] != tuple(spec.sensor_shape):
+            raise ValueError(f"scenes must be (n, C, {spec.sensor_shape[0]}, "
+                             f"{spec.sensor_shape[1]}), got {x.shape}")
+        n, scene_record = len(x), "given"
     h, w = spec.sensor_shape
 
     def measurements(start: int, stop: int) -> Tensor:
@@ -147,7 +161,7 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
 
     record: dict[str, Any] = {"kind": "operator", "basis": basis, "convention": convention,
                               "dense_convention": spec.convention, "n_scenes": n,
-                              "scene_stream": ORACLE_STREAM, "tolerance": tolerance}
+                              "scene_stream": scene_record, "tolerance": tolerance}
     half = None
     if check_convergence and n >= 2:
         hb = PairBatches(x[: n // 2], basis, convention, (h, w), batch_size=batch_size)
@@ -196,6 +210,60 @@ def psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
               "nodes": [n, m], "ridge": ridge}
     return OracleResult(_kernel_model(fitted, basis, convention, spec,
                                       {"source": "ekdun oracle (psf)", **record}), record)
+
+
+def white_scenes(spec: VirtualBenchSpec, count: int, seed: int = 0) -> np.ndarray:
+    """``count`` scenes ``(n, 3, H', W')`` float32 of independent standard-normal pixels: a
+    flat scene spectrum, every spatial frequency weighted alike (zero mean, so that no DC
+    term favours the flat scene; the least squares does not need non-negative scenes)."""
+    rng = np.random.default_rng([spec.seed, ORACLE_STREAM, 1000 + seed])
+    return rng.standard_normal((count, 3, *spec.sensor_shape), dtype=np.float32)
+
+
+def dense_psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
+                     step: int = 1, crop: bool = False,
+                     ridge: float | None = None) -> OracleResult:
+    r"""The grid fit of the dense model's PSF at *every* scene pixel (every ``step``-th).
+
+    The PSF of scene pixel ``p`` is the dense model's interpolation
+    ``h_p = Σ_n w_n(p) K_n`` (:mod:`ekdun.data.dense_model`), at the chief-ray shift of ``p``
+    itself. Where :func:`psf_oracle` weights the 81 grid nodes, this weights every point of
+    the field alike. With ``crop=True`` each PSF counts only where it lands on the sensor
+    (the rectangle ``0 ≤ p + d < (H', W')`` of kernel offsets ``d``): for a source-side dense
+    model this is the operator oracle for scenes of a flat spectrum (:func:`white_scenes`,
+    independent zero-mean pixels of unit variance), in expectation, since then
+    ``E‖crop((A_dense − A_K) x)‖² = Σ_p ‖mask_p ⊙ (h_p − Σ_k W_k(p) K_k)‖²``. The steps
+    PSF oracle → dense PSF oracle → with the crop → operator oracle (white scenes) → operator
+    oracle (the dataset's scenes) split the distance between the two oracles into its causes
+    (``benchmarks/bench_oracle_gap.py``).
+    """
+    from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
+
+    if step < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    kernels, _shifts, rows, cols = node_psfs(spec)
+    n, m, c, h, w = kernels.shape
+    wr, wc = hat_weights(rows, h), hat_weights(cols, w)     # (N, H), (M, W): the dense model's
+    equations = NormalEquations(get_basis(basis), convention, (c, h, w))
+    valid = np.ones((h, w), bool)
+    flat = kernels.reshape(n, m, -1)
+    for i in range(0, h, step):
+        # the row's interpolation over node rows, once per row
+        row_mix = np.tensordot(wr[:, i], flat, axes=(0, 0))          # (M, C·H·W)
+        for j in range(0, w, step):
+            psf = (wc[:, j] @ row_mix).reshape(c, h, w)
+            if crop:
+                # kernel pixel (a, b) lands on sensor pixel (i + a − h//2, j + b − w//2)
+                valid = np.zeros((h, w), bool)
+                valid[max(0, h // 2 - i):min(h, h + h // 2 - i),
+                      max(0, w // 2 - j):min(w, w + w // 2 - j)] = True
+            equations.add(psf, valid, (float(j - w // 2), float(i - h // 2)))
+    ridge = DEFAULT_RIDGE if ridge is None else ridge
+    fitted, _ = equations.solve(ridge, conditioning=False)
+    record = {"kind": "dense_psf", "basis": basis, "convention": convention, "step": step,
+              "crop": crop, "points": equations.count, "ridge": ridge}
+    return OracleResult(_kernel_model(fitted, basis, convention, spec,
+                                      {"source": "ekdun oracle (dense psf)", **record}), record)
 
 
 def difference_nccs(a: np.ndarray, b: np.ndarray, basis: str = "paper") -> dict[str, float]:
@@ -255,5 +323,5 @@ def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
 
 
 __all__ = ["COMPARE_STREAM", "ORACLE_STREAM", "ORACLE_TOLERANCE", "OracleResult",
-           "compare_oracles", "default_oracle_scenes", "difference_nccs", "operator_oracle",
-           "oracle_scenes", "psf_oracle", "write_oracles"]
+           "compare_oracles", "default_oracle_scenes", "dense_psf_oracle", "difference_nccs",
+           "operator_oracle", "oracle_scenes", "psf_oracle", "white_scenes", "write_oracles"]

@@ -1,0 +1,239 @@
+"""Benchmark: how much of the model mismatch does EK-DUN's U-Net absorb? (issue 24, item 3)
+
+Table 2's gain (last-2 − base only) is the eigen-kernel model's gain *after* the network has
+learned to correct whatever its physics gets wrong. This measures the gain with the physics
+known exactly and frozen, against the gain the physics alone gives, on one virtual-bench
+dataset (``ekdun make-dataset``, source-side dense model):
+
+- **oracle SI**: the shift-invariant model closest to the dense operator over the dataset's
+  scenes (:func:`ekdun.data.oracle.operator_oracle` with basis ``si``), and **oracle EK**:
+  the eigen-kernel one (``DATA/oracle/paper_source.npz``, the same least squares, paper
+  basis);
+- **classical** (no learning): ADMM-TV with each oracle (:class:`ModelReconstructor`, the
+  solver of ``ekdun admm --kernels``), the TV weight chosen on ``--tune`` training pairs for
+  each model alike: the gain the better physics gives by itself;
+- **learned, kernels frozen** (``kernel_lr_scale = 0``): EK-DUN base only with the SI oracle
+  as its kernel, and EK-DUN ``--schedule`` (default last-2) with the EK oracle, trained alike
+  (preset, epochs, training seeds).
+
+absorbed = 1 − (learned gain) / (classical gain): the share of the physics gain that the
+network makes up for without it. ``--half-fov`` and ``--n-train`` take lists (a sweep: one
+dataset per field of view; the first N training pairs of the largest dataset for each N).
+
+    python benchmarks/bench_unet_absorption.py --out runs/absorb              # 64², tiny
+    python benchmarks/bench_unet_absorption.py --out runs/absorb --half-fov 15,30,45 \\
+        --learned none                                                        # classical only
+    python benchmarks/bench_unet_absorption.py --out runs/absorb --n-train 24,96 --seeds 0,1,2
+
+Prints one Markdown table, measured in this run (finished runs are reused: resumable).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from ekdun.data.bench_spec import VirtualBenchSpec  # noqa: E402
+from ekdun.data.oracle import operator_oracle  # noqa: E402
+from ekdun.data.pairs import PairsDataset  # noqa: E402
+from ekdun.data.virtual_bench import make_virtual_bench, read_manifest  # noqa: E402
+from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
+from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor  # noqa: E402
+from ekdun.training import TrainOptions, train  # noqa: E402
+from ekdun.training.builder import network_from_checkpoint  # noqa: E402
+from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
+from ekdun.training.trainer import CHECKPOINT  # noqa: E402
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
+
+TV_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
+
+
+def dataset(out: Path, half_fov: float, n_train: int, args: argparse.Namespace) -> Path:
+    """The virtual-bench dataset of one field of view (made once, cached)."""
+    spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=n_train,
+                            n_test=args.n_test, photons=args.photons, half_fov_deg=half_fov)
+    folder = out / f"data-fov{half_fov:g}-n{n_train}"
+    if read_manifest(folder) is None:
+        t0 = time.perf_counter()
+        make_virtual_bench(folder, spec, progress=False)
+        print(f"made {folder} in {time.perf_counter() - t0:.0f} s", flush=True)
+    return folder
+
+
+def oracles(data: Path) -> dict[str, Path]:
+    """``{"si": ..., "si_as_paper": ..., "ek": ...}`` kernel files of the dataset's oracles.
+
+    ``si_as_paper`` is the SI oracle in the paper basis (``Kv = Kh = Kbase``), the form EK-DUN
+    reads; base only never uses ``Kv``, ``Kh``.
+    """
+    manifest = read_manifest(data)
+    if manifest is None or "oracle" not in manifest:
+        raise SystemExit(f"{data}: no oracle (made with --no-oracle?)")
+    raw = dict(manifest["spec"])
+    for key in ("sensor_shape", "grid_shape"):
+        raw[key] = tuple(raw[key])
+    spec = VirtualBenchSpec(**raw)
+    ek = data / "oracle" / manifest["oracle"]["files"]["source"]["operator"]
+    si, si_paper = data / "oracle" / "si_source.npz", data / "oracle" / "si_as_paper.npz"
+    if not si.is_file():
+        n = manifest["oracle"]["files"]["source"]["operator_record"]["n_scenes"]
+        save_kernels(si, operator_oracle(spec, "source", "si", n_scenes=n,
+                                         check_convergence=False).model)
+    if not si_paper.is_file():
+        model = load_kernels(si)
+        ek_model = load_kernels(ek)
+        save_kernels(si_paper, replace(ek_model, kernels=np.repeat(model.kernels, 3, axis=0),
+                                       provenance={**model.provenance,
+                                                   "note": "SI oracle as Kbase = Kv = Kh"}))
+    return {"si": si, "si_as_paper": si_paper, "ek": ek}
+
+
+def _scores(images: list[np.ndarray], truth: list[np.ndarray]) -> dict[str, float]:
+    out = torch.as_tensor(np.stack(images)).clamp(0, 1)
+    ref = torch.as_tensor(np.stack(truth))
+    return {"psnr": float(psnr(out, ref).mean()), "ssim": float(ssim(out, ref).mean())}
+
+
+def classical(model: KernelModel, data: Path, tune: int, iterations: int) -> dict[str, Any]:
+    """ADMM-TV with ``model``: TV weight chosen on ``tune`` training pairs, scored on test."""
+    train_set, test_set = PairsDataset(data / "train"), PairsDataset(data / "test")
+    best = None
+    for tv in TV_GRID:
+        rec = ModelReconstructor(model, ClassicalOptions(tv=tv, iterations=iterations))
+        pairs = [train_set[i] for i in range(tune)]
+        score = _scores([rec(y.numpy()).image for _, y in pairs],
+                        [x.numpy() for x, _ in pairs])["psnr"]
+        if best is None or score > best[1]:
+            best = (tv, score)
+    assert best is not None
+    if best[0] in (TV_GRID[0], TV_GRID[-1]):
+        print(f"  note: TV weight {best[0]:g} is at the end of the grid {TV_GRID}", flush=True)
+    rec = ModelReconstructor(model, ClassicalOptions(tv=best[0], iterations=iterations))
+    images, truth = [], []
+    for i in range(len(test_set)):
+        x, y = test_set[i]
+        images.append(rec(y.numpy()).image)
+        truth.append(x.numpy())
+    return {"tv": best[0], **_scores(images, truth)}
+
+
+def learned(run: Path, kernels: Path, schedule: str, data: Path, n_train: int,
+            args: argparse.Namespace, train_seed: int) -> dict[str, Any]:
+    """EK-DUN with frozen kernels, trained on the first ``n_train`` pairs; test PSNR/SSIM."""
+    ckpt = run / CHECKPOINT
+    if not (ckpt.is_file() and load_checkpoint(ckpt)["metadata"]["epoch"] >= args.epochs):
+        full = PairsDataset(data / "train")
+        subset = torch.utils.data.Subset(full, range(min(n_train, len(full))))
+        options = TrainOptions(epochs=args.epochs, kernel_lr_scale=0.0, seed=train_seed,
+                               progress=False, threads=args.threads, device=args.device,
+                               batch_size=args.batch_size, lr=args.lr)
+        train(run, "ekdun", kernels, subset, args.preset, {"schedule": schedule}, options,
+              resume=ckpt.is_file())
+    model, _ = network_from_checkpoint(ckpt)
+    model.eval()
+    test_set = PairsDataset(data / "test")
+    images, truth = [], []
+    with torch.no_grad():
+        for i in range(len(test_set)):
+            x, y = test_set[i]
+            images.append(model(y[None])[0].numpy())
+            truth.append(x.numpy())
+    return _scores(images, truth)
+
+
+def _mean_std(values: list[float]) -> str:
+    a = np.asarray(values)
+    return f"{a.mean():.2f}" + (f" ± {a.std(ddof=1):.2f}" if len(a) > 1 else "")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="runs/absorb")
+    ap.add_argument("--sensor", type=int, nargs=2, default=(64, 64))
+    ap.add_argument("--half-fov", default="30", help="comma list of half fields of view (°)")
+    ap.add_argument("--n-train", default="96", help="comma list of training-pair counts")
+    ap.add_argument("--n-test", type=int, default=24)
+    ap.add_argument("--photons", type=float, default=2000.0)
+    ap.add_argument("--schedule", default="last-2", help="EK-DUN schedule with the EK oracle")
+    ap.add_argument("--learned", default="yes", choices=("yes", "none"),
+                    help="'none': the classical columns only")
+    ap.add_argument("--seeds", default="0", help="training seeds, e.g. 0,1,2")
+    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--epochs", type=int, default=15)
+    ap.add_argument("--batch-size", type=int, default=None)
+    ap.add_argument("--lr", type=float, default=None)
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--tune", type=int, default=4, help="training pairs that choose the TV")
+    ap.add_argument("--iterations", type=int, default=100, help="ADMM-TV iterations")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    fovs = [float(f) for f in args.half_fov.split(",")]
+    counts = sorted(int(n) for n in args.n_train.split(","))
+    seeds = [int(s) for s in args.seeds.split(",")]
+    rows = []
+    for fov in fovs:
+        data = dataset(out, fov, counts[-1], args)
+        files = oracles(data)
+        t0 = time.perf_counter()
+        cl = {name: classical(load_kernels(files[key]), data, args.tune, args.iterations)
+              for name, key in (("SI", "si"), ("EK", "ek"))}
+        print(f"FOV ±{fov:g}°: classical SI {cl['SI']['psnr']:.2f} dB (tv {cl['SI']['tv']:g}),"
+              f" EK {cl['EK']['psnr']:.2f} dB (tv {cl['EK']['tv']:g}) "
+              f"[{time.perf_counter() - t0:.0f} s]", flush=True)
+        for n in counts if args.learned == "yes" else [counts[-1]]:
+            row: dict[str, Any] = {"half_fov": fov, "n_train": n, "classical": cl,
+                                   "learned": {}}
+            if args.learned == "yes":
+                for name, key, schedule in (("SI", "si_as_paper", "base"),
+                                            ("EK", "ek", args.schedule)):
+                    row["learned"][name] = []
+                    for s in seeds:
+                        run = out / "runs" / f"fov{fov:g}-n{n}-{name}-{schedule}-t{s}"
+                        t0 = time.perf_counter()
+                        score = learned(run, files[key], schedule, data, n, args, s)
+                        row["learned"][name].append({"seed": s, **score})
+                        print(f"  N {n}, {name} ({schedule}, frozen), seed {s}: "
+                              f"{score['psnr']:.2f} dB [{time.perf_counter() - t0:.0f} s]",
+                              flush=True)
+            rows.append(row)
+    (out / "results.json").write_text(json.dumps(rows, indent=1) + "\n")
+    print()
+    print(f"{args.sensor[0]}x{args.sensor[1]}, photons {args.photons:g}, {args.n_test} test "
+          f"pairs; learned: preset {args.preset}, {args.epochs} epochs, seeds {args.seeds}, "
+          f"kernels frozen; EK-DUN with the EK oracle: {args.schedule}")
+    print("| half FOV | N train | classical SI / EK (dB) | classical gain | learned SI / EK "
+          "(dB) | learned gain (paired) | absorbed |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        c = r["classical"]
+        c_gain = c["EK"]["psnr"] - c["SI"]["psnr"]
+        if r["learned"]:
+            si = [e["psnr"] for e in r["learned"]["SI"]]
+            ek = [e["psnr"] for e in r["learned"]["EK"]]
+            gains = [b - a for a, b in zip(si, ek, strict=True)]
+            learned_cells = (f"{_mean_std(si)} / {_mean_std(ek)} | {_mean_std(gains)} | "
+                             f"{1 - np.mean(gains) / c_gain:.0%}" if c_gain > 0 else "n/a")
+        else:
+            learned_cells = "- | - | -"
+        print(f"| ±{r['half_fov']:g}° | {r['n_train']} | {c['SI']['psnr']:.2f} / "
+              f"{c['EK']['psnr']:.2f} | {c_gain:+.2f} | {learned_cells} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
