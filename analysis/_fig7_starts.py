@@ -1,6 +1,7 @@
-"""Fig. 7 remade: measured modes next to the kernels learned from several starts (seeded from
-the measured fit, from one PSF), with the displacement fields as arrows over the caustic and
-the numbers that say whether the learned kernels are the measured ones."""
+"""Fig. 7 remade: measured modes (and, on the virtual bench, the operator oracle) next to the
+kernels learned from several starts (seeded from the measured fit, from one PSF), with the
+displacement fields as arrows over the caustic and the numbers that say whether the learned
+kernels are the measured ones, and the oracle's."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from psfkit.compare.results import KernelComparison
+from psfkit.compare.results import KernelComparison, KernelSetComparison
 from psfkit.figures.compare_figures import draw_kernel_row, quiver_panel
 from psfkit.figures.eigen_figures import _crop_box
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
@@ -55,14 +56,39 @@ def caption(numbers: dict[str, dict[str, Any]]) -> str:
     return "; ".join(parts) + "."
 
 
-def figure_starts(comparisons: dict[str, KernelComparison]) -> Figure:
-    """Rows: the measured fit, then the learned kernels of each start. Columns: ``K_base``,
-    the correction kernels, their differences from ``K_base``, and their displacement fields
-    (colour = length in px, arrows = direction, on the measured caustic mask)."""
+def _numbers_text(n: dict[str, Any]) -> str:
+    names = [k[:-9] for k in n if k.endswith("_diff_ncc")]
+    ncc = " / ".join("n/a" if n[f"{k}_diff_ncc"] != n[f"{k}_diff_ncc"]
+                     else f"{n[f'{k}_diff_ncc']:.2f}" for k in names)
+    disp = " / ".join(_fmt(n[f"{k}_disp_corr"]) for k in names)
+    angles = n.get("angles_deg")
+    return (f"difference NCC (K_{'/K_'.join(names)}) {ncc}, displacement corr. {disp}"
+            + ("" if not angles else ", principal angles "
+               + ", ".join(f"{a:.0f}°" for a in angles)))
+
+
+def oracle_caption(oracle: str, numbers: dict[str, dict[str, Any]]) -> str:
+    """One sentence: each model (learned starts, the measured fit) against the oracle.
+
+    ``numbers``: label → :meth:`~psfkit.compare.results.KernelSetComparison.numbers` of that
+    model compared with the oracle (the oracle the reference)."""
+    parts = [f"{label}: {_numbers_text(n)}" for label, n in numbers.items()]
+    return f"Against the operator oracle ({oracle}): " + "; ".join(parts) + "."
+
+
+def figure_starts(comparisons: dict[str, KernelComparison],
+                  oracle: tuple[str, KernelSetComparison] | None = None) -> Figure:
+    """Rows: the measured fit, the oracle (``(label, comparison of the oracle with the
+    measured modes)``, when given), then the learned kernels of each start. Columns:
+    ``K_base``, the correction kernels, their differences from ``K_base``, and their
+    displacement fields (colour = length in px, arrows = direction, on the measured caustic
+    mask)."""
     first = next(iter(comparisons.values()))
     names = first.kernel_names
     rows: list[tuple[str, np.ndarray, dict]] = [
         ("measured fit", first.measured.model.kernels, first.measured_displacements)]
+    if oracle is not None:
+        rows.append((oracle[0], oracle[1].kernels, oracle[1].displacements))
     rows += [(f"learned: {label}", c.learned.kernels, c.learned.displacements)
              for label, c in comparisons.items()]
     k = len(names)
@@ -88,6 +114,6 @@ def figure_starts(comparisons: dict[str, KernelComparison]) -> Figure:
                     ax.set_axis_off()
                     continue
                 quiver_panel(ax, d, mask_box, vmax, f"D_{names[i]}" if r == 0 else "", step)
-        fig.suptitle(f"measured modes vs learned kernels (arrows: displacement, colour "
-                     f"0–{vmax:.2f} px)")
+        fig.suptitle(f"measured modes{' and oracle' if oracle is not None else ''} vs "
+                     f"learned kernels (arrows: displacement, colour 0–{vmax:.2f} px)")
     return fig

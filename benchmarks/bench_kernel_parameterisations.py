@@ -1,12 +1,30 @@
-"""Do EK-DUN's learned kernels stay physical? Free / physical / flow kernels, two seeds.
+"""Fig. 7, the experiment: do EK-DUN's learned kernels find the measured modes and the oracle?
 
-On the virtual bench (``ekdun benchmark-tiny``'s dataset, tiny preset, CPU), EK-DUN last-2 is
-trained with each kernel parameterisation (``--kernel-param``), seeded from the measured fit
-(``psfkit fit-eigen`` of the dataset's grid) and from one PSF (``Kv = Kh = Kbase`` = the fit's
-``Kbase``). For each run: test PSNR/SSIM, the kernel-change split (pedestal fraction, gain,
-displacement) against the initial kernels, the displacement-map correlation and difference
-NCC against the measured modes, and the principal angles to the top PCA modes
-(``psfkit.compare``).
+Free / physical / flow kernels, two seeds, any λ, against the measured modes and the oracle.
+
+The one entry point of the Fig. 7 experiment at any scale. On a virtual-bench dataset (made
+with ``--sensor``, ``--n-train``, ``--n-test``, ``--photons`` in ``OUT/dataset`` if absent, or an
+existing one given by ``--data``), EK-DUN (``--schedule``, default last-2; ``--preset``, default
+tiny) is trained with each kernel parameterisation (``--params``: ``--kernel-param``), each
+physics weight (``--physics-weights``: ``ekdun train --physics-weight λ``) and each training
+seed (``--train-seeds``), seeded from the measured fit (``psfkit fit-eigen`` of the dataset's
+grid) and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``). For each run: test
+PSNR/SSIM, the kernel-change split (pedestal fraction, gain, displacement) against the initial
+kernels, the displacement-map correlation and difference NCC against the measured modes, the
+principal angles to the top PCA modes (``psfkit.compare``), and the same numbers against the
+dataset's **operator oracle** of the run's convention (``DATA/oracle/paper_<c>.npz``, the best
+eigen-kernel model of the simulator; difference NCC, displacement correlation and end-point
+error of Kv / Kh, principal angles). The seeds and the oracle itself are scored against the
+oracle as reference rows (the oracle against itself: NCC 1). A dataset made with
+``--no-oracle`` gives a note and the measured-only columns.
+
+Runs are ``OUT/runs/<seed>-<param>-<schedule>-l<λ>-t<training seed>``; a finished run is
+reused, an interrupted one resumed, one trained with other settings refused.
+``OUT/results.json`` (runs, reference rows, the oracle) merges the runs of earlier invocations
+on the same folder, keyed on seed, kernels, schedule, preset, λ, training seed and epochs; the
+folder is tied to its dataset (``OUT/experiment.json``). Prints the Markdown table
+(``--table``: from ``results.json`` alone), with mean ± sd over training seeds and the PSNR
+of each set-up paired with free pixels of the same seed, λ and training seed.
 
 ``--measure-lr`` instead reports, at the seed, the RMS of each kernel parameter group and of
 its gradient over a few batches next to the network's, and the relative size of one Adam step
@@ -16,6 +34,9 @@ its gradient over a few batches next to the network's, and the relative size of 
 Usage::
 
     python benchmarks/bench_kernel_parameterisations.py --out runs/kparam [--epochs 15]
+    python benchmarks/bench_kernel_parameterisations.py --out runs/f7-128 --sensor 128 128 \
+        --n-train 800 --photons 20000 --physics-weights 0,1 --train-seeds 0,1,2 \
+        --preset paper --batch-size 8 --lr 5e-4 --device cuda
 """
 
 from __future__ import annotations
@@ -24,7 +45,6 @@ import argparse
 import itertools
 import json
 import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -36,19 +56,39 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from _kparam_table import as_document, format_number, markdown_table, run_key  # noqa: E402
+
 from ekdun.benchmark import fit_seed_kernels  # noqa: E402
 from ekdun.data.pairs import PairsDataset  # noqa: E402
-from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench  # noqa: E402
+from ekdun.data.virtual_bench import (  # noqa: E402
+    VirtualBenchSpec,
+    make_virtual_bench,
+    oracle_file,
+    read_manifest,
+)
 from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
 from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support  # noqa: E402
 from ekdun.training import TrainOptions, train  # noqa: E402
-from ekdun.training.builder import build_network, network_from_checkpoint  # noqa: E402
+from ekdun.training.acceleration import (  # noqa: E402
+    AMP_CHOICES,
+    resolve_amp,
+    resolve_device,
+)
+from ekdun.training.builder import (  # noqa: E402
+    build_network,
+    encode_overrides,
+    network_from_checkpoint,
+)
 from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
 from ekdun.training.trainer import CHECKPOINT, _param_groups  # noqa: E402
+from psfkit.cli.main import run_cli  # noqa: E402
 from psfkit.compare import compare_kernels, measure_modes  # noqa: E402
 from psfkit.compare.options import CompareOptions  # noqa: E402
+from psfkit.errors import InvalidInputError  # noqa: E402
 from psfkit.io import read_grid  # noqa: E402
-from psfkit.kernelfile import load_kernels, save_kernels  # noqa: E402
+from psfkit.io.atomic import atomic_file  # noqa: E402
+from psfkit.io.jsonable import jsonable  # noqa: E402
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
 
 PARAMS = ("free", "physical", "flow")
 #: Model overrides of each run name (``--params``); ``physical-gain`` is not in the default set.
@@ -56,11 +96,80 @@ OVERRIDES = {"free": {"kernel_param": "free"}, "physical": {"kernel_param": "phy
              "flow": {"kernel_param": "flow"},
              "physical-gain": {"kernel_param": "physical", "kernel_gain": True}}
 SEEDS = ("measured", "one-psf")
+#: Dataset options and the VirtualBenchSpec fields they set.
+DATASET_OPTIONS = {"sensor_shape": "--sensor", "n_train": "--n-train", "n_test": "--n-test",
+                   "photons": "--photons"}
+EXPERIMENT = "experiment.json"
 
 
-def prepare(out: Path) -> tuple[Path, dict[str, Path]]:
-    """Dataset, the measured fit and the one-PSF seed (cached in ``out``)."""
-    data = make_virtual_bench(out / "dataset", VirtualBenchSpec(), progress=False)
+def write_json(path: Path, doc: Any) -> None:
+    """``doc`` as plain JSON (NaN → null), written atomically."""
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(jsonable(doc), indent=1) + "\n", encoding="utf-8")
+
+
+def dataset(args: argparse.Namespace, out: Path) -> Path:
+    """The virtual-bench dataset: ``--data`` (or ``OUT/dataset``) as it is when it holds one,
+    else made there with the dataset options.
+
+    Raises
+    ------
+    InvalidInputError
+        A dataset option disagrees with the existing dataset, or the folder holds something
+        else.
+    """
+    root = Path(args.data) if args.data else out / "dataset"
+    given = {"sensor_shape": None if args.sensor is None else list(args.sensor),
+             "n_train": args.n_train, "n_test": args.n_test, "photons": args.photons}
+    given = {k: v for k, v in given.items() if v is not None}
+    manifest = read_manifest(root)
+    if manifest is not None:
+        spec = manifest["spec"]
+        for key, value in given.items():
+            have = spec.get(key)
+            same = (list(have) == value) if key == "sensor_shape" else float(have) == value
+            if not same:
+                raise InvalidInputError(
+                    f"{root}: the dataset was made with {DATASET_OPTIONS[key]} "
+                    f"{' '.join(map(str, have)) if key == 'sensor_shape' else have}, not "
+                    f"{' '.join(map(str, value)) if key == 'sensor_shape' else value}; leave "
+                    "the option out to reuse it, or give another --data")
+        return root
+    if root.is_dir() and any(root.iterdir()):
+        raise InvalidInputError(f"{root}: exists and is not a virtual-bench dataset (no "
+                                "manifest.json); give a dataset or a new folder")
+    values = {k: (tuple(v) if k == "sensor_shape" else v) for k, v in given.items()}
+    spec = VirtualBenchSpec(**values)
+    print(f"making the dataset {root} ({spec.sensor_shape[0]}x{spec.sensor_shape[1]}, "
+          f"{spec.n_train} train / {spec.n_test} test pairs, photons {spec.photons:g})",
+          flush=True)
+    return make_virtual_bench(root, spec, progress=False, device=resolve_device(args.device))
+
+
+def tie_to_dataset(out: Path, data: Path) -> None:
+    """Record which dataset ``out``'s seeds and runs belong to; refuse another one."""
+    manifest = read_manifest(data)
+    assert manifest is not None
+    record = {"dataset": str(data.resolve()), "content_hash": manifest["content_hash"],
+              "spec": manifest["spec"]}
+    path = out / EXPERIMENT
+    if path.is_file():
+        old = json.loads(path.read_text(encoding="utf-8"))
+        if old.get("content_hash") != record["content_hash"]:
+            raise InvalidInputError(f"{out}: its seeds and runs were made on another dataset "
+                                    f"({old.get('dataset')}); choose another --out")
+        return
+    fit = out / "kernels_fit.npz"
+    if fit.is_file() and tuple(load_kernels(fit).sensor_shape) != tuple(
+            manifest["spec"]["sensor_shape"]):
+        raise InvalidInputError(f"{fit}: fitted on a {load_kernels(fit).sensor_shape} dataset, "
+                                f"not this one; choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(path, record)
+
+
+def prepare(out: Path, data: Path) -> dict[str, Path]:
+    """The measured fit and the one-PSF seed of ``data`` (cached in ``out``)."""
     fit = out / "kernels_fit.npz"
     if not fit.is_file():
         fit_seed_kernels(data, fit)
@@ -69,20 +178,51 @@ def prepare(out: Path) -> tuple[Path, dict[str, Path]]:
         model = load_kernels(fit)
         kernels = np.repeat(model.kernels[:1], len(model.kernels), axis=0)
         save_kernels(one, replace(model, kernels=kernels))
-    return data, {"measured": fit, "one-psf": one}
+    return {"measured": fit, "one-psf": one}
 
 
-def test_scores(model: torch.nn.Module, data: Path) -> dict[str, float]:
+def find_oracle(data: Path, seed: KernelModel) -> tuple[KernelModel | None, Path | None, str]:
+    """The dataset's operator oracle of the seeds' convention, or a note why there is none."""
+    path = oracle_file(data, seed.convention)
+    if path is None:
+        return None, None, (f"the dataset {data} has no {seed.convention}-side operator oracle "
+                            "(made with --no-oracle?): measured-only columns")
+    oracle = load_kernels(path)
+    if oracle.basis != seed.basis or tuple(oracle.sensor_shape) != tuple(seed.sensor_shape):
+        return None, None, (f"{path}: basis {oracle.basis}, sensor {oracle.sensor_shape} do "
+                            f"not match the seeds' ({seed.basis}, {seed.sensor_shape}): "
+                            "measured-only columns")
+    return oracle, path, f"operator oracle {path} ({seed.convention} side)"
+
+
+def vs_oracle(model: KernelModel | Path, oracle: KernelModel) -> dict[str, Any]:
+    """Difference NCC, displacement correlation and end-point error of Kv / Kh, and principal
+    angles, of ``model`` against ``oracle`` (the reference), as ``oracle_*`` keys."""
+    numbers = compare_kernels(model, oracle).learned.numbers()
+    return {f"oracle_{'angles' if k == 'angles_deg' else k}": v for k, v in numbers.items()}
+
+
+def reference_rows(seeds: dict[str, Path], oracle: KernelModel) -> list[dict[str, Any]]:
+    """The seeds and the oracle itself against the oracle (the oracle: NCC 1, angles 0)."""
+    names = {"measured": "measured fit (seed)", "one-psf": "one PSF (seed)"}
+    rows = [{"reference": names.get(k, k), "file": str(p), **vs_oracle(p, oracle)}
+            for k, p in seeds.items()]
+    rows.append({"reference": "the oracle itself", "file": None, **vs_oracle(oracle, oracle)})
+    return rows
+
+
+def test_scores(model: torch.nn.Module, data: Path, device: torch.device | str = "cpu"
+                ) -> dict[str, float]:
     """Mean PSNR / SSIM over the held-out test pairs (eval mode, batch 1)."""
-    model.eval()
+    model = model.to(device).eval()
     test = PairsDataset(data / "test")
     p, s = [], []
     with torch.no_grad():
         for i in range(len(test)):
             x, y = test[i]
-            out = model(y[None]).clamp(0, 1)
-            p.append(float(psnr(out, x[None]).mean()))
-            s.append(float(ssim(out, x[None]).mean()))
+            out = model(y[None].to(device)).clamp(0, 1)
+            p.append(float(psnr(out, x[None].to(device)).mean()))
+            s.append(float(ssim(out, x[None].to(device)).mean()))
     return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s))}
 
 
@@ -107,6 +247,63 @@ def kernel_numbers(run: Path, modes: Any) -> dict[str, Any]:
     row["angles_eigen"] = doc["learned"]["principal_angles_deg_vs_measured_eigen"]
     row["compare"] = doc
     return row
+
+
+def run_name(seed: str, param: str, schedule: str, weight: float, train_seed: int) -> str:
+    """``OUT/runs/`` folder of one run: every setting that varies within an experiment."""
+    return f"{seed}-{param}-{schedule}-l{weight:g}-t{train_seed}"
+
+
+def check_reusable(ckpt: Path, expected: dict[str, Any]) -> dict[str, Any]:
+    """The metadata of a run's checkpoint, refused when it was trained otherwise."""
+    meta = load_checkpoint(ckpt)["metadata"]
+    cfg = meta.get("training", {})
+    have = {"preset": meta.get("preset"), "overrides": meta.get("overrides"),
+            "seed": meta.get("seed"), "batch_size": cfg.get("batch_size"),
+            "lr": cfg.get("lr"), "physics_weight": float(cfg.get("physics_weight", 0.0))}
+    for key, value in expected.items():
+        if have[key] != value:
+            raise InvalidInputError(f"{ckpt.parent}: trained with {key} {have[key]!r}, not "
+                                    f"{value!r}; choose another --out (or remove the run)")
+    return meta
+
+
+def run_setup(out: Path, seed: str, param: str, weight: float, train_seed: int,
+              args: argparse.Namespace) -> tuple[Path, dict[str, Any], TrainOptions,
+                                                 dict[str, Any]]:
+    """``(run folder, model overrides, train options, what a reusable checkpoint holds)``."""
+    overrides = {**OVERRIDES[param], "schedule": args.schedule}
+    options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                           physics_weight=weight, seed=train_seed, amp=args.amp,
+                           device=args.device, progress=False, threads=args.threads)
+    cfg = options.resolve(args.preset)
+    run = out / "runs" / run_name(seed, param, args.schedule, weight, train_seed)
+    expected = {"preset": args.preset, "overrides": encode_overrides(overrides),
+                "seed": train_seed, "batch_size": cfg.batch_size, "lr": cfg.lr,
+                "physics_weight": float(weight)}
+    return run, overrides, options, expected
+
+
+def train_one(out: Path, data: Path, seed_file: Path, seed: str, param: str, weight: float,
+              train_seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    """Train (or reuse, or resume) one run; returns its row without the kernel numbers."""
+    run, overrides, options, expected = run_setup(out, seed, param, weight, train_seed, args)
+    ckpt = run / CHECKPOINT
+    meta = check_reusable(ckpt, expected) if ckpt.is_file() else None
+    if meta is None or meta["epoch"] < args.epochs:
+        # the benchmark's own folder: a run killed before its first checkpoint restarts
+        train(run, "ekdun", seed_file, PairsDataset(data / "train"), args.preset, overrides,
+              options, resume=meta is not None, overwrite=meta is None)
+        meta = load_checkpoint(ckpt)["metadata"]
+    history = meta["history"]
+    cfg = options.resolve(args.preset)
+    return {"seed": seed, "param": param, "schedule": args.schedule, "preset": args.preset,
+            "physics_weight": float(weight), "train_seed": train_seed,
+            "epochs": meta["epoch"], "batch_size": cfg.batch_size, "lr": cfg.lr,
+            "precision": meta.get("precision"), "run": str(run),
+            "train_s": round(sum(h["seconds"] for h in history), 1),
+            "final_train_loss": history[-1]["train_loss"],
+            "final_physics_loss": history[-1].get("physics_loss")}
 
 
 def measure_lr(data: Path, seeds: dict[str, Path], batches: int = 6) -> list[dict[str, Any]]:
@@ -154,65 +351,58 @@ def measure_lr(data: Path, seeds: dict[str, Path], batches: int = 6) -> list[dic
     return rows
 
 
-def _f(value: Any, fmt: str = "+.2f") -> str:
-    return "n/a" if value is None or value != value else format(value, fmt)
+def _floats(text: str, flag: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InvalidInputError(f"{flag}: expected a comma-separated list of numbers, got "
+                                f"{text!r}") from None
+    if not values or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise InvalidInputError(f"{flag}: expected finite numbers >= 0, got {text!r}")
+    return values
 
 
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    """The results as the Markdown table of docs/compare.md."""
-    head = ("| seed | kernels | PSNR (dB) | SSIM | pedestal share of change | kernel mass outside "
-            "support | disp. corr Kv / Kh | diff. NCC Kv / Kh | angles to top-3 PCA (°) |\n"
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    body = []
-    for r in rows:
-        angles = ", ".join(f"{a:.1f}" for a in (r.get("angles_pca") or []))
-        kernels = r["param"] + (f" (training seed {r['train_seed']})"
-                                if r.get("train_seed") else "")
-        body.append(f"| {r['seed']} | {kernels} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
-                    f"{100 * r['pedestal_share']:.1f} % | {100 * r['outside_mass']:.1f} % | "
-                    f"{_f(r['v_disp_corr'])} / {_f(r['h_disp_corr'])} | "
-                    f"{_f(r['v_diff_ncc'], '.3f')} / {_f(r['h_diff_ncc'], '.3f')} | {angles} |")
-    return "\n".join([head, *body, *_spread_lines(rows)])
+def _ints(text: str, flag: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InvalidInputError(f"{flag}: expected a comma-separated list of integers, got "
+                                f"{text!r}") from None
+    if not values or min(values) < 0:
+        raise InvalidInputError(f"{flag}: expected integers >= 0, got {text!r}")
+    return values
 
 
-def _spread_lines(rows: list[dict[str, Any]]) -> list[str]:
-    """Mean ± standard deviation over training seeds, where a set-up ran with several."""
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
-    for r in rows:
-        groups.setdefault((r["seed"], r["param"]), []).append(r)
-    lines = []
-    for (seed, param), runs in groups.items():
-        if len(runs) < 2:
-            continue
-        psnrs = np.array([r["psnr"] for r in runs])
-        disp = np.array([[r["v_disp_corr"], r["h_disp_corr"]] for r in runs], float)
-        ncc = np.array([[r["v_diff_ncc"], r["h_diff_ncc"]] for r in runs], float)
-        lines.append(f"\n{seed} / {param}, {len(runs)} training seeds: PSNR "
-                     f"{psnrs.mean():.2f} ± {psnrs.std(ddof=1):.2f} dB (range "
-                     f"{psnrs.min():.2f}–{psnrs.max():.2f}); disp. corr "
-                     f"{disp.mean(0)[0]:+.2f} / {disp.mean(0)[1]:+.2f}; diff. NCC "
-                     f"{ncc.mean(0)[0]:.3f} / {ncc.mean(0)[1]:.3f}")
-    return lines
+def _names(text: str, flag: str, allowed: tuple[str, ...] | dict) -> list[str]:
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [n for n in names if n not in allowed]
+    if not names or bad:
+        raise InvalidInputError(f"{flag}: {', '.join(bad) or 'nothing given'} not among "
+                                f"{', '.join(allowed)}")
+    return names
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="runs/kparam")
-    ap.add_argument("--epochs", type=int, default=15)
-    ap.add_argument("--params", default=",".join(PARAMS))
-    ap.add_argument("--seeds", default=",".join(SEEDS))
-    ap.add_argument("--train-seeds", default="0",
-                    help="training seeds (weights, batch order) of every set-up, e.g. 0,1,2: "
-                         "the spread says which PSNR differences are resolved")
-    ap.add_argument("--measure-lr", action="store_true")
-    ap.add_argument("--table", action="store_true", help="print OUT/results.json as Markdown")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(1)
+def experiment(args: argparse.Namespace) -> int:
+    """The body of the command (see the module docstring)."""
     out = Path(args.out)
     if args.table:
-        print(markdown_table(json.loads((out / "results.json").read_text())))
+        path = out / "results.json"
+        if not path.is_file():
+            raise InvalidInputError(f"{path}: no results yet (run the experiment first)")
+        print(markdown_table(json.loads(path.read_text(encoding="utf-8"))))
         return 0
-    data, seeds = prepare(out)
+    seeds_run = _names(args.seeds, "--seeds", SEEDS)
+    params = _names(args.params, "--params", OVERRIDES)
+    weights = _floats(args.physics_weights, "--physics-weights")
+    train_seeds = _ints(args.train_seeds, "--train-seeds")
+    if args.threads < 1:
+        raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    resolve_amp(args.amp, device)                # refused here, not after the dataset
+    data = dataset(args, out)
+    tie_to_dataset(out, data)
+    seeds = prepare(out, data)
     if args.measure_lr:
         rows = measure_lr(data, seeds)
         for r in rows:
@@ -221,47 +411,102 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(f"{r['group']:22s} param RMS {r['param_rms']:.3g}  grad RMS "
                   f"{r['grad_rms']:.3g}  lr {r['lr']:.3g}  lr/RMS {r['relative_step']:.3g}")
-        (out / "lr_measurement.json").write_text(json.dumps(rows, indent=1) + "\n")
+        write_json(out / "lr_measurement.json", rows)
         return 0
-    modes = measure_modes(read_grid(data / "grid"), "paper",
-                          load_kernels(seeds["measured"]).convention, (64, 64),
-                          CompareOptions())
+    plan = list(itertools.product(seeds_run, params, weights, train_seeds))
+    for seed, param, weight, train_seed in plan:
+        # refuse a folder of runs trained otherwise before anything is trained
+        run, _, _, expected = run_setup(out, seed, param, weight, train_seed, args)
+        if (run / CHECKPOINT).is_file():
+            check_reusable(run / CHECKPOINT, expected)
+    measured = load_kernels(seeds["measured"])
+    oracle, oracle_path, note = find_oracle(data, measured)
+    print(f"oracle: {note}", flush=True)
+    modes = measure_modes(read_grid(data / "grid"), measured.basis, measured.convention,
+                          tuple(measured.sensor_shape), CompareOptions())
+    references = [] if oracle is None else reference_rows(seeds, oracle)
     results = []
-    for seed, param, train_seed in itertools.product(
-            args.seeds.split(","), args.params.split(","),
-            [int(t) for t in args.train_seeds.split(",")]):
-        options = TrainOptions(epochs=args.epochs, progress=False, threads=1,
-                               seed=train_seed)
-        run = out / "runs" / (f"{seed}-{param}" + (f"-t{train_seed}" if train_seed else ""))
-        ckpt = run / CHECKPOINT
-        t0 = time.perf_counter()
-        if not (ckpt.is_file() and load_checkpoint(ckpt)["metadata"]["epoch"]
-                >= args.epochs):
-            train(run, "ekdun", seeds[seed], PairsDataset(data / "train"), "tiny",
-                  OVERRIDES[param], options, resume=ckpt.is_file())
-        model, _ = network_from_checkpoint(ckpt)
-        row = {"seed": seed, "param": param, "train_seed": train_seed, "epochs": args.epochs,
-               "train_s": round(time.perf_counter() - t0, 1), **test_scores(model, data),
-               **kernel_numbers(run, modes)}
-        (run / "numbers.json").write_text(json.dumps(row, indent=1, default=float))
+    for seed, param, weight, train_seed in plan:
+        row = train_one(out, data, seeds[seed], seed, param, weight, train_seed, args)
+        run = Path(row["run"])
+        model, _ = network_from_checkpoint(run / CHECKPOINT)
+        row.update(test_scores(model, data, device))
+        row.update(kernel_numbers(run, modes))
+        if oracle is not None:
+            row.update(vs_oracle(run / "kernels_learned.npz", oracle))
+        write_json(run / "numbers.json", row)
         results.append(row)
-        print(f"{seed:8s} {param:8s} PSNR {row['psnr']:.2f} SSIM {row['ssim']:.4f} "
-              f"pedestal {row['pedestal_share']:.3f} outside {row['outside_mass']:.3f} "
-              f"disp {row['v_disp_corr']} / {row['h_disp_corr']} "
-              f"ncc {row['v_diff_ncc']:.3f} / {row['h_diff_ncc']:.3f}", flush=True)
+        fn = format_number
+        text = (f"{seed:8s} {param:8s} λ {weight:<5g} t{train_seed} PSNR {row['psnr']:.2f} "
+                f"SSIM {row['ssim']:.4f} pedestal {row['pedestal_share']:.3f} outside "
+                f"{row['outside_mass']:.3f} disp {fn(row['v_disp_corr'])} / "
+                f"{fn(row['h_disp_corr'])} ncc {fn(row['v_diff_ncc'], '.3f')} / "
+                f"{fn(row['h_diff_ncc'], '.3f')}")
+        if oracle is not None:
+            text += (f" | oracle ncc {fn(row['oracle_v_diff_ncc'], '.3f')} / "
+                     f"{fn(row['oracle_h_diff_ncc'], '.3f')} disp "
+                     f"{fn(row['oracle_v_disp_corr'])} / {fn(row['oracle_h_disp_corr'])}")
+        print(text, flush=True)
     summary = [{k: v for k, v in r.items() if k != "compare"} for r in results]
-    # merged with the rows of earlier invocations on the same folder (other set-ups or seeds)
-    def key(r: dict[str, Any]) -> tuple:
-        return r["seed"], r["param"], r.get("train_seed", 0), r["epochs"]
-
+    # merged with the runs of earlier invocations on the same folder (other set-ups, seeds, λ)
     path = out / "results.json"
-    earlier = json.loads(path.read_text()) if path.is_file() else []
-    done = {key(r) for r in summary}
-    summary = [r for r in earlier if key(r) not in done] + summary
-    path.write_text(json.dumps(summary, indent=1, default=float) + "\n")
-    print(markdown_table(summary))
+    earlier = (as_document(json.loads(path.read_text(encoding="utf-8")))
+               if path.is_file() else {"runs": []})
+    done = {run_key(r) for r in summary}
+    doc = {"dataset": str(data), "spec": read_manifest(data)["spec"],  # type: ignore[index]
+           "oracle": None if oracle is None else {"file": str(oracle_path), "kind": "operator",
+                                                  "convention": oracle.convention},
+           "oracle_note": note, "references": references,
+           "runs": [r for r in earlier["runs"] if run_key(r) not in done] + summary}
+    write_json(path, doc)
+    print(markdown_table(json.loads(json.dumps(jsonable(doc)))))
     print(f"LR multipliers: {LR_MULTIPLIER}")
     return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="runs/kparam", help="experiment folder")
+    data = ap.add_argument_group("dataset (virtual bench)")
+    data.add_argument("--data", help="an existing virtual-bench dataset to reuse (made there "
+                                     "with the options below if absent; default OUT/dataset)")
+    data.add_argument("--sensor", type=int, nargs=2, metavar=("H", "W"),
+                      help="sensor size of a new dataset (default 64 64)")
+    data.add_argument("--n-train", type=int, help="training pairs of a new dataset (96)")
+    data.add_argument("--n-test", type=int, help="held-out test pairs of a new dataset (24)")
+    data.add_argument("--photons", type=float,
+                      help="photo-electrons per unit measurement of a new dataset (2000)")
+    runs = ap.add_argument_group("runs")
+    runs.add_argument("--params", default=",".join(PARAMS),
+                      help=f"kernel parameterisations, of {', '.join(OVERRIDES)}")
+    runs.add_argument("--seeds", default=",".join(SEEDS), help="starts: measured, one-psf")
+    runs.add_argument("--physics-weights", default="0",
+                      help="physics weights λ (ekdun train --physics-weight), e.g. 0,1")
+    runs.add_argument("--train-seeds", default="0",
+                      help="training seeds (weights, batch order) of every set-up, e.g. 0,1,2: "
+                           "the spread says which PSNR differences are resolved")
+    runs.add_argument("--preset", default="tiny", help="EK-DUN preset (tiny, paper)")
+    runs.add_argument("--schedule", default="last-2", choices=("last-2", "base", "all"),
+                      help="where the eigen-kernel model is used")
+    runs.add_argument("--epochs", type=int, default=15)
+    runs.add_argument("--batch-size", type=int, help="global batch (default: the preset's)")
+    runs.add_argument("--lr", type=float, help="learning rate (default: the preset's)")
+    runs.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N")
+    runs.add_argument("--threads", type=int, default=1,
+                      help="torch threads (1: fastest on a shared 2-core machine)")
+    runs.add_argument("--amp", default="auto", choices=AMP_CHOICES,
+                      help="autocast precision (auto: fp16 on CUDA, off on CPU)")
+    ap.add_argument("--measure-lr", action="store_true",
+                    help="measure parameter and gradient scales at the seed instead")
+    ap.add_argument("--table", action="store_true", help="print OUT/results.json as Markdown")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the experiment; bad input is one line on stderr and exit status 2."""
+    ap = parser()
+    ap.set_defaults(func=experiment)
+    return run_cli(Path(sys.argv[0]).name, ap, argv)
 
 
 if __name__ == "__main__":

@@ -135,12 +135,14 @@ def comparison_figures(comparison: KernelComparison) -> list[tuple[str, str, Any
 
 def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
                      overwrite: bool = False,
-                     extra_figures: Sequence[tuple[str, Figure]] = ()) -> Path:
+                     extra_figures: Sequence[tuple[str, Figure]] = (),
+                     extra_files: Sequence[tuple[str, str]] = ()) -> Path:
     """Write figures (PNG + PDF), ``compare.json`` and ``compare.html`` into ``out_dir``
     (atomically: nothing appears unless everything was written).
 
     ``extra_figures`` are ``(stem, figure)`` pairs also saved under ``figures/`` (e.g. the
-    paper's Fig. 7 of the learned kernels alone)."""
+    paper's Fig. 7 of the learned kernels alone); ``extra_files`` ``(name, text)`` pairs are
+    written into ``out_dir`` in the same transaction (a caption, more numbers)."""
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         fig_dir = tmp / "figures"
@@ -156,4 +158,8 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
         (tmp / "compare.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
         (tmp / "compare.html").write_text(_page(html_section(comparison, embedded)),
                                           encoding="utf-8")
+        for name, text in extra_files:
+            if Path(name).name != name or name in ("compare.json", "compare.html", "figures"):
+                raise ValueError(f"extra file name {name!r}: a new plain file name is needed")
+            (tmp / name).write_text(text, encoding="utf-8")
     return out_dir

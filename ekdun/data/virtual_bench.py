@@ -56,8 +56,8 @@ from psfkit.validation import read_json_file
 
 __all__ = ["FORMAT", "FULL_PIXEL_UM", "MANIFEST", "TEST_IMAGES", "TRAIN_IMAGES", "VERSION",
            "VirtualBenchSpec", "content_hash", "dataset_is_current", "dense_model_for",
-           "make_scenes", "make_virtual_bench", "node_psfs", "read_manifest", "resolve_split",
-           "simulate_measurements"]
+           "make_scenes", "make_virtual_bench", "node_psfs", "oracle_file", "read_manifest",
+           "resolve_split", "simulate_measurements"]
 
 FORMAT = "ekdun-virtual-bench"
 VERSION = 1
@@ -123,6 +123,34 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
     except InvalidInputError:
         return None
     return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None
+
+
+def oracle_file(root: str | os.PathLike, convention: str, kind: str = "operator"
+                ) -> Path | None:
+    """The oracle kernel file of ``convention`` that a virtual-bench dataset lists.
+
+    Parameters
+    ----------
+    root : path-like
+        Dataset folder (``ekdun make-dataset``).
+    convention : {"source", "sensor"}
+        Weight convention of the eigen-kernel model to compare with.
+    kind : {"operator", "psf"}
+        The operator oracle (the best eigen-kernel model of the simulator, the default) or the
+        PSF oracle (:mod:`ekdun.data.oracle`).
+
+    Returns
+    -------
+    pathlib.Path or None
+        ``root/oracle/<file>``; ``None`` when ``root`` is not a virtual-bench dataset, was made
+        without oracles (``--no-oracle``) or lists none of that convention.
+    """
+    if kind not in ("operator", "psf"):
+        raise ValueError(f"kind must be 'operator' or 'psf', got {kind!r}")
+    doc = read_manifest(root)
+    files = ((doc or {}).get("oracle") or {}).get("files") or {}
+    name = (files.get(convention) or {}).get(kind)
+    return None if not name else Path(root) / "oracle" / name
 
 
 def resolve_split(data: str | os.PathLike, split: str) -> Path:

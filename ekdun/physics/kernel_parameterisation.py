@@ -21,7 +21,7 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
 Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
 log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
 multiple of the network's learning rate (:data:`LR_MULTIPLIER`, measured in
-``benchmarks/bench_kernel_parameterisations.py --lr-sweep``; see docs/compare.md).
+``benchmarks/bench_kernel_parameterisations.py --measure-lr``; see docs/compare.md).
 """
 
 from __future__ import annotations

@@ -46,6 +46,27 @@ class KernelSetComparison:
     angles_pca_deg: np.ndarray | None
     global_shift_px: tuple[float, float]
 
+    def numbers(self) -> dict[str, Any]:
+        """The numbers to quote against the reference (measured) kernels, flat.
+
+        Returns
+        -------
+        dict
+            Per correction kernel ``k`` (``v``, ``h`` for the paper basis):
+            ``{k}_diff_ncc`` (difference-kernel NCC), ``{k}_disp_corr`` (displacement-map
+            correlation, NaN when either map has no displacement) and ``{k}_epe_px`` (mean
+            end-point error of the displacement maps); ``angles_deg``: the principal angles
+            (degrees, ascending) to the reference's eigen-kernels, as a list.
+        """
+        out: dict[str, Any] = {}
+        for name, m in self.metrics.items():
+            out[f"{name}_diff_ncc"] = float(m["difference_ncc"])
+            out[f"{name}_disp_corr"] = float(m["vs_measured_kernels"]["corr"])
+            out[f"{name}_epe_px"] = float(m["vs_measured_kernels"]["epe_px"])
+        out["angles_deg"] = (None if self.angles_eigen_deg is None
+                             else [float(a) for a in self.angles_eigen_deg])
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         return {"label": self.label, "global_shift_px": list(self.global_shift_px),
                 "displacement_rms_px": {k: d.rms() for k, d in self.displacements.items()},

@@ -3,6 +3,8 @@ learned kernels next to the measured ones, and the displacement maps."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import matplotlib
 import numpy as np
 from matplotlib.axes import Axes
@@ -51,8 +53,8 @@ def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | 
     return im
 
 
-def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None = None
-                               ) -> Figure:
+def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None = None,
+                               extra_rows: Sequence[tuple[str, np.ndarray]] = ()) -> Figure:
     """Fig. 7 layout (``K_base``, ``K_k`` ..., ``K_k − K_base`` ...) for the learned kernels,
     the initial ones (if given) and the kernels fitted to the grid, one row each, on one crop.
 
@@ -61,11 +63,16 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
     comparison : KernelComparison
     zoom : float, optional
         Show only the central ``zoom`` fraction of the caustic's bounding box.
+    extra_rows : sequence of (str, numpy.ndarray)
+        More ``(label, kernels)`` rows after the measured one, kernels ``(K, C, H, W)`` on the
+        comparison grid (e.g. an oracle's, registered by
+        :func:`psfkit.compare.compare_model`).
     """
     names = comparison.kernel_names
     rows = [(label, np.stack([luminance(k) for k in kernels]))
             for label, kernels in _rows(comparison)]
-    box = _crop_box(rows[-1][1][0])
+    box = _crop_box(rows[-1][1][0])             # the measured kernels' crop
+    rows += [(label, np.stack([luminance(k) for k in kernels])) for label, kernels in extra_rows]
     if zoom is not None:
         (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
         hr, hc = int((r1 - r0) * zoom / 2), int((c1 - c0) * zoom / 2)

@@ -230,6 +230,58 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     text = (out / "fig7_caption.md").read_text()
     assert "one PSF: displacement corr." in text and "pedestal" in text
 
+    # the dataset lists an operator oracle of the learned convention: used by default
+    from ekdun.training import export_kernels
+    from psfkit.compare import compare_kernels
+
+    convention = seed.convention
+    oracle = data / "oracle" / f"paper_{convention}.npz"
+    assert f"oracle: {oracle} (operator oracle, {convention} side" in done.stdout
+    assert "vs oracle, learned: seeded from the measured fit: v_diff_ncc" in done.stdout
+    assert "vs oracle, learned: one PSF: v_diff_ncc" in done.stdout
+    assert "vs oracle, measured fit: v_diff_ncc" in done.stdout
+    assert "Against the operator oracle (" in text and "measured fit: difference NCC" in text
+    numbers = json.loads((out / "oracle.json").read_text())
+    assert numbers["oracle"] == str(oracle) and numbers["convention"] == convention
+    vs = numbers["vs_oracle"]
+    assert set(vs) == {"learned: seeded from the measured fit", "learned: one PSF",
+                       "measured fit"}
+    # the numbers are those of the learned kernels against the oracle (the reference)
+    expected = compare_kernels(export_kernels(tmp_path / "run" / "checkpoint.pt"),
+                               oracle).learned.numbers()
+    got = vs["learned: seeded from the measured fit"]
+    for key in ("v_diff_ncc", "h_diff_ncc", "v_epe_px", "h_epe_px"):
+        assert got[key] == pytest.approx(expected[key], abs=1e-9), key
+    assert got["angles_deg"] == pytest.approx(expected["angles_deg"], abs=1e-6)
+    assert len(got["angles_deg"]) == 3 and -1 <= got["v_diff_ncc"] <= 1
+
+    # --no-oracle: no oracle row (a shorter figure), no oracle numbers
+    bare = tmp_path / "f7bare"
+    done = _run("fig7_learned_kernels.py", str(tmp_path / "run"), str(data / "grid"),
+                "--out", str(bare), "--quiet", "--one-psf", str(tmp_path / "run1"),
+                "--no-oracle")
+    assert done.returncode == 0, done.stderr
+    assert "oracle" not in done.stdout.replace(str(bare), "")
+    assert not (bare / "oracle.json").exists()
+    assert "oracle" not in (bare / "fig7_caption.md").read_text()
+    import matplotlib.pyplot as plt
+
+    rows_with, rows_without = (plt.imread(d / "figures" / "fig7_starts.png").shape[0]
+                               for d in (out, bare))
+    # 4 rows (measured, oracle, 2 learned) against 3: 1.35 in of 5.9 / 4.55 in
+    assert rows_with / rows_without == pytest.approx(5.9 / 4.55, rel=0.08)
+
+    # an explicit oracle of the other convention, or of another sensor, is refused
+    other = data / "oracle" / f"paper_{'sensor' if convention == 'source' else 'source'}.npz"
+    wrong_size = save_kernels(tmp_path / "oracle64.npz", replace(
+        load_kernels(oracle), sensor_shape=(64, 64)))
+    for path, message in ((other, "oracle convention"), (wrong_size, "oracle sensor 64x64")):
+        done = _run("fig7_learned_kernels.py", str(tmp_path / "run"), str(data / "grid"),
+                    "--out", str(tmp_path / "f7x"), "--oracle", str(path))
+        assert done.returncode == 2, done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1 and message in done.stderr
+        assert str(path) in done.stderr and not (tmp_path / "f7x").exists()
+
 
 def test_fig7_refuses_a_checkpoint_without_eigen_kernels(runs, bench, tmp_path):
     grid, _, _ = bench

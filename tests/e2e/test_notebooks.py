@@ -62,6 +62,8 @@ def test_notebook_runs(path, kernel_env):
         assert "illustrative" in path.read_text().lower() and "learned {" in text
         assert "epoch 3: train loss" in text and "held-out PSNR" in text
         assert "flow, from one PSF: pedestal share of the change" in text
+        assert "learned vs operator oracle: difference NCC Kv / Kh" in text
+        assert "measured fit vs operator oracle: difference NCC Kv / Kh" in text
     if path.stem.startswith("04"):
         if not (REAL_DATA / "dlmd_mirflickr").is_dir():
             # no silent pass: the notebook must say so (the other test checks how it stops)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from ekdun.data.dense_model import DenseShiftVariantModel
@@ -17,7 +18,7 @@ from ekdun.data.oracle import (
     psf_oracle,
     white_scenes,
 )
-from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, oracle_file
 from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
 from psfkit.forward.geometry import padded_shape
@@ -129,3 +130,9 @@ def test_make_dataset_writes_the_oracles(tmp_path):
         progress=False)
     assert "oracle" not in json.loads((off / "manifest.json").read_text())
     assert not (off / "oracle").exists()
+    # oracle_file: the file the manifest lists, None without oracles or outside a dataset
+    assert oracle_file(root, "sensor") == root / "oracle" / oracle["files"]["sensor"]["operator"]
+    assert oracle_file(root, "source", "psf") == root / "oracle" / "psf_paper_source.npz"
+    assert oracle_file(off, "source") is None and oracle_file(tmp_path, "source") is None
+    with pytest.raises(ValueError, match="kind"):
+        oracle_file(root, "source", "grid")

@@ -208,3 +208,40 @@ def test_pearson_of_constant_map_is_nan():
     assert math.isnan(pearson(np.zeros((8, 8)), np.arange(64.0).reshape(8, 8), mask))
     assert pearson(np.arange(64.0).reshape(8, 8), np.arange(64.0).reshape(8, 8), mask) == \
         pytest.approx(1.0)
+
+
+def test_numbers_are_the_metrics_flat(modes):
+    """``KernelSetComparison.numbers()``: the quoted numbers, flat, equal to the metrics; the
+    fit against itself gives NCC 1, correlation 1, EPE 0, angles 0; a one-PSF model NaN."""
+    same = compare_kernels(modes.model, modes).learned.numbers()
+    assert set(same) == {"v_diff_ncc", "v_disp_corr", "v_epe_px", "h_diff_ncc", "h_disp_corr",
+                         "h_epe_px", "angles_deg"}
+    assert same["v_diff_ncc"] == pytest.approx(1.0, abs=1e-6)
+    assert same["h_disp_corr"] == pytest.approx(1.0, abs=1e-6)
+    assert same["v_epe_px"] == pytest.approx(0.0, abs=1e-6)
+    assert len(same["angles_deg"]) == 3 and max(same["angles_deg"]) < 1e-3
+    base = modes.model.kernels[0]
+    one = KernelModel(kernels=np.stack([base] * 3), basis="paper", convention="source",
+                      sensor_shape=modes.sensor_shape)
+    result = compare_kernels(one, modes).learned
+    got = result.numbers()
+    assert math.isnan(got["v_diff_ncc"]) and math.isnan(got["h_disp_corr"])
+    assert got["v_epe_px"] == result.metrics["v"]["vs_measured_kernels"]["epe_px"] > 0
+
+
+def test_written_comparison_holds_extra_files_and_rows(modes, tmp_path):
+    """``write_comparison(extra_files=)`` writes them in the folder's transaction (a bad name
+    leaves nothing behind); ``figure_learned_vs_measured(extra_rows=)`` adds rows."""
+    from psfkit.compare_report import write_comparison
+    from psfkit.figures.compare_figures import figure_learned_vs_measured
+
+    result = compare_kernels(modes.model, modes)
+    out = write_comparison(result, tmp_path / "c", extra_files=[("note.md", "hello\n")])
+    assert (out / "note.md").read_text() == "hello\n" and (out / "compare.json").is_file()
+    with pytest.raises(ValueError, match="extra file name"):
+        write_comparison(result, tmp_path / "d", extra_files=[("../x.md", "no")])
+    assert not (tmp_path / "d").exists() and not (tmp_path / "x.md").exists()
+    plain = figure_learned_vs_measured(result)
+    more = figure_learned_vs_measured(result, extra_rows=[("oracle", modes.model.kernels)])
+    assert len(more.axes) > len(plain.axes)
+    assert more.get_size_inches()[1] == pytest.approx(plain.get_size_inches()[1] + 1.45)

@@ -1,0 +1,118 @@
+"""benchmarks/bench_kernel_parameterisations.py (the Fig. 7 experiment) at a tiny size: the
+dataset made from the command line, runs per λ, every run and the seeds scored against the
+dataset's operator oracle, results merged across invocations on λ, and a dataset without
+oracle."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_kernel_parameterisations.py"
+ORACLE_KEYS = ("oracle_v_diff_ncc", "oracle_h_diff_ncc", "oracle_v_disp_corr",
+               "oracle_h_disp_corr", "oracle_v_epe_px", "oracle_h_epe_px", "oracle_angles")
+
+
+def _bench(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args, "--epochs", "1",
+                           "--threads", "1", "--device", "cpu"],
+                          capture_output=True, text=True, timeout=600, check=False)
+
+
+def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
+    from psfkit.compare import compare_kernels
+    from psfkit.kernelfile import load_kernels
+
+    out = tmp_path / "kp"
+    done = _bench("--out", str(out), "--sensor", "32", "32", "--n-train", "8", "--n-test", "2",
+                  "--params", "free,physical", "--physics-weights", "0,1", "--batch-size", "4")
+    assert done.returncode == 0, done.stderr[-3000:]
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["spec"]["sensor_shape"] == [32, 32] and doc["spec"]["n_train"] == 8
+    convention = load_kernels(out / "kernels_fit.npz").convention
+    oracle = out / "dataset" / "oracle" / f"paper_{convention}.npz"
+    assert doc["oracle"] == {"file": str(oracle), "kind": "operator", "convention": convention}
+
+    runs = doc["runs"]
+    assert len(runs) == 8        # 2 seeds x 2 parameterisations x 2 physics weights
+    assert sorted({r["physics_weight"] for r in runs}) == [0.0, 1.0]
+    for r in runs:
+        assert f"-l{r['physics_weight']:g}-" in Path(r["run"]).name
+        assert all(k in r for k in ORACLE_KEYS), sorted(r)
+        assert -1 <= r["oracle_v_diff_ncc"] <= 1 and np.isfinite(r["psnr"])
+        # λ reached the training: only λ > 0 logs the measurement-consistency term
+        assert (r["final_physics_loss"] is None) == (r["physics_weight"] == 0), r["run"]
+        meta = json.loads((Path(r["run"]) / "numbers.json").read_text())
+        assert meta["physics_weight"] == r["physics_weight"]
+    # a run's oracle numbers are its learned kernels against the oracle (the reference)
+    row = next(r for r in runs if r["seed"] == "measured" and r["param"] == "free"
+               and r["physics_weight"] == 1.0)
+    expected = compare_kernels(Path(row["run"]) / "kernels_learned.npz", oracle).learned
+    assert row["oracle_v_diff_ncc"] == pytest.approx(expected.numbers()["v_diff_ncc"], abs=1e-9)
+    assert row["oracle_h_epe_px"] == pytest.approx(expected.numbers()["h_epe_px"], abs=1e-9)
+
+    refs = {r["reference"]: r for r in doc["references"]}
+    assert set(refs) == {"measured fit (seed)", "one PSF (seed)", "the oracle itself"}
+    itself = refs["the oracle itself"]
+    assert itself["oracle_v_diff_ncc"] == pytest.approx(1.0, abs=1e-9)
+    assert itself["oracle_h_diff_ncc"] == pytest.approx(1.0, abs=1e-9)
+    assert itself["oracle_v_disp_corr"] == pytest.approx(1.0, abs=1e-9)
+    assert itself["oracle_v_epe_px"] == pytest.approx(0.0, abs=1e-9)
+    assert max(itself["oracle_angles"]) < 1e-6
+    fit = compare_kernels(out / "kernels_fit.npz", oracle).learned.numbers()
+    assert refs["measured fit (seed)"]["oracle_v_diff_ncc"] == pytest.approx(fit["v_diff_ncc"])
+    assert refs["measured fit (seed)"]["oracle_v_diff_ncc"] < 0.999   # not the oracle itself
+    # one PSF: no difference kernels, so no difference NCC (null, never a number)
+    assert refs["one PSF (seed)"]["oracle_v_diff_ncc"] is None
+
+    table = done.stdout
+    assert "| λ |" in table and "oracle: diff. NCC Kv / Kh" in table
+    assert "| the oracle itself | 1.000 / 1.000 | +1.00 / +1.00 | 0.000 / 0.000 |" in table
+    assert "paired ΔPSNR to free pixels, measured / physical, λ = 1:" in table
+
+    # a second invocation on the same folder: another training seed of λ = 1 only; the
+    # earlier runs are kept (merged on λ too), the new one is added, the spread is reported
+    again = _bench("--out", str(out), "--params", "free", "--seeds", "one-psf",
+                   "--physics-weights", "1", "--train-seeds", "1", "--batch-size", "4")
+    assert again.returncode == 0, again.stderr[-3000:]
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert len(runs) == 9
+    assert sum(r["seed"] == "one-psf" and r["param"] == "free" and r["physics_weight"] == 1
+               for r in runs) == 2
+    assert "one-psf / free, λ = 1, 2 training seeds: PSNR" in again.stdout
+    assert "vs oracle: diff. NCC" in again.stdout
+    # --table re-renders the same table from results.json alone
+    table = _bench("--out", str(out), "--table")
+    assert table.returncode == 0 and table.stdout.strip() in again.stdout
+
+    # a run folder trained with other settings is refused before anything is trained
+    refused = _bench("--out", str(out), "--params", "free", "--seeds", "one-psf",
+                     "--physics-weights", "1", "--train-seeds", "1", "--lr", "1e-3")
+    assert refused.returncode == 2
+    assert len(refused.stderr.strip().splitlines()) == 1 and "trained with lr" in refused.stderr
+    # a dataset option that disagrees with the folder's dataset is refused
+    refused = _bench("--out", str(out), "--sensor", "64", "64")
+    assert refused.returncode == 2 and "made with --sensor 32 32, not 64 64" in refused.stderr
+
+
+def test_benchmark_without_oracle_reports_measured_columns(tmp_path):
+    from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+
+    data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
+        sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3), oracle=False),
+        progress=False)
+    out = tmp_path / "kp"
+    done = _bench("--out", str(out), "--data", str(data), "--params", "free", "--seeds",
+                  "one-psf", "--batch-size", "4")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "No oracle:" in done.stdout and "--no-oracle" in done.stdout
+    assert "oracle: diff. NCC" not in done.stdout and "| λ |" in done.stdout
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["oracle"] is None and doc["references"] == []
+    (row,) = doc["runs"]
+    assert row["physics_weight"] == 0.0 and not any(k.startswith("oracle_") for k in row)
