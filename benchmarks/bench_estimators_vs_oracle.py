@@ -67,6 +67,10 @@ def main() -> None:
     ap.add_argument("--white-scenes", type=int, default=0,
                     help="also compare with the operator oracle of N white-noise scenes "
                          "(source side): the estimand of a grid fit (bench_oracle_gap.py)")
+    ap.add_argument("--conventions", nargs="+", default=["source", "sensor"],
+                    choices=("source", "sensor"))
+    ap.add_argument("--no-unconstrained", action="store_true",
+                    help="skip the unconstrained pairs fits (--no-nonneg)")
     ap.add_argument("--reuse", action="store_true",
                     help="reuse the kernel files already in --work instead of refitting")
     args = ap.parse_args()
@@ -103,13 +107,15 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     models: dict[str, Path] = {}
     times: dict[str, float] = {}
-    for c in ("source", "sensor"):
+    variants = [("pairs fit", [])] + ([] if args.no_unconstrained
+                                      else [("pairs fit, --no-nonneg", ["--no-nonneg"])])
+    for c in args.conventions:
         models[f"grid fit ({c})"] = work / f"grid_{c}.npz"
         times[f"grid fit ({c})"] = _fit(["fit-eigen", str(data / "grid"), "--convention", c,
                                          "--cv-bases", "none", "--quiet", "--overwrite",
                                          "--out", str(models[f"grid fit ({c})"])],
                                         args.reuse)
-        for label, extra in (("pairs fit", []), ("pairs fit, --no-nonneg", ["--no-nonneg"])):
+        for label, extra in variants:
             name = f"{label} ({c})"
             models[name] = work / f"pairs_{c}{'_free' if extra else ''}.npz"
             times[name] = _fit(["fit-pairs", str(data / "train"), "--basis", "ek",
@@ -129,10 +135,10 @@ def main() -> None:
 
     loaded = {name: load_kernels(p) for name, p in models.items()}
     refs = {}
-    for c in ("source", "sensor"):
+    for c in args.conventions:
         refs[f"operator oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["operator"])
         refs[f"PSF oracle ({c})"] = load_kernels(data / "oracle" / oracle_files[c]["psf"])
-    if args.white_scenes:
+    if args.white_scenes and "source" in args.conventions:
         white = work / f"white_oracle_source_{args.white_scenes}.npz"
         if not white.is_file():
             t1 = time.perf_counter()
@@ -146,14 +152,14 @@ def main() -> None:
         for ref_name, ref in refs.items():
             if ref.convention == model.convention:
                 pairs.append((name, model, ref_name, ref))
-    if args.white_scenes:
+    if args.white_scenes and "source" in args.conventions:
         for name in ("PSF oracle (source)", "operator oracle (source)"):
             pairs.append((name, refs[name], "operator oracle, white scenes (source)",
                           refs["operator oracle, white scenes (source)"]))
-    for c in ("source", "sensor"):
+    for c in args.conventions:
         pairs.append((f"PSF oracle ({c})", refs[f"PSF oracle ({c})"],
                       f"operator oracle ({c})", refs[f"operator oracle ({c})"]))
-        for label in ("pairs fit", "pairs fit, --no-nonneg"):
+        for label, _ in variants:
             pairs.append((f"grid fit ({c})", loaded[f"grid fit ({c})"], f"{label} ({c})",
                           loaded[f"{label} ({c})"]))
 
