@@ -41,11 +41,12 @@ import numpy as np
 import torch
 
 
-def _fit(args: list[str], reuse: bool = False) -> float:
+def _fit(args: list[str], reuse: bool = False) -> float | None:
+    """Run ``psfkit ARGS``; its wall time, or None when ``reuse`` finds its output."""
     from psfkit.cli import main
 
     if reuse and Path(args[args.index("--out") + 1]).is_file():
-        return float("nan")
+        return None
     t0 = time.perf_counter()
     code = main(args)
     if code:
@@ -94,10 +95,7 @@ def main() -> None:
         print(f"made {data} in {time.perf_counter() - t0:.0f} s", flush=True)
     manifest = read_manifest(data)
     assert manifest is not None
-    raw = dict(manifest["spec"])
-    for key in ("sensor_shape", "grid_shape"):
-        raw[key] = tuple(raw[key])
-    spec = VirtualBenchSpec(**raw)
+    spec = VirtualBenchSpec.from_dict(manifest["spec"])
     if "oracle" not in manifest:
         raise SystemExit(f"{data}: made with --no-oracle; no oracle to compare with")
     oracle_files = manifest["oracle"]["files"]
@@ -106,7 +104,7 @@ def main() -> None:
     work = Path(args.work or work_ctx.name)   # type: ignore[union-attr]
     work.mkdir(parents=True, exist_ok=True)
     models: dict[str, Path] = {}
-    times: dict[str, float] = {}
+    times: dict[str, float | None] = {}
     variants = [("pairs fit", [])] + ([] if args.no_unconstrained
                                       else [("pairs fit, --no-nonneg", ["--no-nonneg"])])
     for c in args.conventions:
@@ -200,7 +198,8 @@ def main() -> None:
     print()
     print("prediction error of the operator oracles (raw / scaled): " + "; ".join(
         f"{k}: {v}" for k, v in pred_cache.items() if k.startswith("operator")))
-    print("fit times (s): " + ", ".join(f"{k} {v:.0f}" for k, v in times.items()))
+    print("fit times (s): " + ", ".join(f"{k} {v:.0f}" if v is not None else f"{k} reused"
+                                        for k, v in times.items()))
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump({"records": records, "times": times, "spec": spec.to_dict()}, fh,

@@ -48,7 +48,11 @@ if str(ROOT) not in sys.path:
 from ekdun.data.bench_spec import VirtualBenchSpec  # noqa: E402
 from ekdun.data.oracle import operator_oracle  # noqa: E402
 from ekdun.data.pairs import PairsDataset  # noqa: E402
-from ekdun.data.virtual_bench import make_virtual_bench, read_manifest  # noqa: E402
+from ekdun.data.virtual_bench import (  # noqa: E402
+    make_virtual_bench,
+    oracle_file,
+    read_manifest,
+)
 from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
 from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor  # noqa: E402
 from ekdun.training import TrainOptions, train  # noqa: E402
@@ -72,29 +76,30 @@ def dataset(out: Path, half_fov: float, n_train: int, args: argparse.Namespace) 
     return folder
 
 
-def oracles(data: Path) -> dict[str, Path]:
+def oracles(data: Path, out: Path) -> dict[str, Path]:
     """``{"si": ..., "si_as_paper": ..., "ek": ...}`` kernel files of the dataset's oracles.
 
-    ``si_as_paper`` is the SI oracle in the paper basis (``Kv = Kh = Kbase``), the form EK-DUN
+    ``ek`` is the dataset's own operator oracle (source side); the SI oracle (the same least
+    squares, basis ``si``, as many scenes) is computed once into ``out``, not into the
+    dataset. ``si_as_paper`` is it in the paper basis (``Kv = Kh = Kbase``), the form EK-DUN
     reads; base only never uses ``Kv``, ``Kh``.
     """
     manifest = read_manifest(data)
-    if manifest is None or "oracle" not in manifest:
-        raise SystemExit(f"{data}: no oracle (made with --no-oracle?)")
-    raw = dict(manifest["spec"])
-    for key in ("sensor_shape", "grid_shape"):
-        raw[key] = tuple(raw[key])
-    spec = VirtualBenchSpec(**raw)
-    ek = data / "oracle" / manifest["oracle"]["files"]["source"]["operator"]
-    si, si_paper = data / "oracle" / "si_source.npz", data / "oracle" / "si_as_paper.npz"
+    ek = oracle_file(data, "source")
+    if manifest is None or ek is None:
+        raise SystemExit(f"{data}: no source-side oracle (made with --no-oracle?)")
+    spec = VirtualBenchSpec.from_dict(manifest["spec"])
+    folder = out / "si_oracles" / data.name
+    folder.mkdir(parents=True, exist_ok=True)
+    si, si_paper = folder / "si_source.npz", folder / "si_as_paper.npz"
     if not si.is_file():
         n = manifest["oracle"]["files"]["source"]["operator_record"]["n_scenes"]
         save_kernels(si, operator_oracle(spec, "source", "si", n_scenes=n,
                                          check_convergence=False).model)
     if not si_paper.is_file():
         model = load_kernels(si)
-        ek_model = load_kernels(ek)
-        save_kernels(si_paper, replace(ek_model, kernels=np.repeat(model.kernels, 3, axis=0),
+        save_kernels(si_paper, replace(load_kernels(ek),
+                                       kernels=np.repeat(model.kernels, 3, axis=0),
                                        provenance={**model.provenance,
                                                    "note": "SI oracle as Kbase = Kv = Kh"}))
     return {"si": si, "si_as_paper": si_paper, "ek": ek}
@@ -188,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for fov in fovs:
         data = dataset(out, fov, counts[-1], args)
-        files = oracles(data)
+        files = oracles(data, out)
         t0 = time.perf_counter()
         cl = {name: classical(load_kernels(files[key]), data, args.tune, args.iterations)
               for name, key in (("SI", "si"), ("EK", "ek"))}

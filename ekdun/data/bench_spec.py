@@ -101,6 +101,16 @@ class VirtualBenchSpec:
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(asdict(self)))
 
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> VirtualBenchSpec:
+        """The spec of :meth:`to_dict` (e.g. a dataset manifest's ``spec``): JSON lists back
+        to tuples."""
+        values = dict(doc)
+        for key in ("sensor_shape", "grid_shape"):
+            if key in values:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
     def bench_config(self) -> BenchConfig:
         """The virtual camera: grid edge points at ±``half_fov_deg`` land on the sensor edges."""
         h, w = self.sensor_shape

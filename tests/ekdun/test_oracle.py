@@ -136,3 +136,11 @@ def test_make_dataset_writes_the_oracles(tmp_path):
     assert oracle_file(off, "source") is None and oracle_file(tmp_path, "source") is None
     with pytest.raises(ValueError, match="kind"):
         oracle_file(root, "source", "grid")
+
+
+def test_bench_spec_round_trips_through_its_manifest_form():
+    spec = VirtualBenchSpec(sensor_shape=(48, 32), grid_shape=(5, 7), photons=123.0, seed=4)
+    doc = json.loads(json.dumps(spec.to_dict()))           # as a manifest stores it
+    assert doc["sensor_shape"] == [48, 32]
+    back = VirtualBenchSpec.from_dict(doc)
+    assert back == spec and isinstance(back.grid_shape, tuple)
