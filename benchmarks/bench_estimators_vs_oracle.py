@@ -25,6 +25,8 @@ prediction error of A on the dataset's test scenes through the dense model, nois
 ``--white-scenes N`` adds the operator oracle of N white-noise scenes (source side), which a
 grid fit estimates (``benchmarks/bench_oracle_gap.py``: the PSF oracle and the white-scene
 operator oracle are the same least squares up to the field sampling and the crop).
+``--nonneg-oracle`` adds the non-negative operator oracle of each convention (the dataset's
+oracle scenes, ``operator_oracle(nonneg=True)``), which a non-negative pairs fit estimates.
 
 Prints one Markdown table, measured in this run, and the fit times.
 """
@@ -68,6 +70,12 @@ def main() -> None:
     ap.add_argument("--white-scenes", type=int, default=0,
                     help="also compare with the operator oracle of N white-noise scenes "
                          "(source side): the estimand of a grid fit (bench_oracle_gap.py)")
+    ap.add_argument("--nonneg-oracle", action="store_true",
+                    help="also compare with the non-negative operator oracle of each "
+                         "convention (the estimand of a non-negative pairs fit)")
+    ap.add_argument("--nonneg-iterations", type=int, default=50,
+                    help="most projected Newton steps of the non-negative oracle (default 50; "
+                         "it stops at a KKT residual of 1e-9)")
     ap.add_argument("--conventions", nargs="+", default=["source", "sensor"],
                     choices=("source", "sensor"))
     ap.add_argument("--no-unconstrained", action="store_true",
@@ -145,6 +153,17 @@ def main() -> None:
                 check_convergence=False).model)
             times["white-scene oracle"] = time.perf_counter() - t1
         refs["operator oracle, white scenes (source)"] = load_kernels(white)
+    for c in args.conventions if args.nonneg_oracle else ():
+        n_oracle = int(oracle_files[c]["operator_record"]["n_scenes"])
+        path = work / f"nonneg_oracle_{c}_{n_oracle}.npz"
+        if not path.is_file():
+            t1 = time.perf_counter()
+            result = operator_oracle(spec, c, n_scenes=n_oracle, check_convergence=False,
+                                     nonneg=True, projected_iterations=args.nonneg_iterations)
+            save_kernels(path, result.model)
+            times[f"non-negative oracle ({c})"] = time.perf_counter() - t1
+            print(f"non-negative oracle ({c}): {result.record['projected']}", flush=True)
+        refs[f"operator oracle, non-negative ({c})"] = load_kernels(path)
     pairs = []
     for name, model in loaded.items():
         for ref_name, ref in refs.items():
@@ -157,6 +176,10 @@ def main() -> None:
     for c in args.conventions:
         pairs.append((f"PSF oracle ({c})", refs[f"PSF oracle ({c})"],
                       f"operator oracle ({c})", refs[f"operator oracle ({c})"]))
+        if args.nonneg_oracle:
+            name = f"operator oracle, non-negative ({c})"
+            pairs.append((name, refs[name], f"operator oracle ({c})",
+                          refs[f"operator oracle ({c})"]))
         for label, _ in variants:
             pairs.append((f"grid fit ({c})", loaded[f"grid fit ({c})"], f"{label} ({c})",
                           loaded[f"{label} ({c})"]))

@@ -427,7 +427,8 @@ def solve_kernels(batches: PairBatches,
     kernels, info = solve_normal_equations(
         normal, rhs, gram.preconditioner(lam, mu), start, tolerance, max_iterations, bar)
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
-                           "normal": normal, "rhs": rhs}
+                           "normal": normal, "rhs": rhs,
+                           "precondition": gram.preconditioner(lam, mu)}
 
 
 def window_of_grid(kernels_on_grid: Tensor, kernel_shape: tuple[int, int]) -> Tensor:

@@ -4,6 +4,7 @@ learned kernels next to the measured ones, and the displacement maps."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -22,8 +23,17 @@ def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
     rows = [("learned", comparison.learned.kernels)]
     if comparison.initial is not None:
         rows.append(("initial", comparison.initial.kernels))
-    rows.append(("measured (grid fit)", comparison.measured.model.kernels))
+    rows.append((reference_label(comparison), comparison.measured.model.kernels))
     return rows
+
+
+def reference_label(comparison: KernelComparison) -> str:
+    """The row label of the measured side: the grid fit, or the kernel file it was given as
+    (``psfkit compare A.npz B.npz``: B may be a pairs fit or an oracle, not a grid fit)."""
+    measured = comparison.measured
+    if measured.fit is not None:
+        return "measured (grid fit)"
+    return f"reference: {Path(measured.source).name or measured.source}"
 
 
 def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | list[str],

@@ -245,3 +245,15 @@ def test_written_comparison_holds_extra_files_and_rows(modes, tmp_path):
     more = figure_learned_vs_measured(result, extra_rows=[("oracle", modes.model.kernels)])
     assert len(more.axes) > len(plain.axes)
     assert more.get_size_inches()[1] == pytest.approx(plain.get_size_inches()[1] + 1.45)
+
+
+def test_figure_names_a_kernel_file_reference_by_its_file(modes, tmp_path):
+    """Fig. 7's last row is "measured (grid fit)" only when the measured side is a grid; a
+    kernel file given as B (a pairs fit, an oracle) is named by its file."""
+    from psfkit.figures.compare_figures import reference_label
+    from psfkit.kernelfile import save_kernels
+
+    assert reference_label(compare_kernels(modes.model, modes)) == "measured (grid fit)"
+    path = tmp_path / "pairs_fit.npz"
+    save_kernels(path, modes.model)
+    assert reference_label(compare_kernels(modes.model, path)) == "reference: pairs_fit.npz"

@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, project
+from psfkit.pairs_constraints import auto_support, kkt_residual, project, projected_newton
 from psfkit.pairs_fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -179,6 +179,43 @@ def test_projection_refuses_an_energy_no_nonnegative_kernel_has() -> None:
         project(v, True, None, torch.tensor([[-1.0]]))
     with pytest.raises(InvalidInputError, match="support is empty"):
         project(v, True, torch.zeros((3, 3), dtype=torch.bool), torch.tensor([[1.0]]))
+
+
+@pytest.mark.parametrize("preconditioned", [False, True])
+def test_projected_newton_is_scipy_nnls(preconditioned: bool) -> None:
+    """On an ill-conditioned least squares with active bounds, the projected Newton-CG
+    minimiser is scipy's active-set NNLS solution, per channel."""
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(3)
+    shape = (2, 2, 3, 3)                                  # (K, C, Hk, Wk): 18 unknowns per channel
+    n = int(np.prod(shape[:1] + shape[2:]))
+    mats = [rng.normal(size=(40, n)) @ np.diag(np.logspace(0, -2, n)) for _ in range(2)]
+    ys = [rng.normal(size=40) for _ in range(2)]
+
+    def per_channel(fn, k: torch.Tensor) -> torch.Tensor:
+        out = torch.empty_like(k)
+        for c in range(k.shape[1]):
+            out[:, c] = torch.as_tensor(fn(c, k[:, c].reshape(-1).numpy())).reshape(
+                k[:, c].shape)
+        return out
+
+    def normal(k: torch.Tensor) -> torch.Tensor:
+        return per_channel(lambda c, v: mats[c].T @ (mats[c] @ v), k)
+
+    rhs = per_channel(lambda c, v: mats[c].T @ ys[c], torch.zeros(shape, dtype=torch.float64))
+    diag = [np.sum(m * m, axis=0) for m in mats]          # Jacobi: SPD, a fair preconditioner
+    precondition = (lambda r: per_channel(lambda c, v: v / diag[c], r)) if preconditioned \
+        else None
+    got, info = projected_newton(normal, rhs, torch.zeros(shape, dtype=torch.float64),
+                                 precondition, iterations=100, cg_iterations=n,
+                                 tolerance=1e-12)
+    for c in range(2):
+        want, _ = nnls(mats[c], ys[c])
+        assert (want == 0).sum() >= 3                     # bounds are active
+        np.testing.assert_allclose(got[:, c].reshape(-1).numpy(), want, atol=1e-8)
+    assert got.min() >= 0 and info["kkt_residual"] < 1e-12
+    assert float(kkt_residual(normal, rhs, got).max()) == pytest.approx(info["kkt_residual"])
 
 
 def test_auto_support_is_the_footprint_of_the_psf() -> None:
