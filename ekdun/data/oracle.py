@@ -53,9 +53,8 @@ from ekdun.data.dense_model import hat_weights
 from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
-from psfkit.pairs_constraints import projected_newton
 from psfkit.pairs_fit import predict
-from psfkit.pairs_solver import PairBatches, solve_kernels
+from psfkit.pairs_solver import PairBatches, projected_newton, solve_kernels
 from psfkit.weights import get_basis
 
 #: Random stream of the oracle's scenes (train 0, test 1): same distribution, new scenes.
@@ -145,7 +144,7 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         ignored.
     nonneg : bool
         Minimise over non-negative kernels: projected Newton-CG
-        (:func:`psfkit.pairs_constraints.projected_newton`) on the same normal equations,
+        (:func:`psfkit.pairs_solver.projected_newton`) on the same normal equations,
         warm-started from the unconstrained oracle, for at most ``projected_iterations``
         Newton steps of ``cg_iterations`` preconditioned CG iterations each, or until the
         relative projected gradient (the KKT residual ``‖K − max(0, K − (NK − Bᵀy))‖ /

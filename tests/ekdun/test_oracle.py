@@ -25,9 +25,9 @@ from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
 from psfkit.forward.geometry import padded_shape
 from psfkit.kernelfile import KernelModel, load_kernels
-from psfkit.pairs_constraints import kkt_residual, projected_fit
+from psfkit.pairs_constraints import projected_fit
 from psfkit.pairs_fit import predict
-from psfkit.pairs_solver import PairBatches, solve_kernels
+from psfkit.pairs_solver import PairBatches, kkt_residual, solve_kernels
 
 SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3))
 

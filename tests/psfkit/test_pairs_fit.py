@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, kkt_residual, project, projected_newton
+from psfkit.pairs_constraints import auto_support, project
 from psfkit.pairs_fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -19,6 +19,7 @@ from psfkit.pairs_fit import (
     predict,
     relative_errors,
 )
+from psfkit.pairs_solver import kkt_residual, projected_newton
 from psfkit.weights import get_basis
 
 
