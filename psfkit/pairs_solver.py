@@ -427,11 +427,11 @@ def solve_kernels(batches: PairBatches,
             out = out + mu * torch.tensordot(prior, kernels, dims=([1], [0]))
         return out
 
+    precondition = gram.preconditioner(lam, mu)
     kernels, info = solve_normal_equations(
-        normal, rhs, gram.preconditioner(lam, mu), start, tolerance, max_iterations, bar)
+        normal, rhs, precondition, start, tolerance, max_iterations, bar)
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
-                           "normal": normal, "rhs": rhs,
-                           "precondition": gram.preconditioner(lam, mu)}
+                           "normal": normal, "rhs": rhs, "precondition": precondition}
 
 
 def window_of_grid(kernels_on_grid: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
@@ -460,22 +460,19 @@ def rhs_spectra_full(batches: PairBatches, full_measurements: Tensor) -> Tensor:
     return out
 
 
-__all__ = ["DEFAULT_BATCH", "DEFAULT_CACHE_BYTES", "FrequencyGram", "PairBatches",
-           "SolveInfo", "difference_matrix", "embed_kernel", "rhs_spectra_full",
-           "solve_kernels", "solve_normal_equations", "uncropped_measurements",
-           "window_of_grid"]
-
-
 def _per_channel_norm(a: Tensor) -> Tensor:
     return a.pow(2).sum(dim=(0, 2, 3)).sqrt()                                  # (C,)
+
+
+def _projected_gradient(kernels: Tensor, gradient: Tensor, rhs: Tensor) -> Tensor:
+    step = kernels - (kernels - gradient).clamp_min(0)
+    return _per_channel_norm(step) / _per_channel_norm(rhs).clamp_min(1e-300)
 
 
 def kkt_residual(normal: Callable[[Tensor], Tensor], rhs: Tensor, kernels: Tensor) -> Tensor:
     """Per-channel relative projected gradient of ``½KᵀNK − rhsᵀK`` over ``K ≥ 0``:
     ``‖K − max(0, K − ∇)‖ / ‖rhs‖``, ``(C,)``; 0 exactly at the minimiser."""
-    gradient = normal(kernels) - rhs
-    step = kernels - (kernels - gradient).clamp_min(0)
-    return (_per_channel_norm(step) / _per_channel_norm(rhs).clamp_min(1e-300))
+    return _projected_gradient(kernels, normal(kernels) - rhs, rhs)
 
 
 def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Tensor,
@@ -514,14 +511,12 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         (the KKT residual after each step, max over channels).
     """
     x = start.clamp_min(0)
-    norm_rhs = _per_channel_norm(rhs).clamp_min(1e-300)
     history: list[float] = []
     done = 0
     nx = normal(x)
     while True:
         g = nx - rhs
-        kkt = _per_channel_norm(x - (x - g).clamp_min(0)) / norm_rhs
-        history.append(float(kkt.max()))
+        history.append(float(_projected_gradient(x, g, rhs).max()))
         if history[-1] < tolerance or done >= iterations:
             break
         done += 1
@@ -536,8 +531,8 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         d, _ = solve_normal_equations(masked, -g * free, masked_precondition,
                                       tolerance=1e-12, max_iterations=cg_iterations)
         f0 = 0.5 * _per_channel_dot(x, nx) - _per_channel_dot(rhs, x)
-        alpha = torch.ones_like(norm_rhs)
-        accepted = torch.zeros_like(norm_rhs, dtype=torch.bool)
+        alpha = torch.ones_like(f0)
+        accepted = torch.zeros_like(f0, dtype=torch.bool)
         x_new, nx_new = x, nx
         for _ in range(30):
             trial = (x + alpha[None, :, None, None] * d).clamp_min(0)
@@ -556,3 +551,9 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
             bar.update(1)
     return x, {"method": "projected-newton-cg", "iterations": done,
                "kkt_residual": history[-1], "history": history}
+
+
+__all__ = ["DEFAULT_BATCH", "DEFAULT_CACHE_BYTES", "FrequencyGram", "PairBatches",
+           "SolveInfo", "difference_matrix", "embed_kernel", "kkt_residual",
+           "projected_newton", "rhs_spectra_full", "solve_kernels", "solve_normal_equations",
+           "uncropped_measurements", "window_of_grid"]
