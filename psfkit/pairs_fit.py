@@ -50,8 +50,14 @@ from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
-from psfkit.pairs_options import PairFitOptions
-from psfkit.pairs_solver import DEFAULT_BATCH, DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
+from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, PairFitOptions
+from psfkit.pairs_solver import (
+    DEFAULT_BATCH,
+    DEFAULT_CACHE_BYTES,
+    PairBatches,
+    projected_newton,
+    solve_kernels,
+)
 from psfkit.resample import bin_mean
 
 __all__ = ["KernelSpaceOperator", "PairFit", "PairFitOptions", "downsample_pairs",
@@ -210,7 +216,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     if options.constrained:
         kernels, support, info_c = _constrained_solve(system["normal"], system["rhs"],
                                                       kernels, options, support_mask,
-                                                      progress)
+                                                      progress, system["precondition"])
         info_c["passes"] = batches.passes
         history.append(info_c)
     if bar is not None:
@@ -228,10 +234,12 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
 
 def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
                        options: PairFitOptions, support_mask: np.ndarray | None,
-                       progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
+                       progress: bool, precondition: Any = None
+                       ) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
     """The final solve under ``options``' constraints, warm-started from the unconstrained
     (converged) kernels, whose base kernel also gives the automatic support and the
-    energies."""
+    energies: FISTA, or projected Newton-CG (``options.nonneg_solver``) preconditioned with
+    the unconstrained solve's Gram blocks."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
@@ -250,11 +258,20 @@ def _constrained_solve(normal: Any, rhs: Tensor, unconstrained: Tensor,
         from tqdm.auto import tqdm
 
         bar = tqdm(total=options.final_projected_iterations, unit="it", leave=False,
-                   desc="projected fit")
+                   desc="projected " + ("Newton" if options.nonneg_solver == "newton"
+                                        else "fit"))
     mask = None if support is None else torch.as_tensor(support, device=rhs.device)
-    kernels, info = projected_fit(normal, rhs, unconstrained,
-                                  options.final_projected_iterations,
-                                  options.nonneg, mask, energy, bar=bar)
+    if options.nonneg_solver == "newton":
+        kernels, info = projected_newton(normal, rhs, unconstrained, precondition,
+                                         options.final_projected_iterations,
+                                         NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, bar=bar,
+                                         support=mask)
+        info = {k: v for k, v in info.items() if k != "history"} | {
+            "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS}
+    else:
+        kernels, info = projected_fit(normal, rhs, unconstrained,
+                                      options.final_projected_iterations,
+                                      options.nonneg, mask, energy, bar=bar)
     if bar is not None:
         bar.close()
     info["support_fraction"] = 1.0 if support is None else float(support.mean())

@@ -464,21 +464,27 @@ def _per_channel_norm(a: Tensor) -> Tensor:
     return a.pow(2).sum(dim=(0, 2, 3)).sqrt()                                  # (C,)
 
 
-def _projected_gradient(kernels: Tensor, gradient: Tensor, rhs: Tensor) -> Tensor:
+def _projected_gradient(kernels: Tensor, gradient: Tensor, rhs: Tensor,
+                        support: Tensor | None = None) -> Tensor:
     step = kernels - (kernels - gradient).clamp_min(0)
+    if support is not None:                  # pixels held at 0 have no optimality condition
+        step = step * support
     return _per_channel_norm(step) / _per_channel_norm(rhs).clamp_min(1e-300)
 
 
-def kkt_residual(normal: Callable[[Tensor], Tensor], rhs: Tensor, kernels: Tensor) -> Tensor:
-    """Per-channel relative projected gradient of ``½KᵀNK − rhsᵀK`` over ``K ≥ 0``:
-    ``‖K − max(0, K − ∇)‖ / ‖rhs‖``, ``(C,)``; 0 exactly at the minimiser."""
-    return _projected_gradient(kernels, normal(kernels) - rhs, rhs)
+def kkt_residual(normal: Callable[[Tensor], Tensor], rhs: Tensor, kernels: Tensor,
+                 support: Tensor | None = None) -> Tensor:
+    """Per-channel relative projected gradient of ``½KᵀNK − rhsᵀK`` over ``K ≥ 0`` (and
+    ``K = 0`` outside ``support``): ``‖K − max(0, K − ∇)‖ / ‖rhs‖`` over the support, ``(C,)``;
+    0 exactly at the minimiser."""
+    return _projected_gradient(kernels, normal(kernels) - rhs, rhs, support)
 
 
 def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Tensor,
                      precondition: Callable[[Tensor], Tensor] | None = None,
                      iterations: int = 50, cg_iterations: int = 20, tolerance: float = 1e-9,
-                     bar: Any = None) -> tuple[Tensor, dict[str, Any]]:
+                     bar: Any = None, support: Tensor | None = None
+                     ) -> tuple[Tensor, dict[str, Any]]:
     """Projected Newton-CG for ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0``, per channel.
 
     Each step: the gradient ``g = NK − rhs``; the binding pixels ``B = {K = 0, g > 0}`` stay
@@ -503,6 +509,9 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         Newton steps, and CG iterations per step.
     tolerance : float
         Stop when every channel's :func:`kkt_residual` is below this.
+    support : Tensor, optional
+        Boolean, broadcastable to the kernels (e.g. ``(Hk, Wk)``): pixels outside it are held
+        at 0 (a footprint constraint), the others are ``≥ 0``.
 
     Returns
     -------
@@ -510,17 +519,25 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         The kernels (``≥ 0``) and ``{"method", "iterations", "kkt_residual", "history"}``
         (the KKT residual after each step, max over channels).
     """
-    x = start.clamp_min(0)
+    inside = None if support is None else support.to(start.dtype)
+
+    def project(v: Tensor) -> Tensor:
+        v = v.clamp_min(0)
+        return v if inside is None else v * inside
+
+    x = project(start)
     history: list[float] = []
     done = 0
     nx = normal(x)
     while True:
         g = nx - rhs
-        history.append(float(_projected_gradient(x, g, rhs).max()))
+        history.append(float(_projected_gradient(x, g, rhs, inside).max()))
         if history[-1] < tolerance or done >= iterations:
             break
         done += 1
         free = ((x > 0) | (g <= 0)).to(x.dtype)
+        if inside is not None:
+            free = free * inside
 
         def masked(v: Tensor, free: Tensor = free) -> Tensor:
             return normal(v * free) * free
@@ -535,7 +552,7 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         accepted = torch.zeros_like(f0, dtype=torch.bool)
         x_new, nx_new = x, nx
         for _ in range(30):
-            trial = (x + alpha[None, :, None, None] * d).clamp_min(0)
+            trial = project(x + alpha[None, :, None, None] * d)
             n_trial = normal(trial)
             f = 0.5 * _per_channel_dot(trial, n_trial) - _per_channel_dot(rhs, trial)
             ok = f <= f0 + 1e-4 * _per_channel_dot(g, trial - x)

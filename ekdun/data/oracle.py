@@ -54,6 +54,7 @@ from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
 from psfkit.pairs_fit import predict
+from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS, NEWTON_TOLERANCE
 from psfkit.pairs_solver import PairBatches, projected_newton, solve_kernels
 from psfkit.weights import get_basis
 
@@ -64,9 +65,9 @@ COMPARE_STREAM = 3
 #: Default relative residual of the oracle's normal equations (float64).
 ORACLE_TOLERANCE = 1e-7
 #: Default Newton steps, CG iterations per step and KKT tolerance of the non-negative oracle.
-NONNEG_ITERATIONS = 50
-NONNEG_CG_ITERATIONS = 40
-NONNEG_TOLERANCE = 1e-9
+NONNEG_ITERATIONS = NEWTON_ITERATIONS
+NONNEG_CG_ITERATIONS = NEWTON_CG_ITERATIONS
+NONNEG_TOLERANCE = NEWTON_TOLERANCE
 
 Forward = Callable[[Tensor], Tensor]
 

@@ -16,7 +16,7 @@ from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.io.read_options import ReadOptions, choose
 from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_options import PairFitOptions
+from psfkit.pairs_options import NONNEG_SOLVERS, PairFitOptions
 from psfkit.validation import dumps_finite, flag, require_finite
 from psfkit.weights import BASIS_NAMES
 
@@ -107,7 +107,12 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         "the unconstrained fit's sums) or base (every kernel carries the "
                         "unconstrained base kernel's)")
     c.add_argument("--projected-iterations", type=flag("--projected-iterations"), default=None,
-                   help="most iterations of the constrained solve (default 100)")
+                   help="most iterations of the constrained solve (default 100 FISTA "
+                        "iterations, or 50 Newton steps)")
+    c.add_argument("--nonneg-solver", choices=NONNEG_SOLVERS, default=d.nonneg_solver,
+                   help="constrained solve: fista (default; every constraint, early-stopped) "
+                        "or newton (projected Newton-CG to convergence: the non-negative "
+                        "least squares, with --support; not with --energy)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
@@ -172,7 +177,8 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
                              fit_scale=not args.no_scale, nonneg=args.nonneg,
                              support="mask" if args.support_mask else args.support,
                              support_threshold=threshold, energy=args.energy,
-                             projected_iterations=args.projected_iterations)
+                             projected_iterations=args.projected_iterations,
+                             nonneg_solver=args.nonneg_solver)
     # both outputs are checked before the fit and appear together, or neither does
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         kernels = outputs.file(out)
@@ -238,6 +244,10 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
     print(f"  kernels: {', '.join(constraints) or 'unconstrained'}; "
           f"{physics['negative_pixels']} negative pixels, support fraction "
           f"{physics['support_fraction']:.3f}")
+    if options.nonneg_solver == "newton" and options.constrained:
+        step = fit.history[-1]
+        print(f"  non-negative least squares: {step['iterations']} Newton steps, KKT residual "
+              f"{step['kkt_residual']:.1e}")
     if args.leave_one_out:
         loo = summary["leave_one_out"]
         print(f"  leave-one-out relative error: mean {loo['mean_raw']:.4f} raw, "

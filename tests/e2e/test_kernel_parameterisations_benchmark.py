@@ -25,6 +25,7 @@ def _bench(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
+    from psfkit.cli import main as psfkit_main
     from psfkit.compare import compare_kernels
     from psfkit.kernelfile import load_kernels
 
@@ -89,6 +90,29 @@ def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     # --table re-renders the same table from results.json alone
     table = _bench("--out", str(out), "--table")
     assert table.returncode == 0 and table.stdout.strip() in again.stdout
+
+    # the pairs seed: psfkit fit-pairs of the training pairs (the same kernels as the
+    # command line gives), trained from and scored against the oracle as a reference row
+    pairs = _bench("--out", str(out), "--params", "free", "--seeds", "pairs",
+                   "--batch-size", "4")
+    assert pairs.returncode == 0, pairs.stderr[-3000:]
+    seed = out / "kernels_pairs.npz"
+    cli = tmp_path / "pairs_cli.npz"
+    assert psfkit_main(["fit-pairs", str(out / "dataset" / "train"), "--basis", "paper",
+                        "--convention", convention, "--quiet", "--out", str(cli)]) == 0
+    k_seed, k_cli = load_kernels(seed).kernels, load_kernels(cli).kernels
+    np.testing.assert_allclose(k_seed, k_cli, atol=1e-6 * np.abs(k_cli).max())
+    assert load_kernels(seed).convention == convention
+    doc = json.loads((out / "results.json").read_text())
+    (row,) = [r for r in doc["runs"] if r["seed"] == "pairs"]
+    assert Path(row["run"]).name.startswith("pairs-free-last-2-l0-")
+    refs = {r["reference"]: r for r in doc["references"]}
+    ours = compare_kernels(seed, oracle).learned.numbers()
+    assert refs["pairs fit (seed)"]["oracle_v_diff_ncc"] == pytest.approx(ours["v_diff_ncc"])
+    assert refs["pairs fit (seed)"]["oracle_h_disp_corr"] == pytest.approx(
+        ours["h_disp_corr"])
+    assert "| pairs fit (seed) |" in pairs.stdout and "| pairs | free |" in pairs.stdout
+    assert len(doc["runs"]) == 10
 
     # a run folder trained with other settings is refused before anything is trained
     refused = _bench("--out", str(out), "--params", "free", "--seeds", "one-psf",

@@ -270,6 +270,51 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
         assert held_out[True] < 0.7 * held_out[False]
 
 
+@pytest.mark.parametrize("with_support", [False, True])
+def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> None:
+    """``nonneg_solver="newton"`` reaches the non-negative least squares (KKT residual below
+    its tolerance), which a long FISTA run (a second method) agrees with, and which an
+    early-stopped FISTA run has not reached (a larger training residual)."""
+    _truth, x, y = _tiny_camera()
+    noisy = y + 0.03 * y.std() * np.random.default_rng(1).standard_normal(y.shape)
+    mask = np.zeros((16, 16), bool)
+    mask[2:14, 3:15] = True
+    common = dict(basis="paper", convention="sensor", iterations=300, tolerance=1e-10,
+                  fit_scale=False, support="mask" if with_support else "none")
+    extra = {"support_mask": mask} if with_support else {}
+
+    def fit(**kw):
+        return fit_pairs(x, noisy, PairFitOptions(**common, **kw), dtype=torch.float64,
+                         **extra)
+
+    newton = fit(nonneg_solver="newton")
+    step = newton.history[-1]
+    assert step["method"] == "projected-newton-cg" and step["kkt_residual"] < 1e-9
+    assert step["iterations"] <= 50 and newton.kernels.min() >= 0
+    if with_support:
+        assert np.abs(newton.kernels[..., ~mask]).max() == 0
+    long = fit(projected_iterations=5000)
+    short = fit(projected_iterations=3)
+    rel = np.linalg.norm(newton.kernels - long.kernels) / np.linalg.norm(long.kernels)
+    assert rel < 2e-3, rel
+
+    def sse(f):
+        return float(np.sum((predict(f.kernel_model(), x) - noisy) ** 2))
+
+    assert sse(newton) <= sse(long) * (1 + 1e-6) < sse(short)
+
+
+def test_newton_solver_refuses_what_it_does_not_solve() -> None:
+    with pytest.raises(ConfigurationError, match="needs --nonneg"):
+        PairFitOptions(basis="paper", nonneg=False, nonneg_solver="newton")
+    with pytest.raises(ConfigurationError, match="--energy fit"):
+        PairFitOptions(basis="paper", energy="fit", nonneg_solver="newton")
+    with pytest.raises(ConfigurationError, match="--nonneg-solver must be one of"):
+        PairFitOptions(basis="paper", nonneg_solver="lbfgs")
+    assert PairFitOptions(nonneg_solver="newton").final_projected_iterations == 50
+    assert PairFitOptions().final_projected_iterations == 100
+
+
 @pytest.mark.parametrize("energy", ["fit", "base"])
 def test_energy_and_support_constraints_hold(energy: str) -> None:
     _truth, x, y = _tiny_camera()
