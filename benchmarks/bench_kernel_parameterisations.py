@@ -203,10 +203,13 @@ def fit_pairs_seed(data: Path, out: Path, like: KernelModel) -> Path:
     scenes, measurements = pairs.load_all()
     print(f"fitting the pairs seed to {len(scenes)} training pairs (psfkit fit-pairs)",
           flush=True)
-    fit = fit_pairs(scenes, measurements,
-                    PairFitOptions(basis=like.basis, convention=like.convention), progress=True)
+    options = PairFitOptions(basis=like.basis, convention=like.convention)
+    fit = fit_pairs(scenes, measurements, options, progress=True)
+    # the provenance the command line records, so the seed reads like its kernel file
     provenance = {"source": "psfkit fit-pairs", "pairs": str(pairs.root),
-                  "names": list(pairs.names)}
+                  "names": list(pairs.names), "downsample": 1, "options": options.__dict__,
+                  "training_error": [round(float(e), 6) for e in fit.training_error],
+                  "physics": fit.physics()}
     return save_kernels(out, fit.kernel_model(provenance, pairs.read_options(1)))
 
 

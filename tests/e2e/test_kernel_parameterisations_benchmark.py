@@ -103,6 +103,8 @@ def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     k_seed, k_cli = load_kernels(seed).kernels, load_kernels(cli).kernels
     np.testing.assert_allclose(k_seed, k_cli, atol=1e-6 * np.abs(k_cli).max())
     assert load_kernels(seed).convention == convention
+    for key in ("options", "physics", "training_error"):     # as the command line records
+        assert load_kernels(seed).provenance[key] == load_kernels(cli).provenance[key], key
     doc = json.loads((out / "results.json").read_text())
     (row,) = [r for r in doc["runs"] if r["seed"] == "pairs"]
     assert Path(row["run"]).name.startswith("pairs-free-last-2-l0-")
