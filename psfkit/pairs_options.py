@@ -14,13 +14,16 @@ from psfkit.weights import get_basis
 
 SUPPORTS = ("none", "auto", "mask")
 ENERGIES = ("free", "fit", "base")
-#: Solvers of the constrained final step (``--nonneg-solver``).
-NONNEG_SOLVERS = ("fista", "newton")
-#: Projected Newton-CG (``newton``): most steps, CG iterations per step, KKT tolerance. The
-#: same as the non-negative operator oracle's (:mod:`ekdun.data.oracle`), which it estimates.
-NEWTON_ITERATIONS = 50
-NEWTON_CG_ITERATIONS = 40
-NEWTON_TOLERANCE = 1e-9
+#: Solvers of the constrained final step (``--nonneg-solver``; ``auto``: Newton where it
+#: applies, FISTA with an energy constraint or without non-negativity).
+NONNEG_SOLVERS = ("auto", "fista", "newton")
+#: Projected Newton-CG (``newton``): most steps, CG iterations per step, and the tolerance of
+#: the relative KKT (natural) residual (:func:`psfkit.pairs_solver.kkt_residual`; at 128²,
+#: 1e-10 left the kernels about 1e-5 of themselves from the minimiser). The same as the
+#: non-negative operator oracle's (:mod:`ekdun.data.oracle`), which it estimates.
+NEWTON_ITERATIONS = 100
+NEWTON_CG_ITERATIONS = 20
+NEWTON_TOLERANCE = 1e-10
 
 
 @dataclass(frozen=True)
@@ -82,15 +85,16 @@ class PairFitOptions:
         Most iterations of the constrained solve: FISTA iterations (stops when the kernels
         change by less than 1e-6 of themselves; default 100, where the held-out error on DLMD
         at 1/4 resolution stops improving) or Newton steps (default ``NEWTON_ITERATIONS``).
-    nonneg_solver : {"fista", "newton"}
-        ``"fista"`` (default): accelerated projected gradient from the clipped unconstrained
-        solution, stopped after ``projected_iterations``. It handles every constraint, but
-        at 128² its 100 iterations stop far from the non-negative least squares, at the same
-        place whatever the noise (issue 23: 0.84 / 0.85 difference NCC from it at 20000 and at
-        10⁶ photons). ``"newton"``: projected Newton-CG
-        (:func:`psfkit.pairs_solver.projected_newton`) to a KKT residual of
-        ``NEWTON_TOLERANCE``: the non-negative least squares itself (with ``--support``), at
-        more cost; not with ``--energy`` or ``--no-nonneg``.
+    nonneg_solver : {"auto", "fista", "newton"}
+        ``"newton"``: projected Newton-CG (:func:`psfkit.pairs_solver.projected_newton`) to
+        a KKT residual of ``NEWTON_TOLERANCE``: the non-negative least squares itself (with
+        ``--support``); not with ``--energy`` or ``--no-nonneg``. ``"fista"``: accelerated
+        projected gradient from the clipped unconstrained solution, stopped after
+        ``projected_iterations``; it handles every constraint, but at 128² its 100
+        iterations stop far from the non-negative least squares, at the same place whatever
+        the noise (issue 23: 0.84 / 0.85 difference NCC from it at 20000 and at 10⁶
+        photons). ``"auto"`` (default): Newton where it applies, FISTA otherwise
+        (:attr:`solver`).
     """
 
     basis: str = "si"
@@ -109,7 +113,14 @@ class PairFitOptions:
     support_threshold: float = 0.1
     energy: str = "free"
     projected_iterations: int | None = None
-    nonneg_solver: str = "fista"
+    nonneg_solver: str = "auto"
+
+    @property
+    def solver(self) -> str:
+        """The constrained solver that runs: ``nonneg_solver``, with ``"auto"`` resolved."""
+        if self.nonneg_solver != "auto":
+            return self.nonneg_solver
+        return "newton" if self.nonneg and self.energy == "free" else "fista"
 
     @property
     def constrained(self) -> bool:
@@ -124,7 +135,7 @@ class PairFitOptions:
     def final_projected_iterations(self) -> int:
         if self.projected_iterations is not None:
             return self.projected_iterations
-        return NEWTON_ITERATIONS if self.nonneg_solver == "newton" else 100
+        return NEWTON_ITERATIONS if self.solver == "newton" else 100
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-pairs (the ranges of FLAGS in

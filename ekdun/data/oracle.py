@@ -55,7 +55,12 @@ from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
 from psfkit.pairs_fit import predict
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS, NEWTON_TOLERANCE
-from psfkit.pairs_solver import PairBatches, projected_newton, solve_kernels
+from psfkit.pairs_solver import (
+    PairBatches,
+    projected_newton,
+    regularised_normal,
+    solve_kernels,
+)
 from psfkit.weights import get_basis
 
 #: Random stream of the oracle's scenes (train 0, test 1): same distribution, new scenes.
@@ -115,7 +120,7 @@ def _kernel_model(kernels: np.ndarray, basis: str, convention: str,
 def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
                     n_scenes: int | None = None, forward: Forward | None = None,
                     tolerance: float = ORACLE_TOLERANCE, max_iterations: int = 3000,
-                    batch_size: int = 16, check_convergence: bool = True,
+                    batch_size: int | None = None, check_convergence: bool = True,
                     scenes: np.ndarray | None = None, nonneg: bool = False,
                     projected_iterations: int = NONNEG_ITERATIONS,
                     projected_tolerance: float = NONNEG_TOLERANCE,
@@ -147,10 +152,10 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         Minimise over non-negative kernels: projected Newton-CG
         (:func:`psfkit.pairs_solver.projected_newton`) on the same normal equations,
         warm-started from the unconstrained oracle, for at most ``projected_iterations``
-        Newton steps of ``cg_iterations`` preconditioned CG iterations each, or until the
-        relative projected gradient (the KKT residual ``‖K − max(0, K − (NK − Bᵀy))‖ /
-        ‖Bᵀy‖``, per channel, the largest) is below ``projected_tolerance``. The record gives
-        both.
+        Newton steps of ``cg_iterations`` preconditioned CG iterations each (on float32
+        products, with float64 gradients and line search), or until the relative KKT
+        residual (:func:`psfkit.pairs_solver.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ / ‖K‖``
+        per channel, the largest) is below ``projected_tolerance``. The record gives both.
 
     Returns
     -------
@@ -187,9 +192,11 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
                                               max_iterations=max_iterations)
         projected = None
         if nonneg:
+            hessian = regularised_normal(batches.astype(torch.float32), system["lambda"],
+                                         system["mu"])
             kernels, projected = projected_newton(
                 system["normal"], system["rhs"], kernels, system["precondition"],
-                projected_iterations, cg_iterations, projected_tolerance)
+                projected_iterations, cg_iterations, projected_tolerance, hessian=hessian)
         return kernels, info, projected, batches
 
     half = None
@@ -202,7 +209,8 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
                   relative_prediction_error=float((err / norm).mean()))
     if projected is not None:
         record["kind"] = "operator, non-negative"
-        record["projected"] = {k: projected[k] for k in ("method", "iterations", "kkt_residual")}
+        record["projected"] = {k: projected[k] for k in ("method", "iterations", "kkt_residual",
+                                                         "converged")}
         record["projected"]["cg_iterations"] = cg_iterations
     if half is not None:
         record["convergence"] = {

@@ -110,9 +110,10 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="most iterations of the constrained solve (default 100 FISTA "
                         "iterations, or 50 Newton steps)")
     c.add_argument("--nonneg-solver", choices=NONNEG_SOLVERS, default=d.nonneg_solver,
-                   help="constrained solve: fista (default; every constraint, early-stopped) "
-                        "or newton (projected Newton-CG to convergence: the non-negative "
-                        "least squares, with --support; not with --energy)")
+                   help="constrained solve: newton (projected Newton-CG to convergence: the "
+                        "non-negative least squares, with --support; not with --energy), fista "
+                        "(every constraint, early-stopped), or auto (default: newton where it "
+                        "applies, else fista)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
@@ -244,7 +245,7 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
     print(f"  kernels: {', '.join(constraints) or 'unconstrained'}; "
           f"{physics['negative_pixels']} negative pixels, support fraction "
           f"{physics['support_fraction']:.3f}")
-    if options.nonneg_solver == "newton" and options.constrained:
+    if options.solver == "newton" and options.constrained:
         step = fit.history[-1]
         print(f"  non-negative least squares: {step['iterations']} Newton steps, KKT residual "
               f"{step['kkt_residual']:.1e}")

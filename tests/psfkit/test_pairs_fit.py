@@ -19,6 +19,7 @@ from psfkit.pairs_fit import (
     predict,
     relative_errors,
 )
+from psfkit.pairs_options import NEWTON_ITERATIONS
 from psfkit.pairs_solver import kkt_residual, projected_newton
 from psfkit.weights import get_basis
 
@@ -242,8 +243,9 @@ def _tiny_camera() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return kernels.astype(np.float64), x.astype(np.float64), y.astype(np.float64)
 
 
+@pytest.mark.parametrize("solver", ["fista", "newton"])
 @pytest.mark.parametrize("noise", [0.0, 0.03])
-def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
+def test_constrained_fit_recovers_non_negative_kernels(noise: float, solver: str) -> None:
     """Exact data: both fits find the kernels. Noisy data (3 % of the signal's spread): the
     unconstrained fit's kernels are off by more than their own size, with hundreds of negative
     pixels; non-negativity halves the kernel error and the held-out error (measured 1.16 →
@@ -255,11 +257,13 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
     for nonneg in (False, True):
         options = PairFitOptions(basis="paper", convention="sensor", tikhonov=1e-6,
                                  difference=0.0, iterations=300, tolerance=1e-10,
-                                 fit_scale=False, nonneg=nonneg, projected_iterations=500)
+                                 fit_scale=False, nonneg=nonneg, projected_iterations=500,
+                                 nonneg_solver=solver if nonneg else "auto")
         fit = fit_pairs(x[:7], noisy[:7], options, dtype=torch.float64)
         if nonneg:
             assert fit.physics()["negative_pixels"] == 0
-            assert fit.history[-1]["method"] == "fista"
+            assert fit.history[-1]["method"] == {"fista": "fista",
+                                                 "newton": "projected-newton-cg"}[solver]
         kernel_error[nonneg] = np.linalg.norm(fit.kernels - truth) / np.linalg.norm(truth)
         held_out[nonneg] = relative_errors(predict(fit.kernel_model(), x[7:]), y[7:])["raw"][0]
     if noise == 0:
@@ -272,9 +276,10 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
 
 @pytest.mark.parametrize("with_support", [False, True])
 def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> None:
-    """``nonneg_solver="newton"`` reaches the non-negative least squares (KKT residual below
-    its tolerance), which a long FISTA run (a second method) agrees with, and which an
-    early-stopped FISTA run has not reached (a larger training residual)."""
+    """``nonneg_solver="newton"`` (the default, its CG on float32 products) reaches the
+    non-negative least squares (KKT residual below its tolerance), which a long FISTA run (a
+    second method) agrees with, and which an early-stopped FISTA run has not reached (a
+    larger training residual)."""
     _truth, x, y = _tiny_camera()
     noisy = y + 0.03 * y.std() * np.random.default_rng(1).standard_normal(y.shape)
     mask = np.zeros((16, 16), bool)
@@ -287,14 +292,15 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
         return fit_pairs(x, noisy, PairFitOptions(**common, **kw), dtype=torch.float64,
                          **extra)
 
-    newton = fit(nonneg_solver="newton")
+    newton = fit()
     step = newton.history[-1]
-    assert step["method"] == "projected-newton-cg" and step["kkt_residual"] < 1e-9
+    assert step["method"] == "projected-newton-cg" and step["kkt_residual"] < 1e-10
+    assert step["converged"] and not step["stalled"]
     assert step["iterations"] <= 50 and newton.kernels.min() >= 0
     if with_support:
         assert np.abs(newton.kernels[..., ~mask]).max() == 0
-    long = fit(projected_iterations=5000)
-    short = fit(projected_iterations=3)
+    long = fit(nonneg_solver="fista", projected_iterations=5000)
+    short = fit(nonneg_solver="fista", projected_iterations=3)
     rel = np.linalg.norm(newton.kernels - long.kernels) / np.linalg.norm(long.kernels)
     assert rel < 2e-3, rel
 
@@ -311,8 +317,15 @@ def test_newton_solver_refuses_what_it_does_not_solve() -> None:
         PairFitOptions(basis="paper", energy="fit", nonneg_solver="newton")
     with pytest.raises(ConfigurationError, match="--nonneg-solver must be one of"):
         PairFitOptions(basis="paper", nonneg_solver="lbfgs")
-    assert PairFitOptions(nonneg_solver="newton").final_projected_iterations == 50
-    assert PairFitOptions().final_projected_iterations == 100
+    assert PairFitOptions(nonneg_solver="newton").final_projected_iterations == NEWTON_ITERATIONS
+    assert PairFitOptions(nonneg_solver="fista").final_projected_iterations == 100
+    # auto (the default): Newton where it applies, FISTA where it does not
+    assert PairFitOptions().solver == "newton"
+    assert PairFitOptions().final_projected_iterations == NEWTON_ITERATIONS
+    assert PairFitOptions(support="auto").solver == "newton"
+    assert PairFitOptions(nonneg=False, support="auto").solver == "fista"
+    assert PairFitOptions(energy="base").solver == "fista"
+    assert PairFitOptions(energy="base").final_projected_iterations == 100
 
 
 @pytest.mark.parametrize("energy", ["fit", "base"])

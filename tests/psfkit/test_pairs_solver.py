@@ -13,7 +13,13 @@ from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_fit import PairFitOptions, fit_pairs, predict
 from psfkit.pairs_solver import (
+    BATCH_BYTES,
+    DEFAULT_BATCH,
     PairBatches,
+    auto_batch_size,
+    kkt_residual,
+    projected_newton,
+    regularised_normal,
     rhs_spectra_full,
     solve_kernels,
     uncropped_measurements,
@@ -133,3 +139,108 @@ def test_fit_pairs_defaults_recover_eigen_kernel_pairs(scenes: np.ndarray,
     m_old = _metrics(old.kernels, truth)
     assert min(m_old["v"], m_old["h"]) < 0.95, m_old
     assert m_old["error"] > 3 * m["error"]
+
+
+def _dense_nnls_problem(seed: int = 0):
+    """A dense, ill-conditioned least squares ``min ‖A K − y‖`` over ``K ≥ 0`` per channel, in
+    the solver's layout ``(K, C, H, W)`` = (2, 2, 4, 5): 40 unknowns per channel, 60 rows."""
+    rng = np.random.default_rng(seed)
+    shape = (2, 2, 4, 5)
+    n = 2 * 4 * 5
+    mats = [rng.standard_normal((60, n)) @ np.diag(np.logspace(0, -3, n)) for _ in range(2)]
+    truth = np.abs(rng.standard_normal(shape)) * (rng.random(shape) < 0.5)
+    ys = [mats[c] @ truth[:, c].ravel() + 1e-3 * rng.standard_normal(60) for c in range(2)]
+
+    def normal(k: torch.Tensor) -> torch.Tensor:
+        out = torch.empty_like(k)
+        for c in range(2):
+            a = torch.as_tensor(mats[c], dtype=k.dtype)
+            out[:, c] = (a.T @ (a @ k[:, c].reshape(-1))).reshape(k[:, c].shape)
+        return out
+
+    rhs = torch.stack([torch.as_tensor(mats[c].T @ ys[c]).reshape(2, 4, 5) for c in range(2)],
+                      dim=1)
+    return mats, ys, normal, rhs
+
+
+@pytest.mark.parametrize("hessian_dtype", [torch.float64, torch.float32])
+def test_projected_newton_is_scipys_nnls(hessian_dtype: torch.dtype) -> None:
+    """The non-negative least squares of a dense ill-conditioned problem (singular values
+    over 3 decades) against scipy's active-set NNLS (Lawson–Hanson, an independent method),
+    with the Newton step's CG on exact or on float32 products."""
+    from scipy.optimize import nnls
+
+    mats, ys, normal, rhs = _dense_nnls_problem()
+
+    def hessian(v: torch.Tensor) -> torch.Tensor:
+        return normal(v.to(hessian_dtype)).to(v.dtype)
+
+    start = torch.zeros_like(rhs)
+    x, info = projected_newton(normal, rhs, start, iterations=200, cg_iterations=40,
+                               tolerance=1e-11, hessian=hessian)
+    assert info["converged"] and info["kkt_residual"] < 1e-11 and not info["stalled"]
+    for c in range(2):
+        expected, _ = nnls(mats[c], ys[c], maxiter=10_000)
+        got = x[:, c].reshape(-1).numpy()
+        assert np.array_equal(got == 0, expected == 0)         # the same active set
+        assert np.abs(got - expected).max() < 1e-5 * np.abs(expected).max()
+        assert (expected == 0).sum() > 5              # the constraint binds
+    assert float(kkt_residual(normal, rhs, x).max()) < 1e-11
+
+
+def test_kkt_residual_does_not_depend_on_units() -> None:
+    """Scaling the data (``rhs``) or the operator leaves the relative natural residual of the
+    same (rescaled) point unchanged, and it vanishes only at the minimiser."""
+    _mats, _ys, normal, rhs = _dense_nnls_problem(1)
+    x, _ = projected_newton(normal, rhs, torch.zeros_like(rhs), iterations=200,
+                            cg_iterations=40, tolerance=1e-13)
+    noise = torch.rand(x.shape, generator=torch.Generator().manual_seed(0), dtype=x.dtype)
+    point = x + 0.01 * x.abs().max() * noise
+    base = kkt_residual(normal, rhs, point)
+    assert float(kkt_residual(normal, rhs, x).max()) < 1e-12 < float(base.min())
+    scaled_data = kkt_residual(normal, 1e6 * rhs, 1e6 * point)
+    scaled_operator = kkt_residual(lambda v: 1e6 * normal(v), 1e6 * rhs, point)
+    assert torch.allclose(scaled_data, base, rtol=1e-2)
+    assert torch.allclose(scaled_operator, base, rtol=1e-2)
+
+
+def test_projected_newton_leaves_too_coarse_cheap_products_for_exact_ones() -> None:
+    """bfloat16 products (8-bit mantissa) on a problem with κ(N) ≈ 10⁶ and no
+    preconditioner: the steps stop improving (near 4e-7, measured), the solver goes on with
+    the exact products and reaches the tolerance."""
+    _mats, _ys, normal, rhs = _dense_nnls_problem(0)
+
+    def coarse(v: torch.Tensor) -> torch.Tensor:
+        return normal(v.to(torch.bfloat16).to(torch.float32)).to(v.dtype)
+
+    x, info = projected_newton(normal, rhs, torch.zeros_like(rhs), iterations=300,
+                               cg_iterations=40, tolerance=1e-11, hessian=coarse)
+    assert info["exact_hessian_from"] is not None and info["exact_hessian_from"] > 0
+    assert info["converged"] and not info["stalled"]
+    assert min(info["history"][: info["exact_hessian_from"] + 1]) > 1e-8
+    assert float(x.min()) >= 0 and float(kkt_residual(normal, rhs, x).max()) < 1e-11
+
+
+def test_batch_size_keeps_a_batch_under_the_reuse_threshold() -> None:
+    """On the CPU a batch's spectra stay under ``BATCH_BYTES`` (glibc reuses such blocks,
+    :mod:`psfkit.allocator`); small pairs keep ``DEFAULT_BATCH``; other devices too."""
+    per_pair = 3 * 3 * 192 * 97 * 16                  # source side, 128² float64: 2.7 MB
+    assert auto_batch_size(per_pair) == BATCH_BYTES // per_pair == 9
+    assert auto_batch_size(10) == DEFAULT_BATCH
+    assert auto_batch_size(10 * BATCH_BYTES) == 1
+    assert auto_batch_size(per_pair, "cuda:0") == DEFAULT_BATCH
+    b = PairBatches(bench_scenes(3, (128, 128)), "paper", "source", (128, 128))
+    assert b.batch_size == 9
+
+
+def test_float32_twin_is_the_same_operator(scenes: np.ndarray) -> None:
+    """``astype(float32)`` keeps pairs, scales and regularisation: its normal operator agrees
+    with the float64 one to float32 rounding."""
+    rng = np.random.default_rng(3)
+    batches = PairBatches(scenes, "paper", "source", (32, 32), batch_size=6)
+    batches.scales = torch.as_tensor(rng.uniform(0.5, 1.5, len(scenes)))
+    k = torch.as_tensor(rng.standard_normal((3, 3, 32, 32)))
+    exact = regularised_normal(batches, 2.0, 3.0)(k)
+    twin = regularised_normal(batches.astype(torch.float32), 2.0, 3.0)(k)
+    assert twin.dtype == torch.float64
+    assert float((twin - exact).abs().max()) < 1e-5 * float(exact.abs().max())
