@@ -265,14 +265,16 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
     mask = None if support is None else torch.as_tensor(support, device=rhs.device)
     if options.solver == "newton":
         batches = system["batches"]
-        hessian = None if batches.dtype != torch.float64 else regularised_normal(
-            batches.astype(torch.float32), system["lambda"], system["mu"])
+        twin = batches.astype(torch.float32) if batches.dtype == torch.float64 else None
+        hessian = None if twin is None else regularised_normal(twin, system["lambda"],
+                                                               system["mu"])
         kernels, info = projected_newton(normal, rhs, unconstrained, system["precondition"],
                                          options.final_projected_iterations,
                                          NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, bar=bar,
                                          support=mask, hessian=hessian)
         info = {k: v for k, v in info.items() if k != "history"} | {
-            "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS}
+            "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS,
+            "float32_passes": 0 if twin is None else twin.passes}
     else:
         kernels, info = projected_fit(normal, rhs, unconstrained,
                                       options.final_projected_iterations,

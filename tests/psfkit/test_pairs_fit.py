@@ -296,6 +296,7 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
     step = newton.history[-1]
     assert step["method"] == "projected-newton-cg" and step["kkt_residual"] < 1e-10
     assert step["converged"] and not step["stalled"]
+    assert step["float32_passes"] > 0                  # the Newton steps' CG ran in float32
     assert step["iterations"] <= 50 and newton.kernels.min() >= 0
     if with_support:
         assert np.abs(newton.kernels[..., ~mask]).max() == 0
