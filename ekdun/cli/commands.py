@@ -157,6 +157,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     classical_cmd.register(sub)
 
+    # ---------------------------------------------------------------- oracle
+    from ekdun.cli import oracle_cmd
+
+    oracle_cmd.register(sub)
+
     # ---------------------------------------------------------------- export-kernels
     p = sub.add_parser("export-kernels", help="write a trained EK-DUN's kernels as a psfkit "
                                               "kernel file")

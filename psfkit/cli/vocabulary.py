@@ -68,8 +68,8 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
                "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
                "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
-               "si (fit-pairs), paper (fit-eigen)", default="si",
-               per_command={"fit-eigen": {"default": "paper"}}),
+               "si (fit-pairs), paper (fit-eigen, oracle)", default="si",
+               per_command={"fit-eigen": {"default": "paper"}, "oracle": {"default": "paper"}}),
     SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
                "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",

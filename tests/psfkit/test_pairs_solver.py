@@ -94,12 +94,17 @@ def test_streaming_normal_operator_is_the_whole_one(scenes: np.ndarray,
     whole = KernelSpaceOperator(torch.as_tensor(scenes) * s[:, None, None, None], "paper",
                                 convention, (32, 32))
     expected = whole.adjoint(whole.forward(k))
-    for cache in (0, 2**30):
+    per_pair = PairBatches(scenes, "paper", convention, (32, 32))._per_pair
+    n = len(scenes)
+    # none, some batches (the first two of 6 pairs: a budget of 13 pairs), all
+    for cache, kept in ((0, 0), (13 * per_pair, min(12, n)), (2**30, n)):
         batches = PairBatches(scenes, "paper", convention, (32, 32), batch_size=6,
                               cache_bytes=cache)
         batches.scales = s
-        got = batches.normal(k)
-        assert float((got - expected).abs().max()) <= 1e-10 * float(expected.abs().max())
+        for _ in range(2):                          # the second pass uses the kept operators
+            got = batches.normal(k)
+            assert float((got - expected).abs().max()) <= 1e-10 * float(expected.abs().max())
+        assert batches.cached_pairs == kept, (cache, batches.cached_pairs)
 
 
 @pytest.mark.parametrize("convention", ["source", "sensor"])
