@@ -505,6 +505,7 @@ FLAGS: dict[str, FlagRange] = {
     "--diffusion-angle": FlagRange(float, 0, 20, low_open=True),
     "--gap-mm": FlagRange(float, 0, 1000, low_open=True),
     "--peak-fraction": FlagRange(float, 0, 100, low_open=True),
+    "--frames": FlagRange(int, 1, 10_000),
     # ekdun
     "--sensor": FlagRange(int, 16, 4096),
     "--grid": _SIDE,
@@ -514,6 +515,7 @@ FLAGS: dict[str, FlagRange] = {
     "--half-fov": FlagRange(float, 0, 80, low_open=True),
     "--aperture": FlagRange(float, 0, 100, low_open=True),
     "--photons": FlagRange(float, 0, 1e12, low_open=True),
+    "--grid-frames": FlagRange(int, 1, 10_000),
     "train --iterations": FlagRange(int, 1, MAX_UNROLLED_ITERATIONS),
     "--epochs": FlagRange(int, 1, 100_000),
     "--batch-size": FlagRange(int, 1, 65_536),

@@ -53,6 +53,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="side of the square aperture in mm (default 1.3)")
     p.add_argument("--photons", type=flag("--photons"), default=2000.0,
                    help="photo-electrons per unit measurement (default 2000)")
+    p.add_argument("--grid-frames", type=flag("--grid-frames"), default=1, metavar="N",
+                   help="frames averaged at each position of the PSF grid: its noise falls as "
+                        "1/sqrt(N), as when a lab averages repeated captures (default 1: one "
+                        "raw 12-bit frame; the pairs are unchanged)")
     p.add_argument("--seed", type=flag("--seed"), default=0)
     add_flag(p, "--device", "make-dataset",
              note="auto; where the noise-free measurements are computed, in float64 on any "
@@ -193,7 +197,8 @@ def run_make_dataset(args: argparse.Namespace) -> int:
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
-                            photons=args.photons, seed=args.seed, oracle=not args.no_oracle,
+                            photons=args.photons, grid_frames=args.grid_frames,
+                            seed=args.seed, oracle=not args.no_oracle,
                             oracle_scenes=args.oracle_scenes)
     from ekdun.training.acceleration import resolve_device
 

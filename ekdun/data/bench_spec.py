@@ -60,7 +60,11 @@ class VirtualBenchSpec:
     photons : float
         Photo-electrons for a measurement value of 1 (Poisson noise).
     read_noise_e : float
-        Gaussian read noise (electrons).
+        Gaussian read noise (electrons) of the pairs.
+    grid_frames : int
+        Frames averaged at each position of the PSF grid (the grid's own noise falls as
+        ``1 / sqrt(grid_frames)``; the pairs are unchanged). 1: one raw 12-bit frame per
+        position, as before.
     convention : {"source", "sensor"}
         Where the dense model's interpolation weights act.
     seed : int
@@ -83,6 +87,7 @@ class VirtualBenchSpec:
     natural_fraction: float = 0.5
     photons: float = 2000.0
     read_noise_e: float = 2.0
+    grid_frames: int = 1
     convention: str = "source"
     seed: int = 0
     oracle: bool = True
@@ -97,6 +102,10 @@ class VirtualBenchSpec:
             raise ConfigurationError("half_fov_deg must be in (0, 60)")
         if not 0 <= self.natural_fraction <= 1:
             raise ConfigurationError("natural_fraction must be in [0, 1]")
+        if isinstance(self.grid_frames, bool) or int(self.grid_frames) != self.grid_frames \
+                or self.grid_frames < 1:
+            raise ConfigurationError(f"grid_frames must be an integer >= 1, got "
+                                     f"{self.grid_frames!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(asdict(self)))

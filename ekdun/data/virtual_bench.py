@@ -48,7 +48,7 @@ from ekdun.data.bench_spec import (
 )
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.data.oracle import write_oracles
-from ekdun.errors import InvalidInputError
+from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.bench import simulate_grid
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.images import write_image
@@ -175,7 +175,13 @@ def dataset_is_current(root: str | os.PathLike, spec: VirtualBenchSpec,
     """Whether ``root`` holds exactly the dataset ``spec`` describes."""
     root = Path(root)
     doc = read_manifest(root)
-    if doc is None or doc.get("spec") != spec.to_dict() or doc.get("versions") != _versions():
+    if doc is None or doc.get("versions") != _versions():
+        return False
+    try:
+        # through the spec class: a manifest written before a field existed holds its default
+        if VirtualBenchSpec.from_dict(doc.get("spec") or {}) != spec:
+            return False
+    except (TypeError, ConfigurationError):
         return False
     files = _data_files(root)
     if files != doc.get("files"):
@@ -220,7 +226,7 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                                 f"{MANIFEST} of format {FORMAT}); choose another folder")
     with atomic_directory(root, overwrite=True) as tmp:
         simulate_grid(tmp / "grid", spec.bench_config(), grid_shape=spec.grid_shape,
-                      suffix=".npy", progress=progress)
+                      suffix=".npy", progress=progress, frames=spec.grid_frames)
         model = dense_model_for(spec).to(device)
         for split_id, split in enumerate(("train", "test")):
             scenes = make_scenes(spec, split)

@@ -94,3 +94,39 @@ class SensorModel:
             e += rng.normal(0.0, self.read_noise_e, size=e.shape)
         dn = np.clip(np.rint(e / self.electrons_per_dn + self.black_level_dn), 0, self.max_dn)
         return (dn * self.container_scale).astype(np.uint16)
+
+    def capture_mean(self, electrons: np.ndarray, rng: np.random.Generator,
+                     frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """The mean of ``frames`` raw frames of the same exposure, as a lab averages repeated
+        captures of a dim point source.
+
+        The frames are drawn independently (:meth:`capture`), so the shot and read noise of the
+        mean fall as ``1 / sqrt(frames)`` and the noise dithers the ADC rounding below one unit.
+
+        Parameters
+        ----------
+        electrons : numpy.ndarray
+            ``(C, H, W)`` expected photo-electrons of one frame.
+        rng : numpy.random.Generator
+            Noise stream (``frames`` frames are drawn from it in order).
+        frames : int
+            Frames averaged, ≥ 1.
+
+        Returns
+        -------
+        mean : numpy.ndarray
+            ``(C, H, W)`` float32 mean in stored file units (black level included).
+        saturated : numpy.ndarray
+            ``(C, H, W)`` bool, at full scale in at least one frame (the mean of such a
+            pixel is biased low, and below full scale when only some frames clip).
+        """
+        if int(frames) != frames or frames < 1:
+            raise ConfigurationError(f"frames must be an integer >= 1, got {frames}")
+        full_scale = self.max_dn * self.container_scale
+        total = np.zeros(np.shape(electrons), dtype=np.float64)
+        saturated = np.zeros(np.shape(electrons), dtype=bool)
+        for _ in range(int(frames)):
+            raw = self.capture(electrons, rng)
+            total += raw
+            saturated |= raw >= full_scale
+        return (total / frames).astype(np.float32), saturated

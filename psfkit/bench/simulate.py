@@ -1,14 +1,16 @@
 """Simulate a measured PSF grid with the virtual bench, with its ground truth.
 
 ``simulate_grid`` does what a lab does: display a point at N × M positions spanning the
-monitor's field of view, capture each with one fixed exposure (so vignetting stays visible),
-and hand over the images in the grid format (``psfkit.io.grid``) with a dark frame. Next to
+monitor's field of view, capture each with one fixed exposure (so vignetting stays visible;
+optionally the mean of several frames, ``frames``), and hand over the images in the grid
+format (``psfkit.io.grid``) with a dark frame. Next to
 them it writes what a lab cannot know, in ``ground_truth/``:
 
 ``truth.json``
     per position: grid index, monitor position, field angles, true chief-ray shift
     ``(du, dv)`` in sensor pixels relative to the on-axis PSF, true relative illumination
-    (gain), number of saturated pixels; the bench parameters; the exposure.
+    (gain), number of saturated pixels (in any frame); the bench parameters; the exposure
+    and the number of frames averaged.
 ``psfs_clean.npy``
     ``(N, M, C, H, W)`` float32: the noise-free expected signal above black level, in the
     stored file units (what a perfect dark subtraction of an infinitely averaged capture
@@ -87,7 +89,7 @@ def exposure_scale(camera: VirtualCamera, on_axis_psf: np.ndarray) -> float:
 def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
                   grid_shape: tuple[int, int] = (9, 9), extent: float = 1.0,
                   dark_frame: bool = True, suffix: str = ".tiff", overwrite: bool = False,
-                  progress: bool = True, backend: str = "numpy") -> Path:
+                  progress: bool = True, backend: str = "numpy", frames: int = 1) -> Path:
     """Simulate and write a PSF grid with ground truth (see the module docstring).
 
     Parameters
@@ -115,6 +117,11 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
         the same clean PSFs to ~5e-7 relative at under half the time, but another noise
         realization: the Poisson sampler draws a different number of random numbers as soon
         as one expected value changes in its last bits, and the stream diverges from there.
+    frames : int
+        Frames averaged per position (and for the dark frame), as a lab averages repeated
+        captures: the noise falls as ``1 / sqrt(frames)``. 1 (default) writes each raw
+        16-bit frame as before; more writes the float32 mean in the same file units (TIFF or
+        ``.npy``; PNG holds integers only) and records ``frames_averaged`` in the manifest.
 
     Returns
     -------
@@ -124,13 +131,13 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     config = config or BenchConfig()
     monitor = grid_monitor_positions(config, grid_shape, extent)
     return _simulate(out_dir, config, monitor, False, dark_frame, suffix, overwrite, progress,
-                     backend)
+                     backend, frames)
 
 
 def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
                   config: BenchConfig | None = None, dark_frame: bool = True,
                   suffix: str = ".tiff", overwrite: bool = False, progress: bool = True,
-                  backend: str = "numpy") -> Path:
+                  backend: str = "numpy", frames: int = 1) -> Path:
     """Simulate an irregular scan: the point source at the given monitor positions (a line
     scan, scattered beads, a jittered lattice), written as a grid folder without grid indices
     (``docs/grid-format.md``), with ground truth as :func:`simulate_grid` (a ``1 × P`` row in
@@ -147,14 +154,20 @@ def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
     if monitor.ndim != 2 or monitor.shape[1] != 2 or len(monitor) < 1:
         raise ConfigurationError(f"monitor_px must be (P, 2), got {monitor.shape}")
     return _simulate(out_dir, config, monitor[None], True, dark_frame, suffix, overwrite,
-                     progress, backend)
+                     progress, backend, frames)
 
 
 def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
-              backend: str) -> Path:
+              backend: str, frames: int) -> Path:
     """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
     positions (``scan``: an irregular scan, ``N = 1``)."""
+    if isinstance(frames, bool) or int(frames) != frames or frames < 1:
+        raise ConfigurationError(f"frames must be an integer >= 1, got {frames!r}")
+    frames = int(frames)
+    if frames > 1 and suffix == ".png":
+        raise ConfigurationError("an average of several frames is float data: write it as "
+                                 "TIFF or .npy, not PNG")
     n_rows, n_cols = grid_shape = monitor.shape[:2]
     sensor = config.sensor
     header: dict[str, Any] = {
@@ -165,6 +178,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         "simulation": {"generator": "psfkit virtual bench", "seed": config.seed,
                        "ground_truth": TRUTH_DIR},
     }
+    if frames > 1:
+        header["simulation"]["frames_averaged"] = frames
     truth_positions = []
     # Enter the writer first: an existing output folder is reported before any work.
     with GridWriter(out_dir, None if scan else grid_shape, suffix=suffix, overwrite=overwrite,
@@ -175,6 +190,13 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         fields_deg = np.stack([fx, fy], axis=-1)
         qe = sensor.qe(len(camera.channels))[:, None, None]
         noise_rng = np.random.default_rng([config.seed, 1])
+
+        def capture(electrons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """One raw frame (uint16) or the mean of ``frames``, and its saturated pixels."""
+            if frames == 1:
+                raw = sensor.capture(electrons, noise_rng)
+                return raw, raw >= sensor.max_dn * sensor.container_scale
+            return sensor.capture_mean(electrons, noise_rng, frames)
         h, w = camera.sensor_shape
         truth_dir = writer.folder / TRUTH_DIR
         truth_dir.mkdir()
@@ -191,7 +213,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         def finish(r: int, c: int, field: tuple[float, float], electrons: np.ndarray,
                    clean: np.ndarray) -> None:
             """Capture, write and record one position (in order: the noise stream is shared)."""
-            raw = sensor.capture(electrons, noise_rng)
+            raw, saturated = capture(electrons)
             clean[r, c] = sensor.expected_file_units(electrons)
             fields = {"monitor_px": tuple(monitor[r, c]), "field_deg": field,
                       "exposure_s": NOMINAL_EXPOSURE_S}
@@ -204,8 +226,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
                 "row": r, "col": c, "field_deg": list(field),
                 "monitor_px": [float(v) for v in monitor[r, c]],
                 "shift_px": [du, dv], "gain": camera.gain(field),
-                "saturated_pixels": int(np.count_nonzero(
-                    raw >= sensor.max_dn * sensor.container_scale)),
+                "saturated_pixels": int(np.count_nonzero(saturated)),
             })
 
         # the noise, the files and the optics of the next position overlap: one writer thread,
@@ -224,7 +245,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         clean.flush()
         del clean
         if dark_frame:
-            writer.add_dark(sensor.capture(np.zeros((len(camera.channels), h, w)), noise_rng))
+            writer.add_dark(capture(np.zeros((len(camera.channels), h, w)))[0])
         truth = {
             "description": "virtual-bench ground truth; shifts are (du, dv) in sensor pixels "
                            "of each PSF relative to the on-axis PSF (a source at +x moves its "
@@ -239,6 +260,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
             "electrons_per_unit_irradiance": electrons_per_unit,
             "file_units_per_electron": sensor.container_scale / sensor.electrons_per_dn,
             "black_level": sensor.black_level,
+            "frames_averaged": frames,
             "oversample": camera.oversample,
             "correlation_length_um": camera.correlation_length_um,
             "config": config.to_dict(),

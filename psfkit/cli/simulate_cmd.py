@@ -82,6 +82,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("tiff", "png", "npy"), default="tiff",
                    help="image file type (default tiff, 16-bit)")
     p.add_argument("--no-dark", action="store_true", help="do not capture a dark frame")
+    p.add_argument("--frames", type=flag("--frames"), default=1, metavar="N",
+                   help="frames averaged per position and for the dark frame: the noise falls "
+                        "as 1/sqrt(N); N > 1 writes the float32 mean (TIFF or npy) (default "
+                        "1: one raw 16-bit frame)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--backend", choices=("auto", "torch", "numpy"), default="auto",
@@ -110,7 +114,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     config = bench_config_from_args(args)
     out = simulate_grid(args.out, config, grid_shape=(args.rows, args.cols), extent=args.extent,
                         dark_frame=not args.no_dark, suffix=f".{args.format}",
-                        overwrite=args.overwrite, progress=not args.quiet, backend=args.backend)
+                        overwrite=args.overwrite, progress=not args.quiet, backend=args.backend,
+                        frames=args.frames)
     print(f"wrote {args.rows} x {args.cols} grid to {out}")
     return 0
 

@@ -36,6 +36,17 @@ def test_simulate_grid_mono_npy_with_bench_config(tmp_path, capsys):
     assert truth["channels"] == ["L"]
 
 
+def test_simulate_grid_averaged_frames_then_info(tmp_path, capsys):
+    """``--frames 4``: float32 means that ``info`` reads as a grid, N recorded in both files."""
+    out = tmp_path / "grid"
+    assert main(["simulate-grid", "--out", str(out), "--downsample", "16", "--rows", "1",
+                 "--cols", "3", "--format", "npy", "--frames", "4", "--quiet"]) == 0
+    assert main(["info", str(out), "--quiet"]) == 0
+    assert "float32" in capsys.readouterr().out
+    assert json.loads((out / "manifest.json").read_text())["simulation"]["frames_averaged"] == 4
+    assert json.loads((out / "ground_truth" / "truth.json").read_text())["frames_averaged"] == 4
+
+
 @pytest.mark.parametrize("argv,message", [
     (["info", "{tmp}/missing"], "missing: no such grid folder"),
     (["simulate-grid", "--out", "{tmp}/g", "--downsample", "0", "--quiet"],
@@ -44,6 +55,10 @@ def test_simulate_grid_mono_npy_with_bench_config(tmp_path, capsys):
      "nope.json: no such file"),
     (["simulate-grid", "--out", "{tmp}/g", "--rows", "0", "--quiet"],
      "argument --rows: must be an integer in [1, 64]"),
+    (["simulate-grid", "--out", "{tmp}/g", "--frames", "0", "--quiet"],
+     "argument --frames: must be an integer in [1, 10000]"),
+    (["simulate-grid", "--out", "{tmp}/g", "--frames", "2", "--format", "png", "--quiet"],
+     "write it as TIFF or .npy, not PNG"),
 ])
 def test_errors_are_one_line_with_nonzero_exit(tmp_path, capsys, argv, message):
     argv = [a.format(tmp=tmp_path) for a in argv]

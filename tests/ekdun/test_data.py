@@ -12,7 +12,7 @@ from ekdun.data.deadleaves import dead_leaves, radial_power_slope
 from ekdun.data.dense_model import DenseShiftVariantModel, hat_weights
 from ekdun.data.pairs import PairsDataset, match_downsample, parse_names
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
-from ekdun.errors import InvalidInputError
+from ekdun.errors import ConfigurationError, InvalidInputError
 from ekdun.physics.operators import ShiftInvariantOperator
 from psfkit.io import read_grid
 from psfkit.io.pairs import read_pairs
@@ -96,6 +96,30 @@ def test_virtual_bench_is_deterministic_cached_and_rebuilt_on_mismatch(tmp_path)
         make_virtual_bench(tmp_path / "mine", SMALL, progress=False)
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
     assert json.loads((a / "manifest.json").read_text())["format"] == "ekdun-virtual-bench"
+
+
+def test_grid_frames_average_only_the_grid_and_older_manifests_stay_current(tmp_path):
+    """``grid_frames`` changes the grid (float means, recorded), not the pairs; a manifest
+    written before the field existed is current for the default spec (not rebuilt)."""
+    from dataclasses import replace
+
+    plain = make_virtual_bench(tmp_path / "plain", replace(SMALL, oracle=False), progress=False)
+    averaged = make_virtual_bench(tmp_path / "avg", replace(SMALL, oracle=False, grid_frames=4),
+                                  progress=False)
+    assert read_manifest(averaged)["spec"]["grid_frames"] == 4
+    assert read_grid(plain / "grid").dtype == np.uint16
+    assert read_grid(averaged / "grid").dtype == np.float32
+    for name in ("train/scene/train0000.npy", "train/measurement/train0000.npy",
+                 "grid/ground_truth/psfs_clean.npy"):
+        np.testing.assert_array_equal(np.load(plain / name), np.load(averaged / name))
+    doc = json.loads((plain / "manifest.json").read_text())
+    del doc["spec"]["grid_frames"]
+    (plain / "manifest.json").write_text(json.dumps(doc))
+    stamp = (plain / "manifest.json").stat().st_mtime_ns
+    make_virtual_bench(plain, replace(SMALL, oracle=False), progress=False)
+    assert (plain / "manifest.json").stat().st_mtime_ns == stamp
+    with pytest.raises(ConfigurationError, match="grid_frames"):
+        VirtualBenchSpec(grid_frames=0)
 
 
 def test_pairs_dataset_reads_dlmd_as_rgb(real_data):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from psfkit.bench import BenchConfig, VirtualCamera, read_ground_truth, simulate_grid
-from psfkit.errors import InvalidInputError
+from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import read_grid
 
 
@@ -86,3 +86,40 @@ def test_existing_output_is_refused_before_any_work(tmp_path):
         simulate_grid(out, BenchConfig(downsample=8), grid_shape=(1, 1), progress=False)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_averaged_frames_divide_the_grid_noise_by_their_square_root(tmp_path):
+    """``frames=9``: the same clean PSFs, float32 means whose noise about the ground truth is
+    a third of one raw frame's (shot, read and quantisation noise all average down), recorded
+    in the manifest and the ground truth; the dark frame is averaged too."""
+    config = BenchConfig(downsample=16, seed=3)
+    one = simulate_grid(tmp_path / "one", config, grid_shape=(1, 3), suffix=".npy",
+                        progress=False)
+    nine = simulate_grid(tmp_path / "nine", config, grid_shape=(1, 3), suffix=".npy",
+                         progress=False, frames=9)
+    np.testing.assert_array_equal(read_ground_truth(one).clean_psfs,
+                                  read_ground_truth(nine).clean_psfs)
+    grids = read_grid(one), read_grid(nine)
+    assert grids[0].dtype == np.uint16 and grids[1].dtype == np.float32
+    noise = []
+    for grid, folder in zip(grids, (one, nine), strict=True):
+        clean = read_ground_truth(folder).clean_psfs
+        residual = np.stack([grid.load(0, c) - grid.black_level - clean[0, c]
+                             for c in range(3)])
+        noise.append((residual.std(), grid.load_dark().std()))
+    assert 0.30 < noise[1][0] / noise[0][0] < 0.37
+    assert 0.28 < noise[1][1] / noise[0][1] < 0.39
+    manifest = json.loads((nine / "manifest.json").read_text())
+    assert manifest["simulation"]["frames_averaged"] == 9
+    assert "frames_averaged" not in json.loads((one / "manifest.json").read_text())["simulation"]
+    assert json.loads((nine / "ground_truth" / "truth.json").read_text())["frames_averaged"] == 9
+
+
+def test_averaged_frames_are_refused_as_png_or_a_non_positive_count(tmp_path):
+    config = BenchConfig(downsample=16)
+    with pytest.raises(ConfigurationError, match=r"TIFF or \.npy"):
+        simulate_grid(tmp_path / "png", config, grid_shape=(1, 1), suffix=".png", frames=2,
+                      progress=False)
+    with pytest.raises(ConfigurationError, match="frames"):
+        simulate_grid(tmp_path / "zero", config, grid_shape=(1, 1), frames=0, progress=False)
+    assert not list(tmp_path.iterdir())
