@@ -336,14 +336,18 @@ def main(argv: list[str] | None = None) -> int:
         for group, first in spread[columns[0]][name].items():
             cells = []
             for c in columns:
-                e = spread[c][name][group]
+                e = spread[c][name].get(group)
+                if e is None:        # a group the golden files do not have yet (a new output)
+                    cells.append(f"{'new':>19s}")
+                    continue
                 rel = e.get("rel_to_max", e.get("rel", 0.0))
                 cells.append(f"{e['abs']:9.2e}/{rel:9.2e}")
                 if "rel_l2" in e:
                     extra = f" l2 {e['rel_l2']:.2e}" + (f" pred {e['prediction']:.2e}"
                                                        if "prediction" in e else "")
                     cells[-1] += extra
-            if any(spread[c][name][group]["abs"] > 0 for c in columns) or "kernels" in group:
+            if any(spread[c][name].get(group, {"abs": 1})["abs"] > 0 for c in columns) \
+                    or "kernels" in group:
                 print(f"{(name + ' ' + group)[:70]:70s}" + "".join(f"{s:>20s}" for s in cells)
                       + f"   |x|<={first['size']:.3g}")
     return 0

@@ -15,3 +15,7 @@ FLOW_METHODS = ("dis", "farneback", "ilk", "tvl1")
 #: default (with the fitted basis), and the full list behind ``--cv-bases all``.
 CV_BASES = ("si", "paper")
 CV_BASES_ALL = ("si", "paper", "paper+odd", "paper+cross", "paper+odd+cross", "poly:2")
+
+#: Where :func:`psfkit.grid_fit.fit_eigen_grid` places each PSF (``psfkit fit-eigen --shifts``):
+#: at the affine field-to-shift map's shift (default) or at its own registered shift.
+SHIFT_MODES = ("affine", "registered")

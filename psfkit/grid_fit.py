@@ -10,14 +10,23 @@ PCA (:mod:`psfkit.pca`) are computed. The result becomes a kernel file for ekdun
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from psfkit.alignment import MIN_QUALITY, RELIABLE_OVERLAP, ExcludedPosition, GridAligner
-from psfkit.choices import CV_BASES
+from psfkit.alignment import (
+    MIN_QUALITY,
+    RELIABLE_OVERLAP,
+    AlignedPsf,
+    ExcludedPosition,
+    GridAligner,
+    NominalShifts,
+    nominal_shifts,
+)
+from psfkit.choices import CV_BASES, SHIFT_MODES
 from psfkit.eigen import (
     DEFAULT_RIDGE,
     NormalEquations,
@@ -29,7 +38,7 @@ from psfkit.eigen import (
 )
 from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
-from psfkit.io.grid import FULL_LATTICE, PsfGrid
+from psfkit.io.grid import FULL_LATTICE, GridPosition, PsfGrid
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
@@ -69,6 +78,13 @@ class EigenFitOptions:
         Positions whose registration quality (NCC) is below this are excluded.
     strict : bool
         All or nothing: a position that fails a quality check ends the fit.
+    shifts : {"affine", "registered"}
+        Where each PSF is placed before the fit. ``"affine"`` (default): at the shift of the
+        affine field-to-shift map fitted to the reliably registered positions
+        (:func:`psfkit.alignment.nominal_shifts`), the geometry of the forward model
+        ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
+        the kernels. ``"registered"``: at each PSF's own registered shift (before 2026-11-25;
+        it removes that part, and is biased where a PSF is mostly off the sensor).
     """
 
     basis: str = "paper"
@@ -82,6 +98,7 @@ class EigenFitOptions:
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
     min_quality: float = MIN_QUALITY
     strict: bool = False
+    shifts: str = "affine"
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-eigen, never a Python field
@@ -94,6 +111,9 @@ class EigenFitOptions:
         if self.convention not in (*CONVENTIONS, "auto"):
             raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)} "
                                      f"or auto, got {self.convention!r}")
+        if self.shifts not in SHIFT_MODES:
+            raise ConfigurationError(f"--shifts must be one of {', '.join(SHIFT_MODES)}, got "
+                                     f"{self.shifts!r}")
         if self.folds < 2:
             raise ConfigurationError(f"--folds must be >= 2, got {self.folds}")
         if self.working_size < 32:
@@ -125,6 +145,7 @@ class GridEigenResult:
     layout: str = FULL_LATTICE
     excluded: list[ExcludedPosition] = field(default_factory=list)
     missing: list[tuple[int, int]] = field(default_factory=list)
+    placement: NominalShifts | None = None      # None: each PSF at its registered shift
 
     @property
     def n_positions(self) -> int:
@@ -157,6 +178,8 @@ class GridEigenResult:
             "kernel_names": list(get_basis(self.options.basis).kernel_names),
             "gain_compensated": self.options.gain_compensate,
             "working_binning": self.stack.factor,
+            "shifts": (self.placement.to_dict() if self.placement is not None
+                       else {"source": "registered"}),
             "in_sample_relative_error": {
                 conv: {"median": float(np.nanmedian(res)), "max": float(np.nanmax(res))}
                 for conv, res in self.residuals.items()},
@@ -212,6 +235,18 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     stack = WorkingStack.empty(len(grid.positions), (c, h, w),
                                binning_factor((h, w), options.working_size))
     reference_total = aligner.reference.sum(axis=0)
+    placement: NominalShifts | None = None
+    place: Callable[[GridPosition], AlignedPsf | ExcludedPosition] = aligner.try_align
+    if options.shifts == "affine":
+        placement, rejected = _place_by_shift_map(grid, aligner, center, progress, workers)
+
+        def place(pos: GridPosition) -> AlignedPsf | ExcludedPosition:
+            """The registration pass decided which positions are usable; each is aligned at
+            its nominal shift (its quality there is measured, not checked again)."""
+            if (pos.row, pos.col) in rejected:
+                return rejected[(pos.row, pos.col)]
+            return aligner.align(pos, shift=placement.shifts[(pos.row, pos.col)],
+                                 check_quality=False)
     bar: Any = None
     if progress:
         from tqdm.auto import tqdm
@@ -221,7 +256,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     excluded: list[ExcludedPosition] = []
     kept = np.ones(len(grid.positions), bool)
     try:
-        for p, aligned in bounded_map(aligner.try_align, grid.positions, workers):
+        for p, aligned in bounded_map(place, grid.positions, workers):
             if isinstance(aligned, ExcludedPosition):
                 excluded.append(aligned)
                 kept[p] = False
@@ -277,7 +312,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
         kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv,
         channel_order=grid.channel_order, layout=grid.layout, excluded=excluded,
-        missing=missing)
+        missing=missing, placement=placement)
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() >= 2:
         result.pca = stack_pca(stack.images, stack.valid, reliable)
@@ -290,6 +325,38 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                                                  result.pca.components[:k][:, :, region])
     return result
 
+
+
+def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
+                        progress: bool, workers: int | None
+                        ) -> tuple[NominalShifts, dict[tuple[int, int], ExcludedPosition]]:
+    """The registration pass of ``shifts="affine"``: every position registered (and checked)
+    as the characterization does, keeping only its shift and overlap; the affine map of
+    those shifts; and the positions it rejected."""
+    rejected: dict[tuple[int, int], ExcludedPosition] = {}
+    accepted: list[GridPosition] = []
+    shifts: list[tuple[float, float]] = []
+    overlaps: list[float] = []
+    bar: Any = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(grid.positions), desc="registering", unit="psf")
+    try:
+        for _, aligned in bounded_map(aligner.try_align, grid.positions, workers):
+            if isinstance(aligned, ExcludedPosition):
+                rejected[(aligned.row, aligned.col)] = aligned
+            else:
+                accepted.append(aligned.position)
+                shifts.append(aligned.shift)
+                overlaps.append(aligned.overlap)
+            del aligned
+            if bar is not None:
+                bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
+    return nominal_shifts(accepted, np.array(shifts), np.array(overlaps), center), rejected
 
 
 def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from psfkit.choices import CV_BASES, CV_BASES_ALL
+from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.cli.options import (
     add_coverage_options,
     add_grid_options,
@@ -47,6 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                   "error")
     p.add_argument("--gain-compensate", action="store_true",
                    help="divide every PSF by its gain first (kernels then carry shape only)")
+    p.add_argument("--shifts", choices=SHIFT_MODES, default="affine",
+                   help="where each PSF is placed for the fit: affine = the affine field-to-"
+                        "shift map of the reliably registered positions, the forward model's "
+                        "geometry (distortion stays in the kernels); registered = each PSF's "
+                        "own registered shift (default affine)")
     p.add_argument("--cv-bases", default=",".join(CV_BASES),
                    help=f"comma-separated bases compared by cross-validation with the fitted "
                         f"one (default {','.join(CV_BASES)}; 'all' = {','.join(CV_BASES_ALL)}; "
@@ -71,7 +76,7 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
                            gain_compensate=args.gain_compensate,
                            cv_bases=cv, folds=args.folds, upsample=args.upsample,
                            preprocess=preprocess_options(args), min_quality=args.min_ncc,
-                           strict=args.strict)
+                           strict=args.strict, shifts=args.shifts)
 
 
 def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = False) -> None:
@@ -147,6 +152,17 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
     print(f"fitted basis {basis!r} ({', '.join(model.kernel_names)}) to {fitted}; wrote "
           f"{out} ({model.convention}-side weights)")
     print_coverage(result)
+    placement = result.placement
+    if placement is None:
+        print("  PSFs placed at their own registered shifts (--shifts registered)")
+    elif placement.source == "registered":
+        print("  PSFs placed at their own registered shifts (no two-dimensional field to fit "
+              "a shift map to)")
+    else:
+        which = "reliable" if placement.source == "affine" else "all"
+        print(f"  PSFs placed by the affine shift map of {placement.positions_used} positions "
+              f"({which}); registered shifts deviate from it by up to "
+              f"{placement.deviation_px:.2f} px (kept in the kernels)")
     for conv, res in summary["in_sample_relative_error"].items():
         print(f"  {conv}-side weights: in-sample relative error median {res['median']:.4f}, "
               f"max {res['max']:.4f}")

@@ -15,6 +15,7 @@ from psfkit.pairs_fit import PairFitOptions, fit_pairs, predict
 from psfkit.pairs_solver import (
     BATCH_BYTES,
     DEFAULT_BATCH,
+    STALL_STEPS,
     PairBatches,
     auto_batch_size,
     kkt_residual,
@@ -210,19 +211,34 @@ def test_kkt_residual_does_not_depend_on_units() -> None:
 
 
 def test_projected_newton_leaves_too_coarse_cheap_products_for_exact_ones() -> None:
-    """bfloat16 products (8-bit mantissa) on a problem with κ(N) ≈ 10⁶ and no
-    preconditioner: the steps stop improving (near 4e-7, measured), the solver goes on with
-    the exact products and reaches the tolerance."""
+    """Cheap products so wrong that their steps never improve (``−N``: its Newton step points
+    uphill): the solver leaves them once ``STALL_STEPS`` steps bring no new low (or no step
+    size descends), goes on with the exact products and reaches the tolerance, on any
+    machine."""
+    _mats, _ys, normal, rhs = _dense_nnls_problem(0)
+    x, info = projected_newton(normal, rhs, torch.zeros_like(rhs), iterations=300,
+                               cg_iterations=40, tolerance=1e-11,
+                               hessian=lambda v: -normal(v))
+    assert 1 <= info["exact_hessian_from"] <= STALL_STEPS
+    assert info["converged"] and not info["stalled"]
+    assert float(x.min()) >= 0 and float(kkt_residual(normal, rhs, x).max()) < 1e-11
+
+
+def test_projected_newton_with_coarse_products_ends_at_the_tolerance() -> None:
+    """bfloat16 products (8-bit mantissa) on a problem with κ(N) ≈ 10⁶, no preconditioner.
+    Where they stop improving depends on the machine's rounding (one machine: near 4e-7,
+    then the exact products took over; an AVX512-BF16 one: they crawled to 3.7e-11 in 255
+    steps first); either way the solve ends converged, at the exact products' tolerance."""
     _mats, _ys, normal, rhs = _dense_nnls_problem(0)
 
     def coarse(v: torch.Tensor) -> torch.Tensor:
         return normal(v.to(torch.bfloat16).to(torch.float32)).to(v.dtype)
 
-    x, info = projected_newton(normal, rhs, torch.zeros_like(rhs), iterations=300,
+    x, info = projected_newton(normal, rhs, torch.zeros_like(rhs), iterations=400,
                                cg_iterations=40, tolerance=1e-11, hessian=coarse)
-    assert info["exact_hessian_from"] is not None and info["exact_hessian_from"] > 0
     assert info["converged"] and not info["stalled"]
-    assert min(info["history"][: info["exact_hessian_from"] + 1]) > 1e-8
+    if info["exact_hessian_from"] is not None:   # the cheap stage alone did not get there
+        assert min(info["history"][: info["exact_hessian_from"] + 1]) > 1e-11
     assert float(x.min()) >= 0 and float(kkt_residual(normal, rhs, x).max()) < 1e-11
 
 
