@@ -86,7 +86,7 @@ def markdown_table(doc: Any) -> str:
     rows, oracle = sorted(doc["runs"], key=_order), has_oracle(doc)
     head = ("| seed | kernels | λ | PSNR (dB) | SSIM | pedestal share of change | kernel mass "
             "outside support | disp. corr Kv / Kh | diff. NCC Kv / Kh | angles to top-3 PCA "
-            "(°) |")
+            "(°) | test prediction error |")
     if oracle:
         head += (" oracle: diff. NCC Kv / Kh | oracle: disp. corr Kv / Kh | oracle: EPE px "
                  "Kv / Kh | oracle: angles (°) |")
@@ -95,7 +95,8 @@ def markdown_table(doc: Any) -> str:
         line = (f"| {r['seed']} | {_label(r)} | {float(setting(r, 'physics_weight')):g} | "
                 f"{r['psnr']:.2f} | {r['ssim']:.4f} | {100 * r['pedestal_share']:.1f} % | "
                 f"{100 * r['outside_mass']:.1f} % | {_pair(r, '', 'disp_corr', '+.2f')} | "
-                f"{_pair(r, '', 'diff_ncc', '.3f')} | {_angles(r.get('angles_pca'))} |")
+                f"{_pair(r, '', 'diff_ncc', '.3f')} | {_angles(r.get('angles_pca'))} | "
+                f"{format_number(r.get('test_prediction_error'), '.4f')} |")
         if oracle:
             line += (f" {_pair(r, 'oracle_', 'diff_ncc', '.3f')} | "
                      f"{_pair(r, 'oracle_', 'disp_corr', '+.2f')} | "
@@ -114,12 +115,13 @@ def _reference_lines(doc: dict[str, Any]) -> list[str]:
     lines = [f"\nAgainst the operator oracle ({o['file']}, {o['convention']} side), the seeds "
              "and the oracle itself:\n",
              "| reference | diff. NCC Kv / Kh | disp. corr Kv / Kh | EPE px Kv / Kh | "
-             "angles (°) |", "| --- | --- | --- | --- | --- |"]
+             "angles (°) | test prediction error |", "| --- | --- | --- | --- | --- | --- |"]
     for r in doc.get("references", []):
         lines.append(f"| {r['reference']} | {_pair(r, 'oracle_', 'diff_ncc', '.3f')} | "
                      f"{_pair(r, 'oracle_', 'disp_corr', '+.2f')} | "
                      f"{_pair(r, 'oracle_', 'epe_px', '.3f')} | "
-                     f"{_angles(r.get('oracle_angles'))} |")
+                     f"{_angles(r.get('oracle_angles'))} | "
+                     f"{format_number(r.get('test_prediction_error'), '.4f')} |")
     return lines
 
 
@@ -157,7 +159,8 @@ def _spread_lines(rows: list[dict[str, Any]], oracle: bool) -> list[str]:
                 f"{_mean_sd([r['v_disp_corr'] for r in runs], '+.2f')} / "
                 f"{_mean_sd([r['h_disp_corr'] for r in runs], '+.2f')}, diff. NCC "
                 f"{_mean_sd([r['v_diff_ncc'] for r in runs], '.3f')} / "
-                f"{_mean_sd([r['h_diff_ncc'] for r in runs], '.3f')}")
+                f"{_mean_sd([r['h_diff_ncc'] for r in runs], '.3f')}; test prediction error "
+                f"{_mean_sd([r.get('test_prediction_error') for r in runs], '.4f')}")
         if oracle:
             text += (f"; vs oracle: diff. NCC "
                      f"{_mean_sd([r.get('oracle_v_diff_ncc') for r in runs], '.3f')} / "

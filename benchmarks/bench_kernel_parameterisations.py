@@ -14,9 +14,12 @@ kernels, the displacement-map correlation and difference NCC against the measure
 principal angles to the top PCA modes (``psfkit.compare``), and the same numbers against the
 dataset's **operator oracle** of the run's convention (``DATA/oracle/paper_<c>.npz``, the best
 eigen-kernel model of the simulator; difference NCC, displacement correlation and end-point
-error of Kv / Kh, principal angles). The seeds and the oracle itself are scored against the
-oracle as reference rows (the oracle against itself: NCC 1). A dataset made with
-``--no-oracle`` gives a note and the measured-only columns.
+error of Kv / Kh, principal angles). Every run, seed and the oracle also get their prediction
+error on the held-out test pairs (``psfkit eval-model``'s scaled mean): whether the learned
+kernels are a better forward model than their seed, not only a better partner of the U-Net.
+The seeds and the oracle itself are scored against the oracle as reference rows (the oracle
+against itself: NCC 1). A dataset made with ``--no-oracle`` gives a note and the
+measured-only columns.
 
 Runs are ``OUT/runs/<seed>-<param>-<schedule>-l<λ>-t<training seed>``; a finished run is
 reused, an interrupted one resumed, one trained with other settings refused.
@@ -89,7 +92,7 @@ from psfkit.io import read_grid, read_pairs  # noqa: E402
 from psfkit.io.atomic import atomic_file  # noqa: E402
 from psfkit.io.jsonable import jsonable  # noqa: E402
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
-from psfkit.pairs_fit import fit_pairs  # noqa: E402
+from psfkit.pairs_fit import fit_pairs, predict, relative_errors  # noqa: E402
 from psfkit.pairs_options import PairFitOptions  # noqa: E402
 
 PARAMS = ("free", "physical", "flow")
@@ -234,11 +237,26 @@ def vs_oracle(model: KernelModel | Path, oracle: KernelModel) -> dict[str, Any]:
     return {f"oracle_{'angles' if k == 'angles_deg' else k}": v for k, v in numbers.items()}
 
 
-def reference_rows(seeds: dict[str, Path], oracle: KernelModel) -> list[dict[str, Any]]:
-    """The seeds and the oracle itself against the oracle (the oracle: NCC 1, angles 0)."""
-    rows = [{"reference": SEED_NAMES.get(k, k), "file": str(p), **vs_oracle(p, oracle)}
-            for k, p in seeds.items()]
-    rows.append({"reference": "the oracle itself", "file": None, **vs_oracle(oracle, oracle)})
+def prediction_error(model: KernelModel | Path, data: Path) -> float:
+    """Mean ``‖y − s·A x‖ / ‖y‖`` of a kernel file over ``data``'s held-out test pairs, with
+    the best scale ``s`` per pair (``psfkit eval-model``'s "scaled" mean).
+
+    Whether learned kernels are a better forward model than their seed: the reconstruction
+    loss alone can raise PSNR while the kernels predict the measurements worse (issue 24).
+    """
+    kernels = load_kernels(model) if isinstance(model, Path) else model
+    scenes, measurements = read_pairs(data / "test", check_pixels=False).load_all()
+    return float(relative_errors(predict(kernels, scenes), measurements)["scaled"].mean())
+
+
+def reference_rows(seeds: dict[str, Path], oracle: KernelModel, data: Path
+                   ) -> list[dict[str, Any]]:
+    """The seeds and the oracle itself against the oracle (the oracle: NCC 1, angles 0), each
+    with its prediction error on the test pairs."""
+    rows = [{"reference": SEED_NAMES.get(k, k), "file": str(p), **vs_oracle(p, oracle),
+             "test_prediction_error": prediction_error(p, data)} for k, p in seeds.items()]
+    rows.append({"reference": "the oracle itself", "file": None, **vs_oracle(oracle, oracle),
+                 "test_prediction_error": prediction_error(oracle, data)})
     return rows
 
 
@@ -455,7 +473,7 @@ def experiment(args: argparse.Namespace) -> int:
     print(f"oracle: {note}", flush=True)
     modes = measure_modes(read_grid(data / "grid"), measured.basis, measured.convention,
                           tuple(measured.sensor_shape), CompareOptions())
-    references = [] if oracle is None else reference_rows(seeds, oracle)
+    references = [] if oracle is None else reference_rows(seeds, oracle, data)
     results = []
     for seed, param, weight, train_seed in plan:
         row = train_one(out, data, seeds[seed], seed, param, weight, train_seed, args)
@@ -463,6 +481,7 @@ def experiment(args: argparse.Namespace) -> int:
         model, _ = network_from_checkpoint(run / CHECKPOINT)
         row.update(test_scores(model, data, device))
         row.update(kernel_numbers(run, modes))
+        row["test_prediction_error"] = prediction_error(run / "kernels_learned.npz", data)
         if oracle is not None:
             row.update(vs_oracle(run / "kernels_learned.npz", oracle))
         write_json(run / "numbers.json", row)
@@ -472,7 +491,8 @@ def experiment(args: argparse.Namespace) -> int:
                 f"SSIM {row['ssim']:.4f} pedestal {row['pedestal_share']:.3f} outside "
                 f"{row['outside_mass']:.3f} disp {fn(row['v_disp_corr'])} / "
                 f"{fn(row['h_disp_corr'])} ncc {fn(row['v_diff_ncc'], '.3f')} / "
-                f"{fn(row['h_diff_ncc'], '.3f')}")
+                f"{fn(row['h_diff_ncc'], '.3f')} prediction error "
+                f"{row['test_prediction_error']:.4f}")
         if oracle is not None:
             text += (f" | oracle ncc {fn(row['oracle_v_diff_ncc'], '.3f')} / "
                      f"{fn(row['oracle_h_diff_ncc'], '.3f')} disp "

@@ -27,7 +27,9 @@ def _bench(*args: str) -> subprocess.CompletedProcess:
 def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     from psfkit.cli import main as psfkit_main
     from psfkit.compare import compare_kernels
+    from psfkit.io import read_pairs
     from psfkit.kernelfile import load_kernels
+    from psfkit.pairs_fit import predict, relative_errors
 
     out = tmp_path / "kp"
     done = _bench("--out", str(out), "--sensor", "32", "32", "--n-train", "8", "--n-test", "2",
@@ -70,6 +72,16 @@ def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     assert refs["measured fit (seed)"]["oracle_v_diff_ncc"] < 0.999   # not the oracle itself
     # one PSF: no difference kernels, so no difference NCC (null, never a number)
     assert refs["one PSF (seed)"]["oracle_v_diff_ncc"] is None
+    # prediction errors on the test pairs: what psfkit eval-model gives for the same file,
+    # and the oracle (the best eigen-kernel model of the simulator) predicts better than the
+    # shift-invariant one-PSF seed
+    scenes, measurements = read_pairs(out / "dataset" / "test").load_all()
+    learned = load_kernels(Path(row["run"]) / "kernels_learned.npz")
+    expected_error = relative_errors(predict(learned, scenes), measurements)["scaled"].mean()
+    assert row["test_prediction_error"] == pytest.approx(expected_error, rel=1e-9)
+    assert all(0 < r["test_prediction_error"] < 1 for r in runs)
+    assert (itself["test_prediction_error"]
+            < refs["one PSF (seed)"]["test_prediction_error"]), refs
 
     table = done.stdout
     assert "| λ |" in table and "oracle: diff. NCC Kv / Kh" in table
