@@ -23,8 +23,10 @@ measured-only columns.
 
 Runs are ``OUT/runs/<seed>-<param>-<schedule>-l<λ>-t<training seed>``; a finished run is
 reused, an interrupted one resumed, one trained with other settings refused.
-``OUT/results.json`` (runs, reference rows, the oracle) merges the runs of earlier invocations
-on the same folder, keyed on seed, kernels, schedule, preset, λ, training seed and epochs; the
+``OUT/results.json`` (runs, reference rows, the oracle) gets each run as soon as it is scored
+and merges the runs of earlier invocations on the same folder, keyed on seed, kernels,
+schedule, preset, λ, training seed and epochs (an interrupted invocation keeps its finished
+runs); the
 folder is tied to its dataset (``OUT/experiment.json``). Prints the Markdown table
 (``--table``: from ``results.json`` alone), with mean ± sd over training seeds and the PSNR
 of each set-up paired with free pixels of the same seed, λ and training seed.
@@ -474,7 +476,6 @@ def experiment(args: argparse.Namespace) -> int:
     modes = measure_modes(read_grid(data / "grid"), measured.basis, measured.convention,
                           tuple(measured.sensor_shape), CompareOptions())
     references = [] if oracle is None else reference_rows(seeds, oracle, data)
-    results = []
     for seed, param, weight, train_seed in plan:
         row = train_one(out, data, seeds[seed], seed, param, weight, train_seed, args)
         run = Path(row["run"])
@@ -485,7 +486,12 @@ def experiment(args: argparse.Namespace) -> int:
         if oracle is not None:
             row.update(vs_oracle(run / "kernels_learned.npz", oracle))
         write_json(run / "numbers.json", row)
-        results.append(row)
+        header = {"dataset": str(data), "spec": read_manifest(data)["spec"],  # type: ignore
+                  "oracle": None if oracle is None else {
+                      "file": str(oracle_path), "kind": "operator",
+                      "convention": oracle.convention},
+                  "oracle_note": note, "references": references}
+        record(out / "results.json", header, row)
         fn = format_number
         text = (f"{seed:8s} {param:8s} λ {weight:<5g} t{train_seed} PSNR {row['psnr']:.2f} "
                 f"SSIM {row['ssim']:.4f} pedestal {row['pedestal_share']:.3f} outside "
@@ -498,21 +504,23 @@ def experiment(args: argparse.Namespace) -> int:
                      f"{fn(row['oracle_h_diff_ncc'], '.3f')} disp "
                      f"{fn(row['oracle_v_disp_corr'])} / {fn(row['oracle_h_disp_corr'])}")
         print(text, flush=True)
-    summary = [{k: v for k, v in r.items() if k != "compare"} for r in results]
-    # merged with the runs of earlier invocations on the same folder (other set-ups, seeds, λ)
-    path = out / "results.json"
-    earlier = (as_document(json.loads(path.read_text(encoding="utf-8")))
-               if path.is_file() else {"runs": []})
-    done = {run_key(r) for r in summary}
-    doc = {"dataset": str(data), "spec": read_manifest(data)["spec"],  # type: ignore[index]
-           "oracle": None if oracle is None else {"file": str(oracle_path), "kind": "operator",
-                                                  "convention": oracle.convention},
-           "oracle_note": note, "references": references,
-           "runs": [r for r in earlier["runs"] if run_key(r) not in done] + summary}
-    write_json(path, doc)
-    print(markdown_table(json.loads(json.dumps(jsonable(doc)))))
+    doc = json.loads((out / "results.json").read_text(encoding="utf-8")) if plan else {
+        "runs": []}
+    print(markdown_table(doc))
     print(f"LR multipliers: {LR_MULTIPLIER}")
     return 0
+
+
+def record(path: Path, header: dict[str, Any], row: dict[str, Any]) -> None:
+    """Merge one finished run into ``results.json`` at once (replacing its earlier row, keeping
+    the runs of earlier or other invocations on the folder): an interrupted invocation loses
+    no finished run, and the file is re-read for each run, not once per invocation."""
+    earlier = (as_document(json.loads(path.read_text(encoding="utf-8")))
+               if path.is_file() else {"runs": []})
+    summary = {k: v for k, v in row.items() if k != "compare"}
+    key = run_key(summary)
+    write_json(path, {**header, "runs": [r for r in earlier["runs"] if run_key(r) != key]
+                      + [summary]})
 
 
 def parser() -> argparse.ArgumentParser:

@@ -154,3 +154,30 @@ def test_benchmark_without_oracle_reports_measured_columns(tmp_path):
     assert doc["oracle"] is None and doc["references"] == []
     (row,) = doc["runs"]
     assert row["physics_weight"] == 0.0 and not any(k.startswith("oracle_") for k in row)
+
+
+def test_results_file_gets_each_run_at_once(tmp_path):
+    """``record`` merges one finished run into results.json: a run of the same set-up and
+    training seed replaces its earlier row, every other row stays (an interrupted invocation
+    keeps the runs it finished; earlier invocations' runs are kept)."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from bench_kernel_parameterisations import record
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    path = tmp_path / "results.json"
+    header = {"dataset": "d", "spec": {}, "oracle": None, "oracle_note": "n", "references": []}
+
+    def row(seed: str, train_seed: int, psnr: float) -> dict:
+        return {"seed": seed, "param": "free", "schedule": "last-2", "preset": "tiny",
+                "physics_weight": 0.0, "train_seed": train_seed, "epochs": 15, "psnr": psnr,
+                "compare": {"large": "not kept"}}
+
+    record(path, header, row("measured", 0, 20.0))
+    record(path, header, row("one-psf", 0, 21.0))
+    record(path, header, row("measured", 0, 22.0))          # the same run, scored again
+    doc = json.loads(path.read_text())
+    assert doc["oracle_note"] == "n"
+    assert sorted((r["seed"], r["psnr"]) for r in doc["runs"]) == [("measured", 22.0),
+                                                                  ("one-psf", 21.0)]
+    assert all("compare" not in r for r in doc["runs"])
