@@ -26,8 +26,7 @@ reused, an interrupted one resumed, one trained with other settings refused.
 ``OUT/results.json`` (runs, reference rows, the oracle) gets each run as soon as it is scored
 and merges the runs of earlier invocations on the same folder, keyed on seed, kernels,
 schedule, preset, λ, training seed and epochs (an interrupted invocation keeps its finished
-runs); the
-folder is tied to its dataset (``OUT/experiment.json``). Prints the Markdown table
+runs); the folder is tied to its dataset (``OUT/experiment.json``). Prints the Markdown table
 (``--table``: from ``results.json`` alone), with mean ± sd over training seeds and the PSNR
 of each set-up paired with free pixels of the same seed, λ and training seed.
 
@@ -239,26 +238,27 @@ def vs_oracle(model: KernelModel | Path, oracle: KernelModel) -> dict[str, Any]:
     return {f"oracle_{'angles' if k == 'angles_deg' else k}": v for k, v in numbers.items()}
 
 
-def prediction_error(model: KernelModel | Path, data: Path) -> float:
-    """Mean ``‖y − s·A x‖ / ‖y‖`` of a kernel file over ``data``'s held-out test pairs, with
-    the best scale ``s`` per pair (``psfkit eval-model``'s "scaled" mean).
+def prediction_error(model: KernelModel | Path, test: tuple[np.ndarray, np.ndarray]) -> float:
+    """Mean ``‖y − s·A x‖ / ‖y‖`` of a kernel file over the held-out ``test`` pairs
+    ``(scenes, measurements)``, with the best scale ``s`` per pair (``psfkit eval-model``'s
+    "scaled" mean).
 
     Whether learned kernels are a better forward model than their seed: the reconstruction
     loss alone can raise PSNR while the kernels predict the measurements worse (issue 24).
     """
     kernels = load_kernels(model) if isinstance(model, Path) else model
-    scenes, measurements = read_pairs(data / "test", check_pixels=False).load_all()
+    scenes, measurements = test
     return float(relative_errors(predict(kernels, scenes), measurements)["scaled"].mean())
 
 
-def reference_rows(seeds: dict[str, Path], oracle: KernelModel, data: Path
-                   ) -> list[dict[str, Any]]:
+def reference_rows(seeds: dict[str, Path], oracle: KernelModel,
+                   test: tuple[np.ndarray, np.ndarray]) -> list[dict[str, Any]]:
     """The seeds and the oracle itself against the oracle (the oracle: NCC 1, angles 0), each
-    with its prediction error on the test pairs."""
+    with its prediction error on the ``test`` pairs."""
     rows = [{"reference": SEED_NAMES.get(k, k), "file": str(p), **vs_oracle(p, oracle),
-             "test_prediction_error": prediction_error(p, data)} for k, p in seeds.items()]
+             "test_prediction_error": prediction_error(p, test)} for k, p in seeds.items()]
     rows.append({"reference": "the oracle itself", "file": None, **vs_oracle(oracle, oracle),
-                 "test_prediction_error": prediction_error(oracle, data)})
+                 "test_prediction_error": prediction_error(oracle, test)})
     return rows
 
 
@@ -475,22 +475,23 @@ def experiment(args: argparse.Namespace) -> int:
     print(f"oracle: {note}", flush=True)
     modes = measure_modes(read_grid(data / "grid"), measured.basis, measured.convention,
                           tuple(measured.sensor_shape), CompareOptions())
-    references = [] if oracle is None else reference_rows(seeds, oracle, data)
+    # the test pairs, read once: every run and reference row is scored on them
+    test = read_pairs(data / "test", check_pixels=False).load_all()
+    references = [] if oracle is None else reference_rows(seeds, oracle, test)
+    header = {"dataset": str(data), "spec": read_manifest(data)["spec"],  # type: ignore[index]
+              "oracle": None if oracle is None else {"file": str(oracle_path), "kind": "operator",
+                                                     "convention": oracle.convention},
+              "oracle_note": note, "references": references}
     for seed, param, weight, train_seed in plan:
         row = train_one(out, data, seeds[seed], seed, param, weight, train_seed, args)
         run = Path(row["run"])
         model, _ = network_from_checkpoint(run / CHECKPOINT)
         row.update(test_scores(model, data, device))
         row.update(kernel_numbers(run, modes))
-        row["test_prediction_error"] = prediction_error(run / "kernels_learned.npz", data)
+        row["test_prediction_error"] = prediction_error(run / "kernels_learned.npz", test)
         if oracle is not None:
             row.update(vs_oracle(run / "kernels_learned.npz", oracle))
         write_json(run / "numbers.json", row)
-        header = {"dataset": str(data), "spec": read_manifest(data)["spec"],  # type: ignore
-                  "oracle": None if oracle is None else {
-                      "file": str(oracle_path), "kind": "operator",
-                      "convention": oracle.convention},
-                  "oracle_note": note, "references": references}
         record(out / "results.json", header, row)
         fn = format_number
         text = (f"{seed:8s} {param:8s} λ {weight:<5g} t{train_seed} PSNR {row['psnr']:.2f} "
@@ -504,9 +505,7 @@ def experiment(args: argparse.Namespace) -> int:
                      f"{fn(row['oracle_h_diff_ncc'], '.3f')} disp "
                      f"{fn(row['oracle_v_disp_corr'])} / {fn(row['oracle_h_disp_corr'])}")
         print(text, flush=True)
-    doc = json.loads((out / "results.json").read_text(encoding="utf-8")) if plan else {
-        "runs": []}
-    print(markdown_table(doc))
+    print(markdown_table(json.loads((out / "results.json").read_text(encoding="utf-8"))))
     print(f"LR multipliers: {LR_MULTIPLIER}")
     return 0
 
