@@ -210,13 +210,17 @@ def rng_state() -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Inverse of :func:`rng_state`."""
+    """Inverse of :func:`rng_state`.
+
+    The tensors may live on any device (a checkpoint loaded with ``map_location="cuda"``):
+    each is read through ``.cpu()``.
+    """
     torch.set_rng_state(state["torch"].cpu())
-    keys = state["numpy_keys"].numpy().astype(np.uint32)
+    keys = state["numpy_keys"].cpu().numpy().astype(np.uint32)
     numpy_state = ("MT19937", keys, int(state["numpy_pos"]), int(state["numpy_has_gauss"]),
                    float(state["numpy_cached"]))
     np.random.set_state(numpy_state)  # noqa: NPY002 (global state)
-    internal = tuple(int(v) for v in state["python_internal"].tolist())
+    internal = tuple(int(v) for v in state["python_internal"].cpu().tolist())
     random.setstate((int(state["python_version"]), internal, state["python_gauss"]))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])

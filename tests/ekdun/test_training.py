@@ -230,3 +230,40 @@ def test_seed_kernels_is_a_declared_attribute(tiny_data):
     with pytest.raises(ModelFileError, match=r"^seed kernels: kernels contain NaN/Inf"):
         model.set_seed_kernels(seed)
     assert issubclass(CheckpointError, PsfkitError)      # the CLIs print it as one line
+
+
+class _DeviceTensor:
+    """A tensor as ``torch.load(map_location="cuda")`` returns it, seen from the host: it
+    must be copied with ``.cpu()`` before ``.numpy()`` / ``.tolist()`` (torch raises
+    ``TypeError`` on a CUDA tensor's ``.numpy()``)."""
+
+    def __init__(self, tensor: torch.Tensor) -> None:
+        self._tensor = tensor
+
+    def cpu(self) -> torch.Tensor:
+        return self._tensor
+
+    def numpy(self):
+        raise TypeError("can't convert cuda:0 device type tensor to numpy")
+
+    def tolist(self):
+        raise TypeError("device tensor read without .cpu()")
+
+
+def test_rng_state_restores_from_a_checkpoint_loaded_onto_the_gpu():
+    """--resume on CUDA loads the checkpoint with map_location=cuda: the RNG tensors arrive
+    on the device (this failed on an H200 with "can't convert cuda:0 device type tensor to
+    numpy" before set_rng_state read them through .cpu())."""
+    import random
+
+    from ekdun.training.checkpoint import rng_state, set_rng_state
+
+    state = rng_state()
+    expected = (np.random.random(3), random.random(), torch.rand(3))  # noqa: NPY002
+    on_device = {k: _DeviceTensor(v) if isinstance(v, torch.Tensor) else v
+                 for k, v in state.items()}
+    set_rng_state(on_device)
+    got = (np.random.random(3), random.random(), torch.rand(3))  # noqa: NPY002
+    np.testing.assert_array_equal(got[0], expected[0])
+    assert got[1] == expected[1]
+    torch.testing.assert_close(got[2], expected[2], rtol=0, atol=0)
