@@ -205,6 +205,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         schedule = meta.get("overrides", {}).get("schedule") or (
             meta.get("schedule") if meta["model"] == "ekdun" else None)
         row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
+        model.cpu()   # off the device again: the next run's peak memory is its own
         row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
                     "epochs": meta.get("epoch"), "pairs": list(dataset.names),
                     "pairs_note": note})
