@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -61,6 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_flag(p, "--device", "make-dataset",
              note="auto; where the noise-free measurements are computed, in float64 on any "
                   "device; the noise is drawn on the CPU")
+    add_flag(p, "--threads", "make-dataset",
+             note="the CPUs available, at most 16 and one per 64 scenes: processes drawing "
+                  "the scenes; the dataset is the same for any N")
     p.add_argument("--no-oracle", action="store_true",
                    help="do not compute the eigen-kernel oracles (DATASET/oracle/: the best "
                         "paper-basis models of the bench, both conventions)")
@@ -202,8 +206,11 @@ def run_make_dataset(args: argparse.Namespace) -> int:
                             oracle_scenes=args.oracle_scenes)
     from ekdun.training.acceleration import resolve_device
 
+    # a worker process costs ~2 s to start (it imports torch): none for small datasets
+    workers = args.threads or min(16, len(os.sched_getaffinity(0)),
+                                  max(1, max(args.n_train, args.n_test) // 64))
     root = make_virtual_bench(args.out, spec, progress=not args.quiet,
-                              device=resolve_device(args.device))
+                              device=resolve_device(args.device), workers=workers)
     _say(args, f"dataset: {root}")
     return 0
 

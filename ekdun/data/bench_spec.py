@@ -208,22 +208,49 @@ def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -
     return np.clip(np.moveaxis(out, -1, 0), 0, 1).astype(np.float32)
 
 
+def _scene(spec: VirtualBenchSpec, names: tuple[str, ...], split_id: int, i: int
+           ) -> np.ndarray:
+    """Scene ``i`` of random stream ``split_id``: its own generator, so any process draws it."""
+    rng = np.random.default_rng([spec.seed, split_id, i])
+    if rng.random() < spec.natural_fraction:
+        return _natural_crop(names[int(rng.integers(len(names)))], spec.sensor_shape, rng)
+    return dead_leaves(spec.sensor_shape, rng)
+
+
+def _scene_chunk(spec: VirtualBenchSpec, names: tuple[str, ...], split_id: int,
+                 indices: range) -> np.ndarray:
+    return np.stack([_scene(spec, names, split_id, i) for i in indices])
+
+
 def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
-                stream: int | None = None) -> np.ndarray:
+                stream: int | None = None, workers: int = 1) -> np.ndarray:
     """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``).
 
     ``count`` scenes (default the split's size) from random stream ``stream`` (default the
     split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
-    (the oracle's, :mod:`ekdun.data.oracle`).
+    (the oracle's, :mod:`ekdun.data.oracle`). ``workers`` processes draw them (dead leaves
+    are a Python loop over disks: ~0.1 s per 256² scene); every scene has its own seed, so
+    the result does not depend on ``workers``.
     """
     n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
-    names = TRAIN_IMAGES if split == "train" else TEST_IMAGES
+    names = tuple(TRAIN_IMAGES if split == "train" else TEST_IMAGES)
     split_id = (0 if split == "train" else 1) if stream is None else stream
     out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
-    for i in range(n):
-        rng = np.random.default_rng([spec.seed, split_id, i])
-        if rng.random() < spec.natural_fraction:
-            out[i] = _natural_crop(names[int(rng.integers(len(names)))], spec.sensor_shape, rng)
-        else:
-            out[i] = dead_leaves(spec.sensor_shape, rng)
+    workers = max(1, min(int(workers), n))
+    if workers == 1:
+        for i in range(n):
+            out[i] = _scene(spec, names, split_id, i)
+        return out
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn, not fork: the parent may already hold torch's OpenMP threads
+    step = max(1, -(-n // (4 * workers)))
+    chunks = [range(a, min(a + step, n)) for a in range(0, n, step)]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        n_chunks = len(chunks)
+        drawn = pool.map(_scene_chunk, [spec] * n_chunks, [names] * n_chunks,
+                         [split_id] * n_chunks, chunks)
+        for chunk, images in zip(chunks, drawn, strict=True):
+            out[chunk.start:chunk.stop] = images
     return out

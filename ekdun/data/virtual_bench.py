@@ -191,7 +191,7 @@ def dataset_is_current(root: str | os.PathLike, spec: VirtualBenchSpec,
 
 def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = None,
                        progress: bool = True, verify_hash: bool = True,
-                       device: str | torch.device = "cpu") -> Path:
+                       device: str | torch.device = "cpu", workers: int = 1) -> Path:
     """Build the dataset at ``root`` unless an identical one is already there.
 
     Parameters
@@ -207,6 +207,8 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
     device : str or torch.device
         Where the dense model computes the noise-free measurements (float64 on any device;
         a GPU makes a 256² dataset of thousands of pairs take minutes, not hours).
+    workers : int
+        Processes drawing the scenes (:func:`make_scenes`; the dataset does not depend on it).
 
     Returns
     -------
@@ -229,7 +231,7 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                       suffix=".npy", progress=progress, frames=spec.grid_frames)
         model = dense_model_for(spec).to(device)
         for split_id, split in enumerate(("train", "test")):
-            scenes = make_scenes(spec, split)
+            scenes = make_scenes(spec, split, workers=workers)
             measurements = simulate_measurements(model, scenes, spec, split_id,
                                                  progress=progress)
             for sub, arrays in (("scene", scenes), ("measurement", measurements)):

@@ -34,6 +34,18 @@ def test_dead_leaves_statistics():
     np.testing.assert_array_equal(dead_leaves((32, 32), 5), dead_leaves((32, 32), 5))
 
 
+def test_scenes_do_not_depend_on_the_number_of_worker_processes():
+    """make-dataset draws scenes in --threads processes: every scene has its own seed, so
+    the split is the same array for one process or several (chunks of uneven size too)."""
+    from ekdun.data.bench_spec import make_scenes
+
+    spec = VirtualBenchSpec(sensor_shape=(32, 32), n_train=11, n_test=2, oracle=False)
+    one = make_scenes(spec, "train")
+    assert one.shape == (11, 3, 32, 32)
+    np.testing.assert_array_equal(make_scenes(spec, "train", workers=3), one)
+    assert not np.array_equal(make_scenes(spec, "train", stream=5), one)
+
+
 def test_hat_weights_partition_of_unity():
     w = hat_weights(np.array([2.0, 10.0, 20.0]), 25)
     np.testing.assert_allclose(w.sum(axis=0), 1.0)
