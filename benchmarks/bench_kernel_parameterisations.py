@@ -102,11 +102,15 @@ OVERRIDES = {"free": {"kernel_param": "free"}, "physical": {"kernel_param": "phy
              "flow": {"kernel_param": "flow"},
              "physical-gain": {"kernel_param": "physical", "kernel_gain": True}}
 SEEDS = ("measured", "one-psf")
-#: Every start ``--seeds`` accepts: the default two, and the pairs fit (``psfkit fit-pairs`` of
-#: the training pairs, made only when asked for: it costs minutes at 128²).
-ALL_SEEDS = (*SEEDS, "pairs")
+#: Every start ``--seeds`` accepts: the default two, and the pairs fits (``psfkit fit-pairs`` of
+#: the training pairs, made only when asked for: each costs minutes at 128²): ``pairs`` with
+#: fit-pairs' defaults (non-negative kernels), ``pairs-free`` with ``--no-nonneg`` (the
+#: unconstrained least-squares fit: the one that converges to the operator oracle, which is
+#: unconstrained too).
+PAIRS_SEEDS = {"pairs": True, "pairs-free": False}     # name -> non-negative
+ALL_SEEDS = (*SEEDS, *PAIRS_SEEDS)
 SEED_NAMES = {"measured": "measured fit (seed)", "one-psf": "one PSF (seed)",
-              "pairs": "pairs fit (seed)"}
+              "pairs": "pairs fit (seed)", "pairs-free": "unconstrained pairs fit (seed)"}
 #: Dataset options and the VirtualBenchSpec fields they set.
 DATASET_OPTIONS = {"sensor_shape": "--sensor", "n_train": "--n-train", "n_test": "--n-test",
                    "photons": "--photons"}
@@ -179,9 +183,9 @@ def tie_to_dataset(out: Path, data: Path) -> None:
     write_json(path, record)
 
 
-def prepare(out: Path, data: Path, pairs: bool = False) -> dict[str, Path]:
-    """The measured fit and the one-PSF seed of ``data`` (cached in ``out``), and the pairs
-    fit when ``pairs`` asks for it or an earlier invocation made it."""
+def prepare(out: Path, data: Path, pairs: tuple[str, ...] = ()) -> dict[str, Path]:
+    """The measured fit and the one-PSF seed of ``data`` (cached in ``out``), and each pairs
+    fit of :data:`PAIRS_SEEDS` that ``pairs`` names or an earlier invocation made."""
     fit = out / "kernels_fit.npz"
     if not fit.is_file():
         fit_seed_kernels(data, fit)
@@ -191,23 +195,25 @@ def prepare(out: Path, data: Path, pairs: bool = False) -> dict[str, Path]:
         kernels = np.repeat(model.kernels[:1], len(model.kernels), axis=0)
         save_kernels(one, replace(model, kernels=kernels))
     seeds = {"measured": fit, "one-psf": one}
-    fitted = out / "kernels_pairs.npz"
-    if pairs and not fitted.is_file():
-        fit_pairs_seed(data, fitted, load_kernels(fit))
-    if fitted.is_file():             # made once, then a reference row of every invocation
-        seeds["pairs"] = fitted
+    for name, nonneg in PAIRS_SEEDS.items():
+        fitted = out / f"kernels_{name.replace('-', '_')}.npz"
+        if name in pairs and not fitted.is_file():
+            fit_pairs_seed(data, fitted, load_kernels(fit), nonneg)
+        if fitted.is_file():         # made once, then a reference row of every invocation
+            seeds[name] = fitted
     return seeds
 
 
-def fit_pairs_seed(data: Path, out: Path, like: KernelModel) -> Path:
-    """``psfkit fit-pairs`` of ``data``'s training pairs with its defaults, in the basis and
-    convention of the measured fit ``like``: the seed measured from pairs instead of the grid
-    (issue 23: at 128² it is nearer the operator oracle than the grid fit can be)."""
+def fit_pairs_seed(data: Path, out: Path, like: KernelModel, nonneg: bool = True) -> Path:
+    """``psfkit fit-pairs`` of ``data``'s training pairs (its defaults; ``nonneg=False``:
+    ``--no-nonneg``), in the basis and convention of the measured fit ``like``: the seed
+    measured from pairs instead of the grid (issue 23: at 128² it is nearer the operator
+    oracle than the grid fit can be)."""
     pairs = read_pairs(data / "train", check_pixels=False)
     scenes, measurements = pairs.load_all()
-    print(f"fitting the pairs seed to {len(scenes)} training pairs (psfkit fit-pairs)",
-          flush=True)
-    options = PairFitOptions(basis=like.basis, convention=like.convention)
+    print(f"fitting the pairs seed to {len(scenes)} training pairs (psfkit fit-pairs"
+          f"{'' if nonneg else ' --no-nonneg'})", flush=True)
+    options = PairFitOptions(basis=like.basis, convention=like.convention, nonneg=nonneg)
     fit = fit_pairs(scenes, measurements, options, progress=True)
     # the provenance the command line records, so the seed reads like its kernel file
     provenance = {"source": "psfkit fit-pairs", "pairs": str(pairs.root),
@@ -453,7 +459,7 @@ def experiment(args: argparse.Namespace) -> int:
     resolve_amp(args.amp, device)                # refused here, not after the dataset
     data = dataset(args, out)
     tie_to_dataset(out, data)
-    seeds = prepare(out, data, pairs="pairs" in seeds_run)
+    seeds = prepare(out, data, pairs=tuple(s for s in seeds_run if s in PAIRS_SEEDS))
     if args.measure_lr:
         rows = measure_lr(data, seeds)
         for r in rows:
@@ -539,7 +545,8 @@ def parser() -> argparse.ArgumentParser:
                       help=f"kernel parameterisations, of {', '.join(OVERRIDES)}")
     runs.add_argument("--seeds", default=",".join(SEEDS),
                       help="starts: measured (the grid fit), one-psf, pairs (the pairs fit of "
-                           "the training pairs; not in the default)")
+                           "the training pairs), pairs-free (the same, --no-nonneg); the pairs "
+                           "fits are not in the default")
     runs.add_argument("--physics-weights", default="0",
                       help="physics weights λ (ekdun train --physics-weight), e.g. 0,1")
     runs.add_argument("--train-seeds", default="0",

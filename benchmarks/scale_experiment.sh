@@ -3,35 +3,50 @@
 #
 #   SIZE=256 NTRAIN=2000 EPOCHS=4 bash benchmarks/scale_experiment.sh runs/scale256   # GPU
 #   SIZE=32 NTRAIN=16 NTEST=4 EPOCHS=1 PRESET=tiny bash benchmarks/scale_experiment.sh /tmp/s
+#   SEEDS="0 1 2" CONCURRENT=12 STOP_AT=500 ... # 3 training seeds, 12 runs at once on one GPU
 #
 # 1. `ekdun make-dataset` (virtual bench, source-side dense model) and `psfkit fit-eigen` of
-#    its grid (the measured seed); a one-PSF seed (Kv = Kh = Kbase of the measured fit).
-# 2. Runs, alternating, in priority order (a run that would overrun DEADLINE_S seconds is
-#    skipped and logged): Table 2 (measured seed: SCHEDULES) and Fig. 7 (one-PSF seed, free
-#    kernels, last-2, --physics-weight for each value of LAMBDAS).
-# 3. `ekdun eval` of every finished run on the test split (PSNR, SSIM, inference time), and
+#    its grid (the measured seed; reused if OUT/measured.npz exists); a one-PSF seed
+#    (Kv = Kh = Kbase of the measured fit).
+# 2. Runs in priority order: Table 2 (measured seed: SCHEDULES x SEEDS), Fig. 7 (one-PSF seed,
+#    last-2, kernel parameterisation x --physics-weight for each of F7_PARAMS x LAMBDAS) and
+#    the measured seed with each of MEASURED_LAMBDAS (last-2, free); Fig. 7 runs use the
+#    first of SEEDS. CONCURRENT runs share the device at once (a small network leaves most
+#    of a large GPU idle). Sequentially, a run that would overrun DEADLINE_S seconds is
+#    skipped; with STOP_AT, training still going at STOP_AT seconds is stopped and each run
+#    is evaluated at its last finished epoch (checkpoints are written every epoch; the epoch
+#    is in log.csv and eval/results.json).
+# 3. `ekdun eval` of every run on the test split (PSNR, SSIM, inference time), and
 #    `psfkit compare` of every learned kernel file against the measured fit and against the
-#    dataset's operator oracle (DATA/oracle/paper_source.npz), and of the measured fit too.
+#    operator oracle (ORACLE, default DATA/oracle/paper_source.npz), and of the measured fit.
 # Results: OUT/summary.json (+ OUT/eval/, OUT/compare-*/ and each run's log.csv).
 set -uo pipefail
 OUT=${1:?usage: scale_experiment.sh OUT}
 SIZE=${SIZE:-256}; NTRAIN=${NTRAIN:-2000}; NTEST=${NTEST:-64}; PHOTONS=${PHOTONS:-20000}
+GRID_FRAMES=${GRID_FRAMES:-1}; ORACLE_FLAG=${ORACLE_FLAG:-}
 EPOCHS=${EPOCHS:-4}; BATCH=${BATCH:-8}; PRESET=${PRESET:-paper}; LR=${LR:-5e-4}
 LAMBDAS=${LAMBDAS:-"10 0 1"}; SCHEDULES=${SCHEDULES:-"last-2 base all"}
-DEADLINE_S=${DEADLINE_S:-100000}; SEED=${SEED:-0}
+F7_PARAMS=${F7_PARAMS:-free}; MEASURED_LAMBDAS=${MEASURED_LAMBDAS:-}
+DEADLINE_S=${DEADLINE_S:-100000}; SEEDS=${SEEDS:-${SEED:-0}}
+CONCURRENT=${CONCURRENT:-1}; STOP_AT=${STOP_AT:-0}; RUN_THREADS=${RUN_THREADS:-}
+COMPARE=${COMPARE:-1}   # 0: no psfkit compare here (on a lent GPU: compare the kernels later)
 PY=${PYTHON:-python3}
 start=$(date +%s)
 elapsed() { echo $(( $(date +%s) - start )); }
 mkdir -p "$OUT"
 log() { echo "[$(elapsed) s] $*" | tee -a "$OUT/progress.log"; }
-
 DATA="$OUT/data"
 log "dataset ${SIZE}x${SIZE}, ${NTRAIN} train / ${NTEST} test, photons ${PHOTONS}"
 $PY -m ekdun.cli make-dataset "$DATA" --sensor "$SIZE" "$SIZE" --n-train "$NTRAIN" \
-    --n-test "$NTEST" --photons "$PHOTONS" --quiet || { log "make-dataset failed"; exit 1; }
-log "fit-eigen (source side)"
-$PY -m psfkit.cli fit-eigen "$DATA/grid" --out "$OUT/measured.npz" --convention source \
-    --quiet >/dev/null || { log "fit-eigen failed"; exit 1; }
+    --n-test "$NTEST" --photons "$PHOTONS" --grid-frames "$GRID_FRAMES" $ORACLE_FLAG --quiet \
+    || { log "make-dataset failed"; exit 1; }
+if [[ -f "$OUT/measured.npz" ]]; then
+    log "measured seed: $OUT/measured.npz (given)"
+else
+    log "fit-eigen (source side)"
+    $PY -m psfkit.cli fit-eigen "$DATA/grid" --out "$OUT/measured.npz" --convention source \
+        --quiet >/dev/null || { log "fit-eigen failed"; exit 1; }
+fi
 $PY - "$OUT/measured.npz" "$OUT/one_psf.npz" <<'PY' || { log "one-psf seed failed"; exit 1; }
 import sys
 from dataclasses import replace
@@ -42,46 +57,81 @@ k[1:] = k[:1]                      # Kv = Kh = Kbase: the network starts from on
 save_kernels(sys.argv[2], replace(model, kernels=k))
 PY
 
-# Table 2 and Fig. 7 runs alternate, so that a deadline cuts the tail of both lists alike
-t2=(); f7=(); runs=()
-for s in $SCHEDULES; do t2+=("t2-$s|--kernels $OUT/measured.npz --schedule $s"); done
-for l in $LAMBDAS; do
-    f7+=("f7-onepsf-free-l$l|--kernels $OUT/one_psf.npz --schedule last-2 --kernel-param free --physics-weight $l")
+# Priority order: Table 2 seed by seed, then Fig. 7 (so that a deadline cuts the tail)
+read -r -a seeds <<<"$SEEDS"
+runs=()
+for seed in "${seeds[@]}"; do
+    for s in $SCHEDULES; do
+        runs+=("t2-$s-s$seed|--kernels $OUT/measured.npz --schedule $s --seed $seed")
+    done
 done
-for ((i = 0; i < ${#t2[@]} || i < ${#f7[@]}; i++)); do
-    (( i < ${#t2[@]} )) && runs+=("${t2[$i]}")
-    (( i < ${#f7[@]} )) && runs+=("${f7[$i]}")
+for p in $F7_PARAMS; do
+    for l in $LAMBDAS; do
+        runs+=("f7-onepsf-$p-l$l-s${seeds[0]}|--kernels $OUT/one_psf.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed ${seeds[0]}")
+    done
 done
+for l in $MEASURED_LAMBDAS; do
+    runs+=("f7-measured-free-l$l-s${seeds[0]}|--kernels $OUT/measured.npz --schedule last-2 --physics-weight $l --seed ${seeds[0]}")
+done
+thread_flag=()
+[[ -n "$RUN_THREADS" ]] && thread_flag=(--threads "$RUN_THREADS")
+train_one() {   # name flags: one training run, its own log
+    local name=$1 flags=$2
+    # shellcheck disable=SC2086
+    $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
+        --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" "${thread_flag[@]}" --quiet \
+        >"$OUT/train-$name.log" 2>&1
+}
 per_run=0
-done_runs=()
+pids=()
+running() {   # training jobs still running
+    local n=0 pid
+    for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && n=$((n + 1)); done
+    echo "$n"
+}
+if (( STOP_AT > 0 )); then
+    # stop whatever still trains at STOP_AT: each run keeps its last finished epoch
+    ( sleep $(( STOP_AT > $(elapsed) ? STOP_AT - $(elapsed) : 0 ));
+      pkill -TERM -f "ekdun.cli train $DATA " && echo "[stop at ${STOP_AT} s]" \
+          >>"$OUT/progress.log" ) &
+    stopper=$!
+fi
 for entry in "${runs[@]}"; do
     name=${entry%%|*}; flags=${entry#*|}
-    if (( per_run > 0 && $(elapsed) + per_run > DEADLINE_S )); then
-        log "skip $name: would end after the deadline (${DEADLINE_S} s)"; continue
+    if (( CONCURRENT <= 1 && per_run > 0 && $(elapsed) + per_run > DEADLINE_S )) || \
+       (( STOP_AT > 0 && $(elapsed) >= STOP_AT )); then
+        log "skip $name: would end after the deadline"; continue
     fi
-    t0=$(date +%s)
+    while (( $(running) >= CONCURRENT )); do sleep 2; done
     log "train $name: $flags"
-    # shellcheck disable=SC2086
-    if $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
-        --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" --seed "$SEED" --quiet \
-        >>"$OUT/train.log" 2>&1; then
-        done_runs+=("$OUT/$name")
-        per_run=$(( $(date +%s) - t0 ))
-        log "done $name in ${per_run} s: $(tail -n 1 "$OUT/$name/log.csv")"
+    if (( CONCURRENT <= 1 )); then
+        t0=$(date +%s)
+        if train_one "$name" "$flags"; then per_run=$(( $(date +%s) - t0 )); fi
+        log "$name ended after $(( $(date +%s) - t0 )) s: $(tail -n 1 "$OUT/$name/log.csv" 2>/dev/null)"
     else
-        log "train $name failed (see train.log)"
+        ( train_one "$name" "$flags"; log "$name ended (rc $?): $(tail -n 1 "$OUT/$name/log.csv" 2>/dev/null)" ) &
+        pids+=($!)
     fi
+done
+(( ${#pids[@]} )) && wait "${pids[@]}"
+(( STOP_AT > 0 )) && kill "$stopper" 2>/dev/null
+done_runs=()
+for entry in "${runs[@]}"; do
+    name=${entry%%|*}
+    [[ -f "$OUT/$name/checkpoint.pt" ]] && done_runs+=("$OUT/$name")
 done
 if (( ${#done_runs[@]} == 0 )); then log "no run finished"; exit 1; fi
 log "eval ${#done_runs[@]} runs"
 $PY -m ekdun.cli eval "${done_runs[@]}" --data "$DATA" --out "$OUT/eval" --overwrite \
     >>"$OUT/eval.log" 2>&1 || log "eval failed (see eval.log)"
-ORACLE="$DATA/oracle/paper_source.npz"     # written by make-dataset (operator oracle)
-if [[ -f "$ORACLE" ]]; then
+ORACLE=${ORACLE:-$DATA/oracle/paper_source.npz}   # make-dataset's operator oracle
+compared=()
+(( COMPARE )) && compared=("${done_runs[@]}")
+if (( COMPARE )) && [[ -f "$ORACLE" ]]; then
     $PY -m psfkit.cli compare "$OUT/measured.npz" "$ORACLE" --out "$OUT/oracle-measured" \
         --overwrite --quiet >>"$OUT/compare.log" 2>&1 || log "compare measured vs oracle failed"
 fi
-for run in "${done_runs[@]}"; do
+for run in "${compared[@]}"; do
     name=$(basename "$run")
     $PY -m psfkit.cli compare "$run/kernels_learned.npz" "$OUT/measured.npz" \
         --initial "$run/kernels_initial.npz" --out "$OUT/compare-$name" --overwrite --quiet \

@@ -128,6 +128,24 @@ def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     assert "| pairs fit (seed) |" in pairs.stdout and "| pairs | free |" in pairs.stdout
     assert len(doc["runs"]) == 10
 
+    # the unconstrained pairs seed: fit-pairs --no-nonneg, beside the non-negative one
+    free = _bench("--out", str(out), "--params", "free", "--seeds", "pairs-free",
+                  "--batch-size", "4")
+    assert free.returncode == 0, free.stderr[-3000:]
+    cli_free = tmp_path / "pairs_free_cli.npz"
+    assert psfkit_main(["fit-pairs", str(out / "dataset" / "train"), "--basis", "paper",
+                        "--convention", convention, "--no-nonneg", "--quiet",
+                        "--out", str(cli_free)]) == 0
+    k_free = load_kernels(out / "kernels_pairs_free.npz").kernels
+    k_cli_free = load_kernels(cli_free).kernels
+    np.testing.assert_allclose(k_free, k_cli_free, atol=1e-6 * np.abs(k_cli_free).max())
+    assert k_free.min() < 0 <= k_seed.min()       # unconstrained vs non-negative
+    doc = json.loads((out / "results.json").read_text())
+    assert {r["seed"] for r in doc["runs"]} >= {"pairs", "pairs-free"}
+    assert {"pairs fit (seed)", "unconstrained pairs fit (seed)"} <= {
+        r["reference"] for r in doc["references"]}
+    assert len(doc["runs"]) == 11
+
     # a run folder trained with other settings is refused before anything is trained
     refused = _bench("--out", str(out), "--params", "free", "--seeds", "one-psf",
                      "--physics-weights", "1", "--train-seeds", "1", "--lr", "1e-3")
