@@ -78,8 +78,10 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                "sensor", default="sensor", choices=("sensor", "source"),
                per_command={"fit-eigen": {"choices": ("sensor", "source", "auto")}}),
     SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
-               "positions processed concurrently in psfkit register/mae/warp/report)",
-               "2 (psfkit), torch's default (ekdun), 1 (benchmark-tiny)", kind="number",
+               "processes drawing the scenes in ekdun make-dataset; positions processed "
+               "concurrently in psfkit register/mae/warp/report)",
+               "2 (psfkit), torch's default (ekdun), 1 (benchmark-tiny), the CPUs up to 16 "
+               "and one per 64 scenes (make-dataset)", kind="number",
                metavar="N", per_command={"benchmark-tiny": {"default": 1}}),
     SharedFlag("--loader-workers", "loader_workers",
                "DataLoader worker processes when the dataset does not fit on the device",
