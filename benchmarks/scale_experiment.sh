@@ -25,8 +25,9 @@ OUT=${1:?usage: scale_experiment.sh OUT}
 SIZE=${SIZE:-256}; NTRAIN=${NTRAIN:-2000}; NTEST=${NTEST:-64}; PHOTONS=${PHOTONS:-20000}
 GRID_FRAMES=${GRID_FRAMES:-1}; ORACLE_FLAG=${ORACLE_FLAG:-}
 EPOCHS=${EPOCHS:-4}; BATCH=${BATCH:-8}; PRESET=${PRESET:-paper}; LR=${LR:-5e-4}
-LAMBDAS=${LAMBDAS:-"10 0 1"}; SCHEDULES=${SCHEDULES:-"last-2 base all"}
-F7_PARAMS=${F7_PARAMS:-free}; MEASURED_LAMBDAS=${MEASURED_LAMBDAS:-}
+# run lists: unset = the default, empty = none
+LAMBDAS=${LAMBDAS-"10 0 1"}; SCHEDULES=${SCHEDULES-"last-2 base all"}
+F7_PARAMS=${F7_PARAMS-free}; MEASURED_LAMBDAS=${MEASURED_LAMBDAS-}
 DEADLINE_S=${DEADLINE_S:-100000}; SEEDS=${SEEDS:-${SEED:-0}}
 CONCURRENT=${CONCURRENT:-1}; STOP_AT=${STOP_AT:-0}; RUN_THREADS=${RUN_THREADS:-}
 COMPARE=${COMPARE:-1}   # 0: no psfkit compare here (on a lent GPU: compare the kernels later)
@@ -75,12 +76,19 @@ for l in $MEASURED_LAMBDAS; do
 done
 thread_flag=()
 [[ -n "$RUN_THREADS" ]] && thread_flag=(--threads "$RUN_THREADS")
-train_one() {   # name flags: one training run, its own log
-    local name=$1 flags=$2
+train_one() {   # name flags: one training run, its own log; stopped at STOP_AT
+    local name=$1 flags=$2 budget=() left=$(( STOP_AT - $(elapsed) ))
+    if (( STOP_AT > 0 )); then
+        (( left > 0 )) || { log "skip $name: the time budget is spent"; return 124; }
+        budget=(timeout --signal=TERM "$left")
+    fi
     # shellcheck disable=SC2086
-    $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
+    "${budget[@]}" $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
         --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" "${thread_flag[@]}" --quiet \
         >"$OUT/train-$name.log" 2>&1
+    local rc=$?
+    (( STOP_AT > 0 && rc == 124 )) && log "$name: stopped at ${STOP_AT} s"
+    return $rc
 }
 per_run=0
 pids=()
@@ -89,17 +97,9 @@ running() {   # training jobs still running
     for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && n=$((n + 1)); done
     echo "$n"
 }
-if (( STOP_AT > 0 )); then
-    # stop whatever still trains at STOP_AT: each run keeps its last finished epoch
-    ( sleep $(( STOP_AT > $(elapsed) ? STOP_AT - $(elapsed) : 0 ));
-      pkill -TERM -f "ekdun.cli train $DATA " && echo "[stop at ${STOP_AT} s]" \
-          >>"$OUT/progress.log" ) &
-    stopper=$!
-fi
 for entry in "${runs[@]}"; do
     name=${entry%%|*}; flags=${entry#*|}
-    if (( CONCURRENT <= 1 && per_run > 0 && $(elapsed) + per_run > DEADLINE_S )) || \
-       (( STOP_AT > 0 && $(elapsed) >= STOP_AT )); then
+    if (( CONCURRENT <= 1 && per_run > 0 && $(elapsed) + per_run > DEADLINE_S )); then
         log "skip $name: would end after the deadline"; continue
     fi
     while (( $(running) >= CONCURRENT )); do sleep 2; done
@@ -114,7 +114,6 @@ for entry in "${runs[@]}"; do
     fi
 done
 (( ${#pids[@]} )) && wait "${pids[@]}"
-(( STOP_AT > 0 )) && kill "$stopper" 2>/dev/null
 done_runs=()
 for entry in "${runs[@]}"; do
     name=${entry%%|*}

@@ -1,0 +1,54 @@
+"""benchmarks/scale_experiment.sh (the GPU scale runs of issue 24) at a tiny size on the CPU:
+training seeds and concurrent runs, every run evaluated with its epoch; STOP_AT stops the
+training that is still going and evaluates each run at its last finished epoch."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "scale_experiment.sh"
+
+
+def _run(out: Path, **env: str) -> subprocess.CompletedProcess:
+    base = {"SIZE": "32", "NTRAIN": "8", "NTEST": "2", "PRESET": "tiny", "BATCH": "4",
+            "ORACLE_FLAG": "--no-oracle", "COMPARE": "0", "RUN_THREADS": "1",
+            "PYTHON": sys.executable, "LAMBDAS": "", "SCHEDULES": "base last-2"}
+    return subprocess.run(["bash", str(SCRIPT), str(out)], env={**os.environ, **base, **env},
+                          capture_output=True, text=True, timeout=900, check=False)
+
+
+def _epochs(run: Path) -> int:
+    with (run / "log.csv").open() as f:
+        return int(list(csv.DictReader(f))[-1]["epoch"])
+
+
+def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path):
+    out = tmp_path / "scale"
+    done = _run(out, SEEDS="0 1", CONCURRENT="2", EPOCHS="1", MEASURED_LAMBDAS="1")
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    names = {"t2-base-s0", "t2-last-2-s0", "t2-base-s1", "t2-last-2-s1",
+             "f7-measured-free-l1-s0"}
+    rows = json.loads((out / "eval" / "results.json").read_text())["results"]
+    assert {Path(r["checkpoint"]).parent.name for r in rows} == names
+    assert all(r["epochs"] == 1 for r in rows)
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["runs"]) == names
+    # the training seed reaches the run: same schedule, other seed, other first epoch
+    assert (out / "t2-base-s0" / "log.csv").read_text() != (
+        out / "t2-base-s1" / "log.csv").read_text()
+
+    # STOP_AT: far more epochs than the budget allows; the dataset is reused
+    stopped = _run(out, SEEDS="7", CONCURRENT="2", EPOCHS="10000", SCHEDULES="base",
+                   STOP_AT="45")
+    assert stopped.returncode == 0, stopped.stdout[-3000:] + stopped.stderr[-3000:]
+    assert "t2-base-s7: stopped at 45 s" in (out / "progress.log").read_text()
+    run = out / "t2-base-s7"
+    epochs = _epochs(run)
+    assert 1 <= epochs < 10000
+    (row,) = [r for r in json.loads((out / "eval" / "results.json").read_text())["results"]]
+    assert row["epochs"] == epochs and Path(row["checkpoint"]).parent == run
