@@ -207,7 +207,7 @@ def run_make_dataset(args: argparse.Namespace) -> int:
     from ekdun.training.acceleration import resolve_device
 
     # a worker process costs ~2 s to start (it imports torch): none for small datasets
-    workers = args.threads or min(16, len(os.sched_getaffinity(0)),
+    workers = args.threads or min(16, os.cpu_count() or 1,
                                   max(1, max(args.n_train, args.n_test) // 64))
     root = make_virtual_bench(args.out, spec, progress=not args.quiet,
                               device=resolve_device(args.device), workers=workers)

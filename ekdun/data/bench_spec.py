@@ -233,7 +233,7 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
     the result does not depend on ``workers``.
     """
     n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
-    names = tuple(TRAIN_IMAGES if split == "train" else TEST_IMAGES)
+    names = TRAIN_IMAGES if split == "train" else TEST_IMAGES
     split_id = (0 if split == "train" else 1) if stream is None else stream
     out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
     workers = max(1, min(int(workers), n))
