@@ -49,6 +49,8 @@ import argparse
 import itertools
 import json
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -516,16 +518,35 @@ def experiment(args: argparse.Namespace) -> int:
     return 0
 
 
+@contextmanager
+def exclusive(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``path``.lock (POSIX ``flock``; where there is none, no lock)."""
+    try:
+        import fcntl
+    except ImportError:                 # Windows: invocations on one folder must not overlap
+        yield
+        return
+    with open(path.with_name(path.name + ".lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def record(path: Path, header: dict[str, Any], row: dict[str, Any]) -> None:
     """Merge one finished run into ``results.json`` at once (replacing its earlier row, keeping
     the runs of earlier or other invocations on the folder): an interrupted invocation loses
-    no finished run, and the file is re-read for each run, not once per invocation."""
-    earlier = (as_document(json.loads(path.read_text(encoding="utf-8")))
-               if path.is_file() else {"runs": []})
+    no finished run, and the file is re-read for each run, not once per invocation. The
+    read-merge-write holds a lock, so invocations running at once on one folder keep each
+    other's rows."""
     summary = {k: v for k, v in row.items() if k != "compare"}
     key = run_key(summary)
-    write_json(path, {**header, "runs": [r for r in earlier["runs"] if run_key(r) != key]
-                      + [summary]})
+    with exclusive(path):
+        earlier = (as_document(json.loads(path.read_text(encoding="utf-8")))
+                   if path.is_file() else {"runs": []})
+        write_json(path, {**header, "runs": [r for r in earlier["runs"] if run_key(r) != key]
+                          + [summary]})
 
 
 def parser() -> argparse.ArgumentParser:

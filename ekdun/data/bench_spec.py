@@ -223,23 +223,29 @@ def _scene_chunk(spec: VirtualBenchSpec, names: tuple[str, ...], split_id: int,
 
 
 def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
-                stream: int | None = None, workers: int = 1) -> np.ndarray:
+                stream: int | None = None, workers: int = 1,
+                progress: bool = False) -> np.ndarray:
     """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``).
 
     ``count`` scenes (default the split's size) from random stream ``stream`` (default the
     split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
     (the oracle's, :mod:`ekdun.data.oracle`). ``workers`` processes draw them (dead leaves
     are a Python loop over disks: ~0.1 s per 256² scene); every scene has its own seed, so
-    the result does not depend on ``workers``.
+    the result does not depend on ``workers``. ``progress`` shows a bar over the scenes.
     """
     n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
     names = TRAIN_IMAGES if split == "train" else TEST_IMAGES
     split_id = (0 if split == "train" else 1) if stream is None else stream
     out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
     workers = max(1, min(int(workers), n))
+    bar = _scene_bar(n, split) if progress else None
     if workers == 1:
         for i in range(n):
             out[i] = _scene(spec, names, split_id, i)
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
         return out
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
@@ -253,4 +259,14 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
                          [split_id] * n_chunks, chunks)
         for chunk, images in zip(chunks, drawn, strict=True):
             out[chunk.start:chunk.stop] = images
+            if bar is not None:
+                bar.update(len(chunk))
+    if bar is not None:
+        bar.close()
     return out
+
+
+def _scene_bar(total: int, split: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=f"scenes ({split})", unit="scene")

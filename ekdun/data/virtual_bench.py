@@ -231,7 +231,7 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                       suffix=".npy", progress=progress, frames=spec.grid_frames)
         model = dense_model_for(spec).to(device)
         for split_id, split in enumerate(("train", "test")):
-            scenes = make_scenes(spec, split, workers=workers)
+            scenes = make_scenes(spec, split, workers=workers, progress=progress)
             measurements = simulate_measurements(model, scenes, spec, split_id,
                                                  progress=progress)
             for sub, arrays in (("scene", scenes), ("measurement", measurements)):

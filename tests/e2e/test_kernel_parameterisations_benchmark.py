@@ -199,3 +199,37 @@ def test_results_file_gets_each_run_at_once(tmp_path):
     assert sorted((r["seed"], r["psnr"]) for r in doc["runs"]) == [("measured", 22.0),
                                                                   ("one-psf", 21.0)]
     assert all("compare" not in r for r in doc["runs"])
+
+
+def _record_many(path: str, seed: str, count: int, start) -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    from bench_kernel_parameterisations import record
+
+    start.wait()                        # both processes imported: their writes overlap
+
+    header = {"dataset": "d", "spec": {}, "oracle": None, "oracle_note": "n", "references": []}
+    for i in range(count):
+        record(Path(path), header, {"seed": seed, "param": "free", "schedule": "last-2",
+                                    "preset": "tiny", "physics_weight": 0.0, "train_seed": i,
+                                    "epochs": 15, "psnr": float(i)})
+
+
+def test_invocations_at_once_on_one_folder_keep_each_others_runs(tmp_path):
+    """Two invocations on one OUT (two CPU lanes) record runs at the same time: the lock
+    around the read-merge-write keeps every row (without it, one overwrites the other's)."""
+    import multiprocessing
+
+    path = tmp_path / "results.json"
+    ctx = multiprocessing.get_context("spawn")
+    start = ctx.Barrier(2)
+    procs = [ctx.Process(target=_record_many, args=(str(path), seed, 40, start))
+             for seed in ("measured", "one-psf")]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=300)
+        assert p.exitcode == 0
+    runs = json.loads(path.read_text())["runs"]
+    assert len(runs) == 80
+    assert {(r["seed"], r["train_seed"]) for r in runs} == {
+        (s, i) for s in ("measured", "one-psf") for i in range(40)}

@@ -34,15 +34,19 @@ def test_dead_leaves_statistics():
     np.testing.assert_array_equal(dead_leaves((32, 32), 5), dead_leaves((32, 32), 5))
 
 
-def test_scenes_do_not_depend_on_the_number_of_worker_processes():
+def test_scenes_do_not_depend_on_the_number_of_worker_processes(capsys):
     """make-dataset draws scenes in --threads processes: every scene has its own seed, so
-    the split is the same array for one process or several (chunks of uneven size too)."""
+    the split is the same array for one process or several (chunks of uneven size too); the
+    progress bar counts every scene either way."""
     from ekdun.data.bench_spec import make_scenes
 
     spec = VirtualBenchSpec(sensor_shape=(32, 32), n_train=11, n_test=2, oracle=False)
     one = make_scenes(spec, "train")
     assert one.shape == (11, 3, 32, 32)
-    np.testing.assert_array_equal(make_scenes(spec, "train", workers=3), one)
+    assert capsys.readouterr().err == ""
+    np.testing.assert_array_equal(make_scenes(spec, "train", workers=3, progress=True), one)
+    final = capsys.readouterr().err.replace("\r", "\n").strip().splitlines()[-1]
+    assert final.startswith("scenes (train)") and "11/11" in final
     assert not np.array_equal(make_scenes(spec, "train", stream=5), one)
 
 
