@@ -51,6 +51,7 @@ from ekdun.training.checkpoint import (
     set_rng_state,
 )
 from ekdun.training.export import export_kernels
+from ekdun.training.export import initial_kernels as checkpoint_seed
 from ekdun.training.logs import write_csv_log
 from ekdun.training.physics_loss import PhysicsObjective
 from psfkit.kernelfile import KernelModel, save_kernels
@@ -276,6 +277,12 @@ def train(run_dir: str | os.PathLike, model_name: str,
         if "scaler" in doc and scaler.is_enabled():
             scaler.load_state_dict(doc["scaler"])
         set_rng_state(doc["rng"])
+        if "initial_kernels" in doc:        # the run's own seed, whatever file this call names
+            initial_kernels = doc["initial_kernels"].cpu()
+        if (model_name == "ekdun" and ctx.is_main
+                and not (run_dir / KERNELS_INITIAL).is_file()):
+            # a run folder copied with its checkpoint alone (e.g. back from a GPU machine)
+            save_kernels(run_dir / KERNELS_INITIAL, checkpoint_seed(doc))
         metadata["history"] = old.get("history", [])
         metadata["epoch"] = start_epoch - 1 + int(old.get("epoch", 0))
         start_epoch = int(old.get("epoch", 0)) + 1

@@ -7,6 +7,7 @@ import os
 import pickle
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -31,7 +32,7 @@ from ekdun.training.builder import (
 )
 from ekdun.training.checkpoint import save_checkpoint
 from psfkit.errors import ModelFileError, PsfkitError
-from psfkit.kernelfile import KernelModel, load_kernels
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 
 SENSOR = (16, 16)
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
@@ -91,6 +92,27 @@ def test_resume_equals_an_uninterrupted_run(tiny_data, tmp_path):
     assert [h["train_loss"] for h in a["metadata"]["history"]] == pytest.approx(
         [h["train_loss"] for h in b["metadata"]["history"]], rel=1e-6)
     assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == 4
+
+
+def test_resume_of_a_copied_checkpoint_restores_the_seed_file(tiny_data, tmp_path):
+    """A run folder brought back with its checkpoint alone (from a GPU machine) resumes, and
+    its kernels_initial.npz is the run's own seed, also when this call names another file."""
+    pairs, kernels = tiny_data
+    data = PairsDataset(pairs)
+    run = tmp_path / "run"
+    train(run, "ekdun", kernels, data, "tiny", SMALL, _options(1))
+    first = load_kernels(run / "kernels_initial.npz")
+    for name in ("kernels_initial.npz", "kernels_learned.npz", "log.csv"):
+        (run / name).unlink()
+    other = tmp_path / "other.npz"
+    model = load_kernels(kernels)
+    save_kernels(other, replace(model, kernels=model.kernels * 1.5))
+    train(run, "ekdun", other, data, "tiny", SMALL, _options(2), resume=True)
+    np.testing.assert_array_equal(load_kernels(run / "kernels_initial.npz").kernels,
+                                  first.kernels)
+    np.testing.assert_array_equal(initial_kernels(run / "checkpoint.pt").kernels,
+                                  first.kernels)
+    assert (run / "kernels_learned.npz").is_file()
 
 
 @pytest.mark.parametrize("physics_weight", ["0", "0.5"])
