@@ -238,14 +238,14 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
     split_id = (0 if split == "train" else 1) if stream is None else stream
     out = np.empty((n, 3, *spec.sensor_shape), dtype=np.float32)
     workers = max(1, min(int(workers), n))
-    bar = _scene_bar(n, split) if progress else None
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=n, desc=f"scenes ({split})", unit="scene", disable=not progress)
     if workers == 1:
         for i in range(n):
             out[i] = _scene(spec, names, split_id, i)
-            if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+            bar.update(1)
+        bar.close()
         return out
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
@@ -259,14 +259,6 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
                          [split_id] * n_chunks, chunks)
         for chunk, images in zip(chunks, drawn, strict=True):
             out[chunk.start:chunk.stop] = images
-            if bar is not None:
-                bar.update(len(chunk))
-    if bar is not None:
-        bar.close()
+            bar.update(len(chunk))
+    bar.close()
     return out
-
-
-def _scene_bar(total: int, split: str):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=f"scenes ({split})", unit="scene")

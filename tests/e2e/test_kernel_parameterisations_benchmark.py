@@ -206,7 +206,6 @@ def _record_many(path: str, seed: str, count: int, start) -> None:
     from bench_kernel_parameterisations import record
 
     start.wait()                        # both processes imported: their writes overlap
-
     header = {"dataset": "d", "spec": {}, "oracle": None, "oracle_note": "n", "references": []}
     for i in range(count):
         record(Path(path), header, {"seed": seed, "param": "free", "schedule": "last-2",
