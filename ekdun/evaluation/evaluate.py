@@ -46,6 +46,8 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
     before the metrics. Runtime is the median wall time per image after ``warmup`` images.
     Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and, on CPU, the peak of
     torch's allocations during one profiled forward pass (:func:`cpu_peak_memory`).
+    ``psnr_per_pair`` / ``ssim_per_pair`` keep each image's value in dataset order, so that two
+    runs can be compared pair by pair and one failed image can be told from a uniform loss.
     """
     device = resolve_device(device)
     model = model.to(device).eval()
@@ -76,6 +78,7 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         "label": label, "images": n,
         "psnr": statistics.fmean(psnrs), "ssim": statistics.fmean(ssims),
         "lpips": statistics.fmean(lpipss) if lpipss else None,
+        "psnr_per_pair": psnrs, "ssim_per_pair": ssims,
         "parameters": model.parameter_count(),
         "runtime_ms_median": 1e3 * statistics.median(times),
         "peak_memory_mib": peak / 2**20,
@@ -174,7 +177,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     Returns
     -------
     list of dict
-        :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``.
+        :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``,
+        ``seed`` (training seed), ``kernel_param`` and ``physics_weight``.
 
     Raises
     ------
@@ -207,8 +211,12 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
         model.cpu()   # off the device again: the next run's peak memory is its own
         row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
-                    "epochs": meta.get("epoch"), "pairs": list(dataset.names),
-                    "pairs_note": note})
+                    "epochs": meta.get("epoch"), "seed": meta.get("seed"),
+                    # what sets a run apart from the paper's: a table must not pool these
+                    "kernel_param": meta.get("overrides", {}).get("kernel_param", "free"),
+                    "physics_weight": float((meta.get("training") or {}).get(
+                        "physics_weight") or 0.0),
+                    "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)
         if log is not None:
             log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f} ({note})")

@@ -21,6 +21,19 @@ def label_for(model: str, schedule: str | None) -> str:
     return f"{name} ({schedule})" if model == "ekdun" and schedule else name
 
 
+def variant_of(row: dict[str, Any]) -> str:
+    """What sets an EK-DUN run apart from the paper's training, e.g. ``flow kernels, λ = 1``
+    (``""`` for free kernels and the reconstruction loss alone)."""
+    parts = []
+    param = row.get("kernel_param")
+    if param not in (None, "free"):
+        parts.append(f"{param} kernels")
+    weight = row.get("physics_weight")
+    if weight:
+        parts.append(f"λ = {float(weight):g}")
+    return ", ".join(parts)
+
+
 def _fmt(value: Any, digits: int) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "n/a"
@@ -42,8 +55,13 @@ TABLE1_COLUMNS = [("label", "Method", -1), ("psnr", "PSNR (dB)", 2), ("ssim", "S
                   ("lpips", "LPIPS", 4), ("parameters", "Parameters", 0),
                   ("runtime_ms_median", "Runtime / image (ms, median)", 1),
                   ("peak_memory_mib", "Peak memory (MiB)", 1)]
-TABLE2_COLUMNS = [("label", "Eigen-kernel model in", -1), ("psnr", "PSNR (dB)", 2),
-                  ("ssim", "SSIM", 4), ("lpips", "LPIPS", 4)]
+TABLE2_COLUMNS = [("label", "Eigen-kernel model in", -1), ("seed", "Training seed", 0),
+                  ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4), ("lpips", "LPIPS", 4),
+                  ("runtime_ms_median", "Inference / image (ms, median)", 2)]
+SUMMARY_COLUMNS = [("label", "Eigen-kernel model in", -1),
+                   ("psnr_text", "PSNR (dB), mean ± sd", -1), ("ssim_mean", "SSIM", 4),
+                   ("delta_text", "Δ PSNR to base only, paired by seed (dB)", -1),
+                   ("runtime_ms_median", "Inference / image (ms, median)", 2)]
 
 
 def split_tables(results: list[dict[str, Any]]) -> tuple[list[dict], list[dict]]:
@@ -54,12 +72,87 @@ def split_tables(results: list[dict[str, Any]]) -> tuple[list[dict], list[dict]]
             table1.append(r)
         elif r.get("model") == "ekdun":
             sched = SCHEDULE_LABELS.get(str(r.get("schedule")), str(r.get("schedule")))
-            table2.append({**r, "label": sched})
+            variant = variant_of(r)
+            # runs trained otherwise than the paper's get their own row label: pooled under
+            # "last-2" they would pass for the paper's row
+            table2.append({**r, "label": f"{sched} ({variant})" if variant else sched})
             if sched == "last-2":
-                table1.append(r)
+                table1.append({**r, "label": label_for("ekdun", f"{r.get('schedule')}, "
+                                                                  f"{variant}")}
+                              if variant else r)
     order = {"base only": 0, "last-2": 1, "all": 2}
-    table2.sort(key=lambda r: order.get(r["label"], 9))
+    table2.sort(key=lambda r: (order.get(r["label"].split(" (")[0], 9), r["label"],
+                               r.get("seed") if isinstance(r.get("seed"), int) else -1))
     return table1, table2
+
+
+def _mean_sd(values: list[float]) -> tuple[float, float | None]:
+    mean = math.fsum(values) / len(values)
+    if len(values) < 2:
+        return mean, None
+    return mean, math.sqrt(math.fsum((v - mean) ** 2 for v in values) / (len(values) - 1))
+
+
+def _pm(mean: float, sd: float | None, n: int, signed: bool = False) -> str:
+    text = f"{mean:+.2f}" if signed else f"{mean:.2f}"
+    return f"{text} ± {sd:.2f} (n = {n})" if sd is not None else f"{text} (n = 1)"
+
+
+def seed_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Table 2 over training seeds: for each row label, PSNR mean ± sample sd, mean SSIM,
+    median inference time, and the PSNR difference to ``base only`` paired by training seed.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Table 2 rows (:func:`table_rows` ``"table2"``), each with ``label``, ``psnr``,
+        ``ssim``, ``seed`` and ``runtime_ms_median``.
+
+    Returns
+    -------
+    list of dict
+        One entry per label, in the rows' order: ``label``, ``runs``, ``seeds``,
+        ``psnr_mean``, ``psnr_sd`` (None for one run), ``ssim_mean``, ``runtime_ms_median``,
+        ``delta_base_mean`` / ``delta_base_sd`` / ``delta_base_seeds`` (None where no seed
+        has exactly one run of both), and the Markdown cells ``psnr_text`` / ``delta_text``.
+        A paired difference cancels what the seeds share (weights and batch order), so it is
+        resolved where the unpaired means are not.
+    """
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(str(r["label"]), []).append(r)
+
+    def by_seed(group: list[dict[str, Any]]) -> dict[Any, float]:
+        seeds = [r.get("seed") for r in group]
+        return {r.get("seed"): float(r["psnr"]) for r in group
+                if r.get("seed") is not None and seeds.count(r.get("seed")) == 1}
+
+    base = by_seed(groups.get("base only", []))
+    summary = []
+    for label, group in groups.items():
+        psnr_mean, psnr_sd = _mean_sd([float(r["psnr"]) for r in group])
+        times = sorted(float(r["runtime_ms_median"]) for r in group
+                       if r.get("runtime_ms_median") is not None)
+        entry: dict[str, Any] = {
+            "label": label, "runs": len(group),
+            "seeds": [r.get("seed") for r in group],
+            "psnr_mean": psnr_mean, "psnr_sd": psnr_sd,
+            "ssim_mean": math.fsum(float(r["ssim"]) for r in group) / len(group),
+            "runtime_ms_median": times[len(times) // 2] if len(times) % 2 else (
+                (times[len(times) // 2 - 1] + times[len(times) // 2]) / 2 if times else None),
+            "psnr_text": _pm(psnr_mean, psnr_sd, len(group)),
+            "delta_base_mean": None, "delta_base_sd": None, "delta_base_seeds": [],
+            "delta_text": "-" if label == "base only" else "n/a",
+        }
+        own = by_seed(group)
+        paired = sorted((s for s in own if s in base), key=str)
+        if label != "base only" and paired:
+            deltas = [own[s] - base[s] for s in paired]
+            mean, sd = _mean_sd(deltas)
+            entry.update(delta_base_mean=mean, delta_base_sd=sd, delta_base_seeds=paired,
+                         delta_text=_pm(mean, sd, len(paired), signed=True))
+        summary.append(entry)
+    return summary
 
 
 TABLES: dict[str, tuple[str, list[tuple[str, str, int]]]] = {
@@ -99,7 +192,7 @@ def missing_rows(results: list[dict[str, Any]], which: str) -> list[str]:
     """Labels of the paper's rows of table ``which`` that ``results`` lack."""
     rows = table_rows(results, which)
     if which == "table1":      # its only EK-DUN row is last-2, whatever its label says
-        have = {label_for(str(r.get("model")), "last-2") for r in rows}
+        have = {label_for(str(r.get("model")), "last-2") for r in rows if not variant_of(r)}
     else:
         have = {str(r.get("label")) for r in rows}
     return [label for label in EXPECTED[which] if label not in have]
@@ -120,7 +213,11 @@ def render_table(results: list[dict[str, Any]], which: str,
         raise InvalidInputError(f"no rows for {title.split(':')[0]}: it needs "
                                 f"{', '.join(EXPECTED[which])} results")
     footer = "\n".join(f"\n{n}" for n in (notes or []))
-    return f"### {title}\n\n{markdown_table(rows, columns)}\n{footer}\n"
+    text = f"### {title}\n\n{markdown_table(rows, columns)}\n"
+    if which == "table2" and len(rows) > len({r["label"] for r in rows}):
+        text += ("\nOver training seeds (sample sd; Δ paired by training seed):\n\n"
+                 f"{markdown_table(seed_summary(rows), SUMMARY_COLUMNS)}\n")
+    return f"{text}{footer}\n"
 
 
 def _write_json(path: Path, doc: dict[str, Any]) -> Path:
@@ -142,8 +239,10 @@ def write_table(out_dir: str | os.PathLike, results: list[dict[str, Any]], which
     text = render_table(results, which, notes)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    doc = {"title": TABLES[which][0], "rows": table_rows(results, which),
-           "notes": notes or []}
+    rows = table_rows(results, which)
+    doc: dict[str, Any] = {"title": TABLES[which][0], "rows": rows, "notes": notes or []}
+    if which == "table2":
+        doc["over_seeds"] = seed_summary(rows)
     written = {f"{which}.json": _write_json(out_dir / f"{which}.json", doc)}
     with atomic_file(out_dir / f"{which}.md") as tmp:
         tmp.write_text(text, encoding="utf-8")

@@ -118,6 +118,48 @@ def test_tables_markdown_and_json(tmp_path):
     assert set(written) >= {"table1.md", "table2.md", "results.json"}
 
 
+def ekdun_row(schedule: str, seed: int, psnr: float, **extra) -> dict:
+    return {"label": f"EK-DUN ({schedule})", "model": "ekdun", "schedule": schedule,
+            "seed": seed, "psnr": psnr, "ssim": 0.5 + seed / 100, "lpips": None,
+            "parameters": 10, "runtime_ms_median": 1.0 + seed, "peak_memory_mib": 2.0,
+            "kernel_param": "free", "physics_weight": 0.0, **extra}
+
+
+def test_table2_over_training_seeds_pairs_by_seed_and_keeps_variants_apart(tmp_path):
+    rows = [ekdun_row("base", s, p) for s, p in ((0, 20.0), (1, 21.0), (2, 22.0))]
+    rows += [ekdun_row("last-2", s, p) for s, p in ((2, 22.5), (0, 21.0), (1, 22.5))]
+    rows += [ekdun_row("last-2", 0, 20.5, physics_weight=1.0),
+             ekdun_row("last-2", 1, 23.0, kernel_param="flow"),
+             ekdun_row("all", 0, 19.0), ekdun_row("all", 0, 19.5)]   # one seed twice
+    write_tables(tmp_path, rows)
+    doc = json.loads((tmp_path / "table2.json").read_text())
+    assert [(r["label"], r["seed"]) for r in doc["rows"]] == [
+        ("base only", 0), ("base only", 1), ("base only", 2),
+        ("last-2", 0), ("last-2", 1), ("last-2", 2), ("last-2 (flow kernels)", 1),
+        ("last-2 (λ = 1)", 0), ("all", 0), ("all", 0)]
+    summary = {e["label"]: e for e in doc["over_seeds"]}
+    last2 = summary["last-2"]           # Δ 1.0, 1.5, 0.5 paired; unpaired means differ by 0.67
+    assert last2["delta_base_mean"] == pytest.approx(1.0)
+    assert last2["delta_base_sd"] == pytest.approx(0.5)
+    assert last2["delta_base_seeds"] == [0, 1, 2]
+    assert last2["psnr_mean"] == pytest.approx(22.0) and last2["psnr_sd"] == pytest.approx(
+        np.std([21.0, 22.5, 22.5], ddof=1))
+    assert last2["runtime_ms_median"] == pytest.approx(2.0)
+    assert summary["last-2 (λ = 1)"]["delta_base_mean"] == pytest.approx(0.5)
+    assert summary["last-2 (λ = 1)"]["psnr_sd"] is None
+    assert summary["last-2 (flow kernels)"]["delta_base_mean"] == pytest.approx(2.0)
+    assert summary["all"]["delta_base_seeds"] == [] and summary["all"]["delta_text"] == "n/a"
+    assert summary["base only"]["delta_base_mean"] is None
+    text = (tmp_path / "table2.md").read_text()
+    assert "| last-2 | 22.00 ± 0.87 (n = 3) | 0.5100 | +1.00 ± 0.50 (n = 3) | 2.00 |" in text
+    # Table 1 takes the paper's last-2 rows; variants keep their own labels
+    t1 = [r["label"] for r in json.loads((tmp_path / "table1.json").read_text())["rows"]]
+    assert t1.count("EK-DUN (last-2)") == 3
+    assert {"EK-DUN (last-2, λ = 1)", "EK-DUN (last-2, flow kernels)"} <= set(t1)
+    assert missing_rows(rows[-2:], "table2") == ["base only", "last-2"]
+    assert missing_rows([rows[6]], "table1") == ["EK-DUN (last-2)", "Le-ADMM-U", "UPDN"]
+
+
 def test_one_table_at_a_time_and_results_round_trip(tmp_path):
     rows = [
         {"label": "EK-DUN (all)", "model": "ekdun", "schedule": "all", "psnr": 20.0,
@@ -130,7 +172,8 @@ def test_one_table_at_a_time_and_results_round_trip(tmp_path):
     back, notes = read_results(tmp_path / "r")              # a folder means its results.json
     assert back == rows and notes == ["a note"]
     text = render_table(back, "table2", notes)
-    assert "| all | 20.00 | 0.5000 | n/a |" in text and text.rstrip().endswith("a note")
+    assert "| all | n/a | 20.00 | 0.5000 | n/a | 1.00 |" in text
+    assert text.rstrip().endswith("a note") and "Over training seeds" not in text
     assert missing_rows(back, "table2") == ["base only", "last-2"]
     assert missing_rows(back, "table1") == ["EK-DUN (last-2)", "Le-ADMM-U"]
     written = write_table(tmp_path / "t", back, "table1")
@@ -166,6 +209,15 @@ def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, c
     assert names == sorted([f"im{i}.{s}" for i in range(8) for s in ("npy", "png")])
     image = np.load(out / "im0.npy")
     assert image.shape == (16, 16, 3) and np.isfinite(image).all()
+    # the per-pair figures are those of each reconstruction against its scene (skimage's
+    # PSNR, independent of ours), and the headline is their mean
+    for name, value in zip(res["pairs"], res["psnr_per_pair"], strict=True):
+        truth = np.load(pairs / "scene" / f"{name}.npy")
+        recon = np.clip(np.load(out / f"{name}.npy"), 0, 1)
+        assert value == pytest.approx(peak_signal_noise_ratio(truth, recon, data_range=1.0),
+                                      abs=1e-3)
+    assert res["psnr"] == pytest.approx(np.mean(res["psnr_per_pair"]), abs=1e-9)
+    assert res["ssim"] == pytest.approx(np.mean(res["ssim_per_pair"]), abs=1e-9)
 
 
 def test_bad_inputs_give_one_line_errors_and_no_outputs(tiny_data, tiny_checkpoint,
