@@ -220,6 +220,26 @@ def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, c
     assert res["ssim"] == pytest.approx(np.mean(res["ssim_per_pair"]), abs=1e-9)
 
 
+def test_eval_rows_carry_seed_parameterisation_and_physics_weight(tiny_data, tiny_checkpoint,
+                                                                  tmp_path):
+    pairs, kernels = tiny_data
+    from ekdun.data.pairs import PairsDataset
+
+    run = tmp_path / "flow-l05"
+    train(run, "ekdun", kernels, PairsDataset(pairs, holdout=("im6", "im7")), "tiny",
+          {**SMALL, "kernel_param": "flow"},
+          TrainOptions(epochs=1, batch_size=4, progress=False, threads=1, seed=5,
+                       physics_weight=0.5))
+    assert ekdun_main(["eval", str(tiny_checkpoint), str(run), "--data", str(pairs), "--out",
+                       str(tmp_path / "t"), "--quiet"]) == 0
+    paper, flow = json.loads((tmp_path / "t" / "results.json").read_text())["results"]
+    assert (paper["seed"], paper["kernel_param"], paper["physics_weight"]) == (0, "free", 0.0)
+    assert (flow["seed"], flow["kernel_param"], flow["physics_weight"]) == (5, "flow", 0.5)
+    labels = [r["label"] for r in json.loads((tmp_path / "t" / "table2.json").read_text())[
+        "rows"]]
+    assert labels == ["last-2", "last-2 (flow kernels, λ = 0.5)"]
+
+
 def test_bad_inputs_give_one_line_errors_and_no_outputs(tiny_data, tiny_checkpoint,
                                                         tmp_path, capsys):
     pairs, kernels = tiny_data
