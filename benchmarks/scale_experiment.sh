@@ -11,8 +11,10 @@
 #    it is compared against (COMPARE=1 without ORACLE); ORACLE_FLAG overrides that.
 # 2. Runs in priority order: Table 2 (measured seed: SCHEDULES x SEEDS), Fig. 7 (one-PSF seed,
 #    last-2, kernel parameterisation x --physics-weight for each of F7_PARAMS x LAMBDAS) and
-#    the measured seed with each of MEASURED_LAMBDAS (last-2, free); Fig. 7 runs use the
-#    first of SEEDS. CONCURRENT runs share the device at once (12 runs at batch 8 trained
+#    the measured seed (last-2, MEASURED_PARAMS x MEASURED_LAMBDAS); Fig. 7 runs use the
+#    training seeds F7_SEEDS (default: the first of SEEDS). With RESUME=1 a run whose folder
+#    holds a checkpoint continues it to EPOCHS (`ekdun train --resume`: a second call on the
+#    same warm machine). CONCURRENT runs share the device at once (12 runs at batch 8 trained
 #    at 138 images/s together on an H200). Sequentially, a run that would overrun DEADLINE_S seconds is
 #    skipped; with STOP_AT, training still going at STOP_AT seconds is stopped and each run
 #    is evaluated at its last finished epoch (checkpoints are written every epoch; the epoch
@@ -29,6 +31,7 @@ EPOCHS=${EPOCHS:-4}; BATCH=${BATCH:-8}; PRESET=${PRESET:-paper}; LR=${LR:-5e-4}
 # run lists: unset = the default, empty = none
 LAMBDAS=${LAMBDAS-"10 0 1"}; SCHEDULES=${SCHEDULES-"last-2 base all"}
 F7_PARAMS=${F7_PARAMS-free}; MEASURED_LAMBDAS=${MEASURED_LAMBDAS-}
+MEASURED_PARAMS=${MEASURED_PARAMS:-free}; RESUME=${RESUME:-0}
 DEADLINE_S=${DEADLINE_S:-100000}; SEEDS=${SEEDS:-${SEED:-0}}
 CONCURRENT=${CONCURRENT:-1}; STOP_AT=${STOP_AT:-0}; RUN_THREADS=${RUN_THREADS:-}
 COMPARE=${COMPARE:-1}   # 0: no psfkit compare here (on a lent GPU: compare the kernels later)
@@ -67,32 +70,38 @@ PY
 
 # Priority order: Table 2 seed by seed, then Fig. 7 (so that a deadline cuts the tail)
 read -r -a seeds <<<"$SEEDS"
+F7_SEEDS=${F7_SEEDS:-${seeds[0]}}
 runs=()
 for seed in "${seeds[@]}"; do
     for s in $SCHEDULES; do
         runs+=("t2-$s-s$seed|--kernels $OUT/measured.npz --schedule $s --seed $seed")
     done
 done
-for p in $F7_PARAMS; do
-    for l in $LAMBDAS; do
-        runs+=("f7-onepsf-$p-l$l-s${seeds[0]}|--kernels $OUT/one_psf.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed ${seeds[0]}")
+for t in $F7_SEEDS; do
+    for p in $F7_PARAMS; do
+        for l in $LAMBDAS; do
+            runs+=("f7-onepsf-$p-l$l-s$t|--kernels $OUT/one_psf.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed $t")
+        done
     done
-done
-for l in $MEASURED_LAMBDAS; do
-    runs+=("f7-measured-free-l$l-s${seeds[0]}|--kernels $OUT/measured.npz --schedule last-2 --physics-weight $l --seed ${seeds[0]}")
+    for p in $MEASURED_PARAMS; do
+        for l in $MEASURED_LAMBDAS; do
+            runs+=("f7-measured-$p-l$l-s$t|--kernels $OUT/measured.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed $t")
+        done
+    done
 done
 thread_flag=()
 [[ -n "$RUN_THREADS" ]] && thread_flag=(--threads "$RUN_THREADS")
 train_one() {   # name flags: one training run, its own log; stopped at STOP_AT
-    local name=$1 flags=$2 budget=() left=$(( STOP_AT - $(elapsed) ))
+    local name=$1 flags=$2 budget=() resume=() left=$(( STOP_AT - $(elapsed) ))
+    (( RESUME )) && [[ -f "$OUT/$name/checkpoint.pt" ]] && resume=(--resume)
     if (( STOP_AT > 0 )); then
         (( left > 0 )) || { log "skip $name: the time budget is spent"; return 124; }
         budget=(timeout --signal=TERM "$left")
     fi
     # shellcheck disable=SC2086
     "${budget[@]}" $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
-        --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" "${thread_flag[@]}" --quiet \
-        >"$OUT/train-$name.log" 2>&1
+        --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" "${thread_flag[@]}" "${resume[@]}" \
+        --quiet >>"$OUT/train-$name.log" 2>&1
     local rc=$?
     (( STOP_AT > 0 && rc == 124 )) && log "$name: stopped at ${STOP_AT} s"
     return $rc

@@ -30,13 +30,21 @@ def _epochs(run: Path) -> int:
 
 def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path):
     out = tmp_path / "scale"
-    done = _run(out, SEEDS="0 1", CONCURRENT="2", EPOCHS="1", MEASURED_LAMBDAS="1")
+    done = _run(out, SEEDS="0 1", CONCURRENT="2", EPOCHS="1", MEASURED_LAMBDAS="1",
+                MEASURED_PARAMS="free flow", F7_SEEDS="0 1")
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     names = {"t2-base-s0", "t2-last-2-s0", "t2-base-s1", "t2-last-2-s1",
-             "f7-measured-free-l1-s0"}
+             "f7-measured-free-l1-s0", "f7-measured-flow-l1-s0",
+             "f7-measured-free-l1-s1", "f7-measured-flow-l1-s1"}
     rows = json.loads((out / "eval" / "results.json").read_text())["results"]
     assert {Path(r["checkpoint"]).parent.name for r in rows} == names
     assert all(r["epochs"] == 1 for r in rows)
+    # each Fig. 7 run trained with its own parameterisation, weight and training seed
+    for r in rows:
+        name = Path(r["checkpoint"]).parent.name
+        if name.startswith("f7-"):
+            assert (r["kernel_param"], r["physics_weight"], r["seed"]) == (
+                name.split("-")[2], 1.0, int(name[-1])), name
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["runs"]) == names
     # COMPARE=0 and no ORACLE_FLAG: no oracle is fitted (nothing would read it)
@@ -55,3 +63,10 @@ def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path
     assert 1 <= epochs < 10000
     (row,) = [r for r in json.loads((out / "eval" / "results.json").read_text())["results"]]
     assert row["epochs"] == epochs and Path(row["checkpoint"]).parent == run
+
+    # RESUME=1 continues a finished run to more epochs; its first epoch is kept as it was
+    first = (out / "t2-base-s0" / "log.csv").read_text().splitlines()
+    resumed = _run(out, SEEDS="0", EPOCHS="2", SCHEDULES="base", RESUME="1")
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    again = (out / "t2-base-s0" / "log.csv").read_text().splitlines()
+    assert again[:2] == first[:2] and len(again) == 3 and _epochs(out / "t2-base-s0") == 2
