@@ -77,17 +77,17 @@ for seed in "${seeds[@]}"; do
         runs+=("t2-$s-s$seed|--kernels $OUT/measured.npz --schedule $s --seed $seed")
     done
 done
+add_f7() {   # start seed_file params lambdas training_seed: last-2 runs, params x lambdas
+    local p l
+    for p in $3; do
+        for l in $4; do
+            runs+=("f7-$1-$p-l$l-s$5|--kernels $2 --schedule last-2 --kernel-param $p --physics-weight $l --seed $5")
+        done
+    done
+}
 for t in $F7_SEEDS; do
-    for p in $F7_PARAMS; do
-        for l in $LAMBDAS; do
-            runs+=("f7-onepsf-$p-l$l-s$t|--kernels $OUT/one_psf.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed $t")
-        done
-    done
-    for p in $MEASURED_PARAMS; do
-        for l in $MEASURED_LAMBDAS; do
-            runs+=("f7-measured-$p-l$l-s$t|--kernels $OUT/measured.npz --schedule last-2 --kernel-param $p --physics-weight $l --seed $t")
-        done
-    done
+    add_f7 onepsf "$OUT/one_psf.npz" "$F7_PARAMS" "$LAMBDAS" "$t"
+    add_f7 measured "$OUT/measured.npz" "$MEASURED_PARAMS" "$MEASURED_LAMBDAS" "$t"
 done
 thread_flag=()
 [[ -n "$RUN_THREADS" ]] && thread_flag=(--threads "$RUN_THREADS")

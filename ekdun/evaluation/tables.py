@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -87,10 +88,8 @@ def split_tables(results: list[dict[str, Any]]) -> tuple[list[dict], list[dict]]
 
 
 def _mean_sd(values: list[float]) -> tuple[float, float | None]:
-    mean = math.fsum(values) / len(values)
-    if len(values) < 2:
-        return mean, None
-    return mean, math.sqrt(math.fsum((v - mean) ** 2 for v in values) / (len(values) - 1))
+    """Mean and sample sd (None for one value)."""
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None
 
 
 def _pm(mean: float, sd: float | None, n: int, signed: bool = False) -> str:
@@ -131,15 +130,14 @@ def seed_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     summary = []
     for label, group in groups.items():
         psnr_mean, psnr_sd = _mean_sd([float(r["psnr"]) for r in group])
-        times = sorted(float(r["runtime_ms_median"]) for r in group
-                       if r.get("runtime_ms_median") is not None)
+        times = [float(r["runtime_ms_median"]) for r in group
+                 if r.get("runtime_ms_median") is not None]
         entry: dict[str, Any] = {
             "label": label, "runs": len(group),
             "seeds": [r.get("seed") for r in group],
             "psnr_mean": psnr_mean, "psnr_sd": psnr_sd,
-            "ssim_mean": math.fsum(float(r["ssim"]) for r in group) / len(group),
-            "runtime_ms_median": times[len(times) // 2] if len(times) % 2 else (
-                (times[len(times) // 2 - 1] + times[len(times) // 2]) / 2 if times else None),
+            "ssim_mean": statistics.fmean(float(r["ssim"]) for r in group),
+            "runtime_ms_median": statistics.median(times) if times else None,
             "psnr_text": _pm(psnr_mean, psnr_sd, len(group)),
             "delta_base_mean": None, "delta_base_sd": None, "delta_base_seeds": [],
             "delta_text": "-" if label == "base only" else "n/a",
