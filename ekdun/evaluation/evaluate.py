@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import statistics
 import time
@@ -148,6 +149,23 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
     return PairsDataset(root, channel_order, downsample=factor, recorded=recorded), note
 
 
+def seed_kernels_identity(doc: dict[str, Any]) -> dict[str, Any]:
+    """Which seed kernels a checkpoint was trained from: ``seed_kernels_sha`` (the first 12 hex
+    digits of the SHA-256 of its initial kernels as float32) and ``seed_kernels_one_psf``
+    (``Kv = Kh = Kbase``: the one-PSF seed of Fig. 7); both None without initial kernels.
+
+    Two runs from different seeds are different experiments even where every training flag
+    agrees: a table must not pool them over "training seeds".
+    """
+    kernels = doc.get("initial_kernels")
+    if kernels is None:
+        return {"seed_kernels_sha": None, "seed_kernels_one_psf": None}
+    k = kernels.detach().cpu().to(torch.float32).contiguous()
+    one_psf = bool(k.shape[0] > 1 and all(torch.equal(k[0], k[i]) for i in range(1, k.shape[0])))
+    return {"seed_kernels_sha": hashlib.sha256(k.numpy().tobytes()).hexdigest()[:12],
+            "seed_kernels_one_psf": one_psf}
+
+
 def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | os.PathLike,
                          lpips: LPIPSMetric | None = None, device: str | torch.device = "auto",
                          log: Callable[[str], Any] | None = None,
@@ -178,7 +196,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     -------
     list of dict
         :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``,
-        ``seed`` (training seed), ``kernel_param`` and ``physics_weight``.
+        ``seed`` (training seed), ``kernel_param``, ``physics_weight`` and, for EK-DUN, the
+        seed kernels it was trained from (:func:`seed_kernels_identity`).
 
     Raises
     ------
@@ -216,6 +235,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
                     "kernel_param": meta.get("overrides", {}).get("kernel_param", "free"),
                     "physics_weight": float((meta.get("training") or {}).get(
                         "physics_weight") or 0.0),
+                    **seed_kernels_identity(doc),
                     "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)
         if log is not None:

@@ -24,8 +24,9 @@ def label_for(model: str, schedule: str | None) -> str:
 
 def variant_of(row: dict[str, Any]) -> str:
     """What sets an EK-DUN run apart from the paper's training, e.g. ``flow kernels, λ = 1``
-    (``""`` for free kernels and the reconstruction loss alone)."""
-    parts = []
+    (``""`` for free kernels and the reconstruction loss alone); ``one-PSF seed`` where it
+    started from ``Kv = Kh = Kbase``."""
+    parts = ["one-PSF seed"] if row.get("seed_kernels_one_psf") else []
     param = row.get("kernel_param")
     if param not in (None, "free"):
         parts.append(f"{param} kernels")
@@ -65,15 +66,33 @@ SUMMARY_COLUMNS = [("label", "Eigen-kernel model in", -1),
                    ("runtime_ms_median", "Inference / image (ms, median)", 2)]
 
 
+def _distinct_variants(results: list[dict[str, Any]]) -> list[str]:
+    """:func:`variant_of` of each row, with ``seed kernels <sha>`` added where rows of one
+    schedule and variant were trained from different seed kernels (they are not seeds of one
+    experiment)."""
+    variants = [variant_of(r) for r in results]
+    shas: dict[tuple[str, str], set[str]] = {}
+    for r, v in zip(results, variants, strict=True):
+        if r.get("seed_kernels_sha"):
+            shas.setdefault((str(r.get("schedule")), v), set()).add(str(r["seed_kernels_sha"]))
+    out = []
+    for r, v in zip(results, variants, strict=True):
+        if len(shas.get((str(r.get("schedule")), v), ())) > 1:
+            v = ", ".join(filter(None, [v, f"seed kernels {str(r['seed_kernels_sha'])[:8]}"]))
+        out.append(v)
+    return out
+
+
 def split_tables(results: list[dict[str, Any]]) -> tuple[list[dict], list[dict]]:
     """Table 1: Le-ADMM-U, UPDN, EK-DUN (last-2); Table 2: EK-DUN schedules."""
     table1, table2 = [], []
-    for r in results:
+    variants = _distinct_variants(results)
+    for i, r in enumerate(results):
         if r.get("model") in ("le-admm-u", "updn"):
             table1.append(r)
         elif r.get("model") == "ekdun":
             sched = SCHEDULE_LABELS.get(str(r.get("schedule")), str(r.get("schedule")))
-            variant = variant_of(r)
+            variant = variants[i]
             # runs trained otherwise than the paper's get their own row label: pooled under
             # "last-2" they would pass for the paper's row
             table2.append({**r, "label": f"{sched} ({variant})" if variant else sched})

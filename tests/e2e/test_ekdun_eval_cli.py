@@ -24,6 +24,7 @@ from ekdun.evaluation import (
     write_table,
     write_tables,
 )
+from ekdun.evaluation.evaluate import seed_kernels_identity
 from ekdun.evaluation.tables import missing_rows
 from ekdun.physics.operators import ShiftInvariantOperator
 from ekdun.reconstruction import admm_tv
@@ -160,6 +161,39 @@ def test_table2_over_training_seeds_pairs_by_seed_and_keeps_variants_apart(tmp_p
     assert missing_rows([rows[6]], "table1") == ["EK-DUN (last-2)", "Le-ADMM-U", "UPDN"]
 
 
+def test_runs_from_different_seed_kernels_are_not_pooled_as_training_seeds(tmp_path):
+    # the Fig. 7 grid on a GPU: the measured and the one-PSF seed, same flags, training seed 0
+    one = {"seed_kernels_sha": "aaaa11112222", "seed_kernels_one_psf": True}
+    measured = {"seed_kernels_sha": "bbbb11112222", "seed_kernels_one_psf": False}
+    pairs = {"seed_kernels_sha": "cccc11112222", "seed_kernels_one_psf": False}
+    rows = [ekdun_row("last-2", 0, 24.4, kernel_param="flow", **one),
+            ekdun_row("last-2", 0, 24.6, kernel_param="flow", **measured),
+            ekdun_row("last-2", 1, 24.2, kernel_param="flow", **measured),
+            ekdun_row("last-2", 0, 23.0, kernel_param="flow", **pairs)]
+    write_tables(tmp_path, rows)
+    doc = json.loads((tmp_path / "table2.json").read_text())
+    summary = {e["label"]: e for e in doc["over_seeds"]}
+    assert set(summary) == {"last-2 (one-PSF seed, flow kernels)",
+                            "last-2 (flow kernels, seed kernels bbbb1111)",
+                            "last-2 (flow kernels, seed kernels cccc1111)"}
+    assert summary["last-2 (flow kernels, seed kernels bbbb1111)"]["seeds"] == [0, 1]
+    assert summary["last-2 (one-PSF seed, flow kernels)"]["psnr_sd"] is None
+    # one seed per label: no suffix
+    write_tables(tmp_path / "b", rows[1:3])
+    doc = json.loads((tmp_path / "b" / "table2.json").read_text())
+    assert [e["label"] for e in doc["over_seeds"]] == ["last-2 (flow kernels)"]
+
+
+def test_seed_kernels_identity_tells_the_one_psf_seed_from_a_fit():
+    k = torch.rand(3, 1, 8, 8)
+    fit = seed_kernels_identity({"initial_kernels": k})
+    assert not fit["seed_kernels_one_psf"] and len(fit["seed_kernels_sha"]) == 12
+    one = seed_kernels_identity({"initial_kernels": k[:1].repeat(3, 1, 1, 1)})
+    assert one["seed_kernels_one_psf"] and one["seed_kernels_sha"] != fit["seed_kernels_sha"]
+    assert seed_kernels_identity({"initial_kernels": k.clone()}) == fit   # content, not object
+    assert seed_kernels_identity({}) == {"seed_kernels_sha": None, "seed_kernels_one_psf": None}
+
+
 def test_one_table_at_a_time_and_results_round_trip(tmp_path):
     rows = [
         {"label": "EK-DUN (all)", "model": "ekdun", "schedule": "all", "psnr": 20.0,
@@ -198,6 +232,7 @@ def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, c
                        str(tmp_path / "tables"), "--quiet"]) == 0
     res = json.loads((tmp_path / "tables" / "results.json").read_text())["results"][0]
     assert res["pairs"] == ["im6", "im7"]          # only what training held out is scored
+    assert len(res["seed_kernels_sha"]) == 12 and res["seed_kernels_one_psf"] is False
     assert np.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["parameters"] > 0
     assert res["runtime_ms_median"] > 0 and res["model"] == "ekdun"
     assert (tmp_path / "tables" / "table2.md").is_file()
