@@ -12,7 +12,9 @@
 # 2. Runs in priority order: Table 2 (measured seed: SCHEDULES x SEEDS), Fig. 7 (one-PSF seed,
 #    last-2, kernel parameterisation x --physics-weight for each of F7_PARAMS x LAMBDAS) and
 #    the measured seed (last-2, MEASURED_PARAMS x MEASURED_LAMBDAS); Fig. 7 runs use the
-#    training seeds F7_SEEDS (default: the first of SEEDS). With RESUME=1 a run whose folder
+#    training seeds F7_SEEDS (default: the first of SEEDS). ABSORB_SEEDS adds, for those
+#    training seeds, the learned half of bench_unet_absorption.py: base only with the kernel
+#    file ORACLE_SI and last-2 with ORACLE_EK, kernels frozen (--kernel-lr-scale 0). With RESUME=1 a run whose folder
 #    holds a checkpoint continues it to EPOCHS (`ekdun train --resume`: a second call on the
 #    same warm machine). CONCURRENT runs share the device at once (12 runs at batch 8 trained
 #    at 138 images/s together on an H200). Sequentially, a run that would overrun DEADLINE_S seconds is
@@ -32,6 +34,11 @@ EPOCHS=${EPOCHS:-4}; BATCH=${BATCH:-8}; PRESET=${PRESET:-paper}; LR=${LR:-5e-4}
 LAMBDAS=${LAMBDAS-"10 0 1"}; SCHEDULES=${SCHEDULES-"last-2 base all"}
 F7_PARAMS=${F7_PARAMS-free}; MEASURED_LAMBDAS=${MEASURED_LAMBDAS-}
 MEASURED_PARAMS=${MEASURED_PARAMS:-free}; RESUME=${RESUME:-0}
+ABSORB_SEEDS=${ABSORB_SEEDS-}
+if [[ -n "$ABSORB_SEEDS" ]]; then
+    : "${ORACLE_SI:?ABSORB_SEEDS needs ORACLE_SI (the SI oracle as Kbase = Kv = Kh, paper basis)}"
+    : "${ORACLE_EK:?ABSORB_SEEDS needs ORACLE_EK (the EK oracle, paper basis)}"
+fi
 DEADLINE_S=${DEADLINE_S:-100000}; SEEDS=${SEEDS:-${SEED:-0}}
 CONCURRENT=${CONCURRENT:-1}; STOP_AT=${STOP_AT:-0}; RUN_THREADS=${RUN_THREADS:-}
 COMPARE=${COMPARE:-1}   # 0: no psfkit compare here (on a lent GPU: compare the kernels later)
@@ -88,6 +95,12 @@ add_f7() {   # start seed_file params lambdas training_seed: last-2 runs, params
 for t in $F7_SEEDS; do
     add_f7 onepsf "$OUT/one_psf.npz" "$F7_PARAMS" "$LAMBDAS" "$t"
     add_f7 measured "$OUT/measured.npz" "$MEASURED_PARAMS" "$MEASURED_LAMBDAS" "$t"
+done
+# U-Net absorption (bench_unet_absorption.py's learned half, concurrently): the physics frozen at
+# the SI oracle (base only) and at the EK oracle (last-2), for the training seeds ABSORB_SEEDS
+for t in $ABSORB_SEEDS; do
+    runs+=("ab-base-si-s$t|--kernels $ORACLE_SI --schedule base --kernel-lr-scale 0 --seed $t")
+    runs+=("ab-last-2-ek-s$t|--kernels $ORACLE_EK --schedule last-2 --kernel-lr-scale 0 --seed $t")
 done
 thread_flag=()
 [[ -n "$RUN_THREADS" ]] && thread_flag=(--threads "$RUN_THREADS")

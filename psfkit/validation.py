@@ -521,6 +521,7 @@ FLAGS: dict[str, FlagRange] = {
     "--batch-size": FlagRange(int, 1, 65_536),
     "--lr": FlagRange(float, 0, 1, low_open=True),
     "--physics-weight": _WEIGHT,
+    "--kernel-lr-scale": FlagRange(float, 0, 1e6),
     "--tv": _WEIGHT,
     "--tol": FlagRange(float, 0, 1),
 }

@@ -104,6 +104,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
     p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")
     p.add_argument("--lr", type=flag("--lr"), help="override the preset's learning rate")
+    p.add_argument("--kernel-lr-scale", type=flag("--kernel-lr-scale"), metavar="SCALE",
+                   help="EK-DUN: learning rate of the physics kernels = SCALE x --lr (default "
+                        "the preset's); 0 freezes them at --kernels (e.g. an oracle: how much "
+                        "of the model mismatch the U-Net absorbs, docs/training.md)")
     p.add_argument("--physics-weight", type=flag("--physics-weight"), metavar="LAMBDA",
                    help="EK-DUN: add LAMBDA x the measurement consistency of the network's own "
                         "forward model on the training pairs to the loss (the fit-pairs "
@@ -231,6 +235,8 @@ def run_train(args: argparse.Namespace) -> int:
         overrides["schedule"] = args.schedule
     if args.iterations:
         overrides["iterations"] = args.iterations
+    if args.kernel_lr_scale is not None and args.network != "ekdun":
+        raise InvalidInputError("--kernel-lr-scale applies to --network ekdun only")
     if args.kernel_param:
         if args.network != "ekdun":
             raise InvalidInputError("--kernel-param applies to --network ekdun only")
@@ -263,7 +269,8 @@ def run_train(args: argparse.Namespace) -> int:
                    + (f", binned {factor}x{factor} to {dataset.image_shape[1]}x"
                       f"{dataset.image_shape[2]}" if factor > 1 else ""))
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                           physics_weight=args.physics_weight, seed=args.seed,
+                           physics_weight=args.physics_weight,
+                           kernel_lr_scale=args.kernel_lr_scale, seed=args.seed,
                            amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
                            channels_last=args.channels_last, compile=args.compile,

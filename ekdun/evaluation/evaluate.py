@@ -196,8 +196,9 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     -------
     list of dict
         :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``,
-        ``seed`` (training seed), ``kernel_param``, ``physics_weight`` and, for EK-DUN, the
-        seed kernels it was trained from (:func:`seed_kernels_identity`).
+        ``seed`` (training seed), ``kernel_param``, ``physics_weight``, ``kernel_lr_scale``
+        (0: kernels frozen) and, for EK-DUN, the seed kernels it was trained from
+        (:func:`seed_kernels_identity`).
 
     Raises
     ------
@@ -235,6 +236,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
                     "kernel_param": meta.get("overrides", {}).get("kernel_param", "free"),
                     "physics_weight": float((meta.get("training") or {}).get(
                         "physics_weight") or 0.0),
+                    "kernel_lr_scale": (meta.get("training") or {}).get("kernel_lr_scale"),
                     **seed_kernels_identity(doc),
                     "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)

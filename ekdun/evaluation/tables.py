@@ -25,7 +25,8 @@ def label_for(model: str, schedule: str | None) -> str:
 def variant_of(row: dict[str, Any]) -> str:
     """What sets an EK-DUN run apart from the paper's training, e.g. ``flow kernels, λ = 1``
     (``""`` for free kernels and the reconstruction loss alone); ``one-PSF seed`` where it
-    started from ``Kv = Kh = Kbase``."""
+    started from ``Kv = Kh = Kbase``, ``frozen kernels`` where its kernels did not learn
+    (``--kernel-lr-scale 0``)."""
     parts = ["one-PSF seed"] if row.get("seed_kernels_one_psf") else []
     param = row.get("kernel_param")
     if param not in (None, "free"):
@@ -33,6 +34,8 @@ def variant_of(row: dict[str, Any]) -> str:
     weight = row.get("physics_weight")
     if weight:
         parts.append(f"λ = {float(weight):g}")
+    if row.get("model") == "ekdun" and row.get("kernel_lr_scale") == 0:
+        parts.append("frozen kernels")
     return ", ".join(parts)
 
 

@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from psfkit.kernelfile import load_kernels
+
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "scale_experiment.sh"
 
 
@@ -70,3 +72,20 @@ def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     again = (out / "t2-base-s0" / "log.csv").read_text().splitlines()
     assert again[:2] == first[:2] and len(again) == 3 and _epochs(out / "t2-base-s0") == 2
+
+
+def test_absorption_runs_train_on_frozen_oracle_kernels(tmp_path):
+    out = tmp_path / "absorb"
+    refused = _run(out, SCHEDULES="", ABSORB_SEEDS="0", EPOCHS="1")
+    assert refused.returncode != 0 and "ORACLE_SI" in refused.stderr
+    # stand-ins for the oracles: the files the script itself writes before any run
+    done = _run(out, SCHEDULES="", ABSORB_SEEDS="0", EPOCHS="1",
+                ORACLE_SI=str(out / "one_psf.npz"), ORACLE_EK=str(out / "measured.npz"))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    doc = json.loads((out / "eval" / "table2.json").read_text())
+    labels = {Path(r["checkpoint"]).parent.name: r["label"] for r in doc["rows"]}
+    assert labels == {"ab-base-si-s0": "base only (one-PSF seed, frozen kernels)",
+                      "ab-last-2-ek-s0": "last-2 (frozen kernels)"}
+    for run, given in (("ab-base-si-s0", "one_psf.npz"), ("ab-last-2-ek-s0", "measured.npz")):
+        learned = load_kernels(out / run / "kernels_learned.npz").kernels
+        assert (learned == load_kernels(out / given).kernels).all(), run
