@@ -14,8 +14,8 @@
 #    the measured seed (last-2, MEASURED_PARAMS x MEASURED_LAMBDAS); Fig. 7 runs use the
 #    training seeds F7_SEEDS (default: the first of SEEDS). ABSORB_SEEDS adds, for those
 #    training seeds, the learned half of bench_unet_absorption.py: base only with the kernel
-#    file ORACLE_SI and last-2 with ORACLE_EK, kernels frozen (--kernel-lr-scale 0). With RESUME=1 a run whose folder
-#    holds a checkpoint continues it to EPOCHS (`ekdun train --resume`: a second call on the
+#    file ORACLE_SI and last-2 with ORACLE_EK, kernels frozen (--kernel-lr-scale 0).
+#    With RESUME=1 a run whose folder holds a checkpoint continues it to EPOCHS (`ekdun train --resume`: a second call on the
 #    same warm machine). CONCURRENT runs share the device at once (12 runs at batch 8 trained
 #    at 138 images/s together on an H200). Sequentially, a run that would overrun DEADLINE_S seconds is
 #    skipped; with STOP_AT, training still going at STOP_AT seconds is stopped and each run

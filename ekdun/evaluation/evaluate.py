@@ -226,6 +226,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     results = []
     for (path, model, doc), (dataset, note) in zip(models, datasets, strict=True):
         meta = doc["metadata"]
+        training = meta.get("training") or {}
         schedule = meta.get("overrides", {}).get("schedule") or (
             meta.get("schedule") if meta["model"] == "ekdun" else None)
         row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
@@ -234,9 +235,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
                     "epochs": meta.get("epoch"), "seed": meta.get("seed"),
                     # what sets a run apart from the paper's: a table must not pool these
                     "kernel_param": meta.get("overrides", {}).get("kernel_param", "free"),
-                    "physics_weight": float((meta.get("training") or {}).get(
-                        "physics_weight") or 0.0),
-                    "kernel_lr_scale": (meta.get("training") or {}).get("kernel_lr_scale"),
+                    "physics_weight": float(training.get("physics_weight") or 0.0),
+                    "kernel_lr_scale": training.get("kernel_lr_scale"),
                     **seed_kernels_identity(doc),
                     "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)
