@@ -19,13 +19,17 @@ dataset (``ekdun make-dataset``, source-side dense model):
 absorbed = 1 − (learned gain) / (classical gain): the share of the physics gain that the
 network makes up for without it. ``--half-fov`` and ``--n-train`` take lists (a sweep: one
 dataset per field of view; the first N training pairs of the largest dataset for each N).
+``--data`` uses an existing dataset instead (its own field of view; ``--n-train`` defaults to
+all its training pairs), e.g. the identifiable 128² bench of Table 2.
 
     python benchmarks/bench_unet_absorption.py --out runs/absorb              # 64², tiny
     python benchmarks/bench_unet_absorption.py --out runs/absorb --half-fov 15,30,45 \\
         --learned none                                                        # classical only
+    python benchmarks/bench_unet_absorption.py --out runs/absorb128 --data DATA128P6 --seeds 0
     python benchmarks/bench_unet_absorption.py --out runs/absorb --n-train 24,96 --seeds 0,1,2
 
-Prints one Markdown table, measured in this run (finished runs are reused: resumable).
+Prints one Markdown table, measured in this run (finished runs and classical scores are
+reused: resumable, and processes with different ``--seeds`` may share one ``--out``).
 """
 
 from __future__ import annotations
@@ -111,11 +115,12 @@ def _scores(images: list[np.ndarray], truth: list[np.ndarray]) -> dict[str, floa
     return {"psnr": float(psnr(out, ref).mean()), "ssim": float(ssim(out, ref).mean())}
 
 
-def classical(model: KernelModel, data: Path, tune: int, iterations: int) -> dict[str, Any]:
+def classical(model: KernelModel, data: Path, tune: int, iterations: int,
+              tv_grid: tuple[float, ...] = TV_GRID) -> dict[str, Any]:
     """ADMM-TV with ``model``: TV weight chosen on ``tune`` training pairs, scored on test."""
     train_set, test_set = PairsDataset(data / "train"), PairsDataset(data / "test")
     best = None
-    for tv in TV_GRID:
+    for tv in tv_grid:
         rec = ModelReconstructor(model, ClassicalOptions(tv=tv, iterations=iterations))
         pairs = [train_set[i] for i in range(tune)]
         score = _scores([rec(y.numpy()).image for _, y in pairs],
@@ -123,8 +128,8 @@ def classical(model: KernelModel, data: Path, tune: int, iterations: int) -> dic
         if best is None or score > best[1]:
             best = (tv, score)
     assert best is not None
-    if best[0] in (TV_GRID[0], TV_GRID[-1]):
-        print(f"  note: TV weight {best[0]:g} is at the end of the grid {TV_GRID}", flush=True)
+    if best[0] in (tv_grid[0], tv_grid[-1]):
+        print(f"  note: TV weight {best[0]:g} is at the end of the grid {tv_grid}", flush=True)
     rec = ModelReconstructor(model, ClassicalOptions(tv=best[0], iterations=iterations))
     images, truth = [], []
     for i in range(len(test_set)):
@@ -132,6 +137,25 @@ def classical(model: KernelModel, data: Path, tune: int, iterations: int) -> dic
         images.append(rec(y.numpy()).image)
         truth.append(x.numpy())
     return {"tv": best[0], **_scores(images, truth)}
+
+
+def classical_cached(out: Path, name: str, kernels: Path, data: Path,
+                     args: argparse.Namespace) -> dict[str, Any]:
+    """:func:`classical`, its score kept in ``out/classical`` for the same inputs and settings."""
+    key = {"data": str(data.resolve()), "kernels": str(kernels.resolve()), "tune": args.tune,
+           "iterations": args.iterations, "tv_grid": list(args.tv_grid)}
+    cache = out / "classical" / f"{data.name}-{name}.json"
+    if cache.is_file():
+        kept = json.loads(cache.read_text())
+        if kept.get("key") == key:
+            return kept["score"]
+    score = classical(load_kernels(kernels), data, args.tune, args.iterations,
+                      tuple(args.tv_grid))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"key": key, "score": score}, indent=1) + "\n")
+    tmp.replace(cache)
+    return score
 
 
 def learned(run: Path, kernels: Path, schedule: str, data: Path, n_train: int,
@@ -168,13 +192,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/absorb")
     ap.add_argument("--sensor", type=int, nargs=2, default=(64, 64))
     ap.add_argument("--half-fov", default="30", help="comma list of half fields of view (°)")
-    ap.add_argument("--n-train", default="96", help="comma list of training-pair counts")
+    ap.add_argument("--n-train", default=None,
+                    help="comma list of training-pair counts (default 96, or all of --data)")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="an existing virtual-bench dataset (with its oracle) instead of "
+                         "making one per --half-fov")
     ap.add_argument("--n-test", type=int, default=24)
     ap.add_argument("--photons", type=float, default=2000.0)
     ap.add_argument("--schedule", default="last-2", help="EK-DUN schedule with the EK oracle")
     ap.add_argument("--learned", default="yes", choices=("yes", "none"),
                     help="'none': the classical columns only")
     ap.add_argument("--seeds", default="0", help="training seeds, e.g. 0,1,2")
+    ap.add_argument("--physics", default="SI,EK",
+                    help="which learned runs to train: SI (base only), EK or both; two "
+                         "processes with one each share the cores")
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--epochs", type=int, default=15)
     ap.add_argument("--batch-size", type=int, default=None)
@@ -183,19 +214,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--tune", type=int, default=4, help="training pairs that choose the TV")
     ap.add_argument("--iterations", type=int, default=100, help="ADMM-TV iterations")
+    ap.add_argument("--tv-grid", default=",".join(f"{t:g}" for t in TV_GRID),
+                    help="comma list of TV weights the tuning pairs choose from")
     args = ap.parse_args(argv)
+    args.tv_grid = tuple(float(t) for t in args.tv_grid.split(","))
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    fovs = [float(f) for f in args.half_fov.split(",")]
-    counts = sorted(int(n) for n in args.n_train.split(","))
     seeds = [int(s) for s in args.seeds.split(",")]
+    if args.data is not None:
+        manifest = read_manifest(args.data)
+        if manifest is None:
+            raise SystemExit(f"{args.data}: not a virtual-bench dataset (no manifest.json)")
+        spec = VirtualBenchSpec.from_dict(manifest["spec"])
+        fovs = [spec.half_fov_deg]
+        args.sensor, args.photons, args.n_test = spec.sensor_shape, spec.photons, spec.n_test
+        n_train = args.n_train or str(spec.n_train)
+    else:
+        fovs = [float(f) for f in args.half_fov.split(",")]
+        n_train = args.n_train or "96"
+    counts = sorted(int(n) for n in n_train.split(","))
     rows = []
     for fov in fovs:
-        data = dataset(out, fov, counts[-1], args)
+        data = args.data if args.data is not None else dataset(out, fov, counts[-1], args)
         files = oracles(data, out)
         t0 = time.perf_counter()
-        cl = {name: classical(load_kernels(files[key]), data, args.tune, args.iterations)
+        cl = {name: classical_cached(out, name, files[key], data, args)
               for name, key in (("SI", "si"), ("EK", "ek"))}
         print(f"FOV ±{fov:g}°: classical SI {cl['SI']['psnr']:.2f} dB (tv {cl['SI']['tv']:g}),"
               f" EK {cl['EK']['psnr']:.2f} dB (tv {cl['EK']['tv']:g}) "
@@ -206,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.learned == "yes":
                 for name, key, schedule in (("SI", "si_as_paper", "base"),
                                             ("EK", "ek", args.schedule)):
+                    if name not in args.physics.split(","):
+                        continue
                     row["learned"][name] = []
                     for s in seeds:
                         run = out / "runs" / f"fov{fov:g}-n{n}-{name}-{schedule}-t{s}"
@@ -227,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         c = r["classical"]
         c_gain = c["EK"]["psnr"] - c["SI"]["psnr"]
-        if r["learned"]:
+        if len(r["learned"]) == 2:
             si = [e["psnr"] for e in r["learned"]["SI"]]
             ek = [e["psnr"] for e in r["learned"]["EK"]]
             gains = [b - a for a, b in zip(si, ek, strict=True)]

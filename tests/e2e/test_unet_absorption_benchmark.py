@@ -43,3 +43,25 @@ def test_absorption_benchmark_freezes_the_oracles(tmp_path):
         # frozen: training did not move the oracle kernels
         np.testing.assert_array_equal(learned, oracle)
     assert "| ±30° | 8 |" in done.stdout and "absorbed" in done.stdout
+
+    # --data: the same dataset given by path, one physics, another seed, fewer pairs; the
+    # classical scores come from the cache written by the first call (same inputs, settings)
+    cached = json.loads((out / "classical" / f"{data.name}-SI.json").read_text())
+    assert cached["score"] == row["classical"]["SI"]
+    again = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--data", str(data),
+                            "--n-train", "4", "--physics", "EK", "--seeds", "1", "--epochs", "1",
+                            "--tune", "2", "--iterations", "20", "--device", "cpu"],
+                           capture_output=True, text=True, timeout=600, check=False)
+    assert again.returncode == 0, again.stderr[-3000:]
+    rows = json.loads((out / "results.json").read_text())
+    assert rows[0]["n_train"] == 4 and set(rows[0]["learned"]) == {"EK"}
+    assert rows[0]["classical"] == row["classical"]
+    assert (out / "runs" / "fov30-n4-EK-last-2-t1" / "kernels_learned.npz").is_file()
+    assert not (out / "runs" / "fov30-n4-SI-base-t1").exists()
+    assert "| ±30° | 4 |" in again.stdout
+
+    bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--data",
+                          str(tmp_path / "nowhere")], capture_output=True, text=True,
+                         timeout=120, check=False)
+    assert bad.returncode != 0 and "nowhere" in bad.stderr
+    assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
