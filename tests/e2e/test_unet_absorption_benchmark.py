@@ -42,7 +42,12 @@ def test_absorption_benchmark_freezes_the_oracles(tmp_path):
         learned = load_kernels(run / "kernels_learned.npz").kernels
         # frozen: training did not move the oracle kernels
         np.testing.assert_array_equal(learned, oracle)
-    assert "| ±30° | 8 |" in done.stdout and "absorbed" in done.stdout
+    assert "| ±30° | 8 |" in done.stdout and "= SI corrected + EK shortfall" in done.stdout
+    # the absorbed share splits exactly into the SI correction and the EK shortfall
+    line = next(x for x in done.stdout.splitlines() if x.startswith("| ±30° | 8 |"))
+    absorbed, split = line.strip(" |").split(" | ")[-2:]
+    corrected, shortfall = (int(v.strip(" %")) for v in split.split("+"))
+    assert abs(int(absorbed.strip("%")) - (corrected + shortfall)) <= 1, line
 
     # --data: the same dataset given by path, one physics, another seed, fewer pairs; the
     # classical scores come from the cache written by the first call (same inputs, settings)
