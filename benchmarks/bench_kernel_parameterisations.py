@@ -8,7 +8,8 @@ existing one given by ``--data``), EK-DUN (``--schedule``, default last-2; ``--p
 tiny) is trained with each kernel parameterisation (``--params``: ``--kernel-param``), each
 physics weight (``--physics-weights``: ``ekdun train --physics-weight λ``) and each training
 seed (``--train-seeds``), seeded from the measured fit (``psfkit fit-eigen`` of the dataset's
-grid) and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``). For each run: test
+grid) and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``); on request also from the
+pairs fits and from the operator oracle itself (``--seeds oracle``). For each run: test
 PSNR/SSIM, the kernel-change split (pedestal fraction, gain, displacement) against the initial
 kernels, the displacement-map correlation and difference NCC against the measured modes, the
 principal angles to the top PCA modes (``psfkit.compare``), and the same numbers against the
@@ -110,7 +111,10 @@ SEEDS = ("measured", "one-psf")
 #: unconstrained least-squares fit: the one that converges to the operator oracle, which is
 #: unconstrained too).
 PAIRS_SEEDS = {"pairs": True, "pairs-free": False}     # name -> non-negative
-ALL_SEEDS = (*SEEDS, *PAIRS_SEEDS)
+#: ``oracle``: the dataset's operator oracle itself as the start (NCC 1): whether training
+#: keeps kernels that start at the oracle near it (the measured-seed target's limit case).
+ORACLE_SEED = "oracle"
+ALL_SEEDS = (*SEEDS, *PAIRS_SEEDS, ORACLE_SEED)
 SEED_NAMES = {"measured": "measured fit (seed)", "one-psf": "one PSF (seed)",
               "pairs": "pairs fit (seed)", "pairs-free": "unconstrained pairs fit (seed)"}
 #: Dataset options and the VirtualBenchSpec fields they set.
@@ -185,9 +189,17 @@ def tie_to_dataset(out: Path, data: Path) -> None:
     write_json(path, record)
 
 
-def prepare(out: Path, data: Path, pairs: tuple[str, ...] = ()) -> dict[str, Path]:
-    """The measured fit and the one-PSF seed of ``data`` (cached in ``out``), and each pairs
-    fit of :data:`PAIRS_SEEDS` that ``pairs`` names or an earlier invocation made."""
+def prepare(out: Path, data: Path, pairs: tuple[str, ...] = (),
+            oracle: bool = False) -> dict[str, Path]:
+    """The measured fit and the one-PSF seed of ``data`` (cached in ``out``), each pairs
+    fit of :data:`PAIRS_SEEDS` that ``pairs`` names or an earlier invocation made, and with
+    ``oracle`` the dataset's operator oracle (the file itself, not a copy).
+
+    Raises
+    ------
+    InvalidInputError
+        ``oracle`` and the dataset has no operator oracle matching the measured fit.
+    """
     fit = out / "kernels_fit.npz"
     if not fit.is_file():
         fit_seed_kernels(data, fit)
@@ -203,6 +215,11 @@ def prepare(out: Path, data: Path, pairs: tuple[str, ...] = ()) -> dict[str, Pat
             fit_pairs_seed(data, fitted, load_kernels(fit), nonneg)
         if fitted.is_file():         # made once, then a reference row of every invocation
             seeds[name] = fitted
+    if oracle:
+        model, path, note = find_oracle(data, load_kernels(fit))
+        if model is None or path is None:
+            raise InvalidInputError(f"--seeds oracle: {note}")
+        seeds[ORACLE_SEED] = path
     return seeds
 
 
@@ -264,7 +281,8 @@ def reference_rows(seeds: dict[str, Path], oracle: KernelModel,
     """The seeds and the oracle itself against the oracle (the oracle: NCC 1, angles 0), each
     with its prediction error on the ``test`` pairs."""
     rows = [{"reference": SEED_NAMES.get(k, k), "file": str(p), **vs_oracle(p, oracle),
-             "test_prediction_error": prediction_error(p, test)} for k, p in seeds.items()]
+             "test_prediction_error": prediction_error(p, test)} for k, p in seeds.items()
+            if k != ORACLE_SEED]           # the oracle seed is the row "the oracle itself"
     rows.append({"reference": "the oracle itself", "file": None, **vs_oracle(oracle, oracle),
                  "test_prediction_error": prediction_error(oracle, test)})
     return rows
@@ -461,7 +479,8 @@ def experiment(args: argparse.Namespace) -> int:
     resolve_amp(args.amp, device)                # refused here, not after the dataset
     data = dataset(args, out)
     tie_to_dataset(out, data)
-    seeds = prepare(out, data, pairs=tuple(s for s in seeds_run if s in PAIRS_SEEDS))
+    seeds = prepare(out, data, pairs=tuple(s for s in seeds_run if s in PAIRS_SEEDS),
+                    oracle=ORACLE_SEED in seeds_run)
     if args.measure_lr:
         rows = measure_lr(data, seeds)
         for r in rows:
@@ -566,8 +585,9 @@ def parser() -> argparse.ArgumentParser:
                       help=f"kernel parameterisations, of {', '.join(OVERRIDES)}")
     runs.add_argument("--seeds", default=",".join(SEEDS),
                       help="starts: measured (the grid fit), one-psf, pairs (the pairs fit of "
-                           "the training pairs), pairs-free (the same, --no-nonneg); the pairs "
-                           "fits are not in the default")
+                           "the training pairs), pairs-free (the same, --no-nonneg), oracle "
+                           "(the dataset's operator oracle itself); the last three are not in "
+                           "the default")
     runs.add_argument("--physics-weights", default="0",
                       help="physics weights λ (ekdun train --physics-weight), e.g. 0,1")
     runs.add_argument("--train-seeds", default="0",

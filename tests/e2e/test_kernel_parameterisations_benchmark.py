@@ -146,6 +146,21 @@ def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
         r["reference"] for r in doc["references"]}
     assert len(doc["runs"]) == 11
 
+    # the oracle as the seed: the run starts from the oracle's kernels exactly, is scored
+    # against it like every run, and adds no reference row (that is "the oracle itself")
+    start = _bench("--out", str(out), "--params", "free", "--seeds", "oracle",
+                   "--batch-size", "4")
+    assert start.returncode == 0, start.stderr[-3000:]
+    doc = json.loads((out / "results.json").read_text())
+    (row,) = [r for r in doc["runs"] if r["seed"] == "oracle"]
+    assert Path(row["run"]).name.startswith("oracle-free-last-2-l0-")
+    np.testing.assert_array_equal(
+        load_kernels(Path(row["run"]) / "kernels_initial.npz").kernels,
+        load_kernels(oracle).kernels.astype(np.float32))
+    assert -1 <= row["oracle_v_diff_ncc"] <= 1
+    assert sum(r["reference"] == "the oracle itself" for r in doc["references"]) == 1
+    assert len(doc["references"]) == 5 and len(doc["runs"]) == 12
+
     # a run folder trained with other settings is refused before anything is trained
     refused = _bench("--out", str(out), "--params", "free", "--seeds", "one-psf",
                      "--physics-weights", "1", "--train-seeds", "1", "--lr", "1e-3")
@@ -172,6 +187,11 @@ def test_benchmark_without_oracle_reports_measured_columns(tmp_path):
     assert doc["oracle"] is None and doc["references"] == []
     (row,) = doc["runs"]
     assert row["physics_weight"] == 0.0 and not any(k.startswith("oracle_") for k in row)
+    # no oracle to start from: refused in one line
+    refused = _bench("--out", str(out), "--data", str(data), "--params", "free", "--seeds",
+                     "oracle", "--batch-size", "4")
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    assert len(refused.stderr.strip().splitlines()) == 1 and "--seeds oracle" in refused.stderr
 
 
 def test_results_file_gets_each_run_at_once(tmp_path):
