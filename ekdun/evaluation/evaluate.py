@@ -23,6 +23,10 @@ def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
     """Peak of torch's CPU allocations (bytes) during one forward pass, from the profiler's
     memory events (an estimate: allocations made and freed inside one operator count at the
     operator's end)."""
+    # Kineto logs a "USDT ... profiler_start/stop" notice on stderr for every profiled pass at
+    # its highest level (5); 6 keeps eval's stderr for errors. Read when the profiler first
+    # starts in a process, so a user's own setting wins.
+    os.environ.setdefault("KINETO_LOG_LEVEL", "6")
     from torch.profiler import ProfilerActivity, profile
 
     with torch.no_grad(), profile(activities=[ProfilerActivity.CPU],
