@@ -64,11 +64,12 @@ class EKDUNConfig:
         Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
-    kernel_param : {"free", "physical", "flow"}
+    kernel_param : {"free", "physical", "flow", "spectral"}
         How the trainable kernels are parameterised
         (:mod:`ekdun.physics.kernel_parameterisation`): free pixels (the paper's), non-negative
-        on the seed's dilated caustic with its energy kept, or ``Kbase`` warped by smooth
-        learned displacement fields times per-channel gains.
+        on the seed's dilated caustic with its energy kept, ``Kbase`` warped by smooth
+        learned displacement fields times per-channel gains, or free kernels in Fourier
+        coordinates (the optimiser's steps per spatial frequency).
     kernel_support_dilate : int
         Dilation (px) of the seed's caustic support (``physical``, ``flow``).
     flow_grid : int
