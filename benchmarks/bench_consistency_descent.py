@@ -109,6 +109,8 @@ def kernel_parameters(model: torch.nn.Module, lr: float, scale: float) -> dict[s
 def descend_adam(seed: Any, args: argparse.Namespace, scale: float,
                  data: dict[str, tuple[torch.Tensor, torch.Tensor]], oracle: Any
                  ) -> list[dict[str, Any]]:
+    """Training's Adam on the kernels alone; one row per ``--report-at`` epoch (``seconds``:
+    wall time since the start, scoring included)."""
     torch.manual_seed(args.train_seed)
     model = network(seed, args.kernel_param)
     group = kernel_parameters(model, args.lr, scale)
@@ -135,6 +137,7 @@ def descend_adam(seed: Any, args: argparse.Namespace, scale: float,
 def descend_lbfgs(seed: Any, args: argparse.Namespace,
                   data: dict[str, tuple[torch.Tensor, torch.Tensor]], oracle: Any
                   ) -> list[dict[str, Any]]:
+    """Full-batch L-BFGS on the kernels alone; a row when the passes reach a report point."""
     model = network(seed, args.kernel_param)
     params = kernel_parameters(model, args.lr, 1.0)["params"]
     # 10 iterations per call (max_iter=1 leaves the line search one evaluation, too few to
