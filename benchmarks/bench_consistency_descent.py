@@ -36,10 +36,9 @@ docs/compare.md, "Is it the loss or the optimiser?".
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -47,15 +46,17 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_kernel_parameterisations import vs_oracle, write_json
+
 from ekdun.data.pairs import PairsDataset
+from ekdun.data.virtual_bench import oracle_file
 from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
 from ekdun.training.builder import build_network
 from ekdun.training.export import export_kernels
 from ekdun.training.physics_loss import measurement_consistency
 from ekdun.training.trainer import _param_groups
-from psfkit.compare import compare_kernels
 from psfkit.errors import PsfkitError
-from psfkit.io.atomic import atomic_file
+from psfkit.io.jsonable import jsonable
 from psfkit.kernelfile import load_kernels
 
 OPTIMISERS = ("adam", "lbfgs")
@@ -72,16 +73,20 @@ def stacked(split: Path) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack(xs), torch.stack(ys)
 
 
-@torch.no_grad()
-def consistency(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor,
-                chunk: int = 32) -> float:
-    """``L_phys`` of the network's forward model over all pairs (mean over pairs)."""
+def full_batch(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor,
+               chunk: int = 32) -> Iterator[torch.Tensor]:
+    """``L_phys`` of each chunk of the pairs, weighted by its share of them: they sum to the
+    mean over all pairs (chunks keep the FFT buffers of a 384-pair pass small)."""
     op = model.forward_model()
-    total = 0.0
     for b in range(0, len(x), chunk):
-        total += float(measurement_consistency(op.A(x[b:b + chunk]), y[b:b + chunk])) \
-            * len(x[b:b + chunk])
-    return total / len(x)
+        xb, yb = x[b:b + chunk], y[b:b + chunk]
+        yield measurement_consistency(op.A(xb), yb) * (len(xb) / len(x))
+
+
+@torch.no_grad()
+def consistency(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor) -> float:
+    """``L_phys`` of the network's forward model over all pairs (mean over pairs)."""
+    return sum(float(part) for part in full_batch(model, x, y))
 
 
 def network(kernels: Any, param: str) -> torch.nn.Module:
@@ -92,13 +97,10 @@ def network(kernels: Any, param: str) -> torch.nn.Module:
 def score(model: torch.nn.Module, data: dict[str, tuple[torch.Tensor, torch.Tensor]],
           oracle: Any) -> dict[str, Any]:
     """``L_phys`` on both splits and the kernels against the oracle."""
-    numbers = compare_kernels(export_kernels(model), oracle).learned.numbers()
-    # a one-PSF model has no difference kernels: its NCC is undefined (null, not NaN)
-    numbers = {k: None if isinstance(v, float) and math.isnan(v) else v
-               for k, v in numbers.items()}
     return {"train_consistency": consistency(model, *data["train"]),
             "test_consistency": consistency(model, *data["test"]),
-            **{f"oracle_{'angles' if k == 'angles_deg' else k}": v for k, v in numbers.items()}}
+            # a one-PSF model has no difference kernels: its NCC is undefined (null, not NaN)
+            **jsonable(vs_oracle(export_kernels(model), oracle))}
 
 
 def kernel_parameters(model: torch.nn.Module, lr: float, scale: float) -> dict[str, Any]:
@@ -108,9 +110,9 @@ def kernel_parameters(model: torch.nn.Module, lr: float, scale: float) -> dict[s
 
 def descend_adam(seed: Any, args: argparse.Namespace, scale: float,
                  data: dict[str, tuple[torch.Tensor, torch.Tensor]], oracle: Any
-                 ) -> list[dict[str, Any]]:
-    """Training's Adam on the kernels alone; one row per ``--report-at`` epoch (``seconds``:
-    wall time since the start, scoring included)."""
+                 ) -> dict[str, Any]:
+    """Training's Adam on the kernels alone: its settings and one row per ``--report-at``
+    epoch (``seconds``: wall time since the start, scoring included)."""
     torch.manual_seed(args.train_seed)
     model = network(seed, args.kernel_param)
     group = kernel_parameters(model, args.lr, scale)
@@ -131,7 +133,9 @@ def descend_adam(seed: Any, args: argparse.Namespace, scale: float,
             rows.append({"passes": epoch, "seconds": round(time.perf_counter() - t0, 1),
                          **score(model, data, oracle)})
             report(f"adam ×{scale:g}", rows[-1])
-    return rows
+    return {"optimiser": "adam", "kernel_lr_scale": scale, "lr": args.lr,
+            "kernel_lr": group["lr"], "batch_size": args.batch_size, "gamma": args.gamma,
+            "trajectory": rows}
 
 
 def descend_lbfgs(seed: Any, args: argparse.Namespace,
@@ -150,14 +154,13 @@ def descend_lbfgs(seed: Any, args: argparse.Namespace,
     passes = [0]
 
     def closure() -> torch.Tensor:
-        # one pass over the training pairs, gradient accumulated in chunks (the full batch)
+        # one pass over the training pairs, the gradient accumulated chunk by chunk
         passes[0] += 1
         opt.zero_grad()
         total = torch.zeros(())
-        for b in range(0, len(x), 32):
-            part = measurement_consistency(model.forward_model().A(x[b:b + 32]), y[b:b + 32])
-            (part * len(x[b:b + 32]) / len(x)).backward()
-            total += part.detach() * len(x[b:b + 32]) / len(x)
+        for part in full_batch(model, x, y):
+            part.backward(retain_graph=True)
+            total += part.detach()
         return total
 
     rows, t0, todo = [], time.perf_counter(), sorted(args.report_at)
@@ -242,15 +245,15 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    oracle_file = args.data / "oracle" / f"paper_{load_kernels(args.seed).convention}.npz"
-    if not oracle_file.is_file():
-        raise BenchError(f"{args.data}: no operator oracle {oracle_file.name} (make the "
-                         f"dataset without --no-oracle)")
+    seed = load_kernels(args.seed)
+    oracle_path = oracle_file(args.data, seed.convention)
+    if oracle_path is None:
+        raise BenchError(f"{args.data}: no operator oracle of the {seed.convention} side (make "
+                         f"the dataset without --no-oracle)")
     for split in ("train", "test"):
         if not (args.data / split).is_dir():
             raise BenchError(f"{args.data}: no {split}/ split (not a virtual-bench dataset)")
-    oracle = load_kernels(oracle_file)
-    seed = load_kernels(args.seed)
+    oracle = load_kernels(oracle_path)
     data = {s: stacked(args.data / s) for s in ("train", "test")}
     references = []
     for name, kernels in [("seed", seed), ("the oracle itself", oracle),
@@ -259,17 +262,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     runs = []
     for opt in args.optimisers:
         if opt == "adam":
-            for scale in args.kernel_lr_scales:
-                kernel_lr = kernel_parameters(network(seed, args.kernel_param), args.lr,
-                                              scale)["lr"]
-                runs.append({"optimiser": "adam", "kernel_lr_scale": scale, "lr": args.lr,
-                             "kernel_lr": kernel_lr, "batch_size": args.batch_size,
-                             "gamma": args.gamma,
-                             "trajectory": descend_adam(seed, args, scale, data, oracle)})
+            runs += [descend_adam(seed, args, scale, data, oracle)
+                     for scale in args.kernel_lr_scales]
         else:
             runs.append({"optimiser": "lbfgs",
                          "trajectory": descend_lbfgs(seed, args, data, oracle)})
-    return {"data": str(args.data), "seed": str(args.seed), "oracle": str(oracle_file),
+    return {"data": str(args.data), "seed": str(args.seed), "oracle": str(oracle_path),
             "kernel_param": args.kernel_param, "train_seed": args.train_seed,
             "references": references, "runs": runs}
 
@@ -283,8 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_consistency_descent: error: {exc}", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    with atomic_file(args.out / "results.json") as tmp:
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    write_json(args.out / "results.json", doc)
     print(table(doc))
     return 0
 
