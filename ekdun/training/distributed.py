@@ -9,6 +9,8 @@ logs. The backend is NCCL on CUDA and gloo on CPU.
 
 from __future__ import annotations
 
+import gc
+import importlib
 import os
 from dataclasses import dataclass
 
@@ -48,6 +50,13 @@ def setup(device: str = "auto") -> DistContext:
         backend = "nccl" if dev.type == "cuda" else "gloo"
         if dev.type == "cuda":
             torch.cuda.set_device(dev)
+        # torch.distributed.nn.functional binds ``group.WORLD`` as default arguments when it is
+        # first imported, which DDP's constructor does. Imported after the group exists, those
+        # defaults keep the group alive past destroy_process_group, and its gloo threads end
+        # only while the interpreter shuts down (the likeliest place of the rare rank abort
+        # "terminate called without an active exception" seen in CI). Imported first, the
+        # defaults hold None.
+        importlib.import_module("torch.distributed.nn")
         dist.init_process_group(backend=backend)
     return DistContext(rank, world, local_rank, dev)
 
@@ -92,6 +101,12 @@ def barrier(ctx: DistContext) -> None:
 
 
 def teardown(ctx: DistContext) -> None:
-    """Leave the process group joined by :func:`setup` (torchrun runs)."""
+    """Leave the process group joined by :func:`setup` (torchrun runs).
+
+    Call it once the DistributedDataParallel wrapper is dropped: the wrapper sits in a reference
+    cycle and holds the group, so it is collected here first; then the group and its
+    communication threads end now, on every rank, instead of during interpreter shutdown.
+    """
     if ctx.distributed and dist.is_initialized():
+        gc.collect()
         dist.destroy_process_group()

@@ -8,6 +8,7 @@ import pickle
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -122,7 +123,8 @@ def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path, physics_weight
     common = [str(pairs), "--kernels", str(kernels), "--iterations", "2", "--epochs", "2",
               "--batch-size", "4", "--lr", "1e-3", "--threads", "1", "--quiet",
               "--device", "cpu", "--physics-weight", physics_weight]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # a rank that aborts leaves its Python stack in its log (faulthandler)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1"}
     one = subprocess.run([sys.executable, "-m", "ekdun.cli", "train", *common[:1],
                           str(tmp_path / "one"), *common[1:]], env=env, capture_output=True,
                          text=True, timeout=300)
@@ -145,6 +147,41 @@ def test_ddp_two_processes_equal_one_process(tiny_data, tmp_path, physics_weight
             b["metadata"]["history"][-1]["physics_loss"], rel=1e-4)
     for name, p in a["model"].items():
         torch.testing.assert_close(b["model"][name], p, rtol=1e-5, atol=1e-5, msg=name)
+
+
+_GLOO_THREADS_AFTER_TRAINING = """
+import os, sys
+from ekdun.data.pairs import PairsDataset
+from ekdun.training import TrainOptions, train
+pairs, kernels, run = sys.argv[1:4]
+train(run, "ekdun", kernels, PairsDataset(pairs), "tiny", {"iterations": 2},
+      TrainOptions(epochs=1, batch_size=4, progress=False, threads=1, device="cpu"))
+import torch.distributed as dist
+names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+print("RESULT", os.environ["RANK"], dist.is_initialized(),
+      sorted(n for n in names if "gloo" in n), flush=True)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_ddp_training_ends_its_process_group_before_exit(tiny_data, tmp_path):
+    """After ``train`` under torchrun the gloo group is gone, threads included, on every rank.
+
+    DDP's constructor imports ``torch.distributed.nn``, whose defaults hold the group; the
+    group then outlived ``destroy_process_group`` and its threads ended in interpreter shutdown,
+    the likeliest place of a rank-1 abort seen twice in CI ("terminate called without an active
+    exception"). Without the fix both ranks report their gloo threads still running."""
+    pairs, kernels = tiny_data
+    script = tmp_path / "train_then_list_threads.py"
+    script.write_text(_GLOO_THREADS_AFTER_TRAINING)
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone",
+                           "--nproc_per_node", "2", str(script), str(pairs), str(kernels),
+                           str(tmp_path / "run")],
+                          env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1"},
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = sorted(line for line in done.stdout.splitlines() if line.startswith("RESULT"))
+    assert results == ["RESULT 0 False []", "RESULT 1 False []"], done.stdout
 
 
 class _Evil:
