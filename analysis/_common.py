@@ -1,19 +1,21 @@
 """Shared plumbing of the analysis scripts (argument errors → one line, atomic outputs).
 
+``write_json`` is psfkit's (:func:`psfkit.io.jsonable.write_json`), re-exported here.
+
 Not a package and not installed: each script puts this folder on ``sys.path`` itself.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 from psfkit.cli.main import run_cli
-from psfkit.io.jsonable import jsonable
+from psfkit.io.jsonable import write_json
+
+__all__ = ["run", "write_json"]
 
 
 def run(parser: argparse.ArgumentParser, body: Callable[[argparse.Namespace], int],
@@ -23,6 +25,3 @@ def run(parser: argparse.ArgumentParser, body: Callable[[argparse.Namespace], in
     parser.set_defaults(func=body)
     return run_cli(Path(sys.argv[0]).name, parser, argv)
 
-
-def write_json(path: Path, doc: dict[str, Any]) -> None:
-    path.write_text(json.dumps(jsonable(doc), indent=1) + "\n", encoding="utf-8")

@@ -34,7 +34,6 @@ Prints one Markdown table, measured in this run, and the fit times.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -224,9 +223,9 @@ def main() -> None:
     print("fit times (s): " + ", ".join(f"{k} {v:.0f}" if v is not None else f"{k} reused"
                                         for k, v in times.items()))
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"records": records, "times": times, "spec": spec.to_dict()}, fh,
-                      indent=1)
+        from psfkit.io.jsonable import write_json
+
+        write_json(args.json, {"records": records, "times": times, "spec": spec.to_dict()})
     if work_ctx is not None:
         work_ctx.cleanup()
 

@@ -41,7 +41,6 @@ settings and wall time.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
@@ -80,6 +79,7 @@ def main() -> None:
         monte_carlo,
         noise_variance,
     )
+    from psfkit.io.jsonable import write_json
     from psfkit.pairs_solver import PairBatches
 
     t_start = time.perf_counter()
@@ -152,8 +152,7 @@ def main() -> None:
                 records.append(record)
                 print(rows[-1], flush=True)
                 if args.json:
-                    with open(args.json, "w", encoding="utf-8") as fh:
-                        json.dump(records, fh, indent=1)
+                    write_json(args.json, records)   # after every row, atomically
     header = ("| N | S | P | noise | Fisher eig. (diff.) min … max | CRB rel. std Kv / Kh | "
               "MC spread Kv / Kh | NCC to oracle | bias (noise-free fit) | "
               "disp. spread px | disp. corr to oracle | disp. bias px | oracle disp. RMS px "

@@ -93,8 +93,7 @@ from psfkit.compare import compare_kernels, measure_modes  # noqa: E402
 from psfkit.compare.options import CompareOptions  # noqa: E402
 from psfkit.errors import InvalidInputError  # noqa: E402
 from psfkit.io import read_grid, read_pairs  # noqa: E402
-from psfkit.io.atomic import atomic_file  # noqa: E402
-from psfkit.io.jsonable import jsonable  # noqa: E402
+from psfkit.io.jsonable import write_json  # noqa: E402
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
 from psfkit.pairs_fit import fit_pairs, predict, relative_errors  # noqa: E402
 from psfkit.pairs_options import PairFitOptions  # noqa: E402
@@ -121,12 +120,6 @@ SEED_NAMES = {"measured": "measured fit (seed)", "one-psf": "one PSF (seed)",
 DATASET_OPTIONS = {"sensor_shape": "--sensor", "n_train": "--n-train", "n_test": "--n-test",
                    "photons": "--photons"}
 EXPERIMENT = "experiment.json"
-
-
-def write_json(path: Path, doc: Any) -> None:
-    """``doc`` as plain JSON (NaN → null), written atomically."""
-    with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(jsonable(doc), indent=1) + "\n", encoding="utf-8")
 
 
 def dataset(args: argparse.Namespace, out: Path) -> Path:

@@ -31,7 +31,6 @@ Prints one Markdown table, measured in this run.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
@@ -122,9 +121,10 @@ def main() -> None:
         f"{k} {v[0]:.4f} / {v[1]:.4f}" for k, v in pred.items()))
     print("times (s): " + ", ".join(f"{k} {v:.0f}" for k, v in times.items()))
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"records": records, "prediction_error": pred, "times": times,
-                       "spec": spec.to_dict(), "scenes": args.scenes}, fh, indent=1)
+        from psfkit.io.jsonable import write_json
+
+        write_json(args.json, {"records": records, "prediction_error": pred, "times": times,
+                               "spec": spec.to_dict(), "scenes": args.scenes})
 
 
 if __name__ == "__main__":

@@ -32,7 +32,6 @@ methods converge at different speeds). ``--iteration-grid 100`` runs every metho
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -304,7 +303,9 @@ def main() -> None:
         print(f"SI admm − LenslessPiCam: {np.mean(diff):+.2f} dB (better on "
               f"{sum(d > 0 for d in diff)} of {len(diff)}), time ratio {ratio:.2f} (target <= 1)")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
+        from psfkit.io.jsonable import write_json
+
+        write_json(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -67,7 +67,7 @@ from ekdun.training import TrainOptions, train  # noqa: E402
 from ekdun.training.builder import network_from_checkpoint  # noqa: E402
 from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
 from ekdun.training.trainer import CHECKPOINT  # noqa: E402
-from psfkit.io.atomic import atomic_file  # noqa: E402
+from psfkit.io.jsonable import write_json  # noqa: E402
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
 
 TV_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
@@ -144,12 +144,6 @@ def classical(model: KernelModel, data: Path, tune: int, iterations: int,
     return {"tv": best[0], **_scores(images, truth)}
 
 
-def _write_json(path: Path, doc: Any) -> None:
-    """``doc`` as JSON, written atomically (processes sharing ``--out`` may read it)."""
-    with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
-
-
 def classical_cached(out: Path, name: str, kernels: Path, data: Path,
                      args: argparse.Namespace) -> dict[str, Any]:
     """:func:`classical`, its score kept in ``out/classical`` for the same inputs and settings."""
@@ -163,7 +157,7 @@ def classical_cached(out: Path, name: str, kernels: Path, data: Path,
     score = classical(load_kernels(kernels), data, args.tune, args.iterations,
                       tuple(args.tv_grid))
     cache.parent.mkdir(parents=True, exist_ok=True)
-    _write_json(cache, {"key": key, "score": score})
+    write_json(cache, {"key": key, "score": score})   # atomic: --out may be shared
     return score
 
 
@@ -271,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"{score['psnr']:.2f} dB [{time.perf_counter() - t0:.0f} s]",
                               flush=True)
             rows.append(row)
-    _write_json(out / "results.json", rows)
+    write_json(out / "results.json", rows)
     print()
     print(f"{args.sensor[0]}x{args.sensor[1]}, photons {args.photons:g}, {args.n_test} test "
           f"pairs; learned: preset {args.preset}, {args.epochs} epochs, seeds {args.seeds}, "

@@ -327,9 +327,11 @@ def main(argv: list[str] | None = None) -> int:
     # what this machine computes against the golden files (another machine's baseline)
     if all((GOLDEN / f).exists() for f in (*JSON_OUTPUTS, *KERNEL_OUTPUTS)):
         spread["vs_golden"] = deviations(args.out / "base", GOLDEN, args.data)
-    (args.out / "spread.json").write_text(json.dumps(spread, indent=1))
+    from psfkit.io.jsonable import write_json
+
+    write_json(args.out / "spread.json", spread)
     if args.tolerances:
-        args.tolerances.write_text(json.dumps(tolerance_table(spread), indent=1) + "\n")
+        write_json(args.tolerances, tolerance_table(spread))
     columns = list(spread)
     print(f"{'output / group':70s}" + "".join(f"{c:>20s}" for c in columns))
     for name in (*JSON_OUTPUTS, *KERNEL_OUTPUTS, *(k + ":metadata" for k in KERNEL_OUTPUTS)):

@@ -1,11 +1,17 @@
-"""Plain-JSON conversion of nested results (numbers, arrays, NaN) for psfkit's JSON outputs."""
+"""Plain-JSON conversion of nested results (numbers, arrays, NaN), and JSON outputs written
+atomically."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from psfkit.io.atomic import atomic_file
 
 
 def jsonable(value: Any) -> Any:
@@ -23,3 +29,26 @@ def jsonable(value: Any) -> Any:
     if isinstance(value, np.bool_):
         return bool(value)
     return value
+
+
+def write_json(path: str | os.PathLike, doc: Any, indent: int = 1) -> Path:
+    """Write ``jsonable(doc)`` to ``path`` atomically (a reader never sees half a file).
+
+    Parameters
+    ----------
+    path : path-like
+        The JSON file; replaced if it exists.
+    doc : nested dicts / lists of numbers, strings, numpy values
+        NaN and Inf are written as ``null`` (see :func:`jsonable`).
+    indent : int
+        Passed to :func:`json.dumps`.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(jsonable(doc), indent=indent) + "\n", encoding="utf-8")
+    return path

@@ -258,3 +258,22 @@ def test_single_output_helpers_keep_their_defaults(tmp_path):
         with atomic_directory(tmp_path / "d"):
             pass
     assert temps(tmp_path) == []
+
+
+def test_write_json_is_plain_json_and_all_or_nothing(tmp_path):
+    import json
+    import math
+
+    import numpy as np
+
+    from psfkit.io.jsonable import write_json
+
+    target = tmp_path / "results.json"
+    write_json(target, {"psnr": np.float32(24.5), "ncc": math.nan, "shape": (2, 3)})
+    assert json.loads(target.read_text(encoding="utf-8")) == {"psnr": 24.5, "ncc": None,
+                                                              "shape": [2, 3]}
+    before = target.read_text(encoding="utf-8")
+    with pytest.raises(TypeError):       # not JSON: the earlier file stays whole
+        write_json(target, {"runs": [object()]})
+    assert target.read_text(encoding="utf-8") == before
+    assert temps(tmp_path) == []
