@@ -46,7 +46,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_kernel_parameterisations import vs_oracle, write_json
+from bench_kernel_parameterisations import vs_oracle
 
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import oracle_file
@@ -56,7 +56,7 @@ from ekdun.training.export import export_kernels
 from ekdun.training.physics_loss import measurement_consistency
 from ekdun.training.trainer import _param_groups
 from psfkit.errors import PsfkitError
-from psfkit.io.jsonable import jsonable
+from psfkit.io.jsonable import jsonable, write_json
 from psfkit.kernelfile import load_kernels
 
 OPTIMISERS = ("adam", "lbfgs")

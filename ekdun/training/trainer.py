@@ -369,7 +369,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
             if options.on_epoch is not None:
                 options.on_epoch(metadata["history"][-1])
         D.barrier(ctx)
-    del net, source           # the DDP wrapper holds the process group (see D.teardown)
+    del net                   # the DDP wrapper holds the process group (see D.teardown)
     D.teardown(ctx)
     return {"history": metadata["history"], "run_dir": str(run_dir),
             "parameters": model.parameter_count(),
