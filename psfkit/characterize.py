@@ -32,6 +32,7 @@ from psfkit.registration import (
     fit_shift_map,
 )
 from psfkit.resample import bin_image, binning_factor
+from psfkit.support import crop_window, support_box
 from psfkit.warp import (
     FLOW_METHODS,
     GrowthFit,
@@ -148,7 +149,10 @@ class GridCharacterization:
     reference: np.ndarray | None = field(default=None, repr=False)
     examples: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict, repr=False)   # (aligned image, valid mask) for Fig. 2
+    # (N, M, h, w) luminance windows around each PSF for the montage: the reference's support
+    # box (psf_box, full-resolution px) moved by the position's shift, binned to <= 160 px
     thumbnails: np.ndarray | None = field(default=None, repr=False)
+    psf_box: tuple[slice, slice] | None = field(default=None, repr=False)
     flows: dict[tuple[int, int], np.ndarray] = field(default_factory=dict, repr=False)
     layout: str = FULL_LATTICE
     excluded: list[ExcludedPosition] = field(default_factory=list)
@@ -341,13 +345,15 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
     steps = set(options.steps)
     fig2 = set(_fig2_positions(grid, center))
-    thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
+    box = support_box(ref_lum)      # the figures show the PSF, not the frame
+    thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(crop_window(ref_lum, box)).shape),
+                          np.float32)
 
     result = GridCharacterization(
         grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
         channels=grid.channels, center=center, options=options, positions=[],
         field_units=_field_units(grid), reference=reference, layout=grid.layout,
-        missing=grid.missing())
+        missing=grid.missing(), psf_box=box)
 
     def measure(pos: GridPosition) -> tuple[PositionResult | ExcludedPosition, dict[str, Any]]:
         here = (pos.row, pos.col)
@@ -355,8 +361,9 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         if isinstance(item, ExcludedPosition):
             return item, {}
         aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
-        extras: dict[str, Any] = {"thumbnail": _thumbnail(prep.luminance / np.float32(
-            aligner.scale))}
+        window = crop_window(prep.luminance / np.float32(aligner.scale), box,
+                             (round(shift[1]), round(shift[0])))
+        extras: dict[str, Any] = {"thumbnail": _thumbnail(window)}
         al_lum = item.luminance
         record = PositionResult(
             row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,

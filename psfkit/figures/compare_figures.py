@@ -6,7 +6,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -14,9 +13,10 @@ from matplotlib.image import AxesImage
 
 from psfkit.compare.displacement import DisplacementMap
 from psfkit.compare.results import KernelComparison
-from psfkit.figures.eigen_figures import _crop_box
+from psfkit.figures.eigen_figures import _crop_box, draw_kernels
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
 from psfkit.preprocess import luminance
+from psfkit.support import support_box
 
 
 def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
@@ -39,27 +39,13 @@ def reference_label(comparison: KernelComparison) -> str:
 def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | list[str],
                     label: str, titles: bool = True, label_size: float | None = None
                     ) -> AxesImage:
-    """One Fig. 7 row: the kernels' luminance ``lum`` ``(K, h, w)`` (square-root scale) in
-    ``axes[:K]`` and their differences from ``K_base`` in ``axes[K:2K−1]``, on the row's own
-    scale (learned kernels may be normalised differently). Returns the last difference image
-    (for a colour bar)."""
+    """One Fig. 7 row: the kernels' luminance ``lum`` ``(K, h, w)`` in ``axes[:K]`` and their
+    differences from ``K_base`` in ``axes[K:2K−1]`` (:func:`draw_kernels`), ``label`` on the
+    row. Returns the last difference image (for a colour bar; the kernels' is
+    ``axes[0].images[0]``)."""
     k = len(names)
-    peak = float(lum.max()) or 1.0
-    diffs = (lum[1:] - lum[0]) / peak
-    limit = float(np.percentile(np.abs(diffs), 99.9)) or 1.0
-    for i in range(k):
-        ax = axes[i]
-        ax.imshow(np.sqrt(np.clip(lum[i], 0, None) / peak), cmap="gray", vmin=0, vmax=1)
-        ax.set_title(f"K_{names[i]}" if titles else "")
-        ax.set_xticks([])
-        ax.set_yticks([])
+    im = draw_kernels(axes[:k], axes[k:2 * k - 1], lum, names, titles)
     axes[0].set_ylabel(label, fontsize=label_size)
-    cmap = matplotlib.colormaps["RdBu_r"]
-    for i in range(1, k):
-        ax = axes[k + i - 1]
-        im = ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit)
-        ax.set_title(f"K_{names[i]} − K_{names[0]}" if titles else "")
-        ax.set_axis_off()
     return im
 
 
@@ -81,7 +67,7 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
     names = comparison.kernel_names
     rows = [(label, np.stack([luminance(k) for k in kernels]))
             for label, kernels in _rows(comparison)]
-    box = _crop_box(rows[-1][1][0])             # the measured kernels' crop
+    box = support_box(rows[-1][1][0])           # the measured kernels' crop
     rows += [(label, np.stack([luminance(k) for k in kernels])) for label, kernels in extra_rows]
     if zoom is not None:
         (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
@@ -95,7 +81,10 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
         axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
         for r, (label, lum) in enumerate(rows):
             im = draw_kernel_row(axes[r], lum[:, box[0], box[1]], names, label, titles=r == 0)
-            fig.colorbar(im, ax=list(axes[r, k:]), shrink=0.8, label="diff. / peak")
+            fig.colorbar(im, ax=list(axes[r, k:]), shrink=0.8,
+                         label="K_k − K_base (fraction of the row's peak)")
+        fig.colorbar(axes[0, 0].images[0], ax=list(axes[:, :k].ravel()), location="bottom",
+                     shrink=0.5, label="kernel (fraction of the row's peak, √ scale)")
         fig.suptitle("learned vs measured eigen-kernels (Fig. 7 layout)"
                      + (" – zoom" if zoom else ""))
     return fig
