@@ -11,10 +11,15 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from psfkit.resample import bin_image, binning_factor
+
 #: support: above this fraction of the (denoised) peak ...
 SUPPORT_LEVEL = 0.02
 #: ... and above this many noise standard deviations of the denoised image
 SUPPORT_NOISE_SIGMAS = 5.0
+#: the support is found on a copy binned to at most this many pixels a side (fast on 12-Mpx
+#: frames; the margin covers the binning)
+SUPPORT_WORKING_PX = 1024
 
 
 def support_box(image: np.ndarray, level: float = SUPPORT_LEVEL, margin: float = 0.15,
@@ -24,7 +29,9 @@ def support_box(image: np.ndarray, level: float = SUPPORT_LEVEL, margin: float =
     The image is denoised (a 3 × 3 median removes hot pixels, a Gaussian of σ = 1 px averages
     the read noise) and thresholded at the larger of ``level`` × its peak and
     :data:`SUPPORT_NOISE_SIGMAS` robust noise deviations (MAD over the frame: a compact PSF
-    leaves the frame mostly background); the box of the pixels above it grows by
+    leaves the frame mostly background). Of the connected pieces above it, those that are
+    bright (a quarter of the peak) or large (a twentieth of the largest) are the PSF (noise
+    crossing the threshold makes small, faint pieces); their bounding box grows by
     ``margin`` × its size on each side (at least ``min_margin`` px), clipped to the frame.
 
     Parameters
@@ -44,21 +51,33 @@ def support_box(image: np.ndarray, level: float = SUPPORT_LEVEL, margin: float =
         ``(rows, cols)``; the whole frame when nothing rises above the threshold.
     """
     image = np.nan_to_num(np.asarray(image, dtype=np.float32))
-    smooth = ndimage.gaussian_filter(ndimage.median_filter(image, size=3), 1.0)
+    height, width = image.shape
+    whole = slice(0, height), slice(0, width)
+    factor = binning_factor(image.shape, SUPPORT_WORKING_PX)
+    work = bin_image(image, factor) / np.float32(factor**2)
+    smooth = ndimage.gaussian_filter(ndimage.median_filter(work, size=3), 1.0)
     peak = float(smooth.max())
     if peak <= 0:
-        return slice(0, image.shape[0]), slice(0, image.shape[1])
+        return whole
     median = float(np.median(smooth))
     noise = 1.4826 * float(np.median(np.abs(smooth - median)))
     threshold = max(level * peak, median + SUPPORT_NOISE_SIGMAS * noise)
-    rows, cols = np.nonzero(smooth > threshold)
-    if rows.size == 0:
-        return slice(0, image.shape[0]), slice(0, image.shape[1])
+    above = smooth > threshold
+    labels, count = ndimage.label(above, structure=np.ones((3, 3)))
+    if count == 0:
+        return whole
+    # the PSF's pieces, not noise that crossed the threshold: a piece is kept when it is
+    # bright (a quarter of the peak) or large (a twentieth of the largest piece)
+    index = np.arange(1, count + 1)
+    sizes = ndimage.sum_labels(above, labels, index)
+    peaks = ndimage.maximum(smooth, labels, index)
+    keep = index[(peaks >= 0.25 * peak) | (sizes >= 0.05 * sizes.max())]
+    rows, cols = np.nonzero(np.isin(labels, keep))
     out = []
-    for lo, hi, size in ((rows.min(), rows.max(), image.shape[0]),
-                         (cols.min(), cols.max(), image.shape[1])):
-        pad = max(min_margin, int(np.ceil(margin * (hi - lo + 1))))
-        out.append(slice(max(int(lo) - pad, 0), min(int(hi) + pad + 1, size)))
+    for lo, hi, size in ((rows.min(), rows.max(), height), (cols.min(), cols.max(), width)):
+        lo, hi = int(lo) * factor, (int(hi) + 1) * factor       # full-resolution pixels
+        pad = max(min_margin, factor, int(np.ceil(margin * (hi - lo))))
+        out.append(slice(max(lo - pad, 0), min(hi + pad, size)))
     return out[0], out[1]
 
 

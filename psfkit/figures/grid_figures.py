@@ -122,7 +122,7 @@ def _scatter_map(fig: Figure, ax: Axes, result: GridCharacterization, values: np
                ec="red", lw=1)
     _field_axes(ax, coords, unit)
     ax.set_title(title)
-    fig.colorbar(sc, ax=ax, shrink=0.8, label=label)
+    fig.colorbar(sc, ax=ax, shrink=0.8, pad=0.1, label=label)   # pad: room for the title
 
 
 def _no_ticks(ax: Axes) -> None:
@@ -250,9 +250,9 @@ def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str,
             (mae_gain * scale, "MAE (+ gain comp.)", unit, ".2g", "magma", shared),
             (result.table("gain"), "relative gain", "gain (rel. to centre)", ".2f", "cividis",
              None),
-            (result.table("quality"), "registration quality", "NCC (1 = identical)", ".2f",
+            (result.table("quality"), "registration NCC", "NCC (1 = identical)", ".2f",
              "viridis", None),
-            (result.table("overlap"), "overlap with centre PSF", "overlap (fraction of sensor)",
+            (result.table("overlap"), "overlap with centre", "overlap (fraction of sensor)",
              ".2f", "Greys_r", None)]
 
 

@@ -92,13 +92,15 @@ class Fitted:
 
     @property
     def detected(self) -> bool:
-        """Drawn as a result: finite, and not flagged (or, without a flag, not with an
-        undetermined uncertainty)."""
+        """Drawn as a result: finite and flagged significant; without a flag, at least 2σ
+        from zero (and with a determined σ)."""
         if not math.isfinite(self.value):
             return False
         if self.significant is not None:
             return bool(self.significant)
-        return self.sigma is None or math.isfinite(self.sigma)
+        if self.sigma is None:
+            return True
+        return math.isfinite(self.sigma) and abs(self.value) >= 2 * self.sigma
 
     def value_text(self, fmt: str = ".2f") -> str:
         """``1.94 ± 0.13``, ``0.71, σ undetermined`` or ``not determined``; never ``nan``."""

@@ -45,8 +45,11 @@ from psfkit.figures import (
     figure_weight_maps,
     publication_style,
 )
+from psfkit.figures.style import NOT_SIGNIFICANT, Fitted
 from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import GridWriter, read_grid
+
+pytestmark = pytest.mark.slow      # three small grids characterized and fitted (~30 s CPU)
 
 MIN_POINTS = 7.0
 NAN = re.compile(r"\b(nan|inf)\b", re.IGNORECASE)
@@ -178,7 +181,7 @@ def _defects(fig: Figure) -> list[str]:
 
 # ---- the grids --------------------------------------------------------------------------------
 
-def compact_scan(out: Path, positions: int = 30, frame: tuple[int, int] = (240, 320),
+def compact_scan(out: Path, positions: int = 20, frame: tuple[int, int] = (240, 320),
                  sigma_px: float = 1.2, seed: int = 43) -> Path:
     """An irregular scan of a Gaussian spot of ``sigma_px`` on a large dark frame (a lens
     camera's PSF, the same at every field position): the on-axis position and random ones."""
@@ -205,8 +208,8 @@ def grids(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     config = BenchConfig(downsample=8)
     rng = np.random.default_rng(43)
     fov_h, fov_w = config.fov_monitor_px
-    scattered = np.column_stack([rng.uniform(-0.5, 0.5, 29) * fov_w,
-                                 rng.uniform(-0.5, 0.5, 29) * fov_h])
+    scattered = np.column_stack([rng.uniform(-0.5, 0.5, 19) * fov_w,
+                                 rng.uniform(-0.5, 0.5, 19) * fov_h])
     return {
         "lattice": simulate_grid(root / "lattice", config, grid_shape=(5, 5), progress=False),
         "scan": simulate_scan(root / "scan", np.vstack([[0.0, 0.0], scattered]), config,
@@ -251,3 +254,143 @@ def test_fit_eigen_figures_are_legible(fitted, case):
                "diagnostics": figure_eigen_diagnostics(result)}
     defects = {name: figure_defects(fig) for name, fig in figures.items()}
     assert defects == {name: [] for name in figures}
+
+
+# ---- what each figure must show ----------------------------------------------------------
+
+def _bar_of(fig: Figure, image) -> object:  # type: ignore[no-untyped-def]
+    return next(bar for _, bar in _colorbars(fig) if bar.mappable is image)  # type: ignore[attr-defined]
+
+
+def test_fig3_colour_bars_span_their_own_maps(fitted):
+    """The paper basis's correction weights reach 0.5, not 1: each bar spans its map."""
+    model = fitted["lattice"].kernel_model()
+    fig = figure_weight_maps(model.basis, model.sensor_shape)
+    from psfkit.weights import get_basis
+
+    maps = get_basis(model.basis).maps(model.sensor_shape)
+    images = [ax.images[0] for ax in fig.axes if ax.images]
+    assert len(images) == len(maps) == 3
+    for image, values in zip(images, maps, strict=True):
+        assert image.norm.vmin == pytest.approx(values.min())
+        assert image.norm.vmax == pytest.approx(values.max())
+    assert max(image.norm.vmax for image in images[1:]) < 0.51
+
+
+@pytest.mark.parametrize("case", ["lattice", "scan"])
+def test_diagnostics_residuals_share_one_labelled_scale(fitted, case):
+    fig = figure_eigen_diagnostics(fitted[case])
+    panels = [ax for ax in fig.axes if "residual per position" in ax.get_title()]
+    mappables = [(ax.images or ax.collections)[0] for ax in panels]
+    assert len(mappables) == 2
+    assert mappables[0].norm.vmin == mappables[1].norm.vmin
+    assert mappables[0].norm.vmax == mappables[1].norm.vmax
+    bars = [bar for _, bar in _colorbars(fig)]
+    assert len(bars) == 1 and bars[0].mappable.norm is mappables[1].norm
+    values = np.concatenate([fitted[case].residuals[c].ravel() for c in ("sensor", "source")])
+    assert mappables[0].norm.vmax == pytest.approx(np.nanmax(values))
+    if case == "scan":      # the scan's positions as points, not a 1 × P strip
+        assert all(not ax.images for ax in panels)
+        assert len(mappables[0].get_offsets()) == fitted[case].n_positions
+
+
+def test_fig7_reads_the_correction_against_the_kernel(fitted):
+    """One row (the paper's layout, no empty panel), a colour bar for the kernels and one for
+    their differences, both in fractions of the same peak."""
+    model = fitted["lattice"].kernel_model()
+    fig = figure_kernels(model.kernels, list(model.kernel_names))
+    panels = [ax for ax in fig.axes if ax.images and not hasattr(ax, "_colorbar")]
+    assert len(panels) == 5
+    labels = sorted(bar.long_axis.get_label_text() for _, bar in _colorbars(fig))
+    assert labels == ["K_k − K_base (fraction of peak)", "kernel (fraction of peak, √ scale)"]
+    kernels = np.stack([ax.images[0].get_array() for ax in panels[:3]])
+    assert float(kernels.max()) == pytest.approx(1.0)
+    differences = np.stack([ax.images[0].get_array() for ax in panels[3:]])
+    np.testing.assert_allclose(differences, kernels[1:] - kernels[0], atol=1e-6)
+
+
+def test_montage_names_every_column_and_row_or_position(characterized):
+    lattice = figure_montage(characterized["lattice"])
+    axes = np.array([ax for ax in lattice.axes if ax.images and not hasattr(ax, "_colorbar")])
+    grid = axes.reshape(5, 5)
+    assert [ax.get_title() for ax in grid[0]] == [
+        f"θx {x:+.1f}°" for x in sorted({p.field_deg[0] for p in
+                                          characterized["lattice"].positions})]
+    assert all(ax.get_ylabel().startswith("θy ") for ax in grid[:, 0])
+    scan = figure_montage(characterized["scan"])
+    titles = [ax.get_title() for ax in scan.axes if ax.images and not hasattr(ax, "_colorbar")]
+    assert len(titles) == 20 and all(t.endswith("°") for t in titles)
+
+
+def test_montage_windows_follow_each_compact_psf(characterized):
+    """Every thumbnail of the compact scan is centred on its spot (the window is the centre
+    PSF's support moved by the registered shift) and the spot fills a visible part of it."""
+    result = characterized["compact"]
+    thumbs = result.thumbnails[0]
+    h, w = thumbs.shape[1:]
+    assert max(h, w) < 40             # the spot's support, not the 240 × 320 frame
+    for thumb in thumbs:
+        r, c = np.unravel_index(np.nanargmax(thumb), thumb.shape)
+        assert abs(r - (h - 1) / 2) <= 2 and abs(c - (w - 1) / 2) <= 2
+
+
+def test_a_large_scan_montage_shows_a_spread_subset(characterized, monkeypatch):
+    import psfkit.figures.grid_figures as grid_figures
+
+    monkeypatch.setattr(grid_figures, "MONTAGE_MAX", 8)
+    result = characterized["compact"]
+    cells, rows, cols = grid_figures._montage_cells(result)
+    assert len(cells) == 8 and (0, result.center[1]) in cells and rows * cols >= 8
+    fig = figure_montage(result)
+    assert "8 of 20 positions" in fig.get_suptitle()
+    # spread: the picks reach farther out than the 8 positions nearest the centre
+    coords, _ = grid_figures._scatter_coordinates(result)
+    radius = np.hypot(*(coords - coords[result.center[1]]).T)
+    assert max(radius[c] for _, c in cells) == pytest.approx(radius.max())
+    assert figure_defects(fig) == []
+
+
+def test_fitted_quantities_show_their_uncertainty_and_grey_when_not_significant(
+        characterized):
+    """With a significance flag (as the fit results carry them, issue 43 item 1) the growth
+    fit is drawn with its ±1σ, or dashed grey and "no growth detected"."""
+    import copy
+    from types import SimpleNamespace
+
+    result = copy.copy(characterized["lattice"])
+    for flag in (True, False):
+        result.warp_growth = SimpleNamespace(floor=0.03, scale_10deg=0.2, exponent=1.94,
+                                             exponent_std=0.13, significant=flag)
+        line = figure_warp_summary(result).axes[0].lines[-1]
+        if flag:
+            assert line.get_label().endswith("n = 1.94 ± 0.13") and line.get_linestyle() == "-"
+        else:
+            assert line.get_label() == "no growth detected (fit n = 1.94 ± 0.13)"
+            assert matplotlib.colors.same_color(line.get_color(), NOT_SIGNIFICANT)
+            assert line.get_linestyle() == "--"
+    # without a flag: not detected where the exponent is within 2σ of nothing
+    result.warp_growth = SimpleNamespace(floor=0.03, scale_10deg=0.2, exponent=29.8,
+                                         exponent_std=4.6e5)
+    assert figure_warp_summary(result).axes[0].lines[-1].get_label().startswith(
+        "no growth detected")
+
+
+def test_kernel_differences_that_are_not_significant_are_greyed(fitted):
+    model = fitted["lattice"].kernel_model()
+    sizes = [Fitted(0.031, 0.004, True), Fitted(0.002, 0.004, False)]
+    fig = figure_kernels(model.kernels, list(model.kernel_names), sizes=sizes)
+    titles = {ax.get_title(): ax for ax in fig.axes if "−" in ax.get_title()}
+    detected, undetected = titles["K_v − K_base\n0.031 ± 0.004"], \
+        titles["K_h − K_base\nnot detected (0.002 ± 0.004)"]
+    assert matplotlib.colors.same_color(undetected.title.get_color(), NOT_SIGNIFICANT)
+    assert undetected.images[0].get_alpha() < 1 and detected.images[0].get_alpha() is None
+    assert figure_defects(fig) == []
+
+
+@pytest.mark.parametrize(("value", "sigma", "flag", "text"), [
+    (1.94, 0.13, None, "1.94 ± 0.13"), (1.94, 0.13, False, "not detected (1.94 ± 0.13)"),
+    (0.1, 0.13, None, "not detected (0.10 ± 0.13)"), (0.1, 0.13, True, "0.10 ± 0.13"),
+    (0.71, float("inf"), None, "not detected (0.71, σ undetermined)"),
+    (float("nan"), None, None, "not detected (not determined)"), (3.0, None, None, "3.00")])
+def test_fitted_text_never_prints_nan(value, sigma, flag, text):
+    assert Fitted(value, sigma, flag).text() == text
