@@ -13,9 +13,10 @@ from matplotlib.figure import Figure
 
 from psfkit.compare.results import KernelComparison, KernelSetComparison
 from psfkit.figures.compare_figures import draw_kernel_row, quiver_panel
-from psfkit.figures.eigen_figures import _crop_box
+from psfkit.figures.eigen_figures import _crop_box, difference_limit
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
 from psfkit.preprocess import luminance
+from psfkit.support import support_box
 
 
 def start_numbers(comparison: KernelComparison) -> dict[str, Any]:
@@ -92,28 +93,39 @@ def figure_starts(comparisons: dict[str, KernelComparison],
     rows += [(f"learned: {label}", c.learned.kernels, c.learned.displacements)
              for label, c in comparisons.items()]
     k = len(names)
-    box = _crop_box(luminance(first.measured.model.kernels[0]))
+    box = support_box(luminance(first.measured.model.kernels[0]))
     mask_box = _crop_box(np.where(first.mask, 1.0, 0.0), level=0.5, margin=2)
     span = max(mask_box[0].stop - mask_box[0].start, mask_box[1].stop - mask_box[1].start)
     step = max(2, span // 12)
     values = [np.hypot(*d.field[:, d.mask]) for _, _, disp in rows for d in disp.values()
               if d.mask.any()]
     vmax = max((float(np.percentile(v, 95)) for v in values if v.size), default=1.0) or 1.0
+    lums = [np.stack([luminance(x) for x in kernels])[:, box[0], box[1]]
+            for _, kernels, _ in rows]
+    limit = max(difference_limit(lum) for lum in lums)     # the rows are compared: one scale
     cols = 3 * k - 2
     with publication_style():
-        fig = new_figure(PAGE_IN * 1.3, 1.35 * len(rows) + 0.5)
+        fig = new_figure(PAGE_IN, 1.2 * len(rows) + 1.0)
         axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
-        for r, (label, kernels, disp) in enumerate(rows):
-            lum = np.stack([luminance(x) for x in kernels])[:, box[0], box[1]]
-            draw_kernel_row(axes[r], lum, names, textwrap.fill(label, 22), titles=r == 0,
-                            label_size=6)
+        disp_image = None
+        for r, ((label, _, disp), lum) in enumerate(zip(rows, lums, strict=True)):
+            diff_image = draw_kernel_row(axes[r], lum, names, textwrap.fill(label, 16),
+                                         titles=r == 0, label_size=7, limit=limit)
             for i in range(1, k):
                 ax = axes[r, 2 * k + i - 2]
                 d = disp.get(names[i])
                 if d is None:
-                    ax.set_axis_off()
+                    ax.set_visible(False)
                     continue
-                quiver_panel(ax, d, mask_box, vmax, f"D_{names[i]}" if r == 0 else "", step)
+                disp_image = quiver_panel(ax, d, mask_box, vmax,
+                                          f"D_{names[i]}" if r == 0 else "", step)
+        for image, columns, label in (
+                (axes[0, 0].images[0], slice(0, k), "kernel (fraction of the row's peak)"),
+                (diff_image, slice(k, 2 * k - 1), "K_k − K_base (fraction of the row's peak)"),
+                (disp_image, slice(2 * k - 1, cols), "|D| (px)")):
+            if image is not None:
+                fig.colorbar(image, ax=list(axes[:, columns].ravel()), location="bottom",
+                             shrink=0.9, label=label)
         fig.suptitle(f"measured modes{' and oracle' if oracle is not None else ''} vs "
-                     f"learned kernels (arrows: displacement, colour 0–{vmax:.2f} px)")
+                     "learned kernels (arrows: displacement)")
     return fig

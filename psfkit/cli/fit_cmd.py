@@ -83,6 +83,7 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
     """Fig. 7 (kernels, and zoomed), Fig. 3 (weight maps), diagnostics and ``fit.json`` of an
     eigen-kernel fit, written atomically into ``folder``."""
     from psfkit.figures import (
+        difference_sizes,
         figure_eigen_diagnostics,
         figure_kernels,
         figure_weight_maps,
@@ -92,10 +93,11 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
     model = result.kernel_model()
     with atomic_directory(folder, overwrite=overwrite) as tmp:
         names = list(model.kernel_names)
-        save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels"),
+        sizes = difference_sizes(result, names)     # ±1σ and significance, where fitted
+        save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels", sizes=sizes),
                     tmp / "fig7_kernels")
         save_figure(figure_kernels(model.kernels, names, "measured eigen-kernels (zoom)",
-                                   zoom=0.3), tmp / "fig7_kernels_zoom")
+                                   zoom=0.3, sizes=sizes), tmp / "fig7_kernels_zoom")
         save_figure(figure_weight_maps(model.basis, model.sensor_shape), tmp / "fig3_weights")
         save_figure(figure_eigen_diagnostics(result), tmp / "diagnostics")
         (tmp / "fit.json").write_text(json.dumps(jsonable(result.summary()), indent=1) + "\n",

@@ -2,6 +2,7 @@
 
 from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
 from psfkit.figures.eigen_figures import (
+    difference_sizes,
     figure_eigen_diagnostics,
     figure_kernels,
     figure_weight_maps,
@@ -13,11 +14,31 @@ from psfkit.figures.grid_figures import (
     figure_warp,
     figure_warp_summary,
 )
-from psfkit.figures.style import new_figure, png_base64, publication_style, save_figure
+from psfkit.figures.style import (
+    Fitted,
+    fitted,
+    new_figure,
+    png_base64,
+    publication_style,
+    save_figure,
+)
 
 __all__ = [
-    "figure_displacements", "figure_eigen_diagnostics", "figure_kernels",
-    "figure_learned_vs_measured", "figure_maps", "figure_montage",
-    "figure_shift_variance", "figure_warp", "figure_warp_summary", "figure_weight_maps",
-    "new_figure", "png_base64", "publication_style", "save_figure",
+    "Fitted",
+    "difference_sizes",
+    "figure_displacements",
+    "figure_eigen_diagnostics",
+    "figure_kernels",
+    "figure_learned_vs_measured",
+    "figure_maps",
+    "figure_montage",
+    "figure_shift_variance",
+    "figure_warp",
+    "figure_warp_summary",
+    "figure_weight_maps",
+    "fitted",
+    "new_figure",
+    "png_base64",
+    "publication_style",
+    "save_figure",
 ]

@@ -13,7 +13,7 @@ from matplotlib.image import AxesImage
 
 from psfkit.compare.displacement import DisplacementMap
 from psfkit.compare.results import KernelComparison
-from psfkit.figures.eigen_figures import _crop_box, draw_kernels
+from psfkit.figures.eigen_figures import _crop_box, _zoom, difference_limit, draw_kernels
 from psfkit.figures.style import PAGE_IN, new_figure, publication_style
 from psfkit.preprocess import luminance
 from psfkit.support import support_box
@@ -37,14 +37,14 @@ def reference_label(comparison: KernelComparison) -> str:
 
 
 def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | list[str],
-                    label: str, titles: bool = True, label_size: float | None = None
-                    ) -> AxesImage:
+                    label: str, titles: bool = True, label_size: float | None = None,
+                    limit: float | None = None) -> AxesImage:
     """One Fig. 7 row: the kernels' luminance ``lum`` ``(K, h, w)`` in ``axes[:K]`` and their
-    differences from ``K_base`` in ``axes[K:2K−1]`` (:func:`draw_kernels`), ``label`` on the
-    row. Returns the last difference image (for a colour bar; the kernels' is
-    ``axes[0].images[0]``)."""
+    differences from ``K_base`` in ``axes[K:2K−1]`` (:func:`draw_kernels`, differences within
+    ±``limit`` of the row's peak), ``label`` on the row. Returns the last difference image
+    (for a colour bar; the kernels' is ``axes[0].images[0]``)."""
     k = len(names)
-    im = draw_kernels(axes[:k], axes[k:2 * k - 1], lum, names, titles)
+    im = draw_kernels(axes[:k], axes[k:2 * k - 1], lum, names, titles, limit=limit)
     axes[0].set_ylabel(label, fontsize=label_size)
     return im
 
@@ -70,21 +70,20 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
     box = support_box(rows[-1][1][0])           # the measured kernels' crop
     rows += [(label, np.stack([luminance(k) for k in kernels])) for label, kernels in extra_rows]
     if zoom is not None:
-        (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
-        hr, hc = int((r1 - r0) * zoom / 2), int((c1 - c0) * zoom / 2)
-        mr, mc = (r0 + r1) // 2, (c0 + c1) // 2
-        box = (slice(mr - hr, mr + hr), slice(mc - hc, mc + hc))
+        box = _zoom(box, zoom)
     k = len(names)
     cols = 2 * k - 1
+    lums = [lum[:, box[0], box[1]] for _, lum in rows]
+    limit = max(difference_limit(lum) for lum in lums)    # the rows are compared: one scale
     with publication_style():
-        fig = new_figure(PAGE_IN, 1.45 * len(rows) + 0.35)
+        fig = new_figure(PAGE_IN, 1.45 * len(rows) + 0.8)
         axes = np.atleast_2d(fig.subplots(len(rows), cols, squeeze=False))
-        for r, (label, lum) in enumerate(rows):
-            im = draw_kernel_row(axes[r], lum[:, box[0], box[1]], names, label, titles=r == 0)
-            fig.colorbar(im, ax=list(axes[r, k:]), shrink=0.8,
-                         label="K_k − K_base (fraction of the row's peak)")
+        for r, ((label, _), lum) in enumerate(zip(rows, lums, strict=True)):
+            im = draw_kernel_row(axes[r], lum, names, label, titles=r == 0, limit=limit)
         fig.colorbar(axes[0, 0].images[0], ax=list(axes[:, :k].ravel()), location="bottom",
-                     shrink=0.5, label="kernel (fraction of the row's peak, √ scale)")
+                     shrink=0.8, label="kernel (fraction of the row's peak, √ scale)")
+        fig.colorbar(im, ax=list(axes[:, k:].ravel()), location="bottom", shrink=0.8,
+                     label="K_k − K_base (fraction of the row's peak)")
         fig.suptitle("learned vs measured eigen-kernels (Fig. 7 layout)"
                      + (" – zoom" if zoom else ""))
     return fig
@@ -108,6 +107,8 @@ def quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax
     ax.set_title(title)
     ax.set_xticks([])
     ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
     return im
 
 
@@ -119,29 +120,31 @@ def figure_displacements(comparison: KernelComparison, arrows: int = 14) -> Figu
     box = _crop_box(np.where(comparison.mask, 1.0, 0.0), level=0.5, margin=2)
     span = max(box[0].stop - box[0].start, box[1].stop - box[1].start)
     step = max(2, span // arrows)
-    columns = ["learned"] + (["initial"] if comparison.initial is not None else []) + [
-        "measured kernels", "measured warp"]
+    rows = []
+    for name in names:
+        maps: dict[str, DisplacementMap | None] = {
+            "learned": comparison.learned.displacements.get(name)}
+        if comparison.initial is not None:
+            maps["initial"] = comparison.initial.displacements.get(name)
+        maps["measured kernels"] = comparison.measured_displacements.get(name)
+        maps["measured warp"] = comparison.measured.warps.get(name)
+        rows.append(maps)
+    # a column nothing fills (no warps for a kernel-file reference) is left out
+    columns = [c for c in rows[0] if any(row[c] is not None for row in rows)] if rows else []
     with publication_style():
         fig = new_figure(PAGE_IN, 1.75 * len(names) + 0.4)
-        axes = np.atleast_2d(fig.subplots(len(names), len(columns), squeeze=False))
-        for r, name in enumerate(names):
-            maps: list[tuple[str, DisplacementMap | None]] = [
-                ("learned", comparison.learned.displacements.get(name))]
-            if comparison.initial is not None:
-                maps.append(("initial", comparison.initial.displacements.get(name)))
-            maps.append(("measured kernels", comparison.measured_displacements.get(name)))
-            maps.append(("measured warp", comparison.measured.warps.get(name)))
-            values = [np.hypot(*d.field[:, d.mask]) for _, d in maps
+        axes = np.atleast_2d(fig.subplots(len(names), max(1, len(columns)), squeeze=False))
+        for r, (name, maps) in enumerate(zip(names, rows, strict=True)):
+            values = [np.hypot(*d.field[:, d.mask]) for d in maps.values()
                       if d is not None and d.mask.any()]
             # robust colour scale: a few large flow errors must not wash out the maps
             vmax = max((float(np.percentile(v, 95)) for v in values if v.size), default=1.0)
             vmax = vmax if vmax > 0 else 1.0
             im = None
-            for c, (label, disp) in enumerate(maps):
-                ax = axes[r, c]
-                if disp is None:
-                    ax.set_axis_off()
-                    ax.set_title(f"{label}: n/a")
+            for ax, label in zip(axes[r], columns, strict=False):
+                disp = maps[label]
+                if disp is None:            # nothing to draw: no empty panel
+                    ax.set_visible(False)
                     continue
                 im = quiver_panel(ax, disp, box, vmax, f"K_{name}: {label}", step)
             if im is not None:

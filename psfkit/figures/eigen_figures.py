@@ -53,12 +53,23 @@ def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
     return slice(max(mr - hr, 0), mr + hr), slice(max(mc - hc, 0), mc + hc)
 
 
+def difference_limit(lum: np.ndarray) -> float:
+    """Colour limit of ``K_k − K_base`` as a fraction of the kernels' peak (99.9th
+    percentile of ``|difference|``; 1 where there is none), for ``(K, h, w)`` kernels."""
+    if len(lum) < 2:
+        return 1.0
+    diffs = (lum[1:] - lum[0]) / (float(np.nanmax(lum)) or 1.0)
+    return float(np.percentile(np.abs(diffs), 99.9)) or 1.0
+
+
 def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np.ndarray,
                  names: Sequence[str], titles: bool = True,
-                 sizes: Sequence[Fitted] | None = None) -> AxesImage | None:
+                 sizes: Sequence[Fitted] | None = None, limit: float | None = None
+                 ) -> AxesImage | None:
     """The kernels' luminance ``lum`` ``(K, h, w)`` as fractions of their peak on a square-root
     scale (:func:`~psfkit.figures.style.psf_norm`), and ``K_k − K_base`` in the same unit on a
-    symmetric linear scale (the row's own: learned kernels may be normalised differently).
+    symmetric linear scale (±``limit``, default :func:`difference_limit` of ``lum``: pass one
+    limit to rows that are compared).
 
     ``sizes`` (one per difference, optional): the size of each difference with its uncertainty,
     printed under its title; a difference that is not significant is faded and titled "not
@@ -67,7 +78,7 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
     k = len(names)
     peak = float(np.nanmax(lum)) or 1.0
     diffs = (lum[1:] - lum[0]) / peak
-    limit = (float(np.percentile(np.abs(diffs), 99.9)) if k > 1 else 0.0) or 1.0
+    limit = limit or difference_limit(lum)
     for i in range(k):
         ax = kernel_axes[i]
         ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
@@ -137,7 +148,7 @@ def figure_kernels(kernels: np.ndarray, names: Sequence[str], title: str = "",
     k = len(kernels)
     rows = 1 if k <= ONE_ROW_KERNELS else math.ceil(k / WRAP) + math.ceil((k - 1) / WRAP)
     with publication_style():
-        fig = new_figure(PAGE_IN, 2.4 if rows == 1 else 1.3 * rows + 0.8)
+        fig = new_figure(PAGE_IN, 2.6 if rows == 1 else 1.3 * rows + 0.8)
         kernel_axes, diff_axes = _kernel_axes(fig, k)
         im = draw_kernels(kernel_axes, diff_axes, lum, names, sizes=sizes)
         fig.colorbar(kernel_axes[0].images[0], ax=kernel_axes, location="bottom", shrink=0.8,
@@ -168,7 +179,7 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
     labels = ["base (1 − Σ W)"] + [f"W_{name}" for name in basis.kernel_names[1:]]
     with publication_style():
         n = len(maps)
-        cols = min(n, 3 if n <= 3 else 4)
+        cols = min(n, 3)
         rows = int(np.ceil(n / cols))
         fig = new_figure(PAGE_IN, 2.0 * rows + 0.3)
         axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
@@ -182,7 +193,7 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
             ax.set_ylabel("v (px)")
             ax.xaxis.set_major_locator(MaxNLocator(4))
             ax.yaxis.set_major_locator(MaxNLocator(4))
-            fig.colorbar(im, ax=ax, shrink=0.8, label="weight (dimensionless)")
+            fig.colorbar(im, ax=ax, shrink=0.8, pad=0.08, label="weight (dimensionless)")
         for ax in axes[n:]:
             ax.set_visible(False)
         fig.suptitle(f"weight maps, basis {basis_name!r}")

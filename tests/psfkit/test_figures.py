@@ -74,12 +74,13 @@ def _drawn_texts(fig: Figure) -> list[tuple[Text, Axes | None]]:
     visible axes; of an axis (its label, offset and tick labels) only where the axis is drawn,
     and of the ticks only those inside the view (an axis keeps spare tick objects outside
     it); quiver keys' labels."""
-    hidden, drawn, keys = set(), set(), []
+    hidden, drawn, keys, owners = set(), set(), [], {}
     for ax in fig.findobj(Axes):
         for axis in (ax.xaxis, ax.yaxis):
             shown = ax.axison and axis.get_visible()
             for tick in axis.majorTicks + axis.minorTicks:
                 hidden |= {id(tick.label1), id(tick.label2)}
+                owners |= {id(tick.label1): ax, id(tick.label2): ax}
             if shown:
                 drawn |= {id(t) for tick in axis._update_ticks()
                           for t in (tick.label1, tick.label2)}
@@ -88,7 +89,7 @@ def _drawn_texts(fig: Figure) -> list[tuple[Text, Axes | None]]:
         keys += [(child.text, ax) for child in ax.get_children()
                  if isinstance(child, QuiverKey) and child.get_visible()]
     out = []
-    for text, owner in [*((t, t.axes) for t in fig.findobj(Text)), *keys]:
+    for text, owner in [*((t, owners.get(id(t), t.axes)) for t in fig.findobj(Text)), *keys]:
         if not text.get_visible() or not text.get_text().strip():
             continue
         if id(text) in hidden and id(text) not in drawn:
@@ -394,3 +395,31 @@ def test_kernel_differences_that_are_not_significant_are_greyed(fitted):
     (float("nan"), None, None, "not detected (not determined)"), (3.0, None, None, "3.00")])
 def test_fitted_text_never_prints_nan(value, sigma, flag, text):
     assert Fitted(value, sigma, flag).text() == text
+
+
+def test_comparison_figures_are_legible(fitted):
+    """``psfkit compare``'s Fig. 7 layout and displacement maps (a model against itself)."""
+    from psfkit.compare import compare_kernels
+    from psfkit.figures import figure_displacements, figure_learned_vs_measured
+
+    model = fitted["lattice"].kernel_model()
+    comparison = compare_kernels(model, model)
+    for fig in (figure_learned_vs_measured(comparison), figure_displacements(comparison)):
+        assert figure_defects(fig) == []
+
+
+@pytest.mark.parametrize("basis", ["si", "paper+odd+cross", "poly:2"])
+def test_richer_bases_wrap_without_empty_panels(basis):
+    """Fig. 7 of more than four kernels wraps into a block of kernels above a block of
+    differences; Fig. 3 of any basis; the single-kernel (SI) model has no difference row."""
+    from psfkit.weights import get_basis
+
+    names = list(get_basis(basis).kernel_names)
+    rows, cols = np.mgrid[0:48, 0:64]
+    kernels = np.stack([np.exp(-((rows - 24 - 0.3 * k) ** 2 + (cols - 30 - 0.2 * k) ** 2) / 18.0)
+                        for k in range(len(names))])[:, None]
+    for fig in (figure_kernels(kernels, names, "kernels"), figure_weight_maps(basis, (60, 80))):
+        assert figure_defects(fig) == []
+    panels = [ax for ax in figure_kernels(kernels, names).axes
+              if ax.get_visible() and ax.images and not hasattr(ax, "_colorbar")]
+    assert len(panels) == 2 * len(names) - 1
