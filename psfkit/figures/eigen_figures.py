@@ -181,7 +181,8 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
         n = len(maps)
         cols = min(n, 3)
         rows = int(np.ceil(n / cols))
-        fig = new_figure(PAGE_IN, 2.0 * rows + 0.3)
+        aspect = float(np.clip(sensor_shape[0] / sensor_shape[1], 0.4, 1.6))
+        fig = new_figure(PAGE_IN, rows * (1.5 * aspect + 0.8) + 0.35)   # bars as tall as maps
         axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
         for ax, m, label in zip(axes, maps, labels, strict=False):
             lo, hi = float(m.min()), float(m.max())

@@ -144,14 +144,15 @@ def figure_shift_variance(result: GridCharacterization) -> Figure:
     keys = sorted(result.examples, key=lambda k: radius[k])
     n_off = len(keys)       # 0 or 1 where B or C was not captured or was excluded
     letters = "BC"[2 - n_off:]
+    # B and C aligned to A: where they were not measured (off the sensor) NaN, drawn pale
+    # blue, and their differences from A grey
+    valid = [crop_window(result.examples[k][1].astype(np.float32), box, fill=0) > 0
+             for k in keys]
     panels = [(ref, f"A\n{_field_label(result, *result.center)}")]
-    panels += [(crop_window(luminance(result.examples[k][0]), box),
+    panels += [(np.where(ok, crop_window(luminance(result.examples[k][0]), box), np.nan),
                 f"{letter}\n{_field_label(result, *k)}")
-               for letter, k in zip(letters, keys, strict=True)]
-    # differences only where both PSFs were measured (grey elsewhere)
-    diffs = [np.where(crop_window(result.examples[k][1].astype(np.float32), box, fill=0) > 0,
-                      (ref - image) / peak, np.nan) for k, (image, _) in zip(keys, panels[1:],
-                                                                            strict=True)]
+               for letter, k, ok in zip(letters, keys, valid, strict=True)]
+    diffs = [(ref - image) / peak for image, _ in panels[1:]]
     with publication_style():
         fig = new_figure(PAGE_IN, 2.7)
         axes = fig.subplots(1, 2 + 2 * n_off, width_ratios=[1] * (1 + 2 * n_off) + [1.7])
@@ -551,4 +552,4 @@ def _anisotropy_panel(ax: Axes, result: GridCharacterization, theta: np.ndarray,
     ax.set_xlabel("field angle θ (°)")
     ax.set_ylabel("tangential / sagittal")
     ax.set_ylim(0, max(4.0, float(np.nanmax(anis[ok])) * 1.1))
-    ax.legend(frameon=False)
+    ax.legend(frameon=False, loc="upper right")
