@@ -423,3 +423,21 @@ def test_richer_bases_wrap_without_empty_panels(basis):
     panels = [ax for ax in figure_kernels(kernels, names).axes
               if ax.get_visible() and ax.images and not hasattr(ax, "_colorbar")]
     assert len(panels) == 2 * len(names) - 1
+
+
+def test_a_grid_without_field_positions_is_drawn_against_grid_steps(characterized):
+    """No field angles or monitor positions in the manifest: the warp summary is one panel
+    against the distance in grid steps (no empty anisotropy panel), the montage names rows
+    and columns by index."""
+    import copy
+    from dataclasses import replace
+
+    result = copy.copy(characterized["lattice"])
+    result.positions = [replace(p, field_deg=None, monitor_px=None) for p in result.positions]
+    result.field_units, result.warp_growth = "grid steps", None
+    summary = figure_warp_summary(result)
+    assert len(summary.axes) == 1 and "grid steps" in summary.axes[0].get_xlabel()
+    montage = figure_montage(result)
+    assert "col 0" in [ax.get_title() for ax in montage.axes]
+    for fig in (summary, montage, figure_shift_variance(result), figure_warp(result)):
+        assert figure_defects(fig) == []
