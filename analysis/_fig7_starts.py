@@ -120,7 +120,7 @@ def figure_starts(comparisons: dict[str, KernelComparison],
                 disp_image = quiver_panel(ax, d, mask_box, vmax,
                                           f"D_{names[i]}" if r == 0 else "", step)
         for image, columns, label in (
-                (axes[0, 0].images[0], slice(0, k), "kernel (fraction of the row's peak)"),
+                (axes[0, 0].images[0], slice(0, k), "kernel (fraction of the row's peak, √ scale)"),
                 (diff_image, slice(k, 2 * k - 1), "K_k − K_base (fraction of the row's peak)"),
                 (disp_image, slice(2 * k - 1, cols), "|D| (px)")):
             if image is not None:

@@ -84,7 +84,9 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
         ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
         ax.set_title(f"K_{names[i]}" if titles else "")
         ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_yticks([])           # (the axis stays: a row label may be set on it)
+        for spine in ax.spines.values():
+            spine.set_visible(False)
     cmap = matplotlib.colormaps["RdBu_r"]
     im = None
     for i in range(1, k):
