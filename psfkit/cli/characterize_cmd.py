@@ -217,8 +217,8 @@ def run_warp(args: argparse.Namespace) -> int:
     growth, anis = result.warp_growth, result.warp_anisotropy
     if growth is not None:
         print(f"residual grows as theta^{growth.exponent:.2f} (+/- {growth.exponent_std:.2f}) "
-              f"over a {growth.floor:.3f} px floor (positions with overlap >= "
-              f"{RELIABLE_OVERLAP:.0%})")
+              f"over a {growth.floor:.3f} px floor (positions with >= {RELIABLE_OVERLAP:.0%} "
+              "of the centre PSF's light in their overlap)")
     if anis is not None:
         print(f"tangential/sagittal: measured {anis['median_measured']:.2f}, geometric optics "
               f"{anis['median_geometric']:.2f} (median of {anis['positions']} positions)")
