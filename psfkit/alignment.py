@@ -303,6 +303,10 @@ class GridAligner:
             return ExcludedPosition.of(pos, exc)
 
 
+#: Least share of the registered shifts' spread (weighted variance) the affine map must explain
+#: to place the PSFs (:func:`nominal_shifts`): a scan of pre-centred cut-outs has shifts of
+#: centring residuals, which no field map predicts.
+MIN_EXPLAINED = 0.9
 #: How :func:`nominal_shifts` placed the PSFs (``NominalShifts.source``).
 SHIFT_SOURCES = {
     "affine": "the affine field-to-shift map of the positions with at least "
@@ -312,6 +316,9 @@ SHIFT_SOURCES = {
                               "the centre PSF's light in its overlap (the reliable ones do not "
                               "span two directions)",
     "registered": "each PSF's own registered shift (no two-dimensional field to fit a map to)",
+    "registered (no map)": "each PSF's own registered shift: the affine field-to-shift map "
+                           f"explains less than {100 * MIN_EXPLAINED:.0f}% of their spread "
+                           "(cut-outs around each PSF, or a field too small to move it)",
 }
 
 
@@ -337,6 +344,19 @@ class NominalShifts:
                 "positions_used": self.positions_used,
                 "max_deviation_from_registered_px": self.deviation_px,
                 "map": self.fit.to_dict() if self.fit is not None else None}
+
+
+def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) -> float:
+    """Share of the weighted spread of the registered shifts that the affine map explains
+    (``1 − Σ w |residual|² / Σ w |shift − mean|²``; 1 when the shifts do not spread)."""
+    residuals = fit.residuals.reshape(-1, 2)
+    ok = np.isfinite(residuals).all(axis=1) & (weights > 0)
+    if not ok.any():
+        return 1.0
+    w = weights[ok]
+    spread = registered[ok] - np.average(registered[ok], axis=0, weights=w)
+    total = float(np.sum(w[:, None] * spread**2))
+    return 1.0 - float(np.sum(w[:, None] * residuals[ok] ** 2)) / total if total > 0 else 1.0
 
 
 def _field_coordinates(positions: list[GridPosition], center: GridPosition
@@ -368,7 +388,8 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
     centre PSF's light in their registered overlap (whatever the PSF's size: a compact PSF
     anywhere on the sensor is reliable), and re-based so that the centre PSF stays at
     ``(0, 0)`` (the kernel origin). Fallbacks, in order: every position (when the reliable
-    ones do not span two directions), then the registered shifts (a one-row grid).
+    ones do not span two directions), then the registered shifts (a one-row grid, or a map
+    that explains less than :data:`MIN_EXPLAINED` of the shifts' spread: cut-outs).
 
     Parameters
     ----------
@@ -404,6 +425,8 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
             continue
         source, used = name, int(np.count_nonzero(weights > 0))
         break
+    if fit is not None and _explained(fit, registered, overlap) < MIN_EXPLAINED:
+        fit, source, used = None, "registered (no map)", len(positions)
     if fit is None:
         nominal = registered
     else:

@@ -52,10 +52,6 @@ from psfkit.preprocess import PreprocessOptions
 from psfkit.resample import binning_factor
 from psfkit.weights import get_basis
 
-#: A PSF whose support, grown by its own size on every side, covers less than this fraction
-#: of the sensor is fitted on that crop (:func:`working_region`).
-WORKING_CROP_FRACTION = 0.25
-
 
 @dataclass(frozen=True)
 class EigenFitOptions:
@@ -379,12 +375,13 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
 
     The PSFs of the aligned grid all lie where the centre PSF lies. The working region is the
     bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
-    room for PSFs that grow over the field; when that covers at least
-    :data:`WORKING_CROP_FRACTION` of the sensor (a caustic), the whole sensor, as before
-    issue 43. The binning is the smallest that brings the region to ``working_size`` px (the
-    memory bound): a compact PSF stays at full resolution, several pixels wide. Its bandwidth
-    is reported: the fraction of the centre PSF's power (on its support's box) above the
-    binned grid's Nyquist frequency, which that binning folds.
+    room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
+    a cut-out that holds it gives the same working copy as the full frame; when that is the
+    whole sensor (a caustic), the whole sensor as before issue 43. The binning is the smallest
+    that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
+    full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
+    centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
+    that binning folds.
 
     Parameters
     ----------
@@ -413,8 +410,7 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
                   for sl, size, n in zip(box, extent, (h, w), strict=True))
     crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
-    region = None if crop[0] * crop[1] >= WORKING_CROP_FRACTION * h * w \
-        else (grown[0], grown[1])
+    region = None if crop == (h, w) else (grown[0], grown[1])
     shape = (h, w) if region is None else crop
     factor = binning_factor(shape, working_size)
     record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else

@@ -226,12 +226,12 @@ class ShiftRegistrar:
         return (float(estimate[1] * self.fine_factor), float(estimate[0] * self.fine_factor))
 
 
-def psf_region(support: np.ndarray, max_fraction: float = 0.25
-               ) -> tuple[slice, slice] | None:
+def psf_region(support: np.ndarray) -> tuple[slice, slice] | None:
     """The region a registration refines in (:class:`ShiftRegistrar`'s ``region``): the
     bounding box of a PSF's ``(H, W)`` bool support grown by half its size and 8 px on every
-    side (the Tukey window's taper then leaves the PSF untouched), or ``None`` when that
-    covers more than ``max_fraction`` of the frame (a caustic: the whole overlap is used)."""
+    side (the Tukey window's taper then leaves the PSF untouched), clipped to the frame; or
+    ``None`` when that is the whole frame (a caustic: the whole overlap is used). Defined by the
+    PSF alone, so a cut-out that holds the region registers as the full frame does."""
     rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
     if len(rows) == 0:
         return None
@@ -240,8 +240,8 @@ def psf_region(support: np.ndarray, max_fraction: float = 0.25
     for lo, hi, size in ((rows[0], rows[-1] + 1, h), (cols[0], cols[-1] + 1, w)):
         grow = (hi - lo) // 2 + 8
         slices.append(slice(max(0, int(lo) - grow), min(size, int(hi) + grow)))
-    area = (slices[0].stop - slices[0].start) * (slices[1].stop - slices[1].start)
-    return None if area > max_fraction * h * w else (slices[0], slices[1])
+    whole = (slices[0].stop - slices[0].start, slices[1].stop - slices[1].start) == (h, w)
+    return None if whole else (slices[0], slices[1])
 
 
 def _region_slices(region: tuple[slice, slice], shape: tuple[int, int],

@@ -138,6 +138,17 @@ def test_fit_eigen_works_at_the_psfs_resolution_and_prefers_one_psf(scans):
     assert errors["si/sensor"] < errors["paper/sensor"]
 
 
+def test_fit_eigen_on_cutouts_places_each_psf_at_its_registered_shift(scans):
+    """Cut-outs lose where each PSF lay on the sensor: no field map predicts their shifts
+    (centring residuals), so each PSF stays at its own registered shift, and the
+    cross-validation still prefers one PSF."""
+    result = fit_eigen_grid(read_grid(scans[1]), EigenFitOptions(gain_compensate=True),
+                            workers=1)
+    assert result.placement is not None and result.placement.source == "registered (no map)"
+    assert result.summary()["working_region"]["shape_px"] == [CUTOUT, CUTOUT]
+    assert result.cv["best"].startswith("si/")
+
+
 def test_fit_eigen_sees_a_compact_psf_that_varies(tmp_path):
     scan = simulate_compact_scan(tmp_path / "varying", N_POSITIONS, (256, 256),
                                  CompactCamera(width_growth=1.0, ellipticity=0.5,
