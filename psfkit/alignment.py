@@ -151,11 +151,11 @@ def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
                               SUPPORT_SMOOTHING_PX, borderType=cv2.BORDER_REFLECT)
     peak = float(smooth.max())
     core = (smooth >= SUPPORT_FRACTION * peak).astype(np.uint8)
-    size = 8 * SUPPORT_MARGIN_PX + 1
-    away = cv2.dilate(core, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))) == 0
+    size = 8 * SUPPORT_MARGIN_PX + 1          # a square: separable, fast at full resolution
+    away = cv2.dilate(core, np.ones((size, size), np.uint8)) == 0
     if valid is not None:       # not the zeros outside an aligned PSF's data (and its edge)
         away &= cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    sample = smooth[away]
+    sample = smooth[::2, ::2][away[::2, ::2]]       # plenty of samples, a quarter of the work
     noise = 0.0
     if sample.size >= 64:
         noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
