@@ -36,8 +36,7 @@ def main(args: argparse.Namespace) -> int:
         save_figure(figure_shift_variance(result), tmp / "fig2_shift_variance")
         write_json(tmp / "fig2.json", {"grid": str(grid.root), "centre": result.center,
                                        "centre_column": rows,
-                                       "mae": "mean absolute error vs the centre PSF after "
-                                              "shift compensation (normalised units)"})
+                                       "mae": result.to_dict()["conventions"]["mae"]})
     mae = max(r["mae"] for r in rows)
     print(f"Fig. 2 of {grid.root}: largest MAE on the centre column {mae:.4g}; wrote {args.out}")
     return 0

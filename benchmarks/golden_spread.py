@@ -26,6 +26,11 @@ to the array's largest value.
 
     python benchmarks/golden_spread.py --out /tmp/golden-spread
     python benchmarks/golden_spread.py --out /tmp/golden-spread --variants base threads2
+    python benchmarks/golden_spread.py --out /tmp/golden-spread --demo-only \
+        --tolerances tests/e2e/golden/tolerances.json
+
+``--demo-only`` runs the demo alone (a change of the characterization or the eigen fit) and
+replaces only the demo's entries of an existing ``--tolerances`` table.
 """
 
 from __future__ import annotations
@@ -109,9 +114,10 @@ def _perturbed_pairs(source: Path, target: Path, seed: int) -> Path:
     return target
 
 
-def run_variant(out: Path, data: Path, threads: int, seed: int | None) -> None:
+def run_variant(out: Path, data: Path, threads: int, seed: int | None,
+                demo_only: bool = False) -> None:
     """The golden test's commands, in this process, writing the files of ``golden/`` to
-    ``out``."""
+    ``out`` (``demo_only``: the demo's)."""
     import cv2
     import torch
 
@@ -130,7 +136,7 @@ def run_variant(out: Path, data: Path, threads: int, seed: int | None) -> None:
         assert main(["demo", "--out", str(demo), "--downsample", "8", "--quiet"]) == 0
         shutil.copy(demo / "report" / "results.json", out / "demo_ds8_results.json")
         shutil.copy(demo / "kernels.npz", out / "demo_ds8_kernels.npz")
-        for model in ("si", "ek"):
+        for model in () if demo_only else ("si", "ek"):
             kernels = out / f"dlmd_ds4_{model}.npz"
             assert main(["fit-pairs", str(pairs), "--basis", model, "--downsample", "4",
                          "--convention", "source", *PAIRS_FLAGS[model], "--out", str(kernels),
@@ -154,8 +160,8 @@ def numbers(doc: Any, where: str = "") -> Iterator[tuple[str, float]]:
 
 def group_of(path: str, unreliable: frozenset[int] = frozenset()) -> str:
     """The group a number belongs to: its path with list indices replaced by ``*``; a grid
-    position whose PSF overlaps the centre PSF by less than the report's ``reliable_overlap``
-    (index in ``unreliable``) is its own group (``positions[unreliable]``)."""
+    position below the report's ``reliable_overlap`` (index in ``unreliable``) is its own
+    group (``positions[unreliable]``)."""
     match = re.match(r"positions\[(\d+)\]", path)
     if match and int(match.group(1)) in unreliable:
         path = "positions[unreliable]" + path[match.end():]
@@ -163,11 +169,13 @@ def group_of(path: str, unreliable: frozenset[int] = frozenset()) -> str:
 
 
 def unreliable_positions(doc: Any) -> frozenset[int]:
-    """Indices of the positions of a ``results.json`` below its ``reliable_overlap``."""
+    """Indices of the positions of a ``results.json`` below its ``reliable_overlap`` (the
+    centre PSF's light in their overlap, ``support_overlap``; before issue 43 the sensor's
+    share, ``overlap``)."""
     if not isinstance(doc, dict) or "positions" not in doc:
         return frozenset()
     return frozenset(i for i, p in enumerate(doc["positions"])
-                     if p["overlap"] < doc["reliable_overlap"])
+                     if p.get("support_overlap", p["overlap"]) < doc["reliable_overlap"])
 
 
 def _kernel_doc(file: Path) -> tuple[np.ndarray, Any]:
@@ -188,9 +196,11 @@ def prediction_difference(new: Path, old: Path, data: Path) -> float:
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
 
-def deviations(run: Path, base: Path, data: Path) -> dict[str, dict[str, dict[str, float]]]:
+def deviations(run: Path, base: Path, data: Path, demo_only: bool = False
+               ) -> dict[str, dict[str, dict[str, float]]]:
     """Per output file and group: the largest absolute deviation of ``run`` from ``base``, the
-    largest relative one (to the base value's magnitude), and the magnitude of the group."""
+    largest relative one (to the base value's magnitude), and the magnitude of the group
+    (``demo_only``: the demo's outputs)."""
     report: dict[str, dict[str, dict[str, float]]] = {}
 
     def compare(name: str, new: Any, old: Any) -> None:
@@ -198,17 +208,19 @@ def deviations(run: Path, base: Path, data: Path) -> dict[str, dict[str, dict[st
         new_values = dict(numbers(new))
         unreliable = unreliable_positions(old)
         for path, value in numbers(old):
-            entry = groups.setdefault(group_of(path, unreliable),
-                                      {"abs": 0.0, "rel": 0.0, "size": 0.0})
-            delta = abs(new_values[path] - value)
+            group = group_of(path, unreliable)
+            if path not in new_values and SKIPPED.match(group):
+                continue          # NaN (null) in this run: an ill-conditioned, skipped group
+            entry = groups.setdefault(group, {"abs": 0.0, "rel": 0.0, "size": 0.0})
+            delta = abs(new_values[path] - value) if path in new_values else float("inf")
             entry["abs"] = max(entry["abs"], delta)
             entry["rel"] = max(entry["rel"], delta / abs(value) if value else
                                (0.0 if delta == 0 else float("inf")))
             entry["size"] = max(entry["size"], abs(value))
 
-    for name in JSON_OUTPUTS:
+    for name in _outputs(JSON_OUTPUTS, demo_only):
         compare(name, json.loads((run / name).read_text()), json.loads((base / name).read_text()))
-    for name in KERNEL_OUTPUTS:
+    for name in _outputs(KERNEL_OUTPUTS, demo_only):
         (new_k, new_meta), (old_k, old_meta) = _kernel_doc(run / name), _kernel_doc(base / name)
         scale = float(np.abs(old_k).max())
         delta = np.abs(new_k - old_k)
@@ -224,6 +236,10 @@ def deviations(run: Path, base: Path, data: Path) -> dict[str, dict[str, dict[st
                                                                           base / name, data)
         compare(name + ":metadata", new_meta, old_meta)
     return report
+
+
+def _outputs(names: tuple[str, ...], demo_only: bool) -> tuple[str, ...]:
+    return tuple(n for n in names if n.startswith("demo")) if demo_only else names
 
 
 #: tolerance = SAFETY × the largest measured deviation (floored): room for machines and
@@ -305,36 +321,46 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reuse", action="store_true", help="keep runs already in --out")
     parser.add_argument("--tolerances", type=Path, help="also write the tolerance table "
                         "derived from the spread here (tests/e2e/golden/tolerances.json)")
+    parser.add_argument("--demo-only", action="store_true", help="run the demo alone and "
+                        "replace only its entries of the --tolerances table")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         threads, seed, _ = VARIANTS[args.worker]
-        run_variant(args.out / args.worker, args.data, threads, seed)
+        run_variant(args.out / args.worker, args.data, threads, seed, args.demo_only)
         return 0
     variants = ["base", *[v for v in args.variants if v != "base"]]
+    kernel_outputs = _outputs(KERNEL_OUTPUTS, args.demo_only)
     for name in variants:
-        if args.reuse and (args.out / name / KERNEL_OUTPUTS[-1]).exists():
+        if args.reuse and (args.out / name / kernel_outputs[-1]).exists():
             continue
         threads, _, extra = VARIANTS[name]
         env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                "OPENBLAS_NUM_THREADS": str(threads), **extra}
         print(f"running {name} ...", flush=True)
         subprocess.run([sys.executable, __file__, "--out", str(args.out), "--data",
-                        str(args.data), "--worker", name], env=env, check=True,
+                        str(args.data), "--worker", name]
+                       + (["--demo-only"] if args.demo_only else []), env=env, check=True,
                        stdout=subprocess.DEVNULL)
-    spread = {name: deviations(args.out / name, args.out / "base", args.data)
+    spread = {name: deviations(args.out / name, args.out / "base", args.data, args.demo_only)
               for name in variants[1:]}
-    # what this machine computes against the golden files (another machine's baseline)
-    if all((GOLDEN / f).exists() for f in (*JSON_OUTPUTS, *KERNEL_OUTPUTS)):
+    # what this machine computes against the golden files (another machine's baseline; only
+    # the pairs' outputs are compared, see tolerance_table)
+    if not args.demo_only and all((GOLDEN / f).exists()
+                                  for f in (*JSON_OUTPUTS, *KERNEL_OUTPUTS)):
         spread["vs_golden"] = deviations(args.out / "base", GOLDEN, args.data)
     from psfkit.io.jsonable import write_json
 
     write_json(args.out / "spread.json", spread)
     if args.tolerances:
-        write_json(args.tolerances, tolerance_table(spread))
+        table = tolerance_table(spread)
+        if args.demo_only and args.tolerances.exists():     # the pairs' entries kept
+            table = {**json.loads(args.tolerances.read_text()), **table}
+        write_json(args.tolerances, table)
     columns = list(spread)
     print(f"{'output / group':70s}" + "".join(f"{c:>20s}" for c in columns))
-    for name in (*JSON_OUTPUTS, *KERNEL_OUTPUTS, *(k + ":metadata" for k in KERNEL_OUTPUTS)):
+    json_outputs = _outputs(JSON_OUTPUTS, args.demo_only)
+    for name in (*json_outputs, *kernel_outputs, *(k + ":metadata" for k in kernel_outputs)):
         for group, first in spread[columns[0]][name].items():
             cells = []
             for c in columns:

@@ -27,13 +27,24 @@ from psfkit.registration import (
     fit_shift_map,
     high_frequency_fraction,
     normalized_cross_correlation,
+    psf_region,
     register_shift,
     shift_image,
 )
 
-MIN_OVERLAP = 0.05       # below this fraction of the sensor, a position cannot be compared
+MIN_OVERLAP = 0.05       # below this fraction of the centre PSF's light in the registered
+                         # overlap, a position cannot be compared
 RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
                          # reliable (its deformation biases a translation-only registration)
+#: The support of a PSF (:func:`psf_support`): where its luminance, smoothed by
+#: ``SUPPORT_SMOOTHING_PX``, exceeds ``SUPPORT_FRACTION`` of its peak and ``SUPPORT_NOISE``
+#: times the smoothed noise, grown by ``SUPPORT_MARGIN_PX``. Measured in pixels of the PSF,
+#: never of the frame: a star's support is the same on a 1024² frame and on a 63² cut-out,
+#: a caustic's covers most of the sensor.
+SUPPORT_FRACTION = 0.01
+SUPPORT_NOISE = 6.0
+SUPPORT_SMOOTHING_PX = 1.0
+SUPPORT_MARGIN_PX = 3
 #: Default lowest registration quality (NCC with the centre PSF after alignment) of a usable
 #: position; below it the position is excluded ("low NCC"). The virtual bench's 9 × 9 grids
 #: reach 0.95 at the corners; a capture of the wrong thing scores near 0.
@@ -44,7 +55,7 @@ REJECTION_REASONS = {
     "no signal": "no point-source signal above the noise (empty or badly exposed capture)",
     "non-finite": "NaN/Inf pixel values",
     "registration failed": "cannot be registered to the reference PSF",
-    "no overlap": "overlaps the reference PSF on too little of the sensor",
+    "no overlap": "too little of the reference PSF's light lies in the registered overlap",
     "low NCC": "registration quality (NCC with the reference PSF) below the threshold",
 }
 
@@ -87,7 +98,15 @@ class AlignedPsf:
     valid: np.ndarray
     shift: tuple[float, float]
     prepared: PreparedPsf
-    quality: float = float("nan")   # NCC with the reference luminance over ``valid``
+    quality: float = float("nan")   # NCC with the reference luminance over ``compared``
+    support: np.ndarray | None = None   # (H, W) bool: this PSF's support or the reference's
+    support_overlap: float = float("nan")   # the reference's light inside ``valid``
+
+    @property
+    def compared(self) -> np.ndarray:
+        """``(H, W)`` bool, the pixels every comparison with the reference uses (MAE, gain,
+        quality): the support of either PSF inside ``valid``."""
+        return self.valid if self.support is None else self.valid & self.support
 
     @cached_property
     def luminance(self) -> np.ndarray:
@@ -97,7 +116,66 @@ class AlignedPsf:
 
     @property
     def overlap(self) -> float:
+        """Fraction of the sensor where both PSFs hold data (a geometric fact, not a measure
+        of reliability: see ``support_overlap``)."""
         return float(self.valid.mean())
+
+
+def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """The support of a PSF: the pixels that hold its light, whatever its size or the frame's.
+
+    Smooth the background-subtracted luminance by a Gaussian of ``SUPPORT_SMOOTHING_PX``,
+    keep the pixels above both ``SUPPORT_FRACTION`` of its peak and ``SUPPORT_NOISE`` times
+    the smoothed image's noise, and grow them by ``SUPPORT_MARGIN_PX``. The noise is the
+    robust spread (1.4826 × MAD) of the pixels away from the PSF (farther than
+    ``4 × SUPPORT_MARGIN_PX`` from where it exceeds ``SUPPORT_FRACTION`` of its peak): a
+    frame's empty pixels for a compact PSF, the dark border for a caustic (none: the
+    fraction of the peak alone). The brightest pixel always belongs to the support.
+
+    Parameters
+    ----------
+    lum : numpy.ndarray
+        ``(H, W)`` luminance, any units.
+    valid : numpy.ndarray, optional
+        ``(H, W)`` bool, the pixels that hold data (an aligned PSF's overlap); the noise is
+        measured on these only.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` bool.
+    """
+    import cv2
+
+    smooth = cv2.GaussianBlur(np.ascontiguousarray(lum, dtype=np.float32), (0, 0),
+                              SUPPORT_SMOOTHING_PX, borderType=cv2.BORDER_REFLECT)
+    peak = float(smooth.max())
+    core = (smooth >= SUPPORT_FRACTION * peak).astype(np.uint8)
+    size = 8 * SUPPORT_MARGIN_PX + 1          # a square: separable, fast at full resolution
+    away = cv2.dilate(core, np.ones((size, size), np.uint8)) == 0
+    if valid is not None:       # not the zeros outside an aligned PSF's data (and its edge)
+        away &= cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    sample = smooth[::2, ::2][away[::2, ::2]]       # plenty of samples, a quarter of the work
+    noise = 0.0
+    if sample.size >= 64:
+        noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+    threshold = min(max(SUPPORT_FRACTION * peak, SUPPORT_NOISE * noise), peak)
+    size = 2 * SUPPORT_MARGIN_PX + 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    return cv2.dilate((smooth >= threshold).astype(np.uint8), disk).astype(bool)
+
+
+def support_overlap(reference_light: np.ndarray, valid: np.ndarray) -> float:
+    """Fraction of the reference PSF's light that lies in ``valid`` (the registered overlap):
+    how much of a PSF of that shape at the moving position falls on the sensor.
+
+    ``reference_light`` is the reference's non-negative luminance on its support, zero
+    elsewhere (:attr:`GridAligner.reference_light`).
+    """
+    total = float(np.sum(reference_light, dtype=np.float64))
+    if total <= 0:
+        return float(valid.mean())
+    return float(np.sum(reference_light, where=valid, dtype=np.float64)) / total
 
 
 class GridAligner:
@@ -145,9 +223,14 @@ class GridAligner:
         self.reference = self.reference_prepared.image / np.float32(self.scale)
         self.reference_luminance = self.reference_prepared.luminance / np.float32(self.scale)
         self._unsaturated = ~self.reference_prepared.saturated
+        self.reference_support = psf_support(self.reference_luminance)
+        self.reference_light = np.where(self.reference_support,
+                                        np.maximum(self.reference_luminance, 0.0), 0.0)
         self._allow_binning = high_frequency_fraction(self.reference_luminance) < 0.01
+        # a compact PSF is refined around itself, whatever the frame's size
         self._registrar = ShiftRegistrar(self.reference_luminance, upsample,
-                                         allow_binning=self._allow_binning)
+                                         allow_binning=self._allow_binning,
+                                         region=psf_region(self.reference_support))
 
     def register(self, reference: np.ndarray, moving: np.ndarray) -> tuple[float, float]:
         """Shift of ``moving`` relative to ``reference`` with this grid's settings."""
@@ -188,20 +271,24 @@ class GridAligner:
             sat_aligned, _ = shift_image(prep.saturated.astype(np.float32), shift)
             valid &= sat_aligned < 0.5
         valid &= self._unsaturated
-        overlap = float(valid.mean())
-        if overlap < MIN_OVERLAP:
-            raise PositionRejected(f"{name}: overlaps the centre PSF on only "
-                                   f"{100 * overlap:.1f}% of the sensor after registration; "
-                                   "cannot compare", "no overlap")
+        # reliability in terms of the PSF, not of the sensor: a star near the edge of a large
+        # frame overlaps the centre star on little of the sensor but is all there
+        covered = support_overlap(self.reference_light, valid)
+        if covered < MIN_OVERLAP:
+            raise PositionRejected(f"{name}: only {100 * covered:.1f}% of the centre PSF's "
+                                   "light lies in the registered overlap; cannot compare",
+                                   "no overlap")
         aligned_luminance = luminance(aligned)
+        support = self.reference_support if here == self.center else \
+            self.reference_support | psf_support(aligned_luminance, valid)
         quality = normalized_cross_correlation(self.reference_luminance, aligned_luminance,
-                                               valid)
+                                               valid & support)
         if check_quality and quality < self.min_quality and here != self.center:
             raise PositionRejected(f"{name}: registration quality (NCC with the centre PSF) "
                                    f"{quality:.3f} below {self.min_quality:g}; not the same "
                                    "PSF pattern (wrong capture?)", "low NCC")
         item = AlignedPsf(position=pos, image=aligned, valid=valid, shift=shift, prepared=prep,
-                          quality=quality)
+                          quality=quality, support=support, support_overlap=covered)
         item.__dict__["luminance"] = aligned_luminance    # the cached property, computed once
         return item
 
@@ -216,13 +303,22 @@ class GridAligner:
             return ExcludedPosition.of(pos, exc)
 
 
+#: Least share of the registered shifts' spread (weighted variance) the affine map must explain
+#: to place the PSFs (:func:`nominal_shifts`): a scan of pre-centred cut-outs has shifts of
+#: centring residuals, which no field map predicts.
+MIN_EXPLAINED = 0.9
 #: How :func:`nominal_shifts` placed the PSFs (``NominalShifts.source``).
 SHIFT_SOURCES = {
-    "affine": "the affine field-to-shift map of the positions that overlap the centre PSF on "
-              f"at least {100 * RELIABLE_OVERLAP:.0f}% of the sensor",
+    "affine": "the affine field-to-shift map of the positions with at least "
+              f"{100 * RELIABLE_OVERLAP:.0f}% of the centre PSF's light in their registered "
+              "overlap (reliable positions)",
     "affine (all positions)": "the affine field-to-shift map of every position, weighted by "
-                              "its overlap (the reliable ones do not span two directions)",
+                              "the centre PSF's light in its overlap (the reliable ones do not "
+                              "span two directions)",
     "registered": "each PSF's own registered shift (no two-dimensional field to fit a map to)",
+    "registered (no map)": "each PSF's own registered shift: the affine field-to-shift map "
+                           f"explains less than {100 * MIN_EXPLAINED:.0f}% of their spread "
+                           "(cut-outs around each PSF, or a field too small to move it)",
 }
 
 
@@ -250,6 +346,19 @@ class NominalShifts:
                 "map": self.fit.to_dict() if self.fit is not None else None}
 
 
+def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) -> float:
+    """Share of the weighted spread of the registered shifts that the affine map explains
+    (``1 − Σ w |residual|² / Σ w |shift − mean|²``; 1 when the shifts do not spread)."""
+    residuals = fit.residuals.reshape(-1, 2)
+    ok = np.isfinite(residuals).all(axis=1) & (weights > 0)
+    if not ok.any():
+        return 1.0
+    w = weights[ok]
+    spread = registered[ok] - np.average(registered[ok], axis=0, weights=w)
+    total = float(np.sum(w[:, None] * spread**2))
+    return 1.0 - float(np.sum(w[:, None] * residuals[ok] ** 2)) / total if total > 0 else 1.0
+
+
 def _field_coordinates(positions: list[GridPosition], center: GridPosition
                        ) -> tuple[np.ndarray, str]:
     """``(P, 2)`` field coordinates of ``positions`` and their unit: monitor pixels, tan of
@@ -275,10 +384,12 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
     the fit. Worse, the registration of a PSF mostly off the sensor is biased by its
     deformation (tenths of a pixel at full resolution, up to ~14 px at a 256² grid's
     corners). So the map is fitted (:func:`psfkit.registration.fit_shift_map`, weighted by
-    overlap) to the positions that overlap the centre PSF on at least
-    :data:`RELIABLE_OVERLAP` of the sensor, and re-based so that the centre PSF stays at
+    overlap) to the reliable positions, those with at least :data:`RELIABLE_OVERLAP` of the
+    centre PSF's light in their registered overlap (whatever the PSF's size: a compact PSF
+    anywhere on the sensor is reliable), and re-based so that the centre PSF stays at
     ``(0, 0)`` (the kernel origin). Fallbacks, in order: every position (when the reliable
-    ones do not span two directions), then the registered shifts (a one-row grid).
+    ones do not span two directions), then the registered shifts (a one-row grid, or a map
+    that explains less than :data:`MIN_EXPLAINED` of the shifts' spread: cut-outs).
 
     Parameters
     ----------
@@ -288,7 +399,8 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
         ``(P, 2)`` their registered shifts ``(du, dv)`` in sensor pixels
         (:meth:`GridAligner.align`).
     overlap : numpy.ndarray
-        ``(P,)`` fraction of the sensor each overlaps the centre PSF on after registration.
+        ``(P,)`` fraction of the centre PSF's light in each one's registered overlap
+        (:attr:`AlignedPsf.support_overlap`).
     center : (int, int)
         Grid index of the centre PSF.
 
@@ -313,6 +425,8 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
             continue
         source, used = name, int(np.count_nonzero(weights > 0))
         break
+    if fit is not None and _explained(fit, registered, overlap) < MIN_EXPLAINED:
+        fit, source, used = None, "registered (no map)", len(positions)
     if fit is None:
         nominal = registered
     else:

@@ -112,6 +112,7 @@ class PositionResult:
     n_saturated: int
     saturated_fraction: float
     snr: float
+    support_overlap: float = float("nan")
     channel_shifts: list[tuple[float, float]] | None = None
     gain: float = float("nan")
     mae: float = float("nan")
@@ -227,9 +228,17 @@ class GridCharacterization:
                          "px; u = column, v = row; a source at +x gives du < 0",
                 "normalization": f"PSFs divided by the centre PSF's {opts.preprocess.normalization}"
                                  " (all channels), so gains are relative to the centre",
-                "mae": "mean |PSF − centre| over the registered overlap, all channels, "
-                       "saturated pixels excluded, after a Gaussian of σ = "
-                       f"{opts.mae_smoothing_px:g} px on both",
+                "mae": "Σ|PSF − centre| / Σ centre (energy-normalised, so independent of the "
+                       "frame size) over the PSFs' support (where either, smoothed by 1 px, "
+                       "exceeds 1% of its peak and 6× its noise, grown by 3 px) inside the "
+                       "registered overlap, all channels, saturated pixels excluded, after a "
+                       f"Gaussian of σ = {opts.mae_smoothing_px:g} px on both",
+                "support_overlap": "fraction of the centre PSF's light (over its support) "
+                                   "inside a position's registered overlap; a position is "
+                                   "reliable when it is at least reliable_overlap",
+                "gain": "Σ PSF / Σ centre over the PSFs' support inside the registered overlap",
+                "quality": "NCC of the luminances over the PSFs' support inside the registered "
+                           "overlap",
                 "warp": "moving(x + d(x)) ≈ centre(x); affine part by ECC about the image "
                         "centre, residual by dense flow; tangential = along the PSF shift",
             },
@@ -370,26 +379,34 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
             monitor_px=pos.monitor_px, shift=shift,
             quality=item.quality, overlap=item.overlap,
             n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
-            snr=prep.snr)
+            snr=prep.snr, support_overlap=item.support_overlap)
         if options.per_channel and aligned.shape[0] > 1:
             image = prep.image / np.float32(aligner.scale)
             record.channel_shifts = [
                 (0.0, 0.0) if here == center else aligner.register(reference[c], image[c])
                 for c in range(image.shape[0])]
-        gain = overlap_gain(ref_total, aligned.sum(axis=0), valid)
+        # compared over the PSFs' support inside the overlap: frame-size independent (the
+        # noise of a large frame's empty pixels would otherwise dominate a compact PSF)
+        compared = item.compared
+        gain = overlap_gain(ref_total, aligned.sum(axis=0), compared)
         if "gain" in steps:
             record.gain = gain
         if "mae" in steps:
             al_smooth = _smooth(aligned, options.mae_smoothing_px)
-            record.mae = mean_absolute_error(ref_smooth, al_smooth, valid)
-            record.mae_gain_compensated = mean_absolute_error(ref_smooth, al_smooth, valid, gain)
+            record.mae = mean_absolute_error(ref_smooth, al_smooth, compared)
+            record.mae_gain_compensated = mean_absolute_error(ref_smooth, al_smooth, compared,
+                                                              gain)
         if here in fig2:
             extras["example"] = (aligned, valid)
         if "warp" in steps and here != center:
-            warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain), valid,
-                                                    shift, options.flow_method)
-            record.warp = warp
-            extras["flow"] = _coarse_flow(residual, mask)
+            try:
+                warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain),
+                                                        valid, shift, options.flow_method)
+            except InvalidInputError:   # too few PSF pixels for a dense flow (a compact PSF
+                pass                    # at the sensor's edge): no warp at this position
+            else:
+                record.warp = warp
+                extras["flow"] = _coarse_flow(residual, mask)
         return record, extras
 
     records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
@@ -423,7 +440,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
 
     result.thumbnails = thumbnails
     coords = result.field_coordinates()
-    overlaps = result.table("overlap")
+    overlaps = result.table("support_overlap")
     if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
         result.shift_fit = None
     else:   # over the measured positions; None when they do not span two directions
@@ -446,7 +463,7 @@ def _summarise_warp(result: GridCharacterization) -> None:
     theta = result.field_angle_deg()
     if theta is None:
         return
-    reliable = result.table("overlap") >= RELIABLE_OVERLAP
+    reliable = result.table("support_overlap") >= RELIABLE_OVERLAP
     residual = np.where(reliable, result.warp_table("residual_rms"), np.nan)
     result.warp_growth = fit_growth(theta, residual)
     anisotropy = result.warp_table("anisotropy")

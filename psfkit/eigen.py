@@ -34,7 +34,7 @@ from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.forward.geometry import kernel_origin
 from psfkit.kernelfile import CONVENTIONS
 from psfkit.resample import bin_image
-from psfkit.weights import WeightBasis, get_basis, separable_coordinates
+from psfkit.weights import WeightBasis, get_basis
 
 BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (cache-sized)
 SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
@@ -47,25 +47,86 @@ SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 DEFAULT_RIDGE = 1e-4
 
 
+@dataclass(frozen=True)
+class PixelFrame:
+    """Where the pixels of an ``(h, w)`` grid lie in the sensor's normalized coordinates
+    (``psfkit.weights``), for the weights of a fit on that grid.
+
+    The whole sensor (:meth:`of`), or a working copy cropped and binned from it
+    (:meth:`crop`): a compact PSF is fitted on a crop around it instead of a whole frame
+    binned until the PSF is a pixel wide, and its weights must still be those of the pixels'
+    places on the sensor. All lengths are in the grid's own pixels: ``center`` ``(v_c, u_c)``
+    the optical centre, ``half`` ``(H/2, W/2)`` the sensor's half size, ``origin`` the
+    kernel origin (where the centre PSF's origin lies, :func:`kernel_origin` of the sensor).
+    """
+
+    shape: tuple[int, int]
+    center: tuple[float, float]
+    half: tuple[float, float]
+    origin: tuple[float, float]
+
+    @classmethod
+    def of(cls, sensor_shape: tuple[int, int],
+           optical_center: tuple[float, float] | None = None) -> PixelFrame:
+        """The sensor's own pixel grid (optical centre: the middle, unless given)."""
+        h, w = sensor_shape
+        center = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
+        origin = kernel_origin(sensor_shape)
+        return cls((h, w), (center[0], center[1]), (h / 2.0, w / 2.0),
+                   (float(origin[0]), float(origin[1])))
+
+    @classmethod
+    def crop(cls, sensor_shape: tuple[int, int], corner: tuple[int, int], factor: int,
+             shape: tuple[int, int]) -> PixelFrame:
+        """An ``shape`` grid of ``factor × factor`` blocks whose first block's corner is at
+        sensor pixel ``corner`` ``(row, col)`` (sensor centre as the optical centre)."""
+        h, w = sensor_shape
+        offset = (factor - 1) / 2.0          # a block's centre from its corner, sensor px
+
+        def local(v: float, axis: int) -> float:
+            return (v - corner[axis] - offset) / factor
+
+        origin = kernel_origin(sensor_shape)
+        return cls((int(shape[0]), int(shape[1])),
+                   (local((h - 1) / 2, 0), local((w - 1) / 2, 1)),
+                   (h / 2.0 / factor, w / 2.0 / factor),
+                   (local(origin[0], 0), local(origin[1], 1)))
+
+    def axes(self, shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Normalized coordinates ``u_n`` ``(1, w)`` and ``v_n`` ``(h, 1)`` of the pixels
+        plus ``shift`` (grid px): where the sensor-side weights of a PSF displaced by
+        ``shift`` are read in its aligned frame."""
+        h, w = self.shape
+        (v_c, u_c), (hh, hw) = self.center, self.half
+        du, dv = shift
+        return (((np.arange(w) - u_c) / hw)[None, :] + du / hw,
+                ((np.arange(h) - v_c) / hh)[:, None] + dv / hh)
+
+    def source(self, shift: tuple[float, float]) -> tuple[float, float]:
+        """Normalized ``(u_n, v_n)`` of the source whose PSF origin lands at the kernel
+        origin displaced by ``shift`` (grid px)."""
+        (v_c, u_c), (hh, hw), (o_v, o_u) = self.center, self.half, self.origin
+        du, dv = shift
+        return (o_u + du - u_c) / hw, (o_v + dv - v_c) / hh
+
+
 def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
                      shift: tuple[float, float], convention: str,
-                     optical_center: tuple[float, float] | None = None) -> np.ndarray:
+                     optical_center: tuple[float, float] | None = None,
+                     frame: PixelFrame | None = None) -> np.ndarray:
     """Weights of the K kernels for the PSF displaced by ``shift``, in its aligned frame.
 
     Returns ``(K, H, W)`` (sensor-side: :math:`W_k(v + s)`) or ``(K, 1, 1)`` (source-side:
-    :math:`W_k(s)`, the source at the sensor pixel where its PSF origin lands).
+    :math:`W_k(s)`, the source at the sensor pixel where its PSF origin lands). ``frame``
+    places a cropped or binned grid on the sensor (default: ``sensor_shape`` is the sensor).
     """
-    du, dv = shift
-    h, w = sensor_shape
+    frame = frame if frame is not None else PixelFrame.of(sensor_shape, optical_center)
     if convention == "sensor":
-        u_n, v_n = separable_coordinates(sensor_shape, optical_center)
-        return basis.evaluate(u_n + du / (w / 2.0), v_n + dv / (h / 2.0))
+        u_n, v_n = frame.axes(shift)
+        return basis.evaluate(u_n, v_n)
     if convention == "source":
-        v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
-        origin_v, origin_u = kernel_origin(sensor_shape)      # where the PSF's origin is
-        u_n = (origin_u + du - u_c) / (w / 2.0)
-        v_n = (origin_v + dv - v_c) / (h / 2.0)
-        return basis.evaluate(np.array([[u_n]]), np.array([[v_n]]))
+        u_s, v_s = frame.source(shift)
+        return basis.evaluate(np.array([[u_s]]), np.array([[v_s]]))
     raise ConfigurationError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
 
 
@@ -100,16 +161,22 @@ class NormalEquations:
     image_shape : (int, int, int)
         ``(C, H, W)`` of the PSFs (H, W is also the sensor grid of the weights).
     optical_center : (float, float), optional
+    frame : PixelFrame, optional
+        Where the ``(H, W)`` pixels lie on the sensor (a cropped working copy); default: they
+        are the sensor (with ``optical_center``).
     """
 
     def __init__(self, basis: WeightBasis, convention: str, image_shape: tuple[int, int, int],
-                 optical_center: tuple[float, float] | None = None) -> None:
+                 optical_center: tuple[float, float] | None = None,
+                 frame: PixelFrame | None = None) -> None:
         if convention not in CONVENTIONS:
             raise ConfigurationError(f"convention must be one of {CONVENTIONS}, "
                                      f"got {convention!r}")
         self.basis, self.convention = basis, convention
         self.channels, self.h, self.w = image_shape
         self.optical_center = optical_center
+        self.frame = frame if frame is not None else PixelFrame.of((self.h, self.w),
+                                                                   optical_center)
         self._iu = np.triu_indices(basis.n_kernels)
         # per-pixel sums (upper triangle of the Gram matrices; right-hand sides), allocated
         # when first needed, in the first image's precision
@@ -158,12 +225,10 @@ class NormalEquations:
         products, per kernel (``None``: a factor of 1)."""
         if self.convention == "source":
             w = position_weights(self.basis, (self.h, self.w), shift, "source",
-                                 self.optical_center)[:, 0, 0]
+                                 frame=self.frame)[:, 0, 0]
             return [[(float(wk), None)] for wk in w]
-        du, dv = shift
-        u_n, v_n = separable_coordinates((self.h, self.w), self.optical_center)
-        u_n = u_n[0] + du / (self.w / 2.0)
-        v_n = v_n[:, 0] + dv / (self.h / 2.0)
+        u_n, v_n = self.frame.axes(shift)
+        u_n, v_n = u_n[0], v_n[:, 0]
         terms = [term.factors(u_n, v_n) for term in self.basis.terms]
         # base weight 1 − Σ φ_j: the terms of u alone merged into one column factor, those of
         # v alone into one row factor, products of both kept apart
@@ -237,13 +302,10 @@ class NormalEquations:
         assert self._rhs is not None
         sensor = self.convention == "sensor"
         if sensor:
-            du, dv = shift
-            u_n, v_n = separable_coordinates((self.h, self.w), self.optical_center)
-            u_n = u_n + du / (self.w / 2.0)
-            v_n = v_n + dv / (self.h / 2.0)
+            u_n, v_n = self.frame.axes(shift)
         else:
             weights = position_weights(self.basis, (self.h, self.w), shift, self.convention,
-                                       self.optical_center).astype(dtype)
+                                       frame=self.frame).astype(dtype)
         rows = max(1, BLOCK_ELEMENTS // self.w)
         product = np.empty((rows, self.w), dtype)
         for r0 in range(0, self.h, rows):
@@ -293,7 +355,7 @@ class NormalEquations:
 
     def _from_arrays(self, gram: np.ndarray, rhs: np.ndarray, count: int) -> NormalEquations:
         out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
-                              self.optical_center)
+                              self.optical_center, self.frame)
         out._gram, out._rhs, out.count = gram, rhs, count
         return out
 
@@ -396,10 +458,12 @@ def _rectangle(valid: np.ndarray) -> tuple[slice, slice] | None:
 
 
 def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
-                    convention: str, optical_center: tuple[float, float] | None = None
-                    ) -> np.ndarray:
-    """The model's PSF for a source displaced by ``shift``, in the aligned frame, ``(C,H,W)``."""
-    weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center)
+                    convention: str, optical_center: tuple[float, float] | None = None,
+                    frame: PixelFrame | None = None) -> np.ndarray:
+    """The model's PSF for a source displaced by ``shift``, in the aligned frame, ``(C,H,W)``
+    (``frame``: where the kernels' pixels lie on the sensor, as :func:`position_weights`)."""
+    weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center,
+                               frame)
     return np.einsum("khw,kchw->chw", np.broadcast_to(weights, (len(kernels), *kernels.shape[-2:])),
                      kernels)
 
@@ -449,11 +513,15 @@ def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) 
 
 @dataclass
 class WorkingStack:
-    """The aligned grid binned by ``factor`` (kept in memory for residuals, CV and PCA).
+    """The aligned grid, cropped to ``region`` and binned by ``factor`` (kept in memory for
+    residuals, CV and PCA).
 
     ``images`` ``(P, C, h, w)``, ``valid`` ``(P, h, w)``, ``shifts`` ``(P, 2)`` in binned
-    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)``: one entry per
-    measured position (an excluded one is dropped by :meth:`subset`).
+    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)`` (the centre PSF's
+    light in each one's registered overlap), ``light_in_region`` ``(P,)`` (each PSF's light
+    inside ``region``): one entry per measured position (an excluded one is dropped by
+    :meth:`subset`). ``region`` ``(rows, cols)`` of the sensor ``sensor_shape``, or ``None``:
+    the whole sensor (a PSF that fills it).
     """
 
     factor: int
@@ -463,14 +531,38 @@ class WorkingStack:
     index: np.ndarray
     overlap: np.ndarray
     gains: np.ndarray
+    region: tuple[slice, slice] | None = None
+    sensor_shape: tuple[int, int] | None = None
+    light_in_region: np.ndarray | None = None
 
     @classmethod
-    def empty(cls, n: int, image_shape: tuple[int, int, int], factor: int) -> WorkingStack:
+    def empty(cls, n: int, image_shape: tuple[int, int, int], factor: int,
+              region: tuple[slice, slice] | None = None) -> WorkingStack:
         c, h, w = image_shape
+        if region is not None:
+            h, w = region[0].stop - region[0].start, region[1].stop - region[1].start
         shape = (h // factor, w // factor)
         return cls(factor=factor, images=np.zeros((n, c, *shape), np.float32),
                    valid=np.zeros((n, *shape), bool), shifts=np.zeros((n, 2)),
-                   index=np.zeros((n, 2), int), overlap=np.zeros(n), gains=np.zeros(n))
+                   index=np.zeros((n, 2), int), overlap=np.zeros(n), gains=np.zeros(n),
+                   region=region, sensor_shape=tuple(image_shape[1:]),   # type: ignore[arg-type]
+                   light_in_region=np.ones(n))
+
+    @property
+    def frame(self) -> PixelFrame | None:
+        """Where the working pixels lie on the sensor (``None``: the whole sensor binned,
+        whose own grid is the frame, as before issue 43)."""
+        if self.region is None or self.sensor_shape is None:
+            return None
+        return PixelFrame.crop(self.sensor_shape, (self.region[0].start, self.region[1].start),
+                               self.factor, self.images.shape[-2:])
+
+    def reduce(self, image: np.ndarray) -> np.ndarray:
+        """A full-resolution ``(..., H, W)`` image (a kernel) as the working copy holds its
+        PSFs: cropped to ``region``, block-averaged by ``factor``."""
+        if self.region is not None:
+            image = image[(..., *self.region)]
+        return bin_image(image, self.factor) / self.factor**2
 
     def subset(self, members: np.ndarray) -> WorkingStack:
         """The stack of the ``members`` (bool ``(P,)``) only (the same arrays when all)."""
@@ -479,7 +571,10 @@ class WorkingStack:
         return WorkingStack(factor=self.factor, images=self.images[members],
                             valid=self.valid[members], shifts=self.shifts[members],
                             index=self.index[members], overlap=self.overlap[members],
-                            gains=self.gains[members])
+                            gains=self.gains[members], region=self.region,
+                            sensor_shape=self.sensor_shape,
+                            light_in_region=None if self.light_in_region is None
+                            else self.light_in_region[members])
 
     def row_of(self, index: tuple[int, int]) -> int:
         """The stack entry of grid index ``(row, col)``."""
@@ -496,13 +591,22 @@ class WorkingStack:
         return out
 
     def put(self, p: int, aligned: AlignedPsf, image: np.ndarray, gain: float) -> None:
-        """Store position ``p`` binned (``image`` may be the gain-compensated version)."""
+        """Store position ``p`` cropped and binned (``image`` may be the gain-compensated
+        version)."""
         f = self.factor
+        valid = aligned.valid
+        if self.region is not None:
+            image, valid = image[(slice(None), *self.region)], valid[self.region]
+            if self.light_in_region is not None and aligned.support is not None:
+                light = np.where(aligned.support, np.maximum(aligned.luminance, 0.0), 0.0)
+                total = float(light.sum(dtype=np.float64))
+                self.light_in_region[p] = float(light[self.region].sum(dtype=np.float64)) \
+                    / total if total > 0 else 1.0
         self.images[p] = bin_image(image, f)
         self.images[p] /= np.float32(f**2)
-        rect = _rectangle(aligned.valid)
+        rect = _rectangle(valid)
         if rect is None:
-            self.valid[p] = bin_image(aligned.valid.astype(np.float32), f) > f**2 - 0.5
+            self.valid[p] = bin_image(valid.astype(np.float32), f) > f**2 - 0.5
         else:   # the blocks that lie inside the rectangle
             h, w = self.valid.shape[1:]
             rows = (np.arange(h) * f >= rect[0].start) & ((np.arange(h) + 1) * f <= rect[0].stop)
@@ -510,7 +614,8 @@ class WorkingStack:
             self.valid[p] = rows[:, None] & cols[None, :]
         self.shifts[p] = np.asarray(aligned.shift) / f
         self.index[p] = (aligned.position.row, aligned.position.col)
-        self.overlap[p] = aligned.overlap
+        self.overlap[p] = aligned.support_overlap if np.isfinite(aligned.support_overlap) \
+            else aligned.overlap
         self.gains[p] = gain
 
 
@@ -520,7 +625,7 @@ def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
     """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack,
     and the per-pixel conditioning of the design."""
     members = np.ones(len(stack.images), bool) if members is None else members
-    equations = NormalEquations(basis, convention, stack.images.shape[1:])
+    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
     for p in np.flatnonzero(members):
         equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
     kernels, conditioning = equations.solve(ridge)
@@ -532,7 +637,8 @@ def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis
                     convention: str) -> np.ndarray:
     """In-sample relative error ``(P,)`` of a model on every position of a working stack."""
     return np.array([relative_error(predict_aligned(kernels, basis, tuple(stack.shifts[p]),
-                                                    convention), stack.images[p], stack.valid[p])
+                                                    convention, frame=stack.frame),
+                                    stack.images[p], stack.valid[p])
                      for p in range(len(stack.images))])
 
 
@@ -563,11 +669,11 @@ def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str
             shape = stack.images.shape[1:]
             per_group = []
             for group in groups:
-                eq = NormalEquations(basis, convention, shape)
+                eq = NormalEquations(basis, convention, shape, frame=stack.frame)
                 for p in group:
                     eq.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
                 per_group.append(eq)
-            total = NormalEquations(basis, convention, shape)
+            total = NormalEquations(basis, convention, shape, frame=stack.frame)
             total.add(stack.images[center_row], stack.valid[center_row],
                       tuple(stack.shifts[center_row]))
             for eq in per_group:
@@ -576,7 +682,8 @@ def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str
             for group, eq in zip(groups, per_group, strict=True):
                 kernels = total.minus(eq).solve(conditioning=False)[0]
                 predictions += [(p, predict_aligned(kernels, basis, tuple(stack.shifts[p]),
-                                                    convention)) for p in group]
+                                                    convention, frame=stack.frame))
+                                for p in group]
             errors[f"{name}/{convention}"] = _pooled_error(stack, predictions)
     best = min((k for k in errors if k != "centre PSF only"), key=errors.__getitem__,
                default=None)

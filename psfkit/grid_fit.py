@@ -2,9 +2,14 @@
 
 One pass over the grid (:class:`~psfkit.alignment.GridAligner`) accumulates the per-pixel
 normal equations of the chosen basis for both weight conventions at full resolution
-(:mod:`psfkit.eigen`) and keeps a binned working copy of the aligned PSFs, on which the
+(:mod:`psfkit.eigen`) and keeps a working copy of the aligned PSFs, on which the
 per-position residuals, the leave-positions-out cross-validation of candidate bases and the
 PCA (:mod:`psfkit.pca`) are computed. The result becomes a kernel file for ekdun.
+
+The working copy's resolution follows the PSF (:func:`working_region`): a compact PSF (a few
+pixels on a large frame) is kept on a crop around the centre PSF's support at full
+resolution; a PSF that fills the sensor (a caustic) is kept whole, binned to at most
+``working_size`` px. Either way at most ``working_size``² pixels per channel and position.
 """
 
 from __future__ import annotations
@@ -44,7 +49,7 @@ from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
 from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
 from psfkit.preprocess import PreprocessOptions
-from psfkit.resample import bin_image, binning_factor
+from psfkit.resample import binning_factor
 from psfkit.weights import get_basis
 
 
@@ -146,6 +151,7 @@ class GridEigenResult:
     excluded: list[ExcludedPosition] = field(default_factory=list)
     missing: list[tuple[int, int]] = field(default_factory=list)
     placement: NominalShifts | None = None      # None: each PSF at its registered shift
+    working: dict[str, Any] = field(default_factory=dict)   # how the working copy was chosen
 
     @property
     def n_positions(self) -> int:
@@ -178,6 +184,7 @@ class GridEigenResult:
             "kernel_names": list(get_basis(self.options.basis).kernel_names),
             "gain_compensated": self.options.gain_compensate,
             "working_binning": self.stack.factor,
+            "working_region": self.working,
             "shifts": (self.placement.to_dict() if self.placement is not None
                        else {"source": "registered"}),
             "in_sample_relative_error": {
@@ -232,8 +239,9 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                           min_quality=options.min_quality, strict=options.strict)
     full_res = CONVENTIONS if options.convention == "auto" else (options.convention,)
     equations = {conv: NormalEquations(basis, conv, (c, h, w)) for conv in full_res}
-    stack = WorkingStack.empty(len(grid.positions), (c, h, w),
-                               binning_factor((h, w), options.working_size))
+    region, factor, working = working_region(aligner.reference_support,
+                                             aligner.reference_luminance, options.working_size)
+    stack = WorkingStack.empty(len(grid.positions), (c, h, w), factor, region)
     reference_total = aligner.reference.sum(axis=0)
     placement: NominalShifts | None = None
     place: Callable[[GridPosition], AlignedPsf | ExcludedPosition] = aligner.try_align
@@ -263,7 +271,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                 if bar is not None:
                     bar.update()
                 continue
-            gain = overlap_gain(reference_total, aligned.image.sum(axis=0), aligned.valid)
+            gain = overlap_gain(reference_total, aligned.image.sum(axis=0), aligned.compared)
             image = aligned.image / np.float32(gain) if options.gain_compensate \
                 else aligned.image
             for eq in equations.values():
@@ -312,15 +320,16 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
         kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv,
         channel_order=grid.channel_order, layout=grid.layout, excluded=excluded,
-        missing=missing, placement=placement)
+        missing=missing, placement=placement,
+        working={**working, "light_in_region_min": float(np.min(stack.light_in_region))
+                 if stack.light_in_region is not None and len(stack.images) else 1.0})
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() >= 2:
         result.pca = stack_pca(stack.images, stack.valid, reliable)
         region = result.pca.region
         k = basis.n_kernels
-        # the kernels averaged over the working grid's blocks
-        binned_kernels = np.stack([np.stack([bin_image(ch, factor) / factor**2 for ch in k])
-                                   for k in full_kernels[convention]])
+        # the kernels cropped and averaged over the working grid's blocks
+        binned_kernels = np.stack([stack.reduce(k) for k in full_kernels[convention]])
         result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
                                                  result.pca.components[:k][:, :, region])
     return result
@@ -349,7 +358,7 @@ def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, 
             else:
                 accepted.append(aligned.position)
                 shifts.append(aligned.shift)
-                overlaps.append(aligned.overlap)
+                overlaps.append(aligned.support_overlap)
             del aligned
             if bar is not None:
                 bar.update()
@@ -357,6 +366,74 @@ def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, 
         if bar is not None:
             bar.close()
     return nominal_shifts(accepted, np.array(shifts), np.array(overlaps), center), rejected
+
+
+def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
+                   ) -> tuple[tuple[slice, slice] | None, int, dict[str, Any]]:
+    """Where and at what resolution the working copy holds the aligned PSFs, from the centre
+    PSF's extent.
+
+    The PSFs of the aligned grid all lie where the centre PSF lies. The working region is the
+    bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
+    room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
+    a cut-out that holds it gives the same working copy as the full frame; when that is the
+    whole sensor (a caustic), the whole sensor as before issue 43. The binning is the smallest
+    that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
+    full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
+    centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
+    that binning folds.
+
+    Parameters
+    ----------
+    support : numpy.ndarray
+        ``(H, W)`` bool support of the centre PSF (:func:`psfkit.alignment.psf_support`).
+    reference : numpy.ndarray
+        ``(H, W)`` its luminance.
+    working_size : int
+        Longest side of the working copy, px.
+
+    Returns
+    -------
+    region : (slice, slice) or None
+        Rows and columns of the sensor (``None``: all of it).
+    factor : int
+        Binning factor.
+    record : dict
+        JSON-ready description (``kernel file`` provenance, ``fit.json``).
+    """
+    h, w = support.shape
+    rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
+    if len(rows) == 0:
+        rows, cols = np.arange(h), np.arange(w)
+    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    extent = [box[0].stop - box[0].start, box[1].stop - box[1].start]
+    grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
+                  for sl, size, n in zip(box, extent, (h, w), strict=True))
+    crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
+    region = None if crop == (h, w) else (grown[0], grown[1])
+    shape = (h, w) if region is None else crop
+    factor = binning_factor(shape, working_size)
+    record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else
+              "the centre PSF's support",
+              "origin_px": [0, 0] if region is None else [region[0].start, region[1].start],
+              "shape_px": list(shape), "binning": factor, "psf_extent_px": extent,
+              "aliased_power": aliased_power(reference[box], factor)}
+    return region, factor, record
+
+
+def aliased_power(image: np.ndarray, factor: int) -> float:
+    """Fraction of an image's (non-DC) power above the Nyquist frequency of a grid binned by
+    ``factor`` (what that binning folds): 0 for ``factor`` 1."""
+    import scipy.fft as sfft
+
+    if factor <= 1 or min(image.shape) < 2:
+        return 0.0
+    power = np.abs(sfft.rfft2(image - image.mean(), workers=-1)) ** 2
+    gy = np.abs(np.fft.fftfreq(image.shape[0]))[:, None]
+    gx = np.fft.rfftfreq(image.shape[1])[None, :]
+    total = float(power.sum())
+    limit = 0.5 / factor
+    return float(power[(gy > limit) | (gx > limit)].sum()) / total if total > 0 else 0.0
 
 
 def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:

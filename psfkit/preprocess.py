@@ -138,6 +138,22 @@ def background_noise(lum: np.ndarray) -> float:
     return max(spread, 1e-12 * max(float(np.max(np.abs(sample))), 1e-30))
 
 
+def signal_peak(lum: np.ndarray) -> float:
+    """Robust peak of a background-subtracted ``(H, W)`` luminance, whatever the PSF's size.
+
+    The brighter of two estimates that both ignore a single hot pixel: the 99.99th percentile
+    of every other pixel (a PSF of many pixels, a caustic) and the faintest pixel of the
+    brightest 2 × 2 block (a compact PSF of a few pixels, which the percentile of a large
+    frame misses: it would call a star on a 1024² frame "no signal" and the same star on a
+    63² cut-out bright).
+    """
+    import cv2
+
+    block = cv2.erode(np.ascontiguousarray(lum, dtype=np.float32), np.ones((2, 2), np.uint8),
+                      borderType=cv2.BORDER_REPLICATE)
+    return max(float(np.percentile(lum[::2, ::2], 99.99)), float(block.max()))
+
+
 def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
                 black_level: float | None = None, hot_pixels: np.ndarray | None = None,
                 saturation_level: float | None = None, exposure_scale: float = 1.0,
@@ -189,7 +205,7 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
         image *= np.float32(exposure_scale)
     lum = luminance(image)  # a view of ``image`` for mono data: scale before, not after
     noise = background_noise(lum)
-    peak = float(np.percentile(lum[::2, ::2], 99.99))
+    peak = signal_peak(lum)
     snr = peak / noise
     if not np.isfinite(snr) or snr < options.min_snr:
         raise PositionRejected(

@@ -134,12 +134,13 @@ def warnings_for(result: GridCharacterization) -> list[str]:
         out.append(f"{len(saturated)} PSF(s) have saturated pixels (worst: {worst.file}, "
                    f"{worst.n_saturated} px, {100 * worst.saturated_fraction:.2f}% of the bright "
                    "PSF); they are excluded from the comparisons. Lower the exposure if you can.")
-    partial = [p for p in result.positions if p.overlap < RELIABLE_OVERLAP]
+    partial = [p for p in result.positions if p.support_overlap < RELIABLE_OVERLAP]
     if partial:
-        out.append(f"{len(partial)} position(s) overlap the centre PSF on less than "
-                   f"{100 * RELIABLE_OVERLAP:.0f}% of the sensor: only part of their PSF is "
-                   "seen, and as the PSF also deforms off axis, their shift is uncertain by up "
-                   "to a few tenths of a pixel and their warp statistics are less reliable.")
+        out.append(f"{len(partial)} position(s) have less than {100 * RELIABLE_OVERLAP:.0f}% "
+                   "of the centre PSF's light inside their registered overlap: only part of "
+                   "their PSF is seen, and as the PSF also deforms off axis, their shift is "
+                   "uncertain by up to a few tenths of a pixel and their warp statistics are "
+                   "less reliable.")
     weak = [p for p in result.positions if p.quality < 0.5]
     if weak:
         out.append(f"{len(weak)} position(s) register poorly (correlation < 0.5): "

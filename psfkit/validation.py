@@ -40,7 +40,10 @@ import numpy as np
 
 from psfkit.errors import InvalidInputError
 
-MAX_GRID_SIDE = 64            # grid positions per side (the paper's grids are 9 x 9)
+MAX_GRID_SIDE = 64            # positions per side of a *simulated* lattice (--rows, --cols)
+MAX_GRID_CELLS = 2**22        # cells a grid's manifest may declare (its grid_shape), a sanity
+                              # bound: whether a grid can be analysed is decided from memory
+                              # (psfkit.io.grid_validation.analysis_memory_bytes)
 MAX_IMAGE_SIDE = 16384        # pixels per image side (a 1440 x 1080 sensor is far below)
 MAX_IMAGE_PIXELS = 64 * 2**20  # pixels per channel of one image
 MAX_SCENE_PADDING = 8         # convolution grid as a multiple of the sensor size
@@ -52,6 +55,23 @@ MAX_ARRAY_ELEMENTS = 4 * MAX_IMAGE_PIXELS  # elements of one array read from a f
 MAX_DOWNSAMPLE = 64           # binning factor
 MAX_SEED = 2**32 - 1          # numpy's and torch's seeds agree on [0, 2**32)
 MAX_THREADS = 256             # CPU threads (libgomp aborts the process on absurd counts)
+
+
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine in bytes (8 GiB where the system does not say)."""
+    try:
+        pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return 8 * 2**30
+    return int(pages) * int(size) if pages > 0 and size > 0 else 8 * 2**30
+
+
+def format_bytes(size: float) -> str:
+    """``"3.2 GiB"``, ``"512 MiB"``: a byte count for a message."""
+    for unit, scale in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if size >= scale:
+            return f"{size / scale:.3g} {unit}"
+    return f"{int(size)} bytes"
 
 
 def require_finite(array: Any, what: str) -> np.ndarray:

@@ -1,6 +1,13 @@
 """The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
 
 from psfkit.bench.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.bench.compact import (
+    CompactCamera,
+    CompactTruth,
+    cutout_scan,
+    read_compact_truth,
+    simulate_compact_scan,
+)
 from psfkit.bench.degrade import degrade_grid
 from psfkit.bench.sensor import SensorModel
 from psfkit.bench.simulate import (
@@ -11,6 +18,7 @@ from psfkit.bench.simulate import (
     simulate_scan,
 )
 
-__all__ = ["BenchConfig", "GroundTruth", "PsfPatch", "SensorModel", "VirtualCamera",
-           "degrade_grid", "grid_monitor_positions", "place_patch", "read_ground_truth",
-           "simulate_grid", "simulate_scan"]
+__all__ = ["BenchConfig", "CompactCamera", "CompactTruth", "GroundTruth", "PsfPatch",
+           "SensorModel", "VirtualCamera", "cutout_scan", "degrade_grid",
+           "grid_monitor_positions", "place_patch", "read_compact_truth", "read_ground_truth",
+           "simulate_compact_scan", "simulate_grid", "simulate_scan"]

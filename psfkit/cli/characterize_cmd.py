@@ -194,11 +194,11 @@ def run_register(args: argparse.Namespace) -> int:
 
 def run_mae(args: argparse.Namespace) -> int:
     result = _run_and_write_numbers(args, ("register", "gain", "mae"))
-    print(f"MAE vs the centre PSF (normalization: centre {args.normalization} = 1; "
-          f"smoothing {args.mae_smoothing:g} px), x 1e-3:")
-    _grid_print(result.table("mae") * 1e3, "7.3f", result)
-    print("after gain compensation, x 1e-3:")
-    _grid_print(result.table("mae_gain_compensated") * 1e3, "7.3f", result)
+    print(f"MAE vs the centre PSF, % of its light (sum |PSF - centre| / sum centre over the "
+          f"PSFs' support; smoothing {args.mae_smoothing:g} px):")
+    _grid_print(result.table("mae") * 100, "7.2f", result)
+    print("after gain compensation, %:")
+    _grid_print(result.table("mae_gain_compensated") * 100, "7.2f", result)
     print_coverage(result)
     _print_per_channel(args, result)
     _print_warnings(result)
@@ -217,8 +217,8 @@ def run_warp(args: argparse.Namespace) -> int:
     growth, anis = result.warp_growth, result.warp_anisotropy
     if growth is not None:
         print(f"residual grows as theta^{growth.exponent:.2f} (+/- {growth.exponent_std:.2f}) "
-              f"over a {growth.floor:.3f} px floor (positions with overlap >= "
-              f"{RELIABLE_OVERLAP:.0%})")
+              f"over a {growth.floor:.3f} px floor (positions with >= {RELIABLE_OVERLAP:.0%} "
+              "of the centre PSF's light in their overlap)")
     if anis is not None:
         print(f"tangential/sagittal: measured {anis['median_measured']:.2f}, geometric optics "
               f"{anis['median_geometric']:.2f} (median of {anis['positions']} positions)")

@@ -157,9 +157,11 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
     placement = result.placement
     if placement is None:
         print("  PSFs placed at their own registered shifts (--shifts registered)")
-    elif placement.source == "registered":
-        print("  PSFs placed at their own registered shifts (no two-dimensional field to fit "
-              "a shift map to)")
+    elif placement.source.startswith("registered"):
+        why = ("no two-dimensional field to fit a shift map to"
+               if placement.source == "registered" else "the field-to-shift map does not "
+               "explain them: cut-outs around each PSF?")
+        print(f"  PSFs placed at their own registered shifts ({why})")
     else:
         which = "reliable" if placement.source == "affine" else "all"
         print(f"  PSFs placed by the affine shift map of {placement.positions_used} positions "

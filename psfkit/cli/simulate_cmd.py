@@ -160,9 +160,9 @@ def _demo_steps(args: argparse.Namespace, config: BenchConfig, grid_dir: Path,
     write_report(result, report_tmp, overwrite=True)
 
     error = np.hypot(*np.moveaxis(result.table("shift") - truth.shift_px, -1, 0))
-    reliable = result.table("overlap") >= RELIABLE_OVERLAP
+    reliable = result.table("support_overlap") >= RELIABLE_OVERLAP
     print(f"shift error vs ground truth: {np.sqrt(np.mean(error[reliable] ** 2)):.3f} px rms "
-          f"where the PSF overlaps the centre PSF by >= {RELIABLE_OVERLAP:.0%} "
+          f"where >= {RELIABLE_OVERLAP:.0%} of the centre PSF's light is in the overlap "
           f"({reliable.sum()} positions), {np.sqrt(np.mean(error ** 2)):.3f} px rms overall")
     fit = result.shift_fit
     if fit is not None:

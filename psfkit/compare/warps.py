@@ -79,7 +79,7 @@ def measured_warp(aligner: GridAligner, name: str, basis_name: str, convention: 
     for side in _axis_positions(grid, WARP_AXES[name]):
         for row, col in side:               # outermost first: the largest, clearest warp
             aligned = aligner.align(grid.position(row, col))
-            if aligned.overlap < RELIABLE_OVERLAP:
+            if aligned.support_overlap < RELIABLE_OVERLAP:
                 continue
             change = _weight_change(basis_name, convention, k, image_shape, aligned.shift,
                                     sensor_shape)
@@ -98,8 +98,9 @@ def measured_warp(aligner: GridAligner, name: str, basis_name: str, convention: 
                          "overlap": aligned.overlap, "warp_rms_px": disp.rms()})
             break
     if not used:
-        notes.append(f"warp {name}: no position on that axis overlaps the centre PSF on "
-                     f">= {100 * RELIABLE_OVERLAP:.0f}% of the sensor; no measured warp")
+        notes.append(f"warp {name}: no position on that axis has >= "
+                     f"{100 * RELIABLE_OVERLAP:.0f}% of the centre PSF's light in its overlap; "
+                     "no measured warp")
         return None, used, notes
     if len(used) == 1:
         notes.append(f"warp {name}: only one side of the axis is usable; not symmetrised")
@@ -136,7 +137,7 @@ def measured_warps_joint(aligner: GridAligner, basis_name: str, convention: str,
         if (pos.row, pos.col) == centre:
             continue
         aligned = aligner.align(pos)
-        if aligned.overlap < RELIABLE_OVERLAP:
+        if aligned.support_overlap < RELIABLE_OVERLAP:
             continue
         changes = np.stack([_weight_change(basis_name, convention, k, image_shape,
                                            aligned.shift, sensor_shape)
@@ -158,8 +159,8 @@ def measured_warps_joint(aligner: GridAligner, basis_name: str, convention: str,
                      "mean_weight_change": {name: float(np.mean(changes[i][here]))
                                             for i, name in enumerate(names)}})
     if not used:
-        notes.append(f"no position overlaps the centre PSF on >= {100 * RELIABLE_OVERLAP:.0f}% "
-                     "of the sensor; no measured warp")
+        notes.append(f"no position has >= {100 * RELIABLE_OVERLAP:.0f}% of the centre PSF's "
+                     "light in its overlap; no measured warp")
         return {}, used, notes
     smallest = np.linalg.eigvalsh(gram)[..., 0]
     defined = smallest >= MIN_WEIGHT_CHANGE * smallest.max()

@@ -27,7 +27,85 @@ from psfkit.io.manifest import (
     parse_manifest,
     parse_positive,
 )
-from psfkit.validation import MAX_GRID_SIDE, finite_number
+from psfkit.validation import (
+    MAX_GRID_CELLS,
+    finite_number,
+    format_bytes,
+    machine_memory_bytes,
+)
+
+#: Longest side (px) of the eigen fit's working copy of one PSF (``EigenFitOptions.
+#: working_size``) and of the characterization's thumbnail (``psfkit.characterize.
+#: THUMBNAIL_SIZE``): what the analyses keep of every position (a test checks they agree).
+WORKING_SIDE = 256
+THUMBNAIL_SIDE = 160
+#: Full-resolution float64 row and column vectors the eigen fit keeps per position and
+#: convention (the weight factors of ``psfkit.eigen.NormalEquations``, basis "paper": 4).
+FACTOR_VECTORS = 4
+#: Bytes of the per-position records (numbers, coarse flow, excluded-position details).
+RECORD_BYTES = 16 * 2**10
+#: Bytes of the per-cell tables of a lattice (about 40 float64 numbers per cell).
+CELL_BYTES = 512
+
+
+def analysis_memory_bytes(grid_shape: tuple[int, int], n_positions: int,
+                          image_shape: tuple[int, int, int]) -> int:
+    """What the analyses of a grid (``report``, ``fit-eigen``) hold in memory, in bytes,
+    estimated from its size before any image is read.
+
+    Every command reads one PSF at a time; what grows with the grid is what they keep of each
+    position: per **cell** of the lattice (``(1, P)`` for an irregular scan) the per-position
+    tables and the montage thumbnail (``THUMBNAIL_SIDE``); per **captured position** the eigen
+    fit's working copy (at most ``WORKING_SIDE``² pixels per channel, float32, and its mask),
+    its weight factors (``FACTOR_VECTORS`` full-resolution rows and columns per convention,
+    both conventions) and the records; and **once** the full-resolution normal equations of
+    both conventions (float64) and about 16 images in flight.
+
+    Parameters
+    ----------
+    grid_shape : (int, int)
+        Cells of the lattice, ``(1, P)`` for an irregular scan.
+    n_positions : int
+        Captured positions.
+    image_shape : (int, int, int)
+        ``(C, H, W)`` of the images.
+    """
+    c, h, w = image_shape
+    factor = max(1, -(-max(h, w) // THUMBNAIL_SIDE))
+    per_cell = CELL_BYTES + 4 * (h // factor) * (w // factor)
+    working = min(h, WORKING_SIDE) * min(w, WORKING_SIDE)
+    per_position = (working * (4 * c + 1) + 2 * FACTOR_VECTORS * (h + w) * 8
+                    + RECORD_BYTES)
+    k = 3                                              # kernels of the default basis
+    once = h * w * (2 * 8 * (k * (k + 1) // 2 + c * k) + 16 * 4 * c)
+    return int(grid_shape[0]) * int(grid_shape[1]) * per_cell + n_positions * per_position \
+        + once
+
+
+def check_fits_in_memory(manifest: Path, grid_shape: tuple[int, int], n_positions: int,
+                         image_shape: tuple[int, int, int], declared: bool,
+                         irregular: bool) -> None:
+    """Refuse a grid whose analyses cannot fit in this machine's memory, in one line.
+
+    Raises
+    ------
+    GridFormatError
+        ``"manifest.json: an irregular scan of 1 x 300000 positions of 1024 x 1024 x 1
+        images needs about 95 GiB of memory to analyse, more than this machine's 16 GiB; ..."``.
+    """
+    need = analysis_memory_bytes(grid_shape, n_positions, image_shape)
+    have = machine_memory_bytes()
+    if need <= have:
+        return
+    c, h, w = image_shape
+    what = (f"grid_shape {list(grid_shape)}" if declared else
+            "an irregular scan" if irregular else "a lattice")
+    raise GridFormatError(
+        f"{manifest}: {what} of {grid_shape[0]} x {grid_shape[1]} positions "
+        f"({n_positions} captured) of {h} x {w} x {c} images needs about {format_bytes(need)} "
+        f"of memory to analyse, more than this machine's {format_bytes(have)}; analyse the "
+        "positions in parts (one manifest each) or bin the images")
+
 
 
 def pixel_problem(path: Path, image: np.ndarray) -> str | None:
@@ -107,7 +185,8 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
 
     n_rows = max(p.row for p in positions) + 1
     n_cols = max(p.col for p in positions) + 1
-    if header.get("grid_shape") is not None:
+    declared_shape = header.get("grid_shape") is not None
+    if declared_shape:
         gs = header["grid_shape"]
         if not (isinstance(gs, list) and len(gs) == 2):
             raise GridFormatError(f"{manifest}: 'grid_shape' must be [rows, cols], got {gs!r}")
@@ -116,9 +195,10 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
             raise GridFormatError(f"{manifest}: positions reach index ({n_rows - 1}, "
                                   f"{n_cols - 1}) beyond grid_shape {list(declared)}")
         n_rows, n_cols = declared
-    if n_rows > MAX_GRID_SIDE or n_cols > MAX_GRID_SIDE:
-        raise GridFormatError(f"{manifest}: grid of {n_rows} x {n_cols} positions exceeds the "
-                              f"limit of {MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
+    if n_rows * n_cols > MAX_GRID_CELLS:
+        raise GridFormatError(f"{manifest}: {'grid_shape' if declared_shape else 'grid'} "
+                              f"[{n_rows}, {n_cols}] declares {n_rows * n_cols} positions, "
+                              f"more than the {MAX_GRID_CELLS} a grid may have")
     missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
     if missing and strict:
         listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
@@ -149,6 +229,11 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     channel_order = header.get("channel_order", "RGB")
     if channel_order not in ("RGB", "BGR"):
         raise GridFormatError(f"{manifest}: 'channel_order' must be 'RGB' or 'BGR'")
+    # the size of what the analyses will hold, from the first image's header, before the
+    # images are read (the others must have its shape)
+    check_fits_in_memory(manifest, (n_rows, n_cols), len(positions),
+                         _peek(root / positions[0].file, channel_order)[0], declared_shape,
+                         irregular)
 
     ref_shape: tuple[int, int, int] | None = None
     ref_dtype: np.dtype | None = None

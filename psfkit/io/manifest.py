@@ -18,7 +18,7 @@ from psfkit.io.grid import (
     MANIFEST_JSON,
     GridPosition,
 )
-from psfkit.validation import MAX_GRID_SIDE, read_json_file
+from psfkit.validation import MAX_GRID_CELLS, read_json_file
 
 CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")
@@ -53,9 +53,9 @@ def parse_index(value: Any, where: str, name: str) -> int:
             f"{where}: '{name}' must be a non-negative integer, got {value!r}") from None
     if not as_float.is_integer() or as_float < 0:
         raise GridFormatError(f"{where}: '{name}' must be a non-negative integer, got {value!r}")
-    if as_float > MAX_GRID_SIDE:
+    if as_float > MAX_GRID_CELLS:
         raise GridFormatError(f"{where}: '{name}' {value!r} exceeds the limit of "
-                              f"{MAX_GRID_SIDE} x {MAX_GRID_SIDE} positions")
+                              f"{MAX_GRID_CELLS} positions a grid may have")
     return int(as_float)
 
 
