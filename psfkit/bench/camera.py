@@ -96,6 +96,11 @@ class BenchConfig:
         scattered light at Nyquist (and at least 2, so pixels integrate the caustic).
     vignetting_exponent : float
         Relative illumination ``cos(θ)**exponent``.
+    field_free : bool
+        A camera without field variation, for tests of the analysis (issue 43): every
+        position's PSF is the on-axis PSF translated by the chief-ray shift (exactly linear in
+        tan θ), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and no
+        other change of shape. A bench facility, not a model of a real camera.
     sensor : SensorModel
         Noise, black level, bit depth, saturation.
     peak_fraction : float
@@ -121,6 +126,7 @@ class BenchConfig:
     downsample: int = 1
     oversample: int | None = None
     vignetting_exponent: float = 4.0
+    field_free: bool = False
     sensor: SensorModel = field(default_factory=SensorModel)
     peak_fraction: float = 0.8
     seed: int = 0
@@ -352,7 +358,10 @@ class VirtualCamera:
         return sx / self.pixel_um + 0.0, sy / self.pixel_um + 0.0  # + 0.0: no negative zeros
 
     def gain(self, field_deg: tuple[float, float]) -> float:
-        """Relative illumination (vignetting) of the source, 1 on axis."""
+        """Relative illumination (vignetting) of the source, 1 on axis (and everywhere for a
+        ``field_free`` camera)."""
+        if self.config.field_free:
+            return 1.0
         return float(relative_illumination(self.direction_cosines(field_deg)[2],
                                            self.config.vignetting_exponent))
 
@@ -416,8 +425,11 @@ class VirtualCamera:
         PsfPatch
             ``image`` in relative irradiance (the on-axis PSF sums to 1 per channel).
         """
-        alpha, beta, _ = self.direction_cosines(field_deg)
         du, dv = self.true_shift_px(field_deg)
+        if self.config.field_free:
+            # the on-axis optics, moved by the chief-ray shift (its sub-pixel part below)
+            field_deg = (0.0, 0.0)
+        alpha, beta, _ = self.direction_cosines(field_deg)
         nu, nv = int(np.round(du)), int(np.round(dv))
         residual_um = ((du - nu) * self.pixel_um, (dv - nv) * self.pixel_um) \
             if subpixel_shift else (0.0, 0.0)

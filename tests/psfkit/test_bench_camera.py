@@ -163,3 +163,28 @@ def test_torch_optics_match_the_numpy_reference(spherical):
         assert np.linalg.norm(new.image - ref.image) / np.linalg.norm(ref.image) < 1e-4
     with pytest.raises(ConfigurationError, match="backend"):
         VirtualCamera(config, backend="jax")
+
+
+def test_field_free_camera_translates_the_on_axis_psf():
+    """Issue 43's field-free bench: every PSF is the on-axis PSF moved by the chief-ray shift
+    (−d·tanθ, linear in tanθ), with no vignetting and no change of shape; the default camera
+    (same diffuser) does change, so the check has teeth."""
+    config = BenchConfig(downsample=8, field_free=True)
+    free, varying = VirtualCamera(config), VirtualCamera(BenchConfig(downsample=8))
+    on_axis = free.psf_patch((0.0, 0.0)).image
+    np.testing.assert_allclose(on_axis, varying.psf_patch((0.0, 0.0)).image, rtol=1e-6)
+    pixel_um = 3.45 * 8
+    for field in [(6.0, -4.0), (-9.0, 7.0)]:
+        assert free.gain(field) == 1.0 and varying.gain(field) < 0.99
+        patch = free.psf_patch(field, subpixel_shift=False)
+        np.testing.assert_array_equal(patch.image, on_axis)
+        assert not np.allclose(varying.psf_patch(field, subpixel_shift=False).image
+                               / varying.gain(field), on_axis, rtol=0.05, atol=0.0)
+        expected = tuple(-14.6e3 * np.tan(np.deg2rad(f)) / pixel_um for f in field)
+        assert free.true_shift_px(field) == pytest.approx(expected, rel=1e-9)
+        moved = free.psf_patch(field)
+        assert moved.image.sum() == pytest.approx(on_axis.sum(), rel=1e-5)
+        centre = free.psf_patch((0.0, 0.0)).offset
+        assert (moved.offset[0] - centre[0], moved.offset[1] - centre[1]) == (
+            round(expected[1]), round(expected[0]))
+    assert BenchConfig.from_dict(config.to_dict()).field_free
