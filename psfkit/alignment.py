@@ -140,6 +140,7 @@ class GridAligner:
                 f"{exc}; this is the reference (centre) PSF {grid.describe_index(self.center)}, "
                 "which every position is compared with: fix it, or name another captured "
                 "position with --reference R,C") from None
+        self._check_reference_unsaturated(grid)
         self.scale = normalization_scale(self.reference_prepared.image,
                                          self.options.normalization)
         self.reference = self.reference_prepared.image / np.float32(self.scale)
@@ -148,6 +149,21 @@ class GridAligner:
         self._allow_binning = high_frequency_fraction(self.reference_luminance) < 0.01
         self._registrar = ShiftRegistrar(self.reference_luminance, upsample,
                                          allow_binning=self._allow_binning)
+
+    def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
+        """Refuse a reference whose saturated pixels (masked with ``allow_saturated``) leave
+        less than :data:`MIN_OVERLAP` of the sensor: no position, the reference included,
+        could be compared with it (issue 43: every position was then excluded and the fits
+        received no measurement)."""
+        saturated = self.reference_prepared.saturated
+        if float(np.mean(~saturated)) >= MIN_OVERLAP:
+            return
+        name = grid.root / grid.position(*self.center).file
+        raise InvalidInputError(
+            f"{name}: {int(saturated.sum())} of its {saturated.size} pixels are saturated, "
+            "and masking them (--allow-saturated) leaves nothing to compare with; this is the "
+            f"reference (centre) PSF {grid.describe_index(self.center)}: lower the exposure, "
+            "or name another captured position with --reference R,C")
 
     def register(self, reference: np.ndarray, moving: np.ndarray) -> tuple[float, float]:
         """Shift of ``moving`` relative to ``reference`` with this grid's settings."""

@@ -43,6 +43,8 @@ from psfkit.warp import (
 )
 
 STEPS = ("register", "gain", "mae", "warp")
+#: Trailing shape of the per-position vectors of :meth:`GridCharacterization.table`.
+VECTOR_SHAPES = {"shift": (2,), "field_deg": (2,), "monitor_px": (2,)}
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
 QUIVER_CELLS = 24        # arrows along the longest side of a stored residual flow
 
@@ -154,9 +156,13 @@ class GridCharacterization:
     excluded: list[ExcludedPosition] = field(default_factory=list)
     missing: list[tuple[int, int]] = field(default_factory=list)
 
-    def _lattice(self, items: list[Any], values: list[Any]) -> np.ndarray:
+    def _lattice(self, items: list[Any], values: list[Any], extra: tuple[int, ...] = ()
+                 ) -> np.ndarray:
+        """``values`` of ``items`` on the ``(N, M, *extra)`` lattice (NaN elsewhere); the
+        trailing shape ``extra`` is that of the values, or the one given when there are none
+        (a vector quantity keeps its axis when no position was measured)."""
         n, m = self.grid_shape
-        extra = np.shape(values[0]) if values else ()
+        extra = np.shape(values[0]) if values else extra
         out = np.full((n, m, *extra), np.nan)
         for item, value in zip(items, values, strict=True):
             out[item.row, item.col] = value
@@ -165,7 +171,8 @@ class GridCharacterization:
     def table(self, key: str) -> np.ndarray:
         """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity (NaN where not
         measured)."""
-        return self._lattice(self.positions, [getattr(p, key) for p in self.positions])
+        return self._lattice(self.positions, [getattr(p, key) for p in self.positions],
+                             VECTOR_SHAPES.get(key, ()))
 
     def warp_table(self, key: str) -> np.ndarray:
         """``(N, M)`` array of a warp statistic (NaN where no warp was measured)."""
