@@ -8,11 +8,13 @@ result keeps the per-position numbers plus small images for the figures.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
+from scipy import stats
 
 from psfkit.alignment import (
     MIN_QUALITY,
@@ -20,9 +22,13 @@ from psfkit.alignment import (
     RELIABLE_OVERLAP,
     ExcludedPosition,
     GridAligner,
+    nominal_shifts,
 )
+from psfkit.choices import CV_BASES_ALL
+from psfkit.eigen import WorkingStack
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.gain import GainFit, fit_gain, overlap_gain
+from psfkit.heldout import VERDICT_WORKING_SIZE, judge, moved_to
 from psfkit.io.grid import FULL_LATTICE, IRREGULAR, GridPosition, PsfGrid
 from psfkit.mae import mean_absolute_error
 from psfkit.parallel import bounded_map
@@ -32,6 +38,8 @@ from psfkit.registration import (
     fit_shift_map,
 )
 from psfkit.resample import bin_image, binning_factor
+from psfkit.significance import Z_SIGNIFICANT, Estimate, alpha, checked, undetermined
+from psfkit.verdict import Verdict
 from psfkit.warp import (
     FLOW_METHODS,
     GrowthFit,
@@ -42,7 +50,7 @@ from psfkit.warp import (
     warp_field,
 )
 
-STEPS = ("register", "gain", "mae", "warp")
+STEPS = ("register", "gain", "mae", "warp", "verdict")
 #: Trailing shape of the per-position vectors of :meth:`GridCharacterization.table`.
 VECTOR_SHAPES = {"shift": (2,), "field_deg": (2,), "monitor_px": (2,)}
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
@@ -57,7 +65,9 @@ class CharacterizeOptions:
     ----------
     preprocess : PreprocessOptions
     steps : tuple of str
-        Subset of ``("register", "gain", "mae", "warp")`` (registration always runs).
+        Subset of ``("register", "gain", "mae", "warp", "verdict")`` (registration always
+        runs; ``"verdict"``: the held-out cross-validation over positions and the verdict of
+        :mod:`psfkit.verdict`, on a binned working copy of the aligned PSFs).
     upsample : int
         Registration precision is ``1/upsample`` px.
     flow_method : str
@@ -155,6 +165,25 @@ class GridCharacterization:
     layout: str = FULL_LATTICE
     excluded: list[ExcludedPosition] = field(default_factory=list)
     missing: list[tuple[int, int]] = field(default_factory=list)
+    astigmatism: Estimate | None = None     # tangential/sagittal ratio (warp step)
+    verdict: Verdict | None = None          # the verdict step
+
+    def effects(self) -> dict[str, Estimate]:
+        """The field effects of the verdict (:data:`psfkit.verdict.EFFECTS`) that were
+        measured: shift = the shift map's non-linear part, gain = the cosⁿ exponent, warp =
+        the growth of the warp residual, astigmatism = the tangential/sagittal ratio."""
+        out: dict[str, Estimate] = {}
+        if self.shift_fit is not None:
+            out["shift"] = self.shift_fit.distortion
+        if self.gain_fit is not None:
+            out["gain"] = self.gain_fit.estimate
+        if "warp" in self.options.steps:
+            out["warp"] = self.warp_growth.growth if self.warp_growth is not None else \
+                undetermined("fewer than four positions with a measured warp residual")
+            out["astigmatism"] = self.astigmatism if self.astigmatism is not None else \
+                undetermined("no position with a measured anisotropy far enough off axis",
+                             null=1.0)
+        return out
 
     def _lattice(self, items: list[Any], values: list[Any], extra: tuple[int, ...] = ()
                  ) -> np.ndarray:
@@ -230,6 +259,12 @@ class GridCharacterization:
                          "px; u = column, v = row; a source at +x gives du < 0",
                 "normalization": f"PSFs divided by the centre PSF's {opts.preprocess.normalization}"
                                  " (all channels), so gains are relative to the centre",
+                "gain": "energy ratio to the centre capture over their overlap: includes any "
+                        "difference in source brightness, not only vignetting",
+                "uncertainty": "every fitted field quantity is under 'estimates': value, 1σ "
+                               "(sigma), null, z, p_value of its test, significant "
+                               f"(|value − null| > {Z_SIGNIFICANT:g}σ and p < "
+                               f"{alpha():.2g}), status",
                 "mae": "mean |PSF − centre| over the registered overlap, all channels, "
                        "saturated pixels excluded, after a Gaussian of σ = "
                        f"{opts.mae_smoothing_px:g} px on both",
@@ -245,6 +280,7 @@ class GridCharacterization:
             "gain_fit": self.gain_fit.to_dict() if self.gain_fit else None,
             "warp_growth": self.warp_growth.to_dict() if self.warp_growth else None,
             "warp_anisotropy": self.warp_anisotropy,
+            **({"verdict": self.verdict.to_dict()} if self.verdict is not None else {}),
             "reliable_overlap": RELIABLE_OVERLAP,
             "positions": [p.to_dict() for p in self.positions],
             **self.coverage(),
@@ -347,6 +383,9 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     ref_total = reference.sum(axis=0)
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
     steps = set(options.steps)
+    stack = WorkingStack.empty(len(grid.positions), grid.image_shape, binning_factor(
+        grid.image_shape[1:], VERDICT_WORKING_SIZE)) if "verdict" in steps else None
+    rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
     fig2 = set(_fig2_positions(grid, center))
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
 
@@ -377,6 +416,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                 (0.0, 0.0) if here == center else aligner.register(reference[c], image[c])
                 for c in range(image.shape[0])]
         gain = overlap_gain(ref_total, aligned.sum(axis=0), valid)
+        if stack is not None:      # one row per position: the threads never share one
+            stack.put(rows[here], item, aligned, gain)
         if "gain" in steps:
             record.gain = gain
         if "mae" in steps:
@@ -429,7 +470,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     else:   # over the measured positions; None when they do not span two directions
         try:
             result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
-                                             weights=overlaps)
+                                             weights=overlaps,
+                                             resolution_px=1.0 / options.upsample)
         except InvalidInputError:
             result.shift_fit = None
     if "gain" in steps:
@@ -437,7 +479,25 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                                    weights=overlaps)
     if "warp" in steps:
         _summarise_warp(result)
+    if stack is not None:
+        kept = np.array([isinstance(r, PositionResult) for r in records])
+        result.verdict = judge_grid(grid, result, stack.subset(kept), progress)
     return result
+
+
+def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
+               progress: bool = False) -> Verdict:
+    """The verdict of a characterized grid (:mod:`psfkit.heldout`) from the working copy of
+    its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
+    fit-eigen`` places them (:func:`psfkit.alignment.nominal_shifts`: the forward model's
+    affine map of the field), so that both commands judge the same data."""
+    positions = [grid.position(p.row, p.col) for p in result.positions]
+    placement = nominal_shifts(positions, np.array([p.shift for p in result.positions]),
+                               np.array([p.overlap for p in result.positions]), result.center)
+    stack = moved_to(stack, np.array([placement.shifts[(p.row, p.col)] for p in positions]))
+    _, verdict = judge(stack, stack.row_of(result.center), result.image_shape[1:],
+                       list(CV_BASES_ALL), effects=result.effects(), progress=progress)
+    return verdict
 
 
 def _summarise_warp(result: GridCharacterization) -> None:
@@ -451,7 +511,8 @@ def _summarise_warp(result: GridCharacterization) -> None:
     result.warp_growth = fit_growth(theta, residual)
     anisotropy = result.warp_table("anisotropy")
     # far enough off axis for the astigmatic displacement to dominate the flow's error floor
-    strong = reliable & np.isfinite(anisotropy) & (theta >= 0.4 * np.nanmax(theta))
+    strong = reliable & np.isfinite(anisotropy) & (anisotropy > 0) \
+        & (theta >= 0.4 * np.nanmax(theta))
     if strong.any():
         ratio = anisotropy[strong] / geometric_anisotropy(theta[strong])
         result.warp_anisotropy = {
@@ -461,6 +522,27 @@ def _summarise_warp(result: GridCharacterization) -> None:
             "median_ratio_to_geometric": float(np.median(ratio)),
             "fraction_tangential": float(np.mean(anisotropy[strong] > 1.0)),
         }
+        result.astigmatism = astigmatism_estimate(anisotropy[strong])
+        result.warp_anisotropy["estimates"] = {
+            "tangential_sagittal": result.astigmatism.to_dict()}
+
+
+def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
+    """The tangential/sagittal ratio of the warp residual over the positions, as an
+    :class:`~psfkit.significance.Estimate`: the geometric mean of the per-position ratios
+    (finite, positive) with its 1σ from their scatter (delta method on the mean of their
+    logarithms), against the null 1 (no astigmatism: an isotropic change), tested by the
+    one-sample t-test of the logarithms."""
+    ratios = np.asarray(anisotropy, dtype=np.float64).ravel()
+    ratios = ratios[np.isfinite(ratios) & (ratios > 0)]
+    if len(ratios) < 3:
+        return undetermined(f"{len(ratios)} position(s) with a measured anisotropy far enough "
+                            "off axis; the test needs at least 3", null=1.0)
+    logs = np.log(ratios)
+    mean, sem = float(np.mean(logs)), float(np.std(logs, ddof=1) / np.sqrt(len(logs)))
+    p_value = float(stats.ttest_1samp(logs, 0.0).pvalue) if sem > 0 else 0.0
+    value = math.exp(mean)
+    return checked(value, value * sem if sem > 0 else 1e-12 * value, 1.0, p_value)
 
 
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
