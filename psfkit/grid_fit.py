@@ -37,7 +37,7 @@ from psfkit.eigen import (
     kernel_difference_estimates,
     stack_residuals,
 )
-from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
 from psfkit.heldout import judge
 from psfkit.io.grid import FULL_LATTICE, GridPosition, PsfGrid
@@ -307,8 +307,6 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
     del equations
     basis, convention = _choose(options, validation, verdict)
     if auto:
-        if verdict is None:
-            raise InvalidInputError("--basis auto needs cross-validation (--cv-bases)")
         check_design(get_basis(basis), shifts, (h, w), str(grid.root), left_out)
         equations = {convention: NormalEquations(get_basis(basis), convention, (c, h, w))}
         _accumulate(grid, aligner, place, equations, options, progress, workers,

@@ -47,8 +47,9 @@ NULL_MODEL = "si+sampling"
 #: Longest side (px) of the working copy the verdict of ``psfkit report`` is computed on (as
 #: ``psfkit fit-eigen``'s, :class:`psfkit.grid_fit.EigenFitOptions`).
 VERDICT_WORKING_SIZE = 256
-#: Ridge of the per-pixel systems, relative to their mean diagonal (as psfkit.eigen's).
-RIDGE = 1e-6
+#: Ridge on the correction kernels, relative to each pixel's mean diagonal (as
+#: :data:`psfkit.eigen.DEFAULT_RIDGE`).
+RIDGE = 1e-4
 
 
 def sampling_weights(shifts_px: np.ndarray) -> np.ndarray:
@@ -76,11 +77,14 @@ def _sums(mask: np.ndarray, images: np.ndarray, design: np.ndarray
 
 
 def solve_position_weights(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Kernels ``(K, C, N)`` of the per-pixel systems (ridge :data:`RIDGE` relative to each
-    pixel's mean diagonal)."""
+    """Kernels ``(K, C, N)`` of the per-pixel systems. The first weight is 1 (the PSF), the
+    others add corrections: a ridge of :data:`RIDGE` (relative to each pixel's mean
+    diagonal) pulls the corrections towards 0 where few positions see a pixel, as the
+    difference prior of :mod:`psfkit.eigen` pulls eigen-kernels towards the base kernel."""
     k = gram.shape[0]
     scale = np.einsum("kkn->n", gram) / k + 1e-300
-    system = gram / scale + RIDGE * np.eye(k)[:, :, None]
+    prior = np.diag([1e-12] + [RIDGE] * (k - 1))
+    system = gram / scale + prior[:, :, None]
     return _solve_spd(system, rhs / scale)
 
 
