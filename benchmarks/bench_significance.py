@@ -109,6 +109,10 @@ def run(kind: str, seeds: int, downsample: int, shape: tuple[int, int], work: Pa
     return runs
 
 
+def _wrapped(deviation: float, name: str) -> float:
+    return (deviation + 180.0) % 360.0 - 180.0 if name.endswith("rotation_deg") else deviation
+
+
 def summarise(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
     names = sorted({n for r in runs["field_free"] for n in r["quantities"]})
     fpr = {}
@@ -125,7 +129,10 @@ def summarise(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
     calibration: dict[str, dict[str, Any]] = {}
     for kind, kind_runs in runs.items():
         for n in names:
-            values = [r["quantities"][n].get("value") for r in kind_runs]
+            # the deviation from the null (a rotation of 180° may read ±180°)
+            values = [None if r["quantities"][n].get("value") is None else
+                      _wrapped(r["quantities"][n]["value"] - r["quantities"][n]["null"], n)
+                      for r in kind_runs]
             sigmas = [r["quantities"][n].get("sigma") for r in kind_runs]
             ok = [(v, s) for v, s in zip(values, sigmas, strict=True)
                   if v is not None and s is not None]
@@ -146,7 +153,14 @@ def main() -> None:
     parser.add_argument("--downsample", type=int, default=8)
     parser.add_argument("--grid", default="5x5")
     parser.add_argument("--out", default="bench_significance.json")
+    parser.add_argument("--summarise", metavar="JSON",
+                        help="only summarise the runs of an earlier --out file")
     args = parser.parse_args()
+    if args.summarise:
+        import json
+
+        report(summarise(json.loads(Path(args.summarise).read_text())["runs"]))
+        return
     shape = tuple(int(v) for v in args.grid.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         runs = {kind: run(kind, args.seeds, args.downsample, shape, Path(tmp))
@@ -154,6 +168,10 @@ def main() -> None:
     summary = summarise(runs)
     write_json(args.out, {"runs": runs, "summary": summary, "grid": args.grid,
                           "downsample": args.downsample})
+    report(summary)
+
+
+def report(summary: dict[str, Any]) -> None:
     print("false-positive rate on the field-free camera (pooled over quantities):")
     for z, row in summary["false_positive_rate"].items():
         print(f"  Z = {z}: {row['pooled']:.3f} of {row['trials']} "
