@@ -41,6 +41,7 @@ from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
 from psfkit.heldout import judge
 from psfkit.io.grid import FULL_LATTICE, GridPosition, PsfGrid
+from psfkit.io.jsonable import jsonable
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
@@ -205,8 +206,9 @@ class GridEigenResult:
                           "(Kbase sums to about 1 per channel; colour balance and gains kept"
                           + (", PSFs gain-compensated before the fit" if
                              self.options.gain_compensate else "") + ")",
+            # NaN/Inf (an undetermined σ, an infinite z) as null: the metadata is strict JSON
             provenance={"source": "psfkit fit-eigen", "grid": self.grid_root,
-                        "fit": self.summary()},
+                        "fit": jsonable(self.summary())},
             # measurements of this camera are taken to be stored like its PSF grid
             read_options=ReadOptions(channel_order=self.channel_order))
 

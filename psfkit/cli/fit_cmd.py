@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                   "best cross-validated one")
     add_flag(p, "--convention", "fit-eigen",
              note="sensor, or with --basis auto the verdict's; auto fits both and writes the "
-                  "one with the lower cross-validated error", default=None)
+                  "one with the lower cross-validated error")
     p.add_argument("--gain-compensate", action="store_true",
                    help="divide every PSF by its gain first (kernels then carry shape only)")
     p.add_argument("--shifts", choices=SHIFT_MODES, default="affine",
