@@ -14,7 +14,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy import stats
 
 from psfkit.alignment import (
     MIN_QUALITY,
@@ -38,7 +37,14 @@ from psfkit.registration import (
     fit_shift_map,
 )
 from psfkit.resample import bin_image, binning_factor
-from psfkit.significance import Z_SIGNIFICANT, Estimate, alpha, checked, undetermined
+from psfkit.significance import (
+    Z_SIGNIFICANT,
+    Estimate,
+    alpha,
+    checked,
+    t_test,
+    undetermined,
+)
 from psfkit.verdict import Verdict
 from psfkit.warp import (
     FLOW_METHODS,
@@ -540,7 +546,7 @@ def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
                             "off axis; the test needs at least 3", null=1.0)
     logs = np.log(ratios)
     mean, sem = float(np.mean(logs)), float(np.std(logs, ddof=1) / np.sqrt(len(logs)))
-    p_value = float(stats.ttest_1samp(logs, 0.0).pvalue) if sem > 0 else 0.0
+    p_value = t_test(mean, sem, len(logs) - 1) if sem > 0 else 0.0
     value = math.exp(mean)
     return checked(value, value * sem if sem > 0 else 1e-12 * value, 1.0, p_value)
 
