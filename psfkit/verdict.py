@@ -63,17 +63,18 @@ class HeldOutErrors:
         return len(self.norms)
 
     def error(self, name: str) -> float:
-        """Pooled relative error ``sqrt(Σ squared / Σ norms)``."""
-        return math.sqrt(float(np.sum(self.squared[name])) / float(np.sum(self.norms)))
+        """Pooled relative error ``sqrt(Σ squared / Σ norms)`` (NaN without positions)."""
+        total = float(np.sum(self.norms))
+        return math.sqrt(float(np.sum(self.squared[name])) / total) if total > 0 else math.nan
 
     def sigma(self, name: str) -> float:
         """1σ of :meth:`error` over the positions (delta method on the ratio of sums)."""
         squared, norms = self.squared[name], self.norms
         n = len(norms)
         total = float(np.sum(norms))
-        ratio = float(np.sum(squared)) / total
-        if n < 2 or ratio <= 0:
+        if n < 2 or total <= 0 or not np.sum(squared) > 0:
             return math.nan
+        ratio = float(np.sum(squared)) / total
         var = n / (n - 1) * float(np.sum((squared - ratio * norms) ** 2)) / total**2
         return math.sqrt(var) / (2.0 * math.sqrt(ratio))
 
@@ -191,7 +192,7 @@ def decide(candidates: HeldOutErrors | None, field_models: HeldOutErrors | None,
     """
     effect_table = {name: _effect(name, (effects or {}).get(name)) for name in EFFECTS}
     evidence: dict[str, Any] = {"rule": _rule()}
-    if candidates is not None:
+    if candidates is not None and candidates.n_positions > 0:
         evidence["positions"] = candidates.n_positions
         evidence["held_out"] = {name: candidates.summary(name) for name in candidates.squared}
         if SI in candidates.squared:

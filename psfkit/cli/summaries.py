@@ -76,6 +76,8 @@ def print_verdict(verdict: Verdict) -> None:
 
 def pm(value: float, sigma: float, fmt: str = ".4f") -> str:
     """``value ± sigma`` (``(± n/a)`` when σ is not finite: fewer than two positions)."""
+    if not math.isfinite(value):
+        return "n/a"
     if math.isfinite(sigma):
         return f"{format(value, fmt)} ± {format(sigma, fmt)}"
     return f"{format(value, fmt)} (± n/a)"

@@ -119,3 +119,11 @@ def test_held_out_error_and_its_sigma():
     r = 10 / 400
     var = 4 / 3 * np.sum((squared - r * norms) ** 2) / 400**2
     assert errors.sigma("m") == pytest.approx(np.sqrt(var) / (2 * np.sqrt(r)))
+
+
+def test_no_held_out_position_gives_no_number_and_no_crash():
+    empty = HeldOutErrors({"si": np.zeros(0)}, np.zeros(0))
+    assert np.isnan(empty.error("si")) and np.isnan(empty.sigma("si"))
+    verdict = decide(empty, None, NULL)
+    assert not verdict.determined and "positions" not in verdict.evidence
+    json.dumps(verdict.to_dict(), allow_nan=False)
