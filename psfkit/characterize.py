@@ -19,6 +19,7 @@ from psfkit.alignment import (
     MIN_QUALITY,
     REJECTION_REASONS,
     RELIABLE_OVERLAP,
+    AlignedPsf,
     ExcludedPosition,
     GridAligner,
     nominal_shifts,
@@ -389,9 +390,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     ref_total = reference.sum(axis=0)
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
     steps = set(options.steps)
-    stack = WorkingStack.empty(len(grid.positions), grid.image_shape, binning_factor(
-        grid.image_shape[1:], VERDICT_WORKING_SIZE)) if "verdict" in steps else None
-    rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
+    working = _WorkingCopy(grid, enabled="verdict" in steps)
     fig2 = set(_fig2_positions(grid, center))
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(ref_lum).shape), np.float32)
 
@@ -422,8 +421,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                 (0.0, 0.0) if here == center else aligner.register(reference[c], image[c])
                 for c in range(image.shape[0])]
         gain = overlap_gain(ref_total, aligned.sum(axis=0), valid)
-        if stack is not None:      # one row per position: the threads never share one
-            stack.put(rows[here], item, aligned, gain)
+        working.put(item, aligned, gain)
         if "gain" in steps:
             record.gain = gain
         if "mae" in steps:
@@ -485,10 +483,32 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                                    weights=overlaps)
     if "warp" in steps:
         _summarise_warp(result)
-    if stack is not None:
-        kept = np.array([isinstance(r, PositionResult) for r in records])
-        result.verdict = judge_grid(grid, result, stack.subset(kept), progress)
+    result.verdict = working.verdict(grid, result, records, progress)
     return result
+
+
+class _WorkingCopy:
+    """The binned working copy of the aligned PSFs the verdict is judged on (nothing when
+    not ``enabled``); one row per position of the grid, so that the worker threads never
+    write the same one."""
+
+    def __init__(self, grid: PsfGrid, enabled: bool) -> None:
+        self.stack = WorkingStack.empty(len(grid.positions), grid.image_shape, binning_factor(
+            grid.image_shape[1:], VERDICT_WORKING_SIZE)) if enabled else None
+        self.rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
+
+    def put(self, item: AlignedPsf, image: np.ndarray, gain: float) -> None:
+        if self.stack is not None:
+            self.stack.put(self.rows[(item.position.row, item.position.col)], item, image,
+                           gain)
+
+    def verdict(self, grid: PsfGrid, result: GridCharacterization, records: list[Any],
+                progress: bool) -> Verdict | None:
+        """:func:`judge_grid` on the measured positions (``None`` when not enabled)."""
+        if self.stack is None:
+            return None
+        kept = np.array([isinstance(r, PositionResult) for r in records])
+        return judge_grid(grid, result, self.stack.subset(kept), progress)
 
 
 def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
