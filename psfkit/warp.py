@@ -309,7 +309,8 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     Returns
     -------
     float
-        The ratio (NaN when the region is too small or carries no signal).
+        The ratio (NaN when the region is too small, carries no signal, or shows no sagittal
+        transport above the noise floor).
     """
     if not mask.any():
         return float("nan")
@@ -337,7 +338,9 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     design = np.column_stack([c2**2, s2**2, 2 * c2 * s2])
     coef, _ = optimize.nnls(design[counts > 0], profile[counts > 0])
     if coef[1] <= 0:
-        return float("inf") if coef[0] > 0 else float("nan")
+        # no sagittal transport above the noise: the ratio is not determined (it was +inf,
+        # an axis limit no report could draw, and no number to print)
+        return float("nan")
     return float(np.sqrt(coef[0] / coef[1]))
 
 
