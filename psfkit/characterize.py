@@ -8,6 +8,7 @@ result keeps the per-position numbers plus small images for the figures.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,11 +19,16 @@ from psfkit.alignment import (
     MIN_QUALITY,
     REJECTION_REASONS,
     RELIABLE_OVERLAP,
+    AlignedPsf,
     ExcludedPosition,
     GridAligner,
+    nominal_shifts,
 )
+from psfkit.choices import CV_BASES_ALL
+from psfkit.eigen import WorkingStack, working_region
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.gain import GainFit, fit_gain, overlap_gain
+from psfkit.heldout import VERDICT_WORKING_SIZE, judge, moved_to
 from psfkit.io.grid import FULL_LATTICE, IRREGULAR, GridPosition, PsfGrid
 from psfkit.mae import mean_absolute_error
 from psfkit.parallel import bounded_map
@@ -32,7 +38,16 @@ from psfkit.registration import (
     fit_shift_map,
 )
 from psfkit.resample import bin_image, binning_factor
+from psfkit.significance import (
+    Z_SIGNIFICANT,
+    Estimate,
+    alpha,
+    checked,
+    t_test,
+    undetermined,
+)
 from psfkit.support import crop_window, support_box
+from psfkit.verdict import Verdict
 from psfkit.warp import (
     FLOW_METHODS,
     GrowthFit,
@@ -43,7 +58,9 @@ from psfkit.warp import (
     warp_field,
 )
 
-STEPS = ("register", "gain", "mae", "warp")
+STEPS = ("register", "gain", "mae", "warp", "verdict")
+#: Trailing shape of the per-position vectors of :meth:`GridCharacterization.table`.
+VECTOR_SHAPES = {"shift": (2,), "field_deg": (2,), "monitor_px": (2,)}
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
 QUIVER_CELLS = 24        # arrows along the longest side of a stored residual flow
 
@@ -56,7 +73,9 @@ class CharacterizeOptions:
     ----------
     preprocess : PreprocessOptions
     steps : tuple of str
-        Subset of ``("register", "gain", "mae", "warp")`` (registration always runs).
+        Subset of ``("register", "gain", "mae", "warp", "verdict")`` (registration always
+        runs; ``"verdict"``: the held-out cross-validation over positions and the verdict of
+        :mod:`psfkit.verdict`, on a binned working copy of the aligned PSFs).
     upsample : int
         Registration precision is ``1/upsample`` px.
     flow_method : str
@@ -158,10 +177,33 @@ class GridCharacterization:
     layout: str = FULL_LATTICE
     excluded: list[ExcludedPosition] = field(default_factory=list)
     missing: list[tuple[int, int]] = field(default_factory=list)
+    astigmatism: Estimate | None = None     # tangential/sagittal ratio (warp step)
+    verdict: Verdict | None = None          # the verdict step
 
-    def _lattice(self, items: list[Any], values: list[Any]) -> np.ndarray:
+    def effects(self) -> dict[str, Estimate]:
+        """The field effects of the verdict (:data:`psfkit.verdict.EFFECTS`) that were
+        measured: shift = the shift map's non-linear part, gain = the cosⁿ exponent, warp =
+        the growth of the warp residual, astigmatism = the tangential/sagittal ratio."""
+        out: dict[str, Estimate] = {}
+        if self.shift_fit is not None:
+            out["shift"] = self.shift_fit.distortion
+        if self.gain_fit is not None:
+            out["gain"] = self.gain_fit.estimate
+        if "warp" in self.options.steps:
+            out["warp"] = self.warp_growth.growth if self.warp_growth is not None else \
+                undetermined("fewer than four positions with a measured warp residual")
+            out["astigmatism"] = self.astigmatism if self.astigmatism is not None else \
+                undetermined("no position with a measured anisotropy far enough off axis",
+                             null=1.0)
+        return out
+
+    def _lattice(self, items: list[Any], values: list[Any], extra: tuple[int, ...] = ()
+                 ) -> np.ndarray:
+        """``values`` of ``items`` on the ``(N, M, *extra)`` lattice (NaN elsewhere); the
+        trailing shape ``extra`` is that of the values, or the one given when there are none
+        (a vector quantity keeps its axis when no position was measured)."""
         n, m = self.grid_shape
-        extra = np.shape(values[0]) if values else ()
+        extra = np.shape(values[0]) if values else extra
         out = np.full((n, m, *extra), np.nan)
         for item, value in zip(items, values, strict=True):
             out[item.row, item.col] = value
@@ -170,7 +212,8 @@ class GridCharacterization:
     def table(self, key: str) -> np.ndarray:
         """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity (NaN where not
         measured)."""
-        return self._lattice(self.positions, [getattr(p, key) for p in self.positions])
+        return self._lattice(self.positions, [getattr(p, key) for p in self.positions],
+                             VECTOR_SHAPES.get(key, ()))
 
     def warp_table(self, key: str) -> np.ndarray:
         """``(N, M)`` array of a warp statistic (NaN where no warp was measured)."""
@@ -236,9 +279,16 @@ class GridCharacterization:
                 "support_overlap": "fraction of the centre PSF's light (over its support) "
                                    "inside a position's registered overlap; a position is "
                                    "reliable when it is at least reliable_overlap",
-                "gain": "Σ PSF / Σ centre over the PSFs' support inside the registered overlap",
+                "gain": "Σ PSF / Σ centre over the PSFs' support inside the registered overlap "
+                        "(a compact PSF), or over the whole overlap (a PSF whose support covers "
+                        "≥ 20 % of the sensor): includes any difference in source brightness, "
+                        "not only vignetting",
                 "quality": "NCC of the luminances over the PSFs' support inside the registered "
                            "overlap",
+                "uncertainty": "every fitted field quantity is under 'estimates': value, 1σ "
+                               "(sigma), null, z, p_value of its test, significant "
+                               f"(|value − null| > {Z_SIGNIFICANT:g}σ and p < "
+                               f"{alpha():.2g}), status",
                 "warp": "moving(x + d(x)) ≈ centre(x); affine part by ECC about the image "
                         "centre, residual by dense flow; tangential = along the PSF shift",
             },
@@ -251,6 +301,7 @@ class GridCharacterization:
             "gain_fit": self.gain_fit.to_dict() if self.gain_fit else None,
             "warp_growth": self.warp_growth.to_dict() if self.warp_growth else None,
             "warp_anisotropy": self.warp_anisotropy,
+            **({"verdict": self.verdict.to_dict()} if self.verdict is not None else {}),
             "reliable_overlap": RELIABLE_OVERLAP,
             "positions": [p.to_dict() for p in self.positions],
             **self.coverage(),
@@ -353,6 +404,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     ref_total = reference.sum(axis=0)
     ref_smooth = _smooth(reference, options.mae_smoothing_px)
     steps = set(options.steps)
+    working = _WorkingCopy(grid, aligner, enabled="verdict" in steps)
     fig2 = set(_fig2_positions(grid, center))
     box = support_box(ref_lum)      # the figures show the PSF, not the frame
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(crop_window(ref_lum, box)).shape),
@@ -388,7 +440,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         # compared over the PSFs' support inside the overlap: frame-size independent (the
         # noise of a large frame's empty pixels would otherwise dominate a compact PSF)
         compared = item.compared
-        gain = overlap_gain(ref_total, aligned.sum(axis=0), compared)
+        gain = overlap_gain(ref_total, aligned.sum(axis=0), aligner.gain_region(item))
+        working.put(item, aligned, gain)
         if "gain" in steps:
             record.gain = gain
         if "mae" in steps:
@@ -446,7 +499,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     else:   # over the measured positions; None when they do not span two directions
         try:
             result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
-                                             weights=overlaps)
+                                             weights=overlaps,
+                                             resolution_px=1.0 / options.upsample)
         except InvalidInputError:
             result.shift_fit = None
     if "gain" in steps:
@@ -454,7 +508,55 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                                    weights=overlaps)
     if "warp" in steps:
         _summarise_warp(result)
+    result.verdict = working.verdict(grid, result, records, progress)
     return result
+
+
+class _WorkingCopy:
+    """The working copy of the aligned PSFs the verdict is judged on (nothing when not
+    ``enabled``), chosen from the centre PSF's extent as ``psfkit fit-eigen`` chooses its own
+    (:func:`psfkit.eigen.working_region`); one row per position of the grid, so that the
+    worker threads never write the same one."""
+
+    def __init__(self, grid: PsfGrid, aligner: GridAligner, enabled: bool) -> None:
+        self.stack = None
+        if enabled:
+            region, factor, _ = working_region(aligner.reference_support,
+                                               aligner.reference_luminance,
+                                               VERDICT_WORKING_SIZE)
+            self.stack = WorkingStack.empty(len(grid.positions), grid.image_shape, factor,
+                                            region)
+        self.rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
+
+    def put(self, item: AlignedPsf, image: np.ndarray, gain: float) -> None:
+        if self.stack is not None:
+            self.stack.put(self.rows[(item.position.row, item.position.col)], item, image,
+                           gain)
+
+    def verdict(self, grid: PsfGrid, result: GridCharacterization, records: list[Any],
+                progress: bool) -> Verdict | None:
+        """:func:`judge_grid` on the measured positions (``None`` when not enabled)."""
+        if self.stack is None:
+            return None
+        kept = np.array([isinstance(r, PositionResult) for r in records])
+        return judge_grid(grid, result, self.stack.subset(kept), progress)
+
+
+def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
+               progress: bool = False) -> Verdict:
+    """The verdict of a characterized grid (:mod:`psfkit.heldout`) from the working copy of
+    its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
+    fit-eigen`` places them (:func:`psfkit.alignment.nominal_shifts`: the forward model's
+    affine map of the field), so that both commands judge the same data."""
+    positions = [grid.position(p.row, p.col) for p in result.positions]
+    placement = nominal_shifts(positions, np.array([p.shift for p in result.positions]),
+                               np.array([p.support_overlap if math.isfinite(p.support_overlap)
+                                         else p.overlap for p in result.positions]),
+                               result.center)
+    stack = moved_to(stack, np.array([placement.shifts[(p.row, p.col)] for p in positions]))
+    _, verdict = judge(stack, stack.row_of(result.center), result.image_shape[1:],
+                       list(CV_BASES_ALL), effects=result.effects(), progress=progress)
+    return verdict
 
 
 def _summarise_warp(result: GridCharacterization) -> None:
@@ -468,7 +570,8 @@ def _summarise_warp(result: GridCharacterization) -> None:
     result.warp_growth = fit_growth(theta, residual)
     anisotropy = result.warp_table("anisotropy")
     # far enough off axis for the astigmatic displacement to dominate the flow's error floor
-    strong = reliable & np.isfinite(anisotropy) & (theta >= 0.4 * np.nanmax(theta))
+    strong = reliable & np.isfinite(anisotropy) & (anisotropy > 0) \
+        & (theta >= 0.4 * np.nanmax(theta))
     if strong.any():
         ratio = anisotropy[strong] / geometric_anisotropy(theta[strong])
         result.warp_anisotropy = {
@@ -478,6 +581,27 @@ def _summarise_warp(result: GridCharacterization) -> None:
             "median_ratio_to_geometric": float(np.median(ratio)),
             "fraction_tangential": float(np.mean(anisotropy[strong] > 1.0)),
         }
+        result.astigmatism = astigmatism_estimate(anisotropy[strong])
+        result.warp_anisotropy["estimates"] = {
+            "tangential_sagittal": result.astigmatism.to_dict()}
+
+
+def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
+    """The tangential/sagittal ratio of the warp residual over the positions, as an
+    :class:`~psfkit.significance.Estimate`: the geometric mean of the per-position ratios
+    (finite, positive) with its 1σ from their scatter (delta method on the mean of their
+    logarithms), against the null 1 (no astigmatism: an isotropic change), tested by the
+    one-sample t-test of the logarithms."""
+    ratios = np.asarray(anisotropy, dtype=np.float64).ravel()
+    ratios = ratios[np.isfinite(ratios) & (ratios > 0)]
+    if len(ratios) < 3:
+        return undetermined(f"{len(ratios)} position(s) with a measured anisotropy far enough "
+                            "off axis; the test needs at least 3", null=1.0)
+    logs = np.log(ratios)
+    mean, sem = float(np.mean(logs)), float(np.std(logs, ddof=1) / np.sqrt(len(logs)))
+    p_value = t_test(mean, sem, len(logs) - 1) if sem > 0 else 0.0
+    value = math.exp(mean)
+    return checked(value, value * sem if sem > 0 else 1e-12 * value, 1.0, p_value)
 
 
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,

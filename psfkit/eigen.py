@@ -33,7 +33,9 @@ from psfkit.alignment import AlignedPsf
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.forward.geometry import kernel_origin
 from psfkit.kernelfile import CONVENTIONS
-from psfkit.resample import bin_image
+from psfkit.resample import bin_image, binning_factor
+from psfkit.significance import Estimate, checked, undetermined
+from psfkit.verdict import HeldOutErrors
 from psfkit.weights import WeightBasis, get_basis
 
 BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (cache-sized)
@@ -511,6 +513,74 @@ def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) 
     return float(math.sqrt(diff / norm)) if norm > 0 else float("nan")
 
 
+def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
+                   ) -> tuple[tuple[slice, slice] | None, int, dict[str, Any]]:
+    """Where and at what resolution the working copy holds the aligned PSFs, from the centre
+    PSF's extent.
+
+    The PSFs of the aligned grid all lie where the centre PSF lies. The working region is the
+    bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
+    room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
+    a cut-out that holds it gives the same working copy as the full frame; when that is the
+    whole sensor (a caustic), the whole sensor as before issue 43. The binning is the smallest
+    that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
+    full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
+    centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
+    that binning folds.
+
+    Parameters
+    ----------
+    support : numpy.ndarray
+        ``(H, W)`` bool support of the centre PSF (:func:`psfkit.alignment.psf_support`).
+    reference : numpy.ndarray
+        ``(H, W)`` its luminance.
+    working_size : int
+        Longest side of the working copy, px.
+
+    Returns
+    -------
+    region : (slice, slice) or None
+        Rows and columns of the sensor (``None``: all of it).
+    factor : int
+        Binning factor.
+    record : dict
+        JSON-ready description (``kernel file`` provenance, ``fit.json``).
+    """
+    h, w = support.shape
+    rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
+    if len(rows) == 0:
+        rows, cols = np.arange(h), np.arange(w)
+    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    extent = [box[0].stop - box[0].start, box[1].stop - box[1].start]
+    grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
+                  for sl, size, n in zip(box, extent, (h, w), strict=True))
+    crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
+    region = None if crop == (h, w) else (grown[0], grown[1])
+    shape = (h, w) if region is None else crop
+    factor = binning_factor(shape, working_size)
+    record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else
+              "the centre PSF's support",
+              "origin_px": [0, 0] if region is None else [region[0].start, region[1].start],
+              "shape_px": list(shape), "binning": factor, "psf_extent_px": extent,
+              "aliased_power": aliased_power(reference[box], factor)}
+    return region, factor, record
+
+
+def aliased_power(image: np.ndarray, factor: int) -> float:
+    """Fraction of an image's (non-DC) power above the Nyquist frequency of a grid binned by
+    ``factor`` (what that binning folds): 0 for ``factor`` 1."""
+    import scipy.fft as sfft
+
+    if factor <= 1 or min(image.shape) < 2:
+        return 0.0
+    power = np.abs(sfft.rfft2(image - image.mean(), workers=-1)) ** 2
+    gy = np.abs(np.fft.fftfreq(image.shape[0]))[:, None]
+    gx = np.fft.rfftfreq(image.shape[1])[None, :]
+    total = float(power.sum())
+    limit = 0.5 / factor
+    return float(power[(gy > limit) | (gx > limit)].sum()) / total if total > 0 else 0.0
+
+
 @dataclass
 class WorkingStack:
     """The aligned grid, cropped to ``region`` and binned by ``factor`` (kept in memory for
@@ -642,31 +712,102 @@ def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis
                      for p in range(len(stack.images))])
 
 
-def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str, ...],
-                   center_row: int, folds: int = 9, seed: int = 0) -> dict[str, Any]:
-    """Leave-positions-out cross-validation of eigen-kernel models.
+def fold_groups(n: int, center_row: int, folds: int = 9, seed: int = 0) -> list[np.ndarray]:
+    """The positions other than the centre (stack rows) in ``folds`` random groups (seeded:
+    every cross-validation of a stack holds out the same groups)."""
+    others = np.array([p for p in range(n) if p != center_row])
+    if len(others) == 0:
+        return []
+    rng = np.random.default_rng(seed)
+    return np.array_split(rng.permutation(others), min(folds, len(others)))
 
-    Positions other than the centre are split into ``folds`` random groups; each model is
-    fitted without one group (the centre is always kept: it defines the frame) and predicts
-    it. The normal equations are accumulated once per group, so a fold's training system is the
-    total minus its group. Returns the held-out relative error (``‖pred − data‖/‖data‖``
-    pooled over the held-out positions) of every ``basis/convention`` and of the centre PSF
-    alone (every position predicted by the centre PSF, shifted), and the best model.
+
+@dataclass
+class CrossValidation:
+    """Per-position held-out errors of cross-validated models (:func:`cross_validate_positions`).
+
+    ``held_out`` has one entry per model (``"basis/convention"`` and ``"centre PSF only"``);
+    ``kernel_differences[model]`` is ``(full, folds)``: the squared relative differences
+    ``‖K_k − K_0‖² / ‖K_0‖²`` (k ≥ 1) of the kernels fitted on all positions ``(K − 1,)``
+    and on each fold's training positions ``(G, K − 1)``, for a jackknife over the folds.
+    """
+
+    held_out: HeldOutErrors
+    folds: int
+    kernel_differences: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``cross_validation`` record of a fit: pooled errors, their 1σ, the best."""
+        names = list(self.held_out.squared)
+        errors = {name: self.held_out.error(name) for name in names}
+        best = min((k for k in errors if k != CENTRE_ONLY), key=errors.__getitem__,
+                   default=None)
+        return {"held_out_relative_error": errors,
+                "held_out_sigma": {name: self.held_out.sigma(name) for name in names},
+                "best": best, "folds": self.folds}
+
+
+def squared_relative_differences(kernels: np.ndarray) -> np.ndarray:
+    """``‖K_k − K_0‖² / ‖K_0‖²`` for k ≥ 1 of ``(K, C, h, w)`` kernels, ``(K − 1,)``."""
+    base = float(np.sum(kernels[0].astype(np.float64) ** 2))
+    return np.array([float(np.sum((kernels[k] - kernels[0]).astype(np.float64) ** 2))
+                     / max(base, 1e-300) for k in range(1, len(kernels))])
+
+
+def kernel_difference_estimates(full: np.ndarray, folds: np.ndarray, p_value: float
+                                ) -> list[Estimate]:
+    """Each eigen-kernel's relative difference from the base kernel, ``‖K_k − K_0‖/‖K_0‖``,
+    as an :class:`~psfkit.significance.Estimate` from the delete-a-fold jackknife of its
+    square: the jackknife removes the square's noise bias (of order 1/positions), its spread
+    over the folds gives the 1σ; ``p_value`` is that of the held-out test of a field
+    dependence (the differences matter only where the field model predicts better).
+
+    ``full`` ``(K − 1,)`` and ``folds`` ``(G, K − 1)`` as in
+    :attr:`CrossValidation.kernel_differences`.
+    """
+    g = len(folds)
+    if g < 2:
+        return [undetermined("fewer than two cross-validation folds") for _ in full]
+    mean = folds.mean(axis=0)
+    debiased = g * full - (g - 1) * mean
+    spread = np.sqrt((g - 1) / g * np.sum((folds - mean) ** 2, axis=0))
+    out = []
+    for value2, se2 in zip(debiased, spread, strict=True):
+        value = math.sqrt(max(float(value2), 0.0))
+        # delta method on the square root, kept finite where the square is within its noise
+        sigma = float(se2) / (2.0 * max(value, math.sqrt(float(se2)), 1e-300))
+        out.append(checked(value, sigma, 0.0, p_value))
+    return out
+
+
+CENTRE_ONLY = "centre PSF only"
+
+
+def cross_validate_positions(stack: WorkingStack, bases: list[str],
+                             conventions: tuple[str, ...], center_row: int, folds: int = 9,
+                             seed: int = 0) -> CrossValidation:
+    """Leave-positions-out cross-validation of eigen-kernel models, per position.
+
+    Positions other than the centre are split into ``folds`` random groups
+    (:func:`fold_groups`); each model is fitted without one group (the centre is always kept:
+    it defines the frame) and predicts it. The normal equations are accumulated once per
+    group, so a fold's training system is the total minus its group. Also the centre PSF
+    alone (every position predicted by the centre PSF, shifted) is scored.
     """
     n = len(stack.images)
-    others = np.array([p for p in range(n) if p != center_row])
-    rng = np.random.default_rng(seed)
-    groups = np.array_split(rng.permutation(others), min(folds, len(others)))
-    training_size = n - max(len(g) for g in groups)
+    groups = fold_groups(n, center_row, folds, seed)
+    held = np.concatenate(groups) if groups else np.zeros(0, int)
+    training_size = n - max((len(g) for g in groups), default=0)
+    norms = np.array([_squared_norm(stack, p) for p in held])
     centre = stack.images[center_row]
-    errors = {"centre PSF only": _pooled_error(
-        stack, [(p, centre) for group in groups for p in group])}
+    squared = {CENTRE_ONLY: np.array([_squared_error(stack, p, centre) for p in held])}
+    differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    shape = stack.images.shape[1:]
     for name in bases:
         basis = get_basis(name)
         if training_size < basis.n_kernels:
             continue                       # too few training positions for this basis
         for convention in conventions:
-            shape = stack.images.shape[1:]
             per_group = []
             for group in groups:
                 eq = NormalEquations(basis, convention, shape, frame=stack.frame)
@@ -678,23 +819,36 @@ def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str
                       tuple(stack.shifts[center_row]))
             for eq in per_group:
                 total += eq
-            predictions = []
+            errors = {}
+            fold_differences = []
             for group, eq in zip(groups, per_group, strict=True):
                 kernels = total.minus(eq).solve(conditioning=False)[0]
-                predictions += [(p, predict_aligned(kernels, basis, tuple(stack.shifts[p]),
-                                                    convention, frame=stack.frame))
-                                for p in group]
-            errors[f"{name}/{convention}"] = _pooled_error(stack, predictions)
-    best = min((k for k in errors if k != "centre PSF only"), key=errors.__getitem__,
-               default=None)
-    return {"held_out_relative_error": errors, "best": best, "folds": len(groups)}
+                fold_differences.append(squared_relative_differences(kernels))
+                for p in group:
+                    errors[p] = _squared_error(stack, p, predict_aligned(
+                        kernels, basis, tuple(stack.shifts[p]), convention, frame=stack.frame))
+            key = f"{name}/{convention}"
+            squared[key] = np.array([errors[p] for p in held])
+            if basis.n_kernels > 1:
+                full = squared_relative_differences(total.solve(conditioning=False)[0])
+                differences[key] = (full, np.array(fold_differences))
+    return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
 
 
-def _pooled_error(stack: WorkingStack, predictions: list[tuple[int, np.ndarray]]) -> float:
-    """``sqrt(Σ‖pred − data‖² / Σ‖data‖²)`` over the valid pixels of the listed positions."""
-    num = den = 0.0
-    for p, prediction in predictions:
-        v = stack.valid[p]
-        num += float(np.sum((prediction - stack.images[p]) ** 2, axis=0)[v].sum())
-        den += float(np.sum(stack.images[p] ** 2, axis=0)[v].sum())
-    return math.sqrt(num / den)
+def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str, ...],
+                   center_row: int, folds: int = 9, seed: int = 0) -> dict[str, Any]:
+    """Leave-positions-out cross-validation of eigen-kernel models
+    (:func:`cross_validate_positions`). Returns the held-out relative error
+    (``‖pred − data‖/‖data‖`` pooled over the held-out positions) of every
+    ``basis/convention`` and of the centre PSF alone, its 1σ over the positions, and the
+    best model."""
+    return cross_validate_positions(stack, bases, conventions, center_row, folds,
+                                    seed).to_dict()
+
+
+def _squared_norm(stack: WorkingStack, p: int) -> float:
+    return float(np.sum(stack.images[p] ** 2, axis=0)[stack.valid[p]].sum())
+
+
+def _squared_error(stack: WorkingStack, p: int, prediction: np.ndarray) -> float:
+    return float(np.sum((prediction - stack.images[p]) ** 2, axis=0)[stack.valid[p]].sum())

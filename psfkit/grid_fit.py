@@ -31,26 +31,34 @@ from psfkit.alignment import (
     NominalShifts,
     nominal_shifts,
 )
-from psfkit.choices import CV_BASES, SHIFT_MODES
+from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.eigen import (
     DEFAULT_RIDGE,
+    CrossValidation,
     NormalEquations,
     WorkingStack,
     check_design,
-    cross_validate,
     fit_stack,
+    kernel_difference_estimates,
     stack_residuals,
+    working_region,
 )
 from psfkit.errors import ConfigurationError
 from psfkit.gain import overlap_gain
+from psfkit.heldout import judge
 from psfkit.io.grid import FULL_LATTICE, GridPosition, PsfGrid
+from psfkit.io.jsonable import jsonable
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import CONVENTIONS, KernelModel
 from psfkit.parallel import bounded_map
 from psfkit.pca import PcaResult, principal_angles_deg, stack_pca
 from psfkit.preprocess import PreprocessOptions
-from psfkit.resample import binning_factor
+from psfkit.significance import Estimate, undetermined
+from psfkit.verdict import Verdict
 from psfkit.weights import get_basis
+
+#: ``EigenFitOptions.basis`` (``psfkit fit-eigen --basis auto``): the verdict's model.
+AUTO = "auto"
 
 
 @dataclass(frozen=True)
@@ -60,12 +68,16 @@ class EigenFitOptions:
     Attributes
     ----------
     basis : str
-        Weight basis of the fitted model (:func:`psfkit.weights.get_basis`).
+        Weight basis of the fitted model (:func:`psfkit.weights.get_basis`), or ``"auto"``:
+        the basis *and* convention of the verdict (:mod:`psfkit.verdict`; ``"si"`` when the
+        PSF shape does not change over the field beyond noise), every basis of
+        :data:`psfkit.choices.CV_BASES_ALL` cross-validated, one full-resolution fit.
     convention : {"sensor", "source", "auto"}
         Convention fitted at full resolution and written to the kernel file: ``"sensor"``
         (Eq. 7 as written, the default), ``"source"``, or ``"auto"`` (both, and the one with
         the lower cross-validated error is written). Both are always compared on the working
-        copy.
+        copy. With ``basis="auto"`` the verdict chooses it (``"sensor"`` for ``"si"``, where
+        both are the same model).
     gain_compensate : bool
         Divide every PSF by its gain before fitting (kernels then describe shape only); by
         default the gains stay in the kernels, as the forward model needs them.
@@ -109,6 +121,8 @@ class EigenFitOptions:
         # every message names the flag of psfkit fit-eigen, never a Python field
         for flag_name, names in (("--basis", (self.basis,)), ("--cv-bases", self.cv_bases)):
             for name in names:
+                if flag_name == "--basis" and name == AUTO:
+                    continue
                 try:
                     get_basis(name)
                 except ConfigurationError as exc:
@@ -152,6 +166,32 @@ class GridEigenResult:
     missing: list[tuple[int, int]] = field(default_factory=list)
     placement: NominalShifts | None = None      # None: each PSF at its registered shift
     working: dict[str, Any] = field(default_factory=dict)   # how the working copy was chosen
+    basis: str = ""                             # the fitted basis ("auto" resolved)
+    cross_validation: CrossValidation | None = field(default=None, repr=False)
+    verdict: Verdict | None = None
+
+    @property
+    def basis_name(self) -> str:
+        """The fitted basis (``options.basis``, or what ``"auto"`` chose)."""
+        return self.basis or self.options.basis
+
+    def kernel_differences(self) -> dict[str, Estimate]:
+        """``"Kv − Kbase"``-style names to each correction kernel's relative difference
+        ``‖K_k − K_0‖/‖K_0‖`` on the working copy, with its jackknife 1σ and significance
+        (:func:`psfkit.eigen.kernel_difference_estimates`); empty for ``"si"``."""
+        names = get_basis(self.basis_name).kernel_names
+        if len(names) < 2:
+            return {}
+        labels = [f"K{name} − K{names[0]}" for name in names[1:]]
+        stats = None if self.cross_validation is None else \
+            self.cross_validation.kernel_differences.get(f"{self.basis_name}/{self.convention}")
+        if stats is None:
+            return {label: undetermined("no cross-validation (--cv-bases none)")
+                    for label in labels}
+        p_value = math.nan
+        if self.verdict is not None and self.verdict.field_test.determined:
+            p_value = self.verdict.field_test.p_value
+        return dict(zip(labels, kernel_difference_estimates(*stats, p_value), strict=True))
 
     @property
     def n_positions(self) -> int:
@@ -166,22 +206,23 @@ class GridEigenResult:
     def kernel_model(self) -> KernelModel:
         """The kernel file content (see :mod:`psfkit.kernelfile`)."""
         return KernelModel(
-            kernels=self.kernels, basis=self.options.basis, convention=self.convention,
+            kernels=self.kernels, basis=self.basis_name, convention=self.convention,
             sensor_shape=self.image_shape[1:], channels=self.channels,
             normalization="kernels divided by the mean over channels of Kbase's channel sum "
                           "(Kbase sums to about 1 per channel; colour balance and gains kept"
                           + (", PSFs gain-compensated before the fit" if
                              self.options.gain_compensate else "") + ")",
+            # NaN/Inf (an undetermined σ, an infinite z) as null: the metadata is strict JSON
             provenance={"source": "psfkit fit-eigen", "grid": self.grid_root,
-                        "fit": self.summary()},
+                        "fit": jsonable(self.summary())},
             # measurements of this camera are taken to be stored like its PSF grid
             read_options=ReadOptions(channel_order=self.channel_order))
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready numbers of the fit."""
         out: dict[str, Any] = {
-            "basis": self.options.basis, "convention": self.convention,
-            "kernel_names": list(get_basis(self.options.basis).kernel_names),
+            "basis": self.basis_name, "convention": self.convention,
+            "kernel_names": list(get_basis(self.basis_name).kernel_names),
             "gain_compensated": self.options.gain_compensate,
             "working_binning": self.stack.factor,
             "working_region": self.working,
@@ -195,6 +236,10 @@ class GridEigenResult:
         }
         if self.cv is not None:
             out["cross_validation"] = self.cv
+        if self.verdict is not None:
+            out["verdict"] = self.verdict.to_dict()
+            out["kernel_differences"] = {name: e.to_dict()
+                                         for name, e in self.kernel_differences().items()}
         if self.pca is not None:
             out["pca"] = self.pca.to_dict()
         if self.angles_deg is not None:
@@ -215,7 +260,10 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                    progress: bool = False, workers: int | None = None) -> GridEigenResult:
     """Fit the eigen-kernel model of ``options.basis`` to a PSF grid, both conventions.
 
-    ``workers`` threads register and align PSFs (default 2 on two cores).
+    ``workers`` threads register and align PSFs (default 2 on two cores). With
+    ``options.basis == "auto"`` the verdict (:mod:`psfkit.verdict`) chooses the basis and the
+    convention before the one full-resolution fit (the aligned PSFs are read once more for
+    it: the working copy decides, the full-resolution sums are of the chosen model only).
 
     Raises
     ------
@@ -225,41 +273,119 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
         Too few positions or a singular design for the basis, or an unusable PSF.
     """
     options = options or EigenFitOptions()
-    basis = get_basis(options.basis)
+    auto = options.basis == AUTO
     c, h, w = grid.image_shape
     center = grid.require_center()
     missing = grid.missing()
     not_captured = f", {len(missing)} not captured" if missing else ""
     # refuse an undeterminable basis before any image is read (grid indices or field positions
     # as a proxy for the shifts), and again with the measured shifts below
-    check_design(basis, _proxy_shifts(grid, center), (h, w), str(grid.root),
-                 f" ({len(grid.positions)} captured{not_captured})")
+    check_design(get_basis("si" if auto else options.basis), _proxy_shifts(grid, center),
+                 (h, w), str(grid.root), f" ({len(grid.positions)} captured{not_captured})")
 
     aligner = GridAligner(grid, options.preprocess, options.upsample,
                           min_quality=options.min_quality, strict=options.strict)
-    full_res = CONVENTIONS if options.convention == "auto" else (options.convention,)
-    equations = {conv: NormalEquations(basis, conv, (c, h, w)) for conv in full_res}
+    placement, place = _placement(grid, aligner, center, options, progress, workers)
     region, factor, working = working_region(aligner.reference_support,
                                              aligner.reference_luminance, options.working_size)
-    stack = WorkingStack.empty(len(grid.positions), (c, h, w), factor, region)
-    reference_total = aligner.reference.sum(axis=0)
-    placement: NominalShifts | None = None
-    place: Callable[[GridPosition], AlignedPsf | ExcludedPosition] = aligner.try_align
-    if options.shifts == "affine":
-        placement, rejected = _place_by_shift_map(grid, aligner, center, progress, workers)
+    full_res = () if auto else \
+        CONVENTIONS if options.convention == "auto" else (options.convention,)
+    equations = {conv: NormalEquations(get_basis(options.basis), conv, (c, h, w))
+                 for conv in full_res}
+    stack, excluded = _accumulate(grid, aligner, place, equations, options, progress,
+                                  workers, "fitting eigen-kernels", (region, factor))
+    shifts = stack.lattice(stack.shifts * factor, grid.grid_shape)
+    left_out = f" ({len(excluded)} excluded{not_captured})" if excluded or missing else ""
+    if not auto:
+        check_design(get_basis(options.basis), shifts, (h, w), str(grid.root), left_out)
+    center_row = stack.row_of(center)
 
-        def place(pos: GridPosition) -> AlignedPsf | ExcludedPosition:
-            """The registration pass decided which positions are usable; each is aligned at
-            its nominal shift (its quality there is measured, not checked again)."""
-            if (pos.row, pos.col) in rejected:
-                return rejected[(pos.row, pos.col)]
-            return aligner.align(pos, shift=placement.shifts[(pos.row, pos.col)],
-                                 check_quality=False)
+    # the full-resolution solve (large vector operations, mostly outside the GIL) runs beside
+    # the working-copy fits and the cross-validation (many small ones)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        solving = pool.submit(_solve_all, equations, options.ridge)
+        cv_bases = list(dict.fromkeys(
+            [*([] if auto else [options.basis]), *(CV_BASES_ALL if auto else ()),
+             *options.cv_bases]))
+        validation, verdict = None, None
+        if cv_bases:
+            effects = {"shift": placement.fit.distortion} \
+                if placement is not None and placement.fit is not None else {}
+            validation, verdict = judge(stack, center_row, (h, w), cv_bases, options.folds,
+                                        effects, progress)
+        full_kernels = solving.result()
+    del equations
+    basis, convention = _choose(options, validation, verdict)
+    if auto:
+        check_design(get_basis(basis), shifts, (h, w), str(grid.root), left_out)
+        equations = {convention: NormalEquations(get_basis(basis), convention, (c, h, w))}
+        _accumulate(grid, aligner, place, equations, options, progress, workers,
+                    f"fitting {basis}/{convention}", (region, factor), keep_stack=False)
+        full_kernels = _solve_all(equations, options.ridge)
+        del equations
+    residuals, conditioning = {}, {}
+    for conv in CONVENTIONS:             # both conventions, compared on the working copy
+        kernels, conditioning[conv] = fit_stack(stack, get_basis(basis), conv,
+                                                ridge=options.ridge)
+        residuals[conv] = stack.lattice(stack_residuals(stack, kernels, get_basis(basis), conv),
+                                        grid.grid_shape)
+    base_sums = full_kernels[convention][0].sum(axis=(1, 2))
+    kernel_scale = float(np.mean(base_sums)) or 1.0
+
+    result = GridEigenResult(
+        grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
+        channels=grid.channels, center=center, options=options, convention=convention,
+        full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
+        kernel_scale=kernel_scale, shifts=shifts, stack=stack,
+        cv=None if validation is None else validation.to_dict(),
+        channel_order=grid.channel_order, layout=grid.layout, excluded=excluded,
+        missing=missing, placement=placement, basis=basis, cross_validation=validation,
+        verdict=verdict,
+        working={**working, "light_in_region_min": float(np.min(stack.light_in_region))
+                 if stack.light_in_region is not None and len(stack.images) else 1.0})
+    _principal_angles(result, get_basis(basis).n_kernels)
+    return result
+
+
+def _placement(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
+               options: EigenFitOptions, progress: bool, workers: int | None
+               ) -> tuple[NominalShifts | None, Callable[[GridPosition],
+                                                         AlignedPsf | ExcludedPosition]]:
+    """Where each PSF is aligned for the fit, and the function that aligns it there."""
+    if options.shifts != "affine":
+        return None, aligner.try_align
+    placement, rejected = _place_by_shift_map(grid, aligner, center, progress, workers)
+
+    def place(pos: GridPosition) -> AlignedPsf | ExcludedPosition:
+        """The registration pass decided which positions are usable; each is aligned at
+        its nominal shift (its quality there is measured, not checked again)."""
+        if (pos.row, pos.col) in rejected:
+            return rejected[(pos.row, pos.col)]
+        return aligner.align(pos, shift=placement.shifts[(pos.row, pos.col)],
+                             check_quality=False)
+    return placement, place
+
+
+def _accumulate(grid: PsfGrid, aligner: GridAligner,
+                place: Callable[[GridPosition], AlignedPsf | ExcludedPosition],
+                equations: dict[str, NormalEquations], options: EigenFitOptions,
+                progress: bool, workers: int | None, description: str,
+                working: tuple[tuple[slice, slice] | None, int], keep_stack: bool = True
+                ) -> tuple[WorkingStack, list[ExcludedPosition]]:
+    """One pass over the grid: every usable PSF aligned (``place``), added to the
+    full-resolution ``equations`` and (``keep_stack``) to the working copy (``working``: its
+    region and binning, :func:`working_region`). Returns
+    the working copy of the measured positions and the excluded ones."""
+    c, h, w = grid.image_shape
+    region, factor = working
+    stack = WorkingStack.empty(len(grid.positions) if keep_stack else 0, (c, h, w), factor,
+                               region)
+    reference_total = aligner.reference.sum(axis=0)
     bar: Any = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(grid.positions), desc="fitting eigen-kernels", unit="psf")
+        bar = tqdm(total=len(grid.positions), desc=description, unit="psf")
     # registration and alignment in worker threads; the accumulation (not thread-safe) here
     excluded: list[ExcludedPosition] = []
     kept = np.ones(len(grid.positions), bool)
@@ -268,72 +394,53 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
             if isinstance(aligned, ExcludedPosition):
                 excluded.append(aligned)
                 kept[p] = False
-                if bar is not None:
-                    bar.update()
-                continue
-            gain = overlap_gain(reference_total, aligned.image.sum(axis=0), aligned.compared)
-            image = aligned.image / np.float32(gain) if options.gain_compensate \
-                else aligned.image
-            for eq in equations.values():
-                eq.add(image, aligned.valid, aligned.shift)
-            stack.put(p, aligned, image, gain)
-            del aligned, image
+            else:
+                gain = overlap_gain(reference_total, aligned.image.sum(axis=0),
+                                    aligner.gain_region(aligned))
+                image = aligned.image / np.float32(gain) if options.gain_compensate \
+                    else aligned.image
+                for eq in equations.values():
+                    eq.add(image, aligned.valid, aligned.shift)
+                if keep_stack:
+                    stack.put(p, aligned, image, gain)
+                del aligned, image
             if bar is not None:
                 bar.update()
     finally:
         if bar is not None:
             bar.close()
-    stack = stack.subset(kept)
-    factor = stack.factor
-    shifts = stack.lattice(stack.shifts * factor, grid.grid_shape)
-    check_design(basis, shifts, (h, w), str(grid.root),
-                 f" ({len(excluded)} excluded{not_captured})" if excluded or missing else "")
+    return (stack.subset(kept) if keep_stack else stack), excluded
 
-    # the full-resolution solve (large vector operations, mostly outside the GIL) runs beside
-    # the working-copy fits and the cross-validation (many small ones)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        solving = pool.submit(_solve_all, equations, options.ridge)
-        residuals, conditioning = {}, {}
-        for conv in CONVENTIONS:             # both conventions, compared on the working copy
-            kernels, conditioning[conv] = fit_stack(stack, basis, conv, ridge=options.ridge)
-            residuals[conv] = stack.lattice(stack_residuals(stack, kernels, basis, conv),
-                                            grid.grid_shape)
-        center_row = stack.row_of(center)
-        cv = cross_validate(stack, list(dict.fromkeys([options.basis, *options.cv_bases])),
-                            CONVENTIONS, center_row, options.folds) if options.cv_bases else None
-        full_kernels = solving.result()
-    del equations
+
+def _choose(options: EigenFitOptions, validation: CrossValidation | None,
+            verdict: Verdict | None) -> tuple[str, str]:
+    """The basis and convention written to the kernel file."""
+    if options.basis == AUTO:
+        if verdict is None:
+            return "si", "sensor"
+        return verdict.basis, verdict.convention or "sensor"
     if options.convention != "auto":
-        convention = options.convention
-    elif cv is not None:
-        errs = cv["held_out_relative_error"]
-        convention = min(CONVENTIONS, key=lambda conv: errs.get(f"{options.basis}/{conv}",
-                                                                math.inf))
-    else:
-        convention = min(CONVENTIONS, key=lambda conv: float(np.nanmedian(residuals[conv])))
-    base_sums = full_kernels[convention][0].sum(axis=(1, 2))
-    kernel_scale = float(np.mean(base_sums)) or 1.0
+        return options.basis, options.convention
+    if validation is not None:
+        errs = validation.to_dict()["held_out_relative_error"]
+        return options.basis, min(CONVENTIONS, key=lambda conv: errs.get(
+            f"{options.basis}/{conv}", math.inf))
+    return options.basis, "sensor"
 
-    result = GridEigenResult(
-        grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
-        channels=grid.channels, center=center, options=options, convention=convention,
-        full_kernels=full_kernels, residuals=residuals, conditioning=conditioning,
-        kernel_scale=kernel_scale, shifts=shifts, stack=stack, cv=cv,
-        channel_order=grid.channel_order, layout=grid.layout, excluded=excluded,
-        missing=missing, placement=placement,
-        working={**working, "light_in_region_min": float(np.min(stack.light_in_region))
-                 if stack.light_in_region is not None and len(stack.images) else 1.0})
+
+def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
+    """The PCA of the reliable positions and the principal angles between its top subspace
+    and the fitted kernels (averaged over the working grid's blocks)."""
+    stack = result.stack
     reliable = stack.overlap >= RELIABLE_OVERLAP
-    if reliable.sum() >= 2:
-        result.pca = stack_pca(stack.images, stack.valid, reliable)
-        region = result.pca.region
-        k = basis.n_kernels
-        # the kernels cropped and averaged over the working grid's blocks
-        binned_kernels = np.stack([stack.reduce(k) for k in full_kernels[convention]])
-        result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
-                                                 result.pca.components[:k][:, :, region])
-    return result
-
+    if reliable.sum() < 2:
+        return
+    result.pca = stack_pca(stack.images, stack.valid, reliable)
+    region = result.pca.region
+    # the kernels cropped and averaged over the working grid's blocks
+    binned_kernels = np.stack([stack.reduce(k) for k in result.full_kernels[result.convention]])
+    result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
+                                             result.pca.components[:n_kernels][:, :, region])
 
 
 def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
@@ -366,74 +473,6 @@ def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, 
         if bar is not None:
             bar.close()
     return nominal_shifts(accepted, np.array(shifts), np.array(overlaps), center), rejected
-
-
-def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
-                   ) -> tuple[tuple[slice, slice] | None, int, dict[str, Any]]:
-    """Where and at what resolution the working copy holds the aligned PSFs, from the centre
-    PSF's extent.
-
-    The PSFs of the aligned grid all lie where the centre PSF lies. The working region is the
-    bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
-    room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
-    a cut-out that holds it gives the same working copy as the full frame; when that is the
-    whole sensor (a caustic), the whole sensor as before issue 43. The binning is the smallest
-    that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
-    full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
-    centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
-    that binning folds.
-
-    Parameters
-    ----------
-    support : numpy.ndarray
-        ``(H, W)`` bool support of the centre PSF (:func:`psfkit.alignment.psf_support`).
-    reference : numpy.ndarray
-        ``(H, W)`` its luminance.
-    working_size : int
-        Longest side of the working copy, px.
-
-    Returns
-    -------
-    region : (slice, slice) or None
-        Rows and columns of the sensor (``None``: all of it).
-    factor : int
-        Binning factor.
-    record : dict
-        JSON-ready description (``kernel file`` provenance, ``fit.json``).
-    """
-    h, w = support.shape
-    rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
-    if len(rows) == 0:
-        rows, cols = np.arange(h), np.arange(w)
-    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-    extent = [box[0].stop - box[0].start, box[1].stop - box[1].start]
-    grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
-                  for sl, size, n in zip(box, extent, (h, w), strict=True))
-    crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
-    region = None if crop == (h, w) else (grown[0], grown[1])
-    shape = (h, w) if region is None else crop
-    factor = binning_factor(shape, working_size)
-    record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else
-              "the centre PSF's support",
-              "origin_px": [0, 0] if region is None else [region[0].start, region[1].start],
-              "shape_px": list(shape), "binning": factor, "psf_extent_px": extent,
-              "aliased_power": aliased_power(reference[box], factor)}
-    return region, factor, record
-
-
-def aliased_power(image: np.ndarray, factor: int) -> float:
-    """Fraction of an image's (non-DC) power above the Nyquist frequency of a grid binned by
-    ``factor`` (what that binning folds): 0 for ``factor`` 1."""
-    import scipy.fft as sfft
-
-    if factor <= 1 or min(image.shape) < 2:
-        return 0.0
-    power = np.abs(sfft.rfft2(image - image.mean(), workers=-1)) ** 2
-    gy = np.abs(np.fft.fftfreq(image.shape[0]))[:, None]
-    gx = np.fft.rfftfreq(image.shape[1])[None, :]
-    total = float(power.sum())
-    limit = 0.5 / factor
-    return float(power[(gy > limit) | (gx > limit)].sum()) / total if total > 0 else 0.0
 
 
 def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import html
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,13 @@ from typing import Any
 from psfkit import __version__
 from psfkit.characterize import RELIABLE_OVERLAP, GridCharacterization
 from psfkit.errors import InvalidInputError
-from psfkit.html_report import REPORT_CSS, figures_html, format_value, html_table
+from psfkit.html_report import (
+    REPORT_CSS,
+    estimate_html,
+    figures_html,
+    format_value,
+    html_table,
+)
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.jsonable import jsonable
 from psfkit.validation import dumps_finite
@@ -208,26 +215,34 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
         ("normalization", doc["conventions"]["normalization"]),
         ("field coordinates", result.field_units),
     ])
+    est = shift.get("estimates") or {}
     registration = html_table([
-        ("magnification (px per field unit)", shift.get("magnification")),
+        ("magnification (px per field unit)", estimate_html(est.get("magnification"), ".6g")),
         ("magnification u / v", f"{format_value(shift.get('magnification_u'))} / "
                                 f"{format_value(shift.get('magnification_v'))}"),
-        ("rotation (deg; 180 = inverted image)", shift.get("rotation_deg")),
+        ("rotation (deg; 180 = inverted image)", estimate_html(est.get("rotation_deg"))),
         ("shear", shift.get("shear")),
         ("offset (du, dv) px", str([format_value(v) for v in shift.get("offset_px", [])])),
-        ("rms residual distortion (px)", shift.get("rms_residual_px")),
+        (f"distortion beyond the affine map (px rms; polynomial of degree "
+         f"{shift.get('distortion_degree', '–')})",
+         estimate_html(est.get("distortion_rms_px"), ".3g")),
+        ("rms residual of the affine map (px)", shift.get("rms_residual_px")),
     ])
     gains = html_table([
-        ("cosⁿ law exponent n", gain.get("cos_exponent")),
+        ("cosⁿ law exponent n (g = A cosⁿθ)",
+         estimate_html((gain.get("estimates") or {}).get("cos_exponent"), ".3g")),
+        ("cosⁿ law scale A", gain.get("cos_scale")),
         ("cosⁿ fit rms residual", gain.get("cos_rms_residual")),
         ("quadratic fit rms residual", gain.get("poly_rms_residual")),
     ])
+    growth_est = growth.get("estimates") or {}
     warp = html_table([
-        ("residual growth exponent (θ^p)", growth.get("exponent")),
-        ("  ± (1σ)", growth.get("exponent_std")),
-        ("residual at 10° (px)", growth.get("scale_10deg")),
+        ("residual at 10° above the floor (px)",
+         estimate_html(growth_est.get("scale_10deg"), ".3g")),
+        ("residual growth exponent (θ^p)", estimate_html(growth_est.get("exponent"), ".3g")),
         ("flow noise floor (px)", growth.get("floor")),
-        ("tangential/sagittal, measured (median)", anis.get("median_measured")),
+        ("tangential/sagittal, measured (geometric mean; 1 = none)",
+         estimate_html((anis.get("estimates") or {}).get("tangential_sagittal"), ".3g")),
         ("tangential/sagittal, geometric optics", anis.get("median_geometric")),
         ("positions in the comparison", anis.get("positions")),
     ])
@@ -245,14 +260,20 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
 <html lang="en"><head><meta charset="utf-8"><title>PSF grid report</title>
 <style>{REPORT_CSS}</style></head><body>
 <h1>PSF grid report</h1>
+{verdict_html(doc.get("verdict"))}
 <p>psfkit {html.escape(__version__)}. Numbers: <a href="results.json">results.json</a>,
 <a href="positions.csv">positions.csv</a>. Shifts are the displacement (du, dv) of each PSF
-relative to the centre PSF, in sensor pixels (u = column, v = row).</p>
+relative to the centre PSF, in sensor pixels (u = column, v = row). Every fitted quantity is
+given with its 1σ uncertainty; one that is not significant ({_rule_text()}) is greyed as
+"not detected" (its number in small print and as a tooltip).</p>
 {summary}
 <div class="warn"><b>Warnings</b><ul>{warnings}</ul></div>
 {excluded}
 <h2>Registration and shift map</h2>{registration}
-<h2>Gain (relative illumination)</h2>{gains}
+<h2>Gain (relative illumination)</h2>
+<p>A gain is the energy of a PSF relative to the centre capture over the region both cover: it
+includes any difference in the brightness of the sources (a monitor's uniformity, stars of
+different magnitudes), not only the camera's vignetting.</p>{gains}
 <h2>Warp: distortion and oblique-incidence astigmatism</h2>
 <p>The affine part of each warp is what magnification and distortion cause; the residual is
 what oblique-incidence astigmatism causes. Its tangential/sagittal split comes from the
@@ -286,3 +307,46 @@ def _excluded_html(result: GridCharacterization) -> str:
                    f"{result.grid_shape[0]} × {result.grid_shape[1]} lattice): {cells}.</p>")
     return (f"<h2 id='excluded'>Excluded and missing positions</h2>{table}{missing}"
             "<p>Maps: hatched grey = not captured, hatched red with × = excluded.</p>")
+
+
+def _rule_text() -> str:
+    from psfkit.significance import Z_SIGNIFICANT, alpha
+
+    return f"|value − null| ≤ {Z_SIGNIFICANT:g}σ, or its test's p ≥ {alpha():.2g}"
+
+
+def verdict_html(verdict: dict[str, Any] | None) -> str:
+    """The report's opening: the verdict in plain words, then its evidence (held-out errors
+    per model with their 1σ, the noise floor, the test) and the field effects."""
+    if not verdict:
+        return ""
+    evidence = verdict.get("evidence", {})
+    rows = []
+    floor = evidence.get("noise_floor")
+    if floor:
+        rows.append((f"noise floor: held-out error of {floor['model']}",
+                     _error_cell(floor)))
+    for name, value in (evidence.get("held_out") or {}).items():
+        rows.append((f"held-out error, {name}", _error_cell(value)))
+    for name, value in (evidence.get("field_models") or {}).items():
+        rows.append((f"held-out error, {name} (field test)", _error_cell(value)))
+    test = evidence.get("field_test")
+    if test:
+        rows.append((f"reduction of the relative squared error per position, {test['model']} "
+                     f"vs {test['against']}",
+                     estimate_html(test["mean_reduction_of_relative_squared_error"], ".3g")))
+    rows.append(("held-out positions", evidence.get("positions")))
+    effects = html_table([(f"{name}: {value['meaning']}", estimate_html(
+        value.get("estimate"), ".3g") if value.get("measured") else "not measured")
+        for name, value in (verdict.get("effects") or {}).items()])
+    return (f"<div class='verdict'><b>Verdict.</b> {html.escape(verdict['summary'])}</div>"
+            f"<h2 id='verdict'>Verdict: evidence</h2>"
+            f"<p>{html.escape(evidence.get('rule', ''))}.</p>{html_table(rows)}"
+            f"<h3>Field effects</h3>{effects}")
+
+
+def _error_cell(summary: dict[str, Any]) -> str:
+    sigma = summary.get("sigma")
+    if sigma is None or not math.isfinite(sigma):
+        return format_value(summary.get("error"))
+    return f"{summary['error']:.4f} ± {sigma:.4f}"

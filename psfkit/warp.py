@@ -33,7 +33,9 @@ Method (:func:`warp_field`):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import warnings
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -42,6 +44,7 @@ from scipy import optimize
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.significance import Estimate, checked, f_test, undetermined
 from psfkit.windows import tukey_window
 
 
@@ -306,7 +309,8 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     Returns
     -------
     float
-        The ratio (NaN when the region is too small or carries no signal).
+        The ratio (NaN when the region is too small, carries no signal, or shows no sagittal
+        transport above the noise floor).
     """
     if not mask.any():
         return float("nan")
@@ -334,7 +338,9 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     design = np.column_stack([c2**2, s2**2, 2 * c2 * s2])
     coef, _ = optimize.nnls(design[counts > 0], profile[counts > 0])
     if coef[1] <= 0:
-        return float("inf") if coef[0] > 0 else float("nan")
+        # no sagittal transport above the noise: the ratio is not determined (it was +inf,
+        # an axis limit no report could draw, and no number to print)
+        return float("nan")
     return float(np.sqrt(coef[0] / coef[1]))
 
 
@@ -347,17 +353,42 @@ def split_rms(total_rms: float, anisotropy: float) -> tuple[float, float]:
     return float(anisotropy * sagittal), float(sagittal)
 
 
+#: Bounds of the growth exponent in :func:`fit_growth` (astigmatism predicts 2).
+GROWTH_EXPONENT_BOUNDS = (0.1, 8.0)
+
+
 @dataclass(frozen=True)
 class GrowthFit:
-    """``rms(θ)² = floor² + (scale_10deg · (θ/10°)^exponent)²`` fitted over the grid."""
+    """``rms(θ)² = floor² + (scale_10deg · (θ/10°)^exponent)²`` fitted over the grid.
+
+    ``growth`` is ``scale_10deg`` as an :class:`~psfkit.significance.Estimate` (null 0: the
+    residual does not grow above its floor; tested by the F-test of the model against a
+    constant), ``exponent_estimate`` the exponent, determined only when the growth is
+    significant (an exponent of no growth means nothing).
+    """
 
     floor: float
     scale_10deg: float
     exponent: float
     exponent_std: float
+    floor_std: float = math.nan
+    growth: Estimate = field(default_factory=lambda: undetermined("not fitted"))
+    exponent_estimate: Estimate = field(default_factory=lambda: undetermined("not fitted"))
+
+    @property
+    def significant(self) -> bool:
+        return self.growth.significant
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {"floor": self.floor, "floor_std": self.floor_std,
+                "scale_10deg": self.scale_10deg, "scale_10deg_std": self.growth.sigma,
+                "exponent": self.exponent, "exponent_std": self.exponent_std,
+                "estimates": {"scale_10deg": self.growth.to_dict(),
+                              "exponent": self.exponent_estimate.to_dict()}}
+
+
+def _growth_model(t: np.ndarray, floor: float, scale: float, exponent: float) -> np.ndarray:
+    return np.sqrt(floor**2 + (scale * (t / 10.0) ** exponent) ** 2)
 
 
 def fit_growth(theta_deg: np.ndarray, rms: np.ndarray, weights: np.ndarray | None = None
@@ -366,25 +397,42 @@ def fit_growth(theta_deg: np.ndarray, rms: np.ndarray, weights: np.ndarray | Non
 
     Oblique-incidence astigmatism predicts an exponent of 2 (the extra propagation distance
     ``d(1/cos³θ − 1) ≈ 1.5 d θ²``); the floor is the flow's own error. Returns ``None`` when
-    fewer than four finite points are given or the fit does not converge.
+    fewer than four finite points are given or the fit does not converge. Uncertainties are
+    the residual-scaled covariance of the fit; the growth is tested against a constant RMS
+    (F-test, 2 extra parameters).
     """
     theta, values = np.ravel(theta_deg), np.ravel(rms)
     w = np.ones_like(values) if weights is None else np.ravel(weights)
     ok = np.isfinite(theta) & np.isfinite(values) & (theta > 0) & (w > 0)
     if ok.sum() < 4:
         return None
-
-    def model(t: np.ndarray, floor: float, scale: float, exponent: float) -> np.ndarray:
-        return np.sqrt(floor**2 + (scale * (t / 10.0) ** exponent) ** 2)
-
-    start = [float(np.min(values[ok])), float(np.max(values[ok])), 2.0]
+    theta, values, w = theta[ok], values[ok], w[ok]
+    low, high = GROWTH_EXPONENT_BOUNDS
+    start = [float(np.min(values)), max(float(np.max(values)), 1e-12), 2.0]
     try:
-        popt, pcov = optimize.curve_fit(model, theta[ok], values[ok], p0=start,
-                                        sigma=1.0 / np.sqrt(w[ok]), maxfev=20000)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            # a flat profile leaves the covariance undetermined: that is a result (below)
+            warnings.simplefilter("ignore", optimize.OptimizeWarning)
+            popt, pcov = optimize.curve_fit(_growth_model, theta, values, p0=start,
+                                            sigma=1.0 / np.sqrt(w), maxfev=20000,
+                                            bounds=([0.0, 0.0, low], [np.inf, np.inf, high]))
     except (RuntimeError, ValueError):
         return None
-    return GrowthFit(floor=float(abs(popt[0])), scale_10deg=float(abs(popt[1])),
-                     exponent=float(popt[2]), exponent_std=float(np.sqrt(abs(pcov[2, 2]))))
+    sigma = np.sqrt(np.abs(np.diag(pcov)))
+    with np.errstate(all="ignore"):
+        rss = float(np.sum(w * (values - _growth_model(theta, *popt)) ** 2))
+    flat = float(np.sum(w * values) / np.sum(w))
+    p_value = f_test(float(np.sum(w * (values - flat) ** 2)), rss, 2, len(values) - 3)
+    growth = checked(popt[1], sigma[1], 0.0, p_value)
+    if not growth.significant:
+        exponent = undetermined("the residual does not grow significantly above its floor")
+    elif min(popt[2] - low, high - popt[2]) < 1e-3 * (high - low):
+        exponent = undetermined(f"the fit ran to the bound {popt[2]:.3g} of the exponent")
+    else:
+        exponent = checked(popt[2], sigma[2], 0.0, p_value)
+    return GrowthFit(floor=float(popt[0]), scale_10deg=float(popt[1]), exponent=float(popt[2]),
+                     exponent_std=float(sigma[2]), floor_std=float(sigma[0]), growth=growth,
+                     exponent_estimate=exponent)
 
 
 def geometric_anisotropy(theta_deg: np.ndarray) -> np.ndarray:

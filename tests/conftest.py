@@ -43,6 +43,23 @@ def grid_3x3(tmp_path_factory: pytest.TempPathFactory, small_config: BenchConfig
 
 
 @pytest.fixture(scope="session")
+def grid_5x5(tmp_path_factory: pytest.TempPathFactory, small_config: BenchConfig) -> Path:
+    """A simulated 5 × 5 RGB grid of the default camera binned 8× (strong field variation:
+    vignetting, astigmatism, deformation), with ground truth (read-only for tests)."""
+    out = tmp_path_factory.mktemp("grids") / "grid_5x5"
+    return simulate_grid(out, small_config, grid_shape=(5, 5), progress=False)
+
+
+@pytest.fixture(scope="session")
+def grid_5x5_field_free(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """As :func:`grid_5x5`, of the field-free camera (``BenchConfig(field_free=True)``: every
+    PSF the on-axis one translated, no vignetting)."""
+    out = tmp_path_factory.mktemp("grids") / "grid_5x5_field_free"
+    return simulate_grid(out, BenchConfig(downsample=8, field_free=True), grid_shape=(5, 5),
+                         progress=False)
+
+
+@pytest.fixture(scope="session")
 def real_data():
     """``real_data(*parts)``: a path under ``../shared/data`` (or ``$PSFKIT_SHARED_DATA``);
     skips the test, saying why, when the shared data are absent."""

@@ -96,6 +96,17 @@ class BenchConfig:
         scattered light at Nyquist (and at least 2, so pixels integrate the caustic).
     vignetting_exponent : float
         Relative illumination ``cos(θ)**exponent``.
+    field_free : bool
+        A camera without field variation, for tests of the analysis (issue 43): every
+        position's PSF is the on-axis PSF *as sampled by the pixels* translated by the
+        chief-ray shift (exactly linear in tan θ; the sub-pixel part as a band-limited
+        translation), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and
+        no other change of shape: the camera a shift-invariant pixel-level model describes
+        exactly. (Translating the optical PSF before the pixels integrate it instead, as a
+        physical isoplanatic camera would, changes the sampled PSF with each position's
+        sub-pixel phase wherever the pixels alias it, e.g. the default camera binned 8×: a
+        change no shift-invariant pixel-level model represents.) A bench facility, not a
+        model of a real camera.
     sensor : SensorModel
         Noise, black level, bit depth, saturation.
     peak_fraction : float
@@ -121,6 +132,7 @@ class BenchConfig:
     downsample: int = 1
     oversample: int | None = None
     vignetting_exponent: float = 4.0
+    field_free: bool = False
     sensor: SensorModel = field(default_factory=SensorModel)
     peak_fraction: float = 0.8
     seed: int = 0
@@ -352,7 +364,10 @@ class VirtualCamera:
         return sx / self.pixel_um + 0.0, sy / self.pixel_um + 0.0  # + 0.0: no negative zeros
 
     def gain(self, field_deg: tuple[float, float]) -> float:
-        """Relative illumination (vignetting) of the source, 1 on axis."""
+        """Relative illumination (vignetting) of the source, 1 on axis (and everywhere for a
+        ``field_free`` camera)."""
+        if self.config.field_free:
+            return 1.0
         return float(relative_illumination(self.direction_cosines(field_deg)[2],
                                            self.config.vignetting_exponent))
 
@@ -416,20 +431,30 @@ class VirtualCamera:
         PsfPatch
             ``image`` in relative irradiance (the on-axis PSF sums to 1 per channel).
         """
-        alpha, beta, _ = self.direction_cosines(field_deg)
         du, dv = self.true_shift_px(field_deg)
         nu, nv = int(np.round(du)), int(np.round(dv))
-        residual_um = ((du - nu) * self.pixel_um, (dv - nv) * self.pixel_um) \
-            if subpixel_shift else (0.0, 0.0)
-        scale = self.gain(field_deg) / self._aperture_power
-        blur_px = self.source_blur_um() / self.pixel_um
-        if self._torch is not None:
-            out = self._torch_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+        if self.config.field_free:
+            out = self._optics_patch((0.0, 0.0), (0.0, 0.0))
+            if subpixel_shift and (du != nu or dv != nv):
+                out = translate_pixels(out, (du - nu, dv - nv))
         else:
-            out = self._numpy_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+            residual_um = ((du - nu) * self.pixel_um, (dv - nv) * self.pixel_um) \
+                if subpixel_shift else (0.0, 0.0)
+            out = self._optics_patch(field_deg, residual_um)
         v0 = (self.sensor_shape[0] - self.block_pixels[0]) // 2 + nv
         u0 = (self.sensor_shape[1] - self.block_pixels[1]) // 2 + nu
         return PsfPatch(image=out, offset=(v0, u0), shift_px=(du, dv))
+
+    def _optics_patch(self, field_deg: tuple[float, float],
+                      residual_um: tuple[float, float]) -> np.ndarray:
+        """The block's ``(C, h, w)`` PSF of a source at ``field_deg`` whose chief ray lands
+        ``residual_um`` from the block's centre pixel."""
+        alpha, beta, _ = self.direction_cosines(field_deg)
+        scale = self.gain(field_deg) / self._aperture_power
+        blur_px = self.source_blur_um() / self.pixel_um
+        if self._torch is not None:
+            return self._torch_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+        return self._numpy_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
 
     def _numpy_patch(self, field_deg: tuple[float, float], alpha: float, beta: float,
                      residual_um: tuple[float, float], scale: float, blur_px: float
@@ -465,6 +490,17 @@ class VirtualCamera:
     def psf(self, field_deg: tuple[float, float]) -> np.ndarray:
         """Noise-free PSF on the sensor, ``(C, H, W)`` float32, relative irradiance."""
         return place_patch(self.psf_patch(field_deg), self.sensor_shape)
+
+
+def translate_pixels(image: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
+    """``(C, h, w)`` image moved by the sub-pixel ``shift = (du, dv)`` as a band-limited
+    signal (a Fourier phase ramp; the block's dark border keeps the wrap-around out)."""
+    du, dv = shift
+    ramp = np.exp(-2j * np.pi * (np.fft.fftfreq(image.shape[-2])[:, None] * dv
+                                 + np.fft.rfftfreq(image.shape[-1])[None, :] * du))
+    moved = sfft.irfft2(sfft.rfft2(image, axes=(-2, -1)) * ramp, s=image.shape[-2:],
+                        axes=(-2, -1))
+    return moved.astype(image.dtype, copy=False)
 
 
 def place_patch(patch: PsfPatch, sensor_shape: tuple[int, int]) -> np.ndarray:

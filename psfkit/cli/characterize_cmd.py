@@ -16,6 +16,13 @@ from psfkit.cli.options import (
     preprocess_options,
     print_coverage,
 )
+from psfkit.cli.summaries import (
+    astigmatism_line,
+    gain_line,
+    growth_line,
+    print_verdict,
+    shift_map_line,
+)
 from psfkit.cli.vocabulary import add_flag, command_name
 from psfkit.io import OutputTransaction
 from psfkit.validation import flag
@@ -150,11 +157,7 @@ def print_registration(result: GridCharacterization) -> None:
     print(f"registered {len(result.positions)} PSFs of {result.grid_root} ({result.layout}) "
           f"to the centre {result.center}")
     if fit is not None:
-        print(f"shift map: magnification {fit.magnification:.6g} px per {fit.field_units} "
-              f"(u {fit.magnification_u:.6g}, v {fit.magnification_v:.6g}), rotation "
-              f"{fit.rotation_deg:+.3f} deg (180 = inverted image), offset "
-              f"({fit.offset[0]:+.3f}, {fit.offset[1]:+.3f}) px, residual distortion "
-              f"{fit.rms_residual:.3f} px rms")
+        print(shift_map_line(fit))
     shifts = result.table("shift")
     print("shift du (px):")
     _grid_print(shifts[..., 0], "8.2f", result)
@@ -194,6 +197,8 @@ def run_register(args: argparse.Namespace) -> int:
 
 def run_mae(args: argparse.Namespace) -> int:
     result = _run_and_write_numbers(args, ("register", "gain", "mae"))
+    if result.gain_fit is not None:
+        print(gain_line(result.gain_fit))
     print(f"MAE vs the centre PSF, % of its light (sum |PSF - centre| / sum centre over the "
           f"PSFs' support; smoothing {args.mae_smoothing:g} px):")
     _grid_print(result.table("mae") * 100, "7.2f", result)
@@ -214,14 +219,9 @@ def run_warp(args: argparse.Namespace) -> int:
     print("tangential / sagittal anisotropy:")
     _grid_print(result.warp_table("anisotropy"), "6.2f", result)
     print_coverage(result)
-    growth, anis = result.warp_growth, result.warp_anisotropy
-    if growth is not None:
-        print(f"residual grows as theta^{growth.exponent:.2f} (+/- {growth.exponent_std:.2f}) "
-              f"over a {growth.floor:.3f} px floor (positions with >= {RELIABLE_OVERLAP:.0%} "
-              "of the centre PSF's light in their overlap)")
-    if anis is not None:
-        print(f"tangential/sagittal: measured {anis['median_measured']:.2f}, geometric optics "
-              f"{anis['median_geometric']:.2f} (median of {anis['positions']} positions)")
+    print(f"{growth_line(result.warp_growth)} (positions with >= {RELIABLE_OVERLAP:.0%} of "
+          "the centre PSF's light in their overlap)")
+    print(astigmatism_line(result))
     _print_per_channel(args, result)
     _print_warnings(result)
     return 0
@@ -233,9 +233,15 @@ def run_report(args: argparse.Namespace) -> int:
     out = Path(args.out)
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         folder = outputs.folder(out)   # checked before the work
-        result = _run(args, ("register", "gain", "mae", "warp"))
+        result = _run(args, ("register", "gain", "mae", "warp", "verdict"))
         write_report(result, folder, overwrite=True)   # into the empty temporary folder
+    if result.verdict is not None:
+        print_verdict(result.verdict)
     print_registration(result)
+    if result.gain_fit is not None:
+        print(gain_line(result.gain_fit))
+    print(growth_line(result.warp_growth))
+    print(astigmatism_line(result))
     _print_warnings(result)
     print(f"report: {out / 'report.html'}")
     return 0

@@ -15,6 +15,7 @@ from psfkit.cli.options import (
     preprocess_options,
     print_coverage,
 )
+from psfkit.cli.summaries import pm, print_verdict
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.errors import InvalidInputError
 from psfkit.io import OutputTransaction, atomic_directory
@@ -43,8 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
              note=f"paper; one of ek (= paper), {', '.join(BASIS_NAMES)}, or 'auto' for the "
                   "best cross-validated one")
     add_flag(p, "--convention", "fit-eigen",
-             note="sensor; auto fits both and writes the one with the lower cross-validated "
-                  "error")
+             note="sensor, or with --basis auto the verdict's; auto fits both and writes the "
+                  "one with the lower cross-validated error")
     p.add_argument("--gain-compensate", action="store_true",
                    help="divide every PSF by its gain first (kernels then carry shape only)")
     p.add_argument("--shifts", choices=SHIFT_MODES, default="affine",
@@ -72,7 +73,8 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
     choice = args.cv_bases.strip().lower()
     cv = () if choice == "none" else CV_BASES_ALL if choice == "all" else tuple(
         b.strip() for b in args.cv_bases.split(",") if b.strip())
-    return EigenFitOptions(basis=basis, convention=args.convention,
+    convention = args.convention or ("auto" if basis == "auto" else "sensor")
+    return EigenFitOptions(basis=basis, convention=convention,
                            gain_compensate=args.gain_compensate,
                            cv_bases=cv, folds=args.folds, upsample=args.upsample,
                            preprocess=preprocess_options(args), min_quality=args.min_ncc,
@@ -124,20 +126,13 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
 
     grid = open_grid(args)   # every image is checked as it is processed
     basis = BASIS_ALIASES.get(args.basis, args.basis)
-    if basis == "auto":
-        # cross-validate every basis first (the chosen one is then fitted in a second pass)
-        args.cv_bases = "all" if args.cv_bases == ",".join(CV_BASES) else args.cv_bases
-        probe = fit_eigen_grid(grid, _options(args, "paper"), progress=not args.quiet)
-        best = probe.cv["best"] if probe.cv else None
-        if best is None:
-            raise InvalidInputError("--basis auto needs cross-validation (--cv-bases)")
-        basis = best.split("/")[0]
-        print(f"cross-validation chose basis {basis!r}")
+    # --basis auto: the verdict chooses basis and convention inside the one fit (every basis
+    # cross-validated there), from the same held-out comparison psfkit report states
     result = fit_eigen_grid(grid, _options(args, basis), progress=not args.quiet)
     if figures is not None:
         write_fit_figures(result, figures, overwrite=True)   # into the empty temporary folder
     save_kernels(kernels, result.kernel_model())
-    return result, basis
+    return result, result.basis_name
 
 
 def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
@@ -172,14 +167,25 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
               f"max {res['max']:.4f}")
     if result.cv is not None:
         print("  cross-validated (held-out positions) relative error:")
+        sigmas = result.cv["held_out_sigma"]
         for name, err in result.cv["held_out_relative_error"].items():
-            print(f"    {name:28s} {err:.4f}")
-        print(f"  best: {result.cv['best']}")
-        errs = result.cv["held_out_relative_error"]
-        other = "source" if model.convention == "sensor" else "sensor"
-        if errs.get(f"{basis}/{other}", 1e9) < errs.get(f"{basis}/{model.convention}", 0):
-            print(f"  note: {other}-side weights predict held-out positions better; "
-                  f"rerun with --convention {other} (or auto) to write that model")
+            print(f"    {name:28s} {pm(err, sigmas[name])}")
+    for name, estimate in result.kernel_differences().items():
+        print(f"  {name}: {estimate.text('.3g')} of Kbase (relative norm, working copy)")
+    _print_verdict_and_choice(result, basis)
     if result.angles_deg is not None:
         print("  principal angles eigen-kernels vs top PCA subspace (deg): "
               + ", ".join(f"{a:.1f}" for a in result.angles_deg))
+
+
+def _print_verdict_and_choice(result: GridEigenResult, basis: str) -> None:
+    """The verdict, and one note when the written model is not the one it recommends (never
+    with ``--basis auto``, which writes that model)."""
+    verdict = result.verdict
+    if verdict is None:
+        return
+    print_verdict(verdict)
+    written = "si" if basis == "si" else f"{basis}/{result.convention}"
+    if result.options.basis != "auto" and written != verdict.recommended_model:
+        print(f"  note: the verdict recommends {verdict.recommended_model}, this file holds "
+              f"{written}; rerun with --basis auto to write the recommended model")

@@ -149,6 +149,7 @@ def _demo_steps(args: argparse.Namespace, config: BenchConfig, grid_dir: Path,
     """Characterize the simulated grid and fit its eigen-kernels, into the staged outputs."""
     from psfkit.bench import read_ground_truth
     from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
+    from psfkit.cli.summaries import astigmatism_line, growth_line
     from psfkit.report import write_report
 
     grid = read_grid(grid_dir)
@@ -166,24 +167,22 @@ def _demo_steps(args: argparse.Namespace, config: BenchConfig, grid_dir: Path,
           f"({reliable.sum()} positions), {np.sqrt(np.mean(error ** 2)):.3f} px rms overall")
     fit = result.shift_fit
     if fit is not None:
-        print(f"magnification: measured {fit.magnification:.5f}, true "
+        print(f"magnification: measured {fit.estimates['magnification'].text('.5f')}, true "
               f"{truth.info['magnification_px_per_monitor_px']:.5f} px per monitor px")
     gain_error = np.abs(result.table("gain") / truth.gain - 1)
     print(f"gain error: {100 * gain_error[reliable].max():.2f}% max; cos^n fit n = "
-          f"{result.gain_fit.exponent:.2f} (true {config.vignetting_exponent:g})")
-    if result.warp_growth is not None:
-        print(f"warp residual grows as theta^{result.warp_growth.exponent:.2f} "
-              f"(oblique-incidence astigmatism: 2)")
-    if result.warp_anisotropy is not None:
-        a = result.warp_anisotropy
-        print(f"tangential/sagittal anisotropy: {a['median_measured']:.2f} "
-              f"(geometric optics {a['median_geometric']:.2f})")
+          f"{result.gain_fit.estimate.text('.2f')} (true {config.vignetting_exponent:g})")
+    print(f"{growth_line(result.warp_growth)} (oblique-incidence astigmatism: p = 2)")
+    print(astigmatism_line(result))
+    if result.verdict is not None:
+        print(f"verdict: {result.verdict.sentence()}")
     _demo_eigen_fit(grid, kernels_tmp, figures_tmp, quiet=args.quiet)
 
 
 def _demo_eigen_fit(grid: PsfGrid, kernels: Path, figures: Path, quiet: bool) -> None:
     """The demo's last step: the eigen-kernel fit that seeds EK-DUN (as ``psfkit fit-eigen``)."""
     from psfkit.cli.fit_cmd import write_fit_figures
+    from psfkit.cli.summaries import pm
     from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
     from psfkit.kernelfile import save_kernels
 
@@ -191,6 +190,7 @@ def _demo_eigen_fit(grid: PsfGrid, kernels: Path, figures: Path, quiet: bool) ->
     save_kernels(kernels, result.kernel_model())
     write_fit_figures(result, figures, overwrite=True)
     if result.cv is not None:
-        errors = ", ".join(f"{name} {err:.3f}" for name, err
+        sigmas = result.cv["held_out_sigma"]
+        errors = ", ".join(f"{name} {pm(err, sigmas[name], '.3f')}" for name, err
                            in result.cv["held_out_relative_error"].items())
         print(f"eigen-kernels: held-out relative error {errors}")

@@ -76,7 +76,9 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
                "or source (fit-eigen: also auto = the lower cross-validated error)",
                "sensor", default="sensor", choices=("sensor", "source"),
-               per_command={"fit-eigen": {"choices": ("sensor", "source", "auto")}}),
+               # fit-eigen: unset = sensor, or with --basis auto the verdict's convention
+               per_command={"fit-eigen": {"choices": ("sensor", "source", "auto"),
+                                          "default": None}}),
     SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
                "processes drawing the scenes in ekdun make-dataset; positions processed "
                "concurrently in psfkit register/mae/warp/report)",

@@ -7,6 +7,7 @@ import pytest
 from skimage.registration import phase_cross_correlation
 
 from psfkit.bench import BenchConfig, VirtualCamera
+from psfkit.bench.camera import translate_pixels
 from psfkit.bench.propagation import fresnel_transfer_anisotropic, propagate
 from psfkit.errors import ConfigurationError
 from psfkit.resample import bin_image
@@ -163,3 +164,35 @@ def test_torch_optics_match_the_numpy_reference(spherical):
         assert np.linalg.norm(new.image - ref.image) / np.linalg.norm(ref.image) < 1e-4
     with pytest.raises(ConfigurationError, match="backend"):
         VirtualCamera(config, backend="jax")
+
+
+def test_field_free_camera_translates_the_on_axis_psf():
+    """Issue 43's field-free bench: every PSF is the on-axis PSF moved by the chief-ray shift
+    (−d·tanθ, linear in tanθ), with no vignetting and no change of shape; the default camera
+    (same diffuser) does change, so the check has teeth."""
+    config = BenchConfig(downsample=8, field_free=True)
+    free, varying = VirtualCamera(config), VirtualCamera(BenchConfig(downsample=8))
+    on_axis = free.psf_patch((0.0, 0.0)).image
+    np.testing.assert_allclose(on_axis, varying.psf_patch((0.0, 0.0)).image, rtol=1e-6)
+    pixel_um = 3.45 * 8
+    for field in [(6.0, -4.0), (-9.0, 7.0)]:
+        assert free.gain(field) == 1.0 and varying.gain(field) < 0.99
+        patch = free.psf_patch(field, subpixel_shift=False)
+        np.testing.assert_array_equal(patch.image, on_axis)
+        assert not np.allclose(varying.psf_patch(field, subpixel_shift=False).image
+                               / varying.gain(field), on_axis, rtol=0.05, atol=0.0)
+        expected = tuple(-14.6e3 * np.tan(np.deg2rad(f)) / pixel_um for f in field)
+        assert free.true_shift_px(field) == pytest.approx(expected, rel=1e-9)
+        moved = free.psf_patch(field)
+        assert moved.image.sum() == pytest.approx(on_axis.sum(), rel=1e-5)
+        # the sub-pixel part is a band-limited translation of the sampled PSF: undone by the
+        # opposite one, but for the Nyquist frequencies of the aliased PSF (a real-valued
+        # sinusoid at Nyquist cannot move by a fraction of a pixel), 0.5 % of the peak here
+        back = translate_pixels(moved.image, (round(expected[0]) - expected[0],
+                                              round(expected[1]) - expected[1]))
+        np.testing.assert_allclose(back, on_axis, atol=0.01 * on_axis.max())
+        assert not np.allclose(moved.image, on_axis, atol=0.01 * on_axis.max())
+        centre = free.psf_patch((0.0, 0.0)).offset
+        assert (moved.offset[0] - centre[0], moved.offset[1] - centre[1]) == (
+            round(expected[1]), round(expected[0]))
+    assert BenchConfig.from_dict(config.to_dict()).field_free

@@ -144,3 +144,19 @@ def test_growth_fit_and_helpers():
     assert geometric_anisotropy(np.array([10.0]))[0] == pytest.approx(3.046, abs=1e-3)
     t, s = split_rms(1.0, 3.0)
     assert t / s == pytest.approx(3.0) and t**2 + s**2 == pytest.approx(1.0)
+
+
+def test_transport_anisotropy_without_sagittal_transport_is_not_a_number():
+    """Issue 43: a change whose angular spectrum has no sagittal part (power ∝ cos⁴φ, here
+    filtered noise; on the field-free bench, noise alone at some positions) gave +inf, which
+    `psfkit report` could not draw; the ratio is not determined (NaN), never infinite."""
+    n = 128
+    reference = 1.0 + 0.1 * np.random.default_rng(0).random((n, n))
+    valid = np.ones_like(reference, bool)
+    phi = np.arctan2(np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None])
+    for seed in range(5):
+        noise = np.random.default_rng(seed + 1).normal(0, 1, (n, n))
+        change = 0.05 * np.real(np.fft.ifft2(np.fft.fft2(noise) * np.cos(phi) ** 2))
+        assert np.isnan(transport_anisotropy(reference, reference + change, valid, 0.0))
+    # the same change across the azimuth is all sagittal: a finite ratio near 0
+    assert transport_anisotropy(reference, reference + change, valid, np.pi / 2) < 0.3
