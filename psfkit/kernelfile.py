@@ -43,6 +43,7 @@ from psfkit.io.read_options import ReadOptions
 from psfkit.validation import (
     MAX_IMAGE_PIXELS,
     MAX_JSON_BYTES,
+    MAX_KERNEL_GAIN,
     MAX_SCENE_PADDING,
     bounded_size,
     check_array_shape,
@@ -135,7 +136,8 @@ class KernelModel:
             Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
             than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
             convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels
-            that are all zero.
+            that are all zero, or so large (``MAX_KERNEL_GAIN``) that a forward model
+            overflows.
         """
         try:
             basis = get_basis(self.basis)
@@ -158,6 +160,14 @@ class KernelModel:
         if k.shape[1] != len(self.channels) or len(self.channels) not in (1, 3):
             raise ModelFileError(f"{where}: kernels have {k.shape[1]} channel(s) but channels "
                                  f"are {list(self.channels)}")
+        gain = np.abs(k).sum(axis=(2, 3), dtype=np.float64)   # (K, C)
+        if gain.max() > MAX_KERNEL_GAIN:
+            i, c = np.unravel_index(int(np.argmax(gain)), gain.shape)
+            raise ModelFileError(f"{where}: kernel {basis.kernel_names[i]!r} ({self.channels[c]}) "
+                                 f"sums to {gain[i, c]:.3g} in absolute value, more than the "
+                                 f"{MAX_KERNEL_GAIN:g} a forward model can apply in float32 "
+                                 "without overflowing (a PSF normalised to unit peak or sum is "
+                                 "far below)")
         if self.convention not in CONVENTIONS:
             raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
                                  f"{self.convention!r}")

@@ -285,16 +285,22 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
     return kernels, support, info
 
 
-def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32
-            ) -> np.ndarray:
-    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``."""
+def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,
+            *, model_name: str = "", scenes_name: str = "scenes") -> np.ndarray:
+    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``.
+
+    ``model_name`` (the kernel file) and ``scenes_name`` (where the scenes come from, e.g. the
+    pairs folder) name the two inputs when their sizes or channels disagree.
+    """
+    model_text = f"the model {model_name}" if model_name else "the model"
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
-        raise InvalidInputError(f"scenes are {scenes.shape[-2]}x{scenes.shape[-1]} but the "
-                                f"model's sensor is {model.sensor_shape[0]}x"
-                                f"{model.sensor_shape[1]}")
+        raise InvalidInputError(f"{scenes_name}: scenes are {scenes.shape[-2]}x"
+                                f"{scenes.shape[-1]} but {model_text} has a "
+                                f"{model.sensor_shape[0]}x{model.sensor_shape[1]} sensor")
     if scenes.shape[1] != len(model.channels):
-        raise InvalidInputError(f"scenes have {scenes.shape[1]} channel(s), the model "
-                                f"{len(model.channels)}")
+        raise InvalidInputError(f"{scenes_name}: scenes have {scenes.shape[1]} channel(s) but "
+                                f"{model_text} has {len(model.channels)} "
+                                f"({'/'.join(model.channels)})")
     grid = padded_shape(tuple(model.sensor_shape), model.scene_padding)
     with torch.no_grad():
         x = torch.as_tensor(scenes, dtype=dtype)

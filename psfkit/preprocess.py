@@ -102,6 +102,50 @@ def saturation_level_for(grid: PsfGrid) -> float | None:
     return lsb_max * 2.0 ** (container_bits - grid.bit_depth)
 
 
+def clip_hint(natural: float | None) -> str:
+    """The advice of a refused ``--saturation-level``, with the level that the images' type
+    and ``bit_depth`` imply when there is one."""
+    return "give the raw value at which the sensor clips" + (
+        "" if natural is None else f" (the images' type and bit depth imply {natural:g})")
+
+
+def check_saturation_level(level: float | None, grid: PsfGrid,
+                           dark: np.ndarray | None) -> None:
+    """Refuse a ``--saturation-level`` that the grid's sensor cannot clip at, naming the flag.
+
+    A level above the largest value the images' integer type holds is never reached
+    (saturation would go undetected); one at or below the background (the manifest's
+    ``black_level``, else the dark frame's median, else the darkest pixel of the reference
+    capture) would count every background pixel as saturated, and each PSF would then be
+    blamed for it.
+
+    Raises
+    ------
+    ConfigurationError
+        The level is out of the images' range.
+    """
+    if level is None:
+        return
+    hint = clip_hint(saturation_level_for(grid))
+    if np.issubdtype(grid.dtype, np.integer) and level > np.iinfo(grid.dtype).max:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} exceeds {np.iinfo(grid.dtype).max}, the largest "
+            f"value the {grid.dtype} images of {grid.root} can hold: saturation would never "
+            f"be detected; {hint}")
+    if grid.black_level is not None:
+        background, what = float(grid.black_level), f"the black_level of {grid.manifest_name}"
+    elif dark is not None:
+        background, what = float(np.median(dark)), f"the median of {grid.dark_file}"
+    else:
+        centre = grid.require_center()
+        background = float(np.min(grid.load(*centre)))
+        what = f"the darkest pixel of {grid.position(*centre).file}"
+    if level <= background:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} is at or below the background of {grid.root} "
+            f"({background:g}, {what}): every pixel would count as saturated; {hint}")
+
+
 def hot_pixel_mask(dark: np.ndarray, sigma: float = 8.0) -> np.ndarray:
     """``(H, W)`` mask of pixels that are outliers of the dark frame in any channel."""
     mask = np.zeros(dark.shape[1:], dtype=bool)
@@ -169,6 +213,10 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     PositionRejected
         NaN/Inf values, too much of the PSF saturated, or no point-source signal above the noise
         (an all-zero frame included); its ``reason`` says which.
+    ConfigurationError
+        ``options.saturation_level`` (``--saturation-level``) marks more pixels saturated than
+        the PSF has bright pixels: a sensor clips only where the PSF is brightest, so the
+        level, not the PSF, is wrong.
     """
     options = options or PreprocessOptions()
     if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):
@@ -198,6 +246,11 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     n_saturated = int(saturated.sum())
     bright = int(np.count_nonzero(lum > 0.1 * peak)) or 1
     fraction = n_saturated / bright
+    if fraction > 1 and options.saturation_level is not None:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} marks {n_saturated} pixels of {name} saturated, "
+            f"more than the {bright} bright pixels of its PSF (a sensor clips only where the "
+            f"PSF is brightest); {clip_hint(saturation_level)}")
     if fraction > options.max_saturated_fraction and not options.allow_saturated:
         raise PositionRejected(
             f"{name}: {n_saturated} saturated pixels ({100 * fraction:.1f}% of the bright PSF, "
@@ -221,6 +274,7 @@ class GridCalibration:
     @classmethod
     def from_grid(cls, grid: PsfGrid, options: PreprocessOptions) -> GridCalibration:
         dark = grid.load_dark()
+        check_saturation_level(options.saturation_level, grid, dark)   # before any PSF
         hot = hot_pixel_mask(dark, options.hot_pixel_sigma) if dark is not None else None
         exposures = grid.exposures()
         centre = grid.require_center()

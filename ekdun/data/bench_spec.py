@@ -22,6 +22,7 @@ from ekdun.errors import ConfigurationError
 from psfkit.bench import BenchConfig
 from psfkit.bench.camera import VirtualCamera, place_patch
 from psfkit.bench.simulate import grid_monitor_positions
+from psfkit.validation import flag_range
 
 TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camera", "coins",
                 "brick", "grass", "moon")
@@ -102,6 +103,7 @@ class VirtualBenchSpec:
             raise ConfigurationError("half_fov_deg must be in (0, 60)")
         if not 0 <= self.natural_fraction <= 1:
             raise ConfigurationError("natural_fraction must be in [0, 1]")
+        flag_range("--photons").check(self.photons, "photons (--photons)")
         if isinstance(self.grid_frames, bool) or int(self.grid_frames) != self.grid_frames \
                 or self.grid_frames < 1:
             raise ConfigurationError(f"grid_frames must be an integer >= 1, got "

@@ -21,10 +21,40 @@ from psfkit.io.temps import public_name
 from psfkit.validation import OneLineArgumentParser, escape_line
 
 
-def _debug_requested(prog: str, argv: Sequence[str] | None) -> bool:
+def split_debug(prog: str, argv: Sequence[str] | None) -> tuple[bool, list[str]]:
+    """Whether ``--debug`` was asked for, and the arguments without it.
+
+    ``--debug`` is taken anywhere before a ``--`` separator, before or after the
+    sub-command (``psfkit report GRID --debug``), as the error lines' hint "run with --debug"
+    promises; also ``PSFKIT_DEBUG=1`` (``EKDUN_DEBUG=1``). One mechanism for both CLIs: the
+    runner, not each sub-parser, owns the flag.
+    """
     args = sys.argv[1:] if argv is None else list(argv)
+    end = args.index("--") if "--" in args else len(args)
+    kept = [a for a in args[:end] if a != "--debug"] + args[end:]
     env = os.environ.get(f"{prog.upper()}_DEBUG", "") or os.environ.get("PSFKIT_DEBUG", "")
-    return "--debug" in args or env not in ("", "0")
+    return len(kept) < len(args) or env not in ("", "0"), kept
+
+
+def close_progress_bars() -> None:
+    """Close every progress bar still open (tqdm keeps them in class-level sets).
+
+    A command that fails or is interrupted unwinds past its bars; left open, each is drawn a
+    last time when the garbage collector or tqdm's monitor thread gets to it, after the
+    command's final line (``interrupted (SIGTERM)``, the error), which then is not the last
+    line on stderr. Closed here, before that line is printed, for every command.
+    """
+    std = sys.modules.get("tqdm.std")
+    if std is None:   # no bar was ever made
+        return
+    classes, bars = [std.tqdm], []
+    while classes:    # tqdm.auto's class and others keep their own set of instances
+        cls = classes.pop()
+        classes += cls.__subclasses__()
+        bars += list(cls.__dict__.get("_instances", ()))
+    for bar in bars:
+        with contextlib.suppress(Exception):   # a bar that cannot draw any more is closed
+            bar.close()
 
 
 def _first_line(exc: BaseException) -> str:
@@ -152,11 +182,12 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     an unexpected internal error with status 1 and a request to report it. Warnings and
     library logging are collected, not printed (:func:`quiet_libraries`). Ctrl-C gives
     status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
-    have been removed. ``--debug`` (or ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``) shows the full
-    traceback instead. Outputs are written through
+    have been removed; open progress bars are closed first, so that the line saying so is the
+    last on stderr. ``--debug`` anywhere on the command line (or ``PSFKIT_DEBUG=1`` /
+    ``EKDUN_DEBUG=1``) shows the full traceback instead. Outputs are written through
     :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves no partial files.
     """
-    debug = _debug_requested(prog, argv)
+    debug, argv = split_debug(prog, argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage errors (one line, status 2) and --help / --version
@@ -174,6 +205,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
             print(line, file=sys.stderr)
         return status
     except KeyboardInterrupt as exc:
+        close_progress_bars()   # the line below is the last one on stderr
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "
               "removed", file=sys.stderr)
@@ -181,15 +213,18 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     except Exception as exc:
         if debug:
             raise
+        close_progress_bars()
         line, status = error_line(prog, exc)
         print(line, file=sys.stderr)
         return status
 
 
 def add_debug_option(parser: argparse.ArgumentParser) -> None:
-    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``)."""
+    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``). Listed in
+    the top-level help; :func:`run_cli` takes it anywhere on the command line."""
     parser.add_argument("--debug", action="store_true",
-                        help="show the full traceback of an error")
+                        help="show the full traceback of an error (before or after the "
+                             "command)")
 
 
 def build_parser() -> argparse.ArgumentParser:

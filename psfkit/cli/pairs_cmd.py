@@ -291,7 +291,8 @@ def _evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], list[str]]:
             f"{args.pairs}: pairs are {scenes.shape[-2]}x{scenes.shape[-1]} (after "
             f"--downsample {factor}) but the model {args.model} has a "
             f"{model.sensor_shape[0]}x{model.sensor_shape[1]} sensor")
-    errors = relative_errors(predict(model, scenes), measurements)
+    errors = relative_errors(predict(model, scenes, model_name=str(args.model),
+                                     scenes_name=str(pairs.root)), measurements)
     result = {"model": str(args.model), "pairs": str(pairs.root), "downsample": factor,
               "basis": model.basis, "convention": model.convention,
               "per_pair": {name: {"raw": float(errors["raw"][i]),

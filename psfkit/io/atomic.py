@@ -270,6 +270,8 @@ class OutputTransaction:
         self._outputs: list[_Output] = []
 
     def _declare(self, path: str | os.PathLike, kind: str, suffixes: tuple[str, ...]) -> Path:
+        if os.fspath(path) == "":   # Path("") is the current folder, never meant as an output
+            raise InvalidInputError(f"an empty path was given for an output {kind}")
         path = Path(path)
         if suffixes and path.suffix.lower() not in suffixes:
             raise InvalidInputError(f"{path}: output must end in {' or '.join(suffixes)}")
