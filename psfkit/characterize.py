@@ -380,7 +380,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
             extras["example"] = (aligned, valid)
         if "warp" in steps and here != center:
             warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain), valid,
-                                                    shift, options.flow_method)
+                                                    shift, options.flow_method,
+                                                    str(grid.path(*here)))
             record.warp = warp
             extras["flow"] = _coarse_flow(residual, mask)
         return record, extras
@@ -457,10 +458,14 @@ def _summarise_warp(result: GridCharacterization) -> None:
 
 
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
-                   shift: tuple[float, float], method: str
+                   shift: tuple[float, float], method: str, where: str = "PSF"
                    ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
-    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures."""
-    warp = warp_field(ref_lum, al_lum, valid, method)
+    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures
+    (``where`` names the position's file in an error)."""
+    try:
+        warp = warp_field(ref_lum, al_lum, valid, method)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{where}: {exc}") from None
     # tangential = direction of the PSF's shift (radial on the sensor)
     azimuth = float(np.arctan2(shift[1], shift[0]))
     m = warp.mask

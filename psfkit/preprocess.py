@@ -132,10 +132,10 @@ def check_saturation_level(level: float | None, grid: PsfGrid,
             f"--saturation-level {level:g} exceeds {np.iinfo(grid.dtype).max}, the largest "
             f"value the {grid.dtype} images of {grid.root} can hold: saturation would never "
             f"be detected; {hint}")
-    if grid.black_level is not None:
-        background, what = float(grid.black_level), f"the black_level of {grid.manifest_name}"
-    elif dark is not None:
+    if dark is not None:   # the dark frame wins over the black level, as in prepare_psf
         background, what = float(np.median(dark)), f"the median of {grid.dark_file}"
+    elif grid.black_level is not None:
+        background, what = float(grid.black_level), f"the black_level of {grid.manifest_name}"
     else:
         centre = grid.require_center()
         background = float(np.min(grid.load(*centre)))
@@ -144,6 +144,34 @@ def check_saturation_level(level: float | None, grid: PsfGrid,
         raise ConfigurationError(
             f"--saturation-level {level:g} is at or below the background of {grid.root} "
             f"({background:g}, {what}): every pixel would count as saturated; {hint}")
+
+
+def check_background(grid: PsfGrid, dark: np.ndarray | None) -> None:
+    """Refuse a background (the dark frame, else the manifest's ``black_level``) at or above
+    the brightest pixel of the reference capture (unless that capture is blank): nothing would
+    remain of any PSF once it is subtracted, and each PSF would be blamed for having no signal.
+
+    Raises
+    ------
+    InvalidInputError
+        Names the dark frame or the manifest's ``black_level``.
+    """
+    if dark is None and grid.black_level is None:
+        return
+    centre = grid.require_center()
+    reference = grid.load(*centre)
+    brightest = float(np.max(reference))
+    if brightest == float(np.min(reference)):   # a blank capture: it is to blame, not the level
+        return
+    if dark is not None:
+        level, what = float(np.median(dark)), f"{grid.root / str(grid.dark_file)}: median"
+    else:
+        level, what = float(grid.black_level), f"{grid.root / grid.manifest_name}: black_level"
+    if level >= brightest:
+        raise InvalidInputError(
+            f"{what} {level:g} is at or above the brightest pixel of the reference capture "
+            f"{grid.position(*centre).file} ({brightest:g}): no PSF signal would remain after "
+            "subtracting it; give the sensor's dark level")
 
 
 def hot_pixel_mask(dark: np.ndarray, sigma: float = 8.0) -> np.ndarray:
@@ -274,7 +302,8 @@ class GridCalibration:
     @classmethod
     def from_grid(cls, grid: PsfGrid, options: PreprocessOptions) -> GridCalibration:
         dark = grid.load_dark()
-        check_saturation_level(options.saturation_level, grid, dark)   # before any PSF
+        check_background(grid, dark)                                   # before any PSF
+        check_saturation_level(options.saturation_level, grid, dark)
         hot = hot_pixel_mask(dark, options.hot_pixel_sigma) if dark is not None else None
         exposures = grid.exposures()
         centre = grid.require_center()
@@ -316,7 +345,8 @@ BACKGROUNDS = ("none", "corner")
 CORNER = (slice(5, 15), slice(5, 15))   # the DiffuserCam tutorial's dark patch, rows/cols 5..14
 
 
-def subtract_background(image: np.ndarray, background: str = "corner") -> np.ndarray:
+def subtract_background(image: np.ndarray, background: str = "corner",
+                        where: str = "image") -> np.ndarray:
     """``image`` ``(C, H, W)`` minus its background: ``"corner"`` subtracts each channel's mean
     over ``[5:15, 5:15]`` (as the DiffuserCam tutorial does for PSFs and raw captures),
     ``"none"`` returns it unchanged.
@@ -325,11 +355,19 @@ def subtract_background(image: np.ndarray, background: str = "corner") -> np.nda
     ------
     ConfigurationError
         Unknown ``background``.
+    InvalidInputError
+        ``"corner"`` on an image smaller than 15 × 15 px, which has no such corner
+        (``where`` names it): its mean would be NaN, and the image blamed for holding NaN.
     """
     if background not in BACKGROUNDS:
         raise ConfigurationError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     if background == "none":
         return image
+    h, w = image.shape[-2:]
+    if min(h, w) < CORNER[0].stop:
+        raise InvalidInputError(f"{where}: image of {h}x{w} px has no background corner (rows "
+                                f"and columns {CORNER[0].start}..{CORNER[0].stop - 1}); use "
+                                "--background none or a larger image")
     return image - image[(slice(None), *CORNER)].mean(axis=(1, 2), keepdims=True,
                                                        dtype=np.float64).astype(image.dtype)
 
@@ -361,7 +399,7 @@ def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 
     if min(image.shape[-2:]) // downsample < 1:
         raise InvalidInputError(f"{where}: binning {image.shape[-2]}x{image.shape[-1]} by "
                                 f"{downsample} leaves no pixel")
-    image = subtract_background(np.asarray(image, dtype=np.float64), background)
+    image = subtract_background(np.asarray(image, dtype=np.float64), background, where)
     if downsample > 1:
         image = bin_mean(image, downsample)
     psf = np.clip(image, 0, None)

@@ -49,6 +49,9 @@ MAX_IMAGE_SIDE = 16384        # pixels per image side (a 1440 x 1080 sensor is f
 #: 1.5 px apart) registers to its true scale at 12 and 16 px, 16 % off at 8 px. Also the
 #: smallest sensor of the virtual bench (``--sensor``).
 MIN_PSF_SIDE = 16
+#: Smallest scene / measurement of an image pair (pixels per side, after --downsample): a
+#: forward model of a few kernels needs at least this many pixels to be fitted.
+MIN_PAIR_SIDE = 4
 MAX_IMAGE_PIXELS = 64 * 2**20  # pixels per channel of one image
 MAX_SCENE_PADDING = 8         # convolution grid as a multiple of the sensor size
 MAX_ITERATIONS = 10_000       # solver iterations (ADMM, conjugate gradients)

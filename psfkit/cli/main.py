@@ -17,6 +17,7 @@ from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
 from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
+from psfkit.io.atomic import protected_inputs
 from psfkit.io.temps import public_name
 from psfkit.validation import OneLineArgumentParser, escape_line
 
@@ -104,6 +105,32 @@ def _error_line(prog: str, exc: BaseException) -> tuple[str, int]:
             f"{prog.upper()}_DEBUG=1 prints the traceback)"), 1
 
 
+#: Destinations of the free-text arguments that name a command's outputs; every other
+#: free-text argument (a grid, pairs, kernel file, checkpoint, measurement...) is an input
+#: that no output may replace (:func:`psfkit.io.atomic.protected_inputs`).
+OUTPUT_ARGUMENTS = frozenset({"out", "figures", "report", "run_dir"})
+
+
+def input_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[str]:
+    """The values of ``args`` given to free-text arguments (no ``type=``, no choices: paths
+    and names) other than :data:`OUTPUT_ARGUMENTS`, of ``parser`` and its sub-commands."""
+    dests: set[str] = set()
+    parsers = [parser]
+    while parsers:
+        p = parsers.pop()
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers += list(action.choices.values())
+            elif action.type is None and not action.choices and action.nargs != 0:
+                dests.add(action.dest)
+    values: list[str] = []
+    for dest in sorted(dests - OUTPUT_ARGUMENTS):
+        value = getattr(args, dest, None)
+        values += [value] if isinstance(value, str) else [
+            v for v in (value if isinstance(value, list) else ()) if isinstance(v, str)]
+    return values
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, SIGHUP or SIGINT (Ctrl-C), raised in the main thread so that it unwinds like
     Ctrl-C: every ``with`` block of an output transaction removes its temporaries."""
@@ -183,7 +210,8 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     library logging are collected, not printed (:func:`quiet_libraries`). Ctrl-C gives
     status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
     have been removed; open progress bars are closed first, so that the line saying so is the
-    last on stderr. ``--debug`` anywhere on the command line (or ``PSFKIT_DEBUG=1`` /
+    last on stderr. A closed stdout (``| head``) ends the command quietly with status 141
+    (128 + SIGPIPE). ``--debug`` anywhere on the command line (or ``PSFKIT_DEBUG=1`` /
     ``EKDUN_DEBUG=1``) shows the full traceback instead. Outputs are written through
     :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves no partial files.
     """
@@ -197,7 +225,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
         return 2
     reuse_freed_memory()         # fewer page faults in the full-resolution passes
     try:
-        with terminate_like_interrupt(), \
+        with terminate_like_interrupt(), protected_inputs(input_paths(parser, args)), \
                 (contextlib.nullcontext() if debug else quiet_libraries()):
             status = int(args.func(args) or 0)
         # after the work, so that an error stays the one line on stderr
@@ -213,10 +241,32 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     except Exception as exc:
         if debug:
             raise
+        if isinstance(exc, BrokenPipeError) and _stdout_closed():
+            # the reader of stdout went away (``psfkit register GRID | head -1``): stop
+            # quietly, as Unix tools do on SIGPIPE; outputs are committed before the summary
+            return 128 + signal.SIGPIPE
         close_progress_bars()
         line, status = error_line(prog, exc)
         print(line, file=sys.stderr)
         return status
+
+
+def _stdout_closed() -> bool:
+    """Whether stdout is a pipe whose reader has gone (the broken pipe was stdout's, not a
+    worker's); then stdout is pointed at /dev/null, so that Python's last flush does not
+    complain on stderr."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        closed = any(events & select.POLLERR for _, events in poller.poll(0))
+        if closed:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return closed
+    except (OSError, ValueError, AttributeError):   # no real file descriptor (captured)
+        return False
 
 
 def add_debug_option(parser: argparse.ArgumentParser) -> None:

@@ -137,7 +137,7 @@ def _load(folder: str, factor: int, channel_order: str | None = None,
     pairs = read_pairs(folder, channel_order, check_pixels=False, recorded=recorded)
     scenes, measurements = pairs.load_all()
     _refuse_blank(pairs, scenes, measurements)
-    scenes, measurements = downsample_pairs(scenes, measurements, factor)
+    scenes, measurements = downsample_pairs(scenes, measurements, factor, str(folder))
     return pairs, scenes, measurements
 
 

@@ -320,3 +320,48 @@ def test_the_true_saturation_level_is_accepted(grid_3x3, tmp_path):
     done = _cli("psfkit", "register", str(grid_3x3), "--saturation-level", "65520", "--quiet")
     assert done.returncode == 0, done.stderr
     assert "registered 9 PSFs" in done.stdout
+
+
+# ------------------------------------------------------------------ found by the sweep
+
+
+def test_a_closed_stdout_ends_the_command_quietly_after_its_outputs(grid_3x3, tmp_path):
+    """``psfkit register GRID --out r.json | head -1``: the reader goes away before the
+    summary; the numbers file is complete, and no "error: Broken pipe" (status 2, "nothing
+    was written") contradicts it: status 141 (128 + SIGPIPE), as Unix tools."""
+    out = tmp_path / "r.json"
+    proc = subprocess.Popen([sys.executable, "-m", "psfkit.cli", "register", str(grid_3x3),
+                             "--out", str(out), "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=_env(), cwd=REPO)
+    proc.stdout.close()                 # before the command prints anything
+    err = proc.stderr.read().decode()
+    assert proc.wait(300) == 128 + signal.SIGPIPE, err
+    assert err == ""
+    assert len(json.loads(out.read_text())["positions"]) == 9
+
+
+def test_a_failed_warp_names_the_position(tmp_path):
+    """A position whose PSF leaves no warp field to measure is named in the error line."""
+    from psfkit.characterize import _warp_position
+    from psfkit.errors import InvalidInputError
+
+    blank = np.zeros((16, 16), np.float32)
+    with pytest.raises(InvalidInputError, match=r"^psf_r00_c00\.tiff: too little of the PSF"):
+        _warp_position(blank, blank, np.ones((16, 16), bool), (0.0, 0.0), "dis",
+                       "psf_r00_c00.tiff")
+
+
+def test_a_blank_reference_is_blamed_not_the_black_level(grid_3x3, tmp_path):
+    """The black-level check blames the manifest only when the reference capture has a
+    signal it would erase; a blank reference capture is still the one refused."""
+    import shutil
+
+    import tifffile
+
+    grid = tmp_path / "grid"
+    shutil.copytree(grid_3x3, grid, ignore=shutil.ignore_patterns("ground_truth"))
+    centre = grid / "psf_r01_c01.tiff"
+    tifffile.imwrite(centre, np.zeros_like(tifffile.imread(centre)), photometric="rgb")
+    done = _cli("psfkit", "register", str(grid), "--quiet")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1
+    assert "psf_r01_c01.tiff" in done.stderr and "black_level" not in done.stderr
