@@ -59,6 +59,10 @@ MAX_ITERATIONS = 10_000       # solver iterations (ADMM, conjugate gradients)
 #: 1e14 of float32's range (3.4e38) for scene values and iterations; a PSF normalised to
 #: unit peak over a 4096 x 4096 sensor sums to at most 1.7e7.
 MAX_KERNEL_GAIN = 1e12
+#: Smallest largest-channel sum of |values| of a kernel file: below it the model predicts an
+#: almost black image, and solvers that invert it lose float32's range (ADMM of the tiny
+#: bench model stays finite at 1e-18, diverges at 1e-24).
+MIN_KERNEL_GAIN = 1e-12
 MAX_UNROLLED_ITERATIONS = 100  # unrolled iterations of a network (the paper uses 10)
 MAX_JSON_DEPTH = 64           # nesting of a JSON document we read
 MAX_JSON_BYTES = 16 * 2**20   # size of a JSON document we read (a 64 x 64 manifest: ~1 MB)

@@ -948,6 +948,13 @@ CASES: list[Case] = [
          grid_case(command="register", prepare=lambda g: (
              _edit_manifest(g, lambda d: (d.pop("dark_frame"), d.update(black_level=65000))),
              (g / "dark.tiff").unlink())), "black_level 65000", 15, absent="no point-source"),
+    Case("admm-kernels-tiny-finite", "ekdun",
+         admm_kernels_case(kernels=lambda k: (k * np.float32(1e-30)).astype(np.float32)),
+         "k.npz", 15, absent="x.npy"),
+    Case("fit-pairs-scenes-1e30", "psfkit",
+         pairs_case(lambda p: [np.save(f, np.load(f) * np.float32(1e30))
+                               for f in (p / "scene").glob("*.npy")], "fit-pairs"),
+         "times the light of their scenes", 15, absent="kernel model"),
     Case("train-kernels-huge-finite", "ekdun",
          lambda work, fx: (_rewrite_kernels(fx.kernels, work / "k.npz", kernels=_huge_kernel),
                            ["train", str(fx.pairs), str(work / "run"), "--kernels",

@@ -268,13 +268,14 @@ def test_frames_of_the_minimum_size_register_to_the_truth_one_less_is_refused(tm
 # ------------------------------------------------------------------ limits behind the refusals
 
 
-def test_kernel_gain_limit_keeps_the_forward_model_finite(tmp_path):
-    """At the limit the forward model of a unit scene is finite in float32; beyond it the
-    kernel file is refused when written and when read, by name."""
+def test_kernel_gain_limits_keep_the_forward_model_finite(tmp_path):
+    """At the upper limit the forward model of a unit scene is finite in float32; beyond it
+    the kernel file is refused when written and when read, by name; so is one below the lower
+    limit."""
     from psfkit.errors import ModelFileError
     from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
     from psfkit.pairs_fit import predict
-    from psfkit.validation import MAX_KERNEL_GAIN
+    from psfkit.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
 
     kernels = np.zeros((1, 1, 8, 8), np.float32)
     kernels[0, 0, 2:6, 2:6] = MAX_KERNEL_GAIN / 16          # sums to the limit
@@ -289,6 +290,12 @@ def test_kernel_gain_limit_keeps_the_forward_model_finite(tmp_path):
                  metadata=data["metadata"])
     with pytest.raises(ModelFileError, match=r"big\.npz: kernel 'base'"):
         load_kernels(tmp_path / "big.npz")
+    # and the other end: a model that predicts an almost black image cannot be inverted
+    at_least = kernels * np.float32(1.001 * MIN_KERNEL_GAIN / MAX_KERNEL_GAIN)
+    small = KernelModel(kernels=at_least, basis="si", channels=("L",))   # just above the limit
+    assert np.abs(small.kernels).sum() == pytest.approx(MIN_KERNEL_GAIN, rel=2e-3)
+    with pytest.raises(ModelFileError, match=r"the largest kernel sums to 9\.\d+e-13"):
+        KernelModel(kernels=at_least * np.float32(0.98), basis="si", channels=("L",))
 
 
 def test_predict_names_the_model_and_the_scenes_when_channels_differ():
@@ -306,10 +313,10 @@ def test_predict_names_the_model_and_the_scenes_when_channels_differ():
 
 def test_photons_below_one_electron_are_refused_by_the_spec_too():
     from ekdun.data.bench_spec import VirtualBenchSpec
-    from psfkit.errors import InvalidInputError
+    from ekdun.errors import ConfigurationError
 
-    with pytest.raises(InvalidInputError, match=r"photons \(--photons\) must be a number in "
-                                                r"\[1, "):
+    with pytest.raises(ConfigurationError, match=r"photons \(--photons\) must be a number in "
+                                                 r"\[1, "):
         VirtualBenchSpec(photons=1e-300)
     assert VirtualBenchSpec(photons=1.0).photons == 1.0
 
