@@ -114,8 +114,8 @@ def check_saturation_level(level: float | None, grid: PsfGrid,
     """Refuse a ``--saturation-level`` that the grid's sensor cannot clip at, naming the flag.
 
     A level above the largest value the images' integer type holds is never reached
-    (saturation would go undetected); one at or below the background (the manifest's
-    ``black_level``, else the dark frame's median, else the darkest pixel of the reference
+    (saturation would go undetected); one at or below the background (the dark frame's
+    median, else the manifest's ``black_level``, else the darkest pixel of the reference
     capture) would count every background pixel as saturated, and each PSF would then be
     blamed for it.
 

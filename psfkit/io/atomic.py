@@ -69,16 +69,17 @@ def protected_inputs(paths: Iterable[str | os.PathLike]) -> Iterator[None]:
         _INPUTS.reset(token)
 
 
-def _check_not_an_input(path: Path) -> None:
-    """Refuse an output that is an input, a folder holding one, or an existing file or folder
-    inside an input folder (a grid's ``manifest.json``); a new name inside is allowed."""
+def _check_not_an_input(path: Path, overwrite: bool) -> None:
+    """Refuse an output that is an input, a folder holding one, or (with ``overwrite``, which
+    would replace it) an existing file or folder inside an input folder (a grid's
+    ``manifest.json``); a new name inside is allowed."""
     if any(TEMP_TAG in part for part in path.parts):   # inside an output being written
         return
     target = path.resolve()
     for given, source in _INPUTS.get():
         if source == target or target in source.parents:
             relation = "is" if source == target else "holds"
-        elif source in target.parents and os.path.lexists(target):
+        elif overwrite and source in target.parents and os.path.lexists(target):
             relation = "is part of"
         else:
             continue
@@ -313,7 +314,7 @@ class OutputTransaction:
         if os.fspath(path) == "":   # Path("") is the current folder, never meant as an output
             raise InvalidInputError(f"an empty path was given for an output {kind}")
         path = Path(path)
-        _check_not_an_input(path)
+        _check_not_an_input(path, self.overwrite)
         if suffixes and path.suffix.lower() not in suffixes:
             raise InvalidInputError(f"{path}: output must end in {' or '.join(suffixes)}")
         if any(o.path.resolve() == path.resolve() for o in self._outputs):
