@@ -454,7 +454,8 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         if "warp" in steps and here != center:
             try:
                 warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain),
-                                                        valid, shift, options.flow_method)
+                                                        valid, shift, options.flow_method,
+                                                        str(grid.path(*here)))
             except InvalidInputError:   # too few PSF pixels for a dense flow (a compact PSF
                 pass                    # at the sensor's edge): no warp at this position
             else:
@@ -605,10 +606,14 @@ def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
 
 
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
-                   shift: tuple[float, float], method: str
+                   shift: tuple[float, float], method: str, where: str = "PSF"
                    ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
-    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures."""
-    warp = warp_field(ref_lum, al_lum, valid, method)
+    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures
+    (``where`` names the position's file in an error)."""
+    try:
+        warp = warp_field(ref_lum, al_lum, valid, method)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{where}: {exc}") from None
     # tangential = direction of the PSF's shift (radial on the sensor)
     azimuth = float(np.arctan2(shift[1], shift[0]))
     m = warp.mask

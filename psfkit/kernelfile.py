@@ -43,7 +43,9 @@ from psfkit.io.read_options import ReadOptions
 from psfkit.validation import (
     MAX_IMAGE_PIXELS,
     MAX_JSON_BYTES,
+    MAX_KERNEL_GAIN,
     MAX_SCENE_PADDING,
+    MIN_KERNEL_GAIN,
     bounded_size,
     check_array_shape,
     dumps_finite,
@@ -135,7 +137,8 @@ class KernelModel:
             Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
             than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
             convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels
-            that are all zero.
+            that are all zero, so large (``MAX_KERNEL_GAIN``) that a forward model
+            overflows, or so small (``MIN_KERNEL_GAIN``) that it cannot be inverted.
         """
         try:
             basis = get_basis(self.basis)
@@ -158,6 +161,19 @@ class KernelModel:
         if k.shape[1] != len(self.channels) or len(self.channels) not in (1, 3):
             raise ModelFileError(f"{where}: kernels have {k.shape[1]} channel(s) but channels "
                                  f"are {list(self.channels)}")
+        gain = np.abs(k).sum(axis=(2, 3), dtype=np.float64)   # (K, C)
+        if gain.max() > MAX_KERNEL_GAIN:
+            i, c = np.unravel_index(int(np.argmax(gain)), gain.shape)
+            raise ModelFileError(f"{where}: kernel {basis.kernel_names[i]!r} ({self.channels[c]}) "
+                                 f"sums to {gain[i, c]:.3g} in absolute value, more than the "
+                                 f"{MAX_KERNEL_GAIN:g} a forward model can apply in float32 "
+                                 "without overflowing (a PSF normalised to unit peak or sum is "
+                                 "far below)")
+        if gain.max() < MIN_KERNEL_GAIN:
+            raise ModelFileError(f"{where}: the largest kernel sums to {gain.max():.3g} in "
+                                 f"absolute value, less than {MIN_KERNEL_GAIN:g}: the model "
+                                 "predicts an almost black image and cannot be inverted in "
+                                 "float32 (a PSF normalised to unit peak or sum is far above)")
         if self.convention not in CONVENTIONS:
             raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
                                  f"{self.convention!r}")

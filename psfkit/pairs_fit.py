@@ -59,6 +59,7 @@ from psfkit.pairs_solver import (
     solve_kernels,
 )
 from psfkit.resample import bin_mean
+from psfkit.validation import MIN_PAIR_SIDE
 
 __all__ = ["KernelSpaceOperator", "PairFit", "PairFitOptions", "downsample_pairs",
            "fit_pairs", "leave_one_out", "predict", "relative_errors"]
@@ -98,22 +99,25 @@ class PairFit:
                            provenance=provenance or {}, read_options=read_options)
 
 
-def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
+                     where: str = "pairs") -> tuple[np.ndarray, np.ndarray]:
     """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements
-    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch."""
+    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch.
+
+    Pairs smaller than ``MIN_PAIR_SIDE`` px a side once binned are refused (``where`` names
+    them; with ``factor > 1`` the message names ``--downsample`` too).
+    """
+    h, w = scenes.shape[-2:]
+    if h // factor < MIN_PAIR_SIDE or w // factor < MIN_PAIR_SIDE:
+        binning = f" binned by --downsample {factor} to {h // factor}x{w // factor}" \
+            if factor > 1 else ""
+        raise InvalidInputError(f"{where}: {h}x{w} px pairs{binning} leave too few pixels "
+                                f"to fit or evaluate a model (at least {MIN_PAIR_SIDE}x"
+                                f"{MIN_PAIR_SIDE})")
     if factor == 1:
         return scenes, measurements
-
-    def binned(a: np.ndarray) -> np.ndarray:
-        h, w = a.shape[-2:]
-        hh, ww = h // factor, w // factor
-        if hh < 4 or ww < 4:
-            raise InvalidInputError(f"downsampling {h}x{w} pairs by {factor} leaves too few "
-                                    "pixels")
-        return bin_mean(a, factor).astype(np.float32)
-
-    return binned(scenes), binned(measurements)
+    return (bin_mean(scenes, factor).astype(np.float32),
+            bin_mean(measurements, factor).astype(np.float32))
 
 
 def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
@@ -285,16 +289,22 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
     return kernels, support, info
 
 
-def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32
-            ) -> np.ndarray:
-    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``."""
+def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,
+            *, model_name: str = "", scenes_name: str = "scenes") -> np.ndarray:
+    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``.
+
+    ``model_name`` (the kernel file) and ``scenes_name`` (where the scenes come from, e.g. the
+    pairs folder) name the two inputs when their sizes or channels disagree.
+    """
+    model_text = f"the model {model_name}" if model_name else "the model"
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
-        raise InvalidInputError(f"scenes are {scenes.shape[-2]}x{scenes.shape[-1]} but the "
-                                f"model's sensor is {model.sensor_shape[0]}x"
-                                f"{model.sensor_shape[1]}")
+        raise InvalidInputError(f"{scenes_name}: scenes are {scenes.shape[-2]}x"
+                                f"{scenes.shape[-1]} but {model_text} has a "
+                                f"{model.sensor_shape[0]}x{model.sensor_shape[1]} sensor")
     if scenes.shape[1] != len(model.channels):
-        raise InvalidInputError(f"scenes have {scenes.shape[1]} channel(s), the model "
-                                f"{len(model.channels)}")
+        raise InvalidInputError(f"{scenes_name}: scenes have {scenes.shape[1]} channel(s) but "
+                                f"{model_text} has {len(model.channels)} "
+                                f"({'/'.join(model.channels)})")
     grid = padded_shape(tuple(model.sensor_shape), model.scene_padding)
     with torch.no_grad():
         x = torch.as_tensor(scenes, dtype=dtype)

@@ -102,6 +102,78 @@ def saturation_level_for(grid: PsfGrid) -> float | None:
     return lsb_max * 2.0 ** (container_bits - grid.bit_depth)
 
 
+def clip_hint(natural: float | None) -> str:
+    """The advice of a refused ``--saturation-level``, with the level that the images' type
+    and ``bit_depth`` imply when there is one."""
+    return "give the raw value at which the sensor clips" + (
+        "" if natural is None else f" (the images' type and bit depth imply {natural:g})")
+
+
+def check_saturation_level(level: float | None, grid: PsfGrid,
+                           dark: np.ndarray | None) -> None:
+    """Refuse a ``--saturation-level`` that the grid's sensor cannot clip at, naming the flag.
+
+    A level above the largest value the images' integer type holds is never reached
+    (saturation would go undetected); one at or below the background (the dark frame's
+    median, else the manifest's ``black_level``, else the darkest pixel of the reference
+    capture) would count every background pixel as saturated, and each PSF would then be
+    blamed for it.
+
+    Raises
+    ------
+    ConfigurationError
+        The level is out of the images' range.
+    """
+    if level is None:
+        return
+    hint = clip_hint(saturation_level_for(grid))
+    if np.issubdtype(grid.dtype, np.integer) and level > np.iinfo(grid.dtype).max:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} exceeds {np.iinfo(grid.dtype).max}, the largest "
+            f"value the {grid.dtype} images of {grid.root} can hold: saturation would never "
+            f"be detected; {hint}")
+    if dark is not None:   # the dark frame wins over the black level, as in prepare_psf
+        background, what = float(np.median(dark)), f"the median of {grid.dark_file}"
+    elif grid.black_level is not None:
+        background, what = float(grid.black_level), f"the black_level of {grid.manifest_name}"
+    else:
+        centre = grid.require_center()
+        background = float(np.min(grid.load(*centre)))
+        what = f"the darkest pixel of {grid.position(*centre).file}"
+    if level <= background:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} is at or below the background of {grid.root} "
+            f"({background:g}, {what}): every pixel would count as saturated; {hint}")
+
+
+def check_background(grid: PsfGrid, dark: np.ndarray | None) -> None:
+    """Refuse a background (the dark frame, else the manifest's ``black_level``) at or above
+    the brightest pixel of the reference capture (unless that capture is blank): nothing would
+    remain of any PSF once it is subtracted, and each PSF would be blamed for having no signal.
+
+    Raises
+    ------
+    InvalidInputError
+        Names the dark frame or the manifest's ``black_level``.
+    """
+    if dark is None and grid.black_level is None:
+        return
+    centre = grid.require_center()
+    reference = grid.load(*centre)
+    brightest = float(np.max(reference))
+    if brightest == float(np.min(reference)):   # a blank capture: it is to blame, not the level
+        return
+    if dark is not None:
+        level, what = float(np.median(dark)), f"{grid.root / str(grid.dark_file)}: median"
+    else:
+        level, what = float(grid.black_level), f"{grid.root / grid.manifest_name}: black_level"
+    if level >= brightest:
+        raise InvalidInputError(
+            f"{what} {level:g} is at or above the brightest pixel of the reference capture "
+            f"{grid.position(*centre).file} ({brightest:g}): no PSF signal would remain after "
+            "subtracting it; give the sensor's dark level")
+
+
 def hot_pixel_mask(dark: np.ndarray, sigma: float = 8.0) -> np.ndarray:
     """``(H, W)`` mask of pixels that are outliers of the dark frame in any channel."""
     mask = np.zeros(dark.shape[1:], dtype=bool)
@@ -185,6 +257,10 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     PositionRejected
         NaN/Inf values, too much of the PSF saturated, or no point-source signal above the noise
         (an all-zero frame included); its ``reason`` says which.
+    ConfigurationError
+        ``options.saturation_level`` (``--saturation-level``) marks more pixels saturated than
+        the PSF has bright pixels: a sensor clips only where the PSF is brightest, so the
+        level, not the PSF, is wrong.
     """
     options = options or PreprocessOptions()
     if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):
@@ -214,6 +290,11 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
     n_saturated = int(saturated.sum())
     bright = int(np.count_nonzero(lum > 0.1 * peak)) or 1
     fraction = n_saturated / bright
+    if fraction > 1 and options.saturation_level is not None:
+        raise ConfigurationError(
+            f"--saturation-level {level:g} marks {n_saturated} pixels of {name} saturated, "
+            f"more than the {bright} bright pixels of its PSF (a sensor clips only where the "
+            f"PSF is brightest); {clip_hint(saturation_level)}")
     if fraction > options.max_saturated_fraction and not options.allow_saturated:
         raise PositionRejected(
             f"{name}: {n_saturated} saturated pixels ({100 * fraction:.1f}% of the bright PSF, "
@@ -237,6 +318,8 @@ class GridCalibration:
     @classmethod
     def from_grid(cls, grid: PsfGrid, options: PreprocessOptions) -> GridCalibration:
         dark = grid.load_dark()
+        check_background(grid, dark)                                   # before any PSF
+        check_saturation_level(options.saturation_level, grid, dark)
         hot = hot_pixel_mask(dark, options.hot_pixel_sigma) if dark is not None else None
         exposures = grid.exposures()
         centre = grid.require_center()
@@ -278,7 +361,8 @@ BACKGROUNDS = ("none", "corner")
 CORNER = (slice(5, 15), slice(5, 15))   # the DiffuserCam tutorial's dark patch, rows/cols 5..14
 
 
-def subtract_background(image: np.ndarray, background: str = "corner") -> np.ndarray:
+def subtract_background(image: np.ndarray, background: str = "corner",
+                        where: str = "image") -> np.ndarray:
     """``image`` ``(C, H, W)`` minus its background: ``"corner"`` subtracts each channel's mean
     over ``[5:15, 5:15]`` (as the DiffuserCam tutorial does for PSFs and raw captures),
     ``"none"`` returns it unchanged.
@@ -287,11 +371,19 @@ def subtract_background(image: np.ndarray, background: str = "corner") -> np.nda
     ------
     ConfigurationError
         Unknown ``background``.
+    InvalidInputError
+        ``"corner"`` on an image smaller than 15 × 15 px, which has no such corner
+        (``where`` names it): its mean would be NaN, and the image blamed for holding NaN.
     """
     if background not in BACKGROUNDS:
         raise ConfigurationError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     if background == "none":
         return image
+    h, w = image.shape[-2:]
+    if min(h, w) < CORNER[0].stop:
+        raise InvalidInputError(f"{where}: image of {h}x{w} px has no background corner (rows "
+                                f"and columns {CORNER[0].start}..{CORNER[0].stop - 1}); use "
+                                "--background none or a larger image")
     return image - image[(slice(None), *CORNER)].mean(axis=(1, 2), keepdims=True,
                                                        dtype=np.float64).astype(image.dtype)
 
@@ -323,7 +415,7 @@ def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 
     if min(image.shape[-2:]) // downsample < 1:
         raise InvalidInputError(f"{where}: binning {image.shape[-2]}x{image.shape[-1]} by "
                                 f"{downsample} leaves no pixel")
-    image = subtract_background(np.asarray(image, dtype=np.float64), background)
+    image = subtract_background(np.asarray(image, dtype=np.float64), background, where)
     if downsample > 1:
         image = bin_mean(image, downsample)
     psf = np.clip(image, 0, None)

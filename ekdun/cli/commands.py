@@ -258,7 +258,7 @@ def run_train(args: argparse.Namespace) -> int:
         notices += [n for n in [choose(args.channel_order, recorded.channel_order, "RGB",
                                        "--channel-order", str(source))[1]] if n]
         probe = read_pairs(root, args.channel_order, check_pixels=False, recorded=recorded)
-    factor = match_downsample(probe.shape[1:], seed, args.downsample,
+    factor = match_downsample(probe.shape, seed, args.downsample,
                               where=f"the pairs in {root}", model_name=str(source))
     dataset = PairsDataset(root, args.channel_order, holdout=args.holdout or (),
                            downsample=factor,

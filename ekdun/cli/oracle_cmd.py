@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ekdun.errors import InvalidInputError
+from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.validation import flag
 
@@ -68,7 +68,10 @@ def run_oracle(args: argparse.Namespace) -> int:
     if manifest is None or "spec" not in manifest:
         raise InvalidInputError(f"{args.data}: not a virtual-bench dataset (no manifest.json "
                                 "from ekdun make-dataset)")
-    spec = VirtualBenchSpec.from_dict(manifest["spec"])
+    try:
+        spec = VirtualBenchSpec.from_dict(manifest["spec"])
+    except (TypeError, ConfigurationError) as exc:   # an edited manifest: name it
+        raise InvalidInputError(f"{Path(args.data) / 'manifest.json'}: spec: {exc}") from None
     # an unknown basis is one line, before any work
     basis = get_basis(BASIS_ALIASES.get(args.basis, args.basis))
     if args.kind == "psf" and (args.start or args.oracle_scenes or args.no_convergence_check):

@@ -18,10 +18,11 @@ import numpy as np
 
 from ekdun.data.deadleaves import dead_leaves
 from ekdun.data.dense_model import DenseShiftVariantModel
-from ekdun.errors import ConfigurationError
+from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.bench import BenchConfig
 from psfkit.bench.camera import VirtualCamera, place_patch
 from psfkit.bench.simulate import grid_monitor_positions
+from psfkit.validation import flag_range
 
 TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camera", "coins",
                 "brick", "grass", "moon")
@@ -102,6 +103,10 @@ class VirtualBenchSpec:
             raise ConfigurationError("half_fov_deg must be in (0, 60)")
         if not 0 <= self.natural_fraction <= 1:
             raise ConfigurationError("natural_fraction must be in [0, 1]")
+        try:   # the range of --photons (one table)
+            flag_range("--photons").check(self.photons, "photons (--photons)")
+        except InvalidInputError as exc:
+            raise ConfigurationError(str(exc)) from None
         if isinstance(self.grid_frames, bool) or int(self.grid_frames) != self.grid_frames \
                 or self.grid_frames < 1:
             raise ConfigurationError(f"grid_frames must be an integer >= 1, got "

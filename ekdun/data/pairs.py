@@ -26,6 +26,7 @@ from psfkit.io.pairs import PairSet, read_pairs
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.resample import bin_mean
+from psfkit.validation import MIN_PAIR_SIDE
 
 
 def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
@@ -117,9 +118,11 @@ class PairsDataset(Dataset):
             raise InvalidInputError(f"downsample must be a positive integer, got {downsample}")
         self.downsample = int(downsample)
         _, h, w = self.pairs.shape
-        if h // self.downsample < 4 or w // self.downsample < 4:
-            raise InvalidInputError(f"{root}: binning {h}x{w} pairs by {self.downsample} "
-                                    "leaves too few pixels")
+        if h // self.downsample < MIN_PAIR_SIDE or w // self.downsample < MIN_PAIR_SIDE:
+            binning = (f" binned by --downsample {self.downsample} to {h // self.downsample}x"
+                       f"{w // self.downsample}" if self.downsample > 1 else "")
+            raise InvalidInputError(f"{root}: {h}x{w} px pairs{binning} leave too few pixels "
+                                    f"to train on (at least {MIN_PAIR_SIDE}x{MIN_PAIR_SIDE})")
         self._cache: tuple[np.ndarray, np.ndarray] | None = None
         if preload:
             pairs = [self._read(i) for i in self.indices]
@@ -168,15 +171,16 @@ class PairsDataset(Dataset):
         return torch.from_numpy(np.array(scene)), torch.from_numpy(np.array(measurement))
 
 
-def match_downsample(image_shape: tuple[int, int], model: KernelModel,
+def match_downsample(image_shape: tuple[int, ...], model: KernelModel,
                      requested: int | None = None, where: str = "the pairs",
                      model_name: str = "the kernel file") -> int:
     """The binning factor that brings images of ``image_shape`` onto ``model``'s sensor.
 
     Parameters
     ----------
-    image_shape : (int, int)
-        ``(H, W)`` of the images as stored (px).
+    image_shape : (int, int) or (int, int, int)
+        ``(H, W)`` of the images as stored (px), or ``(C, H, W)``: then the channels are
+        checked against the model's too (before a run folder is made, not in the first batch).
     model : KernelModel
         The seed kernels; their ``sensor_shape`` is the grid the network runs on.
     requested : int, optional
@@ -186,10 +190,14 @@ def match_downsample(image_shape: tuple[int, int], model: KernelModel,
     Raises
     ------
     InvalidInputError
-        The images, binned by the factor, are not the model's sensor size; the message says
-        which factor would fit.
+        The images, binned by the factor, are not the model's sensor size (the message says
+        which factor would fit), or have another number of channels.
     """
-    h, w = int(image_shape[0]), int(image_shape[1])
+    if len(image_shape) == 3 and int(image_shape[0]) != len(model.channels):
+        raise InvalidInputError(f"{where} have {int(image_shape[0])} channel(s) but the model "
+                                f"{model_name} has {len(model.channels)} "
+                                f"({'/'.join(model.channels)})")
+    h, w = int(image_shape[-2]), int(image_shape[-1])
     sensor = (int(model.sensor_shape[0]), int(model.sensor_shape[1]))
     fitted = model.data_read_options().downsample
     if requested is None:

@@ -230,8 +230,12 @@ def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RG
         raise ConfigurationError(f"--background must be none or corner, got {background!r}")
     if downsample < 1:
         raise ConfigurationError(f"--downsample must be >= 1, got {downsample}")
-    y = subtract_background(read_measurement(path, channel_order, white_level), background)
+    y = subtract_background(read_measurement(path, channel_order, white_level), background,
+                            str(path))
     if downsample > 1:
+        if min(y.shape[-2:]) // downsample < 1:   # blame the flag, not an empty image
+            raise InvalidInputError(f"--downsample {downsample}: {path} ({y.shape[-2]}x"
+                                    f"{y.shape[-1]}) would be binned to no pixel")
         y = bin_mean(y, downsample)
     return np.ascontiguousarray(y, dtype=np.float32)
 

@@ -17,14 +17,45 @@ from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
 from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
+from psfkit.io.atomic import protected_inputs
 from psfkit.io.temps import public_name
 from psfkit.validation import OneLineArgumentParser, escape_line
 
 
-def _debug_requested(prog: str, argv: Sequence[str] | None) -> bool:
+def split_debug(prog: str, argv: Sequence[str] | None) -> tuple[bool, list[str]]:
+    """Whether ``--debug`` was asked for, and the arguments without it.
+
+    ``--debug`` is taken anywhere before a ``--`` separator, before or after the
+    sub-command (``psfkit report GRID --debug``), as the error lines' hint "run with --debug"
+    promises; also ``PSFKIT_DEBUG=1`` (``EKDUN_DEBUG=1``). One mechanism for both CLIs: the
+    runner, not each sub-parser, owns the flag.
+    """
     args = sys.argv[1:] if argv is None else list(argv)
+    end = args.index("--") if "--" in args else len(args)
+    kept = [a for a in args[:end] if a != "--debug"] + args[end:]
     env = os.environ.get(f"{prog.upper()}_DEBUG", "") or os.environ.get("PSFKIT_DEBUG", "")
-    return "--debug" in args or env not in ("", "0")
+    return len(kept) < len(args) or env not in ("", "0"), kept
+
+
+def close_progress_bars() -> None:
+    """Close every progress bar still open (tqdm keeps them in class-level sets).
+
+    A command that fails or is interrupted unwinds past its bars; left open, each is drawn a
+    last time when the garbage collector or tqdm's monitor thread gets to it, after the
+    command's final line (``interrupted (SIGTERM)``, the error), which then is not the last
+    line on stderr. Closed here, before that line is printed, for every command.
+    """
+    std = sys.modules.get("tqdm.std")
+    if std is None:   # no bar was ever made
+        return
+    classes, bars = [std.tqdm], []
+    while classes:    # tqdm.auto's class and others keep their own set of instances
+        cls = classes.pop()
+        classes += cls.__subclasses__()
+        bars += list(cls.__dict__.get("_instances", ()))
+    for bar in bars:
+        with contextlib.suppress(Exception):   # a bar that cannot draw any more is closed
+            bar.close()
 
 
 def _first_line(exc: BaseException) -> str:
@@ -72,6 +103,32 @@ def _error_line(prog: str, exc: BaseException) -> tuple[str, int]:
     return (f"{prog}: internal error ({type(exc).__name__}: {_first_line(exc)[:200]}); this is "
             f"a bug, please report it with the command line (--debug or "
             f"{prog.upper()}_DEBUG=1 prints the traceback)"), 1
+
+
+#: Destinations of the free-text arguments that name a command's outputs; every other
+#: free-text argument (a grid, pairs, kernel file, checkpoint, measurement...) is an input
+#: that no output may replace (:func:`psfkit.io.atomic.protected_inputs`).
+OUTPUT_ARGUMENTS = frozenset({"out", "figures", "report", "run_dir"})
+
+
+def input_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[str]:
+    """The values of ``args`` given to free-text arguments (no ``type=``, no choices: paths
+    and names) other than :data:`OUTPUT_ARGUMENTS`, of ``parser`` and its sub-commands."""
+    dests: set[str] = set()
+    parsers = [parser]
+    while parsers:
+        p = parsers.pop()
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers += list(action.choices.values())
+            elif action.type is None and not action.choices and action.nargs != 0:
+                dests.add(action.dest)
+    values: list[str] = []
+    for dest in sorted(dests - OUTPUT_ARGUMENTS):
+        value = getattr(args, dest, None)
+        values += [value] if isinstance(value, str) else [
+            v for v in (value if isinstance(value, list) else ()) if isinstance(v, str)]
+    return values
 
 
 class Terminated(KeyboardInterrupt):
@@ -152,11 +209,13 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     an unexpected internal error with status 1 and a request to report it. Warnings and
     library logging are collected, not printed (:func:`quiet_libraries`). Ctrl-C gives
     status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
-    have been removed. ``--debug`` (or ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``) shows the full
-    traceback instead. Outputs are written through
+    have been removed; open progress bars are closed first, so that the line saying so is the
+    last on stderr. A closed stdout (``| head``) ends the command quietly with status 141
+    (128 + SIGPIPE). ``--debug`` anywhere on the command line (or ``PSFKIT_DEBUG=1`` /
+    ``EKDUN_DEBUG=1``) shows the full traceback instead. Outputs are written through
     :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves no partial files.
     """
-    debug = _debug_requested(prog, argv)
+    debug, argv = split_debug(prog, argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage errors (one line, status 2) and --help / --version
@@ -166,7 +225,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
         return 2
     reuse_freed_memory()         # fewer page faults in the full-resolution passes
     try:
-        with terminate_like_interrupt(), \
+        with terminate_like_interrupt(), protected_inputs(input_paths(parser, args)), \
                 (contextlib.nullcontext() if debug else quiet_libraries()):
             status = int(args.func(args) or 0)
         # after the work, so that an error stays the one line on stderr
@@ -174,6 +233,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
             print(line, file=sys.stderr)
         return status
     except KeyboardInterrupt as exc:
+        close_progress_bars()   # the line below is the last one on stderr
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "
               "removed", file=sys.stderr)
@@ -181,15 +241,40 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     except Exception as exc:
         if debug:
             raise
+        if isinstance(exc, BrokenPipeError) and _stdout_closed():
+            # the reader of stdout went away (``psfkit register GRID | head -1``): stop
+            # quietly, as Unix tools do on SIGPIPE; outputs are committed before the summary
+            return 128 + signal.SIGPIPE
+        close_progress_bars()
         line, status = error_line(prog, exc)
         print(line, file=sys.stderr)
         return status
 
 
+def _stdout_closed() -> bool:
+    """Whether stdout is a pipe whose reader has gone (the broken pipe was stdout's, not a
+    worker's); then stdout is pointed at /dev/null, so that Python's last flush does not
+    complain on stderr."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        closed = any(events & select.POLLERR for _, events in poller.poll(0))
+        if closed:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return closed
+    except (OSError, ValueError, AttributeError):   # no real file descriptor (captured)
+        return False
+
+
 def add_debug_option(parser: argparse.ArgumentParser) -> None:
-    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``)."""
+    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``). Listed in
+    the top-level help; :func:`run_cli` takes it anywhere on the command line."""
     parser.add_argument("--debug", action="store_true",
-                        help="show the full traceback of an error")
+                        help="show the full traceback of an error (before or after the "
+                             "command)")
 
 
 def build_parser() -> argparse.ArgumentParser:

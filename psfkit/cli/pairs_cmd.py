@@ -118,13 +118,25 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
     """An all-zero scene or measurement carries no information and makes the per-pair scale
-    0/0: name the file instead of reporting NaN kernels or errors later."""
+    0/0: name the file instead of reporting NaN kernels or errors later. Measurements whose
+    light is out of all proportion to their scenes' would need kernels no kernel file may hold
+    (``MIN_KERNEL_GAIN`` … ``MAX_KERNEL_GAIN``): the folder is named, not the model."""
+    from psfkit.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
+
     for stack, folder, files in ((scenes, pairs.scene_dir, pairs.scene_files),
                                  (measurements, pairs.measurement_dir, pairs.measurement_files)):
         blank = [i for i in range(len(stack)) if not np.any(stack[i])]
         if blank:
             raise InvalidInputError(f"{pairs.root / folder / files[blank[0]]}: all-zero image "
                                     "(nothing to fit or predict)")
+    # a PSF's kernels sum to about the light a measurement holds per unit of scene light
+    ratio = float(np.abs(measurements).sum(dtype=np.float64)
+                  / np.abs(scenes).sum(dtype=np.float64))
+    if not MIN_KERNEL_GAIN <= ratio <= MAX_KERNEL_GAIN:
+        raise InvalidInputError(f"{pairs.root}: the measurements hold {ratio:.3g} times the "
+                                "light of their scenes, beyond what kernels may sum to "
+                                f"({MIN_KERNEL_GAIN:g} to {MAX_KERNEL_GAIN:g}); check the "
+                                "units of the files (full scale is 1)")
 
 
 def _load(folder: str, factor: int, channel_order: str | None = None,
@@ -137,7 +149,7 @@ def _load(folder: str, factor: int, channel_order: str | None = None,
     pairs = read_pairs(folder, channel_order, check_pixels=False, recorded=recorded)
     scenes, measurements = pairs.load_all()
     _refuse_blank(pairs, scenes, measurements)
-    scenes, measurements = downsample_pairs(scenes, measurements, factor)
+    scenes, measurements = downsample_pairs(scenes, measurements, factor, str(folder))
     return pairs, scenes, measurements
 
 
@@ -291,7 +303,8 @@ def _evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], list[str]]:
             f"{args.pairs}: pairs are {scenes.shape[-2]}x{scenes.shape[-1]} (after "
             f"--downsample {factor}) but the model {args.model} has a "
             f"{model.sensor_shape[0]}x{model.sensor_shape[1]} sensor")
-    errors = relative_errors(predict(model, scenes), measurements)
+    errors = relative_errors(predict(model, scenes, model_name=str(args.model),
+                                     scenes_name=str(pairs.root)), measurements)
     result = {"model": str(args.model), "pairs": str(pairs.root), "downsample": factor,
               "basis": model.basis, "convention": model.convention,
               "per_pair": {name: {"raw": float(errors["raw"][i]),

@@ -30,14 +30,16 @@ import ctypes
 import errno
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 from psfkit.errors import InvalidInputError
 from psfkit.io.temps import TEMP_TAG, clean_once, owner, remove_path, remove_stale_temps
 
 __all__ = ["TEMP_TAG", "OutputExistsError", "OutputTransaction", "atomic_directory",
-           "atomic_file", "check_output", "remove_stale_temps", "rename_noreplace"]
+           "atomic_file", "check_output", "protected_inputs", "remove_stale_temps",
+           "rename_noreplace"]
 
 _RENAME_NOREPLACE = 1
 _AT_FDCWD = -100
@@ -45,6 +47,45 @@ _AT_FDCWD = -100
 
 class OutputExistsError(InvalidInputError):
     """An output exists and would be replaced without ``--overwrite``."""
+
+
+#: The inputs of the running command, as ``(given, resolved)`` paths (see
+#: :func:`protected_inputs`).
+_INPUTS: ContextVar[tuple[tuple[str, Path], ...]] = ContextVar("psfkit_inputs", default=())
+
+
+@contextlib.contextmanager
+def protected_inputs(paths: Iterable[str | os.PathLike]) -> Iterator[None]:
+    """Within the block no output may be one of ``paths`` (those that exist), a folder
+    holding one, or an existing path inside one, even with ``overwrite``: ``psfkit report GRID
+    --out GRID --overwrite`` would replace the measured grid by its report, ``register --out
+    GRID/manifest.json --overwrite`` its manifest. The command runner declares every path
+    argument that is not an output (:func:`psfkit.cli.main.run_cli`)."""
+    given = [os.fspath(p) for p in paths]
+    token = _INPUTS.set(tuple((p, Path(p).resolve()) for p in given if p and os.path.lexists(p)))
+    try:
+        yield
+    finally:
+        _INPUTS.reset(token)
+
+
+def _check_not_an_input(path: Path, overwrite: bool) -> None:
+    """Refuse an output that is an input, a folder holding one, or (with ``overwrite``, which
+    would replace it) an existing file or folder inside an input folder (a grid's
+    ``manifest.json``); a new name inside is allowed."""
+    if any(TEMP_TAG in part for part in path.parts):   # inside an output being written
+        return
+    target = path.resolve()
+    for given, source in _INPUTS.get():
+        if source == target or target in source.parents:
+            relation = "is" if source == target else "holds"
+        elif overwrite and source in target.parents and os.path.lexists(target):
+            relation = "is part of"
+        else:
+            continue
+        raise InvalidInputError(f"{path}: {relation} the input {given}; an output never "
+                                "replaces an input, even with --overwrite (choose another "
+                                "path)")
 
 
 def _read_umask() -> int:
@@ -270,7 +311,10 @@ class OutputTransaction:
         self._outputs: list[_Output] = []
 
     def _declare(self, path: str | os.PathLike, kind: str, suffixes: tuple[str, ...]) -> Path:
+        if os.fspath(path) == "":   # Path("") is the current folder, never meant as an output
+            raise InvalidInputError(f"an empty path was given for an output {kind}")
         path = Path(path)
+        _check_not_an_input(path, self.overwrite)
         if suffixes and path.suffix.lower() not in suffixes:
             raise InvalidInputError(f"{path}: output must end in {' or '.join(suffixes)}")
         if any(o.path.resolve() == path.resolve() for o in self._outputs):

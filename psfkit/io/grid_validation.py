@@ -29,6 +29,7 @@ from psfkit.io.manifest import (
 )
 from psfkit.validation import (
     MAX_GRID_CELLS,
+    MIN_PSF_SIDE,
     finite_number,
     format_bytes,
     machine_memory_bytes,
@@ -122,6 +123,16 @@ def pixel_problem(path: Path, image: np.ndarray) -> str | None:
 def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
     c, h, w = shape
     return f"{h}×{w}×{c} {dtype}"
+
+
+def _check_frame_size(path: Path, shape: tuple[int, ...]) -> None:
+    """Refuse a frame too small to hold a PSF with background around it (every frame of a
+    grid has the first one's shape, so the first is checked; see ``MIN_PSF_SIDE``)."""
+    h, w = shape[-2:]
+    if min(h, w) < MIN_PSF_SIDE:
+        raise GridFormatError(f"{path}: image of {h}×{w} px is too small to hold a PSF; "
+                              f"registration needs at least {MIN_PSF_SIDE}×{MIN_PSF_SIDE} px "
+                              "(the PSF and background around it)")
 
 
 def read_grid(root: str | os.PathLike, check_pixels: bool = True,
@@ -256,6 +267,7 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         else:
             shape, dtype = _peek(path, channel_order)
         if ref_shape is None:
+            _check_frame_size(path, shape)
             ref_shape, ref_dtype, ref_file = shape, dtype, name  # type: ignore[assignment]
         elif shape != ref_shape or dtype != ref_dtype:
             what = "shape" if shape != ref_shape else "pixel type"

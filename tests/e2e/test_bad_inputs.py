@@ -19,7 +19,8 @@ Classes of issue 21 (each fixed at one root): 8 sizes declared by headers (bombs
 sparse files that declare gigabytes), 9 numeric flags outside their range (one table,
 ``psfkit.validation.FLAGS``), 10 library warnings and logging, 11 control characters in
 names, 12 non-finite or empty results, 13 paths outside their folder, 14 a run folder holding
-foreign files.
+foreign files. Class 15 (issue 43): empty paths, frames too small to hold a PSF, and messages
+that blamed the wrong thing (a flag or input file named instead of the output it spoiled).
 
 A case with ``bomb=True`` also runs under :data:`PEAK_WRAPPER`, a fresh Python process that
 reports the peak resident memory of the command (its only child), which must stay under
@@ -478,6 +479,39 @@ def _newline_named_scene(pairs: Path) -> None:
 TRAIN = ("train", "{pairs}", "{work}/run", "--kernels", "{kernels}", "--quiet", "--epochs", "1")
 
 
+# issue 43 ------------------------------------------------------------------------------
+
+
+def _crop_frames(side: int) -> Callable[[Path], Any]:
+    """``prepare`` for grid cases: every frame (PSFs and dark) cut to ``side`` × ``side`` px
+    around the centre PSF's peak."""
+    def prepare(grid: Path) -> None:
+        import tifffile
+
+        peak = np.unravel_index(np.argmax(tifffile.imread(grid / "psf_r01_c01.tiff")[..., 1]),
+                                (135, 180))
+        top, left = (max(0, min(int(p) - side // 2, n - side)) for p, n in zip(peak, (135, 180),
+                                                                            strict=True))
+        for f in grid.glob("*.tiff"):
+            _write_tiff(f, tifffile.imread(f)[top:top + side, left:left + side])
+    return prepare
+
+
+def _one_channel_kernels(work: Path, fx: Fixtures) -> list[str]:
+    """``eval-model`` of a 1-channel (mono) kernel file on the RGB pairs."""
+    from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+
+    rgb = load_kernels(fx.kernels)
+    save_kernels(work / "mono.npz", KernelModel(kernels=rgb.kernels[:, :1], basis=rgb.basis,
+                                                channels=("L",), sensor_shape=rgb.sensor_shape))
+    return ["eval-model", str(work / "mono.npz"), str(fx.pairs), "--out", str(work / "e.json")]
+
+
+def _huge_kernel(k: np.ndarray) -> np.ndarray:
+    """Finite values whose forward model overflows float32 (the sweep's "huge finite")."""
+    return (k * np.float32(1e30)).astype(np.float32)
+
+
 # --------------------------------------------------------------------------- the table
 
 CASES: list[Case] = [
@@ -808,10 +842,10 @@ CASES: list[Case] = [
          lambda work, fx: ["info", str(work / "no\nsuch grid")], "no\\nsuch grid", 11),
 
     # ---- class 12: results checked finite (and not empty) before they are committed ----
-    Case("make-dataset-photons-1e-300", "ekdun",
+    Case("make-dataset-photons-1e-300", "ekdun",   # issue 43: the flag, not the output
          ekdun_case("make-dataset", "{work}/ds", "--photons", "1e-300", "--sensor", "16", "16",
                     "--grid", "3", "3", "--n-train", "1", "--n-test", "1", "--quiet"),
-         "measurement", 12, absent="psfkit-tmp"),
+         "--photons", 12, absent="measurement"),
     Case("fit-pairs-support-mask-all-zero", "psfkit",
          pairs_case(_save_array("mask.npy", np.zeros((16, 16), np.float32)), "fit-pairs",
                     "--support-mask", "{work}/mask.npy"), "mask.npy", 12),
@@ -849,6 +883,83 @@ CASES: list[Case] = [
     Case("fit-pairs-support-threshold-names-the-flag", "psfkit",
          pairs_case(None, "fit-pairs", "--support-threshold", "1"), "--support-threshold", 7,
          absent="support_threshold"),
+    # ---- class 15 (issue 43): the last hostile inputs, each blamed on its cause ----------
+    Case("register-out-empty", "psfkit",
+         lambda work, fx: ["register", str(fx.grid), "--out", "", "--quiet"], "--out", 15),
+    Case("fit-eigen-out-empty", "psfkit",
+         lambda work, fx: ["fit-eigen", str(fx.grid), "--out=", "--quiet"], "--out", 15),
+    Case("admm-out-empty", "ekdun",
+         ekdun_case("admm", "{psf}", "{meas}", "--out", ""), "--out", 15),
+    Case("make-dataset-folder-empty", "ekdun", ekdun_case("make-dataset", "", "--quiet"),
+         "argument out", 15),
+    Case("grid-of-1x1-frames-info", "psfkit", grid_case(prepare=_crop_frames(1)),
+         "psf_r00_c00.tiff", 15),
+    Case("grid-of-1x1-frames-register", "psfkit",
+         grid_case(command="register", prepare=_crop_frames(1)), "psf_r00_c00.tiff", 15),
+    Case("grid-of-11x11-frames-report", "psfkit",
+         grid_case("--out", "{work}/rep", command="report", prepare=_crop_frames(11)),
+         "too small to hold a PSF", 15),
+    Case("eval-model-mono-kernels-rgb-pairs", "psfkit", _one_channel_kernels, "mono.npz", 15),
+    Case("saturation-level-1e-300", "psfkit",
+         grid_case("--saturation-level", "1e-300", command="register"), "--saturation-level",
+         15, absent="% of the bright PSF"),
+    Case("saturation-level-inside-the-psf", "psfkit",   # 12-bit data stored MSB-aligned
+         grid_case("--saturation-level", "4095", command="mae"), "--saturation-level", 15,
+         absent="% of the bright PSF"),
+    Case("saturation-level-beyond-the-dtype", "psfkit",
+         grid_case("--saturation-level", "70000", "--out", "{work}/k.npz",
+                   command="fit-eigen"), "--saturation-level", 15),
+    Case("make-dataset-photons-below-one", "ekdun",
+         ekdun_case("make-dataset", "{work}/ds", "--photons", "0.5", "--quiet"), "--photons",
+         15),
+    Case("eval-model-kernels-huge-finite", "psfkit", kernel_case(kernels=_huge_kernel),
+         "k.npz", 15, absent="errors.json"),
+    Case("admm-kernels-huge-finite", "ekdun", admm_kernels_case(kernels=_huge_kernel),
+         "k.npz", 15, absent="x.npy"),
+    # found by the sweep around them
+    Case("report-over-its-own-grid", "psfkit",
+         grid_case("--out", "{work}/grid", "--overwrite", command="report"),
+         "is the input", 15),
+    Case("report-over-the-folder-of-its-grid", "psfkit",
+         grid_case("--out", "{work}", "--overwrite", command="report"), "holds the input", 15),
+    Case("register-over-the-grids-manifest", "psfkit",
+         grid_case("--out", "{work}/grid/manifest.json", "--overwrite", command="register"),
+         "is part of the input", 15),
+    Case("admm-over-its-measurement", "ekdun",
+         ekdun_case("admm", "{psf}", "{meas}", "--out", "{meas}", "--overwrite"),
+         "is the input", 15),
+    Case("train-mono-kernels-rgb-pairs", "ekdun",
+         lambda work, fx: (_one_channel_kernels(work, fx),
+                           ["train", str(fx.pairs), str(work / "run"), "--kernels",
+                            str(work / "mono.npz"), "--quiet", "--epochs", "1"])[-1],
+         "mono.npz", 15),
+    Case("admm-corner-background-of-a-tiny-measurement", "ekdun",
+         lambda work, fx: (_tiny_admm_inputs(work),
+                           np.save(work / "meas.npy", np.ones((8, 8), np.float32)),
+                           ["admm", str(work / "psf.npy"), str(work / "meas.npy"), "--out",
+                            str(work / "x.npy"), "--background", "corner"])[-1],
+         "meas.npy: image of 8x8 px has no background corner", 15),
+    Case("fit-pairs-of-2x2-images", "psfkit",
+         pairs_case(lambda p: [np.save(f, np.load(f)[:2, :2]) for f in p.rglob("*.npy")],
+                    "fit-pairs"), "2x2 px pairs", 15, absent="kernel model"),
+    Case("fit-pairs-downsample-to-2x2", "psfkit",
+         pairs_case(None, "fit-pairs", "--downsample", "8"), "--downsample 8", 15),
+    Case("black-level-above-the-signal", "psfkit",
+         grid_case(command="register", prepare=lambda g: (
+             _edit_manifest(g, lambda d: (d.pop("dark_frame"), d.update(black_level=65000))),
+             (g / "dark.tiff").unlink())), "black_level 65000", 15, absent="no point-source"),
+    Case("admm-kernels-tiny-finite", "ekdun",
+         admm_kernels_case(kernels=lambda k: (k * np.float32(1e-30)).astype(np.float32)),
+         "k.npz", 15, absent="x.npy"),
+    Case("fit-pairs-scenes-1e30", "psfkit",
+         pairs_case(lambda p: [np.save(f, np.load(f) * np.float32(1e30))
+                               for f in (p / "scene").glob("*.npy")], "fit-pairs"),
+         "times the light of their scenes", 15, absent="kernel model"),
+    Case("train-kernels-huge-finite", "ekdun",
+         lambda work, fx: (_rewrite_kernels(fx.kernels, work / "k.npz", kernels=_huge_kernel),
+                           ["train", str(fx.pairs), str(work / "run"), "--kernels",
+                            str(work / "k.npz"), "--quiet", "--epochs", "1"])[-1],
+         "k.npz", 15),
 ]
 
 
@@ -919,7 +1030,7 @@ def test_table_is_large_and_covers_every_class():
     assert len(CASES) >= 60
     assert len({c.id for c in CASES}) == len(CASES)
     # class 6 (leftovers after a kill) is tested by tests/e2e/test_output_policy.py
-    assert {c.cls for c in CASES} == {1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 12, 13, 14}
+    assert {c.cls for c in CASES} == {1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 12, 13, 14, 15}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])

@@ -59,8 +59,8 @@ def test_declared_lattices_are_bounded(tmp_path, scan_300):
     doc = json.loads((scan_300 / "manifest.json").read_text())
     folder = tmp_path / "lattice"
     folder.mkdir()
-    image = np.zeros((8, 8), np.uint16)
-    image[3:5, 3:5] = 4000
+    image = np.zeros((12, 12), np.uint16)          # the smallest PSF frame
+    image[5:7, 5:7] = 4000
     np.save(folder / "a.npy", image)
     manifest = {"format": "psfkit-grid", "version": 1, "grid_shape": [5000, 5000],
                 "positions": [{"file": "a.npy", "row": 0, "col": 0}]}

@@ -59,8 +59,8 @@ def test_saturation_level_from_bit_depth(tmp_path):
     for stored_max, bit_depth, expected in [(4095, 12, 4095.0), (65520, 12, 65520.0)]:
         out = tmp_path / f"g{stored_max}"
         with GridWriter(out, (1, 1), bit_depth=bit_depth) as w:
-            image = np.full((1, 8, 8), 10, np.uint16)
-            image[0, 4, 4] = stored_max
+            image = np.full((1, 12, 12), 10, np.uint16)   # the smallest PSF frame
+            image[0, 6, 6] = stored_max
             w.add(0, 0, image)
         assert saturation_level_for(read_grid(out)) == expected
 
