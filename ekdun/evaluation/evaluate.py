@@ -48,7 +48,8 @@ class ZoneScores:
     A zone's PSNR is that of the mean squared error over its pixels (every channel); its SSIM
     the mean of the SSIM map (:func:`~ekdun.evaluation.metrics.ssim_map`) over the zone's
     pixels of the map's valid region (each map pixel belongs to the zone of the image pixel
-    its window is centred on).
+    its window is centred on); ``None`` for a zone with no pixel there (images so small that
+    the 11 × 11 window fits only in the centre zone).
     """
 
     def __init__(self, shape: tuple[int, int],
@@ -67,13 +68,17 @@ class ZoneScores:
         for name in ZONE_NAMES:
             self.psnr[name].append(float(psnr(output, target,
                                               mask=self.masks[name].to(output.device))[0]))
-            self.ssim[name].append(float(local[:, self.inner[name].to(local.device)].mean()))
+            if self.inner[name].any():
+                self.ssim[name].append(float(local[:, self.inner[name].to(local.device)]
+                                             .mean()))
 
     def summary(self) -> dict[str, Any]:
-        """``{zone: {psnr, ssim, psnr_per_pair, ssim_per_pair}}`` (means over images)."""
+        """``{zone: {psnr, ssim, psnr_per_pair, ssim_per_pair}}`` (means over images; the
+        SSIM entries ``None`` where the zone has no pixel in the SSIM map's valid region)."""
         return {name: {"psnr": statistics.fmean(self.psnr[name]),
-                       "ssim": statistics.fmean(self.ssim[name]),
-                       "psnr_per_pair": self.psnr[name], "ssim_per_pair": self.ssim[name]}
+                       "ssim": statistics.fmean(self.ssim[name]) if self.ssim[name] else None,
+                       "psnr_per_pair": self.psnr[name],
+                       "ssim_per_pair": self.ssim[name] or None}
                 for name in ZONE_NAMES}
 
 

@@ -76,14 +76,12 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int
 ZONE_COLUMNS = [("psnr_by_zone", "PSNR centre / middle / edge (dB)", -1),
                 ("ssim_by_zone", "SSIM centre / middle / edge", -1)]
 TABLE1_COLUMNS = [("label", "Method", -1), ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4),
-                  *ZONE_COLUMNS,
                   ("lpips", "LPIPS", 4), ("parameters", "Parameters", 0),
                   ("runtime_ms_median", "Runtime / image (ms, median)", 1),
-                  ("peak_memory_mib", "Peak memory (MiB)", 1)]
+                  ("peak_memory_mib", "Peak memory (MiB)", 1), *ZONE_COLUMNS]
 TABLE2_COLUMNS = [("label", "Eigen-kernel model in", -1), ("seed", "Training seed", 0),
-                  ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4), *ZONE_COLUMNS,
-                  ("lpips", "LPIPS", 4),
-                  ("runtime_ms_median", "Inference / image (ms, median)", 2)]
+                  ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4), ("lpips", "LPIPS", 4),
+                  ("runtime_ms_median", "Inference / image (ms, median)", 2), *ZONE_COLUMNS]
 SUMMARY_COLUMNS = [("label", "Eigen-kernel model in", -1),
                    ("psnr_text", "PSNR (dB), mean ± sd", -1), ("ssim_mean", "SSIM", 4),
                    ("delta_text", "Δ PSNR to base only, paired by seed (dB)", -1),

@@ -104,9 +104,8 @@ def test_by_zone_errors_match_a_hand_computation(edge_case, tmp_path, capsys):
 
 def _overlapping_texts(fig) -> list[tuple[str, str]]:
     """Pairs of visible, non-empty texts of a rendered figure whose boxes overlap."""
-    from matplotlib.text import Text
-
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
 
     renderer = FigureCanvasAgg(fig).get_renderer()
     fig.draw(renderer)
