@@ -305,6 +305,9 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
                     "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)
         if log is not None:
-            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f} ({note})")
+            zones = row["by_zone"] or {}
+            by_zone = " / ".join(f"{zones[z]['psnr']:.2f}" for z in ZONE_NAMES if z in zones)
+            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB (centre / middle / edge "
+                f"{by_zone}), SSIM {row['ssim']:.4f} ({note})")
     return results
 

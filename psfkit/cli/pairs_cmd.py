@@ -297,7 +297,7 @@ def run_eval_model(args: argparse.Namespace) -> int:
             files = (outputs.file(out), outputs.file(f"{stem}_residual.npz"),
                      outputs.file(f"{stem}_residual.png"))
         results, maps, zones, notices = _evaluate_all(args)
-        document = _document(results, out)
+        document = _document(results)
         if files is not None:
             _write_eval(files, document, maps, zones, results, args.out)
     for result in results:
@@ -310,13 +310,8 @@ def run_eval_model(args: argparse.Namespace) -> int:
     return 0
 
 
-def _document(results: list[dict[str, Any]], out: Path | None) -> dict[str, Any]:
+def _document(results: list[dict[str, Any]]) -> dict[str, Any]:
     """The ``--out`` JSON: one model's result as it is, several as ``{"models": [...]}``."""
-    if out is not None:
-        stem = out.with_suffix("").name
-        for result in results:
-            result["residual_map"]["file"] = f"{stem}_residual.npz"
-            result["residual_map"]["figure"] = f"{stem}_residual.png"
     if len(results) == 1:
         return results[0]
     return {"pairs": results[0]["pairs"], "models": results}
@@ -450,7 +445,7 @@ def _evaluate(path: str, model: Any, pairs: Any, scenes: np.ndarray,
               "held_out": group(HELD_OUT), "fitted": group("fitted"),
               "zones": zones.describe(),
               "residual_map": {"pairs": [n for n, k in zip(pairs.names, on, strict=True) if k],
-                               "label": label, "max": float(residual.max()),
+                               "label": label,
                                # the map's RMS in each zone: where the residual is, in the
                                # units of the map (not relative to each zone's own signal)
                                "by_zone": {z: float(np.sqrt(np.mean(
