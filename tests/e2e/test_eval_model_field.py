@@ -208,3 +208,25 @@ def test_fit_pairs_holdout_of_every_pair_or_an_unknown_one_is_one_line(edge_case
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and words in err
         assert not (tmp_path / "k.npz").exists()
+
+
+def test_learned_kernels_record_their_training_pairs_for_eval_model(tiny_data, tmp_path,
+                                                                   capsys):
+    from ekdun.cli import main as ekdun_main
+    from ekdun.data.pairs import PairsDataset
+    from ekdun.training import TrainOptions, train
+
+    pairs, kernels = tiny_data
+    run = tmp_path / "run"
+    train(run, "ekdun", kernels, PairsDataset(pairs, holdout=("im6", "im7")), "tiny",
+          {"iterations": 2, "prior": {"widths": [4, 8]}},
+          TrainOptions(epochs=1, batch_size=4, progress=False, threads=1))
+    learned = tmp_path / "learned.npz"
+    assert ekdun_main(["export-kernels", str(run / "checkpoint.pt"), "--out",
+                       str(learned)]) == 0
+    record = load_kernels(learned).provenance
+    assert record["holdout"] == ["im6", "im7"] and len(record["names"]) == 6
+    out = tmp_path / "e.json"
+    assert main(["eval-model", str(learned), str(pairs), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["held_out"]["pairs"] == ["im6", "im7"] and doc["fitted"]["pairs_count"] == 6
