@@ -59,8 +59,8 @@ def zone_errors(prediction: np.ndarray, measurements: np.ndarray, zones: FieldZo
     -------
     dict
         ``raw`` and ``scaled``, each ``(N, 3)`` in :data:`psfkit.zones.ZONE_NAMES` order:
-        ``‖(y − s p)_z‖ / ‖y_z‖`` with ``s = 1`` and with ``s = scale``; NaN for a zone where
-        the measurement is zero.
+        ``‖(y − s p)_z‖ / ‖y_z‖`` with ``s = 1`` and with ``s = scale``; not finite (inf or
+        NaN) for a zone where the measurement is zero (``eval-model`` reports ``null``).
     """
     if prediction.shape != measurements.shape or prediction.shape[-2:] != zones.shape:
         raise InvalidInputError(f"predictions {prediction.shape}, measurements "

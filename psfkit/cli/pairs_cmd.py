@@ -343,7 +343,8 @@ def _print_eval(result: dict[str, Any]) -> None:
           f"{'centre':>7s} {'middle':>7s} {'edge':>7s}")
 
     def row(label: str, role: str, entry: dict[str, Any]) -> None:
-        zones = " ".join(f"{entry['by_zone'][z]['scaled']:7.4f}" for z in ZONE_NAMES)
+        values = [entry["by_zone"][z]["scaled"] for z in ZONE_NAMES]
+        zones = " ".join("    n/a" if v is None else f"{v:7.4f}" for v in values)
         print(f"{label:>16s}  {role:8s}  {entry['raw']:8.4f}  {entry['scaled']:8.4f}   "
               f"{'':15s} {zones}")
 
@@ -396,62 +397,75 @@ def _evaluate_all(args: argparse.Namespace
     return results, maps, zones, list(dict.fromkeys(notices))
 
 
+def _mean(values: np.ndarray) -> float | None:
+    """Mean of the finite values (``None`` if none: a zone where every measurement is 0)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else None
+
+
+def _zone_summary(by_zone: dict[str, np.ndarray], rows: np.ndarray
+                  ) -> dict[str, dict[str, float | None]]:
+    """``{zone: {raw, scaled}}``: the mean over the pairs ``rows`` of each zone's errors."""
+    return {z: {kind: _mean(by_zone[kind][rows, i]) for kind in ("raw", "scaled")}
+            for i, z in enumerate(ZONE_NAMES)}
+
+
+def _role_group(role: str, roles: tuple[str, ...], names: tuple[str, ...],
+                errors: dict[str, np.ndarray], by_zone: dict[str, np.ndarray]
+                ) -> dict[str, Any] | None:
+    """The pairs of one role (fitted or held out) and their mean errors, whole and by zone;
+    ``None`` when there is no such pair."""
+    rows = np.array([r == role for r in roles])
+    if not rows.any():
+        return None
+    return {"pairs": [n for n, r in zip(names, roles, strict=True) if r == role],
+            "pairs_count": int(rows.sum()),
+            "mean_raw": float(errors["raw"][rows].mean()),
+            "mean_scaled": float(errors["scaled"][rows].mean()),
+            "by_zone": _zone_summary(by_zone, rows)}
+
+
 def _evaluate(path: str, model: Any, pairs: Any, scenes: np.ndarray,
               measurements: np.ndarray, factor: int, holdout: list[str] | None,
               zones: Any) -> tuple[dict[str, Any], np.ndarray]:
     """One model's errors (whole sensor, by zone, held-out and fitted pairs) and its residual
     map (over the held-out pairs where there are any, else over all)."""
-    from psfkit.model_errors import HELD_OUT, pair_roles, residual_map, zone_errors
+    from psfkit.model_errors import FITTED, HELD_OUT, pair_roles, residual_map, zone_errors
     from psfkit.pairs_fit import predict, relative_errors
 
     roles = pair_roles(model.provenance, pairs.root, pairs.names, holdout or (), path)
     prediction = predict(model, scenes)
     errors = relative_errors(prediction, measurements)
     by_zone = zone_errors(prediction, measurements, zones, errors["scale"])
-
-    def zoned(rows: np.ndarray) -> dict[str, dict[str, float]]:
-        return {z: {"raw": float(np.mean(by_zone["raw"][rows, i])),
-                    "scaled": float(np.mean(by_zone["scaled"][rows, i]))}
-                for i, z in enumerate(ZONE_NAMES)}
-
-    def group(role: str) -> dict[str, Any] | None:
-        rows = np.array([r == role for r in roles])
-        if not rows.any():
-            return None
-        return {"pairs": [n for n, r in zip(pairs.names, roles, strict=True) if r == role],
-                "pairs_count": int(rows.sum()),
-                "mean_raw": float(errors["raw"][rows].mean()),
-                "mean_scaled": float(errors["scaled"][rows].mean()), "by_zone": zoned(rows)}
-
     held = np.array([r == HELD_OUT for r in roles])
     on = held if held.any() else np.ones(len(roles), dtype=bool)
     residual = residual_map(prediction[on], measurements[on], errors["scale"][on])
-    label = f"{int(on.sum())} {'held-out' if held.any() else ''} pair(s)".replace("  ", " ")
-    fitted_count = len(roles) - int(held.sum())
+    count = int(on.sum())
+    per_pair = {name: {"raw": float(errors["raw"][i]), "scaled": float(errors["scaled"][i]),
+                       "best_scale": float(errors["scale"][i]), "role": roles[i],
+                       "by_zone": _zone_summary(by_zone, np.arange(len(roles)) == i)}
+                for i, name in enumerate(pairs.names)}
     result = {"model": str(path), "pairs": str(pairs.root), "downsample": factor,
               "basis": model.basis, "convention": model.convention,
-              "fit_record": f"fitted on {fitted_count} of these pairs, {int(held.sum())} "
-                            "held out",
-              "per_pair": {name: {"raw": float(errors["raw"][i]),
-                                  "scaled": float(errors["scaled"][i]),
-                                  "best_scale": float(errors["scale"][i]), "role": roles[i],
-                                  "by_zone": {z: {"raw": float(by_zone["raw"][i, k]),
-                                                  "scaled": float(by_zone["scaled"][i, k])}
-                                              for k, z in enumerate(ZONE_NAMES)}}
-                           for i, name in enumerate(pairs.names)},
+              "fit_record": f"fitted on {len(roles) - int(held.sum())} of these pairs, "
+                            f"{int(held.sum())} held out",
+              "per_pair": per_pair,
               "mean_raw": float(errors["raw"].mean()),
               "mean_scaled": float(errors["scaled"].mean()),
-              "by_zone": zoned(np.ones(len(roles), dtype=bool)),
-              "held_out": group(HELD_OUT), "fitted": group("fitted"),
+              "by_zone": _zone_summary(by_zone, np.ones(len(roles), dtype=bool)),
+              "held_out": _role_group(HELD_OUT, roles, pairs.names, errors, by_zone),
+              "fitted": _role_group(FITTED, roles, pairs.names, errors, by_zone),
               "zones": zones.describe(),
-              "residual_map": {"pairs": [n for n, k in zip(pairs.names, on, strict=True) if k],
-                               "label": label,
-                               # the map's RMS in each zone: where the residual is, in the
-                               # units of the map (not relative to each zone's own signal)
-                               "by_zone": {z: float(np.sqrt(np.mean(
-                                   residual[zones.labels == i].astype(np.float64) ** 2)))
-                                   for i, z in enumerate(ZONE_NAMES)},
-                               "definition": "per-pixel RMS over pairs and channels of the "
-                                             "residual with the best per-pair scale, divided "
-                                             "by the RMS of those pairs' measurements"}}
+              "residual_map": {
+                  "pairs": [n for n, k in zip(pairs.names, on, strict=True) if k],
+                  "label": f"{count} {'held-out ' if held.any() else ''}"
+                           f"pair{'s' if count > 1 else ''}",
+                  # the map's RMS in each zone: where the residual is, in the units of the
+                  # map (not relative to each zone's own signal)
+                  "by_zone": {z: float(np.sqrt(np.mean(
+                      residual[zones.labels == i].astype(np.float64) ** 2)))
+                      for i, z in enumerate(ZONE_NAMES)},
+                  "definition": "per-pixel RMS over pairs and channels of the residual with "
+                                "the best per-pair scale, divided by the RMS of those pairs' "
+                                "measurements"}}
     return result, residual

@@ -230,3 +230,20 @@ def test_learned_kernels_record_their_training_pairs_for_eval_model(tiny_data, t
     assert main(["eval-model", str(learned), str(pairs), "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["held_out"]["pairs"] == ["im6", "im7"] and doc["fitted"]["pairs_count"] == 6
+
+
+def test_a_zone_without_light_is_null_not_an_error(tmp_path):
+    model = _camera(11)
+    x = _scenes(2, seed=12)
+    y = predict(model, x)
+    edge = field_zones(SHAPE).labels == 2
+    y[0][:, edge] = 0.0                               # no light at the edge of pair 0
+    pairs = _write_pairs(tmp_path / "pairs", x, y)
+    model_file = save_kernels(tmp_path / "m.npz", model)
+    out = tmp_path / "e.json"
+    assert main(["eval-model", str(model_file), str(pairs), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["per_pair"]["im0"]["by_zone"]["edge"] == {"raw": None, "scaled": None}
+    # the means are over the pairs where the zone has light
+    assert doc["by_zone"]["edge"]["raw"] == pytest.approx(
+        doc["per_pair"]["im1"]["by_zone"]["edge"]["raw"])
