@@ -20,6 +20,7 @@ import torch
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from ekdun.evaluation import LPIPSMetric, evaluate_model, write_tables
+from ekdun.evaluation.evaluate import recorded_optical_center
 from ekdun.evaluation.tables import label_for
 from ekdun.training.builder import network_from_checkpoint
 from ekdun.training.checkpoint import load_checkpoint
@@ -84,7 +85,8 @@ def run_tiny_benchmark(out: str | os.PathLike, spec: VirtualBenchSpec | None = N
         model, doc = network_from_checkpoint(ckpt)
         meta = doc["metadata"]
         schedule = overrides.get("schedule")
-        row = evaluate_model(model, test_set, label_for(model_name, schedule), lpips)
+        row = evaluate_model(model, test_set, label_for(model_name, schedule), lpips,
+                             optical_center=recorded_optical_center(meta))
         row.update({"run": run_name, "model": model_name, "schedule": schedule,
                     "epochs": meta["epoch"],
                     "train_seconds": sum(h["seconds"] for h in meta["history"]),

@@ -85,9 +85,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--kernels", help="kernel file (.npz, e.g. from psfkit fit-eigen)")
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
-    p.add_argument("--holdout", action="append", metavar="NAME[,NAME]",
-                   help="leave these pairs (file stems, e.g. im65) out of training; "
-                        "repeatable")
+    add_flag(p, "--holdout", "train", action="append")
     p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the pairs N x N (default: 1 if they have the kernels' size, else "
                         "the factor the kernel file was fitted with)")

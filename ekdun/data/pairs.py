@@ -22,23 +22,11 @@ import torch
 from torch.utils.data import Dataset
 
 from ekdun.errors import InvalidInputError
-from psfkit.io.pairs import PairSet, read_pairs
+from psfkit.io.pairs import PairSet, parse_names, read_pairs
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.resample import bin_mean
 from psfkit.validation import MIN_PAIR_SIDE
-
-
-def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
-    """Pair names from repeated and/or comma-separated options (``--holdout a,b --holdout c``);
-    a file name's suffix is dropped (``im65.npy`` → ``im65``)."""
-    names: list[str] = []
-    for value in values or ():
-        for part in str(value).split(","):
-            part = part.strip()
-            if part:
-                names.append(os.path.splitext(os.path.basename(part))[0])
-    return tuple(dict.fromkeys(names))
 
 
 def recorded_read_options(data: dict[str, Any], where: str = "checkpoint") -> ReadOptions:
@@ -103,17 +91,7 @@ class PairsDataset(Dataset):
         self.pairs: PairSet = read_pairs(root, channel_order, check_pixels=False,
                                          recorded=recorded)
         self.holdout = parse_names(holdout)
-        selected = parse_names(only)
-        for names, what in ((self.holdout, "to hold out"), (selected, "to evaluate")):
-            unknown = [n for n in names if n not in self.pairs.names]
-            if unknown:
-                raise InvalidInputError(f"{root}: no pair named {', '.join(unknown)} {what} "
-                                        f"(pairs: {', '.join(self.pairs.names[:8])}"
-                                        + (", ..." if len(self.pairs) > 8 else "") + ")")
-        self.indices = [i for i, n in enumerate(self.pairs.names)
-                        if n not in self.holdout and (not selected or n in selected)]
-        if not self.indices:
-            raise InvalidInputError(f"{root}: every pair is held out; nothing to train on")
+        self.indices = list(self.pairs.select(self.holdout, only))
         if int(downsample) != downsample or downsample < 1:
             raise InvalidInputError(f"downsample must be a positive integer, got {downsample}")
         self.downsample = int(downsample)

@@ -14,9 +14,10 @@ import torch
 from torch.utils.data import Dataset
 
 from ekdun.errors import InvalidInputError
-from ekdun.evaluation.metrics import LPIPSMetric, psnr, ssim
+from ekdun.evaluation.metrics import SSIM_MARGIN, LPIPSMetric, psnr, ssim, ssim_map
 from ekdun.models.unrolled import UnrolledNetwork
 from ekdun.training.acceleration import resolve_device
+from psfkit.zones import ZONE_NAMES, field_zones
 
 
 def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
@@ -41,11 +42,53 @@ def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
     return peak
 
 
+class ZoneScores:
+    """PSNR and SSIM of reconstructions in each field zone (:mod:`psfkit.zones`).
+
+    A zone's PSNR is that of the mean squared error over its pixels (every channel); its SSIM
+    the mean of the SSIM map (:func:`~ekdun.evaluation.metrics.ssim_map`) over the zone's
+    pixels of the map's valid region (each map pixel belongs to the zone of the image pixel
+    its window is centred on); ``None`` for a zone with no pixel there (images so small that
+    the 11 × 11 window fits only in the centre zone).
+    """
+
+    def __init__(self, shape: tuple[int, int],
+                 optical_center: tuple[float, float] | None = None) -> None:
+        self.zones = field_zones(shape, optical_center)
+        self.masks = {name: torch.from_numpy(mask)
+                      for name, mask in self.zones.masks().items()}
+        inner = self.zones.cropped(SSIM_MARGIN)
+        self.inner = {name: torch.from_numpy(mask) for name, mask in inner.masks().items()}
+        self.psnr: dict[str, list[float]] = {name: [] for name in ZONE_NAMES}
+        self.ssim: dict[str, list[float]] = {name: [] for name in ZONE_NAMES}
+
+    def add(self, output: torch.Tensor, target: torch.Tensor) -> None:
+        """Score one ``(1, C, H, W)`` reconstruction ``output`` against ``target``."""
+        local = ssim_map(output, target)[0]
+        for name in ZONE_NAMES:
+            self.psnr[name].append(float(psnr(output, target,
+                                              mask=self.masks[name].to(output.device))[0]))
+            if self.inner[name].any():
+                self.ssim[name].append(float(local[:, self.inner[name].to(local.device)]
+                                             .mean()))
+
+    def summary(self) -> dict[str, Any]:
+        """``{zone: {psnr, ssim, psnr_per_pair, ssim_per_pair}}`` (means over images; the
+        SSIM entries ``None`` where the zone has no pixel in the SSIM map's valid region)."""
+        return {name: {"psnr": statistics.fmean(self.psnr[name]),
+                       "ssim": statistics.fmean(self.ssim[name]) if self.ssim[name] else None,
+                       "psnr_per_pair": self.psnr[name],
+                       "ssim_per_pair": self.ssim[name] or None}
+                for name in ZONE_NAMES}
+
+
 @torch.no_grad()
 def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
                    lpips: LPIPSMetric | None = None, device: str | torch.device = "cpu",
-                   warmup: int = 1) -> dict[str, Any]:
-    """PSNR, SSIM (LPIPS when available), parameters, runtime and peak memory.
+                   warmup: int = 1, optical_center: tuple[float, float] | None = None
+                   ) -> dict[str, Any]:
+    """PSNR, SSIM (LPIPS when available), by field zone too, parameters, runtime and peak
+    memory.
 
     Images are reconstructed one at a time (batch 1); outputs are clipped to ``[0, 1]``
     before the metrics. Runtime is the median wall time per image after ``warmup`` images.
@@ -53,11 +96,15 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
     torch's allocations during one profiled forward pass (:func:`cpu_peak_memory`).
     ``psnr_per_pair`` / ``ssim_per_pair`` keep each image's value in dataset order, so that two
     runs can be compared pair by pair and one failed image can be told from a uniform loss.
+    ``by_zone`` has the same in the three equal-area radial zones ``centre``, ``middle`` and
+    ``edge`` around ``optical_center`` (default the sensor centre; :class:`ZoneScores`), and
+    ``zones`` how they were drawn.
     """
     device = resolve_device(device)
     model = model.to(device).eval()
     n = len(dataset)  # type: ignore[arg-type]
     psnrs, ssims, lpipss, times = [], [], [], []
+    zones = ZoneScores(tuple(dataset[0][0].shape[-2:]), optical_center) if n else None
     for i in range(min(warmup, n)):
         model(dataset[i][1][None].to(device))
     if device.type == "cuda":
@@ -75,6 +122,8 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         out = out.clamp(0, 1)
         psnrs.append(float(psnr(out, x)[0]))
         ssims.append(float(ssim(out, x)[0]))
+        if zones is not None:
+            zones.add(out, x)
         if lpips is not None and lpips.available:
             lpipss.append(float(lpips(out, x)[0]))
     peak = (torch.cuda.max_memory_allocated(device) if device.type == "cuda"
@@ -84,6 +133,8 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         "psnr": statistics.fmean(psnrs), "ssim": statistics.fmean(ssims),
         "lpips": statistics.fmean(lpipss) if lpipss else None,
         "psnr_per_pair": psnrs, "ssim_per_pair": ssims,
+        "by_zone": zones.summary() if zones is not None else None,
+        "zones": zones.zones.describe() if zones is not None else None,
         "parameters": model.parameter_count(),
         "runtime_ms_median": 1e3 * statistics.median(times),
         "peak_memory_mib": peak / 2**20,
@@ -91,6 +142,14 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
         else "torch CPU allocations (profiler estimate)",
         "device": str(device),
     }
+
+
+def recorded_optical_center(metadata: dict[str, Any]) -> tuple[float, float] | None:
+    """The optical centre ``(v_c, u_c)`` of a checkpoint's kernel model (its
+    ``metadata["kernel_metadata"]``), where the kernel file recorded one: the centre of the
+    field zones of :func:`evaluate_model`, as of the model's weight maps."""
+    centre = (metadata.get("kernel_metadata") or {}).get("optical_center")
+    return (float(centre[0]), float(centre[1])) if centre else None
 
 
 def checkpoint_path(item: str | os.PathLike) -> Path:
@@ -233,7 +292,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         training = meta.get("training") or {}
         schedule = meta.get("overrides", {}).get("schedule") or (
             meta.get("schedule") if meta["model"] == "ekdun" else None)
-        row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device)
+        row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device,
+                             optical_center=recorded_optical_center(meta))
         model.cpu()   # off the device again: the next run's peak memory is its own
         row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
                     "epochs": meta.get("epoch"), "seed": meta.get("seed"),
@@ -245,6 +305,9 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
                     "pairs": list(dataset.names), "pairs_note": note})
         results.append(row)
         if log is not None:
-            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.4f} ({note})")
+            zones = row["by_zone"] or {}
+            by_zone = " / ".join(f"{zones[z]['psnr']:.2f}" for z in ZONE_NAMES if z in zones)
+            log(f"{row['label']}: PSNR {row['psnr']:.2f} dB (centre / middle / edge "
+                f"{by_zone}), SSIM {row['ssim']:.4f} ({note})")
     return results
 

@@ -22,9 +22,12 @@ from ekdun.errors import TensorShapeError
 LPIPS_ENV = "EKDUN_LPIPS_WEIGHTS"
 
 
-def psnr(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
-    """Per-image PSNR (dB) of ``(B, C, H, W)`` tensors."""
-    mse = ((output.double() - target.double()) ** 2).flatten(1).mean(dim=1)
+def psnr(output: Tensor, target: Tensor, data_range: float = 1.0,
+         mask: Tensor | None = None) -> Tensor:
+    """Per-image PSNR (dB) of ``(B, C, H, W)`` tensors; with an ``(H, W)`` bool ``mask``, of
+    the pixels inside it (every channel)."""
+    err = (output.double() - target.double()) ** 2
+    mse = (err[..., mask] if mask is not None else err).flatten(1).mean(dim=1)
     return 10.0 * torch.log10(data_range ** 2 / mse.clamp_min(1e-20))
 
 
@@ -35,8 +38,26 @@ def _gaussian_window(sigma: float = 1.5, truncate: float = 3.5) -> Tensor:
     return g / g.sum()
 
 
+#: Pixels lost on each side by the SSIM window (its radius): SSIM map pixel ``(i, j)`` is the
+#: window centred on image pixel ``(i + SSIM_MARGIN, j + SSIM_MARGIN)``.
+SSIM_MARGIN = (_gaussian_window().numel() - 1) // 2
+
+
 def ssim(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
-    """Per-image SSIM of ``(B, C, H, W)`` tensors (images at least 11 × 11).
+    """Per-image SSIM of ``(B, C, H, W)`` tensors (images at least 11 × 11): the mean of
+    :func:`ssim_map` over its pixels and channels.
+
+    Raises
+    ------
+    TensorShapeError
+        Images smaller than the 11 × 11 Gaussian window.
+    """
+    return ssim_map(output, target, data_range).flatten(1).mean(dim=1)
+
+
+def ssim_map(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
+    """Local SSIM of ``(B, C, H, W)`` tensors on the valid region, ``(B, C, H − 2m, W − 2m)``
+    float64 with ``m =`` :data:`SSIM_MARGIN` (the window never leaves the image).
 
     Raises
     ------
@@ -60,8 +81,7 @@ def ssim(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
     syy = blur(y * y) - my * my
     sxy = blur(x * y) - mx * my
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return s.flatten(1).mean(dim=1)
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
 
 
 # torchvision AlexNet ``features`` convolutions → the slices of ``lpips``' AlexNet backbone

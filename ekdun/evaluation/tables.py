@@ -11,6 +11,7 @@ from typing import Any
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.io.atomic import atomic_file
 from psfkit.validation import dumps_finite, read_json_file
+from psfkit.zones import ZONE_NAMES
 
 MODEL_LABELS = {"le-admm-u": "Le-ADMM-U", "updn": "UPDN", "ekdun": "EK-DUN"}
 SCHEDULE_LABELS = {"base": "base only", "last-2": "last-2", "last-k": "last-2", "all": "all"}
@@ -47,6 +48,20 @@ def _fmt(value: Any, digits: int) -> str:
     return f"{value:.{digits}f}"
 
 
+def zone_cells(row: dict[str, Any]) -> dict[str, str]:
+    """The Markdown cells of :data:`ZONE_COLUMNS` for one evaluation row: ``"21.30 / 20.12 /
+    18.95"`` (centre, middle, edge), ``"n/a"`` for rows evaluated before the zones."""
+    by_zone = row.get("by_zone")
+    cells = {}
+    for key, metric, digits in (("psnr_by_zone", "psnr", 2), ("ssim_by_zone", "ssim", 4)):
+        try:
+            cells[key] = " / ".join(_fmt(by_zone[zone][metric], digits)
+                                    for zone in ZONE_NAMES)
+        except (KeyError, TypeError):
+            cells[key] = "n/a"
+    return cells
+
+
 def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int]]) -> str:
     """``columns``: ``(key, header, digits)``."""
     head = "| " + " | ".join(h for _, h, _ in columns) + " |"
@@ -56,13 +71,17 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int
     return "\n".join([head, sep, *body])
 
 
+#: The field-zone columns (``by_zone`` of :func:`ekdun.evaluation.evaluate_model`; cells by
+#: :func:`zone_cells`): where in the field a network gains or loses.
+ZONE_COLUMNS = [("psnr_by_zone", "PSNR centre / middle / edge (dB)", -1),
+                ("ssim_by_zone", "SSIM centre / middle / edge", -1)]
 TABLE1_COLUMNS = [("label", "Method", -1), ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4),
                   ("lpips", "LPIPS", 4), ("parameters", "Parameters", 0),
                   ("runtime_ms_median", "Runtime / image (ms, median)", 1),
-                  ("peak_memory_mib", "Peak memory (MiB)", 1)]
+                  ("peak_memory_mib", "Peak memory (MiB)", 1), *ZONE_COLUMNS]
 TABLE2_COLUMNS = [("label", "Eigen-kernel model in", -1), ("seed", "Training seed", 0),
                   ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4), ("lpips", "LPIPS", 4),
-                  ("runtime_ms_median", "Inference / image (ms, median)", 2)]
+                  ("runtime_ms_median", "Inference / image (ms, median)", 2), *ZONE_COLUMNS]
 SUMMARY_COLUMNS = [("label", "Eigen-kernel model in", -1),
                    ("psnr_text", "PSNR (dB), mean ± sd", -1), ("ssim_mean", "SSIM", 4),
                    ("delta_text", "Δ PSNR to base only, paired by seed (dB)", -1),
@@ -227,7 +246,7 @@ def render_table(results: list[dict[str, Any]], which: str,
     InvalidInputError
         ``results`` hold no row of that table.
     """
-    rows = table_rows(results, which)
+    rows = [{**r, **zone_cells(r)} for r in table_rows(results, which)]
     title, columns = TABLES[which]
     if not rows:
         raise InvalidInputError(f"no rows for {title.split(':')[0]}: it needs "

@@ -64,6 +64,11 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     provenance = {"source": "ekdun training (learned kernels)", "epoch": epoch,
                   "kernel_param": model.config.kernel_param,
                   "seed_provenance": seed.provenance}
+    if isinstance(data, dict) and isinstance(data.get("names"), list) and data.get("root"):
+        # the pairs the kernels were trained on, as fit-pairs records its own: psfkit
+        # eval-model marks them "fitted" and the held-out ones apart
+        provenance.update(pairs=str(data["root"]), names=list(data["names"]),
+                          holdout=list(data.get("holdout") or []))
     # learned on the training pairs: their read options are the model's (else the seed's)
     read_options = recorded_read_options(data, where.rstrip(": ") or "checkpoint") \
         if isinstance(data, dict) and data else seed.read_options

@@ -103,6 +103,10 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--seed", "seed", "random seed", "0 (simulate-grid, demo: the --bench-config "
                "file's, else 0)", default=0, kind="number",
                per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
+    SharedFlag("--holdout", "holdout",
+               "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit "
+               "or of training; eval-model: the pairs the model was not fitted on, where its "
+               "file does not record them", "-", metavar="NAME[,NAME]"),
     SharedFlag("--out", "out", "where the outputs go (a file or folder, per command)",
                "required, or none (demo: psfkit-demo)",
                per_command={"demo": {"default": "psfkit-demo"}}),

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,10 +104,56 @@ class PairSet:
         return ReadOptions(channel_order=self.channel_order, flip=self.flip,
                            downsample=int(downsample), white_level=self.white_level)
 
+    def select(self, holdout: Iterable[str] = (), only: Iterable[str] = ()
+               ) -> tuple[int, ...]:
+        """Indices of the pairs left after holding ``holdout`` out (``--holdout`` of
+        ``fit-pairs``, ``eval-model`` and ``ekdun train``) and, if ``only`` is given, keeping
+        only those names; both as :func:`parse_names` reads them.
+
+        Raises
+        ------
+        InvalidInputError
+            A name that is not a pair of this folder, or no pair left.
+        """
+        held, selected = parse_names(holdout), parse_names(only)
+        for names, what in ((held, "to hold out"), (selected, "to evaluate")):
+            unknown = [n for n in names if n not in self.names]
+            if unknown:
+                raise InvalidInputError(f"{self.root}: no pair named {', '.join(unknown)} "
+                                        f"{what} (pairs: {', '.join(self.names[:8])}"
+                                        + (", ..." if len(self) > 8 else "") + ")")
+        indices = tuple(i for i, n in enumerate(self.names)
+                        if n not in held and (not selected or n in selected))
+        if not indices:
+            raise InvalidInputError(f"{self.root}: every pair is held out; nothing left to "
+                                    "fit or train on")
+        return indices
+
+    def subset(self, indices: Iterable[int]) -> PairSet:
+        """The same folder restricted to the pairs ``indices`` (e.g. from :meth:`select`)."""
+        keep = tuple(indices)
+        return dataclasses.replace(
+            self, names=tuple(self.names[i] for i in keep),
+            scene_files=tuple(self.scene_files[i] for i in keep),
+            measurement_files=tuple(self.measurement_files[i] for i in keep))
+
     def load_all(self) -> tuple[np.ndarray, np.ndarray]:
         """All pairs as two ``(N, C, H, W)`` float32 arrays."""
         pairs = [self.load(i) for i in range(len(self))]
         return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+
+
+def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
+    """Pair names from repeated and/or comma-separated options (``--holdout a,b --holdout c``);
+    a file name's suffix is dropped (``im65.npy`` → ``im65``). One parser for ``psfkit
+    fit-pairs``/``eval-model`` and ``ekdun train``."""
+    names: list[str] = []
+    for value in values or ():
+        for part in str(value).split(","):
+            part = part.strip()
+            if part:
+                names.append(os.path.splitext(os.path.basename(part))[0])
+    return tuple(dict.fromkeys(names))
 
 
 def _images(folder: Path) -> dict[str, str]:

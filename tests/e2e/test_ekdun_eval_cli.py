@@ -30,6 +30,7 @@ from ekdun.physics.operators import ShiftInvariantOperator
 from ekdun.reconstruction import admm_tv
 from ekdun.training import TrainOptions, train
 from ekdun.training.trainer import CHECKPOINT
+from psfkit.zones import field_zones
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 
@@ -206,7 +207,7 @@ def test_one_table_at_a_time_and_results_round_trip(tmp_path):
     back, notes = read_results(tmp_path / "r")              # a folder means its results.json
     assert back == rows and notes == ["a note"]
     text = render_table(back, "table2", notes)
-    assert "| all | n/a | 20.00 | 0.5000 | n/a | 1.00 |" in text
+    assert "| all | n/a | 20.00 | 0.5000 | n/a | 1.00 | n/a | n/a |" in text   # no zones
     assert text.rstrip().endswith("a note") and "Over training seeds" not in text
     assert missing_rows(back, "table2") == ["base only", "last-2"]
     assert missing_rows(back, "table1") == ["EK-DUN (last-2)", "Le-ADMM-U"]
@@ -253,6 +254,35 @@ def test_eval_and_reconstruct_end_to_end(tiny_data, tiny_checkpoint, tmp_path, c
                                       abs=1e-3)
     assert res["psnr"] == pytest.approx(np.mean(res["psnr_per_pair"]), abs=1e-9)
     assert res["ssim"] == pytest.approx(np.mean(res["ssim_per_pair"]), abs=1e-9)
+    # by field zone: PSNR of the zone's pixels and the mean of skimage's SSIM map over the
+    # zone (inside the window's margin), computed here directly from the files
+    zones = field_zones((16, 16))
+    assert res["zones"]["pixels"] == [85, 85, 86]
+    margin = (11 - 1) // 2
+    inner = zones.cropped(margin)
+    for i, name in enumerate(res["pairs"]):
+        truth = np.load(pairs / "scene" / f"{name}.npy").astype(np.float64)
+        recon = np.clip(np.load(out / f"{name}.npy"), 0, 1).astype(np.float64)
+        _, local = structural_similarity(truth, recon, data_range=1.0, channel_axis=-1,
+                                         gaussian_weights=True, sigma=1.5,
+                                         use_sample_covariance=False, full=True)
+        local = local[margin:-margin, margin:-margin]
+        for zone, mask in zones.masks().items():
+            mse = np.mean((truth - recon)[mask] ** 2)
+            assert res["by_zone"][zone]["psnr_per_pair"][i] == pytest.approx(
+                10 * np.log10(1 / mse), abs=1e-3)
+            if inner.masks()[zone].any():
+                assert res["by_zone"][zone]["ssim_per_pair"][i] == pytest.approx(
+                    local[inner.masks()[zone]].mean(), abs=1e-4)
+            else:   # 16 x 16: the window's valid region (6 x 6) lies in the centre zone
+                assert res["by_zone"][zone]["ssim"] is None
+    for zone in ("centre", "middle", "edge"):
+        assert res["by_zone"][zone]["psnr"] == pytest.approx(
+            np.mean(res["by_zone"][zone]["psnr_per_pair"]), abs=1e-9)
+    table = (tmp_path / "tables" / "table2.md").read_text()
+    assert "PSNR centre / middle / edge (dB)" in table
+    assert " / ".join(f"{res['by_zone'][z]['psnr']:.2f}" for z in ("centre", "middle", "edge")) \
+        in table
 
 
 def test_eval_rows_carry_seed_parameterisation_and_physics_weight(tiny_data, tiny_checkpoint,
