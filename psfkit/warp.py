@@ -391,6 +391,10 @@ def _growth_model(t: np.ndarray, floor: float, scale: float, exponent: float) ->
     return np.sqrt(floor**2 + (scale * (t / 10.0) ** exponent) ** 2)
 
 
+#: A growth whose 1σ exceeds this many times the largest residual measured is not determined.
+UNCONSTRAINED = 100.0
+
+
 def fit_growth(theta_deg: np.ndarray, rms: np.ndarray, weights: np.ndarray | None = None
                ) -> GrowthFit | None:
     """Fit how a residual RMS grows with field angle, above a measurement floor.
@@ -424,6 +428,11 @@ def fit_growth(theta_deg: np.ndarray, rms: np.ndarray, weights: np.ndarray | Non
     flat = float(np.sum(w * values) / np.sum(w))
     p_value = f_test(float(np.sum(w * (values - flat) ** 2)), rss, 2, len(values) - 3)
     growth = checked(popt[1], sigma[1], 0.0, p_value)
+    if growth.determined and growth.sigma > UNCONSTRAINED * float(np.max(values)):
+        # an extrapolation the positions do not constrain (a compact PSF's field of a degree:
+        # "2.25e+08 ± 6.63e+09 px at 10 deg" from residuals of 0.1 px)
+        growth = undetermined(f"the positions (θ ≤ {float(np.max(theta)):.2g}°) do not "
+                              "constrain it at 10°")
     if not growth.significant:
         exponent = undetermined("the residual does not grow significantly above its floor")
     elif min(popt[2] - low, high - popt[2]) < 1e-3 * (high - low):

@@ -75,6 +75,27 @@ def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
     return result
 
 
+#: An irregular scan of more positions is summarised in the terminal (every position is in
+#: the --out numbers, the report's positions.csv and results.json).
+IRREGULAR_LINES = 12
+
+
+def _scan_summary(values: np.ndarray, fmt: str, files: list[str]) -> None:
+    """One line for a long irregular scan: the range and median, naming the extremes."""
+    finite = np.isfinite(values)
+    if not finite.any():
+        print(f"  {len(values)} positions, none measured")
+        return
+    lo = int(np.nanargmin(values))
+    hi = int(np.nanargmax(values))
+    left = len(values) - int(finite.sum())
+    print(f"  {int(finite.sum())} positions: min {format(values[lo], fmt).strip()} "
+          f"({files[lo]}), median {format(float(np.nanmedian(values)), fmt).strip()}, max "
+          f"{format(values[hi], fmt).strip()} ({files[hi]})"
+          + (f", {left} not measured" if left else "")
+          + "; every position in --out FILE.csv or the report's positions.csv")
+
+
 def _grid_print(values: np.ndarray, fmt: str,
                 result: GridCharacterization | None = None) -> None:
     """A per-position table as the lattice (``·``: not captured, ``x``: excluded; blank: not
@@ -83,6 +104,10 @@ def _grid_print(values: np.ndarray, fmt: str,
     status = result.status() if result is not None else np.full(values.shape, "ok")
     if result is not None and result.layout == "irregular":
         files = {(p.row, p.col): p.file for p in result.captured}
+        if values.shape[1] > IRREGULAR_LINES:
+            _scan_summary(values[0], fmt, [files.get((0, c), "?") for c in
+                                           range(values.shape[1])])
+            return
         for c, v in enumerate(values[0]):
             text = format(v, fmt) if np.isfinite(v) else "excluded".rjust(width)
             print(f"  #{c:<3d} {files[(0, c)]:24s} {text}")

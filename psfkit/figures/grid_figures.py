@@ -27,11 +27,9 @@ from psfkit.figures.style import (
     PAGE_IN,
     fitted,
     new_figure,
-    power_of_ten,
     psf_cmap,
     psf_norm,
     publication_style,
-    times_ten,
 )
 from psfkit.preprocess import luminance
 from psfkit.resample import binning_factor
@@ -199,13 +197,12 @@ def _mae_panel(ax: Axes, result: GridCharacterization) -> None:
         xlabel = (("field angle θy (°)" if column is not None else "field angle θx (°)")
                   if picks and picks[0].field_deg is not None else "grid index")
         style = "-"
-    exponent = power_of_ten(mae)
-    scale = 10.0 ** -exponent
-    ax.plot(x, mae * scale, "o" + style, label="shift compensated")
-    ax.plot(x, mae_gain * scale, "s" + ("--" if style else ""), mfc="none",
+    # percent of the centre PSF's light, as `psfkit mae` prints it
+    ax.plot(x, mae * 100, "o" + style, label="shift compensated")
+    ax.plot(x, mae_gain * 100, "s" + ("--" if style else ""), mfc="none",
             label="+ gain compensated")
     ax.set_xlabel(xlabel)
-    ax.set_ylabel(f"MAE vs A ({times_ten(exponent) or '×1'}, norm.)")
+    ax.set_ylabel("MAE vs A (% of A's light)")
     ax.set_title("MAE vs position")
     ax.legend(frameon=False)
 
@@ -242,19 +239,18 @@ def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str,
     """``(values, title, colour-bar label, cell format, colour map, norm)`` of each map; the
     two MAE maps share one scale (they are compared)."""
     mae, mae_gain = result.table("mae"), result.table("mae_gain_compensated")
-    exponent = power_of_ten(np.concatenate([mae.ravel(), mae_gain.ravel()]))
-    scale = 10.0 ** -exponent
+    scale = 100.0                   # percent of the centre PSF's light, as `psfkit mae`
     top = float(np.nanmax(np.concatenate([mae.ravel(), mae_gain.ravel()]), initial=0.0)) * scale
     shared = colors.Normalize(0.0, top or 1.0)
-    unit = f"MAE ({times_ten(exponent) or '×1'}, norm.)"
+    unit = "MAE (% of the centre PSF's light)"
     return [(mae * scale, "MAE (shift comp.)", unit, ".2g", "magma", shared),
             (mae_gain * scale, "MAE (+ gain comp.)", unit, ".2g", "magma", shared),
             (result.table("gain"), "relative gain", "gain (rel. to centre)", ".2f", "cividis",
              None),
             (result.table("quality"), "registration NCC", "NCC (1 = identical)", ".2f",
              "viridis", None),
-            (result.table("overlap"), "overlap with centre", "overlap (fraction of sensor)",
-             ".2f", "Greys_r", None)]
+            (result.table("support_overlap"), "overlap with centre",
+             "overlap (fraction of A's light)", ".2f", "Greys_r", None)]
 
 
 def figure_maps(result: GridCharacterization) -> Figure:
@@ -434,7 +430,7 @@ def figure_warp(result: GridCharacterization, max_panels: int = 6) -> Figure:
     """Residual displacement fields (after the affine part) at the outermost reliable
     positions, as arrows over the centre PSF (cropped to its support)."""
     candidates = [p for p in result.positions
-                  if (p.row, p.col) in result.flows and p.overlap >= RELIABLE_OVERLAP]
+                  if (p.row, p.col) in result.flows and p.support_overlap >= RELIABLE_OVERLAP]
     if not candidates:
         candidates = [p for p in result.positions if (p.row, p.col) in result.flows]
     candidates.sort(key=lambda p: -np.hypot(*p.shift))
@@ -499,7 +495,7 @@ def figure_warp_summary(result: GridCharacterization) -> Figure:
     geometric-optics prediction where it was measured. Without field angles, the residual
     against the distance from the centre in field units."""
     theta = result.field_angle_deg()
-    reliable = result.table("overlap") >= RELIABLE_OVERLAP
+    reliable = result.table("support_overlap") >= RELIABLE_OVERLAP
     anis = result.warp_table("anisotropy")
     show_anisotropy = theta is not None and bool(np.isfinite(anis[reliable]).any())
     with publication_style():
@@ -521,8 +517,8 @@ def _growth_panel(ax: Axes, result: GridCharacterization, theta: np.ndarray | No
         x, xlabel = theta, "field angle θ (°)"
     rms = result.warp_table("residual_rms")
     rt, rs = result.warp_table("rms_tangential"), result.warp_table("rms_sagittal")
-    for sel, marker, label in [(reliable, "o", "overlap ≥ 50%"),
-                               (~reliable, "x", "overlap < 50%")]:
+    for sel, marker, label in [(reliable, "o", "≥ 50% of A's light in overlap"),
+                               (~reliable, "x", "< 50% of A's light in overlap")]:
         if np.isfinite(rms[sel]).any():
             ax.plot(x[sel], rms[sel], marker, color="C0", ls="", label=f"total, {label}")
     if np.isfinite(rt[reliable]).any():

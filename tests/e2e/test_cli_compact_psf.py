@@ -38,6 +38,13 @@ def test_report_of_117_stars(scans, tmp_path, capsys):
     assert min(p["support_overlap"] for p in results["positions"]) > 0.99
     assert "less than 50% of the centre PSF's light" not in text
     assert (out / "report.html").is_file()
+    # issue 43's target: a PSF that does not vary is judged so, from every position
+    assert results["verdict"]["shift_variant"] is False
+    assert results["verdict"]["recommended_model"] == "si"
+    # the terminal summarises a long scan (each position is in positions.csv), and prints no
+    # number without its uncertainty or judgement, and no nan
+    assert "117 positions: min" in text and "#116" not in text
+    assert len(text.splitlines()) < 40 and "nan" not in text.lower()
 
 
 def test_register_300_stars(scans, tmp_path, capsys):

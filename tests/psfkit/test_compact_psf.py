@@ -19,7 +19,7 @@ from psfkit.registration import shift_image
 N_POSITIONS = 101
 FRAME = (320, 320)
 CUTOUT = 41
-STEPS = CharacterizeOptions(steps=("register", "gain", "mae"))
+STEPS = CharacterizeOptions(steps=("register", "gain", "mae", "verdict"))
 
 
 @pytest.fixture(scope="module")
@@ -182,3 +182,15 @@ def test_a_caustic_keeps_the_whole_sensor(grid_3x3):
     blob[1800:2400, 1700:2300] = True
     region, factor, record = working_region(blob, blob.astype(np.float32), 256)
     assert region is not None and factor == 8 and record["shape_px"] == [1816, 1816]
+
+
+def test_the_verdict_is_the_same_on_full_frames_and_cutouts(characterized):
+    """Issue 43's target on the compact bench (a PSF that does not vary, as the real star
+    field): every position accepted, the verdict 'not shift-variant' with one PSF ("si")
+    recommended, on the full frames and on the cut-outs alike."""
+    for result in characterized:
+        verdict = result.verdict
+        assert len(result.positions) == N_POSITIONS and not result.excluded
+        assert verdict.shift_variant is False, verdict.to_dict()
+        assert verdict.recommended_model == "si", verdict.to_dict()
+        assert verdict.to_dict()["evidence"]["positions"] == N_POSITIONS - 1   # all but A

@@ -160,3 +160,21 @@ def test_transport_anisotropy_without_sagittal_transport_is_not_a_number():
         assert np.isnan(transport_anisotropy(reference, reference + change, valid, 0.0))
     # the same change across the azimuth is all sagittal: a finite ratio near 0
     assert transport_anisotropy(reference, reference + change, valid, np.pi / 2) < 0.3
+
+
+def test_growth_not_constrained_by_a_small_field_is_not_determined():
+    """Issue 43: residuals measured within 0.6° (a compact PSF's field) extrapolated to 10°
+    printed '2.25e+08 ± 6.63e+09 px at 10 deg'; such a growth is not determined, while a
+    growth measured out to 10° keeps its value and 1σ."""
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        theta = rng.uniform(0.05, 0.6, 100)
+        rms = 0.1 * (1 + 0.3 * (theta / 0.6) ** 4) + 0.01 * rng.normal(size=100)
+        fit = fit_growth(theta, rms)
+        assert fit is not None
+        growth = fit.growth
+        assert not growth.determined or growth.sigma <= 100 * rms.max(), growth
+    theta = np.linspace(1, 10, 30)
+    rms = np.hypot(0.05, 0.5 * (theta / 10) ** 2) * (1 + 0.02 * rng.normal(size=30))
+    fit = fit_growth(theta, rms)
+    assert fit.growth.significant and abs(fit.growth.value - 0.5) < 3 * fit.growth.sigma
