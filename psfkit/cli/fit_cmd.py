@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.cli.options import (
     add_coverage_options,
@@ -135,6 +137,11 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     return result, result.basis_name
 
 
+#: Ratio of the brightest to the faintest PSF above which fit-eigen's errors carry a caveat
+#: (vignetting over a wide field reaches about 2: cos⁴ of 35°).
+BRIGHTNESS_SPREAD = 2.0
+
+
 def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
     model = result.kernel_model()
     grid_shape = result.grid_shape
@@ -166,7 +173,8 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
         print(f"  {conv}-side weights: in-sample relative error median {res['median']:.4f}, "
               f"max {res['max']:.4f}")
     if result.cv is not None:
-        print("  cross-validated (held-out positions) relative error:")
+        print("  cross-validated (held-out positions) relative error"
+              f"{_brightness_caveat(result)}:")
         sigmas = result.cv["held_out_sigma"]
         for name, err in result.cv["held_out_relative_error"].items():
             print(f"    {name:28s} {pm(err, sigmas[name])}")
@@ -176,6 +184,20 @@ def _print_summary(result: GridEigenResult, basis: str, out: Path) -> None:
     if result.angles_deg is not None:
         print("  principal angles eigen-kernels vs top PCA subspace (deg): "
               + ", ".join(f"{a:.1f}" for a in result.angles_deg))
+
+
+def _brightness_caveat(result: GridEigenResult) -> str:
+    """A caveat for the errors when the PSFs' light varies more than vignetting would (stars
+    of different brightness) and the fit is not gain-compensated: the errors then measure the
+    brightness ratios, not the PSFs' shapes (the verdict compares the shapes)."""
+    gains = result.stack.gains[np.isfinite(result.stack.gains) & (result.stack.gains > 0)]
+    if result.options.gain_compensate or gains.size < 2:
+        return ""
+    spread = float(gains.max() / gains.min())
+    if spread < BRIGHTNESS_SPREAD:
+        return ""
+    return (f" (the PSFs' light varies {spread:.1f}x between positions and is part of these "
+            "errors; --gain-compensate compares their shapes, as the verdict does)")
 
 
 def _print_verdict_and_choice(result: GridEigenResult, basis: str) -> None:

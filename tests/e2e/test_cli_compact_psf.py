@@ -53,3 +53,19 @@ def test_register_300_stars(scans, tmp_path, capsys):
     capsys.readouterr()
     results = json.loads(out.read_text())
     assert len(results["positions"]) == 300 and results["excluded"] == []
+
+
+def test_fit_eigen_auto_on_stars_writes_one_psf_and_explains_its_errors(scans, tmp_path,
+                                                                        capsys):
+    """`fit-eigen --basis auto` follows the verdict (one PSF for a PSF that does not vary),
+    never contradicts it, and says that the errors it prints hold the stars' brightness
+    ratios (10x here) unless --gain-compensate."""
+    out = tmp_path / "k.npz"
+    assert main(["fit-eigen", str(scans[117]), "--basis", "auto", "--out", str(out),
+                 "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("fitted basis 'si'") and "note:" not in text
+    assert "light varies" in text and "--gain-compensate" in text
+    assert main(["fit-eigen", str(scans[117]), "--basis", "auto", "--gain-compensate",
+                 "--out", str(tmp_path / "g.npz"), "--quiet"]) == 0
+    assert "light varies" not in capsys.readouterr().out
