@@ -38,8 +38,9 @@ A deliberate change of the numbers means regenerating these files with the comma
 saying why in the CHANGELOG; a change of the commands' conditioning means running the script
 again (``--tolerances tests/e2e/golden/tolerances.json``).
 
-The demo's files were written again by issue 43 (the MAE energy-normalised over the PSF's
-support, gain and NCC on the support, reliability as the centre PSF's light in the overlap,
+The demo's files were written again by issue 43 (the verdict and the uncertainties of the
+fitted field quantities; the MAE energy-normalised over the PSF's support, NCC on the support
+and a compact PSF's gain too, reliability as the centre PSF's light in the overlap,
 which moves the affine placement of the eigen fit and the positions its PCA and the warp
 growth use; see CHANGELOG), with ``golden_spread.py --demo-only``.
 """
