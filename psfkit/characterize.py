@@ -452,15 +452,10 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         if here in fig2:
             extras["example"] = (aligned, valid)
         if "warp" in steps and here != center:
-            try:
-                warp, (residual, mask) = _warp_position(ref_lum, al_lum / np.float32(gain),
-                                                        valid, shift, options.flow_method,
-                                                        str(grid.path(*here)))
-            except InvalidInputError:   # too few PSF pixels for a dense flow (a compact PSF
-                pass                    # at the sensor's edge): no warp at this position
-            else:
-                record.warp = warp
-                extras["flow"] = _coarse_flow(residual, mask)
+            measured = _try_warp(ref_lum, al_lum / np.float32(gain), valid, shift,
+                                 options.flow_method, str(grid.path(*here)))
+            if measured is not None:
+                record.warp, extras["flow"] = measured
         return record, extras
 
     records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
@@ -469,6 +464,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(grid.positions), desc="characterizing PSFs", unit="psf")
+
     def collect(index: int, record: PositionResult | ExcludedPosition,
                 extras: dict[str, Any]) -> None:
         records[index] = record
@@ -495,15 +491,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     result.thumbnails = thumbnails
     coords = result.field_coordinates()
     overlaps = result.table("support_overlap")
-    if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
-        result.shift_fit = None
-    else:   # over the measured positions; None when they do not span two directions
-        try:
-            result.shift_fit = fit_shift_map(coords, result.table("shift"), result.field_units,
-                                             weights=overlaps,
-                                             resolution_px=1.0 / options.upsample)
-        except InvalidInputError:
-            result.shift_fit = None
+    result.shift_fit = _shift_map(result, grid, coords, overlaps, options.upsample)
     if "gain" in steps:
         result.gain_fit = fit_gain(result.table("gain"), grid.field_deg(), coords,
                                    weights=overlaps)
@@ -511,6 +499,32 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         _summarise_warp(result)
     result.verdict = working.verdict(grid, result, records, progress)
     return result
+
+
+def _try_warp(ref_lum: np.ndarray, lum: np.ndarray, valid: np.ndarray,
+              shift: tuple[float, float], method: str, where: str
+              ) -> tuple[dict[str, Any], Any] | None:
+    """One position's warp statistics and coarse flow (:func:`_warp_position`), or ``None``
+    when too few PSF pixels overlap for a dense flow (a compact PSF at the sensor's edge): no
+    warp at this position, not the end of the report."""
+    try:
+        warp, (residual, mask) = _warp_position(ref_lum, lum, valid, shift, method, where)
+    except InvalidInputError:
+        return None
+    return warp, _coarse_flow(residual, mask)
+
+
+def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
+               weights: np.ndarray, upsample: int) -> ShiftMapFit | None:
+    """The field → shift map over the measured positions; ``None`` for a one-row lattice or
+    positions that do not span two directions."""
+    if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
+        return None
+    try:
+        return fit_shift_map(coords, result.table("shift"), result.field_units,
+                             weights=weights, resolution_px=1.0 / upsample)
+    except InvalidInputError:
+        return None
 
 
 class _WorkingCopy:
