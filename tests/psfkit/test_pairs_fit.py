@@ -309,7 +309,7 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
     assert rel < 2e-3, rel
 
     def objective(k: torch.Tensor) -> float:
-        return float((0.5 * (k * system["normal"](k)).sum() - (system["rhs"] * k).sum()))
+        return float(0.5 * (k * system["normal"](k)).sum() - (system["rhs"] * k).sum())
 
     assert objective(kernels) <= objective(long) + 1e-6 * abs(objective(long)) \
         < objective(short)
