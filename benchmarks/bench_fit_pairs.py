@@ -15,6 +15,16 @@ passes over the pairs and the non-negative solve's Newton steps and KKT residual
 
     python benchmarks/bench_fit_pairs.py [--bench /tmp/ds128] [--skip-bench | --skip-dlmd]
 
+Measured (issue 43, one thread, ``OMP_NUM_THREADS=1``, on the 2-core machine shared with other
+jobs; pessimistic): DLMD full resolution ``--basis si`` (``/usr/bin/time -v psfkit fit-pairs``,
+as this script's child does) 4 min 43 s wall, 251 s CPU, peak RSS 0.96 GiB, ``--tikhonov 0.1``
+chosen by leave-one-out (path 1, 0.316, 0.1, 0.0316 all 0.0665-0.0666), non-negative solve
+converged (65 Newton steps, KKT residual 8.8e-11, 206 s of it): target missed, the Newton
+step being 3/4 of the time. ``--basis ek``: the leave-one-out choice of ``--difference`` alone
+took about 22 min (about 2 000 float32 CG iterations over 7 folds), the final float64 solve
+about 11 min, and the non-negative solve about 24 s per Newton step (stopped by the session's
+time limit at step 17 after 45 min): far from the 4 min target.
+
 ``--leave-one-out`` instead prints the held-out relative prediction errors of both models,
 constrained and not, at ``--downsample`` (each fold chooses its own regularisation: nested
 cross-validation):
