@@ -22,8 +22,10 @@ chosen by leave-one-out (path 1, 0.316, 0.1, 0.0316 all 0.0665-0.0666), non-nega
 converged (65 Newton steps, KKT residual 8.8e-11, 206 s of it): target missed, the Newton
 step being 3/4 of the time. ``--basis ek``: the leave-one-out choice of ``--difference`` alone
 took about 22 min (about 2 000 float32 CG iterations over 7 folds), the final float64 solve
-about 11 min, and the non-negative solve about 24 s per Newton step (stopped by the session's
-time limit at step 17 after 45 min): far from the 4 min target.
+about 11 min, and the non-negative solve 12-24 s per Newton step (stopped by the session's
+time limit at step 57 of at most 100, 54 min after the start): far from the 4 min target. The
+384 bench pairs of 128² (``--skip-dlmd``) did not finish within 36 min on that contended
+thread; not measured.
 
 ``--leave-one-out`` instead prints the held-out relative prediction errors of both models,
 constrained and not, at ``--downsample`` (each fold chooses its own regularisation: nested
