@@ -64,7 +64,7 @@ VARIANTS: dict[str, tuple[int, int | None, dict[str, str]]] = {
 }
 #: extra fit-pairs flags of the golden pairs fits: seven pairs do not determine the correction
 #: kernels without the difference prior (no longer the default since issue 23)
-PAIRS_FLAGS = {"si": [], "ek": ["--difference", "1"]}
+PAIRS_FLAGS = {"si": ["--tikhonov", "0"], "ek": ["--difference", "1"]}
 #: output files of one run: JSON documents and kernel files (as named in ``golden/``)
 JSON_OUTPUTS = ("demo_ds8_results.json", "dlmd_ds4_si_errors.json", "dlmd_ds4_ek_errors.json")
 KERNEL_OUTPUTS = ("demo_ds8_kernels.npz", "dlmd_ds4_si.npz", "dlmd_ds4_ek.npz")

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,6 +52,12 @@ from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, PairFitOptions
+from psfkit.pairs_select import (
+    FOLD_TOLERANCE,
+    PATHS,
+    RegularisationChoice,
+    choose_regularisation,
+)
 from psfkit.pairs_solver import (
     DEFAULT_CACHE_BYTES,
     PairBatches,
@@ -78,6 +85,21 @@ class PairFit:
     history: list[dict[str, Any]]
     options: PairFitOptions
     support: np.ndarray | None = field(default=None, repr=False)
+    #: The relative weights solved with (``{"tikhonov", "difference"}``: the given ones and
+    #: those chosen by held-out error).
+    weights: dict[str, float] = field(default_factory=dict)
+    #: How each automatic weight was chosen (:class:`~psfkit.pairs_select.RegularisationChoice`).
+    regularisation: list[RegularisationChoice] = field(default_factory=list)
+
+    def regularisation_record(self) -> dict[str, Any]:
+        """What the kernel file and the fit report record about the regularisation: the
+        weights used, and for each weight chosen automatically its held-out errors along the
+        path (:meth:`RegularisationChoice.as_dict`)."""
+        automatic = {c.parameter: c.as_dict() for c in self.regularisation}
+        return {"weights": dict(self.weights),
+                "chosen_by": {p: ("held-out error" if p in automatic else "given")
+                              for p in self.weights},
+                "automatic": automatic}
 
     def physics(self) -> dict[str, Any]:
         """The constraints imposed and what the kernels are: energies ``[K][C]``, support
@@ -92,11 +114,12 @@ class PairFit:
         """The kernel file content; ``read_options``: how the fitted pairs were read
         (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
         channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
+        provenance = {**(provenance or {}), "regularisation": self.regularisation_record()}
         return KernelModel(kernels=self.kernels, basis=self.basis, convention=self.convention,
                            sensor_shape=self.kernels.shape[-2:], channels=channels,
                            scene_padding=self.options.scene_padding,
                            normalization="fitted in the pairs' own units: y = A x",
-                           provenance=provenance or {}, read_options=read_options)
+                           provenance=provenance, read_options=read_options)
 
 
 def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
@@ -176,52 +199,35 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     n_kernels = batches.n_kernels
     history: list[dict[str, Any]] = []
     kernels: Tensor | None = None
+    weights = options.weights()
     if initial is not None:
         kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
     elif n_kernels > 1 and options.seed_with_si:
         seed = fit_pairs(scenes, measurements,
                          dataclasses.replace(options, basis="si", nonneg=False,
-                                             support="none", energy="free"),
+                                             support="none", energy="free",
+                                             tikhonov=weights["tikhonov"]),
                          dtype=dtype, device=device, progress=progress,
                          batch_size=batch_size, cache_bytes=cache_bytes)
         kernels = torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
                                   device=device)
         batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
-    # Every round is solved to the tolerance (warm-started from the previous one): scales
-    # fitted to loosely solved kernels are biased by a percent (measured), and then stay so.
-    scale_rounds = options.rounds - 1 if options.fit_scale else 0
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(unit="it", leave=False, desc=f"fit {options.basis}")
-    round_index = 0
-    while True:
-        final_round = round_index >= scale_rounds
-        kernels, info, system = solve_kernels(
-            batches, measurements, options.tikhonov, options.difference, start=kernels,
-            tolerance=options.tolerance,
-            max_iterations=options.final_iterations if final_round
-            else options.scale_iterations, bar=bar)
-        record = info.as_dict()
-        record.update(round=round_index, passes=batches.passes,
-                      **{k: system[k] for k in ("lambda", "mu", "reference")})
-        history.append(record)
-        if final_round:
-            break
-        # the model is linear in the scene: fit the best scale to each unscaled prediction
-        _err, _norm, num, den = batches.residual_norms(kernels, measurements)
-        new = num / den.clamp_min(1e-30)
-        new = new / new.mean()                       # the overall scale stays in the kernels
-        if float((new - batches.scales).abs().max()) < 1e-6:
-            scale_rounds = round_index + 1           # converged: go to the final solve
-        batches.scales = new
-        round_index += 1
+    choices: list[RegularisationChoice] = []
+    if options.automatic and batches.n >= 2:
+        kernels = _choose_weights(batches, measurements, options, weights, kernels, history,
+                                  choices, bar)
+    kernels, system = _solve(batches, measurements, options, weights, kernels, history, bar)
     support = None
     if options.constrained:
+        t0 = time.perf_counter()
         kernels, support, info_c = _constrained_solve(system, kernels, options, support_mask,
                                                       progress)
-        info_c["passes"] = batches.passes
+        info_c.update(passes=batches.passes, seconds=round(time.perf_counter() - t0, 3))
         history.append(info_c)
     if bar is not None:
         bar.close()
@@ -233,7 +239,72 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
                    convention=options.convention,
                    scales=batches.scales.to(torch.float32).cpu().numpy(),
                    training_error=errors.to(torch.float32).cpu().numpy(), history=history,
-                   options=options, support=support)
+                   options=options, support=support, weights=weights,
+                   regularisation=choices)
+
+
+def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+                    weights: dict[str, float], kernels: Tensor | None,
+                    history: list[dict[str, Any]], choices: list[RegularisationChoice],
+                    bar: Any) -> Tensor:
+    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
+    records into ``choices``): the scales first, at the path's strongest weights (the
+    best-conditioned solves), then the folds with those scales; both in float32
+    (:mod:`psfkit.pairs_select`). Returns the warm start of the fit at the chosen weights."""
+    strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
+    twin = batches.astype(torch.float32)
+    start, system = _solve(twin, measurements, options, strongest,
+                           None if kernels is None else kernels.to(torch.float32),
+                           history, bar, stage="scales", tolerance=FOLD_TOLERANCE)
+    batches.scales = twin.scales.to(batches.dtype)
+    for parameter in options.automatic:
+        if bar is not None:
+            bar.set_description(f"choose --{parameter} ({options.basis})")
+        choice, start = choose_regularisation(
+            twin, measurements, parameter,
+            {p: w for p, w in weights.items() if p != parameter}, options.fit_scale,
+            system["reference"], start, bar)
+        weights[parameter] = choice.chosen
+        choices.append(choice)
+    if bar is not None:
+        bar.set_description(f"fit {options.basis}")
+    return start.to(dtype=batches.dtype, device=batches.device)
+
+
+def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+           weights: dict[str, float], kernels: Tensor | None, history: list[dict[str, Any]],
+           bar: Any, stage: str = "fit", tolerance: float | None = None
+           ) -> tuple[Tensor, dict[str, Any]]:
+    """The unconstrained kernels at the relative ``weights``, with the per-pair scales
+    re-estimated in ``options.rounds`` solves (each to the tolerance, warm-started), appending
+    each solve's record to ``history``; returns the kernels and the last solve's system."""
+    # Every round is solved to the tolerance (warm-started from the previous one): scales
+    # fitted to loosely solved kernels are biased by a percent (measured), and then stay so.
+    scale_rounds = options.rounds - 1 if options.fit_scale else 0
+    round_index = 0
+    while True:
+        final_round = round_index >= scale_rounds
+        t0 = time.perf_counter()
+        kernels, info, system = solve_kernels(
+            batches, measurements, weights["tikhonov"], weights["difference"], start=kernels,
+            tolerance=options.tolerance if tolerance is None else tolerance,
+            max_iterations=options.final_iterations if final_round
+            else options.scale_iterations, bar=bar)
+        record = info.as_dict()
+        record.update(stage=stage, round=round_index, passes=batches.passes,
+                      seconds=round(time.perf_counter() - t0, 3),
+                      **{k: system[k] for k in ("lambda", "mu", "reference")})
+        history.append(record)
+        if final_round:
+            return kernels, system
+        # the model is linear in the scene: fit the best scale to each unscaled prediction
+        _err, _norm, num, den = batches.residual_norms(kernels, measurements)
+        new = num / den.clamp_min(1e-30)
+        new = new / new.mean()                       # the overall scale stays in the kernels
+        if float((new - batches.scales).abs().max()) < 1e-6:
+            scale_rounds = round_index + 1           # converged: go to the final solve
+        batches.scales = new
+        round_index += 1
 
 
 def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,

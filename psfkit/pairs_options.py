@@ -14,10 +14,8 @@ from psfkit.weights import get_basis
 
 SUPPORTS = ("none", "auto", "mask")
 ENERGIES = ("free", "fit", "base")
-#: Solvers of the constrained final step (``--nonneg-solver``; ``auto``: Newton where it
-#: applies, FISTA with an energy constraint or without non-negativity).
-NONNEG_SOLVERS = ("auto", "fista", "newton")
-#: Projected Newton-CG (``newton``): most steps, CG iterations per step, and the tolerance of
+#: Projected Newton-CG (the non-negative solve): most steps, CG iterations per step, and the
+#: tolerance of
 #: the relative KKT (natural) residual (:func:`psfkit.pairs_solver.kkt_residual`; at 128²,
 #: 1e-10 left the kernels about 1e-5 of themselves from the minimiser). The same as the
 #: non-negative operator oracle's (:mod:`ekdun.data.oracle`), which it estimates.
@@ -36,16 +34,19 @@ class PairFitOptions:
         ``"si"`` (one shift-invariant PSF) or an eigen-kernel basis (``"paper"``, ...).
     convention : {"sensor", "source"}
         Where the weights of an eigen-kernel model live.
-    tikhonov : float
+    tikhonov : float or None
         ``λ`` relative to the mean scene power (the mean over frequencies of the summed power
-        of the scene spectra the kernels see). Default 0: any ridge shrinks the kernels'
-        spectra where the scenes carry little power and biases them (issue 23: at 1e-2 the
-        kernels of noise-free eigen-kernel pairs came out 46 % wrong); set it for very few
-        or very noisy pairs.
-    difference : float
+        of the scene spectra the kernels see). ``None`` (default): chosen by held-out error
+        for a single PSF (``si``, :mod:`psfkit.pairs_select`), 0 for eigen-kernels (whose
+        difference prior is chosen instead). A ridge shrinks the kernels' spectra where the
+        scenes carry little power and biases them (issue 23: at 1e-2 the kernels of
+        noise-free eigen-kernel pairs came out 46 % wrong), so it is chosen only where the
+        held-out pairs ask for it.
+    difference : float or None
         ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
-        Default 0: at the earlier default 1 it damped ``Kv − Kbase`` and ``Kh − Kbase`` at
-        every frequency where the scenes' power is below the mean, which is most of them.
+        ``None`` (default): chosen by held-out error for eigen-kernels (7 DLMD pairs do not
+        determine ``Kv − Kbase`` and ``Kh − Kbase`` without it; hundreds of pairs do, and
+        then it only biases them); irrelevant for ``si``.
     iterations : int, optional
         Most conjugate-gradient iterations of the final solve (scales fixed), which otherwise
         stops at ``tolerance``; default 2000 (a cap, not an early stop: the fit records its
@@ -82,25 +83,26 @@ class PairFitOptions:
         (``"fit"``); or every kernel of a channel fixed to the unconstrained base kernel's sum
         (``"base"``: Kv and Kh carry Kbase's energy).
     projected_iterations : int, optional
-        Most iterations of the constrained solve: FISTA iterations (stops when the kernels
-        change by less than 1e-6 of themselves; default 100, where the held-out error on DLMD
-        at 1/4 resolution stops improving) or Newton steps (default ``NEWTON_ITERATIONS``).
-    nonneg_solver : {"auto", "fista", "newton"}
-        ``"newton"``: projected Newton-CG (:func:`psfkit.pairs_solver.projected_newton`) to
-        a KKT residual of ``NEWTON_TOLERANCE``: the non-negative least squares itself (with
-        ``--support``); not with ``--energy`` or ``--no-nonneg``. ``"fista"``: accelerated
-        projected gradient from the clipped unconstrained solution, stopped after
-        ``projected_iterations``; it handles every constraint, but at 128² its 100
-        iterations stop far from the non-negative least squares, at the same place whatever
-        the noise (issue 23: 0.84 / 0.85 difference NCC from it at 20000 and at 10⁶
-        photons). ``"auto"`` (default): Newton where it applies, FISTA otherwise
-        (:attr:`solver`).
+        Most iterations of the constrained solve: Newton steps (default
+        ``NEWTON_ITERATIONS``) or, with an energy constraint or a support without
+        non-negativity, FISTA iterations (stops when the kernels change by less than 1e-6 of
+        themselves; default 100, where the held-out error on DLMD at 1/4 resolution stops
+        improving).
+
+    The constrained solver follows from the constraints (:attr:`solver`): projected Newton-CG
+    (:func:`psfkit.pairs_solver.projected_newton`) to a KKT residual of
+    ``NEWTON_TOLERANCE`` for non-negativity (with or without a support), the non-negative
+    least squares itself; FISTA (:func:`psfkit.pairs_constraints.projected_fit`) only where
+    Newton does not apply (``energy`` constraints, a support without non-negativity). Until
+    issue 43 ``nonneg_solver="fista"`` could force FISTA for non-negativity too, an
+    early-stopped projection that stops far from the non-negative least squares (issue 23):
+    removed.
     """
 
     basis: str = "si"
     convention: str = "sensor"
-    tikhonov: float = 0.0
-    difference: float = 0.0
+    tikhonov: float | None = None
+    difference: float | None = None
     iterations: int | None = None
     scale_iterations: int = 2000
     tolerance: float = 1e-6
@@ -113,14 +115,25 @@ class PairFitOptions:
     support_threshold: float = 0.1
     energy: str = "free"
     projected_iterations: int | None = None
-    nonneg_solver: str = "auto"
 
     @property
     def solver(self) -> str:
-        """The constrained solver that runs: ``nonneg_solver``, with ``"auto"`` resolved."""
-        if self.nonneg_solver != "auto":
-            return self.nonneg_solver
+        """The constrained solver that runs: ``"newton"`` for non-negativity (and a
+        support), ``"fista"`` with an energy constraint or without non-negativity."""
         return "newton" if self.nonneg and self.energy == "free" else "fista"
+
+    @property
+    def automatic(self) -> tuple[str, ...]:
+        """The weights chosen by held-out error (:mod:`psfkit.pairs_select`): the difference
+        prior of eigen-kernels, the ridge of one PSF, each unless given."""
+        if get_basis(self.basis).n_kernels > 1:
+            return ("difference",) if self.difference is None else ()
+        return ("tikhonov",) if self.tikhonov is None else ()
+
+    def weights(self) -> dict[str, float]:
+        """The relative weights as given, a weight not chosen automatically and not given
+        being 0 (:attr:`automatic` replaces the others)."""
+        return {"tikhonov": self.tikhonov or 0.0, "difference": self.difference or 0.0}
 
     @property
     def constrained(self) -> bool:
@@ -147,7 +160,7 @@ class PairFitOptions:
         if self.convention not in CONVENTIONS:
             raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)}, "
                                      f"got {self.convention!r}")
-        if self.tikhonov < 0 or self.difference < 0:
+        if (self.tikhonov or 0.0) < 0 or (self.difference or 0.0) < 0:
             raise ConfigurationError("--tikhonov and --difference must be >= 0")
         if self.final_iterations < 1:
             raise ConfigurationError(f"--iterations must be >= 1, got {self.iterations}")
@@ -163,15 +176,6 @@ class PairFitOptions:
         if not 0 <= self.support_threshold < 1:
             raise ConfigurationError(f"--support-threshold must be in [0, 1), got "
                                      f"{self.support_threshold}")
-        if self.nonneg_solver not in NONNEG_SOLVERS:
-            raise ConfigurationError(f"--nonneg-solver must be one of "
-                                     f"{', '.join(NONNEG_SOLVERS)}, got {self.nonneg_solver!r}")
-        if self.nonneg_solver == "newton" and not self.nonneg:
-            raise ConfigurationError("--nonneg-solver newton needs --nonneg (it solves the "
-                                     "non-negative least squares)")
-        if self.nonneg_solver == "newton" and self.energy != "free":
-            raise ConfigurationError(f"--nonneg-solver newton does not handle --energy "
-                                     f"{self.energy}: use --nonneg-solver fista")
         if self.final_projected_iterations < 1:
             raise ConfigurationError(f"--projected-iterations must be >= 1, got "
                                      f"{self.projected_iterations}")

@@ -65,6 +65,7 @@ ekdun's operator oracle (:mod:`ekdun.data.oracle`) are built on them.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -169,6 +170,8 @@ class PairBatches:
         self._cache: dict[int, KernelSpaceOperator] = {}
         self._cached_pairs = 0
         self.passes = 0
+        #: Pairs that the passes visit (a cross-validation fold's, :meth:`only`); None: all.
+        self.active: Tensor | None = None
 
     def astype(self, dtype: torch.dtype) -> PairBatches:
         """The same pairs, batches and scales in another precision, with a cache of its own
@@ -202,14 +205,35 @@ class PairBatches:
         """Pairs whose operators are kept between passes (at most ``cache_bytes`` of them)."""
         return self._cached_pairs
 
+    @contextmanager
+    def only(self, active: Tensor | np.ndarray) -> Iterator[PairBatches]:
+        """Within the ``with`` block every pass visits only the pairs where ``active``
+        (``(N,)`` bool) is true: the normal operator, right-hand side, Gram blocks and
+        residuals of a cross-validation fold's training (or held-out) pairs, from the same
+        cached scene spectra (no FFT of a scene is taken again)."""
+        previous = self.active
+        self.active = torch.as_tensor(np.asarray(active, dtype=bool), device=self.device)
+        try:
+            yield self
+        finally:
+            self.active = previous
+
     def batches(self) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor]]:
-        """One pass: ``(start, stop, operator, scales)`` per batch."""
+        """One pass: ``(start, stop, operator, scales)`` per batch; with :attr:`active` set,
+        per run of consecutive active pairs within a batch (its operator a view of the
+        batch's scene spectra: nothing is copied)."""
         self.passes += 1
         for start, stop in self.ranges():
-            yield start, stop, self.operator(start, stop), self.scales[start:stop]
+            if self.active is None or bool(self.active[start:stop].all()):
+                yield start, stop, self.operator(start, stop), self.scales[start:stop]
+                continue
+            for a, b in _runs(self.active[start:stop].tolist()):
+                yield (start + a, start + b, self.operator(start, stop).subset(slice(a, b)),
+                       self.scales[start + a:start + b])
 
     def measurement(self, source: np.ndarray | Tensor | MeasurementSource, start: int,
                     stop: int) -> Tensor:
+        """The measurements of pairs ``start:stop`` (a batch, or a run of one)."""
         y = source(start, stop) if callable(source) else source[start:stop]
         return torch.as_tensor(y, dtype=self.dtype, device=self.device)
 
@@ -260,6 +284,18 @@ class PairBatches:
             num[start:stop] = (p * y).sum(dim=(1, 2, 3))
             den[start:stop] = p.pow(2).sum(dim=(1, 2, 3))
         return err, norm, num, den
+
+
+def _runs(active: list[bool]) -> list[tuple[int, int]]:
+    """``(start, stop)`` of every run of consecutive ``True``."""
+    runs, begin = [], None
+    for i, on in enumerate([*active, False]):
+        if on and begin is None:
+            begin = i
+        elif not on and begin is not None:
+            runs.append((begin, i))
+            begin = None
+    return runs
 
 
 class FrequencyGram:
@@ -319,8 +355,12 @@ class FrequencyGram:
     def inverse(self, tikhonov: float, difference: float, floor: float = 1e-12) -> Tensor:
         """``[G(ω) + λ I + μ D + ε]^{-1}`` per frequency and channel; ``ε`` (``floor`` times the
         mean trace) keeps an unexcited frequency from dividing by zero (preconditioner only)."""
-        g = self.matrix()
         k = self.n_kernels
+        if self._power is not None and k == 1:           # one kernel: a division
+            eps = floor * max(float(self._power.mean()), 1e-300)
+            return (1.0 / (self._power + (tikhonov + eps))).to(torch.complex128)[..., None,
+                                                                                  None]
+        g = self.matrix()
         eye = torch.eye(k, dtype=torch.complex128, device=self.device)
         reg = tikhonov * eye + difference * torch.as_tensor(
             difference_matrix(k), dtype=torch.complex128, device=self.device)
@@ -342,13 +382,23 @@ class FrequencyGram:
 
     def preconditioner(self, tikhonov: float, difference: float
                        ) -> Callable[[Tensor], Tensor]:
-        """``P`` of the module docstring, a callable on ``(K, C, Hk, Wk)`` residuals."""
-        inv = self.inverse(tikhonov, difference)
+        """``P`` of the module docstring, a callable on ``(K, C, Hk, Wk)`` residuals, applied
+        in the residual's precision (a float32 solve gets float32 FFTs: it is only a
+        preconditioner)."""
+        # (K, K, C, PH, PW//2+1): one multiply-add per block entry beats a batched matmul of
+        # 3 x 3 matrices over the frequencies
+        inverses = {torch.float64: self.inverse(tikhonov, difference).permute(3, 4, 0, 1, 2)
+                    .contiguous()}
 
         def apply(r: Tensor) -> Tensor:
-            spectra = kernel_spectra(r.to(torch.float64), self.grid)
-            solved = torch.einsum("cuvkl,lcuv->kcuv", inv, spectra)
-            return extract_kernel(irfft2(solved, self.grid), self.kernel_shape).to(r.dtype)
+            if r.dtype not in inverses:
+                inverses[r.dtype] = inverses[torch.float64].to(
+                    torch.complex64 if r.dtype == torch.float32 else torch.complex128)
+            inv = inverses[r.dtype]
+            spectra = kernel_spectra(r, self.grid)
+            solved = torch.stack([sum(inv[k, j] * spectra[j] for j in range(len(inv)))
+                                  for k in range(len(inv))])
+            return extract_kernel(irfft2(solved, self.grid), self.kernel_shape)
 
         return apply
 
@@ -371,15 +421,16 @@ class SolveInfo:
 def solve_normal_equations(normal: Callable[[Tensor], Tensor], rhs: Tensor,
                            precondition: Callable[[Tensor], Tensor],
                            start: Tensor | None = None, tolerance: float = 1e-6,
-                           max_iterations: int = 500, bar: Any = None
-                           ) -> tuple[Tensor, SolveInfo]:
+                           max_iterations: int = 500, bar: Any = None,
+                           true_residual: bool = True) -> tuple[Tensor, SolveInfo]:
     """Preconditioned conjugate gradients for ``N K = rhs``, per colour channel (independent
     problems), until ``‖rhs − N K‖ ≤ tolerance · ‖rhs‖`` in every channel.
 
     ``normal`` must be symmetric positive (semi-)definite per channel and ``precondition``
     symmetric positive definite (e.g. :meth:`FrequencyGram.preconditioner`); then the iterates
     converge to the least-squares solution and the reported residual is the true one (it is
-    recomputed from ``normal`` at the end, not only the recursively updated one).
+    recomputed from ``normal`` at the end, not only the recursively updated one, unless
+    ``true_residual`` is false: an inner solve whose residual nobody reads saves that pass).
     """
     x = torch.zeros_like(rhs) if start is None else start.clone()
     r = rhs - normal(x) if start is not None and bool(start.abs().max() > 0) else rhs.clone()
@@ -410,10 +461,10 @@ def solve_normal_equations(normal: Callable[[Tensor], Tensor], rhs: Tensor,
             beta = rz_new / rz.clamp_min(1e-300)
             p = z + beta[None, :, None, None] * p
             rz = rz_new
-        # the true residual (the recursion drifts in finite precision)
-        r = rhs - normal(x)
-        relative = float((_per_channel_dot(r, r).sqrt() / norm_rhs).max())
-        history.append(relative)
+        if true_residual:   # the recursion drifts in finite precision
+            r = rhs - normal(x)
+            relative = float((_per_channel_dot(r, r).sqrt() / norm_rhs).max())
+            history.append(relative)
     return x, SolveInfo(iterations=done, relative_residual=relative,
                         converged=relative <= max(tolerance, 10 * tolerance) or done == 0,
                         history=history)
@@ -634,8 +685,13 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         def masked_precondition(r: Tensor, free: Tensor = free) -> Tensor:
             return (r * free if precondition is None else precondition(r * free) * free)
 
+        # inexact Newton: the CG solves the step only as accurately as the KKT residual
+        # calls for (forcing term √residual, Eisenstat & Walker 1996): far from the solution
+        # the active set still changes and a precise step is wasted
+        forcing = min(0.1, float(residual.max()) ** 0.5)
         d, _ = solve_normal_equations(masked, -g * free, masked_precondition,
-                                      tolerance=1e-12, max_iterations=cg_iterations)
+                                      tolerance=forcing, max_iterations=cg_iterations,
+                                      true_residual=False)
         alpha = torch.ones(rhs.shape[1], dtype=x.dtype, device=x.device)
         accepted = torch.zeros_like(alpha, dtype=torch.bool)
         x_new, nx_new = x, nx

@@ -4,6 +4,7 @@ pairs, and their prediction error on pairs they never saw."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ from psfkit.io.jsonable import jsonable
 from psfkit.io.pairs import parse_names
 from psfkit.io.read_options import ReadOptions, choose
 from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_options import NONNEG_SOLVERS, PairFitOptions
+from psfkit.pairs_options import PairFitOptions
 from psfkit.validation import dumps_finite, flag, require_finite
 from psfkit.weights import BASIS_NAMES
 from psfkit.zones import ZONE_NAMES
@@ -29,10 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Regularised least-squares fit of the forward model y = crop(K * pad(x)) "
                     "(one PSF, or eigen-kernels with weight maps) to (scene, measurement) "
                     "pairs, by preconditioned conjugate gradients on the normal equations, "
-                    "then (by default) accelerated projected gradient under the constraints "
+                    "with the regularisation chosen by held-out error (cross-validation over "
+                    "the pairs), then (by default) projected Newton under the constraints "
                     "of a measured PSF: non-negative, optionally zero outside a support and "
                     "with fixed energies. Writes a kernel file that ekdun and eval-model "
-                    "read; its provenance records the constraints, energies and support.")
+                    "read; its provenance records the regularisation chosen, the "
+                    "constraints, energies and support.")
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
     add_flag(p, "--basis", "fit-pairs",
@@ -93,10 +96,11 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin scenes and measurements N x N before fitting (default 1)")
     g.add_argument("--tikhonov", type=flag("--tikhonov"), default=d.tikhonov,
-                   help=f"ridge weight relative to the mean scene power (default {d.tikhonov:g})")
+                   help="ridge weight relative to the mean scene power (default: chosen by "
+                        "held-out error for --basis si, 0 for eigen-kernels)")
     g.add_argument("--difference", type=flag("--difference"), default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
-                        f"likewise (default {d.difference:g})")
+                        "likewise (default: chosen by held-out error; eigen-kernels only)")
     g.add_argument("--iterations", type=flag("--iterations"), default=None,
                    help="most conjugate-gradient iterations of the final solve, which "
                         f"stops at a relative residual of {d.tolerance:g} (default "
@@ -123,13 +127,8 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                         "the unconstrained fit's sums) or base (every kernel carries the "
                         "unconstrained base kernel's)")
     c.add_argument("--projected-iterations", type=flag("--projected-iterations"), default=None,
-                   help="most iterations of the constrained solve (default 100 FISTA "
-                        "iterations, or 50 Newton steps)")
-    c.add_argument("--nonneg-solver", choices=NONNEG_SOLVERS, default=d.nonneg_solver,
-                   help="constrained solve: newton (projected Newton-CG to convergence: the "
-                        "non-negative least squares, with --support; not with --energy), fista "
-                        "(every constraint, early-stopped), or auto (default: newton where it "
-                        "applies, else fista)")
+                   help="most iterations of the constrained solve (default 100 projected "
+                        "Newton steps; 100 FISTA iterations with --energy)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
@@ -210,8 +209,7 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
                              fit_scale=not args.no_scale, nonneg=args.nonneg,
                              support="mask" if args.support_mask else args.support,
                              support_threshold=threshold, energy=args.energy,
-                             projected_iterations=args.projected_iterations,
-                             nonneg_solver=args.nonneg_solver)
+                             projected_iterations=args.projected_iterations)
     # both outputs are checked before the fit and appear together, or neither does
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         kernels = outputs.file(out)
@@ -241,9 +239,14 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
         "training_error": dict(zip(pairs.names, fit.training_error.tolist(), strict=True)),
         "scales": dict(zip(pairs.names, fit.scales.tolist(), strict=True)),
         "solver": fit.history, "physics": physics}
+    regularisation = fit.regularisation_record()
+    summary["regularisation"] = regularisation
     if args.leave_one_out:
-        summary["leave_one_out"] = leave_one_out(scenes, measurements, options,
-                                                 progress=not args.quiet, support_mask=mask)
+        # each fold fitted with the weights chosen on all the pairs (choosing them again in
+        # every fold would nest one cross-validation in another)
+        summary["leave_one_out"] = leave_one_out(
+            scenes, measurements, dataclasses.replace(options, **fit.weights),
+            progress=not args.quiet, support_mask=mask)
     # the folder (resolved: eval-model compares it with the folder it is given) and the
     # names fitted on; "holdout" only where pairs were held out (files without it held none)
     provenance = {"source": "psfkit fit-pairs", "pairs": str(pairs.root.resolve()),
@@ -258,10 +261,6 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
         report.write_text(dumps_finite(jsonable(summary), args.report, indent=1) + "\n",
                           encoding="utf-8")
     return pairs, scenes, fit, summary
-
-
-#: Below this many pairs an eigen-kernel fit without the difference prior gets a note.
-FEW_PAIRS = 32
 
 
 def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
@@ -288,16 +287,16 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
     if options.solver == "newton" and options.constrained:
         step = fit.history[-1]
         print(f"  non-negative least squares: {step['iterations']} Newton steps, KKT residual "
-              f"{step['kkt_residual']:.1e}")
+              f"{step['kkt_residual']:.1e} ("
+              + ("converged" if step["converged"] else
+                 f"NOT converged: stopped at --projected-iterations "
+                 f"{options.final_projected_iterations}") + ")")
+    for choice in fit.regularisation:
+        print(f"  {choice.summary()}")
     if args.leave_one_out:
         loo = summary["leave_one_out"]
         print(f"  leave-one-out relative error: mean {loo['mean_raw']:.4f} raw, "
               f"{loo['mean_scaled']:.4f} with the best per-pair scale")
-    if basis != "si" and options.difference == 0 and len(pairs) < FEW_PAIRS:
-        # the unbiased default needs data that determine Kv - Kbase and Kh - Kbase; a few real
-        # pairs do not (7 DLMD pairs: held-out error 0.129 at 0, 0.0535 with --difference 1)
-        print(f"note: {len(pairs)} pairs seldom determine the correction kernels; check with "
-              "--leave-one-out, and try --difference 1 (docs/your-camera.md)", file=sys.stderr)
 
 
 def run_eval_model(args: argparse.Namespace) -> int:

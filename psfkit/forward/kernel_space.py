@@ -11,6 +11,8 @@ normal equations with it; the FFTs go through :func:`~psfkit.forward.fft.rfft2` 
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor
 
@@ -84,7 +86,13 @@ class KernelSpaceOperator:
         else:
             # source side: spectra of every weighted scene (N, K, C, ...)
             self.scene_spectra = rfft2(scenes[:, None] * self.weights[None, :, None], self.grid)
-        self.power = (self.scene_spectra.abs() ** 2).sum(dim=(0, 1))       # (C, PH, PW//2+1)
+
+    def subset(self, pairs: slice) -> KernelSpaceOperator:
+        """The operator of ``pairs`` only, sharing their scene spectra (a view: no FFT, no
+        copy): a cross-validation fold's training or held-out pairs."""
+        part = copy.copy(self)
+        part.scene_spectra = self.scene_spectra[pairs]
+        return part
 
     def forward(self, kernels: Tensor) -> Tensor:
         """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 by the one implementation
@@ -114,17 +122,3 @@ class KernelSpaceOperator:
             r_hat = rfft2(residuals, self.grid)[:, None]                  # (N, 1, C, ...)
             spectrum = (r_hat * self.scene_spectra.conj()).sum(dim=0)          # (K or 1, C, ...)
         return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
-
-    def precondition(self, kernels: Tensor, regulariser: float) -> Tensor:
-        """Approximate inverse of the normal operator ``BᵀB + λ``, per kernel and frequency.
-
-        Divides each kernel's spectrum by ``w̄ · P(ω) + regulariser``, with ``P`` the summed
-        power of the scene spectra the kernels see (:attr:`power`: the scenes, or a source-side
-        model's weighted scenes summed over the weights too) and ``w̄`` the mean of the
-        squared weight maps (1 for the SI model). That is the circulant part of ``BᵀB`` for
-        one kernel under a spatially averaged weight; the coupling between kernels is ignored.
-        """
-        spectra = kernel_spectra(kernels, self.grid)
-        mean_weight = 1.0 if self.weights is None else float(self.weights.pow(2).mean())
-        filtered = spectra / (self.power * mean_weight + regulariser)
-        return extract_kernel(irfft2(filtered, self.grid), self.kernel_shape)

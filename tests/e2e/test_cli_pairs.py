@@ -126,29 +126,34 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
 
 def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Path,
                                                        capsys) -> None:
-    """--nonneg-solver newton: non-negative kernels at a KKT residual below 1e-9 (printed and
-    in the provenance), inside a --support-mask; refused in one line with --no-nonneg or
-    --energy, and nothing written."""
+    """The non-negative solve (projected Newton): kernels at a KKT residual below 1e-9 (printed
+    with "converged", and in the report), inside a --support-mask; with --energy the solve is
+    FISTA's (Newton does not handle it), and with --no-nonneg there is none."""
     fit_dir, _, _ = eigen_pairs
-    common = ["--basis", "ek", "--convention", "sensor", "--quiet", "--nonneg-solver", "newton"]
+    common = ["--basis", "ek", "--convention", "sensor", "--quiet"]
     out = tmp_path / "newton.npz"
     mask = np.zeros((16, 24), np.uint8)
     mask[3:13, 4:20] = 1
     np.save(tmp_path / "mask.npy", mask)
     assert main(["fit-pairs", str(fit_dir), "--out", str(out), "--support-mask",
-                 str(tmp_path / "mask.npy"), *common]) == 0
+                 str(tmp_path / "mask.npy"), "--report", str(tmp_path / "r.json"),
+                 *common]) == 0
     printed = capsys.readouterr().out
-    assert "Newton steps, KKT residual" in printed
+    assert "Newton steps, KKT residual" in printed and "(converged)" in printed
     model = load_kernels(out)
     assert model.kernels.min() >= 0 and np.abs(model.kernels[..., mask == 0]).max() == 0
-    assert model.provenance["options"]["nonneg_solver"] == "newton"
     kkt = float(printed.split("KKT residual")[1].split()[0])
     assert kkt < 1e-9
-    for bad, words in ((["--no-nonneg"], "needs --nonneg"), (["--energy", "base"], "--energy")):
-        refused = tmp_path / "refused.npz"
-        assert main(["fit-pairs", str(fit_dir), "--out", str(refused), *common, *bad]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and words in err[0] and not refused.exists()
+    step = json.loads((tmp_path / "r.json").read_text())["solver"][-1]
+    assert step["method"] == "projected-newton-cg" and step["converged"]
+    assert step["kkt_residual"] == pytest.approx(kkt, rel=0.1)
+    for extra, method in ((["--energy", "base"], "fista"), (["--no-nonneg"], None)):
+        other = tmp_path / f"{method}.npz"
+        assert main(["fit-pairs", str(fit_dir), "--out", str(other), *common, *extra,
+                     "--report", str(tmp_path / f"{method}.json"), "--overwrite"]) == 0
+        assert "Newton" not in capsys.readouterr().out
+        last = json.loads((tmp_path / f"{method}.json").read_text())["solver"][-1]
+        assert last["method"] == (method or "pcg-frequency-gram")
 
 
 def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Path,

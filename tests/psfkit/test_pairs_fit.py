@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, project
+from psfkit.pairs_constraints import auto_support, project, projected_fit
 from psfkit.pairs_fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -20,7 +20,7 @@ from psfkit.pairs_fit import (
     relative_errors,
 )
 from psfkit.pairs_options import NEWTON_ITERATIONS
-from psfkit.pairs_solver import kkt_residual, projected_newton
+from psfkit.pairs_solver import PairBatches, kkt_residual, projected_newton, solve_kernels
 from psfkit.weights import get_basis
 
 
@@ -243,9 +243,8 @@ def _tiny_camera() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return kernels.astype(np.float64), x.astype(np.float64), y.astype(np.float64)
 
 
-@pytest.mark.parametrize("solver", ["fista", "newton"])
 @pytest.mark.parametrize("noise", [0.0, 0.03])
-def test_constrained_fit_recovers_non_negative_kernels(noise: float, solver: str) -> None:
+def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
     """Exact data: both fits find the kernels. Noisy data (3 % of the signal's spread): the
     unconstrained fit's kernels are off by more than their own size, with hundreds of negative
     pixels; non-negativity halves the kernel error and the held-out error (measured 1.16 →
@@ -257,13 +256,11 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float, solver: str
     for nonneg in (False, True):
         options = PairFitOptions(basis="paper", convention="sensor", tikhonov=1e-6,
                                  difference=0.0, iterations=300, tolerance=1e-10,
-                                 fit_scale=False, nonneg=nonneg, projected_iterations=500,
-                                 nonneg_solver=solver if nonneg else "auto")
+                                 fit_scale=False, nonneg=nonneg, projected_iterations=500)
         fit = fit_pairs(x[:7], noisy[:7], options, dtype=torch.float64)
         if nonneg:
             assert fit.physics()["negative_pixels"] == 0
-            assert fit.history[-1]["method"] == {"fista": "fista",
-                                                 "newton": "projected-newton-cg"}[solver]
+            assert fit.history[-1]["method"] == "projected-newton-cg"
         kernel_error[nonneg] = np.linalg.norm(fit.kernels - truth) / np.linalg.norm(truth)
         held_out[nonneg] = relative_errors(predict(fit.kernel_model(), x[7:]), y[7:])["raw"][0]
     if noise == 0:
@@ -276,16 +273,17 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float, solver: str
 
 @pytest.mark.parametrize("with_support", [False, True])
 def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> None:
-    """``nonneg_solver="newton"`` (the default, its CG on float32 products) reaches the
-    non-negative least squares (KKT residual below its tolerance), which a long FISTA run (a
-    second method) agrees with, and which an early-stopped FISTA run has not reached (a
-    larger training residual)."""
+    """The non-negative solve (projected Newton-CG, its CG on float32 products) reaches the
+    non-negative least squares (KKT residual below its tolerance), which a long FISTA run on
+    the same normal equations (a second method) agrees with, and which an early-stopped FISTA
+    run has not reached (a larger objective)."""
     _truth, x, y = _tiny_camera()
     noisy = y + 0.03 * y.std() * np.random.default_rng(1).standard_normal(y.shape)
     mask = np.zeros((16, 16), bool)
     mask[2:14, 3:15] = True
     common = dict(basis="paper", convention="sensor", iterations=300, tolerance=1e-10,
-                  fit_scale=False, support="mask" if with_support else "none")
+                  fit_scale=False, support="mask" if with_support else "none", tikhonov=0.0,
+                  difference=0.0)
     extra = {"support_mask": mask} if with_support else {}
 
     def fit(**kw):
@@ -300,27 +298,27 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
     assert step["iterations"] <= 50 and newton.kernels.min() >= 0
     if with_support:
         assert np.abs(newton.kernels[..., ~mask]).max() == 0
-    long = fit(nonneg_solver="fista", projected_iterations=5000)
-    short = fit(nonneg_solver="fista", projected_iterations=3)
-    rel = np.linalg.norm(newton.kernels - long.kernels) / np.linalg.norm(long.kernels)
+    batches = PairBatches(x, "paper", "sensor", (16, 16))
+    start, _, system = solve_kernels(batches, noisy, tolerance=1e-10, max_iterations=300)
+    support = torch.as_tensor(mask) if with_support else None
+    long, _ = projected_fit(system["normal"], system["rhs"], start, 5000, support=support,
+                            tolerance=0)
+    short, _ = projected_fit(system["normal"], system["rhs"], start, 3, support=support)
+    kernels = torch.as_tensor(newton.kernels, dtype=torch.float64)
+    rel = float(torch.linalg.norm(kernels - long) / torch.linalg.norm(long))
     assert rel < 2e-3, rel
 
-    def sse(f):
-        return float(np.sum((predict(f.kernel_model(), x) - noisy) ** 2))
+    def objective(k: torch.Tensor) -> float:
+        return float(0.5 * (k * system["normal"](k)).sum() - (system["rhs"] * k).sum())
 
-    assert sse(newton) <= sse(long) * (1 + 1e-6) < sse(short)
+    assert objective(kernels) <= objective(long) + 1e-6 * abs(objective(long)) \
+        < objective(short)
 
 
-def test_newton_solver_refuses_what_it_does_not_solve() -> None:
-    with pytest.raises(ConfigurationError, match="needs --nonneg"):
-        PairFitOptions(basis="paper", nonneg=False, nonneg_solver="newton")
-    with pytest.raises(ConfigurationError, match="--energy fit"):
-        PairFitOptions(basis="paper", energy="fit", nonneg_solver="newton")
-    with pytest.raises(ConfigurationError, match="--nonneg-solver must be one of"):
-        PairFitOptions(basis="paper", nonneg_solver="lbfgs")
-    assert PairFitOptions(nonneg_solver="newton").final_projected_iterations == NEWTON_ITERATIONS
-    assert PairFitOptions(nonneg_solver="fista").final_projected_iterations == 100
-    # auto (the default): Newton where it applies, FISTA where it does not
+def test_constrained_solver_follows_from_the_constraints() -> None:
+    """Projected Newton for non-negativity (with or without a support), FISTA only where
+    Newton does not apply (issue 43: the choice of solver is no longer an option)."""
+    assert "nonneg_solver" not in PairFitOptions.__dataclass_fields__
     assert PairFitOptions().solver == "newton"
     assert PairFitOptions().final_projected_iterations == NEWTON_ITERATIONS
     assert PairFitOptions(support="auto").solver == "newton"
