@@ -90,7 +90,7 @@ if HAVE_DATA:
 # %%
 def fit_both(x: np.ndarray, y: np.ndarray) -> dict:
     """Shift-invariant fit, then the paper's model seeded with it."""
-    si = fit_pairs(x, y, PairFitOptions(basis="si", **OPTIONS))
+    si = fit_pairs(x, y, PairFitOptions(basis="si", tikhonov=0.0, **OPTIONS))
     # seven real pairs do not determine Kv - Kbase and Kh - Kbase on their own: the difference
     # prior (fit-pairs --difference 1) keeps them near Kbase where the data are silent
     paper = fit_pairs(x, y, PairFitOptions(basis="paper", difference=1.0, **OPTIONS),
@@ -174,7 +174,7 @@ if HAVE_DATA:
     i = pairs.names.index(CLASSICAL_PAIR)
     rest = [j for j in range(len(scenes)) if j != i]
     classical = {}
-    for label, fit_options in (("SI", PairFitOptions(basis="si")),
+    for label, fit_options in (("SI", PairFitOptions(basis="si", tikhonov=0.0)),
                                ("EK, source side", PairFitOptions(basis="paper",
                                                                   convention="source",
                                                                   difference=1.0))):
@@ -239,7 +239,8 @@ if HAVE_DATA:
     torch.manual_seed(0)
     train_set = PairsDataset(PAIRS, holdout=[TEST_PAIR], downsample=DOWNSAMPLE)
     keep = [pairs.names.index(n) for n in train_set.names]
-    psf_fit = fit_pairs(scenes[keep], measurements[keep], PairFitOptions(basis="si", **OPTIONS))
+    psf_fit = fit_pairs(scenes[keep], measurements[keep],
+                        PairFitOptions(basis="si", tikhonov=0.0, **OPTIONS))
     kernel_model = psf_fit.kernel_model({"downsample": DOWNSAMPLE})
     run = train(NB_OUT / "run", "ekdun", kernel_model, train_set, "tiny",
                 options=TrainOptions(epochs=2, batch_size=2, progress=False, threads=1),

@@ -148,7 +148,7 @@ def fit_unconstrained(scenes: np.ndarray, measurements: np.ndarray, basis: str,
                       convention: str, tolerance: float = 1e-6) -> np.ndarray:
     """The exact, unconstrained least-squares kernels (no ridge, prior, scale or constraint)."""
     options = PairFitOptions(basis=basis, convention=convention, fit_scale=False,
-                             nonneg=False, tolerance=tolerance)
+                             nonneg=False, tolerance=tolerance, tikhonov=0.0, difference=0.0)
     return fit_pairs(scenes, measurements, options).kernels.astype(np.float64)
 
 
