@@ -129,3 +129,20 @@ def tiny_data(tmp_path_factory) -> tuple[Path, Path]:
         np.save(root / "pairs" / "scene" / f"im{i}.npy", np.moveaxis(x[0].numpy(), 0, -1))
         np.save(root / "pairs" / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
     return root / "pairs", kernel_file
+
+
+def _write_pairs_folder(root: Path, scenes: np.ndarray, measurements: np.ndarray) -> Path:
+    """A pairs folder (``scene/`` and ``measurement/``, ``imN.npy`` H×W×C) of ``(N, C, H, W)``
+    scenes and measurements; returns ``root``."""
+    (root / "scene").mkdir(parents=True)
+    (root / "measurement").mkdir()
+    for i, (x, y) in enumerate(zip(scenes, measurements, strict=True)):
+        np.save(root / "scene" / f"im{i}.npy", np.moveaxis(x, 0, -1))
+        np.save(root / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
+    return root
+
+
+@pytest.fixture(scope="session")
+def write_pairs():
+    """The function that writes a pairs folder (:func:`_write_pairs_folder`)."""
+    return _write_pairs_folder

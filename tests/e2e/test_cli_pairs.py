@@ -13,17 +13,9 @@ from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.pairs_fit import predict
 
 
-def _write_pairs(root: Path, scenes: np.ndarray, measurements: np.ndarray) -> Path:
-    (root / "scene").mkdir(parents=True)
-    (root / "measurement").mkdir()
-    for i, (x, y) in enumerate(zip(scenes, measurements, strict=True)):
-        np.save(root / "scene" / f"im{i}.npy", np.moveaxis(x, 0, -1))
-        np.save(root / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
-    return root
-
-
 @pytest.fixture(scope="module")
-def eigen_pairs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, KernelModel]:
+def eigen_pairs(tmp_path_factory: pytest.TempPathFactory, write_pairs
+                ) -> tuple[Path, Path, KernelModel]:
     """Two pairs folders (fit / held out) measured through a known eigen-kernel camera."""
     from scipy.ndimage import gaussian_filter
 
@@ -38,7 +30,7 @@ def eigen_pairs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, K
     x = x.astype(np.float32)
     y = predict(model, x)
     root = tmp_path_factory.mktemp("pairs")
-    return (_write_pairs(root / "fit", x[:6], y[:6]), _write_pairs(root / "held", x[6:], y[6:]),
+    return (write_pairs(root / "fit", x[:6], y[:6]), write_pairs(root / "held", x[6:], y[6:]),
             model)
 
 
@@ -157,7 +149,7 @@ def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Pa
 
 
 def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Path,
-                                                        capsys) -> None:
+                                                        capsys, write_pairs) -> None:
     fit_dir, _, model = eigen_pairs
     out = tmp_path / "k.npz"
     cases = [
@@ -176,7 +168,7 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
     cases.append((["fit-pairs", str(fit_dir), "--out", str(out), "--support", "none",
                    "--support-threshold", "0.3"], "--support-threshold"))
     unpaired = tmp_path / "unpaired"
-    _write_pairs(unpaired, np.zeros((1, 3, 16, 24), np.float32),
+    write_pairs(unpaired, np.zeros((1, 3, 16, 24), np.float32),
                  np.ones((1, 3, 16, 24), np.float32))
     np.save(unpaired / "scene" / "extra.npy", np.zeros((16, 24, 3), np.float32))
     cases.append((["fit-pairs", str(unpaired), "--out", str(out)], "extra"))
@@ -200,7 +192,7 @@ def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Pa
 
 @pytest.mark.parametrize("convention", ["source", "sensor"])
 def test_fit_pairs_defaults_give_back_the_kernels_of_eigen_kernel_pairs(
-        tmp_path: Path, capsys, convention: str) -> None:
+        tmp_path: Path, capsys, convention: str, write_pairs) -> None:
     """Issue 23 item 5, by the command: noise-free pairs of a known eigen-kernel model (bench
     scene statistics) → ``psfkit fit-pairs --basis ek`` with its defaults returns the kernels
     (difference NCC ≥ 0.99, base NCC ≥ 0.999; the earlier defaults gave 0.6–0.9)."""
@@ -213,7 +205,7 @@ def test_fit_pairs_defaults_give_back_the_kernels_of_eigen_kernel_pairs(
                         convention=convention, sensor_shape=(32, 32),
                         channels=("R", "G", "B"))
     x = bench_scenes(40).astype(np.float32)
-    pairs = _write_pairs(tmp_path / "pairs", x, predict(model, x))
+    pairs = write_pairs(tmp_path / "pairs", x, predict(model, x))
     out = tmp_path / "fit.npz"
     assert main(["fit-pairs", str(pairs), "--basis", "ek", "--convention", convention,
                  "--out", str(out), "--quiet"]) == 0

@@ -21,15 +21,6 @@ pytestmark = pytest.mark.e2e
 SHAPE = (16, 24)
 
 
-def _write_pairs(root: Path, scenes: np.ndarray, measurements: np.ndarray) -> Path:
-    (root / "scene").mkdir(parents=True)
-    (root / "measurement").mkdir()
-    for i, (x, y) in enumerate(zip(scenes, measurements, strict=True)):
-        np.save(root / "scene" / f"im{i}.npy", np.moveaxis(x, 0, -1))
-        np.save(root / "measurement" / f"im{i}.npy", np.moveaxis(y, 0, -1))
-    return root
-
-
 def _camera(seed: int = 3) -> KernelModel:
     rng = np.random.default_rng(seed)
     base = rng.random((1, 3, *SHAPE)) ** 6
@@ -48,7 +39,8 @@ def _scenes(n: int, seed: int = 4) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def edge_case(tmp_path_factory) -> tuple[Path, Path, np.ndarray, np.ndarray, np.ndarray]:
+def edge_case(tmp_path_factory, write_pairs
+              ) -> tuple[Path, Path, np.ndarray, np.ndarray, np.ndarray]:
     """A model, and pairs it predicts exactly except in the edge zone."""
     root = tmp_path_factory.mktemp("edge")
     model = _camera()
@@ -60,7 +52,7 @@ def edge_case(tmp_path_factory) -> tuple[Path, Path, np.ndarray, np.ndarray, np.
     rng = np.random.default_rng(5)
     y[..., edge] += 0.2 * np.abs(p[..., edge]).mean() * rng.standard_normal(y[..., edge].shape)
     y = y.astype(np.float32)
-    return _write_pairs(root / "pairs", x, y), model_file, p, y, edge
+    return write_pairs(root / "pairs", x, y), model_file, p, y, edge
 
 
 def test_by_zone_errors_match_a_hand_computation(edge_case, tmp_path, capsys):
@@ -132,10 +124,11 @@ def test_residual_figure_shares_one_labelled_scale_and_no_text_overlaps(shape):
     assert _overlapping_texts(fig) == []
 
 
-def test_fit_pairs_holdout_is_recorded_and_eval_model_reports_it(tmp_path, capsys):
+def test_fit_pairs_holdout_is_recorded_and_eval_model_reports_it(tmp_path, capsys,
+                                                                write_pairs):
     camera = _camera(7)
     x = _scenes(7, seed=8)
-    pairs = _write_pairs(tmp_path / "pairs", x, predict(camera, x))
+    pairs = write_pairs(tmp_path / "pairs", x, predict(camera, x))
     flags = ["--no-scale", "--no-nonneg", "--iterations", "100", "--quiet"]   # fast: CG only
     si, ek = tmp_path / "si.npz", tmp_path / "ek.npz"
     assert main(["fit-pairs", str(pairs), "--basis", "si", "--holdout", "im2,im5",
@@ -151,7 +144,7 @@ def test_fit_pairs_holdout_is_recorded_and_eval_model_reports_it(tmp_path, capsy
     # honoured: the fit is that of the five pairs alone
     five = tmp_path / "five"
     keep = [0, 1, 3, 4, 6]
-    _write_pairs(five, x[keep], predict(camera, x[keep]))
+    write_pairs(five, x[keep], predict(camera, x[keep]))
     alone = tmp_path / "alone.npz"
     assert main(["fit-pairs", str(five), "--basis", "si", "--out", str(alone), *flags]) == 0
     np.testing.assert_allclose(load_kernels(si).kernels, load_kernels(alone).kernels,
@@ -232,13 +225,13 @@ def test_learned_kernels_record_their_training_pairs_for_eval_model(tiny_data, t
     assert doc["held_out"]["pairs"] == ["im6", "im7"] and doc["fitted"]["pairs_count"] == 6
 
 
-def test_a_zone_without_light_is_null_not_an_error(tmp_path):
+def test_a_zone_without_light_is_null_not_an_error(tmp_path, write_pairs):
     model = _camera(11)
     x = _scenes(2, seed=12)
     y = predict(model, x)
     edge = field_zones(SHAPE).labels == 2
     y[0][:, edge] = 0.0                               # no light at the edge of pair 0
-    pairs = _write_pairs(tmp_path / "pairs", x, y)
+    pairs = write_pairs(tmp_path / "pairs", x, y)
     model_file = save_kernels(tmp_path / "m.npz", model)
     out = tmp_path / "e.json"
     assert main(["eval-model", str(model_file), str(pairs), "--out", str(out)]) == 0
