@@ -15,17 +15,22 @@ passes over the pairs and the non-negative solve's Newton steps and KKT residual
 
     python benchmarks/bench_fit_pairs.py [--bench /tmp/ds128] [--skip-bench | --skip-dlmd]
 
-Measured (issue 43, one thread, ``OMP_NUM_THREADS=1``, on the 2-core machine shared with other
-jobs; pessimistic): DLMD full resolution ``--basis si`` (``/usr/bin/time -v psfkit fit-pairs``,
-as this script's child does) 4 min 43 s wall, 251 s CPU, peak RSS 0.96 GiB, ``--tikhonov 0.1``
-chosen by leave-one-out (path 1, 0.316, 0.1, 0.0316 all 0.0665-0.0666), non-negative solve
-converged (65 Newton steps, KKT residual 8.8e-11, 206 s of it): target missed, the Newton
-step being 3/4 of the time. ``--basis ek``: the leave-one-out choice of ``--difference`` alone
-took about 22 min (about 2 000 float32 CG iterations over 7 folds), the final float64 solve
-about 11 min, and the non-negative solve 12-24 s per Newton step (stopped by the session's
-time limit at step 57 of at most 100, 54 min after the start): far from the 4 min target. The
-384 bench pairs of 128² (``--skip-dlmd``) did not finish within 36 min on that contended
-thread; not measured.
+Measured (issue 43, first pass: one thread, ``OMP_NUM_THREADS=1``, on the 2-core machine
+shared with other jobs; pessimistic): DLMD full resolution ``--basis si`` 4 min 43 s wall,
+peak RSS 0.96 GiB, 65 Newton steps to a KKT residual of 8.8e-11 (206 s of it); ``--basis ek``
+did not finish in 54 min (the leave-one-out choice of ``--difference`` at full resolution
+about 22 min). Second pass (the weight chosen on the pairs binned to at most 128² pixels, the
+non-negative solve to a KKT residual of 1e-6 from a float32 start; two threads,
+``/usr/bin/time -v psfkit fit-pairs``): ``--basis si`` 1 min 12 s wall, 140 s CPU, peak RSS
+0.83 GiB, ``--tikhonov 0.1``, 41 Newton steps (KKT residual 8.4e-07, converged).
+``--basis ek`` 14 min 57 s wall, 1783 s CPU, peak RSS 1.33 GiB: ``--difference 1`` chosen on
+the pairs binned 3x (about 10 s), the float32 start 125 s, the non-negative solve 751 s, not
+converged (100 Newton steps, KKT residual 3.0e-05; the float32 Hessian stalled, the exact one
+took over at step 44). Targets: SI met, EK not.
+The 384 bench pairs of 128² (``--skip-dlmd``, one thread on the shared machine, between the
+two passes: Newton to 1e-6, float64 start): 1943 s wall, 1880 s CPU, peak RSS 1.36 GiB,
+``--difference 0`` chosen (8 folds, 10 weights, 124 s), 49 Newton steps (KKT residual
+2.6e-07, converged).
 
 ``--leave-one-out`` instead prints the held-out relative prediction errors of both models,
 constrained and not, at ``--downsample`` (each fold chooses its own regularisation: nested

@@ -51,12 +51,13 @@ from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
-from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, PairFitOptions
+from psfkit.pairs_options import NEWTON_CG_ITERATIONS, PairFitOptions
 from psfkit.pairs_select import (
     FOLD_TOLERANCE,
     PATHS,
     RegularisationChoice,
     choose_regularisation,
+    selection_binning,
 )
 from psfkit.pairs_solver import (
     DEFAULT_CACHE_BYTES,
@@ -68,8 +69,8 @@ from psfkit.pairs_solver import (
 from psfkit.resample import bin_mean
 from psfkit.validation import MIN_PAIR_SIDE
 
-__all__ = ["KernelSpaceOperator", "PairFit", "PairFitOptions", "downsample_pairs",
-           "fit_pairs", "leave_one_out", "predict", "relative_errors"]
+__all__ = ["START_TOLERANCE", "KernelSpaceOperator", "PairFit", "PairFitOptions",
+           "downsample_pairs", "fit_pairs", "leave_one_out", "predict", "relative_errors"]
 
 
 @dataclass
@@ -221,7 +222,12 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     if options.automatic and batches.n >= 2:
         kernels = _choose_weights(batches, measurements, options, weights, kernels, history,
                                   choices, bar)
-    kernels, system = _solve(batches, measurements, options, weights, kernels, history, bar)
+    if options.constrained and options.solver == "newton":
+        kernels, system = _newton_start(batches, measurements, options, weights, kernels,
+                                        history, bar)
+    else:
+        kernels, system = _solve(batches, measurements, options, weights, kernels, history,
+                                 bar)
     support = None
     if options.constrained:
         t0 = time.perf_counter()
@@ -246,29 +252,73 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
 def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
                     weights: dict[str, float], kernels: Tensor | None,
                     history: list[dict[str, Any]], choices: list[RegularisationChoice],
-                    bar: Any) -> Tensor:
+                    bar: Any) -> Tensor | None:
     """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
-    records into ``choices``): the scales first, at the path's strongest weights (the
-    best-conditioned solves), then the folds with those scales; both in float32
-    (:mod:`psfkit.pairs_select`). Returns the warm start of the fit at the chosen weights."""
+    records into ``choices``): on the pairs binned to at most
+    :data:`~psfkit.pairs_select.SELECTION_PIXELS` pixels, the scales first, at the path's
+    strongest weights (the best-conditioned solves), then the folds with those scales; both in
+    float32 (:mod:`psfkit.pairs_select`). Returns the warm start of the fit at the chosen
+    weights (``kernels`` as given when the choice was made on binned pairs)."""
+    factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
-    twin = batches.astype(torch.float32)
-    start, system = _solve(twin, measurements, options, strongest,
-                           None if kernels is None else kernels.to(torch.float32),
-                           history, bar, stage="scales", tolerance=FOLD_TOLERANCE)
-    batches.scales = twin.scales.to(batches.dtype)
+    if factor > 1:
+        scenes, measured = (bin_mean(np.asarray(a, dtype=np.float32), factor)
+                            .astype(np.float32) for a in (batches.scenes, measurements))
+        twin = PairBatches(scenes, options.basis, options.convention, scenes.shape[-2:],
+                           options.scene_padding, None, batches.cache_bytes, torch.float32,
+                           batches.device)
+        first = None
+    else:
+        twin, measured = batches.astype(torch.float32), measurements
+        first = None if kernels is None else kernels.to(torch.float32)
+    start, system = _solve(twin, measured, options, strongest, first, history, bar,
+                           stage="scales", tolerance=FOLD_TOLERANCE)
+    # a pair's scale is its gain, whatever the pixel pitch
+    batches.scales = twin.scales.to(dtype=batches.dtype, device=batches.device)
     for parameter in options.automatic:
         if bar is not None:
             bar.set_description(f"choose --{parameter} ({options.basis})")
         choice, start = choose_regularisation(
-            twin, measurements, parameter,
+            twin, measured, parameter,
             {p: w for p, w in weights.items() if p != parameter}, options.fit_scale,
             system["reference"], start, bar)
+        choice.binning = factor
         weights[parameter] = choice.chosen
         choices.append(choice)
     if bar is not None:
         bar.set_description(f"fit {options.basis}")
+    if factor > 1:
+        return kernels
     return start.to(dtype=batches.dtype, device=batches.device)
+
+
+#: Relative residual of the float32 solves that start the non-negative solve (the
+#: unconstrained kernels and the per-pair scales, which Newton keeps): 1e-4 left the scales of
+#: noise-free pairs 8e-4 from 1 (training error 1.0e-3 against < 1e-3 from float64 solves to
+#: 1e-6); 1e-5, which float32 reaches, does not (tests/psfkit/test_pairs_solver.py). On DLMD
+#: at 1/2 resolution (eigen-kernels, ``--difference 1``) the three rounds took 23 s against
+#: 52 s for float64 to 1e-6.
+START_TOLERANCE = 1e-5
+
+
+def _newton_start(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+                  weights: dict[str, float], kernels: Tensor | None,
+                  history: list[dict[str, Any]], bar: Any) -> tuple[Tensor, dict[str, Any]]:
+    """The start of the non-negative solve: the unconstrained kernels and the per-pair scales
+    solved in float32 to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system
+    (normal equations, Gram preconditioner) that projected Newton converges on: the
+    unconstrained solution only starts Newton, and float64 passes cost 2.6 times float32
+    ones at full DLMD resolution (eigen-kernels)."""
+    twin = batches.astype(torch.float32)
+    start, _ = _solve(twin, measurements, options, weights,
+                      None if kernels is None else kernels.to(torch.float32), history, bar,
+                      stage="start", tolerance=START_TOLERANCE)
+    batches.scales = twin.scales.to(batches.dtype)
+    kernels, _info, system = solve_kernels(batches, measurements, weights["tikhonov"],
+                                           weights["difference"],
+                                           start=start.to(batches.dtype), max_iterations=0)
+    system["twin"] = twin
+    return kernels, system
 
 
 def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
@@ -340,12 +390,14 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
     mask = None if support is None else torch.as_tensor(support, device=rhs.device)
     if options.solver == "newton":
         batches = system["batches"]
-        twin = batches.astype(torch.float32) if batches.dtype == torch.float64 else None
+        twin = system.get("twin")
+        if twin is None and batches.dtype == torch.float64:
+            twin = batches.astype(torch.float32)
         hessian = None if twin is None else regularised_normal(twin, system["lambda"],
                                                                system["mu"])
         kernels, info = projected_newton(normal, rhs, unconstrained, system["precondition"],
                                          options.final_projected_iterations,
-                                         NEWTON_CG_ITERATIONS, NEWTON_TOLERANCE, bar=bar,
+                                         NEWTON_CG_ITERATIONS, options.tolerance, bar=bar,
                                          support=mask, hessian=hessian)
         info = {k: v for k, v in info.items() if k != "history"} | {
             "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS,

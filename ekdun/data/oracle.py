@@ -54,7 +54,7 @@ from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.kernelfile import KernelModel, save_kernels
 from psfkit.pairs_fit import predict
-from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS, NEWTON_TOLERANCE
+from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
 from psfkit.pairs_solver import (
     PairBatches,
     projected_newton,
@@ -72,7 +72,7 @@ ORACLE_TOLERANCE = 1e-7
 #: Default Newton steps, CG iterations per step and KKT tolerance of the non-negative oracle.
 NONNEG_ITERATIONS = NEWTON_ITERATIONS
 NONNEG_CG_ITERATIONS = NEWTON_CG_ITERATIONS
-NONNEG_TOLERANCE = NEWTON_TOLERANCE
+NONNEG_TOLERANCE = 1e-10   # an oracle: tighter than fit-pairs' NEWTON_TOLERANCE
 
 Forward = Callable[[Tensor], Tensor]
 

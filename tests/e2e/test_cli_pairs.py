@@ -11,6 +11,7 @@ import pytest
 from psfkit.cli import main
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.pairs_fit import predict
+from psfkit.pairs_options import NEWTON_TOLERANCE
 
 
 @pytest.fixture(scope="module")
@@ -118,9 +119,10 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
 
 def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Path,
                                                        capsys) -> None:
-    """The non-negative solve (projected Newton): kernels at a KKT residual below 1e-9 (printed
-    with "converged", and in the report), inside a --support-mask; with --energy the solve is
-    FISTA's (Newton does not handle it), and with --no-nonneg there is none."""
+    """The non-negative solve (projected Newton): kernels at a KKT residual below the fit's
+    tolerance (NEWTON_TOLERANCE; printed with "converged", and in the report), inside a
+    --support-mask; with --energy the solve is FISTA's (Newton does not handle it), and with
+    --no-nonneg there is none."""
     fit_dir, _, _ = eigen_pairs
     common = ["--basis", "ek", "--convention", "sensor", "--quiet"]
     out = tmp_path / "newton.npz"
@@ -135,7 +137,7 @@ def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Pa
     model = load_kernels(out)
     assert model.kernels.min() >= 0 and np.abs(model.kernels[..., mask == 0]).max() == 0
     kkt = float(printed.split("KKT residual")[1].split()[0])
-    assert kkt < 1e-9
+    assert kkt < NEWTON_TOLERANCE
     step = json.loads((tmp_path / "r.json").read_text())["solver"][-1]
     assert step["method"] == "projected-newton-cg" and step["converged"]
     assert step["kkt_residual"] == pytest.approx(kkt, rel=0.1)

@@ -11,9 +11,19 @@ import pytest
 import torch
 from test_pairs_solver import bench_scenes, known_eigen_kernels
 
+from psfkit import pairs_select
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.pairs_fit import PairFitOptions, fit_pairs, leave_one_out, predict, relative_errors
-from psfkit.pairs_select import MAX_FOLDS, MIN_HELD_OUT, PATHS, TIE, folds_of
+from psfkit.pairs_select import (
+    MAX_FOLDS,
+    MIN_HELD_OUT,
+    PATHS,
+    SELECTION_PIXELS,
+    STRONGER_STEPS,
+    TIE,
+    folds_of,
+    selection_binning,
+)
 from psfkit.pairs_solver import PairBatches, regularised_normal
 
 
@@ -71,6 +81,65 @@ def test_few_noisy_pairs_get_a_prior_that_predicts_unseen_pairs_better(camera) -
     auto_error = _held_out(fit, scenes[40:], clean[40:])
     unbiased_error = _held_out(unbiased, scenes[40:], clean[40:])
     assert auto_error < 0.9 * unbiased_error, (auto_error, unbiased_error)
+
+
+def test_selection_binning() -> None:
+    """The smallest factor that brings a sensor to SELECTION_PIXELS, never below the
+    smallest side."""
+    assert SELECTION_PIXELS == 128 * 128
+    assert selection_binning((128, 128), 4) == 1                       # the 384 bench pairs
+    assert selection_binning((270, 480), 4) == 3                       # DLMD: 90 x 160
+    assert selection_binning((135, 240), 4) == 2                       # DLMD at 1/2: 67 x 120
+    assert selection_binning((67, 120), 4) == 1
+    assert selection_binning((8, 40000), 4) == 2                       # sides stay >= 4
+    for shape in ((300, 301), (1000, 17), (129, 129)):
+        f = selection_binning(shape, 4)
+        h, w = shape[0] // f, shape[1] // f
+        assert h * w <= SELECTION_PIXELS < (shape[0] // (f - 1)) * (shape[1] // (f - 1))
+
+
+def test_large_pairs_choose_on_binned_pairs_and_fit_at_full_resolution(camera, monkeypatch
+                                                                       ) -> None:
+    """Above SELECTION_PIXELS the folds run on binned pairs and the chosen (relative) weight
+    is fitted at full resolution; it still predicts unseen pairs better than the unbiased
+    fit, against the camera's noise-free measurements."""
+    monkeypatch.setattr(pairs_select, "SELECTION_PIXELS", 12 * 12)
+    _model, scenes, clean = camera
+    rng = np.random.default_rng(0)
+    noisy = clean[:6] + 0.05 * clean[:6].std() * rng.standard_normal(clean[:6].shape)
+    options = PairFitOptions(basis="paper", convention="source")
+    fit = fit_pairs(scenes[:6], noisy, options)
+    (choice,) = fit.regularisation
+    assert (choice.binning, choice.sensor) == (2, (12, 12))
+    assert choice.chosen in choice.weights and choice.chosen > 0
+    assert "leave-one-out over 6 pairs, binned 2x to 12x12:" in choice.summary()
+    assert choice.as_dict()["binning"] == 2
+    assert fit.kernels.shape[-2:] == (24, 24)
+    assert fit.weights == {"tikhonov": 0.0, "difference": choice.chosen}
+    unbiased = fit_pairs(scenes[:6], noisy, PairFitOptions(basis="paper", convention="source",
+                                                           difference=0.0))
+    auto_error = _held_out(fit, scenes[40:], clean[40:])
+    unbiased_error = _held_out(unbiased, scenes[40:], clean[40:])
+    assert auto_error < 0.9 * unbiased_error, (auto_error, unbiased_error)
+
+
+def test_a_winning_strongest_weight_extends_the_path() -> None:
+    """A camera without field variation (Kv = Kh = Kbase, sensor side, 32 x 32) seen in 3
+    noisy pairs wants a strong difference prior: the path's first weight scores best, so
+    stronger ones are tried until one scores worse (measured: 31.6 worse than 10)."""
+    truth = known_eigen_kernels((32, 32))
+    flat = KernelModel(kernels=np.repeat(truth[:1], 3, axis=0).astype(np.float32),
+                       basis="paper", convention="sensor", sensor_shape=(32, 32),
+                       channels=("R", "G", "B"))
+    scenes = bench_scenes(3, (32, 32))
+    clean = predict(flat, scenes.astype(np.float32), dtype=torch.float64)
+    noisy = clean + 0.3 * clean.std() * np.random.default_rng(3).standard_normal(clean.shape)
+    fit = fit_pairs(scenes, noisy, PairFitOptions(basis="paper", nonneg=False))
+    (choice,) = fit.regularisation
+    assert max(choice.weights) > PATHS["difference"][0], choice.summary()
+    assert choice.chosen < max(choice.weights), choice.summary()     # the extension stopped
+    assert choice.weights == sorted(choice.weights, reverse=True)
+    assert len(choice.weights) <= len(PATHS["difference"]) + 1 + STRONGER_STEPS
 
 
 def test_many_clean_pairs_keep_the_unbiased_fit(camera) -> None:
