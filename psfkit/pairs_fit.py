@@ -25,11 +25,14 @@ not depend on the data's units. Datasets whose ground truth was normalised image
 DiffuserCam Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated
 in a few alternating rounds (``fit_scale``).
 
-By default the kernels are then made physical: the final solve continues, warm-started from the
-converged unconstrained solution, by accelerated projected gradient under non-negativity and
-optionally a support and per-kernel energies (:mod:`psfkit.pairs_constraints`;
-``PairFitOptions.nonneg``, ``support``, ``energy``). :meth:`PairFit.physics` is what the kernel
-file records about them.
+By default the kernels are then made physical: non-negative, by projected Newton-CG to a
+relative KKT residual of ``PairFitOptions.tolerance``, started from the unconstrained solution
+and scales solved in float32 to ``START_TOLERANCE`` (:func:`_newton_start`), inside a support
+if one is given; with per-kernel energies (or a support without non-negativity), by
+accelerated projected gradient from the converged unconstrained solution
+(:mod:`psfkit.pairs_constraints`; ``PairFitOptions.nonneg``, ``support``, ``energy``).
+Unless given, the regularisation is chosen by held-out error first (:mod:`psfkit.pairs_select`).
+:meth:`PairFit.physics` is what the kernel file records about them.
 """
 
 from __future__ import annotations
