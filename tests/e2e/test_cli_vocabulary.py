@@ -251,8 +251,9 @@ def flag_table() -> str:
             meaning, default = "deprecated alias (" + "; ".join(row["deprecated"]) + ")", "-"
         else:
             meaning = re.sub(r"\s*\(default[^)]*\)", "", row["help"])
-            default = "-" if row["default"] is None or row["default"] is False \
-                else str(row["default"])
+            stated = re.search(r"\(default:? ([^)]*)\)", row["help"])
+            default = str(row["default"]) if row["default"] not in (None, False) \
+                else stated.group(1) if stated else "-"
         meaning = meaning.replace("|", "\\|")
         flags = ", ".join(f"`{name}`" for name in row["names"])
         lines.append(f"| {flags} | {meaning} | {default} | {', '.join(row['commands'])} |")
