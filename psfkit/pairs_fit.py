@@ -225,7 +225,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     if options.automatic and batches.n >= 2:
         kernels = _choose_weights(batches, measurements, options, weights, kernels, history,
                                   choices, bar)
-    if options.constrained and options.solver == "newton":
+    if options.solver == "newton":                     # non-negative (a constrained fit)
         kernels, system = _newton_start(batches, measurements, options, weights, kernels,
                                         history, bar)
     else:
@@ -265,8 +265,8 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
     factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
     if factor > 1:
-        scenes, measured = (bin_mean(np.asarray(a, dtype=np.float32), factor)
-                            .astype(np.float32) for a in (batches.scenes, measurements))
+        scenes, measured = downsample_pairs(np.asarray(batches.scenes), np.asarray(measurements),
+                                            factor)
         twin = PairBatches(scenes, options.basis, options.convention, scenes.shape[-2:],
                            options.scene_padding, None, batches.cache_bytes, torch.float32,
                            batches.device)

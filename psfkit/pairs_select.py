@@ -50,6 +50,7 @@ import torch
 from torch import Tensor
 
 from psfkit.pairs_solver import (
+    FrequencyGram,
     MeasurementSource,
     PairBatches,
     regularised_normal,
@@ -286,10 +287,13 @@ class _FoldPath:
         self.train = [np.ones(batches.n, bool) for _ in folds]
         for mask, held in zip(self.train, folds, strict=True):
             mask[held] = False
+        # a fold's right-hand side and Gram blocks do not depend on the weight: one pass each
         self.rhs: list[Tensor] = []
+        self.grams: list[FrequencyGram] = []
         for mask in self.train:
             with batches.only(mask):
                 self.rhs.append(batches.rhs(measurements))
+                self.grams.append(batches.gram())
         self.kernels: list[Tensor | None] = [
             None if start is None else start.to(batches.dtype) for _ in folds]
         #: ``weight: (score, per-pair errors, CG iterations)``
@@ -307,7 +311,7 @@ class _FoldPath:
             with b.only(mask):
                 self.kernels[f], info = solve_normal_equations(
                     regularised_normal(b, lam, mu), self.rhs[f],
-                    b.gram().preconditioner(lam, mu), self.kernels[f], FOLD_TOLERANCE,
+                    self.grams[f].preconditioner(lam, mu), self.kernels[f], FOLD_TOLERANCE,
                     FOLD_ITERATIONS, self.bar)
             iterations += info.iterations
             with b.only(~mask):
