@@ -20,7 +20,8 @@ difference NCC, pedestal share of the kernel change, principal angles), and the 
 
 The oracle (virtual bench): ``--oracle ORACLE.npz`` names the best eigen-kernel model of the
 simulator (``ekdun make-dataset`` writes it, ``DATASET/oracle/paper_{source,sensor}.npz``; see
-docs/compare.md). When GRID is a virtual-bench dataset's ``grid/`` folder whose manifest lists
+research/notes/compare-studies.md). When GRID is a virtual-bench dataset's ``grid/`` folder
+whose manifest lists
 an operator oracle of the learned model's convention, that file is used by default (the script
 prints which); ``--no-oracle`` skips it. With an oracle, ``fig7_starts`` gains an oracle row,
 and the caption, the printed numbers and ``DIR/oracle.json`` give every learned model and the

@@ -3,7 +3,8 @@
 ``ekdun train --physics-weight λ`` adds ``L_phys`` (:mod:`ekdun.training.physics_loss`: the
 pairs' relative residual with the best scale per pair) to the reconstruction loss. From one
 PSF, 15 epochs of that training leave the difference kernels far from the operator oracle
-whatever λ (docs/compare.md), while the converged least-squares fit of the same pairs
+whatever λ (research/notes/compare-studies.md), while the converged least-squares fit of the
+same pairs
 (``psfkit fit-pairs --no-nonneg``) reaches it. This benchmark separates the two candidate
 causes, the reconstruction loss pulling the kernels away or the optimiser not getting there:
 the kernels alone descend ``L_phys`` on the training pairs with nothing else in the loss.
@@ -30,7 +31,7 @@ Writes ``OUT/results.json`` and prints a Markdown table.
         --reference pairs-free=PAIRS_FREE.npz
 
 Measured (128², 384 / 24 pairs, P = 10⁶; one-PSF seed; CPU, 1 thread; 2026-11-26) in
-docs/compare.md, "Is it the loss or the optimiser?".
+research/notes/compare-studies.md, "Is it the loss or the optimiser?".
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 The grid fit estimates the PSF oracle (the eigen-kernel fit of the noise-free node PSFs) and
 a pairs fit the operator oracle (the eigen-kernel model closest to the dense operator over the
-dataset's scenes); the two are not the same model (docs/compare.md). This splits their
+dataset's scenes); the two are not the same model
+(research/notes/compare-studies.md). This splits their
 distance into its causes, one change at a time (``ekdun.data.oracle``, source convention,
 paper basis):
 

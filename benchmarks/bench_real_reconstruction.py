@@ -174,7 +174,7 @@ def main() -> None:
     parser.add_argument("--ek-difference", type=float, default=1.0,
                         help="fit-pairs --difference of the EK fit (default 1: six real pairs "
                              "do not determine Kv/Kh without it; held-out error 0.0535 vs "
-                             "0.129 at 0, docs/your-camera.md)")
+                             "0.129 at 0, research/notes/changelog-measurements.md)")
     parser.add_argument("--ek-convention", default="source", choices=("source", "sensor"),
                         help="where the eigen-kernel model's weights act (default source)")
     parser.add_argument("--timing-repeats", type=int, default=5,

@@ -152,7 +152,8 @@ print("principal angles learned vs top-3 PCA modes (deg):",
 # The measured fit is an estimate, not the truth. The virtual bench knows the truth: `ekdun
 # make-dataset` also writes the **operator oracle** (`DATASET/oracle/paper_<convention>.npz`),
 # the best eigen-kernel model of the simulator — the kernels that predict its dense
-# shift-variant operator best over the dataset's scenes, noise-free (see `docs/compare.md`).
+# shift-variant operator best over the dataset's scenes, noise-free (see
+# `research/notes/compare-studies.md`).
 # Below, the learned kernels and the measured fit are each compared with it (the oracle is the
 # reference), and its kernels get a row in Fig. 7.
 
@@ -213,7 +214,8 @@ show_split(comparison, "free pixels, seeded from the fit")
 # energy kept): no pedestal can grow, and the change *is* a displacement by construction.
 # Started from one PSF (`Kv = Kh = Kbase`), it asks whether training *finds* the measured
 # displacements. Same 3 epochs; the full experiment (15 epochs, all parameterisations, both
-# starts) is `benchmarks/bench_kernel_parameterisations.py`, its table is in `docs/compare.md`.
+# starts) is `benchmarks/bench_kernel_parameterisations.py`, its table is in
+# `research/notes/compare-studies.md`.
 
 # %%
 from dataclasses import replace
@@ -232,7 +234,8 @@ show_split(flow_cmp, "flow, from one PSF")
 display(figure_displacements(flow_cmp))
 
 # %% [markdown]
-# How to read it, and what the 15-epoch experiment (`docs/compare.md`) found — honestly:
+# How to read it, and what the 15-epoch experiment (`research/notes/compare-studies.md`)
+# found — honestly:
 #
 # - Free pixels grow a pedestal: about 60 % of the kernel change, and 40 % of the learned
 #   kernels' light, ends up outside the caustic (the measured fit: ≤ 2 %), because the loss

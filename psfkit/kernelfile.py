@@ -19,7 +19,7 @@ One ``.npz`` file (NumPy, no pickles) holds
     that consumes the file reads its inputs this way by default), and free-form
     ``provenance``.
 
-Forward model (``shared/design.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
+Forward model (``docs/architecture.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
 ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` for the sensor-side convention and
 ``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` for the source-side one, where ``pad`` zero-fills ``x`` into
 the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A kernel is at most
@@ -57,7 +57,7 @@ from psfkit.weights import WeightBasis, get_basis
 
 KERNEL_FORMAT = "ekdun-kernels"
 KERNEL_VERSION = 1
-KERNEL_ORIGIN = "array centre (H//2, W//2)"   # the one convention (shared/design.md)
+KERNEL_ORIGIN = "array centre (H//2, W//2)"   # the one convention (docs/architecture.md)
 _DEFAULT_WHERE = "kernel model"   # how a model without a file names itself in errors
 
 

@@ -243,7 +243,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     err, norm, _num, _den = batches.residual_norms(kernels, measurements)
     errors = err / norm.clamp_min(1e-300)
     # solved in ``dtype`` (float64 by default); handed over as psfkit's float32 arrays
-    # (design.md), so that a PairFit's kernels build the same operators as a kernel file's
+    # (docs/architecture.md), so that a PairFit's kernels build the same operators as a
+    # kernel file's
     return PairFit(kernels=kernels.to(torch.float32).cpu().numpy(), basis=options.basis,
                    convention=options.convention,
                    scales=batches.scales.to(torch.float32).cpu().numpy(),

@@ -1,6 +1,6 @@
 r"""Sub-pixel registration of PSFs and the map from field position to PSF shift.
 
-Sign convention (``shared/design.md``): the *shift* ``s = (du, dv)`` of a PSF relative to the
+Sign convention (``docs/architecture.md``): the *shift* ``s = (du, dv)`` of a PSF relative to the
 reference is its displacement on the sensor, ``psf(x) ≈ g · reference(x − s)``, in sensor
 pixels (``u`` = column, ``v`` = row). A source displaced by ``+x`` on the monitor gives
 ``du < 0``.

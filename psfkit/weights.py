@@ -25,7 +25,7 @@ Richer bases add terms (``get_basis`` parses ``"paper+odd+cross"``, ``"poly:3"``
 ``si``
     no terms: the shift-invariant model (one kernel, weight 1).
 
-Coordinates (``shared/design.md``): ``u`` = column, ``v`` = row of the sensor grid
+Coordinates (``docs/architecture.md``): ``u`` = column, ``v`` = row of the sensor grid
 ``(H', W')``; :math:`u_n = (u-u_c)/(W'/2)`, :math:`v_n = (v-v_c)/(H'/2)`, optical centre
 ``(v_c, u_c)`` defaulting to ``((H'-1)/2, (W'-1)/2)``.
 """

@@ -1,8 +1,9 @@
 r"""Measurement consistency: the fit-pairs objective as a training loss (issue 24).
 
 EK-DUN's kernels get a gradient only through the reconstruction loss, which at the bench's
-scale is 24× weaker for ``Kv``/``Kh`` than for ``Kbase`` (docs/compare.md). The measurement-
-consistency term gives them one straight from the training pairs:
+scale is 24× weaker for ``Kv``/``Kh`` than for ``Kbase``
+(research/notes/compare-studies.md). The measurement-consistency term gives them one
+straight from the training pairs:
 
 .. math::
 

@@ -122,7 +122,8 @@ def check_training_config(cfg: TrainingConfig) -> None:
 
 def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
     # Kernels (free pixels in physics., or a parameterisation's kernel_param.) get their own
-    # group; the parameterisation's multiplier is measured (docs/compare.md).
+    # group; the parameterisation's multiplier is measured
+    # (research/notes/compare-studies.md).
     kernels, others = [], []
     for name, p in model.named_parameters():
         if not p.requires_grad:

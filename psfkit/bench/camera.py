@@ -9,7 +9,7 @@ shift (:math:`d\tan\theta`), its oblique-incidence astigmatism (effective distan
 :math:`d/\cos^3\theta` tangential, :math:`d/\cos\theta` sagittal), and its small magnification
 changes all come out of the propagation.
 
-Coordinates follow ``shared/design.md``: sensor rows ``v`` (y, down) and columns ``u``
+Coordinates follow ``docs/architecture.md``: sensor rows ``v`` (y, down) and columns ``u``
 (x, right), optical axis at the sensor centre. Field positions are given in the monitor
 image frame (x right, y down, as seen from the camera); a source at ``+x`` moves the PSF to
 ``-u``. Lengths carry their unit in their name.

@@ -1,4 +1,4 @@
-"""The forward model of the lensless camera, written once (``shared/design.md``).
+"""The forward model of the lensless camera, written once (``docs/architecture.md``).
 
 ``y = crop(K * pad(x))`` on a padded grid, the eigen-kernel operator of Eq. 7 in both
 conventions with its exact adjoint, and its kernel-space form ``K ↦ A_K x`` used to fit kernels

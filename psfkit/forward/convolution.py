@@ -1,6 +1,6 @@
 r"""Pure FFT kernels of the lensless forward model and its exact adjoint.
 
-Conventions (``shared/design.md``)
+Conventions (``docs/architecture.md``)
 ----------------------------------
 The scene ``x`` and the measurement ``y`` are both ``(B, C, H', W')`` (the sensor's size). The
 convolution runs on a padded grid ``(P·H', P·W')`` (``P = scene_padding >= 2``):

@@ -2,7 +2,7 @@
 
 The scene ``x`` and the measurement ``y`` are both ``H' × W'`` (the sensor's size); the
 convolutions run on a padded grid ``(P·H', P·W')`` (``P = scene_padding >= 2``) in whose centre
-the sensor-sized block sits (``shared/design.md``).
+the sensor-sized block sits (``docs/architecture.md``).
 """
 
 from __future__ import annotations

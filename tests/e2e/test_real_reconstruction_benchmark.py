@@ -1,6 +1,6 @@
 """``benchmarks/bench_real_reconstruction.py`` runs its leave-one-out protocol on the DLMD pairs
 and chooses iterations on the fit pairs (tiny sizes; the numbers are measurements, see
-docs/reconstruction.md)."""
+research/notes/reconstruction-studies.md)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def test_benchmark_reports_both_models_with_iterations_chosen_from_the_grid(real
     assert rows["SI admm_tv f64"][0]["it"] == rows["SI admm"][0]["it"]
     # The eigen-kernel model's gain on a pair it was not fitted on (im326, 33x60): measured
     # +1.8 dB (SI 22.03, EK 23.82 dB); it is +0.27..+1.93 dB on the other folds but one (im394,
-    # -0.8 dB at full resolution: docs/reconstruction.md), so this fold is a test of the gain.
+    # -0.8 dB at full resolution: research/notes/), so this fold is a test of the gain.
     gain = rows["EK admm"][0]["psnr"] - rows["SI admm"][0]["psnr"]
     assert gain > 0.5, gain
     assert f"EK − SI (admm): {gain:+.2f} dB" in proc.stdout

@@ -1,5 +1,5 @@
 """The issue-15 benchmarks run and print what they promise (small sizes; the numbers
-themselves are measurements, see docs/training.md)."""
+themselves are measurements, see research/notes/training-runs.md)."""
 
 from __future__ import annotations
 
@@ -31,9 +31,10 @@ def test_training_benchmark_prints_the_trainer_to_bare_step_ratio():
                         out)
     assert len(ratios) == 1
     assert "median of 2 epoch pairs" in out
-    # The target itself is a measurement (docs/training.md), not a timed test; what is tested
-    # is that the printed ratio is trainer / bare throughput (not its inverse, not another
-    # median): the median of the per-epoch ratios of the throughputs printed for each run.
+    # The target itself is a measurement (research/notes/training-runs.md), not a timed test;
+    # what is tested is that the printed ratio is trainer / bare throughput (not its inverse,
+    # not another median): the median of the per-epoch ratios of the throughputs printed for
+    # each run.
     runs = [(float(t), float(b)) for t, b in
             re.findall(r"trainer ([\d.]+) / bare ([\d.]+) img/s", out)]
     assert len(runs) == 2

@@ -346,7 +346,8 @@ def test_energy_and_support_constraints_hold(energy: str) -> None:
     physics = fit.physics()
     assert physics["constraints"] == {"nonneg": True, "support": "mask", "energy": energy}
     assert physics["support_fraction"] <= mask.mean()
-    # the kernels are handed over in float32 (design.md): their sums agree to its rounding
+    # the kernels are handed over in float32 (docs/architecture.md): their sums agree to its
+    # rounding
     np.testing.assert_allclose(physics["energy"], sums, rtol=1e-6)
     with pytest.raises(InvalidInputError, match="support mask"):
         fit_pairs(x, y, PairFitOptions(support="mask", **common))
