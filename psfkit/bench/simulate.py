@@ -166,6 +166,26 @@ def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
                      progress, backend, frames)
 
 
+class _NoCleanFile:
+    """Where the clean PSFs go when ``psfs_clean.npy`` is not written: nowhere."""
+
+    def __setitem__(self, index: Any, value: np.ndarray) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
+
+
+def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
+                 ) -> np.ndarray | _NoCleanFile:
+    """The memory-mapped ``psfs_clean.npy`` filled position by position, or, without
+    ``write``, a sink (:class:`CleanPsfs` computes the values again when they are read)."""
+    if not write:
+        return _NoCleanFile()
+    return np.lib.format.open_memmap(truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
+                                     shape=shape)
+
+
 def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
               backend: str, frames: int, write_clean: bool = True) -> Path:
@@ -209,10 +229,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         h, w = camera.sensor_shape
         truth_dir = writer.folder / TRUTH_DIR
         truth_dir.mkdir()
-        clean_shape = (n_rows, n_cols, len(camera.channels), h, w)
-        clean = (np.lib.format.open_memmap(truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
-                                           shape=clean_shape) if write_clean
-                 else None)
+        clean = _clean_store(truth_dir, (n_rows, n_cols, len(camera.channels), h, w),
+                             write_clean)
         indices = [(r, c) for r in range(n_rows) for c in range(n_cols)]
         iterator: Any = indices
         if progress:
@@ -221,11 +239,10 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
             iterator = tqdm(indices, desc="simulating PSF grid", unit="psf")
 
         def finish(r: int, c: int, field: tuple[float, float], electrons: np.ndarray,
-                   clean: np.ndarray | None) -> None:
+                   clean: np.ndarray | _NoCleanFile) -> None:
             """Capture, write and record one position (in order: the noise stream is shared)."""
             raw, saturated = capture(electrons)
-            if clean is not None:                   # CleanPsfs computes the same values
-                clean[r, c] = sensor.expected_file_units(electrons)
+            clean[r, c] = sensor.expected_file_units(electrons)   # as CleanPsfs computes it
             fields = {"monitor_px": tuple(monitor[r, c]), "field_deg": field,
                       "exposure_s": NOMINAL_EXPOSURE_S}
             if scan:
@@ -253,8 +270,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
                 pending = pool.submit(finish, r, c, field, electrons, clean)
             if pending is not None:
                 pending.result()
-        if clean is not None:
-            clean.flush()
+        clean.flush()
         del clean
         if dark_frame:
             writer.add_dark(capture(np.zeros((len(camera.channels), h, w)))[0])
