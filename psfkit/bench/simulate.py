@@ -15,7 +15,10 @@ them it writes what a lab cannot know, in ``ground_truth/``:
     ``(N, M, C, H, W)`` float32: the noise-free expected signal above black level, in the
     stored file units (what a perfect dark subtraction of an infinitely averaged capture
     would give), written position by position (memory-mapped) so that a full-resolution
-    grid never sits in memory.
+    grid never sits in memory. Optional (``clean_psfs=False``, as ``psfkit demo`` writes
+    it: 378 MB at the demo's size): :func:`read_ground_truth` then computes the same values
+    again, a position at a time when asked, from the bench recorded in ``truth.json``
+    (:class:`CleanPsfs`; bit for bit with the numpy backend).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from psfkit.io.grid_writer import GridWriter
 from psfkit.validation import read_json_file
 
 TRUTH_DIR = "ground_truth"
+CLEAN_FILE = "psfs_clean.npy"
 NOMINAL_EXPOSURE_S = 0.01
 
 
@@ -89,7 +93,8 @@ def exposure_scale(camera: VirtualCamera, on_axis_psf: np.ndarray) -> float:
 def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
                   grid_shape: tuple[int, int] = (9, 9), extent: float = 1.0,
                   dark_frame: bool = True, suffix: str = ".tiff", overwrite: bool = False,
-                  progress: bool = True, backend: str = "numpy", frames: int = 1) -> Path:
+                  progress: bool = True, backend: str = "numpy", frames: int = 1,
+                  clean_psfs: bool = True) -> Path:
     """Simulate and write a PSF grid with ground truth (see the module docstring).
 
     Parameters
@@ -122,6 +127,10 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
         captures: the noise falls as ``1 / sqrt(frames)``. 1 (default) writes each raw
         16-bit frame as before; more writes the float32 mean in the same file units (TIFF or
         ``.npy``; PNG holds integers only) and records ``frames_averaged`` in the manifest.
+    clean_psfs : bool
+        Write ``ground_truth/psfs_clean.npy`` (``(N, M, C, H, W)`` float32). Without it the
+        ground truth stays a few kB and :func:`read_ground_truth` recomputes the clean PSFs
+        when they are read.
 
     Returns
     -------
@@ -131,7 +140,7 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     config = config or BenchConfig()
     monitor = grid_monitor_positions(config, grid_shape, extent)
     return _simulate(out_dir, config, monitor, False, dark_frame, suffix, overwrite, progress,
-                     backend, frames)
+                     backend, frames, clean_psfs)
 
 
 def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
@@ -157,9 +166,29 @@ def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
                      progress, backend, frames)
 
 
+class _NoCleanFile:
+    """Where the clean PSFs go when ``psfs_clean.npy`` is not written: nowhere."""
+
+    def __setitem__(self, index: Any, value: np.ndarray) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
+
+
+def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
+                 ) -> np.ndarray | _NoCleanFile:
+    """The memory-mapped ``psfs_clean.npy`` filled position by position, or, without
+    ``write``, a sink (:class:`CleanPsfs` computes the values again when they are read)."""
+    if not write:
+        return _NoCleanFile()
+    return np.lib.format.open_memmap(truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
+                                     shape=shape)
+
+
 def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
-              backend: str, frames: int) -> Path:
+              backend: str, frames: int, write_clean: bool = True) -> Path:
     """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
     positions (``scan``: an irregular scan, ``N = 1``)."""
     if isinstance(frames, bool) or int(frames) != frames or frames < 1:
@@ -200,9 +229,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         h, w = camera.sensor_shape
         truth_dir = writer.folder / TRUTH_DIR
         truth_dir.mkdir()
-        clean = np.lib.format.open_memmap(truth_dir / "psfs_clean.npy", mode="w+",
-                                          dtype=np.float32,
-                                          shape=(n_rows, n_cols, len(camera.channels), h, w))
+        clean = _clean_store(truth_dir, (n_rows, n_cols, len(camera.channels), h, w),
+                             write_clean)
         indices = [(r, c) for r in range(n_rows) for c in range(n_cols)]
         iterator: Any = indices
         if progress:
@@ -211,10 +239,10 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
             iterator = tqdm(indices, desc="simulating PSF grid", unit="psf")
 
         def finish(r: int, c: int, field: tuple[float, float], electrons: np.ndarray,
-                   clean: np.ndarray) -> None:
+                   clean: np.ndarray | _NoCleanFile) -> None:
             """Capture, write and record one position (in order: the noise stream is shared)."""
             raw, saturated = capture(electrons)
-            clean[r, c] = sensor.expected_file_units(electrons)
+            clean[r, c] = sensor.expected_file_units(electrons)   # as CleanPsfs computes it
             fields = {"monitor_px": tuple(monitor[r, c]), "field_deg": field,
                       "exposure_s": NOMINAL_EXPOSURE_S}
             if scan:
@@ -263,6 +291,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
             "frames_averaged": frames,
             "oversample": camera.oversample,
             "correlation_length_um": camera.correlation_length_um,
+            "backend": camera.backend,
+            "clean_psfs": CLEAN_FILE if write_clean else "recomputed on request",
             "config": config.to_dict(),
             "positions": truth_positions,
         }
@@ -271,20 +301,69 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
     return Path(out_dir)
 
 
+class CleanPsfs:
+    """The noise-free PSFs of a simulated grid whose ``psfs_clean.npy`` was not written,
+    computed again from the bench recorded in ``truth.json`` as :func:`simulate_grid`
+    computed them (the same camera, field angles, exposure and quantum efficiency; bit for bit
+    with the numpy backend).
+
+    Reads like the ``(N, M, C, H, W)`` float32 array it stands for: ``clean[r, c]`` simulates
+    one position (a second or so at the demo's size); any other index, or ``np.asarray``,
+    builds the whole array first.
+    """
+
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, info: dict[str, Any], config: BenchConfig, field_deg: np.ndarray) -> None:
+        h, w = info["sensor_shape"]
+        self.shape = (*field_deg.shape[:2], len(info["channels"]), int(h), int(w))
+        self.ndim = len(self.shape)
+        self._info, self._config, self._field_deg = info, config, field_deg
+        self._camera: VirtualCamera | None = None
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def psf(self, row: int, col: int) -> np.ndarray:
+        """``(C, H, W)`` float32 clean PSF of grid position ``(row, col)`` (file units)."""
+        if self._camera is None:
+            self._camera = VirtualCamera(self._config, backend=self._info.get("backend", "numpy"))
+        sensor = self._config.sensor
+        qe = sensor.qe(self.shape[2])[:, None, None]
+        field = (float(self._field_deg[row, col, 0]), float(self._field_deg[row, col, 1]))
+        electrons = self._camera.psf(field) * (self._info["electrons_per_unit_irradiance"] * qe)
+        return sensor.expected_file_units(electrons).astype(np.float32)
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        if (isinstance(index, tuple) and len(index) == 2
+                and all(isinstance(i, (int, np.integer)) for i in index)):
+            row, col = (int(i) % n for i, n in zip(index, self.shape[:2], strict=True))
+            return self.psf(row, col)
+        return np.asarray(self)[index]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        out = np.empty(self.shape, np.float32)
+        for row in range(self.shape[0]):
+            for col in range(self.shape[1]):
+                out[row, col] = self.psf(row, col)
+        return out if dtype is None else out.astype(dtype)
+
+
 @dataclass(frozen=True)
 class GroundTruth:
     """Ground truth of a simulated grid (see :func:`read_ground_truth`).
 
     Arrays are indexed ``[row, col]``: ``field_deg`` and ``shift_px`` are ``(N, M, 2)``
     (``(θx, θy)`` and ``(du, dv)``), ``gain`` is ``(N, M)``; ``clean_psfs`` is the
-    memory-mapped ``(N, M, C, H, W)`` noise-free signal above black level (file units).
+    memory-mapped ``(N, M, C, H, W)`` noise-free signal above black level (file units), or,
+    where ``psfs_clean.npy`` was not written, a :class:`CleanPsfs` that computes it again.
     """
 
     field_deg: np.ndarray
     monitor_px: np.ndarray
     shift_px: np.ndarray
     gain: np.ndarray
-    clean_psfs: np.ndarray
+    clean_psfs: np.ndarray | CleanPsfs
     config: BenchConfig
     info: dict[str, Any]
 
@@ -304,8 +383,11 @@ def read_ground_truth(grid_dir: str | os.PathLike) -> GroundTruth:
                           dtype=np.float64)
         return values.reshape(n_rows, n_cols, *values.shape[1:])
 
+    field_deg, config = table("field_deg"), BenchConfig.from_dict(info["config"])
+    clean_file = folder / CLEAN_FILE
+    clean = (np.load(clean_file, mmap_mode="r") if clean_file.is_file()
+             else CleanPsfs(info, config, field_deg))
     return GroundTruth(
-        field_deg=table("field_deg"), monitor_px=table("monitor_px"),
-        shift_px=table("shift_px"), gain=table("gain"),
-        clean_psfs=np.load(folder / "psfs_clean.npy", mmap_mode="r"),
-        config=BenchConfig.from_dict(info["config"]), info=info)
+        field_deg=field_deg, monitor_px=table("monitor_px"),
+        shift_px=table("shift_px"), gain=table("gain"), clean_psfs=clean,
+        config=config, info=info)

@@ -226,10 +226,12 @@ def read_image_float(path: str | os.PathLike, channel_order: str = "RGB",
     return unit_range(read_image(path, channel_order), str(path), white_level)
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+def write_image(path: str | os.PathLike, image: np.ndarray, compress: bool = False) -> Path:
     """Write a ``(C, H, W)`` array atomically as TIFF, PNG or ``.npy`` (stored ``(H, W[, C])``).
 
-    PNG accepts uint8/uint16 only; TIFF and ``.npy`` keep the dtype.
+    PNG accepts uint8/uint16 only; TIFF and ``.npy`` keep the dtype. ``compress``: a TIFF is
+    stored deflate-compressed (lossless; a 12-bit sensor frame takes about a third of the
+    space); PNG is always compressed, ``.npy`` never.
     """
     path = Path(path)
     image = np.asarray(image)
@@ -244,7 +246,8 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
             import tifffile
 
             photometric = "rgb" if hwc.ndim == 3 else "minisblack"
-            tifffile.imwrite(tmp, np.ascontiguousarray(hwc), photometric=photometric)
+            tifffile.imwrite(tmp, np.ascontiguousarray(hwc), photometric=photometric,
+                             compression="zlib" if compress else None)
         elif suffix == ".png":
             import cv2
 

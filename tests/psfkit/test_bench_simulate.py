@@ -123,3 +123,26 @@ def test_averaged_frames_are_refused_as_png_or_a_non_positive_count(tmp_path):
     with pytest.raises(ConfigurationError, match="frames"):
         simulate_grid(tmp_path / "zero", config, grid_shape=(1, 1), frames=0, progress=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_ground_truth_without_its_clean_file_computes_the_same_psfs(tmp_path):
+    """``clean_psfs=False`` (the demo's grid): the same captures, a ground truth of a few kB,
+    and read_ground_truth computes the clean PSFs again, equal to the written file bit for
+    bit, one position or the whole array."""
+    config = BenchConfig(downsample=16, seed=5)
+    full = simulate_grid(tmp_path / "full", config, grid_shape=(2, 3), progress=False)
+    compact = simulate_grid(tmp_path / "compact", config, grid_shape=(2, 3), progress=False,
+                            clean_psfs=False)
+    names = sorted(p.name for p in full.iterdir() if p.is_file())
+    _match, mismatch, errors = filecmp.cmpfiles(full, compact, names, shallow=False)
+    assert not mismatch and not errors
+    assert not (compact / "ground_truth" / "psfs_clean.npy").exists()
+    assert sum(p.stat().st_size for p in (compact / "ground_truth").iterdir()) < 20_000
+    written = read_ground_truth(full).clean_psfs
+    computed = read_ground_truth(compact).clean_psfs
+    assert computed.shape == written.shape and computed.dtype == written.dtype
+    np.testing.assert_array_equal(computed[1, 2], written[1, 2])
+    np.testing.assert_array_equal(computed[-1, 0], written[1, 0])
+    np.testing.assert_array_equal(np.asarray(computed), written)
+    np.testing.assert_array_equal(computed[:, 1], written[:, 1])
+    assert written.max() > 0
