@@ -400,9 +400,7 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     aligner = GridAligner(grid, options.preprocess, options.upsample,
                           min_quality=options.min_quality, strict=options.strict)
     center = aligner.center
-    reference, ref_lum = aligner.reference, aligner.reference_luminance
-    ref_total = reference.sum(axis=0)
-    ref_smooth = _smooth(reference, options.mae_smoothing_px)
+    ref_lum = aligner.reference_luminance
     steps = set(options.steps)
     working = _WorkingCopy(grid, aligner, enabled="verdict" in steps)
     fig2 = set(_fig2_positions(grid, center))
@@ -413,50 +411,10 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     result = GridCharacterization(
         grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
         channels=grid.channels, center=center, options=options, positions=[],
-        field_units=_field_units(grid), reference=reference, layout=grid.layout,
+        field_units=_field_units(grid), reference=aligner.reference, layout=grid.layout,
         missing=grid.missing(), psf_box=box)
 
-    def measure(pos: GridPosition) -> tuple[PositionResult | ExcludedPosition, dict[str, Any]]:
-        here = (pos.row, pos.col)
-        item = aligner.try_align(pos)
-        if isinstance(item, ExcludedPosition):
-            return item, {}
-        aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
-        window = crop_window(prep.luminance / np.float32(aligner.scale), box,
-                             (round(shift[1]), round(shift[0])))
-        extras: dict[str, Any] = {"thumbnail": _thumbnail(window)}
-        al_lum = item.luminance
-        record = PositionResult(
-            row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
-            monitor_px=pos.monitor_px, shift=shift,
-            quality=item.quality, overlap=item.overlap,
-            n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
-            snr=prep.snr, support_overlap=item.support_overlap)
-        if options.per_channel and aligned.shape[0] > 1:
-            image = prep.image / np.float32(aligner.scale)
-            record.channel_shifts = [
-                (0.0, 0.0) if here == center else aligner.register(reference[c], image[c])
-                for c in range(image.shape[0])]
-        # compared over the PSFs' support inside the overlap: frame-size independent (the
-        # noise of a large frame's empty pixels would otherwise dominate a compact PSF)
-        compared = item.compared
-        gain = overlap_gain(ref_total, aligned.sum(axis=0), aligner.gain_region(item))
-        working.put(item, aligned, gain)
-        if "gain" in steps:
-            record.gain = gain
-        if "mae" in steps:
-            al_smooth = _smooth(aligned, options.mae_smoothing_px)
-            record.mae = mean_absolute_error(ref_smooth, al_smooth, compared)
-            record.mae_gain_compensated = mean_absolute_error(ref_smooth, al_smooth, compared,
-                                                              gain)
-        if here in fig2:
-            extras["example"] = (aligned, valid)
-        if "warp" in steps and here != center:
-            measured = _try_warp(ref_lum, al_lum / np.float32(gain), valid, shift,
-                                 options.flow_method, str(grid.path(*here)))
-            if measured is not None:
-                record.warp, extras["flow"] = measured
-        return record, extras
+    measure = _PositionMeasurement(grid, options, aligner, steps, working, fig2, box)
 
     records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
     bar: Any = None
@@ -499,6 +457,73 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
         _summarise_warp(result)
     result.verdict = working.verdict(grid, result, records, progress)
     return result
+
+
+class _PositionMeasurement:
+    """Align one position of the grid to its centre PSF and measure it: its
+    :class:`PositionResult` (or why it is excluded) and what the figures keep of it
+    (``thumbnail``; ``example`` at the Fig. 2 positions; ``flow`` where a warp was measured).
+    Called concurrently on the positions (:func:`~psfkit.parallel.bounded_map`)."""
+
+    def __init__(self, grid: PsfGrid, options: CharacterizeOptions, aligner: GridAligner,
+                 steps: set[str], working: _WorkingCopy, fig2: set[tuple[int, int]],
+                 box: Any) -> None:
+        self.grid, self.options, self.aligner, self.steps = grid, options, aligner, steps
+        self.working, self.fig2, self.box = working, fig2, box
+        self.ref_total = aligner.reference.sum(axis=0)
+        self.ref_smooth = _smooth(aligner.reference, options.mae_smoothing_px)
+
+    def __call__(self, pos: GridPosition
+                 ) -> tuple[PositionResult | ExcludedPosition, dict[str, Any]]:
+        aligner, options, steps = self.aligner, self.options, self.steps
+        here = (pos.row, pos.col)
+        item = aligner.try_align(pos)
+        if isinstance(item, ExcludedPosition):
+            return item, {}
+        aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
+        window = crop_window(prep.luminance / np.float32(aligner.scale), self.box,
+                             (round(shift[1]), round(shift[0])))
+        extras: dict[str, Any] = {"thumbnail": _thumbnail(window)}
+        record = PositionResult(
+            row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
+            monitor_px=pos.monitor_px, shift=shift,
+            quality=item.quality, overlap=item.overlap,
+            n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
+            snr=prep.snr, support_overlap=item.support_overlap)
+        if options.per_channel and aligned.shape[0] > 1:
+            record.channel_shifts = self._channel_shifts(here, prep.image)
+        gain = overlap_gain(self.ref_total, aligned.sum(axis=0), aligner.gain_region(item))
+        self.working.put(item, aligned, gain)
+        if "gain" in steps:
+            record.gain = gain
+        if "mae" in steps:
+            self._mae(record, aligned, item.compared, gain)
+        if here in self.fig2:
+            extras["example"] = (aligned, valid)
+        if "warp" in steps and here != aligner.center:
+            measured = _try_warp(aligner.reference_luminance, item.luminance / np.float32(gain),
+                                 valid, shift, options.flow_method, str(self.grid.path(*here)))
+            if measured is not None:
+                record.warp, extras["flow"] = measured
+        return record, extras
+
+    def _channel_shifts(self, here: tuple[int, int], image: np.ndarray
+                        ) -> list[tuple[float, float]]:
+        """The shift of each colour channel against the centre PSF's same channel."""
+        aligner = self.aligner
+        image = image / np.float32(aligner.scale)
+        return [(0.0, 0.0) if here == aligner.center
+                else aligner.register(aligner.reference[c], image[c])
+                for c in range(image.shape[0])]
+
+    def _mae(self, record: PositionResult, aligned: np.ndarray, compared: np.ndarray,
+             gain: float) -> None:
+        # compared over the PSFs' support inside the overlap: frame-size independent (the
+        # noise of a large frame's empty pixels would otherwise dominate a compact PSF)
+        al_smooth = _smooth(aligned, self.options.mae_smoothing_px)
+        record.mae = mean_absolute_error(self.ref_smooth, al_smooth, compared)
+        record.mae_gain_compensated = mean_absolute_error(self.ref_smooth, al_smooth, compared,
+                                                          gain)
 
 
 def _try_warp(ref_lum: np.ndarray, lum: np.ndarray, valid: np.ndarray,
