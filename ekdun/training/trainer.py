@@ -14,8 +14,8 @@
 Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
 with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
 device and read once per epoch (and at the progress bar's log points), so the host never
-waits for the device inside an epoch; ``amp``, ``channels_last`` and ``compile`` are described
-in :mod:`ekdun.training.acceleration`.
+waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
+``channels_last`` and ``compile`` are described in :mod:`ekdun.training.acceleration`.
 ``kernels_initial.npz`` / ``kernels_learned.npz``
     EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
     convention and sensor size as the seed), for ``psfkit compare``.
@@ -50,6 +50,7 @@ from ekdun.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from ekdun.training.epoch import Loop, train_epoch
 from ekdun.training.export import export_kernels
 from ekdun.training.export import initial_kernels as checkpoint_seed
 from ekdun.training.logs import write_csv_log
@@ -225,7 +226,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
     model.to(ctx.device)
     optimizer = make_optimizer(model, cfg, ctx.device)
     amp = acc.resolve_amp(options.amp, ctx.device)
-    loop = _Loop(model=model, net=model, optimizer=optimizer,
+    loop = Loop(model=model, net=model, optimizer=optimizer,
                  scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma),
                  # Gradient scaling only for fp16 (bf16 has float32's exponent range).
                  scaler=torch.amp.GradScaler("cuda", enabled=amp == "fp16"), amp=amp, ctx=ctx,
@@ -255,9 +256,11 @@ def train(run_dir: str | os.PathLike, model_name: str,
     metadata["resident_dataset"] = source.resident
     started = time.perf_counter()
     for epoch in range(start_epoch, cfg.epochs + 1):
-        row = _train_epoch(loop, source, epoch, cfg, options, metadata,
-                           desc=f"{model_name} epoch {epoch}/{cfg.epochs}",
-                           first=epoch == start_epoch)
+        row = train_epoch(
+            loop, source, epoch, cfg.batch_size, metadata, log_every=options.log_every,
+            desc=(f"{model_name} epoch {epoch}/{cfg.epochs}"
+                  if options.progress and ctx.is_main else None),
+            time_compile=options.compile and epoch == start_epoch)
         metadata["history"].append(row)
         metadata["epoch"] = epoch
         if ctx.is_main:
@@ -270,22 +273,6 @@ def train(run_dir: str | os.PathLike, model_name: str,
             "seconds": time.perf_counter() - started, "model": model,
             **({"compile_warmup_s": metadata["compile_warmup_s"]}
                if "compile_warmup_s" in metadata else {})}
-
-
-@dataclass
-class _Loop:
-    """What every training step uses: the network (``net``: wrapped for the physics term,
-    DDP and compile), its optimizer, scheduler and gradient scaler, the resolved AMP mode,
-    the process context and the physics weight λ."""
-
-    model: UnrolledNetwork
-    net: nn.Module
-    optimizer: torch.optim.Optimizer
-    scheduler: torch.optim.lr_scheduler.LRScheduler
-    scaler: torch.amp.GradScaler
-    amp: str
-    ctx: D.DistContext
-    physics_weight: float
 
 
 def _check_run_folder(run_dir: Path, dataset: Dataset, *, resume: bool,
@@ -337,7 +324,7 @@ def _run_metadata(model_name: str, preset: str, overrides: dict[str, Any],
     }
 
 
-def _resume(doc: dict[str, Any], ckpt_path: Path, loop: _Loop, metadata: dict[str, Any],
+def _resume(doc: dict[str, Any], ckpt_path: Path, loop: Loop, metadata: dict[str, Any],
             initial_kernels: Tensor) -> tuple[Tensor, int]:
     """Load the checkpoint ``doc`` (read from ``ckpt_path``) into the loop's model, optimizer,
     scheduler, scaler and RNGs (it must come from the same model, preset, overrides, sensor
@@ -375,71 +362,7 @@ def _training_module(model: UnrolledNetwork, physics_weight: float, ctx: D.DistC
     return net
 
 
-def _train_epoch(loop: _Loop, source: BatchSource, epoch: int, cfg: TrainingConfig,
-                 options: TrainOptions, metadata: dict[str, Any], *, desc: str,
-                 first: bool) -> dict[str, Any]:
-    """One epoch of Adam steps on the MSE (plus λ × the consistency); its history row."""
-    ctx = loop.ctx
-    t0 = time.perf_counter()
-    loop.model.train()
-    bar = None
-    if options.progress and ctx.is_main:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(source), desc=desc, unit="batch", leave=False)
-    # The epoch's loss is summed on the device: reading it (.item()) makes the host wait
-    # for the device, so that happens only at log points and at the end of the epoch.
-    total = torch.zeros((), dtype=torch.float64, device=ctx.device)
-    total_physics = torch.zeros((), dtype=torch.float64, device=ctx.device)
-    count = 0
-    for x, y in source.epoch(epoch):
-        loss, consistency = _step(loop, x, y)
-        total += loss
-        if consistency is not None:
-            total_physics += consistency
-        count += 1
-        if options.compile and count == 1 and first:
-            acc.cuda_synchronize(ctx.device)
-            metadata["compile_warmup_s"] = round(time.perf_counter() - t0, 3)
-        if bar is not None:
-            bar.update()
-            if count % max(options.log_every, 1) == 0:
-                bar.set_postfix(loss=f"{total.item() / count:.3g}")
-    if bar is not None:
-        bar.close()
-    lr = loop.optimizer.param_groups[0]["lr"]
-    loop.scheduler.step()
-    mean_loss = D.all_mean(total.item() / max(count, 1), ctx)
-    seconds = time.perf_counter() - t0
-    row = {"epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
-           "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)}
-    if loop.physics_weight > 0:
-        # the MSE stays train_loss (comparable across λ); the consistency term beside it
-        row["physics_loss"] = D.all_mean(total_physics.item() / max(count, 1), ctx)
-    return row
-
-
-def _step(loop: _Loop, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor | None]:
-    """One optimizer step; the batch's MSE and consistency (λ > 0), detached."""
-    loop.optimizer.zero_grad(set_to_none=True)
-    consistency = None
-    with acc.autocast(loop.amp, loop.ctx.device):
-        if loop.physics_weight > 0:
-            out, consistency = loop.net(y, x)
-        else:
-            out = loop.net(y)
-    loss = nn.functional.mse_loss(out.float(), x)
-    if consistency is not None:
-        loop.scaler.scale(loss + loop.physics_weight * consistency).backward()
-        consistency = consistency.detach()
-    else:
-        loop.scaler.scale(loss).backward()
-    loop.scaler.step(loop.optimizer)
-    loop.scaler.update()
-    return loss.detach(), consistency
-
-
-def _save_epoch(run_dir: Path, model_name: str, loop: _Loop, metadata: dict[str, Any],
+def _save_epoch(run_dir: Path, model_name: str, loop: Loop, metadata: dict[str, Any],
                 initial_kernels: Tensor, options: TrainOptions) -> None:
     """The epoch's checkpoint (atomic), log and, for EK-DUN, learned kernel file."""
     save_checkpoint(run_dir / CHECKPOINT, {
