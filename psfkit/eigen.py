@@ -835,17 +835,6 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
     return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
 
 
-def cross_validate(stack: WorkingStack, bases: list[str], conventions: tuple[str, ...],
-                   center_row: int, folds: int = 9, seed: int = 0) -> dict[str, Any]:
-    """Leave-positions-out cross-validation of eigen-kernel models
-    (:func:`cross_validate_positions`). Returns the held-out relative error
-    (``‖pred − data‖/‖data‖`` pooled over the held-out positions) of every
-    ``basis/convention`` and of the centre PSF alone, its 1σ over the positions, and the
-    best model."""
-    return cross_validate_positions(stack, bases, conventions, center_row, folds,
-                                    seed).to_dict()
-
-
 def _squared_norm(stack: WorkingStack, p: int) -> float:
     return float(np.sum(stack.images[p] ** 2, axis=0)[stack.valid[p]].sum())
 

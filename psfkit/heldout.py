@@ -13,9 +13,9 @@ Every model here writes the aligned, gain-compensated PSF of position ``p`` as
     the null plus the field weights of an eigen-kernel basis (:data:`FIELD_BASES`) at the
     position.
 
-Positions are held out as in :func:`psfkit.eigen.cross_validate` (the same folds for the same
-seed); the result is a :class:`psfkit.verdict.HeldOutErrors`. :func:`judge` runs both
-cross-validations on a working stack and decides the verdict: ``psfkit report`` and
+Positions are held out as in :func:`psfkit.eigen.cross_validate_positions` (the same folds
+for the same seed); the result is a :class:`psfkit.verdict.HeldOutErrors`. :func:`judge` runs
+both cross-validations on a working stack and decides the verdict: ``psfkit report`` and
 ``psfkit fit-eigen`` call it.
 """
 

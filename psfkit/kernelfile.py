@@ -304,12 +304,7 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
     sensor = tuple(bounded_size(meta["sensor_shape"], f"{where}: 'sensor_shape'"))
     if len(sensor) != 2:
         raise ModelFileError(f"{where}: 'sensor_shape' must be [H, W], got {list(sensor)}")
-    center = meta.get("optical_center")
-    if center is not None:
-        if not isinstance(center, list) or len(center) != 2:
-            raise ModelFileError(f"{where}: 'optical_center' must be [v, u], got {center!r}")
-        center = tuple(finite_number(v, f"{where}: 'optical_center'", -10.0 * max(sensor),
-                                     10.0 * max(sensor)) for v in center)
+    center = _optical_center(meta.get("optical_center"), sensor, where)
     provenance = meta.get("provenance", {})
     if not isinstance(provenance, dict):
         raise ModelFileError(f"{where}: 'provenance' must be an object, got {provenance!r}")
@@ -317,15 +312,7 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
     if origin != KERNEL_ORIGIN:
         raise ModelFileError(f"{where}: 'kernel_origin' is {origin!r}; this toolkit stores "
                              f"kernels with their origin at the {KERNEL_ORIGIN}")
-    read_options = meta.get("read_options")
-    if read_options is not None:
-        read_options = ReadOptions.from_json(read_options, where)
-    elif isinstance(meta.get("provenance"), dict) and "downsample" in meta["provenance"]:
-        # files written before read_options: their binning is read from here
-        factor = meta["provenance"]["downsample"]
-        if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= 64:
-            raise ModelFileError(f"{where}: provenance 'downsample' must be an integer in "
-                                 f"1..64, got {factor!r}")
+    read_options = _read_options(meta, where)
     padding = meta.get("scene_padding", 2)
     if isinstance(padding, bool) or not isinstance(padding, int):
         raise ModelFileError(f"{where}: 'scene_padding' must be an integer, got {padding!r}")
@@ -335,6 +322,32 @@ def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
                 scene_padding=padding,
                 normalization=text("normalization", meta.get("normalization", "unspecified")),
                 provenance=provenance, read_options=read_options)
+
+
+def _optical_center(center: Any, sensor: tuple[int, ...], where: str
+                    ) -> tuple[float, float] | None:
+    """The metadata's ``optical_center`` ``[v, u]`` (finite, within ten sensor sizes)."""
+    if center is None:
+        return None
+    if not isinstance(center, list) or len(center) != 2:
+        raise ModelFileError(f"{where}: 'optical_center' must be [v, u], got {center!r}")
+    low, high = -10.0 * max(sensor), 10.0 * max(sensor)
+    v, u = (finite_number(x, f"{where}: 'optical_center'", low, high) for x in center)
+    return v, u
+
+
+def _read_options(meta: dict[str, Any], where: str) -> ReadOptions | None:
+    """How the data were read, if the file records it (files written before ``read_options``
+    record only their binning, in the provenance: checked here)."""
+    read_options = meta.get("read_options")
+    if read_options is not None:
+        return ReadOptions.from_json(read_options, where)
+    if isinstance(meta.get("provenance"), dict) and "downsample" in meta["provenance"]:
+        factor = meta["provenance"]["downsample"]
+        if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= 64:
+            raise ModelFileError(f"{where}: provenance 'downsample' must be an integer in "
+                                 f"1..64, got {factor!r}")
+    return None
 
 
 def _two_finite_numbers(values: Any) -> bool:

@@ -21,8 +21,8 @@ lived on the whole grid, the normal operator would be block-diagonal in frequenc
 - *source side* (``y = crop(Σ_k K_k ⊛ (W_k x))``): one ``K × K`` block per frequency and
   channel, :math:`G_{kl}(\omega) = \sum_i s_i^2\,\overline{\hat S_{ik}(\omega)}\hat
   S_{il}(\omega)` with :math:`\hat S_{ik}` the spectrum of the weighted scene ``W_k x_i``,
-  and the least squares would be one closed-form ``K × K`` solve per frequency
-  (:meth:`FrequencyGram.solve_full`);
+  and the least squares would be one closed-form ``K × K`` solve per frequency (checked
+  by ``tests/psfkit/test_pairs_solver.py``);
 - *sensor side* (``y = Σ_k W_k ⊙ crop(K_k ⊛ x)``) the weights multiply *after* the
   convolution, so even without the crop the operator couples frequencies: its exact
   normal operator is not per-frequency. Replacing :math:`W_k W_l` by its mean
@@ -75,7 +75,7 @@ from torch import Tensor
 
 from psfkit.errors import InvalidInputError
 from psfkit.forward.convolution import embed_kernel, extract_kernel, kernel_spectra
-from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.fft import irfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator, linear_convolution_grid
 from psfkit.weights import get_basis
 
@@ -368,18 +368,6 @@ class FrequencyGram:
         eps = floor * max(scale, 1e-300)
         return torch.linalg.inv(g + reg + eps * eye)
 
-    def solve_full(self, rhs_spectra: Tensor, tikhonov: float = 0.0,
-                   difference: float = 0.0) -> Tensor:
-        r"""The closed-form least squares of the **uncropped** problem on the whole grid:
-        :math:`\hat K(\omega) = [G(\omega) + \lambda + \mu D]^{-1}\,\hat r(\omega)` with
-        ``rhs_spectra`` ``(K, C, PH, PW//2+1)`` = :math:`\sum_i s_i\overline{\hat S_{ik}}\hat
-        y_i` of whole-grid measurements. Exact for the source side and SI; returns the kernels
-        ``(K, C, PH, PW)`` with their origin at index ``(0, 0)`` of the grid."""
-        inv = self.inverse(tikhonov, difference)
-        r = rhs_spectra.to(torch.complex128).permute(1, 2, 3, 0)          # (C, F..., K)
-        k_hat = torch.einsum("cuvkl,cuvl->kcuv", inv, r)
-        return irfft2(k_hat, self.grid)
-
     def preconditioner(self, tikhonov: float, difference: float
                        ) -> Callable[[Tensor], Tensor]:
         """``P`` of the module docstring, a callable on ``(K, C, Hk, Wk)`` residuals, applied
@@ -532,32 +520,6 @@ def solve_kernels(batches: PairBatches,
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
                            "normal": normal, "rhs": rhs, "precondition": precondition,
                            "batches": batches}
-
-
-def window_of_grid(kernels_on_grid: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
-    """The centred ``kernel_shape`` window of whole-grid kernels (origin at index 0)."""
-    return extract_kernel(kernels_on_grid, kernel_shape)
-
-
-def uncropped_measurements(batches: PairBatches, kernels: Tensor, start: int, stop: int
-                           ) -> Tensor:
-    """The whole-grid (uncropped) model output of pairs ``start:stop`` for ``kernels``
-    ``(K, C, Hk, Wk)``: for testing :meth:`FrequencyGram.solve_full` (source side / SI)."""
-    op = batches.operator(start, stop)
-    spectra = kernel_spectra(kernels.to(op.scene_spectra.real.dtype), batches.grid)
-    total = (op.scene_spectra * spectra[None]).sum(dim=1)
-    return irfft2(total, batches.grid)
-
-
-def rhs_spectra_full(batches: PairBatches, full_measurements: Tensor) -> Tensor:
-    """``Σ_i s_i conj(Ŝ_ik) ŷ_i`` of whole-grid measurements ``(N, C, PH, PW)``."""
-    out = None
-    for start, stop, op, s in batches.batches():
-        y_hat = rfft2(full_measurements[start:stop].to(op.scene_spectra.real.dtype))
-        term = (op.scene_spectra.conj() * (y_hat * s[:, None, None, None])[:, None]).sum(0)
-        out = term if out is None else out + term
-    assert out is not None
-    return out
 
 
 def _per_channel_norm(a: Tensor) -> Tensor:
@@ -734,9 +696,6 @@ __all__ = [
     "kkt_residual",
     "projected_newton",
     "regularised_normal",
-    "rhs_spectra_full",
     "solve_kernels",
     "solve_normal_equations",
-    "uncropped_measurements",
-    "window_of_grid",
 ]

@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from psfkit import __version__
-from psfkit.characterize import RELIABLE_OVERLAP, GridCharacterization
+from psfkit.alignment import RELIABLE_OVERLAP
+from psfkit.characterization import GridCharacterization
 from psfkit.errors import InvalidInputError
 from psfkit.html_report import (
     REPORT_CSS,

@@ -393,61 +393,6 @@ def _first_non_finite(value: Any, default: Any, path: str = "") -> str | None:
     return None
 
 
-# --------------------------------------------------------------------------- argparse types
-
-
-def _parse_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
-
-
-def finite_float(text: str) -> float:
-    """``argparse`` type: a finite float (``nan``, ``inf`` refused)."""
-    return _parse_float(text)
-
-
-def positive_float(text: str) -> float:
-    """``argparse`` type: a finite float > 0."""
-    value = _parse_float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    """``argparse`` type: a finite float >= 0."""
-    value = _parse_float(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
-
-
-def fraction(text: str) -> float:
-    """``argparse`` type: a finite float in ``[0, 1]``."""
-    value = _parse_float(text)
-    if not 0 <= value <= 1:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text!r}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    """``argparse`` type: an integer >= 1 (at most ``MAX_ITERATIONS`` × 100, a sanity bound)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    if value > 100 * MAX_ITERATIONS:
-        raise argparse.ArgumentTypeError(f"{value} exceeds the limit of {100 * MAX_ITERATIONS}")
-    return value
-
-
 # --------------------------------------------------------------------------- the flag table
 
 

@@ -8,8 +8,6 @@ occlusion edges, which is why it is a standard test prior for image restoration.
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
 from ekdun.errors import ConfigurationError
@@ -91,23 +89,3 @@ def dead_leaves(shape: tuple[int, int], rng: np.random.Generator | int = 0, *,
                 n_covered += count
         drawn += batch
     return image
-
-
-def radial_power_slope(image: np.ndarray, f_min: float = 0.02, f_max: float = 0.25) -> float:
-    """Log-log slope of the radially averaged power spectrum of a ``(H, W)`` image between
-    ``f_min`` and ``f_max`` cycles/pixel (natural images: about −2)."""
-    img = np.asarray(image, dtype=np.float64)
-    img = img - img.mean()
-    power = np.abs(np.fft.fft2(img)) ** 2
-    fy = np.fft.fftfreq(img.shape[0])[:, None]
-    fx = np.fft.fftfreq(img.shape[1])[None, :]
-    f = np.sqrt(fy ** 2 + fx ** 2)
-    edges = np.geomspace(f_min, f_max, 12)
-    centres, means = [], []
-    for lo, hi in itertools.pairwise(edges):
-        sel = (f >= lo) & (f < hi)
-        if sel.any():
-            centres.append(np.sqrt(lo * hi))
-            means.append(power[sel].mean())
-    slope, _ = np.polyfit(np.log(centres), np.log(means), 1)
-    return float(slope)

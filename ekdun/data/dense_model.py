@@ -89,7 +89,6 @@ class DenseShiftVariantModel:
         self.grid_shape = padded_shape((h, w), scene_padding)
         n, m, c = k.shape[:3]
         self.channels = int(c)
-        self.n_nodes = n * m
         wy = hat_weights(node_rows, h)            # (N, H)
         wx = hat_weights(node_cols, w)            # (M, W)
         self.weights = torch.as_tensor(

@@ -28,8 +28,6 @@ from dataclasses import dataclass, field
 
 from ekdun.errors import ConfigurationError
 
-SCHEDULES = ("base", "last-k", "all")
-
 
 @dataclass(frozen=True)
 class UNetConfig:

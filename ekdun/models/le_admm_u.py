@@ -81,10 +81,5 @@ class LeADMMU(UnrolledNetwork):
                                  self.log_mu3[i].exp(), self.log_tau[i].exp(),
                                  self.tv_spectrum)
 
-    def admm_estimate(self, y: Tensor) -> Tensor:
-        """The cropped ADMM iterate before the U-Net, ``(B, C, H', W')``."""
-        state, _ = self.iterate(y)
-        return crop(state["x"], self.physics.sensor_shape)
-
     def output(self, state: State, context: dict[str, Any]) -> Tensor:
         return self.denoiser(crop(state["x"], self.physics.sensor_shape))

@@ -14,8 +14,8 @@
 Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
 with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
 device and read once per epoch (and at the progress bar's log points), so the host never
-waits for the device inside an epoch; ``amp``, ``channels_last`` and ``compile`` are described
-in :mod:`ekdun.training.acceleration`.
+waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
+``channels_last`` and ``compile`` are described in :mod:`ekdun.training.acceleration`.
 ``kernels_initial.npz`` / ``kernels_learned.npz``
     EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
     convention and sensor size as the seed), for ``psfkit compare``.
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
+from torch import Tensor, nn
 from torch.utils.data import Dataset
 
 from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
@@ -50,6 +50,7 @@ from ekdun.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from ekdun.training.epoch import Loop, train_epoch
 from ekdun.training.export import export_kernels
 from ekdun.training.export import initial_kernels as checkpoint_seed
 from ekdun.training.logs import write_csv_log
@@ -206,6 +207,80 @@ def train(run_dir: str | os.PathLike, model_name: str,
     run_dir = Path(run_dir)
     ckpt_path = run_dir / CHECKPOINT
     overrides = encode_overrides(overrides or {})
+    _check_run_folder(run_dir, dataset, resume=resume, overwrite=overwrite)
+    if ctx.distributed:
+        # every rank has checked the folder before the main one writes into it (else another
+        # rank could find the main rank's first files and refuse alone)
+        torch.distributed.barrier()
+    if cfg.batch_size % ctx.world_size:
+        raise ConfigurationError(f"--batch-size {cfg.batch_size} is not divisible by the "
+                                 f"{ctx.world_size} processes")
+
+    _seed_everything(options.seed)
+    model = build_network(model_name, seed_kernel_model(seed), preset, overrides)
+    if cfg.physics_weight > 0 and not hasattr(model, "forward_model"):
+        raise ConfigurationError(f"--physics-weight needs EK-DUN's own eigen-kernel forward "
+                                 f"model; {model_name} has none (use --network ekdun)")
+    seed_kernels = model.seed_kernels
+    assert seed_kernels is not None       # build_network sets it: what the network starts from
+    _check_dataset(dataset, model)
+    model.to(ctx.device)
+    optimizer = make_optimizer(model, cfg, ctx.device)
+    amp = acc.resolve_amp(options.amp, ctx.device)
+    loop = Loop(model=model, net=model, optimizer=optimizer,
+                 scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma),
+                 # Gradient scaling only for fp16 (bf16 has float32's exponent range).
+                 scaler=torch.amp.GradScaler("cuda", enabled=amp == "fp16"), amp=amp, ctx=ctx,
+                 physics_weight=float(cfg.physics_weight))
+    channels_last = acc.use_channels_last(options.channels_last, ctx.device)
+    if channels_last:
+        acc.convolutions_channels_last(model)
+    metadata = _run_metadata(model_name, preset, overrides, model, cfg, options, ctx, dataset,
+                             amp=amp, channels_last=channels_last)
+    initial_kernels = torch.as_tensor(seed_kernels.kernels)
+    start_epoch = 1
+    if resume:
+        doc = load_checkpoint(ckpt_path, map_location=ctx.device)
+        initial_kernels, start_epoch = _resume(doc, ckpt_path, loop, metadata, initial_kernels)
+        if (model_name == "ekdun" and ctx.is_main
+                and not (run_dir / KERNELS_INITIAL).is_file()):
+            # a run folder copied with its checkpoint alone (e.g. back from a GPU machine)
+            save_kernels(run_dir / KERNELS_INITIAL, checkpoint_seed(doc))
+    elif ctx.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if model_name == "ekdun":
+            save_kernels(run_dir / KERNELS_INITIAL, seed_kernels)
+
+    loop.net = _training_module(model, loop.physics_weight, ctx, options.compile)
+    source = BatchSource(dataset, cfg.batch_size, options.seed, ctx, options.resident,
+                         options.workers)
+    metadata["resident_dataset"] = source.resident
+    started = time.perf_counter()
+    for epoch in range(start_epoch, cfg.epochs + 1):
+        row = train_epoch(
+            loop, source, epoch, cfg.batch_size, metadata, log_every=options.log_every,
+            desc=(f"{model_name} epoch {epoch}/{cfg.epochs}"
+                  if options.progress and ctx.is_main else None),
+            time_compile=options.compile and epoch == start_epoch)
+        metadata["history"].append(row)
+        metadata["epoch"] = epoch
+        if ctx.is_main:
+            _save_epoch(run_dir, model_name, loop, metadata, initial_kernels, options)
+        D.barrier(ctx)
+    loop.net = model          # the DDP wrapper holds the process group (see D.teardown)
+    D.teardown(ctx)
+    return {"history": metadata["history"], "run_dir": str(run_dir),
+            "parameters": model.parameter_count(),
+            "seconds": time.perf_counter() - started, "model": model,
+            **({"compile_warmup_s": metadata["compile_warmup_s"]}
+               if "compile_warmup_s" in metadata else {})}
+
+
+def _check_run_folder(run_dir: Path, dataset: Dataset, *, resume: bool,
+                      overwrite: bool) -> None:
+    """Refuse a run folder that cannot be resumed, would be overwritten unasked, or overlaps
+    the training data."""
+    ckpt_path = run_dir / CHECKPOINT
     if resume and not ckpt_path.is_file():
         raise InvalidInputError(f"{run_dir}: nothing to resume (no {CHECKPOINT})")
     if not resume and ckpt_path.exists() and not overwrite:
@@ -221,159 +296,85 @@ def train(run_dir: str | os.PathLike, model_name: str,
     if data_root is not None and _overlaps(run_dir, Path(data_root)):
         raise InvalidInputError(f"{run_dir}: the run folder overlaps the training data "
                                 f"{data_root}; choose a folder outside it")
-    if ctx.distributed:
-        # every rank has checked the folder before the main one writes into it (else another
-        # rank could find the main rank's first files and refuse alone)
-        torch.distributed.barrier()
-    if cfg.batch_size % ctx.world_size:
-        raise ConfigurationError(f"--batch-size {cfg.batch_size} is not divisible by the "
-                                 f"{ctx.world_size} processes")
 
-    torch.manual_seed(options.seed)
-    np.random.seed(options.seed % 2**32)  # noqa: NPY002 (global state of user code)
-    random.seed(options.seed)
-    seed_model = seed_kernel_model(seed)
-    model = build_network(model_name, seed_model, preset, overrides)
-    if cfg.physics_weight > 0 and not hasattr(model, "forward_model"):
-        raise ConfigurationError(f"--physics-weight needs EK-DUN's own eigen-kernel forward "
-                                 f"model; {model_name} has none (use --network ekdun)")
-    seed_kernels = model.seed_kernels
-    assert seed_kernels is not None       # build_network sets it: what the network starts from
-    _check_dataset(dataset, model)
-    model.to(ctx.device)
-    optimizer = make_optimizer(model, cfg, ctx.device)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma)
-    amp = acc.resolve_amp(options.amp, ctx.device)
-    use_amp = amp != "off"
-    # Gradient scaling only for fp16 (bf16 has float32's exponent range).
-    scaler = torch.amp.GradScaler("cuda", enabled=amp == "fp16")
-    channels_last = acc.use_channels_last(options.channels_last, ctx.device)
-    if channels_last:
-        acc.convolutions_channels_last(model)
-    metadata: dict[str, Any] = {
+
+def _seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 (global state of user code)
+    random.seed(seed)
+
+
+def _run_metadata(model_name: str, preset: str, overrides: dict[str, Any],
+                  model: UnrolledNetwork, cfg: TrainingConfig, options: TrainOptions,
+                  ctx: D.DistContext, dataset: Dataset, *, amp: str,
+                  channels_last: bool) -> dict[str, Any]:
+    """The checkpoint's record of the run (what resume checks, what reconstruct reuses)."""
+    assert model.seed_kernels is not None
+    return {
         "model": model_name, "preset": preset, "overrides": overrides,
         "schedule": getattr(getattr(model, "config", None), "schedule", None),
         "sensor_shape": list(model.physics.sensor_shape),
-        "kernel_metadata": seed_kernels.to_metadata(),
+        "kernel_metadata": model.seed_kernels.to_metadata(),
         "training": asdict(cfg), "seed": options.seed, "world_size": ctx.world_size,
-        "parameters": model.parameter_count(), "amp": use_amp,
+        "parameters": model.parameter_count(), "amp": amp != "off",
         "precision": amp, "channels_last": channels_last, "compile": options.compile,
         "dataset_size": len(dataset),  # type: ignore[arg-type]
         # how the pairs were read (channel order, binning, held-out names): reconstruct reuses it
         "data": dataset.describe() if hasattr(dataset, "describe") else {},
         "epoch": 0, "history": [],
     }
-    initial_kernels = torch.as_tensor(seed_kernels.kernels)
-    start_epoch = 1
-    if resume:
-        doc = load_checkpoint(ckpt_path, map_location=ctx.device)
-        old = doc["metadata"]
-        for key in ("model", "preset", "overrides", "sensor_shape", "seed"):
-            if old.get(key) != metadata[key]:
-                raise CheckpointError(f"{ckpt_path}: was trained with {key}={old.get(key)!r}, "
-                                      f"not {metadata[key]!r}; cannot resume")
-        model.load_state_dict(doc["model"])
-        optimizer.load_state_dict(doc["optimizer"])
-        scheduler.load_state_dict(doc["scheduler"])
-        if "scaler" in doc and scaler.is_enabled():
-            scaler.load_state_dict(doc["scaler"])
-        set_rng_state(doc["rng"])
-        if "initial_kernels" in doc:        # the run's own seed, whatever file this call names
-            initial_kernels = doc["initial_kernels"].cpu()
-        if (model_name == "ekdun" and ctx.is_main
-                and not (run_dir / KERNELS_INITIAL).is_file()):
-            # a run folder copied with its checkpoint alone (e.g. back from a GPU machine)
-            save_kernels(run_dir / KERNELS_INITIAL, checkpoint_seed(doc))
-        metadata["history"] = old.get("history", [])
-        metadata["epoch"] = start_epoch - 1 + int(old.get("epoch", 0))
-        start_epoch = int(old.get("epoch", 0)) + 1
-    elif ctx.is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        if model_name == "ekdun":
-            save_kernels(run_dir / KERNELS_INITIAL, seed_kernels)
 
-    # λ > 0: the network and its measurement consistency in one forward pass (one DDP graph)
-    physics_weight = float(cfg.physics_weight)
+
+def _resume(doc: dict[str, Any], ckpt_path: Path, loop: Loop, metadata: dict[str, Any],
+            initial_kernels: Tensor) -> tuple[Tensor, int]:
+    """Load the checkpoint ``doc`` (read from ``ckpt_path``) into the loop's model, optimizer,
+    scheduler, scaler and RNGs (it must come from the same model, preset, overrides, sensor
+    and seed); its history goes into ``metadata``. Returns the run's seed kernels and the
+    first epoch still to train."""
+    old = doc["metadata"]
+    for key in ("model", "preset", "overrides", "sensor_shape", "seed"):
+        if old.get(key) != metadata[key]:
+            raise CheckpointError(f"{ckpt_path}: was trained with {key}={old.get(key)!r}, "
+                                  f"not {metadata[key]!r}; cannot resume")
+    loop.model.load_state_dict(doc["model"])
+    loop.optimizer.load_state_dict(doc["optimizer"])
+    loop.scheduler.load_state_dict(doc["scheduler"])
+    if "scaler" in doc and loop.scaler.is_enabled():
+        loop.scaler.load_state_dict(doc["scaler"])
+    set_rng_state(doc["rng"])
+    if "initial_kernels" in doc:        # the run's own seed, whatever file this call names
+        initial_kernels = doc["initial_kernels"].cpu()
+    metadata["history"] = old.get("history", [])
+    metadata["epoch"] = int(old.get("epoch", 0))
+    return initial_kernels, int(old.get("epoch", 0)) + 1
+
+
+def _training_module(model: UnrolledNetwork, physics_weight: float, ctx: D.DistContext,
+                     compile_net: bool) -> nn.Module:
+    """The module the steps call: with λ > 0 the network and its measurement consistency in
+    one forward pass (one DDP graph); wrapped in DDP across processes; compiled on request."""
     net: nn.Module = PhysicsObjective(model) if physics_weight > 0 else model
     if ctx.distributed:
         net = nn.parallel.DistributedDataParallel(
             net, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
             find_unused_parameters=True)
-    if options.compile:
+    if compile_net:
         net = torch.compile(net)
-    source = BatchSource(dataset, cfg.batch_size, options.seed, ctx, options.resident,
-                         options.workers)
-    metadata["resident_dataset"] = source.resident
-    started = time.perf_counter()
-    for epoch in range(start_epoch, cfg.epochs + 1):
-        t0 = time.perf_counter()
-        model.train()
-        bar = None
-        if options.progress and ctx.is_main:
-            from tqdm.auto import tqdm
+    return net
 
-            bar = tqdm(total=len(source), desc=f"{model_name} epoch {epoch}/{cfg.epochs}",
-                       unit="batch", leave=False)
-        # The epoch's loss is summed on the device: reading it (.item()) makes the host wait
-        # for the device, so that happens only at log points and at the end of the epoch.
-        total = torch.zeros((), dtype=torch.float64, device=ctx.device)
-        total_physics = torch.zeros((), dtype=torch.float64, device=ctx.device)
-        count = 0
-        for x, y in source.epoch(epoch):
-            optimizer.zero_grad(set_to_none=True)
-            with acc.autocast(amp, ctx.device):
-                if physics_weight > 0:
-                    out, consistency = net(y, x)
-                else:
-                    out = net(y)
-            loss = nn.functional.mse_loss(out.float(), x)
-            if physics_weight > 0:
-                total_physics += consistency.detach()
-                scaler.scale(loss + physics_weight * consistency).backward()
-            else:
-                scaler.scale(loss).backward()
-            scaler.step(optimizer)
-            scaler.update()
-            total += loss.detach()
-            count += 1
-            if options.compile and count == 1 and epoch == start_epoch:
-                acc.cuda_synchronize(ctx.device)
-                metadata["compile_warmup_s"] = round(time.perf_counter() - t0, 3)
-            if bar is not None:
-                bar.update()
-                if count % max(options.log_every, 1) == 0:
-                    bar.set_postfix(loss=f"{total.item() / count:.3g}")
-        if bar is not None:
-            bar.close()
-        lr = optimizer.param_groups[0]["lr"]
-        scheduler.step()
-        mean_loss = D.all_mean(total.item() / max(count, 1), ctx)
-        seconds = time.perf_counter() - t0
-        row = {"epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
-               "images_per_second": round(count * cfg.batch_size / max(seconds, 1e-9), 3)}
-        if physics_weight > 0:
-            # the MSE stays train_loss (comparable across λ); the consistency term beside it
-            row["physics_loss"] = D.all_mean(total_physics.item() / max(count, 1), ctx)
-        metadata["history"].append(row)
-        metadata["epoch"] = epoch
-        if ctx.is_main:
-            save_checkpoint(ckpt_path, {
-                "metadata": metadata, "model": model.state_dict(),
-                "initial_kernels": initial_kernels,
-                "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                "scaler": scaler.state_dict(), "rng": rng_state()})
-            write_csv_log(run_dir / LOG, metadata["history"])
-            if model_name == "ekdun":
-                learned = export_kernels(model)
-                learned = replace(learned, provenance={**learned.provenance, "epoch": epoch})
-                save_kernels(run_dir / KERNELS_LEARNED, learned)
-            if options.on_epoch is not None:
-                options.on_epoch(metadata["history"][-1])
-        D.barrier(ctx)
-    del net                   # the DDP wrapper holds the process group (see D.teardown)
-    D.teardown(ctx)
-    return {"history": metadata["history"], "run_dir": str(run_dir),
-            "parameters": model.parameter_count(),
-            "seconds": time.perf_counter() - started, "model": model,
-            **({"compile_warmup_s": metadata["compile_warmup_s"]}
-               if "compile_warmup_s" in metadata else {})}
+
+def _save_epoch(run_dir: Path, model_name: str, loop: Loop, metadata: dict[str, Any],
+                initial_kernels: Tensor, options: TrainOptions) -> None:
+    """The epoch's checkpoint (atomic), log and, for EK-DUN, learned kernel file."""
+    save_checkpoint(run_dir / CHECKPOINT, {
+        "metadata": metadata, "model": loop.model.state_dict(),
+        "initial_kernels": initial_kernels,
+        "optimizer": loop.optimizer.state_dict(), "scheduler": loop.scheduler.state_dict(),
+        "scaler": loop.scaler.state_dict(), "rng": rng_state()})
+    write_csv_log(run_dir / LOG, metadata["history"])
+    if model_name == "ekdun":
+        learned = export_kernels(loop.model)
+        learned = replace(learned, provenance={**learned.provenance, "epoch": metadata["epoch"]})
+        save_kernels(run_dir / KERNELS_LEARNED, learned)
+    if options.on_epoch is not None:
+        options.on_epoch(metadata["history"][-1])

@@ -138,12 +138,19 @@ class BenchConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        self._check_flag_ranges()
+        self._check_optics()
+        self._check_sampling()
+
+    def _check_flag_ranges(self) -> None:
         # the ranges of the command-line flags (one table), for --bench-config files too
         for name, flag_name in BENCH_FLAGS.items():
             try:
                 flag_range(flag_name).check(getattr(self, name), f"{name} ({flag_name})")
             except PsfkitError as exc:
                 raise ConfigurationError(str(exc)) from None
+
+    def _check_optics(self) -> None:
         positive = ["diffusion_angle_deg", "gap_mm", "monitor_distance_mm",
                     "monitor_pixel_pitch_mm", "pixel_pitch_um", "peak_fraction"]
         for name in positive:
@@ -155,6 +162,8 @@ class BenchConfig:
             raise ConfigurationError("wavelengths_nm needs 1 (mono) or 3 (RGB) positive values")
         if min(self.aperture_mm) <= 0 or min(self.fov_monitor_px) <= 0:
             raise ConfigurationError("aperture_mm and fov_monitor_px must be positive")
+
+    def _check_sampling(self) -> None:
         if not isinstance(self.downsample, int) or self.downsample < 1:
             raise ConfigurationError(f"downsample must be an integer >= 1, got {self.downsample}")
         h, w = self.sensor_shape

@@ -186,17 +186,23 @@ def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
                                      shape=shape)
 
 
+def _checked_frames(frames: int, suffix: str) -> int:
+    """The number of frames averaged per position: an integer >= 1, and 1 for PNG (an
+    average is float data)."""
+    if isinstance(frames, bool) or int(frames) != frames or frames < 1:
+        raise ConfigurationError(f"frames must be an integer >= 1, got {frames!r}")
+    if frames > 1 and suffix == ".png":
+        raise ConfigurationError("an average of several frames is float data: write it as "
+                                 "TIFF or .npy, not PNG")
+    return int(frames)
+
+
 def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
               backend: str, frames: int, write_clean: bool = True) -> Path:
     """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
     positions (``scan``: an irregular scan, ``N = 1``)."""
-    if isinstance(frames, bool) or int(frames) != frames or frames < 1:
-        raise ConfigurationError(f"frames must be an integer >= 1, got {frames!r}")
-    frames = int(frames)
-    if frames > 1 and suffix == ".png":
-        raise ConfigurationError("an average of several frames is float data: write it as "
-                                 "TIFF or .npy, not PNG")
+    frames = _checked_frames(frames, suffix)
     n_rows, n_cols = grid_shape = monitor.shape[:2]
     sensor = config.sensor
     header: dict[str, Any] = {

@@ -11,7 +11,7 @@ import math
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from psfkit.characterize import GridCharacterization
+    from psfkit.characterization import GridCharacterization
     from psfkit.gain import GainFit
     from psfkit.registration import ShiftMapFit
     from psfkit.verdict import Verdict

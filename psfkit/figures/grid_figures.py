@@ -21,7 +21,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from psfkit.characterize import QUIVER_CELLS, RELIABLE_OVERLAP, GridCharacterization
+from psfkit.alignment import RELIABLE_OVERLAP
+from psfkit.characterization import QUIVER_CELLS, GridCharacterization
 from psfkit.figures.style import (
     COLUMN_IN,
     PAGE_IN,

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib
-import numpy as np
 from matplotlib import colors
 from matplotlib.figure import Figure
 
@@ -64,22 +63,6 @@ def psf_norm(peak: float = 1.0) -> colors.PowerNorm:
     """Square-root scale from 0 to ``peak`` (caustics span a large dynamic range); its colour
     bar shows the intensities themselves."""
     return colors.PowerNorm(0.5, vmin=0.0, vmax=peak if peak > 0 else 1.0)
-
-
-def power_of_ten(values: Any) -> int:
-    """Exponent ``e`` that brings the largest finite ``|values|`` into [1, 10) (0 for none),
-    to print ``×10^e`` once in a label instead of long tick labels."""
-    finite = np.abs(np.asarray(values, dtype=float))
-    finite = finite[np.isfinite(finite) & (finite > 0)]
-    return math.floor(math.log10(finite.max())) if finite.size else 0
-
-
-def times_ten(exponent: int) -> str:
-    """``×10⁻³`` for ``-3`` (empty for 0)."""
-    if exponent == 0:
-        return ""
-    digits = str(exponent).translate(str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹"))
-    return f"×10{digits}"
 
 
 @dataclass(frozen=True)

@@ -41,8 +41,7 @@ from psfkit.forward.geometry import CONVENTIONS, centre_offset, kernel_origin, p
 
 _LAZY = {
     "FFTCount": "fft", "count_ffts": "fft", "rfft2": "fft", "irfft2": "fft",
-    "pad": "convolution", "crop": "convolution", "crop_adjoint": "convolution",
-    "pad_adjoint": "convolution", "embed_kernel": "convolution",
+    "pad": "convolution", "crop": "convolution", "embed_kernel": "convolution",
     "extract_kernel": "convolution", "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
     "padded_scene_forward": "convolution", "padded_scene_adjoint": "convolution",

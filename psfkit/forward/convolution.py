@@ -54,7 +54,7 @@ from psfkit.forward.geometry import centre_offset, kernel_origin
 def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     """Zero-fill ``x`` ``(..., H', W')`` into the centre of a ``grid_shape`` array.
 
-    The adjoint of :func:`crop` (``crop_adjoint``).
+    The adjoint of :func:`crop`.
 
     Parameters
     ----------
@@ -77,15 +77,10 @@ def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
 def crop(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
     """The central ``sensor_shape`` block of ``z`` ``(..., PH, PW)`` (a view, no copy).
 
-    The adjoint of :func:`pad` (``pad_adjoint``).
+    The adjoint of :func:`pad`.
     """
     top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
     return z[..., top:top + sensor_shape[0], left:left + sensor_shape[1]]
-
-
-# The adjoint pairs spelled out, for readers of the operators.
-crop_adjoint = pad
-pad_adjoint = crop
 
 
 def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:

@@ -167,12 +167,73 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         dtypes, NaN/Inf values, all-zero frames.
     """
     root = Path(root)
+    _check_root(root)
+    manifest = find_manifest(root)
+    header, positions = parse_manifest(manifest)
+    positions, irregular = _indexed_positions(positions, header, manifest, strict)
+    seen_index, seen_file = _refuse_duplicates(positions, manifest)
+    n_rows, n_cols, declared_shape = _grid_shape(positions, header, manifest)
+    missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
+    if missing and strict:
+        listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
+        more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+        raise GridFormatError(f"{manifest}: grid index {listed}{more} missing from the "
+                              f"{n_rows}×{n_cols} grid")
+    positions.sort(key=lambda p: (p.row, p.col))
+
+    dark_file = _dark_file(header, manifest, seen_file)
+    _check_folder_matches(root, manifest, seen_file | ({dark_file} if dark_file else set()))
+
+    channel_order = header.get("channel_order", "RGB")
+    if channel_order not in ("RGB", "BGR"):
+        raise GridFormatError(f"{manifest}: 'channel_order' must be 'RGB' or 'BGR'")
+    # the size of what the analyses will hold, from the first image's header, before the
+    # images are read (the others must have its shape)
+    check_fits_in_memory(manifest, (n_rows, n_cols), len(positions),
+                         _peek(root / positions[0].file, channel_order)[0], declared_shape,
+                         irregular)
+
+    files = [p.file for p in positions] + ([dark_file] if dark_file else [])
+    ref_shape, ref_dtype, frame_problems = _check_images(
+        root, files, channel_order, dark_file, check_pixels=check_pixels, strict=strict,
+        progress=progress)
+
+    bit_depth, black_level, pitch = _header_fields(header, manifest)
+    known = {"format", "version", "grid_shape", "channel_order", "bit_depth", "black_level",
+             "dark_frame", "pixel_pitch_um", "center"}
+    metadata = {k: v for k, v in header.items() if k not in known}
+    metadata["_manifest"] = manifest.name
+    if frame_problems:
+        metadata["_frame_problems"] = frame_problems
+    return PsfGrid(
+        root=root,
+        positions=tuple(positions),
+        grid_shape=(n_rows, n_cols),
+        image_shape=ref_shape,
+        dtype=ref_dtype,
+        channels=("L",) if ref_shape[0] == 1 else ("R", "G", "B"),
+        channel_order=channel_order,
+        dark_file=dark_file,
+        black_level=black_level,
+        bit_depth=bit_depth,
+        pixel_pitch_um=pitch,
+        center_index=locate_center(positions, (n_rows, n_cols), header, manifest, irregular),
+        metadata=metadata,
+        layout=IRREGULAR if irregular else INCOMPLETE_LATTICE if missing else FULL_LATTICE,
+    )
+
+
+def _check_root(root: Path) -> None:
     if not root.exists():
         raise GridFormatError(f"{root}: no such grid folder")
     if not root.is_dir():
         raise GridFormatError(f"{root}: not a folder (a PSF grid is a folder with a manifest)")
-    manifest = find_manifest(root)
-    header, positions = parse_manifest(manifest)
+
+
+def _indexed_positions(positions: list[Any], header: dict[str, Any], manifest: Path,
+                       strict: bool) -> tuple[list[Any], bool]:
+    """The positions with their grid indices, and whether the scan is irregular (no position
+    has a grid index: each gets row 0 and its place in the manifest). Mixed is refused."""
     indexed = [p.row != NO_INDEX for p in positions]
     if any(indexed) and not all(indexed):
         bare = positions[indexed.index(False)].file
@@ -182,7 +243,13 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     irregular = not any(indexed)
     if irregular:
         positions = _irregular_positions(positions, header, manifest, strict)
+    return positions, irregular
 
+
+def _refuse_duplicates(positions: list[Any], manifest: Path
+                       ) -> tuple[dict[tuple[int, int], str], set[str]]:
+    """The file of every grid index, and the set of files; a repeated index or file is
+    refused."""
     seen_index: dict[tuple[int, int], str] = {}
     seen_file: set[str] = set()
     for p in positions:
@@ -193,7 +260,13 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
             raise GridFormatError(f"{manifest}: file {p.file} is listed twice")
         seen_index[(p.row, p.col)] = p.file
         seen_file.add(p.file)
+    return seen_index, seen_file
 
+
+def _grid_shape(positions: list[Any], header: dict[str, Any], manifest: Path
+                ) -> tuple[int, int, bool]:
+    """``(rows, cols, declared)``: the manifest's ``grid_shape`` if it declares one (it must
+    hold every position), else the extent of the positions; at most ``MAX_GRID_CELLS``."""
     n_rows = max(p.row for p in positions) + 1
     n_cols = max(p.col for p in positions) + 1
     declared_shape = header.get("grid_shape") is not None
@@ -210,22 +283,22 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         raise GridFormatError(f"{manifest}: {'grid_shape' if declared_shape else 'grid'} "
                               f"[{n_rows}, {n_cols}] declares {n_rows * n_cols} positions, "
                               f"more than the {MAX_GRID_CELLS} a grid may have")
-    missing = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in seen_index]
-    if missing and strict:
-        listed = ", ".join(f"({r}, {c})" for r, c in missing[:5])
-        more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
-        raise GridFormatError(f"{manifest}: grid index {listed}{more} missing from the "
-                              f"{n_rows}×{n_cols} grid")
-    positions.sort(key=lambda p: (p.row, p.col))
+    return n_rows, n_cols, declared_shape
 
+
+def _dark_file(header: dict[str, Any], manifest: Path, psf_files: set[str]) -> str | None:
+    """The manifest's ``dark_frame``: a file name in the folder that is not a PSF."""
     dark_file = header.get("dark_frame")
     if dark_file is not None and (not isinstance(dark_file, str) or Path(dark_file).name
                                   != dark_file):
         raise GridFormatError(f"{manifest}: 'dark_frame' must be a file name in the folder")
-    if dark_file is not None and dark_file in seen_file:
+    if dark_file is not None and dark_file in psf_files:
         raise GridFormatError(f"{manifest}: {dark_file} is both a PSF and the dark frame")
+    return dark_file
 
-    listed = seen_file | ({dark_file} if dark_file else set())
+
+def _check_folder_matches(root: Path, manifest: Path, listed: set[str]) -> None:
+    """Every listed file is in the folder, and every image file in the folder is listed."""
     for name in sorted(listed):
         if not (root / name).is_file():
             raise GridFormatError(f"{root / name}: listed in {manifest.name} but missing")
@@ -237,19 +310,16 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         raise GridFormatError(f"{manifest}: does not match the folder: image file(s) {shown} "
                               "not listed")
 
-    channel_order = header.get("channel_order", "RGB")
-    if channel_order not in ("RGB", "BGR"):
-        raise GridFormatError(f"{manifest}: 'channel_order' must be 'RGB' or 'BGR'")
-    # the size of what the analyses will hold, from the first image's header, before the
-    # images are read (the others must have its shape)
-    check_fits_in_memory(manifest, (n_rows, n_cols), len(positions),
-                         _peek(root / positions[0].file, channel_order)[0], declared_shape,
-                         irregular)
 
+def _check_images(root: Path, files: list[str], channel_order: str, dark_file: str | None, *,
+                  check_pixels: bool, strict: bool, progress: bool
+                  ) -> tuple[tuple[int, int, int], np.dtype, dict[str, str]]:
+    """Shape and pixel type of every image (all as the first's), and with ``check_pixels``
+    its pixels: ``(shape, dtype, problems)``, ``problems`` the PSF frames with NaN/Inf or all
+    zeros (refused with ``strict``); the dark frame is checked as a dark frame."""
     ref_shape: tuple[int, int, int] | None = None
     ref_dtype: np.dtype | None = None
     ref_file = ""
-    files = [p.file for p in positions] + ([dark_file] if dark_file else [])
     frame_problems: dict[str, str] = {}
     iterator: Any = files
     if progress:
@@ -258,14 +328,9 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         iterator = tqdm(files, desc="checking grid", unit="img", leave=False)
     for name in iterator:
         path = root / name
-        if check_pixels:
-            try:
-                image = read_image(path, channel_order)
-            except InvalidInputError as exc:
-                raise GridFormatError(str(exc)) from None
-            shape, dtype = image.shape, image.dtype
-        else:
-            shape, dtype = _peek(path, channel_order)
+        image = _read_checked(path, channel_order) if check_pixels else None
+        shape, dtype = ((image.shape, image.dtype) if image is not None
+                        else _peek(path, channel_order))
         if ref_shape is None:
             _check_frame_size(path, shape)
             ref_shape, ref_dtype, ref_file = shape, dtype, name  # type: ignore[assignment]
@@ -274,17 +339,31 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
             raise GridFormatError(
                 f"{path}: {what} {_describe(shape, dtype)} differs from {ref_file} "
                 f"({_describe(ref_shape, ref_dtype)})")
-        if check_pixels and name != dark_file:
-            problem = pixel_problem(path, image)
-            if problem is not None and strict:
-                raise GridFormatError(problem)
-            if problem is not None:    # flagged: the analyses exclude this position
-                frame_problems[name] = problem
-        if check_pixels and name == dark_file:
+        if image is None:
+            continue
+        if name == dark_file:
             checked_dark(path, image)
+            continue
+        problem = pixel_problem(path, image)
+        if problem is not None and strict:
+            raise GridFormatError(problem)
+        if problem is not None:    # flagged: the analyses exclude this position
+            frame_problems[name] = problem
     assert ref_shape is not None and ref_dtype is not None
+    return ref_shape, ref_dtype, frame_problems
 
-    channels = ("L",) if ref_shape[0] == 1 else ("R", "G", "B")
+
+def _read_checked(path: Path, channel_order: str) -> np.ndarray:
+    try:
+        return read_image(path, channel_order)
+    except InvalidInputError as exc:
+        raise GridFormatError(str(exc)) from None
+
+
+def _header_fields(header: dict[str, Any], manifest: Path
+                   ) -> tuple[int | None, float | None, float | None]:
+    """The optional ``bit_depth`` (1..32), ``black_level`` (finite, in [0, 2³²]) and
+    ``pixel_pitch_um`` (> 0) of the manifest, checked."""
     bit_depth = header.get("bit_depth")
     if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)
                                   or not 1 <= bit_depth <= 32):
@@ -292,34 +371,14 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     black_level = header.get("black_level")
     if black_level is not None:
         try:  # a black level is at most the largest stored value (2^32 for any container)
-            black_level = finite_number(black_level, f"{manifest}: 'black_level'", 0.0, 2.0**32)
+            black_level = float(finite_number(black_level, f"{manifest}: 'black_level'", 0.0,
+                                              2.0**32))
         except InvalidInputError as exc:
             raise GridFormatError(str(exc)) from None
     pitch = header.get("pixel_pitch_um")
     if pitch is not None:
         pitch = parse_positive(pitch, str(manifest), "pixel_pitch_um")
-    known = {"format", "version", "grid_shape", "channel_order", "bit_depth", "black_level",
-             "dark_frame", "pixel_pitch_um", "center"}
-    metadata = {k: v for k, v in header.items() if k not in known}
-    metadata["_manifest"] = manifest.name
-    if frame_problems:
-        metadata["_frame_problems"] = frame_problems
-    return PsfGrid(
-        root=root,
-        positions=tuple(positions),
-        grid_shape=(n_rows, n_cols),
-        image_shape=ref_shape,
-        dtype=ref_dtype,
-        channels=channels,
-        channel_order=channel_order,
-        dark_file=dark_file,
-        black_level=None if black_level is None else float(black_level),
-        bit_depth=bit_depth,
-        pixel_pitch_um=pitch,
-        center_index=locate_center(positions, (n_rows, n_cols), header, manifest, irregular),
-        metadata=metadata,
-        layout=IRREGULAR if irregular else INCOMPLETE_LATTICE if missing else FULL_LATTICE,
-    )
+    return bit_depth, black_level, pitch
 
 
 def _irregular_positions(positions: list[Any], header: dict[str, Any], manifest: Path,

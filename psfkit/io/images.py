@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -108,36 +108,17 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
     suffix = path.suffix.lower()
     if channel_order not in ("RGB", "BGR"):
         raise InvalidInputError(f"channel_order must be 'RGB' or 'BGR', got {channel_order!r}")
+    if suffix == ".png":
+        channel_order = "RGB"              # decoded to RGB whatever the manifest says
+    if suffix == ".npy":
+        # As before issue 44: a .npy image keeps its stored dtype (the requested ``dtype`` was
+        # shadowed by the header's); kept so that no number changes in this refactor.
+        dtype = None
     try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
-
-            with _tifffile_messages() as messages, tifffile.TiffFile(path) as tif:
-                if not tif.series:
-                    raise InvalidInputError(f"{path}: not a readable image ("
-                                            f"{messages[0] if messages else 'no image data'})")
-                series = tif.series[0]
-                _check_declared_size(series.shape, path, series.dtype)
-                array = series.asarray()
-                axes = series.axes
-            channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
-            chw = _to_chw(array, path, channels_last)
-        elif suffix == ".png":
-            height, width, channels = png_declared_shape(path)
-            _check_declared_size((height, width, channels), path, np.uint16)
-            array = decode_png(path)
-            if array.ndim == 3 and array.shape[2] == 3:
-                array = array[..., ::-1]
-            chw = _to_chw(array, path)
-            channel_order = "RGB"
-        elif suffix == ".npy":
-            with open(path, "rb") as fh:     # the header only: the size is checked first
-                shape, _, dtype = npy_header(fh, str(path))
-            _check_declared_size(shape, path, dtype)
-            chw = _to_chw(np.load(path, allow_pickle=False), path)
-        else:
+        if suffix not in _DECODERS:
             raise InvalidInputError(
                 f"{path}: unsupported image type '{suffix}' (use {', '.join(IMAGE_SUFFIXES)})")
+        chw = _DECODERS[suffix](path)
     except InvalidInputError:
         raise
     except Exception as exc:  # any decoder failure means "not an image we can read"
@@ -154,6 +135,43 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
     for c, plane in enumerate(chw):
         out[c] = plane
     return out
+
+
+def _decode_tiff(path: Path) -> np.ndarray:
+    import tifffile
+
+    with _tifffile_messages() as messages, tifffile.TiffFile(path) as tif:
+        if not tif.series:
+            raise InvalidInputError(f"{path}: not a readable image ("
+                                    f"{messages[0] if messages else 'no image data'})")
+        series = tif.series[0]
+        _check_declared_size(series.shape, path, series.dtype)
+        array = series.asarray()
+        axes = series.axes
+    channels_last = not (array.ndim == 3 and axes.startswith(("S", "C")))
+    return _to_chw(array, path, channels_last)
+
+
+def _decode_png(path: Path) -> np.ndarray:
+    """RGB whatever the channel order asked for (OpenCV decodes to BGR)."""
+    height, width, channels = png_declared_shape(path)
+    _check_declared_size((height, width, channels), path, np.uint16)
+    array = decode_png(path)
+    if array.ndim == 3 and array.shape[2] == 3:
+        array = array[..., ::-1]
+    return _to_chw(array, path)
+
+
+def _decode_npy(path: Path) -> np.ndarray:
+    with open(path, "rb") as fh:     # the header only: the size is checked first
+        shape, _, dtype = npy_header(fh, str(path))
+    _check_declared_size(shape, path, dtype)
+    return _to_chw(np.load(path, allow_pickle=False), path)
+
+
+#: The decoder of each image suffix: the image as stored, ``(C, H, W)``.
+_DECODERS: dict[str, Callable[[Path], np.ndarray]] = {
+    ".tif": _decode_tiff, ".tiff": _decode_tiff, ".png": _decode_png, ".npy": _decode_npy}
 
 
 def unit_range(image: np.ndarray, where: str, white_level: float | None = None) -> np.ndarray:

@@ -133,16 +133,7 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
         raise GridFormatError(f"{path}: not a readable CSV file ({exc})") from None
     if not rows:
         raise GridFormatError(f"{path}: no rows (needs a header line with file,row,col)")
-    columns = {c for c in rows[0] if c is not None}
-    missing = {"file"} - columns
-    if ("row" in columns) != ("col" in columns):
-        missing |= {"row", "col"} - columns
-    if missing:
-        raise GridFormatError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
-    unknown = columns - set(CSV_COLUMNS)
-    if unknown:
-        raise GridFormatError(f"{path}: unknown column(s) {', '.join(sorted(unknown))} "
-                              f"(allowed: {', '.join(CSV_COLUMNS)})")
+    columns = _csv_columns(path, rows[0])
     header: dict[str, Any] = {}
     positions = []
     for line_no, row in enumerate(rows, start=2):
@@ -158,19 +149,39 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
             continue
         if role != "psf":
             raise GridFormatError(f"{where}: role must be 'psf' or 'dark', got {role!r}")
-
-        def pair(a: str, b: str, row: dict[str, str] = row) -> list[str] | None:
-            va, vb = (row.get(a) or "").strip(), (row.get(b) or "").strip()
-            if not va and not vb:
-                return None
-            return [va, vb]
-
-        entry = {"file": (row.get("file") or "").strip(), "row": row.get("row"),
-                 "col": row.get("col"), "monitor_px": pair("monitor_x_px", "monitor_y_px"),
-                 "field_deg": pair("field_x_deg", "field_y_deg"),
-                 "exposure_s": (row.get("exposure_s") or "").strip() or None}
-        positions.append(position_from_dict(entry, where))
+        positions.append(position_from_dict(_csv_entry(row), where))
     return header, positions
+
+
+def _csv_columns(path: Path, first_row: dict[str | None, Any]) -> set[str]:
+    """The header's columns: ``file`` and both or neither of ``row``/``col``, nothing outside
+    :data:`CSV_COLUMNS`."""
+    columns = {c for c in first_row if c is not None}
+    missing = {"file"} - columns
+    if ("row" in columns) != ("col" in columns):
+        missing |= {"row", "col"} - columns
+    if missing:
+        raise GridFormatError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
+    unknown = columns - set(CSV_COLUMNS)
+    if unknown:
+        raise GridFormatError(f"{path}: unknown column(s) {', '.join(sorted(unknown))} "
+                              f"(allowed: {', '.join(CSV_COLUMNS)})")
+    return columns
+
+
+def _csv_entry(row: dict[str, str]) -> dict[str, Any]:
+    """One PSF row as the manifest-JSON position it stands for (empty cells: absent)."""
+
+    def pair(a: str, b: str) -> list[str] | None:
+        va, vb = (row.get(a) or "").strip(), (row.get(b) or "").strip()
+        if not va and not vb:
+            return None
+        return [va, vb]
+
+    return {"file": (row.get("file") or "").strip(), "row": row.get("row"),
+            "col": row.get("col"), "monitor_px": pair("monitor_x_px", "monitor_y_px"),
+            "field_deg": pair("field_x_deg", "field_y_deg"),
+            "exposure_s": (row.get("exposure_s") or "").strip() or None}
 
 
 def parse_manifest(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:

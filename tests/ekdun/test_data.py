@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from ekdun.data.deadleaves import dead_leaves, radial_power_slope
+from ekdun.data.deadleaves import dead_leaves
 from ekdun.data.dense_model import DenseShiftVariantModel, hat_weights
 from ekdun.data.pairs import PairsDataset, match_downsample, parse_names
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
@@ -19,6 +20,26 @@ from psfkit.io.pairs import read_pairs
 from psfkit.kernelfile import KernelModel
 
 SMALL = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=2, grid_shape=(3, 3))
+
+
+def radial_power_slope(image: np.ndarray, f_min: float = 0.02, f_max: float = 0.25) -> float:
+    """Log-log slope of the radially averaged power spectrum of a ``(H, W)`` image between
+    ``f_min`` and ``f_max`` cycles/pixel (natural images: about −2)."""
+    img = np.asarray(image, dtype=np.float64)
+    img = img - img.mean()
+    power = np.abs(np.fft.fft2(img)) ** 2
+    fy = np.fft.fftfreq(img.shape[0])[:, None]
+    fx = np.fft.fftfreq(img.shape[1])[None, :]
+    f = np.sqrt(fy ** 2 + fx ** 2)
+    edges = np.geomspace(f_min, f_max, 12)
+    centres, means = [], []
+    for lo, hi in itertools.pairwise(edges):
+        sel = (f >= lo) & (f < hi)
+        if sel.any():
+            centres.append(np.sqrt(lo * hi))
+            means.append(power[sel].mean())
+    slope, _ = np.polyfit(np.log(centres), np.log(means), 1)
+    return float(slope)
 
 
 def test_dead_leaves_statistics():

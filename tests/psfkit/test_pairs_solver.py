@@ -9,6 +9,8 @@ import pytest
 import torch
 
 from psfkit.compare.statistics import normalized_correlation as ncc
+from psfkit.forward.convolution import extract_kernel, kernel_spectra
+from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
@@ -16,15 +18,13 @@ from psfkit.pairs_solver import (
     BATCH_BYTES,
     DEFAULT_BATCH,
     STALL_STEPS,
+    FrequencyGram,
     PairBatches,
     auto_batch_size,
     kkt_residual,
     projected_newton,
     regularised_normal,
-    rhs_spectra_full,
     solve_kernels,
-    uncropped_measurements,
-    window_of_grid,
 )
 
 
@@ -62,6 +62,45 @@ def _metrics(fitted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "error": float(np.linalg.norm(fitted - truth) / np.linalg.norm(truth))}
 
 
+# --------------------------------------------------------------------------- the uncropped problem
+# Test-only: the closed form of the uncropped, whole-grid problem (source side and SI), the
+# exact meaning of the Gram blocks that the product uses only as a preconditioner.
+
+
+def solve_full(gram: FrequencyGram, rhs_spectra: torch.Tensor, tikhonov: float = 0.0,
+               difference: float = 0.0) -> torch.Tensor:
+    r"""The closed-form least squares of the **uncropped** problem on the whole grid:
+    :math:`\hat K(\omega) = [G(\omega) + \lambda + \mu D]^{-1}\,\hat r(\omega)` with
+    ``rhs_spectra`` ``(K, C, PH, PW//2+1)`` = :math:`\sum_i s_i\overline{\hat S_{ik}}\hat
+    y_i` of whole-grid measurements. Exact for the source side and SI; returns the kernels
+    ``(K, C, PH, PW)`` with their origin at index ``(0, 0)`` of the grid."""
+    inv = gram.inverse(tikhonov, difference)
+    r = rhs_spectra.to(torch.complex128).permute(1, 2, 3, 0)          # (C, F..., K)
+    k_hat = torch.einsum("cuvkl,cuvl->kcuv", inv, r)
+    return irfft2(k_hat, gram.grid)
+
+
+def uncropped_measurements(batches: PairBatches, kernels: torch.Tensor, start: int, stop: int
+                           ) -> torch.Tensor:
+    """The whole-grid (uncropped) model output of pairs ``start:stop`` for ``kernels``
+    ``(K, C, Hk, Wk)`` (source side / SI)."""
+    op = batches.operator(start, stop)
+    spectra = kernel_spectra(kernels.to(op.scene_spectra.real.dtype), batches.grid)
+    total = (op.scene_spectra * spectra[None]).sum(dim=1)
+    return irfft2(total, batches.grid)
+
+
+def rhs_spectra_full(batches: PairBatches, full_measurements: torch.Tensor) -> torch.Tensor:
+    """``Σ_i s_i conj(Ŝ_ik) ŷ_i`` of whole-grid measurements ``(N, C, PH, PW)``."""
+    out = None
+    for start, stop, op, s in batches.batches():
+        y_hat = rfft2(full_measurements[start:stop].to(op.scene_spectra.real.dtype))
+        term = (op.scene_spectra.conj() * (y_hat * s[:, None, None, None])[:, None]).sum(0)
+        out = term if out is None else out + term
+    assert out is not None
+    return out
+
+
 @pytest.fixture(scope="module")
 def scenes() -> np.ndarray:
     return bench_scenes(40)
@@ -77,8 +116,8 @@ def test_gram_solves_the_uncropped_problem_in_closed_form(scenes: np.ndarray,
     gram = batches.gram()
     k = torch.as_tensor(truth)
     full = torch.cat([uncropped_measurements(batches, k, a, b) for a, b in batches.ranges()])
-    on_grid = gram.solve_full(rhs_spectra_full(batches, full))
-    recovered = window_of_grid(on_grid, (32, 32)).numpy()
+    on_grid = solve_full(gram, rhs_spectra_full(batches, full))
+    recovered = extract_kernel(on_grid, (32, 32)).numpy()
     assert np.abs(recovered - truth).max() < 1e-8 * np.abs(truth).max()
     # and nothing outside the kernel window (the truth is non-negative)
     assert float(on_grid.abs().sum()) == pytest.approx(float(truth.sum()), rel=1e-8)
