@@ -191,8 +191,8 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     LEARNED), compared with the dataset's grid; ``--initial`` defaults to the checkpoint's seed
     kernels."""
     import torch
-
     from ekdun.benchmark import fit_seed_kernels
+
     from ekdun.data.pairs import PairsDataset
     from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
     from ekdun.training import TrainOptions, train

@@ -107,7 +107,7 @@ def test_shared_flags_where_the_vocabulary_says():
     assert where["--amp"] == {"train", "reconstruct"}
     assert {"fit-pairs", "eval-model", "train", "eval", "reconstruct", "admm"} \
         <= where["--channel-order"]
-    assert where["--basis"] == {"fit-pairs", "fit-eigen", "oracle"}
+    assert where["--basis"] == {"fit-pairs", "fit-eigen"}
     assert where["--network"] == {"train"}
     assert where["--loader-workers"] == {"train"}
 
