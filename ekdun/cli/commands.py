@@ -40,9 +40,10 @@ MOVED = {"oracle": "python -m research.oracle",
 
 
 def _register_moved(sub: argparse._SubParsersAction, name: str) -> None:
-    # no help=: hidden from `ekdun --help`; every argument is taken as it comes
+    # no help=: hidden from `ekdun --help`; every argument is taken as it comes and ignored
+    # (type=str: not a path for the checks of free-text inputs, which would name it first)
     p = sub.add_parser(name, add_help=False, prefix_chars="\0")
-    p.add_argument("rest", nargs="*")
+    p.add_argument("rest", nargs="*", type=str)
     p.set_defaults(func=run_moved, moved=name)
 
 
