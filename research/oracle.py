@@ -25,13 +25,13 @@ from psfkit.validation import OneLineArgumentParser, flag
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m research.oracle``."""
-    p = OneLineArgumentParser(prog="python -m research.oracle",
-                       description="Compute the best eigen-kernel model of a virtual-bench "
-                                   "dataset's simulator (docs/compare.md): the operator "
-                                   "oracle (least squares over the dataset's scene "
-                                   "distribution, noise-free; --nonneg: over non-negative "
-                                   "kernels, the estimand of psfkit fit-pairs' default) or "
-                                   "the PSF oracle (grid fit of the noise-free node PSFs).")
+    p = OneLineArgumentParser(
+        prog="python -m research.oracle",
+        description="Compute the best eigen-kernel model of a virtual-bench dataset's "
+                    "simulator (docs/compare.md): the operator oracle (least squares over the "
+                    "dataset's scene distribution, noise-free; --nonneg: over non-negative "
+                    "kernels, the estimand of psfkit fit-pairs' default) or the PSF oracle "
+                    "(grid fit of the noise-free node PSFs).")
     p.add_argument("data", help="virtual-bench dataset folder (ekdun make-dataset)")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     p.add_argument("--kind", choices=("operator", "psf"), default="operator",
