@@ -80,8 +80,8 @@ def parser(which: str, doc: str) -> argparse.ArgumentParser:
                    help="ekdun run folders (or their checkpoint.pt files)")
     p.add_argument("--data", help="held-out pairs folder, or a virtual-bench dataset "
                                   "(its test/ split)")
-    p.add_argument("--results", help="an existing results.json (ekdun eval, ekdun "
-                                     "benchmark-tiny) to re-render without evaluating")
+    p.add_argument("--results", help="an existing results.json (ekdun eval, research."
+                                     "benchmark_tiny) to re-render without evaluating")
     p.add_argument("--out", required=True, help=f"output folder ({which}.md, {which}.json, "
                                                 "results.json)")
     p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS "

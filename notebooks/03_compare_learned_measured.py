@@ -37,7 +37,7 @@
 # > step), not by a displacement of the caustic spots, and the held-out PSNR is far from a
 # > trained network's. The numbers show how to
 # > read the comparison, not what a fully trained EK-DUN learns. For that, train longer
-# > (`ekdun benchmark-tiny`, or `ekdun train` on your data) and run
+# > (`python -m research.benchmark_tiny`, or `ekdun train` on your data) and run
 # > `python analysis/fig7_learned_kernels.py RUN_DIR/checkpoint.pt GRID --out DIR`.
 #
 # Command-line equivalent of the last step:
@@ -53,7 +53,6 @@ import numpy as np
 import torch
 from IPython.display import display
 
-from ekdun.benchmark import fit_seed_kernels
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from ekdun.evaluation import evaluate_model
@@ -63,6 +62,7 @@ from psfkit.compare import compare_kernels
 from psfkit.compare_report import write_comparison
 from psfkit.figures import figure_kernels
 from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
+from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
 from psfkit.kernelfile import save_kernels
 
@@ -91,7 +91,8 @@ print(f"{len(train_set)} training / {len(test_set)} test pairs of {spec.sensor_s
 # `psfkit fit-eigen DATASET/grid` does.
 
 # %%
-seed_file = fit_seed_kernels(data, OUT / "seed_kernels.npz")
+fit = fit_eigen_grid(read_grid(data / "grid"), EigenFitOptions(basis="paper", convention="auto"))
+seed_file = save_kernels(OUT / "seed_kernels.npz", fit.kernel_model())
 
 # %% [markdown]
 # ## 3. Train EK-DUN (last-2) for a few epochs and export its kernels
@@ -214,8 +215,7 @@ show_split(comparison, "free pixels, seeded from the fit")
 # energy kept): no pedestal can grow, and the change *is* a displacement by construction.
 # Started from one PSF (`Kv = Kh = Kbase`), it asks whether training *finds* the measured
 # displacements. Same 3 epochs; the full experiment (15 epochs, all parameterisations, both
-# starts) is `benchmarks/bench_kernel_parameterisations.py`, its table is in
-# `research/notes/compare-studies.md`.
+# starts) is `research/kernel_parameterisations.py`, its table is in `research/notes/compare-studies.md`.
 
 # %%
 from dataclasses import replace

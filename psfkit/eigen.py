@@ -44,7 +44,7 @@ SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 #: Where the data do not constrain a pixel (the edges, seen by one or two PSFs) the ridge alone
 #: sets its correction kernels; at 1e-9 it sat below the rounding of the sums, so a one-ulp
 #: change of the PSFs moved the demo's kernels there by 15 % of their peak (issue 21,
-#: ``benchmarks/golden_spread.py``). At 1e-4 that spread is 1.5e-6 of the peak, and the in-sample
+#: ``research/golden_spread.py``). At 1e-4 that spread is 1.5e-6 of the peak, and the in-sample
 #: error of the demo's fit changes by 3e-5 of itself.
 DEFAULT_RIDGE = 1e-4
 

@@ -13,8 +13,7 @@ For a single linear coefficient the two halves coincide (the F-test is the t-tes
 they differ (a non-linear fit, a norm, a median) both must agree. ``Z`` =
 :data:`Z_SIGNIFICANT` was chosen by measuring how often the rule calls an effect on the
 virtual bench's field-free camera, where there is none (``BenchConfig(field_free=True)``;
-``benchmarks/bench_significance.py``, numbers in
-``research/notes/characterization-studies.md``).
+``research/significance.py``, numbers in ``research/notes/characterization-studies.md``).
 
 An estimate is *not determined* when the data cannot give it at all: too few positions, a
 singular design, a fit that did not converge, a non-finite or absurd value or uncertainty.

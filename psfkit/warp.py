@@ -13,7 +13,7 @@ Method (:func:`warp_field`):
    the tangential/sagittal directions, shear, rotation, translation.
 2. **Residual** by dense optical flow on the affine-compensated pair. The default, DIS
    (OpenCV), was the most accurate and fastest of Farneback, DIS, ILK and TV-L1 on real
-   caustics with known warps (``benchmarks/bench_warp_methods.py``).
+   caustics with known warps (``research/warp_methods.py``).
 3. **Tangential / sagittal anisotropy** of the residual. A caustic is a network of bright
    lines, and an intensity-based motion estimate only sees motion *normal* to a line (the
    aperture problem): a line pushed along the tangential direction ``t`` appears to move along

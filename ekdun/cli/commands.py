@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -31,6 +30,28 @@ def resolve_split(data: str, split: str) -> Path:
     from ekdun.data.virtual_bench import resolve_split as resolve
 
     return resolve(data, split)
+
+
+#: Commands that left the user CLI for the source repository's research/ folder (issue 44,
+#: docs/migration.md): the replacement of each. The old spelling is kept, hidden, for one
+#: release: it cannot run the study (research/ is not installed), so it says where it went.
+MOVED = {"oracle": "python -m research.oracle",
+         "benchmark-tiny": "python -m research.benchmark_tiny"}
+
+
+def _register_moved(sub: argparse._SubParsersAction, name: str) -> None:
+    # no help=: hidden from `ekdun --help`; every argument is taken as it comes and ignored
+    # (type=str: not a path for the checks of free-text inputs, which would name it first)
+    p = sub.add_parser(name, add_help=False, prefix_chars="\0")
+    p.add_argument("rest", nargs="*", type=str)
+    p.set_defaults(func=run_moved, moved=name)
+
+
+def run_moved(args: argparse.Namespace) -> int:
+    """A removed command: one line saying where it went, status 2."""
+    raise InvalidInputError(
+        f"`ekdun {args.moved}` is no longer a user command: it is a research study, run "
+        f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -167,11 +188,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     classical_cmd.register(sub)
 
-    # ---------------------------------------------------------------- oracle
-    from ekdun.cli import oracle_cmd
-
-    oracle_cmd.register(sub)
-
     # ---------------------------------------------------------------- export-kernels
     p = sub.add_parser("export-kernels", help="write a trained EK-DUN's kernels as a psfkit "
                                               "kernel file")
@@ -180,19 +196,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=run_export_kernels)
 
-    # ---------------------------------------------------------------- benchmark-tiny
-    p = sub.add_parser("benchmark-tiny", help="dataset, fit, 5 trainings, Tables 1 and 2 "
-                                              "(tiny preset, CPU)")
-    p.add_argument("out", help="benchmark folder (resumable)")
-    p.add_argument("--epochs", type=flag("--epochs"))
-    p.add_argument("--n-train", type=flag("--n-train"), default=96)
-    p.add_argument("--n-test", type=flag("--n-test"), default=24)
-    add_flag(p, "--threads", "benchmark-tiny", note="1, fastest on a shared 2-core machine")
-    p.add_argument("--seed", type=flag("--seed"), default=0,
-                   help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
-    p.add_argument("--lpips-weights")
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=run_benchmark_tiny)
+    # ---------------------------------------------------------------- moved to research
+    for name in MOVED:
+        _register_moved(sub, name)
 
 
 def run_make_dataset(args: argparse.Namespace) -> int:
@@ -335,22 +341,4 @@ def run_export_kernels(args: argparse.Namespace) -> int:
         staged = outputs.file(out)
         save_kernels(staged, export_kernels(_checkpoint_path(args.checkpoint)))
     print(f"learned kernels: {out}", file=sys.stderr)
-    return 0
-
-
-def run_benchmark_tiny(args: argparse.Namespace) -> int:
-    import torch
-
-    from ekdun.benchmark import run_tiny_benchmark
-    from ekdun.data.virtual_bench import VirtualBenchSpec
-    from ekdun.training import TrainOptions
-
-    torch.set_num_threads(args.threads)
-    spec = VirtualBenchSpec(n_train=args.n_train, n_test=args.n_test, seed=args.seed)
-    options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads,
-                           seed=args.seed)
-    result = run_tiny_benchmark(args.out, spec, options, lpips_weights=args.lpips_weights,
-                                progress=not args.quiet,
-                                log=lambda s: _say(args, s))
-    _say(args, json.dumps(result["timings"]))
     return 0

@@ -303,7 +303,7 @@ def dense_psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "pape
     ``E‖crop((A_dense − A_K) x)‖² = Σ_p ‖mask_p ⊙ (h_p − Σ_k W_k(p) K_k)‖²``. The steps
     PSF oracle → dense PSF oracle → with the crop → operator oracle (white scenes) → operator
     oracle (the dataset's scenes) split the distance between the two oracles into its causes
-    (``benchmarks/bench_oracle_gap.py``).
+    (``research/oracle_gap.py``).
     """
     from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
 

@@ -298,8 +298,8 @@ def write_results(out_dir: str | os.PathLike, results: list[dict[str, Any]],
 
 
 def read_results(path: str | os.PathLike) -> tuple[list[dict[str, Any]], list[str]]:
-    """Rows and notes of a ``results.json`` written by ``ekdun eval``, ``ekdun
-    benchmark-tiny`` or :func:`write_results` (a folder means its ``results.json``).
+    """Rows and notes of a ``results.json`` written by ``ekdun eval``, ``python -m
+    research.benchmark_tiny`` or :func:`write_results` (a folder means its ``results.json``).
 
     Raises
     ------

@@ -6,12 +6,13 @@ iterations, UPDN with 10 iterations and 5 PSFs per colour; sensor 1080 × 1440; 
 learning rate 1e-4, ExponentialLR 0.95 per epoch, MSE loss.
 
 ``tiny`` is the CPU preset: a 64 × 64 sensor and reduced widths/iterations so that the whole
-"three models + ablation" benchmark (``ekdun benchmark-tiny``) trains and evaluates on two CPU
-cores in about 20 minutes: EK-DUN with the paper's 10 iterations (eigen-kernel model in the
-last 2) and U-Nets of widths (8, 16, 32); Le-ADMM-U with 5 iterations and a (8, 16, 32, 64)
-U-Net; UPDN with 5 iterations, 5 PSFs per colour and a (15, 30, 60) U-Net; a larger learning
-rate (2e-3) for the few epochs. The sensor size of a built model comes from its kernel file or
-PSF; the preset's ``sensor_shape`` is what benchmarks and synthetic examples use.
+"three models + ablation" benchmark (``python -m research.benchmark_tiny``) trains and
+evaluates on two CPU cores in about 20 minutes: EK-DUN with the paper's 10 iterations
+(eigen-kernel model in the last 2) and U-Nets of widths (8, 16, 32); Le-ADMM-U with 5
+iterations and a (8, 16, 32, 64) U-Net; UPDN with 5 iterations, 5 PSFs per colour and a (15,
+30, 60) U-Net; a larger learning rate (2e-3) for the few epochs. The sensor size of a built
+model comes from its kernel file or PSF; the preset's ``sensor_shape`` is what benchmarks and
+synthetic examples use.
 
 Baseline denoisers (documented choices, see ``NOTES-issue5.md``):
 

@@ -25,13 +25,12 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
   measurement-consistency term, whose curvature is the scenes' power spectrum (steep for
   natural scenes). On the consistency term alone it takes the kernels from one PSF to NCC
   0.93 of the oracle in 15 epochs where free pixels reach 0.61
-  (``benchmarks/bench_consistency_descent.py``, research/notes/compare-studies.md).
+  (``research/consistency_descent.py``, research/notes/compare-studies.md).
 
 Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
 log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
 multiple of the network's learning rate (:data:`LR_MULTIPLIER`, measured in
-``benchmarks/bench_kernel_parameterisations.py --measure-lr``; see
-research/notes/compare-studies.md).
+``research/kernel_parameterisations.py --measure-lr``; see research/notes/compare-studies.md).
 """
 
 from __future__ import annotations

@@ -68,8 +68,8 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
                "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
                "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
-               "si (fit-pairs), paper (fit-eigen, oracle)", default="si",
-               per_command={"fit-eigen": {"default": "paper"}, "oracle": {"default": "paper"}}),
+               "si (fit-pairs), paper (fit-eigen)", default="si",
+               per_command={"fit-eigen": {"default": "paper"}}),
     SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
                "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",
@@ -82,9 +82,8 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
                "processes drawing the scenes in ekdun make-dataset; positions processed "
                "concurrently in psfkit register/mae/warp/report)",
-               "2 (psfkit), torch's default (ekdun), 1 (benchmark-tiny), the CPUs up to 16 "
-               "and one per 64 scenes (make-dataset)", kind="number",
-               metavar="N", per_command={"benchmark-tiny": {"default": 1}}),
+               "2 (psfkit), torch's default (ekdun), the CPUs up to 16 and one per 64 "
+               "scenes (make-dataset)", kind="number", metavar="N"),
     SharedFlag("--loader-workers", "loader_workers",
                "DataLoader worker processes when the dataset does not fit on the device",
                "2", default=2, kind="number", metavar="N"),

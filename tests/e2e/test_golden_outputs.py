@@ -12,7 +12,7 @@
   files again by issue 43, whose default chooses the weight: the SI golden fit gives
   ``--tikhonov 0`` explicitly, and the kernel file records the regularisation).
 
-Tolerances come from a measured spread, not a guess: ``benchmarks/golden_spread.py`` runs the
+Tolerances come from a measured spread, not a guess: ``research/golden_spread.py`` runs the
 same commands with one and two threads, with torch/MKL/numpy's AVX2 code paths instead of
 AVX-512, and with every float32 input moved by one ulp (two random draws), and compares every
 number with the one-thread run; the pairs outputs are also compared with these golden files (a
@@ -44,7 +44,7 @@ The demo's files were written again by issue 43 (the verdict and the uncertainti
 fitted field quantities; the MAE energy-normalised over the PSF's support, NCC on the support
 and a compact PSF's gain too, reliability as the centre PSF's light in the overlap,
 which moves the affine placement of the eigen fit and the positions its PCA and the warp
-growth use; see CHANGELOG), with ``golden_spread.py --demo-only``.
+growth use; see CHANGELOG), with ``research/golden_spread.py --demo-only``.
 """
 
 from __future__ import annotations
@@ -62,12 +62,12 @@ from psfkit.cli.main import main
 GOLDEN = Path(__file__).resolve().parent / "golden"
 TOLERANCES = json.loads((GOLDEN / "tolerances.json").read_text())
 PATH_KEYS = {"grid", "model", "pairs", "software"}
-#: extra fit-pairs flags of the golden pairs fits (as benchmarks/golden_spread.py runs them)
+#: extra fit-pairs flags of the golden pairs fits (as research/golden_spread.py runs them)
 PAIRS_FLAGS = {"si": ["--tikhonov", "0"], "ek": ["--difference", "1"]}
 
 
 def group_of(path: str, unreliable: frozenset[int]) -> str:
-    """The tolerance group of a number (as ``benchmarks/golden_spread.py`` names it)."""
+    """The tolerance group of a number (as ``research/golden_spread.py`` names it)."""
     match = re.match(r"positions\[(\d+)\]", path)
     if match and int(match.group(1)) in unreliable:
         path = "positions[unreliable]" + path[match.end():]

@@ -1,4 +1,4 @@
-"""benchmarks/bench_consistency_descent.py at 32²: the kernels alone descend the measurement-
+"""research/consistency_descent.py at 32²: the kernels alone descend the measurement-
 consistency term; its numbers are those of an independent path (psfkit's predict and scaled
 errors in float64), both optimisers descend, Adam runs at training's kernel learning rate,
 and bad input is one line with nothing written."""
@@ -19,7 +19,11 @@ from psfkit.io import read_pairs
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_fit import predict, relative_errors
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_consistency_descent.py"
+pytestmark = pytest.mark.e2e
+
+REPO = Path(__file__).resolve().parents[2]
+#: the study, run as ``python -m research.consistency_descent`` from the repository root
+SCRIPT = ("-m", "research.consistency_descent")
 SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3),
                         oracle_scenes=48)
 
@@ -35,8 +39,8 @@ def bench(tmp_path_factory):
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True,
-                          timeout=600, check=False)
+    return subprocess.run([sys.executable, *SCRIPT, *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=600, check=False)
 
 
 def test_descent_scores_against_the_oracle_and_descends(bench, tmp_path):

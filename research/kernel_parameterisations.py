@@ -38,8 +38,8 @@ its gradient over a few batches next to the network's, and the relative size of 
 
 Usage::
 
-    python benchmarks/bench_kernel_parameterisations.py --out runs/kparam [--epochs 15]
-    python benchmarks/bench_kernel_parameterisations.py --out runs/f7-128 --sensor 128 128 \
+    python -m research.kernel_parameterisations --out runs/kparam [--epochs 15]
+    python -m research.kernel_parameterisations --out runs/f7-128 --sensor 128 128 \
         --n-train 800 --photons 20000 --physics-weights 0,1 --train-seeds 0,1,2 \
         --preset paper --batch-size 8 --lr 5e-4 --device cuda
 """
@@ -59,44 +59,39 @@ from typing import Any
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from _kparam_table import as_document, format_number, markdown_table, run_key  # noqa: E402
-
-from ekdun.benchmark import fit_seed_kernels  # noqa: E402
-from ekdun.data.pairs import PairsDataset  # noqa: E402
-from ekdun.data.virtual_bench import (  # noqa: E402
+from ekdun.data.pairs import PairsDataset
+from ekdun.data.virtual_bench import (
     VirtualBenchSpec,
     make_virtual_bench,
     oracle_file,
     read_manifest,
 )
-from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
-from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support  # noqa: E402
-from ekdun.training import TrainOptions, train  # noqa: E402
-from ekdun.training.acceleration import (  # noqa: E402
+from ekdun.evaluation.metrics import psnr, ssim
+from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support
+from ekdun.training import TrainOptions, train
+from ekdun.training.acceleration import (
     AMP_CHOICES,
     resolve_amp,
     resolve_device,
 )
-from ekdun.training.builder import (  # noqa: E402
+from ekdun.training.builder import (
     build_network,
     encode_overrides,
     network_from_checkpoint,
 )
-from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
-from ekdun.training.trainer import CHECKPOINT, _param_groups  # noqa: E402
-from psfkit.cli.main import run_cli  # noqa: E402
-from psfkit.compare import compare_kernels, measure_modes  # noqa: E402
-from psfkit.compare.options import CompareOptions  # noqa: E402
-from psfkit.errors import InvalidInputError  # noqa: E402
-from psfkit.io import read_grid, read_pairs  # noqa: E402
-from psfkit.io.jsonable import write_json  # noqa: E402
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
-from psfkit.pairs_fit import fit_pairs, predict, relative_errors  # noqa: E402
-from psfkit.pairs_options import PairFitOptions  # noqa: E402
+from ekdun.training.checkpoint import load_checkpoint
+from ekdun.training.trainer import CHECKPOINT, _param_groups
+from psfkit.cli.main import run_cli
+from psfkit.compare import compare_kernels, measure_modes
+from psfkit.compare.options import CompareOptions
+from psfkit.errors import InvalidInputError
+from psfkit.io import read_grid, read_pairs
+from psfkit.io.jsonable import write_json
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.pairs_fit import fit_pairs, predict, relative_errors
+from psfkit.pairs_options import PairFitOptions
+from research._kparam_table import as_document, format_number, markdown_table, run_key
+from research.benchmark_tiny import fit_seed_kernels
 
 PARAMS = ("free", "physical", "flow")
 #: Model overrides of each run name (``--params``); ``physical-gain`` is not in the default set.

@@ -1,4 +1,5 @@
-"""``ekdun oracle``: the oracles of an existing virtual-bench dataset from the command line.
+"""``python -m research.oracle`` (``ekdun oracle`` until issue 44): the oracles of an existing
+virtual-bench dataset from the command line.
 
 The unconstrained operator oracle it computes is the file ``make-dataset`` wrote (same scenes,
 same solver); the non-negative one, warm-started from it, is the library's solve from
@@ -12,10 +13,10 @@ import json
 import numpy as np
 import pytest
 
-from ekdun.cli import main
 from ekdun.data.oracle import difference_nccs, operator_oracle, psf_oracle
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from psfkit.kernelfile import load_kernels
+from research.oracle import main
 
 pytestmark = pytest.mark.e2e
 
@@ -35,7 +36,7 @@ def _lines(capsys) -> list[str]:
 
 def test_unconstrained_oracle_is_the_datasets_file(bench, tmp_path, capsys):
     out = tmp_path / "free.npz"
-    assert main(["oracle", str(bench), "--out", str(out), "--convention", "source",
+    assert main([str(bench), "--out", str(out), "--convention", "source",
                  "--no-nonneg", "--quiet"]) == 0
     assert "operator oracle (paper, source)" in _lines(capsys)[-1]
     got = load_kernels(out)
@@ -51,7 +52,7 @@ def test_unconstrained_oracle_is_the_datasets_file(bench, tmp_path, capsys):
 def test_nonneg_oracle_warm_started_is_the_solve_from_scratch(bench, tmp_path, capsys):
     out = tmp_path / "nn.npz"
     start = bench / "oracle" / "paper_source.npz"
-    assert main(["oracle", str(bench), "--out", str(out), "--convention", "source",
+    assert main([str(bench), "--out", str(out), "--convention", "source",
                  "--start", str(start), "--no-convergence-check", "--quiet"]) == 0
     line = _lines(capsys)[-1]
     assert "operator, non-negative oracle" in line and "KKT" in line, line
@@ -72,7 +73,7 @@ def test_nonneg_oracle_warm_started_is_the_solve_from_scratch(bench, tmp_path, c
 
 def test_psf_oracle_is_the_librarys(bench, tmp_path):
     out = tmp_path / "psf.npz"
-    assert main(["oracle", str(bench), "--kind", "psf", "--out", str(out), "--quiet"]) == 0
+    assert main([str(bench), "--kind", "psf", "--out", str(out), "--quiet"]) == 0
     got = load_kernels(out)
     assert got.convention == "sensor"               # the vocabulary's default convention
     want = psf_oracle(SPEC, "sensor").model.kernels
@@ -88,19 +89,19 @@ def test_psf_oracle_is_the_librarys(bench, tmp_path):
 def test_bad_input_is_one_line_and_writes_nothing(bench, tmp_path, capsys, argv, words):
     start = bench / "oracle" / "paper_source.npz"
     args = [a.format(tmp=tmp_path, start=start) for a in argv]
-    assert main(["oracle", str(bench), *args, "--quiet"]) != 0
+    assert main([str(bench), *args, "--quiet"]) != 0
     err = _lines(capsys)
     assert len(err) == 1 and all(w in err[0] for w in words), err
     assert list(tmp_path.iterdir()) == []
 
 
 def test_not_a_dataset_and_existing_output(bench, tmp_path, capsys):
-    assert main(["oracle", str(tmp_path), "--out", str(tmp_path / "k.npz")]) != 0
+    assert main([str(tmp_path), "--out", str(tmp_path / "k.npz")]) != 0
     err = _lines(capsys)
     assert len(err) == 1 and "not a virtual-bench dataset" in err[0], err
     existing = tmp_path / "k.npz"
     existing.write_bytes(b"keep")
-    assert main(["oracle", str(bench), "--kind", "psf", "--out", str(existing)]) != 0
+    assert main([str(bench), "--kind", "psf", "--out", str(existing)]) != 0
     err = _lines(capsys)
     assert len(err) == 1 and "k.npz" in err[0], err
     assert existing.read_bytes() == b"keep"

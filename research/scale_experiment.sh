@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Table 2 and the Fig. 7 physics-weight runs at a chosen scale (issue 24), from the CLIs alone.
 #
-#   SIZE=256 NTRAIN=2000 EPOCHS=4 bash benchmarks/scale_experiment.sh runs/scale256   # GPU
-#   SIZE=32 NTRAIN=16 NTEST=4 EPOCHS=1 PRESET=tiny bash benchmarks/scale_experiment.sh /tmp/s
+#   SIZE=256 NTRAIN=2000 EPOCHS=4 bash research/scale_experiment.sh runs/scale256   # GPU
+#   SIZE=32 NTRAIN=16 NTEST=4 EPOCHS=1 PRESET=tiny bash research/scale_experiment.sh /tmp/s
 #   SEEDS="0 1 2" CONCURRENT=12 STOP_AT=500 ... # 3 training seeds, 12 runs at once on one GPU
 #
 # 1. `ekdun make-dataset` (virtual bench, source-side dense model) and `psfkit fit-eigen` of
@@ -13,7 +13,7 @@
 #    last-2, kernel parameterisation x --physics-weight for each of F7_PARAMS x LAMBDAS) and
 #    the measured seed (last-2, MEASURED_PARAMS x MEASURED_LAMBDAS); Fig. 7 runs use the
 #    training seeds F7_SEEDS (default: the first of SEEDS). ABSORB_SEEDS adds, for those
-#    training seeds, the learned half of bench_unet_absorption.py: base only with the kernel
+#    training seeds, the learned half of research/unet_absorption.py: base only with the kernel
 #    file ORACLE_SI and last-2 with ORACLE_EK, kernels frozen (--kernel-lr-scale 0).
 #    With RESUME=1 a run whose folder holds a checkpoint continues it to EPOCHS (`ekdun train --resume`: a second call on the
 #    same warm machine). CONCURRENT runs share the device at once (12 runs at batch 8 trained
@@ -96,7 +96,7 @@ for t in $F7_SEEDS; do
     add_f7 onepsf "$OUT/one_psf.npz" "$F7_PARAMS" "$LAMBDAS" "$t"
     add_f7 measured "$OUT/measured.npz" "$MEASURED_PARAMS" "$MEASURED_LAMBDAS" "$t"
 done
-# U-Net absorption (bench_unet_absorption.py's learned half, concurrently): the physics frozen at
+# U-Net absorption (research/unet_absorption.py's learned half, concurrently): the physics frozen at
 # the SI oracle (base only) and at the EK oracle (last-2), for the training seeds ABSORB_SEEDS
 for t in $ABSORB_SEEDS; do
     runs+=("ab-base-si-s$t|--kernels $ORACLE_SI --schedule base --kernel-lr-scale 0 --seed $t")

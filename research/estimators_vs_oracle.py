@@ -16,14 +16,14 @@ error (px), principal angles (°) between the two kernel spans, and the mean rel
 prediction error of A on the dataset's test scenes through the dense model, noise-free
 (``A_dense x``; raw, and with the best scale per pair).
 
-    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds64          # made if absent
-    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds128 --sensor 128 128 \\
+    python -m research.estimators_vs_oracle /tmp/ds64          # made if absent
+    python -m research.estimators_vs_oracle /tmp/ds128 --sensor 128 128 \\
         --n-train 384 --photons 20000
-    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds64 --learned runs/x/kernels_learned.npz
-    python benchmarks/bench_estimators_vs_oracle.py /tmp/ds128 --work W --reuse --white-scenes 384
+    python -m research.estimators_vs_oracle /tmp/ds64 --learned runs/x/kernels_learned.npz
+    python -m research.estimators_vs_oracle /tmp/ds128 --work W --reuse --white-scenes 384
 
 ``--white-scenes N`` adds the operator oracle of N white-noise scenes (source side), which a
-grid fit estimates (``benchmarks/bench_oracle_gap.py``: the PSF oracle and the white-scene
+grid fit estimates (``research/oracle_gap.py``: the PSF oracle and the white-scene
 operator oracle are the same least squares up to the field sampling and the crop).
 ``--nonneg-oracle`` adds the non-negative operator oracle of each convention (the dataset's
 oracle scenes, ``operator_oracle(nonneg=True)``), which a non-negative pairs fit estimates.
@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--json", help="also write every number to this JSON file")
     ap.add_argument("--white-scenes", type=int, default=0,
                     help="also compare with the operator oracle of N white-noise scenes "
-                         "(source side): the estimand of a grid fit (bench_oracle_gap.py)")
+                         "(source side): the estimand of a grid fit (research/oracle_gap.py)")
     ap.add_argument("--nonneg-oracle", action="store_true",
                     help="also compare with the non-negative operator oracle of each "
                          "convention (the estimand of a non-negative pairs fit)")

@@ -1,4 +1,4 @@
-"""benchmarks/bench_unet_absorption.py at a tiny size: the SI and EK operator oracles of the
+"""research/unet_absorption.py at a tiny size: the SI and EK operator oracles of the
 dataset, classical ADMM-TV with each, and EK-DUN trained with each oracle frozen."""
 
 from __future__ import annotations
@@ -9,18 +9,23 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_unet_absorption.py"
+pytestmark = pytest.mark.e2e
+
+REPO = Path(__file__).resolve().parents[2]
+#: the study, run as ``python -m research.unet_absorption`` from the repository root
+SCRIPT = ("-m", "research.unet_absorption")
 
 
 def test_absorption_benchmark_freezes_the_oracles(tmp_path):
     from psfkit.kernelfile import load_kernels
 
     out = tmp_path / "absorb"
-    done = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--sensor", "32",
+    done = subprocess.run([sys.executable, *SCRIPT, "--out", str(out), "--sensor", "32",
                            "32", "--n-train", "8", "--n-test", "4", "--epochs", "1",
                            "--tune", "2", "--iterations", "20", "--device", "cpu"],
-                          capture_output=True, text=True, timeout=600, check=False)
+                          cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = json.loads((out / "results.json").read_text())
     assert len(rows) == 1 and rows[0]["n_train"] == 8 and rows[0]["half_fov"] == 30.0
@@ -53,10 +58,10 @@ def test_absorption_benchmark_freezes_the_oracles(tmp_path):
     # classical scores come from the cache written by the first call (same inputs, settings)
     cached = json.loads((out / "classical" / f"{data.name}-SI.json").read_text())
     assert cached["score"] == row["classical"]["SI"]
-    again = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--data", str(data),
+    again = subprocess.run([sys.executable, *SCRIPT, "--out", str(out), "--data", str(data),
                             "--n-train", "4", "--physics", "EK", "--seeds", "1", "--epochs", "1",
                             "--tune", "2", "--iterations", "20", "--device", "cpu"],
-                           capture_output=True, text=True, timeout=600, check=False)
+                           cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
     assert again.returncode == 0, again.stderr[-3000:]
     rows = json.loads((out / "results.json").read_text())
     assert rows[0]["n_train"] == 4 and set(rows[0]["learned"]) == {"EK"}
@@ -65,8 +70,8 @@ def test_absorption_benchmark_freezes_the_oracles(tmp_path):
     assert not (out / "runs" / "fov30-n4-SI-base-t1").exists()
     assert "| ±30° | 4 |" in again.stdout
 
-    bad = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--data",
-                          str(tmp_path / "nowhere")], capture_output=True, text=True,
+    bad = subprocess.run([sys.executable, *SCRIPT, "--out", str(out), "--data",
+                          str(tmp_path / "nowhere")], cwd=REPO, capture_output=True, text=True,
                          timeout=120, check=False)
     assert bad.returncode != 0 and "nowhere" in bad.stderr
     assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1

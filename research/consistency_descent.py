@@ -26,7 +26,7 @@ give the same for the seed, the oracle itself and any ``--reference NAME=FILE`` 
 
 Writes ``OUT/results.json`` and prints a Markdown table.
 
-    python benchmarks/bench_consistency_descent.py --data DATA --seed ONE_PSF.npz --out OUT \
+    python -m research.consistency_descent --data DATA --seed ONE_PSF.npz --out OUT \
         --optimisers adam,lbfgs --kernel-lr-scales 0.01,0.1 --report-at 1,5,15,60,120 \
         --reference pairs-free=PAIRS_FREE.npz
 
@@ -45,10 +45,6 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench_kernel_parameterisations import vs_oracle
-
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import oracle_file
 from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
@@ -59,6 +55,7 @@ from ekdun.training.trainer import _param_groups
 from psfkit.errors import PsfkitError
 from psfkit.io.jsonable import jsonable, write_json
 from psfkit.kernelfile import load_kernels
+from research.kernel_parameterisations import vs_oracle
 
 OPTIMISERS = ("adam", "lbfgs")
 

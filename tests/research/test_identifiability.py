@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from psfkit.identifiability import (
+from psfkit.kernelfile import KernelModel
+from psfkit.pairs_fit import predict
+from psfkit.pairs_solver import PairBatches
+from research.identifiability import (
     difference_fisher,
     fit_unconstrained,
     monte_carlo,
     noise_variance,
     poisson_gaussian,
 )
-from psfkit.kernelfile import KernelModel
-from psfkit.pairs_fit import predict
-from psfkit.pairs_solver import PairBatches
 
 SHAPE = (32, 32)
 

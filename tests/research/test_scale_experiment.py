@@ -1,4 +1,4 @@
-"""benchmarks/scale_experiment.sh (the GPU scale runs of issue 24) at a tiny size on the CPU:
+"""research/scale_experiment.sh (the GPU scale runs of issue 24) at a tiny size on the CPU:
 training seeds and concurrent runs, every run evaluated with its epoch; STOP_AT stops the
 training that is still going and evaluates each run at its last finished epoch; no dataset
 oracle is fitted where nothing compares against it."""
@@ -12,9 +12,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from psfkit.kernelfile import load_kernels
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "scale_experiment.sh"
+pytestmark = pytest.mark.e2e
+
+SCRIPT = Path(__file__).resolve().parents[2] / "research" / "scale_experiment.sh"
 
 
 def _run(out: Path, **env: str) -> subprocess.CompletedProcess:

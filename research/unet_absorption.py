@@ -26,11 +26,11 @@ dataset per field of view; the first N training pairs of the largest dataset for
 ``--data`` uses an existing dataset instead (its own field of view; ``--n-train`` defaults to
 all its training pairs), e.g. the identifiable 128² bench of Table 2.
 
-    python benchmarks/bench_unet_absorption.py --out runs/absorb              # 64², tiny
-    python benchmarks/bench_unet_absorption.py --out runs/absorb --half-fov 15,30,45 \\
+    python -m research.unet_absorption --out runs/absorb              # 64², tiny
+    python -m research.unet_absorption --out runs/absorb --half-fov 15,30,45 \\
         --learned none                                                        # classical only
-    python benchmarks/bench_unet_absorption.py --out runs/absorb128 --data DATA128P6 --seeds 0
-    python benchmarks/bench_unet_absorption.py --out runs/absorb --n-train 24,96 --seeds 0,1,2
+    python -m research.unet_absorption --out runs/absorb128 --data DATA128P6 --seeds 0
+    python -m research.unet_absorption --out runs/absorb --n-train 24,96 --seeds 0,1,2
 
 Prints one Markdown table, measured in this run (finished runs and classical scores are
 reused: resumable, and processes with different ``--seeds`` may share one ``--out``).
@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -49,26 +48,22 @@ from typing import Any
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from ekdun.data.bench_spec import VirtualBenchSpec  # noqa: E402
-from ekdun.data.oracle import operator_oracle  # noqa: E402
-from ekdun.data.pairs import PairsDataset  # noqa: E402
-from ekdun.data.virtual_bench import (  # noqa: E402
+from ekdun.data.bench_spec import VirtualBenchSpec
+from ekdun.data.oracle import operator_oracle
+from ekdun.data.pairs import PairsDataset
+from ekdun.data.virtual_bench import (
     make_virtual_bench,
     oracle_file,
     read_manifest,
 )
-from ekdun.evaluation.metrics import psnr, ssim  # noqa: E402
-from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor  # noqa: E402
-from ekdun.training import TrainOptions, train  # noqa: E402
-from ekdun.training.builder import network_from_checkpoint  # noqa: E402
-from ekdun.training.checkpoint import load_checkpoint  # noqa: E402
-from ekdun.training.trainer import CHECKPOINT  # noqa: E402
-from psfkit.io.jsonable import write_json  # noqa: E402
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels  # noqa: E402
+from ekdun.evaluation.metrics import psnr, ssim
+from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
+from ekdun.training import TrainOptions, train
+from ekdun.training.builder import network_from_checkpoint
+from ekdun.training.checkpoint import load_checkpoint
+from ekdun.training.trainer import CHECKPOINT
+from psfkit.io.jsonable import write_json
+from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 
 TV_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
 

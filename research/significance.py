@@ -21,7 +21,7 @@ each fitted quantity the script keeps value, σ, z and p, and prints
 
 Usage::
 
-    python benchmarks/bench_significance.py --seeds 12 --out bench_significance.json
+    python -m research.significance --seeds 12 --out bench_significance.json
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""benchmarks/bench_estimators_vs_oracle.py at a tiny size: the grid and pairs fits scored
+"""research/estimators_vs_oracle.py at a tiny size: the grid and pairs fits scored
 against the dataset's oracles, with the non-negative operator oracle beside them."""
 
 from __future__ import annotations
@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_estimators_vs_oracle.py"
+REPO = Path(__file__).resolve().parents[2]
+#: the study, run as ``python -m research.estimators_vs_oracle`` from the repository root
+SCRIPT = ("-m", "research.estimators_vs_oracle")
 
 pytestmark = pytest.mark.e2e
 
@@ -24,10 +26,10 @@ def test_estimators_are_scored_against_every_oracle(tmp_path):
         sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3), oracle_scenes=32),
         progress=False)
     work, out = tmp_path / "work", tmp_path / "scores.json"
-    done = subprocess.run([sys.executable, str(SCRIPT), str(data), "--conventions", "source",
+    done = subprocess.run([sys.executable, *SCRIPT, str(data), "--conventions", "source",
                            "--no-unconstrained", "--nonneg-oracle", "--work", str(work),
                            "--json", str(out), "--threads", "1"],
-                          capture_output=True, text=True, timeout=600, check=False)
+                          cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     records = json.loads(out.read_text())["records"]
     pairs = {(r["a"], r["b"]) for r in records}

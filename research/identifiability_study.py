@@ -1,5 +1,5 @@
 """Benchmark: how well do N pairs of size S at photon level P determine ``Kv − Kbase`` and
-``Kh − Kbase``? (issue 23, item 4; :mod:`psfkit.identifiability`)
+``Kh − Kbase``? (issue 23, item 4; :mod:`research.identifiability`)
 
 For each sensor size S the virtual bench of ``ekdun make-dataset --sensor S S`` (defaults
 otherwise: 9 × 9 grid over ±30°, source-side dense model, read noise 2 e⁻) gives the dense
@@ -26,8 +26,8 @@ A cell's displacement maps are "determined to ≤ 0.1 px" when the displacement 
 ``Kv`` and ``Kh`` is ≤ 0.1 px (``det.``: noise) — whether they are also *right* is the bias
 column (the noise-free fit against the oracle).
 
-    python benchmarks/bench_identifiability.py                      # the default grid
-    python benchmarks/bench_identifiability.py --sizes 32 --pairs 24 --draws 3   # quick
+    python -m research.identifiability_study                      # the default grid
+    python -m research.identifiability_study --sizes 32 --pairs 24 --draws 3   # quick
 
 Cells with N·S² above ``--max-pixels`` (default 96·64²) get the Fisher columns only (one
 pass over their scenes; the noise level from the first 24 noise-free measurements), up to
@@ -73,14 +73,14 @@ def main() -> None:
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
     from ekdun.data.oracle import operator_oracle
-    from psfkit.identifiability import (
+    from psfkit.io.jsonable import write_json
+    from psfkit.pairs_solver import PairBatches
+    from research.identifiability import (
         difference_fisher,
         fit_unconstrained,
         monte_carlo,
         noise_variance,
     )
-    from psfkit.io.jsonable import write_json
-    from psfkit.pairs_solver import PairBatches
 
     t_start = time.perf_counter()
     read_noise = VirtualBenchSpec().read_noise_e if args.read_noise is None else args.read_noise

@@ -1,4 +1,4 @@
-"""benchmarks/bench_kernel_parameterisations.py (the Fig. 7 experiment) at a tiny size: the
+"""research/kernel_parameterisations.py (the Fig. 7 experiment) at a tiny size: the
 dataset made from the command line, runs per λ, every run and the seeds scored against the
 dataset's operator oracle, results merged across invocations on λ, and a dataset without
 oracle."""
@@ -13,15 +13,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_kernel_parameterisations.py"
+pytestmark = pytest.mark.e2e
+
+REPO = Path(__file__).resolve().parents[2]
+#: the study, run as ``python -m research.kernel_parameterisations`` from the repository root
+SCRIPT = ("-m", "research.kernel_parameterisations")
 ORACLE_KEYS = ("oracle_v_diff_ncc", "oracle_h_diff_ncc", "oracle_v_disp_corr",
                "oracle_h_disp_corr", "oracle_v_epe_px", "oracle_h_epe_px", "oracle_angles")
 
 
 def _bench(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *args, "--epochs", "1",
+    return subprocess.run([sys.executable, *SCRIPT, *args, "--epochs", "1",
                            "--threads", "1", "--device", "cpu"],
-                          capture_output=True, text=True, timeout=600, check=False)
+                          cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
 
 
 def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
@@ -198,11 +202,8 @@ def test_results_file_gets_each_run_at_once(tmp_path):
     """``record`` merges one finished run into results.json: a run of the same set-up and
     training seed replaces its earlier row, every other row stays (an interrupted invocation
     keeps the runs it finished; earlier invocations' runs are kept)."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        from bench_kernel_parameterisations import record
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+    from research.kernel_parameterisations import record
+
     path = tmp_path / "results.json"
     header = {"dataset": "d", "spec": {}, "oracle": None, "oracle_note": "n", "references": []}
 
@@ -222,8 +223,7 @@ def test_results_file_gets_each_run_at_once(tmp_path):
 
 
 def _record_many(path: str, seed: str, count: int, start) -> None:
-    sys.path.insert(0, str(SCRIPT.parent))
-    from bench_kernel_parameterisations import record
+    from research.kernel_parameterisations import record
 
     start.wait()                        # both processes imported: their writes overlap
     header = {"dataset": "d", "spec": {}, "oracle": None, "oracle_note": "n", "references": []}

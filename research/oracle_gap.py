@@ -23,8 +23,8 @@ statistics. Each pair is compared as ``bench_estimators_vs_oracle`` does: differ
 displacement-map correlation, end-point error, principal angles, and the noise-free
 prediction error on the test scenes (raw / best scale per pair).
 
-    python benchmarks/bench_oracle_gap.py                        # 64 × 64 (~3 min, 2 cores)
-    python benchmarks/bench_oracle_gap.py --sensor 128 128 --scenes 384
+    python -m research.oracle_gap                        # 64 × 64 (~3 min, 2 cores)
+    python -m research.oracle_gap --sensor 128 128 --scenes 384
 
 Prints one Markdown table, measured in this run.
 """

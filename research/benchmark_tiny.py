@@ -1,4 +1,7 @@
-"""The ``tiny`` benchmark: dataset → eigen-kernel fit → 5 trainings → Tables 1 and 2.
+"""The ``tiny`` benchmark: dataset → eigen-kernel fit → 5 trainings → Tables 1 and 2
+(``ekdun benchmark-tiny`` until issue 44; the paper's tables at a CPU size, a research run).
+
+    python -m research.benchmark_tiny OUT [--epochs N] [--n-train 96] [--n-test 24] [--seed 0]
 
 ``run_tiny_benchmark(out)`` builds the virtual-bench dataset (``out/dataset``), fits the
 eigen-kernel seed model to the dataset's PSF grid with psfkit (``out/kernels_fit.npz``),
@@ -9,9 +12,12 @@ reused, an interrupted one resumes from its last checkpoint.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +31,13 @@ from ekdun.evaluation.tables import label_for
 from ekdun.training.builder import network_from_checkpoint
 from ekdun.training.checkpoint import load_checkpoint
 from ekdun.training.trainer import CHECKPOINT, TrainOptions, train
+from psfkit.cli import run_cli
+from psfkit.cli.main import add_debug_option
 from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
 from psfkit.io.atomic import atomic_file
 from psfkit.kernelfile import save_kernels
+from psfkit.validation import OneLineArgumentParser, flag
 
 RUNS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("ekdun-last-2", "ekdun", {"schedule": "last-2"}),
@@ -105,3 +114,52 @@ def run_tiny_benchmark(out: str | os.PathLike, spec: VirtualBenchSpec | None = N
     with atomic_file(out / "tables" / "timings.json") as tmp:
         tmp.write_text(json.dumps(timings, indent=1) + "\n", encoding="utf-8")
     return {"results": results, "timings": timings}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m research.benchmark_tiny`` (the flags of the former
+    ``ekdun benchmark-tiny``)."""
+    p = OneLineArgumentParser(prog="python -m research.benchmark_tiny",
+                              description="Dataset, eigen-kernel fit, 5 trainings, Tables 1 "
+                                          "and 2 (tiny preset, CPU); resumable.")
+    add_debug_option(p)
+    p.add_argument("out", help="benchmark folder (resumable)")
+    p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
+    p.add_argument("--n-train", type=flag("--n-train"), default=96,
+                   help="training scenes (default 96)")
+    p.add_argument("--n-test", type=flag("--n-test"), default=24, help="test scenes (default 24)")
+    p.add_argument("--threads", type=flag("--threads"), default=1,
+                   help="torch threads (default 1, fastest on a shared 2-core machine)")
+    p.add_argument("--seed", type=flag("--seed"), default=0,
+                   help="seed of the dataset (diffuser, scenes, noise) and of the trainings")
+    p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_run)
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ekdun.training import TrainOptions
+
+    torch.set_num_threads(args.threads)
+    spec = VirtualBenchSpec(n_train=args.n_train, n_test=args.n_test, seed=args.seed)
+    options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads,
+                           seed=args.seed)
+
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(text, file=sys.stderr)
+
+    result = run_tiny_benchmark(args.out, spec, options, lpips_weights=args.lpips_weights,
+                                progress=not args.quiet, log=say)
+    say(json.dumps(result["timings"]))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``python -m research.benchmark_tiny`` with ``argv``; returns the exit code."""
+    return run_cli("research.benchmark_tiny", build_parser(), argv)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

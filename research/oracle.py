@@ -1,5 +1,7 @@
-"""``ekdun oracle``: an eigen-kernel oracle of an existing virtual-bench dataset, as a kernel
-file (a thin layer over :mod:`ekdun.data.oracle`).
+"""An eigen-kernel oracle of an existing virtual-bench dataset, as a kernel file (a thin layer
+over :mod:`ekdun.data.oracle`); ``ekdun oracle`` until issue 44, a research instrument now.
+
+    python -m research.oracle DATASET --out oracle.npz [--kind operator|psf] [--no-nonneg]
 
 ``make-dataset`` writes the unconstrained operator and PSF oracles of both conventions; this
 command computes any of them again with other settings, and the *non-negative* operator
@@ -11,29 +13,35 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from ekdun.errors import ConfigurationError, InvalidInputError
-from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
-from psfkit.validation import flag
+from psfkit.cli import run_cli
+from psfkit.cli.main import add_debug_option
+from psfkit.cli.vocabulary import BASIS_ALIASES
+from psfkit.validation import OneLineArgumentParser, flag
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("oracle", help="an eigen-kernel oracle of a virtual-bench dataset "
-                                      "(kernel file)",
-                       description="Compute the best eigen-kernel model of a virtual-bench "
-                                   "dataset's simulator (docs/compare.md): the operator "
-                                   "oracle (least squares over the dataset's scene "
-                                   "distribution, noise-free; --nonneg: over non-negative "
-                                   "kernels, the estimand of psfkit fit-pairs' default) or "
-                                   "the PSF oracle (grid fit of the noise-free node PSFs).")
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m research.oracle``."""
+    p = OneLineArgumentParser(
+        prog="python -m research.oracle",
+        description="Compute the best eigen-kernel model of a virtual-bench dataset's "
+                    "simulator (docs/compare.md): the operator oracle (least squares over the "
+                    "dataset's scene distribution, noise-free; --nonneg: over non-negative "
+                    "kernels, the estimand of psfkit fit-pairs' default) or the PSF oracle "
+                    "(grid fit of the noise-free node PSFs).")
     p.add_argument("data", help="virtual-bench dataset folder (ekdun make-dataset)")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     p.add_argument("--kind", choices=("operator", "psf"), default="operator",
                    help="operator oracle (default) or PSF oracle")
-    add_flag(p, "--basis", "oracle", note="paper; ek (= paper) or any weight basis of "
-                                          "psfkit.weights")
-    add_flag(p, "--convention", "oracle", note="sensor, as fit-pairs")
+    add_debug_option(p)
+    p.add_argument("--basis", default="paper",
+                   help="weight basis: paper (default), ek (= paper) or any weight basis of "
+                        "psfkit.weights")
+    p.add_argument("--convention", choices=("sensor", "source"), default="sensor",
+                   help="where the weights live (default sensor, as fit-pairs)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help="operator oracle over non-negative kernels (default), the estimand of "
                         "psfkit fit-pairs' default fit (projected Newton-CG to convergence); "
@@ -51,6 +59,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_oracle)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``python -m research.oracle`` with ``argv``; returns the exit code (bad input: one
+    line, status 2, as the product's commands)."""
+    return run_cli("research.oracle", build_parser(), argv)
 
 
 def run_oracle(args: argparse.Namespace) -> int:
@@ -110,3 +125,7 @@ def run_oracle(args: argparse.Namespace) -> int:
         line += f"; predicts its scenes to {100 * rec['relative_prediction_error']:.2f} %"
     print(line, file=sys.stderr)
     return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -24,9 +24,9 @@ absolute deviation from the baseline, and the largest deviation relative to each
 magnitude, for each variant; for kernel arrays the largest absolute pixel deviation relative
 to the array's largest value.
 
-    python benchmarks/golden_spread.py --out /tmp/golden-spread
-    python benchmarks/golden_spread.py --out /tmp/golden-spread --variants base threads2
-    python benchmarks/golden_spread.py --out /tmp/golden-spread --demo-only \
+    python -m research.golden_spread --out /tmp/golden-spread
+    python -m research.golden_spread --out /tmp/golden-spread --variants base threads2
+    python -m research.golden_spread --out /tmp/golden-spread --demo-only \
         --tolerances tests/e2e/golden/tolerances.json
 
 ``--demo-only`` runs the demo alone (a change of the characterization or the eigen fit) and

@@ -1,8 +1,7 @@
-"""The Markdown report of ``bench_kernel_parameterisations.py``: one row per run, the reference
+"""The Markdown report of ``research/kernel_parameterisations.py``: one row per run, the reference
 rows against the oracle, mean ± sd over training seeds and the paired PSNR differences to free
 pixels.
 
-Not a package: the benchmark puts this folder on ``sys.path`` (it is the script's own folder).
 ``doc`` is the benchmark's ``results.json``: ``{"runs": [...], "references": [...], "oracle":
 {...} or None, "oracle_note": str or None}``; the list of rows of earlier versions (no λ, no
 oracle) is read as ``{"runs": rows}``.

@@ -1,0 +1,52 @@
+"""Commands that left the user CLI for research/ (issue 44, item 3): hidden from ``--help``,
+their old spelling is one line naming the replacement, status 2, nothing written; the
+replacement runs from the repository root."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ekdun.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize(("argv", "replacement"), [
+    (["oracle", "DATA", "--out", "o.npz", "--kind", "psf"], "python -m research.oracle"),
+    (["benchmark-tiny", "OUT", "--epochs", "1"], "python -m research.benchmark_tiny"),
+    (["benchmark-tiny", "--help"], "python -m research.benchmark_tiny"),
+])
+def test_removed_command_says_where_it_went(argv, replacement, tmp_path, capsys,
+                                            monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and replacement in lines[0] and "docs/migration.md" in lines[0]
+    assert lines[0].startswith(f"ekdun: error: `ekdun {argv[0]}`")
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+
+
+def test_removed_commands_are_not_listed(capsys):
+    assert main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    assert "oracle" not in listed and "benchmark-tiny" not in listed
+    assert "export-kernels" in listed       # the user commands are
+
+
+def test_the_replacements_run_from_the_repository(tmp_path):
+    # the same one-line refusal as a product command for a folder that is not a dataset
+    for module, args in (("research.oracle", [str(tmp_path), "--out", str(tmp_path / "o.npz")]),
+                         ("research.benchmark_tiny", ["--help"])):
+        done = subprocess.run([sys.executable, "-m", module, *args], cwd=REPO,
+                              capture_output=True, text=True, timeout=120, check=False)
+        if args == ["--help"]:
+            assert done.returncode == 0 and "--n-train" in done.stdout
+        else:
+            assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+            assert "not a virtual-bench dataset" in done.stderr
+    assert not (tmp_path / "o.npz").exists()
