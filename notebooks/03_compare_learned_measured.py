@@ -215,7 +215,8 @@ show_split(comparison, "free pixels, seeded from the fit")
 # energy kept): no pedestal can grow, and the change *is* a displacement by construction.
 # Started from one PSF (`Kv = Kh = Kbase`), it asks whether training *finds* the measured
 # displacements. Same 3 epochs; the full experiment (15 epochs, all parameterisations, both
-# starts) is `research/kernel_parameterisations.py`, its table is in `research/notes/compare-studies.md`.
+# starts) is `research/kernel_parameterisations.py`, its table is in
+# `research/notes/compare-studies.md`.
 
 # %%
 from dataclasses import replace
