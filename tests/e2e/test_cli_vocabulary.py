@@ -274,7 +274,7 @@ def flag_table() -> str:
         # the help of a listed command, where one has the flag (a replaced command's may
         # speak of its own outputs)
         if full_help(action) and (row["help"] is None
-                                  or row.get("from_hidden") and command not in hidden):
+                                  or (row.get("from_hidden") and command not in hidden)):
             row["help"] = full_help(action)
             row["default"] = action.default
             row["from_hidden"] = command in hidden
