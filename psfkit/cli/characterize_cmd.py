@@ -1,4 +1,5 @@
-"""``psfkit register | mae | warp | report``: characterize a measured PSF grid."""
+"""``psfkit report``: characterize a measured PSF grid (and its parts ``register``, ``mae``,
+``warp``, replaced by it: hidden, kept for one release)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psfkit.choices import FLOW_METHODS
+from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.options import (
     add_coverage_options,
     add_grid_options,
@@ -23,7 +25,7 @@ from psfkit.cli.summaries import (
     print_verdict,
     shift_map_line,
 )
-from psfkit.cli.vocabulary import add_flag, command_name
+from psfkit.cli.vocabulary import NOTICES, add_flag, command_name
 from psfkit.io import OutputTransaction
 from psfkit.validation import flag
 
@@ -38,7 +40,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     add_coverage_options(p)
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour): "
-                        "printed as one shift grid per channel, and in --out")
+                        "printed as one shift grid per channel, and in the numbers "
+                        "(results.json: positions[].channel_shifts)")
     add_flag(p, "--threads", command_name(p), note="2 positions processed concurrently")
 
 
@@ -131,49 +134,88 @@ def _print_warnings(result: GridCharacterization) -> None:
         print(f"warning: {message}")
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("register", help="sub-pixel shift of every PSF vs the centre PSF",
-                       description="Register every PSF to the centre one (phase correlation, "
-                                   "1/UPSAMPLE px) and fit the field-position -> shift map.")
+#: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report`` (issue 44): hidden
+#: from ``psfkit --help``, they run as before for one release and then print where ``report``
+#: puts what they printed (docs/migration.md).
+REPLACED_BY_REPORT = {
+    "register": "the shifts are in DIR/positions.csv (shift_du_px, shift_dv_px) and "
+                "DIR/results.json (positions[].shift_px, shift_map)",
+    "mae": "the MAE is in DIR/positions.csv (mae, mae_gain_compensated; fractions, not %) "
+           "and DIR/results.json (positions[].mae, gain_fit)",
+    "warp": "the warp is in DIR/positions.csv (warp_residual_rms_px, warp_anisotropy, "
+            "affine_*) and DIR/results.json (positions[].warp, warp_growth, warp_anisotropy)",
+}
+
+
+def replaced_note(command: str) -> str:
+    """The one line a replaced command prints after its work (:data:`REPLACED_BY_REPORT`)."""
+    return (f"note: `psfkit {command}` is replaced by `psfkit report GRID --out DIR`: "
+            f"{REPLACED_BY_REPORT[command]}; this spelling will be removed in the next release "
+            "(docs/migration.md)")
+
+
+def _replaced(sub: argparse._SubParsersAction, name: str, description: str
+              ) -> argparse.ArgumentParser:
+    # no help=: not listed by `psfkit --help`; the note is printed once the work is done
+    # (psfkit.cli.main.run_cli), so that an error stays the one line on stderr
+    p = sub.add_parser(name, description=f"{description} Replaced by `psfkit report`: "
+                                         f"{REPLACED_BY_REPORT[name]}.")
     _common(p)
+    p.set_defaults(**{NOTICES: [replaced_note(name)]})
+    return p
+
+
+def _numbers_out(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+
+
+#: Flags of ``psfkit report`` that only ``--help-all`` lists: settings an optics engineer
+#: rarely changes (the registration precision, the dense-flow method, the MAE's smoothing, the
+#: dark-frame outlier threshold, the normalization, the registration-quality threshold).
+REPORT_ADVANCED = ("--upsample", "--method", "--mae-smoothing", "--hot-pixel-sigma",
+                   "--normalization", "--min-ncc")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = _replaced(sub, "register", "Register every PSF to the centre one (phase correlation, "
+                                   "1/UPSAMPLE px) and fit the field-position -> shift map.")
+    _numbers_out(p)
     p.set_defaults(func=run_register)
 
-    m = sub.add_parser("mae", help="mean absolute error of each PSF vs the centre PSF",
-                       description="MAE of every PSF against the centre one after shift "
-                                   "(and gain) compensation: the error of a shift-invariant "
-                                   "model (paper Fig. 2).")
-    _common(m)
+    m = _replaced(sub, "mae", "MAE of every PSF against the centre one after shift (and "
+                              "gain) compensation: the error of a shift-invariant model "
+                              "(paper Fig. 2).")
     m.add_argument("--mae-smoothing", type=flag("--mae-smoothing"), default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) applied before the MAE to suppress sensor noise "
                         "(0 = raw pixels; default 1)")
-    m.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
-    m.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    _numbers_out(m)
     m.set_defaults(func=run_mae)
 
-    w = sub.add_parser("warp", help="dense warp fields: affine part and astigmatic residual",
-                       description="Dense displacement field between the centre PSF and each "
-                                   "registered PSF, split into an affine part (ECC) and a "
-                                   "residual (dense flow) with its tangential/sagittal RMS.")
-    _common(w)
+    w = _replaced(sub, "warp", "Dense displacement field between the centre PSF and each "
+                               "registered PSF, split into an affine part (ECC) and a "
+                               "residual (dense flow) with its tangential/sagittal RMS.")
     w.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the residual (default dis)")
-    w.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
-    w.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    _numbers_out(w)
     w.set_defaults(func=run_warp)
 
-    r = sub.add_parser("report", help="register + gain + MAE + warp, as an HTML report",
-                       description="Run every characterization step and write an HTML "
-                                   "report with figures (PNG/PDF), results.json and "
-                                   "positions.csv into DIR.")
+    r = sub.add_parser("report", help="characterize a PSF grid: shifts, gain, MAE, warp and "
+                                      "a verdict, as an HTML report",
+                       description="Register every PSF to the centre one, measure gain, MAE "
+                                   "and warp, and write an HTML report with figures (PNG/PDF), "
+                                   "results.json and positions.csv into DIR. --help-all lists "
+                                   "the advanced flags.")
+    add_help_all(r)
     _common(r)
-    r.add_argument("--out", required=True, help="output folder (created atomically)")
+    r.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (created atomically)")
     r.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the warp residual (default dis)")
     r.add_argument("--mae-smoothing", type=flag("--mae-smoothing"), default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) before the MAE (default 1)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    mark_advanced(r, REPORT_ADVANCED)
     r.set_defaults(func=run_report)
 
 
@@ -267,6 +309,7 @@ def run_report(args: argparse.Namespace) -> int:
         print(gain_line(result.gain_fit))
     print(growth_line(result.warp_growth))
     print(astigmatism_line(result))
+    _print_per_channel(args, result)
     _print_warnings(result)
     print(f"report: {out / 'report.html'}")
     return 0

@@ -81,7 +81,7 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                                           "default": None}}),
     SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
                "processes drawing the scenes in ekdun make-dataset; positions processed "
-               "concurrently in psfkit register/mae/warp/report)",
+               "concurrently in psfkit report)",
                "2 (psfkit), torch's default (ekdun), the CPUs up to 16 and one per 64 "
                "scenes (make-dataset)", kind="number", metavar="N"),
     SharedFlag("--loader-workers", "loader_workers",

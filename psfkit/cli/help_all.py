@@ -1,0 +1,62 @@
+"""``--help`` shows what a command needs first; ``--help-all`` shows every flag (issue 44).
+
+A command marks its rarely-used flags advanced (:func:`mark_advanced`): they keep working
+exactly as before, but ``--help`` (and the usage line) leave them out, so that the first
+screen stays short. ``--help-all`` (:func:`add_help_all`) prints the full help, the advanced
+flags included, each under its group. The help text of an advanced flag is kept on its action
+(:func:`full_help`), so that the flag tables of the docs (``docs/cli-flags.md``) still list it.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from typing import Any
+
+#: Attribute of an advanced flag's action that keeps its help while ``--help`` hides it.
+ADVANCED_HELP = "advanced_help"
+
+
+class _HelpAll(argparse.Action):
+    """Show the advanced flags' help again, print the full help and exit (status 0)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: Any = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        for action in parser._actions:
+            if hasattr(action, ADVANCED_HELP):
+                action.help = getattr(action, ADVANCED_HELP)
+        parser.print_help()
+        parser.exit()
+
+
+def add_help_all(parser: argparse.ArgumentParser) -> None:
+    """Add ``--help-all`` to ``parser`` (call it first, so that it is listed beside ``-h``)."""
+    parser.add_argument("--help-all", action=_HelpAll,
+                        help="show this help with every flag, the advanced ones too")
+
+
+def mark_advanced(parser: argparse.ArgumentParser, names: Sequence[str]) -> None:
+    """Hide the flags ``names`` of ``parser`` from ``--help``; ``--help-all`` shows them.
+
+    Raises ``KeyError`` for a name the parser does not have (a programming error).
+    """
+    actions = {option: action for action in parser._actions
+               for option in action.option_strings}
+    for name in names:
+        action = actions[name]
+        setattr(action, ADVANCED_HELP, action.help)
+        action.help = argparse.SUPPRESS
+
+
+def full_help(action: argparse.Action) -> str | None:
+    """The help of ``action`` as ``--help-all`` shows it (an advanced flag's too)."""
+    return getattr(action, ADVANCED_HELP, action.help)
+
+
+def is_advanced(action: argparse.Action) -> bool:
+    """Whether ``action`` is a flag that only ``--help-all`` lists."""
+    return hasattr(action, ADVANCED_HELP)
