@@ -198,7 +198,7 @@ def _mae_panel(ax: Axes, result: GridCharacterization) -> None:
         xlabel = (("field angle θy (°)" if column is not None else "field angle θx (°)")
                   if picks and picks[0].field_deg is not None else "grid index")
         style = "-"
-    # percent of the centre PSF's light, as `psfkit mae` prints it
+    # percent of the centre PSF's light, as `psfkit report` records it
     ax.plot(x, mae * 100, "o" + style, label="shift compensated")
     ax.plot(x, mae_gain * 100, "s" + ("--" if style else ""), mfc="none",
             label="+ gain compensated")
