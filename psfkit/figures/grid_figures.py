@@ -240,7 +240,7 @@ def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str,
     """``(values, title, colour-bar label, cell format, colour map, norm)`` of each map; the
     two MAE maps share one scale (they are compared)."""
     mae, mae_gain = result.table("mae"), result.table("mae_gain_compensated")
-    scale = 100.0                   # percent of the centre PSF's light, as `psfkit mae`
+    scale = 100.0                   # percent of the centre PSF's light, as the report prints it
     top = float(np.nanmax(np.concatenate([mae.ravel(), mae_gain.ravel()]), initial=0.0)) * scale
     shared = colors.Normalize(0.0, top or 1.0)
     unit = "MAE (% of the centre PSF's light)"
