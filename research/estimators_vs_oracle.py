@@ -1,6 +1,7 @@
 """Benchmark: every eigen-kernel estimator against the oracle (issue 23, item 3).
 
-On a virtual-bench dataset (``ekdun make-dataset``, with its oracles under ``DATA/oracle/``):
+On a virtual-bench dataset (``ekdun make-dataset``; its oracles under ``DATA/oracle/``, written
+by :func:`research.oracles.write_dataset_oracles` where absent, ``--oracle-scenes`` scenes):
 
 - the grid fit, ``psfkit fit-eigen DATA/grid --convention {source,sensor}`` (``--cv-bases
   none``: the cross-validation does not change the kernels);
