@@ -154,8 +154,8 @@ def run_write_dataset(args: argparse.Namespace) -> int:
     # DATASET is the input and, for this one folder and its manifest, the output: written in
     # place on purpose (atomically), so the runner's input protection is lifted for it
     with protected_inputs(()):
-        record, computed = write_dataset_oracles(args.data,
-                                                 n_scenes=args.oracle_scenes or None)
+        record, computed = write_dataset_oracles(args.data, n_scenes=args.oracle_scenes or None,
+                                                 progress=not args.quiet)
     n = record["files"]["source"]["operator_record"]["n_scenes"]
     print(f"oracles ({record['basis']}, source and sensor): {Path(args.data) / 'oracle'}; "
           f"{n} scenes" + ("" if computed else " (already there, kept)"), file=sys.stderr)

@@ -380,14 +380,16 @@ def compare_oracles(a: KernelModel, b: KernelModel, spec: VirtualBenchSpec,
 
 
 def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
-                  n_scenes: int | None = None) -> dict[str, Any]:
+                  n_scenes: int | None = None, progress: bool = False) -> dict[str, Any]:
     """Write ``{basis}_{convention}.npz`` (operator oracle) and ``psf_{basis}_{convention}.npz``
-    (PSF oracle) for both conventions into ``folder``; returns the manifest's record."""
+    (PSF oracle) for both conventions into ``folder``; returns the manifest's record.
+    ``progress``: the operator oracles' progress bars (stderr)."""
     folder.mkdir(parents=True, exist_ok=True)
     dense = _dense_forward(spec)
     out: dict[str, Any] = {"basis": basis, "dense_convention": spec.convention, "files": {}}
     for convention in CONVENTIONS:
-        op = operator_oracle(spec, convention, basis, n_scenes, forward=dense)
+        op = operator_oracle(spec, convention, basis, n_scenes, forward=dense,
+                             progress=progress)
         psf = psf_oracle(spec, convention, basis)
         name, psf_name = f"{basis}_{convention}.npz", f"psf_{basis}_{convention}.npz"
         save_kernels(folder / name, op.model)
@@ -470,7 +472,8 @@ def _listed_oracles_exist(root: Path, manifest: dict[str, Any], n_scenes: int) -
 
 
 def write_dataset_oracles(root: str | os.PathLike, n_scenes: int | None = None,
-                          basis: str = "paper") -> tuple[dict[str, Any], bool]:
+                          basis: str = "paper", progress: bool = False
+                          ) -> tuple[dict[str, Any], bool]:
     """Write the unconstrained operator and PSF oracles of both conventions into a dataset.
 
     ``root/oracle/`` gets ``{basis}_{convention}.npz`` and ``psf_{basis}_{convention}.npz``
@@ -490,6 +493,8 @@ def write_dataset_oracles(root: str | os.PathLike, n_scenes: int | None = None,
         :func:`default_oracle_scenes`).
     basis : str
         Weight basis.
+    progress : bool
+        Progress bars of the solves (stderr).
 
     Returns
     -------
@@ -504,7 +509,7 @@ def write_dataset_oracles(root: str | os.PathLike, n_scenes: int | None = None,
             _listed_oracles_exist(root, manifest, n):
         return manifest["oracle"], False
     with atomic_directory(root / "oracle", overwrite=True) as tmp:
-        record = write_oracles(tmp, spec, basis, n_scenes=n)
+        record = write_oracles(tmp, spec, basis, n_scenes=n, progress=progress)
     # the dataset's own listing (every file but the manifest): the cache check's
     files = _data_files(root)
     manifest.update(oracle=record, files=files, content_hash=content_hash(root, files))
