@@ -19,11 +19,13 @@ difference NCC, pedestal share of the kernel change, principal angles), and the 
 ``DIR/compare.json``, ``DIR/compare.html``, ``DIR/figures/``.
 
 The oracle (virtual bench): ``--oracle ORACLE.npz`` names the best eigen-kernel model of the
-simulator (``ekdun make-dataset`` writes it, ``DATASET/oracle/paper_{source,sensor}.npz``; see
-research/notes/compare-studies.md). When GRID is a virtual-bench dataset's ``grid/`` folder
-whose manifest lists
-an operator oracle of the learned model's convention, that file is used by default (the script
-prints which); ``--no-oracle`` skips it. With an oracle, ``fig7_starts`` gains an oracle row,
+simulator (``python -m research.oracle DATASET --write-dataset`` writes it,
+``DATASET/oracle/paper_{source,sensor}.npz``; see research/notes/compare-studies.md). When GRID
+is a virtual-bench dataset's ``grid/`` folder whose manifest lists an operator oracle of the
+learned model's convention, that file is used by default (the script prints which; found with
+``research.oracles.oracle_file``, from the ``research/`` folder beside this one in the
+checkout; without it, or without an oracle, a note and the measured rows only);
+``--no-oracle`` skips it. With an oracle, ``fig7_starts`` gains an oracle row,
 and the caption, the printed numbers and ``DIR/oracle.json`` give every learned model and the
 measured fit against the oracle (difference NCC, displacement correlation and end-point error,
 principal angles). An explicit ``--oracle`` of another basis, convention or sensor size than
@@ -87,16 +89,27 @@ def find_oracle(args: argparse.Namespace, learned: KernelModel
         oracle = load_kernels(args.oracle)
         check_oracle(oracle, learned, args.oracle)
         return oracle, args.oracle
-    from ekdun.data.virtual_bench import oracle_file, read_manifest
+    from ekdun.data.virtual_bench import read_manifest
 
     grid = Path(args.grid)
     root = grid.resolve().parent
     if read_manifest(root) is None or (root / "grid").resolve() != grid.resolve():
         return None, None                       # not a virtual-bench dataset's grid
+    # the oracles are a research instrument (research/, not installed): from this checkout
+    repo = str(Path(__file__).resolve().parents[1])
+    if repo not in sys.path:
+        sys.path.append(repo)
+    try:
+        from research.oracles import oracle_file
+    except ImportError:
+        print("no oracle: research/ (the oracles' library) is not beside analysis/; give "
+              "--oracle FILE.npz; measured rows only")
+        return None, None
     path = oracle_file(root, learned.convention)
     if path is None:
         print(f"no oracle: the dataset {root} lists no {learned.convention}-side oracle "
-              "(made with --no-oracle?); measured rows only")
+              f"(python -m research.oracle {root} --write-dataset writes it); measured rows "
+              "only")
         return None, None
     oracle = load_kernels(path)
     try:
@@ -184,7 +197,8 @@ def parser() -> argparse.ArgumentParser:
                    help="what the --one-psf model is (for the figure and caption)")
     which = p.add_mutually_exclusive_group()
     which.add_argument("--oracle", help="kernel file of the operator oracle (DATASET/oracle/"
-                                        "paper_<convention>.npz); default: the one GRID's "
+                                        "paper_<convention>.npz, python -m research.oracle "
+                                        "DATASET --write-dataset); default: the one GRID's "
                                         "virtual-bench dataset lists for the learned "
                                         "convention")
     which.add_argument("--no-oracle", action="store_true",

@@ -9,7 +9,7 @@ passes over the pairs and the non-negative solve's Newton steps and KKT residual
   ``--basis ek`` (targets on 2 cores: SI ≤ 120 s, EK ≤ 240 s, peak RSS ≤ 3 GiB, the
   non-negative solve converged);
 * 384 virtual-bench pairs of 128×128×3, ``--basis ek`` (``--bench DATA``: a dataset of
-  ``ekdun make-dataset DATA --sensor 128 128 --n-train 384 --photons 20000 --no-oracle``,
+  ``ekdun make-dataset DATA --sensor 128 128 --n-train 384 --photons 20000``,
   made here with :func:`ekdun.data.virtual_bench.make_virtual_bench` when ``DATA`` does not
   exist; ``--skip-bench`` leaves it out).
 
@@ -56,7 +56,7 @@ normalises each image), is unchanged.
 ``--scaling DATA`` (issue 23) instead times ``psfkit fit-pairs DATA/train --basis ek
 --convention source`` (defaults otherwise) against pairs × size, on the first N pairs of a
 128 × 128 virtual-bench dataset (``ekdun make-dataset DATA --sensor 128 128 --n-train 384
---photons 20000 --no-oracle``), binned 2 × 2 for the 64 × 64 rows: the exact streaming solver
+--photons 20000``), binned 2 × 2 for the 64 × 64 rows: the exact streaming solver
 of this tree ("new") and, where ``N·H·W`` is at most ``--old-max`` pixels, the early-stopped CG
 of the code at ``--old-ref`` ("old", run from a ``git archive`` of that commit in the same run),
 each in a fresh process; wall time, CPU time and peak RSS.
@@ -247,8 +247,7 @@ def bench_pairs(root: Path) -> Path:
     """The 384 pairs of 128 x 128 of the virtual bench at ``root`` (made if absent)."""
     from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 
-    spec = VirtualBenchSpec(sensor_shape=(128, 128), n_train=384, photons=20000.0,
-                            oracle=False)
+    spec = VirtualBenchSpec(sensor_shape=(128, 128), n_train=384, photons=20000.0)
     make_virtual_bench(root, spec, progress=True)
     return root / "train"
 

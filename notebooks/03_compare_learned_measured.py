@@ -150,31 +150,52 @@ print("principal angles learned vs top-3 PCA modes (deg):",
 
 # %% [markdown]
 # ## 4b. Against the oracle
-# The measured fit is an estimate, not the truth. The virtual bench knows the truth: `ekdun
-# make-dataset` also writes the **operator oracle** (`DATASET/oracle/paper_<convention>.npz`),
-# the best eigen-kernel model of the simulator — the kernels that predict its dense
-# shift-variant operator best over the dataset's scenes, noise-free (see
-# `research/notes/compare-studies.md`).
+# The measured fit is an estimate, not the truth. The virtual bench knows the truth: the
+# **operator oracle**, the best eigen-kernel model of the simulator — the kernels that predict
+# its dense shift-variant operator best over the dataset's scenes, noise-free (see
+# `research/notes/compare-studies.md`). It is a research instrument, not part of the installed
+# toolkit: `python -m research.oracle DATASET --write-dataset` (from the repository root)
+# writes it into the dataset (`DATASET/oracle/paper_<convention>.npz`, once), and the cell
+# below does the same through `research/oracles.py` when this notebook runs from a source
+# checkout (otherwise it says so and the oracle rows are left out).
 # Below, the learned kernels and the measured fit are each compared with it (the oracle is the
 # reference), and its kernels get a row in Fig. 7.
 
 # %%
-from ekdun.data.virtual_bench import oracle_file
+import sys
+
+import ekdun
 from psfkit.compare import compare_model
 from psfkit.kernelfile import load_kernels
 
-oracle_path = oracle_file(data, learned.convention)
-print(f"operator oracle ({learned.convention} side): {oracle_path.name}")
-oracle = load_kernels(oracle_path)
-vs_oracle = {"learned": compare_kernels(learned, oracle).learned.numbers(),
-             "measured fit": compare_kernels(comparison.measured.model, oracle).learned.numbers()}
-for label, n in vs_oracle.items():
-    print(f"{label} vs operator oracle: difference NCC Kv / Kh {n['v_diff_ncc']:.3f} / "
-          f"{n['h_diff_ncc']:.3f}, displacement corr. {n['v_disp_corr']:+.2f} / "
-          f"{n['h_disp_corr']:+.2f}, principal angles "
-          + ", ".join(f"{a:.1f}" for a in n["angles_deg"]) + " deg")
-# the oracle's kernels on the comparison grid, registered to the measured Kbase (for the figure)
-oracle_row = compare_model(oracle, comparison.measured, "oracle")
+# research/ is not installed: the checkout this notebook runs from (its folder, the
+# repository root, or that of an editable install of ekdun)
+checkout = next((root for root in (Path.cwd(), Path.cwd().parent,
+                                   Path(ekdun.__file__).resolve().parents[1])
+                 if (root / "research" / "oracles.py").is_file()), None)
+extra_rows = []
+if checkout is None:
+    print("no oracle: research/ (the oracles' library) is not in a source checkout here; "
+          "the oracle rows are left out")
+else:
+    sys.path.append(str(checkout))
+    from research.oracles import oracle_file, write_dataset_oracles
+
+    write_dataset_oracles(data)              # once: kept in the dataset afterwards
+    oracle_path = oracle_file(data, learned.convention)
+    print(f"operator oracle ({learned.convention} side): {oracle_path.name}")
+    oracle = load_kernels(oracle_path)
+    vs_oracle = {"learned": compare_kernels(learned, oracle).learned.numbers(),
+                 "measured fit": compare_kernels(comparison.measured.model,
+                                                 oracle).learned.numbers()}
+    for label, n in vs_oracle.items():
+        print(f"{label} vs operator oracle: difference NCC Kv / Kh {n['v_diff_ncc']:.3f} / "
+              f"{n['h_diff_ncc']:.3f}, displacement corr. {n['v_disp_corr']:+.2f} / "
+              f"{n['h_disp_corr']:+.2f}, principal angles "
+              + ", ".join(f"{a:.1f}" for a in n["angles_deg"]) + " deg")
+    # the oracle's kernels on the comparison grid, registered to the measured Kbase (figure)
+    extra_rows = [("operator oracle",
+                   compare_model(oracle, comparison.measured, "oracle").kernels)]
 
 # %% [markdown]
 # ## Fig. 7: the learned kernels (paper layout), then learned / initial / measured / oracle
@@ -182,8 +203,7 @@ oracle_row = compare_model(oracle, comparison.measured, "oracle")
 # %%
 display(figure_kernels(learned.kernels, list(learned.kernel_names),
                        "learned eigen-kernels (illustrative: 3 epochs)"))
-display(figure_learned_vs_measured(comparison, zoom=0.5,
-                                   extra_rows=[("operator oracle", oracle_row.kernels)]))
+display(figure_learned_vs_measured(comparison, zoom=0.5, extra_rows=extra_rows))
 display(figure_displacements(comparison))
 
 # %% [markdown]

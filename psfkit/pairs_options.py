@@ -21,7 +21,7 @@ ENERGIES = ("free", "fit", "base")
 #: the pairs then lie within 2.7e-5 (EK, ``--difference 1``) and 1.4e-6 (SI) of the
 #: measurement's norm from those at 1e-10, and the mean relative error within 1e-6, in 39
 #: steps instead of 100 (EK); the kernels themselves move by 5e-3 (EK) along directions the
-#: pairs barely see. The non-negative operator oracle (:mod:`ekdun.data.oracle`) keeps 1e-10.
+#: pairs barely see. The non-negative operator oracle (``research/oracles.py``) keeps 1e-10.
 NEWTON_ITERATIONS = 100
 NEWTON_CG_ITERATIONS = 20
 NEWTON_TOLERANCE = 1e-6

@@ -59,7 +59,7 @@ scales), :class:`FrequencyGram` (the per-frequency blocks, one pass) and
 Newton-CG for non-negative kernels, Bertsekas 1982: the Newton step on the free pixels by a
 few CG iterations with ``P`` restricted to them, then an Armijo search along the projection
 arc). :func:`psfkit.pairs_fit.fit_pairs` and
-ekdun's operator oracle (:mod:`ekdun.data.oracle`) are built on them.
+the research studies' operator oracle (``research/oracles.py``) are built on them.
 """
 
 from __future__ import annotations

@@ -46,7 +46,6 @@ from typing import Any
 import torch
 
 from ekdun.data.pairs import PairsDataset
-from ekdun.data.virtual_bench import oracle_file
 from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
 from ekdun.training.builder import build_network
 from ekdun.training.export import export_kernels
@@ -56,6 +55,7 @@ from psfkit.errors import PsfkitError
 from psfkit.io.jsonable import jsonable, write_json
 from psfkit.kernelfile import load_kernels
 from research.kernel_parameterisations import vs_oracle
+from research.oracles import oracle_file
 
 OPTIMISERS = ("adam", "lbfgs")
 
@@ -246,8 +246,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     seed = load_kernels(args.seed)
     oracle_path = oracle_file(args.data, seed.convention)
     if oracle_path is None:
-        raise BenchError(f"{args.data}: no operator oracle of the {seed.convention} side (make "
-                         f"the dataset without --no-oracle)")
+        raise BenchError(f"{args.data}: no operator oracle of the {seed.convention} side "
+                         f"(python -m research.oracle {args.data} --write-dataset writes it)")
     for split in ("train", "test"):
         if not (args.data / split).is_dir():
             raise BenchError(f"{args.data}: no {split}/ split (not a virtual-bench dataset)")

@@ -1,6 +1,7 @@
 """Benchmark: every eigen-kernel estimator against the oracle (issue 23, item 3).
 
-On a virtual-bench dataset (``ekdun make-dataset``, with its oracles under ``DATA/oracle/``):
+On a virtual-bench dataset (``ekdun make-dataset``; its oracles under ``DATA/oracle/``, written
+by :func:`research.oracles.write_dataset_oracles` where absent, ``--oracle-scenes`` scenes):
 
 - the grid fit, ``psfkit fit-eigen DATA/grid --convention {source,sensor}`` (``--cv-bases
   none``: the cross-validation does not change the kernels);
@@ -85,26 +86,27 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
-    from ekdun.data.oracle import operator_oracle, white_scenes
     from ekdun.data.virtual_bench import make_virtual_bench, read_manifest
     from psfkit.compare import compare_kernels
     from psfkit.kernelfile import load_kernels, save_kernels
     from psfkit.pairs_fit import predict, relative_errors
+    from research.oracles import operator_oracle, white_scenes, write_dataset_oracles
 
     data = Path(args.data)
     t0 = time.perf_counter()
     if read_manifest(data) is None:
         overrides = {k: v for k, v in (("sensor_shape", tuple(args.sensor) if args.sensor
                                         else None), ("n_train", args.n_train),
-                                       ("photons", args.photons),
-                                       ("oracle_scenes", args.oracle_scenes)) if v is not None}
+                                       ("photons", args.photons)) if v is not None}
         make_virtual_bench(data, VirtualBenchSpec(**overrides), progress=False)
         print(f"made {data} in {time.perf_counter() - t0:.0f} s", flush=True)
+    # the dataset's oracles (kept where it has them, of these scenes)
+    _, computed = write_dataset_oracles(data, n_scenes=args.oracle_scenes)
+    if computed:
+        print(f"wrote {data / 'oracle'} in {time.perf_counter() - t0:.0f} s", flush=True)
     manifest = read_manifest(data)
     assert manifest is not None
     spec = VirtualBenchSpec.from_dict(manifest["spec"])
-    if "oracle" not in manifest:
-        raise SystemExit(f"{data}: made with --no-oracle; no oracle to compare with")
     oracle_files = manifest["oracle"]["files"]
 
     work_ctx = tempfile.TemporaryDirectory() if args.work is None else None

@@ -72,7 +72,6 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
-    from ekdun.data.oracle import operator_oracle
     from psfkit.io.jsonable import write_json
     from psfkit.pairs_solver import PairBatches
     from research.identifiability import (
@@ -81,6 +80,7 @@ def main() -> None:
         monte_carlo,
         noise_variance,
     )
+    from research.oracles import operator_oracle
 
     t_start = time.perf_counter()
     read_noise = VirtualBenchSpec().read_noise_e if args.read_noise is None else args.read_noise

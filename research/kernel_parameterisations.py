@@ -19,7 +19,8 @@ error of Kv / Kh, principal angles). Every run, seed and the oracle also get the
 error on the held-out test pairs (``psfkit eval-model``'s scaled mean): whether the learned
 kernels are a better forward model than their seed, not only a better partner of the U-Net.
 The seeds and the oracle itself are scored against the oracle as reference rows (the oracle
-against itself: NCC 1). A dataset made with ``--no-oracle`` gives a note and the
+against itself: NCC 1). A ``--data`` without oracles (``python -m research.oracle DATA
+--write-dataset`` writes them; a dataset this study makes gets them) gives a note and the
 measured-only columns.
 
 Runs are ``OUT/runs/<seed>-<param>-<schedule>-l<λ>-t<training seed>``; a finished run is
@@ -63,7 +64,6 @@ from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import (
     VirtualBenchSpec,
     make_virtual_bench,
-    oracle_file,
     read_manifest,
 )
 from ekdun.evaluation.metrics import psnr, ssim
@@ -92,6 +92,7 @@ from psfkit.pairs_fit import fit_pairs, predict, relative_errors
 from psfkit.pairs_options import PairFitOptions
 from research._kparam_table import as_document, format_number, markdown_table, run_key
 from research.benchmark_tiny import fit_seed_kernels
+from research.oracles import oracle_file, write_dataset_oracles
 
 PARAMS = ("free", "physical", "flow")
 #: Model overrides of each run name (``--params``); ``physical-gain`` is not in the default set.
@@ -152,7 +153,9 @@ def dataset(args: argparse.Namespace, out: Path) -> Path:
     print(f"making the dataset {root} ({spec.sensor_shape[0]}x{spec.sensor_shape[1]}, "
           f"{spec.n_train} train / {spec.n_test} test pairs, photons {spec.photons:g})",
           flush=True)
-    return make_virtual_bench(root, spec, progress=False, device=resolve_device(args.device))
+    made = make_virtual_bench(root, spec, progress=False, device=resolve_device(args.device))
+    write_dataset_oracles(made)      # what the runs are scored against
+    return made
 
 
 def tie_to_dataset(out: Path, data: Path) -> None:
@@ -235,7 +238,8 @@ def find_oracle(data: Path, seed: KernelModel) -> tuple[KernelModel | None, Path
     path = oracle_file(data, seed.convention)
     if path is None:
         return None, None, (f"the dataset {data} has no {seed.convention}-side operator oracle "
-                            "(made with --no-oracle?): measured-only columns")
+                            f"(python -m research.oracle {data} --write-dataset writes it): "
+                            "measured-only columns")
     oracle = load_kernels(path)
     if oracle.basis != seed.basis or tuple(oracle.sensor_shape) != tuple(seed.sensor_shape):
         return None, None, (f"{path}: basis {oracle.basis}, sensor {oracle.sensor_shape} do "

@@ -1,12 +1,16 @@
 """An eigen-kernel oracle of an existing virtual-bench dataset, as a kernel file (a thin layer
-over :mod:`ekdun.data.oracle`); ``ekdun oracle`` until issue 44, a research instrument now.
+over :mod:`research.oracles`); ``ekdun oracle`` until issue 44, a research instrument now.
 
     python -m research.oracle DATASET --out oracle.npz [--kind operator|psf] [--no-nonneg]
+    python -m research.oracle DATASET --write-dataset [--oracle-scenes N]
 
-``make-dataset`` writes the unconstrained operator and PSF oracles of both conventions; this
-command computes any of them again with other settings, and the *non-negative* operator
-oracle, the estimand of ``psfkit fit-pairs``' default (non-negative) fit, which a dataset does
-not carry (minutes at 128², the cost of a fit-pairs).
+``--write-dataset`` writes the unconstrained operator and PSF oracles of both conventions into
+the dataset, ``DATASET/oracle/``, and lists them in its manifest (what the studies, Fig. 7 and
+notebook 03 read; ``ekdun make-dataset`` wrote them until issue 44); a dataset that already
+has them, of the same scenes, is left as it is. ``--out`` computes any oracle with other
+settings, and the *non-negative* operator oracle, the estimand of ``psfkit fit-pairs``'
+default (non-negative) fit, which a dataset does not carry (minutes at 128², the cost of a
+fit-pairs).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from ekdun.errors import ConfigurationError, InvalidInputError
+from ekdun.errors import InvalidInputError
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
 from psfkit.cli.vocabulary import BASIS_ALIASES
@@ -33,7 +37,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "kernels, the estimand of psfkit fit-pairs' default) or the PSF oracle "
                     "(grid fit of the noise-free node PSFs).")
     p.add_argument("data", help="virtual-bench dataset folder (ekdun make-dataset)")
-    p.add_argument("--out", required=True, help="kernel file to write (.npz)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--out", help="kernel file to write (.npz)")
+    what.add_argument("--write-dataset", action="store_true",
+                      help="write the unconstrained operator and PSF oracles of both "
+                           "conventions into DATASET/oracle/ and list them in its manifest "
+                           "(kept if already there, of the same scenes)")
     p.add_argument("--kind", choices=("operator", "psf"), default="operator",
                    help="operator oracle (default) or PSF oracle")
     add_debug_option(p)
@@ -47,8 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "psfkit fit-pairs' default fit (projected Newton-CG to convergence); "
                         "--no-nonneg gives the unconstrained oracle that make-dataset writes")
     p.add_argument("--oracle-scenes", type=flag("--oracle-scenes"), default=0,
-                   help="scenes of the operator oracle (default the dataset's: its "
-                        "--oracle-scenes, else 4 x its training pairs, at least 128)")
+                   help="scenes of the operator oracle (default the dataset's: those of the "
+                        "oracle it lists, else 4 x its training pairs, at least 128)")
     p.add_argument("--start", metavar="FILE.npz",
                    help="warm-start the operator oracle from these kernels (e.g. the "
                         "dataset's unconstrained oracle for --nonneg): same result, fewer "
@@ -69,24 +78,22 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run_oracle(args: argparse.Namespace) -> int:
-    from ekdun.data.bench_spec import VirtualBenchSpec
-    from ekdun.data.oracle import operator_oracle, psf_oracle
-    from ekdun.data.virtual_bench import read_manifest
+    if args.write_dataset:
+        return run_write_dataset(args)
     from psfkit.io import OutputTransaction
     from psfkit.kernelfile import load_kernels, save_kernels
     from psfkit.weights import get_basis
+    from research.oracles import (
+        dataset_oracle_scenes,
+        dataset_spec,
+        operator_oracle,
+        psf_oracle,
+    )
 
     out = Path(args.out)
     if out.suffix != ".npz":
         raise InvalidInputError(f"{out}: kernel files are .npz")
-    manifest = read_manifest(args.data)
-    if manifest is None or "spec" not in manifest:
-        raise InvalidInputError(f"{args.data}: not a virtual-bench dataset (no manifest.json "
-                                "from ekdun make-dataset)")
-    try:
-        spec = VirtualBenchSpec.from_dict(manifest["spec"])
-    except (TypeError, ConfigurationError) as exc:   # an edited manifest: name it
-        raise InvalidInputError(f"{Path(args.data) / 'manifest.json'}: spec: {exc}") from None
+    manifest, spec = dataset_spec(args.data)
     # an unknown basis is one line, before any work
     basis = get_basis(BASIS_ALIASES.get(args.basis, args.basis))
     if args.kind == "psf" and (args.start or args.oracle_scenes or args.no_convergence_check):
@@ -107,8 +114,8 @@ def run_oracle(args: argparse.Namespace) -> int:
         if args.kind == "psf":
             result = psf_oracle(spec, args.convention, basis.name)
         else:
-            result = operator_oracle(spec, args.convention, basis.name,
-                                     n_scenes=args.oracle_scenes or spec.oracle_scenes or None,
+            n = args.oracle_scenes or dataset_oracle_scenes(manifest)
+            result = operator_oracle(spec, args.convention, basis.name, n_scenes=n,
                                      check_convergence=not args.no_convergence_check,
                                      nonneg=args.nonneg, start=start,
                                      progress=not args.quiet)
@@ -124,6 +131,34 @@ def run_oracle(args: argparse.Namespace) -> int:
                      + ("" if pr["converged"] else " (NOT converged)"))
         line += f"; predicts its scenes to {100 * rec['relative_prediction_error']:.2f} %"
     print(line, file=sys.stderr)
+    return 0
+
+
+#: the flags that ``--write-dataset`` does not take (it writes the unconstrained oracles of
+#: both conventions, paper basis: what the studies read), with their defaults
+_NOT_WITH_WRITE = {"--kind": "operator", "--basis": "paper", "--convention": "sensor",
+                   "--nonneg": True, "--start": None, "--no-convergence-check": False,
+                   "--overwrite": False}
+
+
+def run_write_dataset(args: argparse.Namespace) -> int:
+    """``--write-dataset``: the dataset's own oracles, into ``DATASET/oracle/``."""
+    from psfkit.io.atomic import protected_inputs
+    from research.oracles import write_dataset_oracles
+
+    given = [name for name, default in _NOT_WITH_WRITE.items()
+             if getattr(args, name.lstrip("-").replace("-", "_")) != default]
+    if given:
+        raise InvalidInputError(f"--write-dataset writes the unconstrained paper-basis oracles "
+                                f"of both conventions; it does not take {', '.join(given)}")
+    # DATASET is the input and, for this one folder and its manifest, the output: written in
+    # place on purpose (atomically), so the runner's input protection is lifted for it
+    with protected_inputs(()):
+        record, computed = write_dataset_oracles(args.data, n_scenes=args.oracle_scenes or None,
+                                                 progress=not args.quiet)
+    n = record["files"]["source"]["operator_record"]["n_scenes"]
+    print(f"oracles ({record['basis']}, source and sensor): {Path(args.data) / 'oracle'}; "
+          f"{n} scenes" + ("" if computed else " (already there, kept)"), file=sys.stderr)
     return 0
 
 

@@ -4,7 +4,7 @@ The grid fit estimates the PSF oracle (the eigen-kernel fit of the noise-free no
 a pairs fit the operator oracle (the eigen-kernel model closest to the dense operator over the
 dataset's scenes); the two are not the same model
 (research/notes/compare-studies.md). This splits their
-distance into its causes, one change at a time (``ekdun.data.oracle``, source convention,
+distance into its causes, one change at a time (``research.oracles``, source convention,
 paper basis):
 
 1. **PSF oracle** — the fit of the 9 × 9 node PSFs (:func:`psf_oracle`);
@@ -50,14 +50,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
-    from ekdun.data.oracle import (
+    from psfkit.compare import compare_kernels
+    from psfkit.pairs_fit import predict, relative_errors
+    from research.oracles import (
         dense_psf_oracle,
         operator_oracle,
         psf_oracle,
         white_scenes,
     )
-    from psfkit.compare import compare_kernels
-    from psfkit.pairs_fit import predict, relative_errors
 
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), half_fov_deg=args.half_fov)
     times: dict[str, float] = {}

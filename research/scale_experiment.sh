@@ -7,8 +7,9 @@
 #
 # 1. `ekdun make-dataset` (virtual bench, source-side dense model) and `psfkit fit-eigen` of
 #    its grid (the measured seed; reused if OUT/measured.npz exists); a one-PSF seed
-#    (Kv = Kh = Kbase of the measured fit). The dataset's operator oracle is fitted only where
-#    it is compared against (COMPARE=1 without ORACLE); ORACLE_FLAG overrides that.
+#    (Kv = Kh = Kbase of the measured fit). The dataset's operator oracle is fitted
+#    (`python -m research.oracle DATA --write-dataset`) only where it is compared against
+#    (COMPARE=1 without ORACLE); WRITE_ORACLE=1 or 0 overrides that.
 # 2. Runs in priority order: Table 2 (measured seed: SCHEDULES x SEEDS), Fig. 7 (one-PSF seed,
 #    last-2, kernel parameterisation x --physics-weight for each of F7_PARAMS x LAMBDAS) and
 #    the measured seed (last-2, MEASURED_PARAMS x MEASURED_LAMBDAS); Fig. 7 runs use the
@@ -44,20 +45,26 @@ CONCURRENT=${CONCURRENT:-1}; STOP_AT=${STOP_AT:-0}; RUN_THREADS=${RUN_THREADS:-}
 COMPARE=${COMPARE:-1}   # 0: no psfkit compare here (on a lent GPU: compare the kernels later)
 # The dataset's operator oracle only where it is compared against: at 256² and 2000 pairs its fit
 # (on the CPU) outlasted 8 minutes on a lent H200 before any training began
-if [[ -z ${ORACLE_FLAG+set} ]]; then
-    ORACLE_FLAG=--no-oracle
-    (( COMPARE )) && [[ -z ${ORACLE:-} ]] && ORACLE_FLAG=
+if [[ -z ${WRITE_ORACLE+set} ]]; then
+    WRITE_ORACLE=0
+    (( COMPARE )) && [[ -z ${ORACLE:-} ]] && WRITE_ORACLE=1
 fi
 PY=${PYTHON:-python3}
+# research/ is not installed: python -m research.* from this checkout, wherever we run
+REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 start=$(date +%s)
 elapsed() { echo $(( $(date +%s) - start )); }
 mkdir -p "$OUT"
 log() { echo "[$(elapsed) s] $*" | tee -a "$OUT/progress.log"; }
 DATA="$OUT/data"
-log "dataset ${SIZE}x${SIZE}, ${NTRAIN} train / ${NTEST} test, photons ${PHOTONS} ${ORACLE_FLAG:-(with the oracle)}"
+log "dataset ${SIZE}x${SIZE}, ${NTRAIN} train / ${NTEST} test, photons ${PHOTONS}$( (( WRITE_ORACLE )) && echo ' (with the oracle)')"
 $PY -m ekdun.cli make-dataset "$DATA" --sensor "$SIZE" "$SIZE" --n-train "$NTRAIN" \
-    --n-test "$NTEST" --photons "$PHOTONS" --grid-frames "$GRID_FRAMES" $ORACLE_FLAG --quiet \
+    --n-test "$NTEST" --photons "$PHOTONS" --grid-frames "$GRID_FRAMES" --quiet \
     || { log "make-dataset failed"; exit 1; }
+if (( WRITE_ORACLE )); then
+    PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}" $PY -m research.oracle "$DATA" --write-dataset \
+        --quiet || { log "oracle failed"; exit 1; }
+fi
 if [[ -f "$OUT/measured.npz" ]]; then
     log "measured seed: $OUT/measured.npz (given)"
 else
@@ -152,7 +159,7 @@ if (( ${#done_runs[@]} == 0 )); then log "no run finished"; exit 1; fi
 log "eval ${#done_runs[@]} runs"
 $PY -m ekdun.cli eval "${done_runs[@]}" --data "$DATA" --out "$OUT/eval" --overwrite \
     >>"$OUT/eval.log" 2>&1 || log "eval failed (see eval.log)"
-ORACLE=${ORACLE:-$DATA/oracle/paper_source.npz}   # make-dataset's operator oracle
+ORACLE=${ORACLE:-$DATA/oracle/paper_source.npz}   # the dataset's operator oracle (above)
 compared=()
 (( COMPARE )) && compared=("${done_runs[@]}")
 if (( COMPARE )) && [[ -f "$ORACLE" ]]; then

@@ -6,7 +6,7 @@ known exactly and frozen, against the gain the physics alone gives, on one virtu
 dataset (``ekdun make-dataset``, source-side dense model):
 
 - **oracle SI**: the shift-invariant model closest to the dense operator over the dataset's
-  scenes (:func:`ekdun.data.oracle.operator_oracle` with basis ``si``), and **oracle EK**:
+  scenes (:func:`research.oracles.operator_oracle` with basis ``si``), and **oracle EK**:
   the eigen-kernel one (``DATA/oracle/paper_source.npz``, the same least squares, paper
   basis);
 - **classical** (no learning): ADMM-TV with each oracle (:class:`ModelReconstructor`, the
@@ -49,11 +49,9 @@ import numpy as np
 import torch
 
 from ekdun.data.bench_spec import VirtualBenchSpec
-from ekdun.data.oracle import operator_oracle
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import (
     make_virtual_bench,
-    oracle_file,
     read_manifest,
 )
 from ekdun.evaluation.metrics import psnr, ssim
@@ -64,6 +62,7 @@ from ekdun.training.checkpoint import load_checkpoint
 from ekdun.training.trainer import CHECKPOINT
 from psfkit.io.jsonable import write_json
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from research.oracles import operator_oracle, oracle_file, write_dataset_oracles
 
 TV_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
 
@@ -83,15 +82,19 @@ def dataset(out: Path, half_fov: float, n_train: int, args: argparse.Namespace) 
 def oracles(data: Path, out: Path) -> dict[str, Path]:
     """``{"si": ..., "si_as_paper": ..., "ek": ...}`` kernel files of the dataset's oracles.
 
-    ``ek`` is the dataset's own operator oracle (source side); the SI oracle (the same least
-    squares, basis ``si``, as many scenes) is computed once into ``out``, not into the
-    dataset. ``si_as_paper`` is it in the paper basis (``Kv = Kh = Kbase``), the form EK-DUN
+    ``ek`` is the dataset's own operator oracle (source side; written into the dataset by
+    :func:`~research.oracles.write_dataset_oracles` where it has none); the SI oracle (the
+    same least squares, basis ``si``, as many scenes) is computed once into ``out``, not into
+    the dataset. ``si_as_paper`` is it in the paper basis (``Kv = Kh = Kbase``), the form EK-DUN
     reads; base only never uses ``Kv``, ``Kh``.
     """
+    if read_manifest(data) is None:
+        raise SystemExit(f"{data}: not a virtual-bench dataset (ekdun make-dataset)")
+    write_dataset_oracles(data)
     manifest = read_manifest(data)
     ek = oracle_file(data, "source")
     if manifest is None or ek is None:
-        raise SystemExit(f"{data}: no source-side oracle (made with --no-oracle?)")
+        raise SystemExit(f"{data}: no source-side oracle")
     spec = VirtualBenchSpec.from_dict(manifest["spec"])
     folder = out / "si_oracles" / data.name
     folder.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ekdun.errors import InvalidInputError
-from psfkit.cli.vocabulary import add_flag
+from psfkit.cli.vocabulary import NOTICES, add_flag
 from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
 
 
@@ -54,6 +54,44 @@ def run_moved(args: argparse.Namespace) -> int:
         f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
 
 
+#: Flags that no longer do anything, kept hidden for one release (issue 44, docs/migration.md):
+#: ``(command, flag) -> (nargs, note)``. Each prints its note after the work and is otherwise
+#: ignored (a value is still checked as before).
+RETIRED_FLAGS = {
+    ("make-dataset", "--no-oracle"): (
+        0, "note: --no-oracle is deprecated and ignored: make-dataset no longer writes the "
+           "eigen-kernel oracles (python -m research.oracle DATASET --write-dataset does)"),
+    ("make-dataset", "--oracle-scenes"): (
+        1, "note: --oracle-scenes is deprecated and ignored: make-dataset no longer writes the "
+           "eigen-kernel oracles (python -m research.oracle DATASET --write-dataset "
+           "--oracle-scenes N does)"),
+}
+
+
+class _RetiredFlag(argparse.Action):
+    """A flag that no longer acts: records its note (printed after the work), stores nothing."""
+
+    def __init__(self, option_strings: list[str], dest: str, note: str = "",
+                 **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.note = note
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        notices = list(getattr(namespace, NOTICES, None) or [])
+        if self.note not in notices:
+            notices.append(self.note)
+        setattr(namespace, NOTICES, notices)
+
+
+def _add_retired(p: argparse.ArgumentParser, command: str) -> None:
+    for (cmd, name), (nargs, note) in RETIRED_FLAGS.items():
+        if cmd == command:
+            p.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
+                           type=flag(name) if nargs else None, dest=argparse.SUPPRESS,
+                           default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     # ---------------------------------------------------------------- make-dataset
     p = sub.add_parser("make-dataset", help="build (or reuse) a cached virtual-bench dataset",
@@ -86,11 +124,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_flag(p, "--threads", "make-dataset",
              note="the CPUs available, at most 16 and one per 64 scenes: processes drawing "
                   "the scenes; the dataset is the same for any N")
-    p.add_argument("--no-oracle", action="store_true",
-                   help="do not compute the eigen-kernel oracles (DATASET/oracle/: the best "
-                        "paper-basis models of the bench, both conventions)")
-    p.add_argument("--oracle-scenes", type=flag("--oracle-scenes"), default=0,
-                   help="scenes of the operator oracle (default 4 x --n-train, at least 128)")
+    _add_retired(p, "make-dataset")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run_make_dataset)
 
@@ -210,8 +244,7 @@ def run_make_dataset(args: argparse.Namespace) -> int:
                             n_test=args.n_test, grid_shape=tuple(args.grid),
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
                             photons=args.photons, grid_frames=args.grid_frames,
-                            seed=args.seed, oracle=not args.no_oracle,
-                            oracle_scenes=args.oracle_scenes)
+                            seed=args.seed)
     from ekdun.training.acceleration import resolve_device
 
     # a worker process costs ~2 s to start (it imports torch): none for small datasets

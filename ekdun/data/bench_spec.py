@@ -3,8 +3,8 @@
 :class:`VirtualBenchSpec` (what a dataset contains), :func:`node_psfs` (the noise-free PSF of
 every grid node and its true chief-ray position), :func:`dense_model_for` (the dense
 shift-variant operator that makes the measurements) and :func:`make_scenes` (the scene
-distribution). :mod:`ekdun.data.virtual_bench` builds datasets from them and
-:mod:`ekdun.data.oracle` the best eigen-kernel models.
+distribution). :mod:`ekdun.data.virtual_bench` builds datasets from them (and the research
+studies, ``research/oracles.py``, the best eigen-kernel models).
 """
 
 from __future__ import annotations
@@ -28,6 +28,10 @@ TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camer
                 "brick", "grass", "moon")
 TEST_IMAGES = ("rocket", "gravel", "clock", "hubble_deep_field")
 FULL_PIXEL_UM = 3.45
+#: Fields of manifests written before issue 44 that no longer change a dataset's bytes
+#: (``make-dataset`` wrote the eigen-kernel oracles; ``research/oracles.py`` does now): ignored
+#: when read, so that those datasets stay readable and are still reused.
+RETIRED_FIELDS = ("oracle", "oracle_scenes")
 
 
 @dataclass(frozen=True)
@@ -70,11 +74,6 @@ class VirtualBenchSpec:
         Where the dense model's interpolation weights act.
     seed : int
         Seed of the diffuser, scenes and noise.
-    oracle : bool
-        Also write the eigen-kernel oracles (paper basis, both conventions) under
-        ``oracle/`` (:mod:`ekdun.data.oracle`).
-    oracle_scenes : int
-        Scenes of the operator oracle (0: :func:`ekdun.data.oracle.default_oracle_scenes`).
     """
 
     sensor_shape: tuple[int, int] = (64, 64)
@@ -91,8 +90,6 @@ class VirtualBenchSpec:
     grid_frames: int = 1
     convention: str = "source"
     seed: int = 0
-    oracle: bool = True
-    oracle_scenes: int = 0
 
     def __post_init__(self) -> None:
         if min(self.grid_shape) < 3:
@@ -119,7 +116,7 @@ class VirtualBenchSpec:
     def from_dict(cls, doc: dict[str, Any]) -> VirtualBenchSpec:
         """The spec of :meth:`to_dict` (e.g. a dataset manifest's ``spec``): JSON lists back
         to tuples."""
-        values = dict(doc)
+        values = {k: v for k, v in doc.items() if k not in RETIRED_FIELDS}
         for key in ("sensor_shape", "grid_shape"):
             if key in values:
                 values[key] = tuple(values[key])
@@ -234,7 +231,7 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
 
     ``count`` scenes (default the split's size) from random stream ``stream`` (default the
     split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
-    (the oracle's, :mod:`ekdun.data.oracle`). ``workers`` processes draw them (dead leaves
+    (e.g. the oracles' of ``research/oracles.py``). ``workers`` processes draw them (dead leaves
     are a Python loop over disks: ~0.1 s per 256² scene); every scene has its own seed, so
     the result does not depend on ``workers``. ``progress`` shows a bar over the scenes.
     """

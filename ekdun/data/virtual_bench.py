@@ -9,9 +9,10 @@
       train/scene/*.npy    ground-truth scenes (H', W', 3) float32 in [0, 1], RGB
       train/measurement/*.npy   simulated measurements (H', W', 3) float32
       test/...             held-out scenes (other natural images, other dead-leaves seeds)
-      oracle/              the best paper-basis eigen-kernel models, both conventions
-                           (:mod:`ekdun.data.oracle`): ``paper_{source,sensor}.npz`` (operator
-                           oracle) and ``psf_paper_{source,sensor}.npz`` (PSF oracle)
+
+A research study may add files (``python -m research.oracle DATASET --write-dataset`` writes
+the eigen-kernel oracles into ``oracle/``); it lists them in the manifest, whose file list and
+content hash then cover them, so the dataset is still reused.
 
 Scenes: dead-leaves images (:mod:`ekdun.data.deadleaves`) and random crops of the natural
 images that ship inside scikit-image (different images for train and test). Measurements:
@@ -47,7 +48,6 @@ from ekdun.data.bench_spec import (
     node_psfs,
 )
 from ekdun.data.dense_model import DenseShiftVariantModel
-from ekdun.data.oracle import write_oracles
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.bench import simulate_grid
 from psfkit.io.atomic import atomic_directory, atomic_file
@@ -56,7 +56,7 @@ from psfkit.validation import read_json_file
 
 __all__ = ["FORMAT", "FULL_PIXEL_UM", "MANIFEST", "TEST_IMAGES", "TRAIN_IMAGES", "VERSION",
            "VirtualBenchSpec", "content_hash", "dataset_is_current", "dense_model_for",
-           "make_scenes", "make_virtual_bench", "node_psfs", "oracle_file", "read_manifest",
+           "make_scenes", "make_virtual_bench", "node_psfs", "read_manifest",
            "resolve_split", "simulate_measurements"]
 
 FORMAT = "ekdun-virtual-bench"
@@ -123,34 +123,6 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
     except InvalidInputError:
         return None
     return doc if isinstance(doc, dict) and doc.get("format") == FORMAT else None
-
-
-def oracle_file(root: str | os.PathLike, convention: str, kind: str = "operator"
-                ) -> Path | None:
-    """The oracle kernel file of ``convention`` that a virtual-bench dataset lists.
-
-    Parameters
-    ----------
-    root : path-like
-        Dataset folder (``ekdun make-dataset``).
-    convention : {"source", "sensor"}
-        Weight convention of the eigen-kernel model to compare with.
-    kind : {"operator", "psf"}
-        The operator oracle (the best eigen-kernel model of the simulator, the default) or the
-        PSF oracle (:mod:`ekdun.data.oracle`).
-
-    Returns
-    -------
-    pathlib.Path or None
-        ``root/oracle/<file>``; ``None`` when ``root`` is not a virtual-bench dataset, was made
-        without oracles (``--no-oracle``) or lists none of that convention.
-    """
-    if kind not in ("operator", "psf"):
-        raise ValueError(f"kind must be 'operator' or 'psf', got {kind!r}")
-    doc = read_manifest(root)
-    files = ((doc or {}).get("oracle") or {}).get("files") or {}
-    name = (files.get(convention) or {}).get(kind)
-    return None if not name else Path(root) / "oracle" / name
 
 
 def resolve_split(data: str | os.PathLike, split: str) -> Path:
@@ -240,9 +212,6 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                 for i, image in enumerate(arrays):
                     # the one image writer: refuses NaN/Inf (e.g. --photons 1e-300)
                     write_image(folder / f"{split}{i:04d}.npy", image.astype(np.float32))
-        oracle = None
-        if spec.oracle:
-            oracle = write_oracles(tmp / "oracle", spec, n_scenes=spec.oracle_scenes or None)
         files = _data_files(tmp)
         manifest = {
             "format": FORMAT, "version": VERSION, "spec": spec.to_dict(),
@@ -252,8 +221,6 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
                              "weights) + Poisson-Gaussian noise",
             "files": files, "content_hash": content_hash(tmp, files),
         }
-        if oracle is not None:
-            manifest["oracle"] = oracle
         with atomic_file(tmp / MANIFEST) as out:
             out.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
     return root

@@ -199,6 +199,10 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     torch.set_num_threads(1)
     data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
         sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3)), progress=False)
+    # the dataset's oracles (research/; make-dataset wrote them until issue 44)
+    from research.oracles import write_dataset_oracles
+
+    write_dataset_oracles(data)
     # the measured seed: psfkit fit-eigen of the dataset's grid (paper basis)
     fit = fit_eigen_grid(read_grid(data / "grid"),
                          EigenFitOptions(basis="paper", convention="auto"))

@@ -10,7 +10,9 @@ walked, and
 - ``--model`` appears nowhere except as a listed deprecated alias;
 - every flag of every command is in ``docs/cli-flags.md``, with that command;
 - every deprecated alias works through the real CLI and prints exactly one notice line, after
-  the work (an error stays the one line on stderr).
+  the work (an error stays the one line on stderr);
+- every retired flag (:data:`ekdun.cli.commands.RETIRED_FLAGS`: accepted, ignored) is in the
+  table, and prints its note while the command does its work.
 
 ``python tests/e2e/test_cli_vocabulary.py`` prints the table of ``docs/cli-flags.md`` from the
 parsers (the meanings of vocabulary flags from the vocabulary, the others from their help).
@@ -145,13 +147,14 @@ def _doc_rows() -> dict[str, str]:
 
 
 def test_every_flag_of_both_clis_is_in_the_docs_table():
+    from ekdun.cli.commands import RETIRED_FLAGS
     from psfkit.cli.help_all import full_help
 
     rows = _doc_rows()
     missing = []
     for cli, command, action in all_options():
         if full_help(action) == argparse.SUPPRESS and (command, action.option_strings[0]) \
-                not in DEPRECATED:
+                not in DEPRECATED and (command, action.option_strings[0]) not in RETIRED_FLAGS:
             continue
         for option in action.option_strings:
             if option in ("-h", "--help"):
@@ -246,12 +249,43 @@ def test_admm_tau_is_tv(tmp_path, capsys):
 # ------------------------------------------------------------------ the docs table
 
 
+def test_make_dataset_retired_oracle_flags_note_and_make_the_dataset(tmp_path, capsys):
+    """``--no-oracle`` and ``--oracle-scenes`` (make-dataset wrote the oracles until issue 44):
+    accepted and ignored, one note each after the work; the dataset is made, without oracles;
+    a bad value is still refused in one line."""
+    from ekdun.cli import main
+    from ekdun.cli.commands import RETIRED_FLAGS
+    from ekdun.data.virtual_bench import read_manifest
+
+    out = tmp_path / "data"
+    small = ["--sensor", "32", "32", "--n-train", "2", "--n-test", "1", "--grid", "3", "3",
+             "--threads", "1", "--quiet"]
+    assert main(["make-dataset", str(out), *small, "--no-oracle", "--oracle-scenes", "48"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [RETIRED_FLAGS[("make-dataset", "--no-oracle")][1],
+                   RETIRED_FLAGS[("make-dataset", "--oracle-scenes")][1]]
+    assert all("research.oracle DATASET --write-dataset" in line for line in err)
+    manifest = read_manifest(out)
+    assert manifest is not None and len(manifest["files"]) > 0
+    assert "oracle" not in manifest and "oracle" not in manifest["spec"]
+    assert not (out / "oracle").exists() and len(list((out / "train" / "scene").iterdir())) == 2
+    # without the flags: no note; the same spec, so the dataset is reused as it is
+    stamp = (out / "manifest.json").stat().st_mtime_ns
+    assert main(["make-dataset", str(out), *small]) == 0
+    assert capsys.readouterr().err == ""
+    assert (out / "manifest.json").stat().st_mtime_ns == stamp
+    assert main(["make-dataset", str(tmp_path / "bad"), *small, "--oracle-scenes", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--oracle-scenes" in err[0] and not (tmp_path / "bad").exists()
+
+
 def flag_table() -> str:
     """The Markdown table of docs/cli-flags.md, from the parsers and the vocabulary.
 
     A flag that only ``--help-all`` lists is marked *(advanced)* after its command; the
     commands that ``--help`` does not list (replaced, kept for one release) *(deprecated)*.
     """
+    from ekdun.cli.commands import RETIRED_FLAGS
     from psfkit.cli.help_all import full_help, is_advanced
 
     hidden = hidden_commands()
@@ -271,6 +305,9 @@ def flag_table() -> str:
         if deprecated:
             row["deprecated"].append(f"{command}: use `{DEPRECATED[(command, key)]}`")
             continue
+        if (command, key) in RETIRED_FLAGS:
+            row["retired"] = RETIRED_FLAGS[(command, key)][1].split("ignored: ", 1)[1]
+            continue
         # the help of a listed command, where one has the flag (a replaced command's may
         # speak of its own outputs)
         if full_help(action) and (row["help"] is None
@@ -283,6 +320,8 @@ def flag_table() -> str:
         row = rows[key]
         if key in VOCABULARY:
             meaning, default = VOCABULARY[key].meaning, VOCABULARY[key].default_text
+        elif row.get("retired"):
+            meaning, default = f"deprecated, ignored: {row['retired']}", "-"
         elif row["help"] is None:
             meaning, default = "deprecated alias (" + "; ".join(row["deprecated"]) + ")", "-"
         else:

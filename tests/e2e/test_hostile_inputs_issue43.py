@@ -117,7 +117,7 @@ def test_sigterm_during_make_dataset_ends_with_the_interruption_line(tmp_path):
     out = tmp_path / "ds"
     proc = subprocess.Popen([sys.executable, "-m", "ekdun.cli", "make-dataset", str(out),
                              "--sensor", "16", "16", "--grid", "3", "3", "--n-train", "20000",
-                             "--no-oracle", "--threads", "1"],
+                             "--threads", "1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
                             cwd=REPO)
     seen, err = threading.Event(), bytearray()

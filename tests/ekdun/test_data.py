@@ -61,7 +61,7 @@ def test_scenes_do_not_depend_on_the_number_of_worker_processes(capsys):
     progress bar counts every scene either way."""
     from ekdun.data.bench_spec import make_scenes
 
-    spec = VirtualBenchSpec(sensor_shape=(32, 32), n_train=11, n_test=2, oracle=False)
+    spec = VirtualBenchSpec(sensor_shape=(32, 32), n_train=11, n_test=2)
     one = make_scenes(spec, "train")
     assert one.shape == (11, 3, 32, 32)
     assert capsys.readouterr().err == ""
@@ -140,8 +140,8 @@ def test_grid_frames_average_only_the_grid_and_older_manifests_stay_current(tmp_
     written before the field existed is current for the default spec (not rebuilt)."""
     from dataclasses import replace
 
-    plain = make_virtual_bench(tmp_path / "plain", replace(SMALL, oracle=False), progress=False)
-    averaged = make_virtual_bench(tmp_path / "avg", replace(SMALL, oracle=False, grid_frames=4),
+    plain = make_virtual_bench(tmp_path / "plain", SMALL, progress=False)
+    averaged = make_virtual_bench(tmp_path / "avg", replace(SMALL, grid_frames=4),
                                   progress=False)
     assert read_manifest(averaged)["spec"]["grid_frames"] == 4
     assert read_grid(plain / "grid").dtype == np.uint16
@@ -153,10 +153,52 @@ def test_grid_frames_average_only_the_grid_and_older_manifests_stay_current(tmp_
     del doc["spec"]["grid_frames"]
     (plain / "manifest.json").write_text(json.dumps(doc))
     stamp = (plain / "manifest.json").stat().st_mtime_ns
-    make_virtual_bench(plain, replace(SMALL, oracle=False), progress=False)
+    make_virtual_bench(plain, SMALL, progress=False)
     assert (plain / "manifest.json").stat().st_mtime_ns == stamp
     with pytest.raises(ConfigurationError, match="grid_frames"):
         VirtualBenchSpec(grid_frames=0)
+
+
+def test_bench_spec_round_trips_through_its_manifest_form():
+    spec = VirtualBenchSpec(sensor_shape=(48, 32), grid_shape=(5, 7), photons=123.0, seed=4)
+    doc = json.loads(json.dumps(spec.to_dict()))           # as a manifest stores it
+    assert doc["sensor_shape"] == [48, 32] and "oracle" not in doc
+    back = VirtualBenchSpec.from_dict(doc)
+    assert back == spec and isinstance(back.grid_shape, tuple)
+
+
+@pytest.mark.parametrize("with_oracle", [True, False])
+def test_a_dataset_made_with_oracles_before_issue_44_still_reads_and_is_reused(
+        tmp_path, with_oracle):
+    """make-dataset wrote ``oracle/`` and the spec fields ``oracle``, ``oracle_scenes`` until
+    issue 44: such a manifest still reads (the fields ignored) and the dataset, oracles
+    included, is reused for the same spec instead of rebuilt; a changed byte still rebuilds."""
+    from ekdun.data.virtual_bench import content_hash, dataset_is_current, resolve_split
+
+    root = make_virtual_bench(tmp_path / "old", SMALL, progress=False)
+    doc = json.loads((root / "manifest.json").read_text())
+    # the manifest as make-dataset wrote it before: the old spec fields, the oracle files
+    # listed and hashed with the rest, and their record
+    doc["spec"].update(oracle=with_oracle, oracle_scenes=48 if with_oracle else 0)
+    if with_oracle:
+        (root / "oracle").mkdir()
+        np.savez(root / "oracle" / "paper_source.npz", kernels=np.ones((3, 3, 32, 32)))
+        doc["oracle"] = {"basis": "paper", "dense_convention": "source",
+                         "files": {"source": {"operator": "paper_source.npz"}}}
+        doc["files"] = sorted([*doc["files"], "oracle/paper_source.npz"])
+        doc["content_hash"] = content_hash(root, doc["files"])
+    (root / "manifest.json").write_text(json.dumps(doc))
+    assert VirtualBenchSpec.from_dict(read_manifest(root)["spec"]) == SMALL
+    assert dataset_is_current(root, SMALL)
+    stamp = (root / "manifest.json").stat().st_mtime_ns
+    assert make_virtual_bench(root, SMALL, progress=False) == root
+    assert (root / "manifest.json").stat().st_mtime_ns == stamp
+    assert (root / "oracle").is_dir() == with_oracle          # kept as it was
+    assert resolve_split(root, "train") == root / "train"
+    assert len(PairsDataset(root / "train")) == SMALL.n_train
+    if with_oracle:   # the oracle files are part of the hashed content, as before
+        np.savez(root / "oracle" / "paper_source.npz", kernels=np.zeros((3, 3, 32, 32)))
+        assert not dataset_is_current(root, SMALL)
 
 
 def test_pairs_dataset_reads_dlmd_as_rgb(real_data):

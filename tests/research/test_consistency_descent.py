@@ -18,20 +18,21 @@ from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from psfkit.io import read_pairs
 from psfkit.kernelfile import load_kernels, save_kernels
 from psfkit.pairs_fit import predict, relative_errors
+from research.oracles import write_dataset_oracles
 
 pytestmark = pytest.mark.e2e
 
 REPO = Path(__file__).resolve().parents[2]
 #: the study, run as ``python -m research.consistency_descent`` from the repository root
 SCRIPT = ("-m", "research.consistency_descent")
-SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3),
-                        oracle_scenes=48)
+SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3))
 
 
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     root = tmp_path_factory.mktemp("descent")
     data = make_virtual_bench(root / "data", SPEC, progress=False)
+    write_dataset_oracles(data, n_scenes=48)
     oracle = load_kernels(data / "oracle" / "paper_source.npz")
     seed = root / "one_psf.npz"       # Kv = Kh = Kbase of the oracle: the one-PSF start
     save_kernels(seed, replace(oracle, kernels=np.repeat(oracle.kernels[:1], 3, axis=0)))

@@ -23,11 +23,12 @@ def test_estimators_are_scored_against_every_oracle(tmp_path):
     from psfkit.kernelfile import load_kernels
 
     data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
-        sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3), oracle_scenes=32),
+        sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3)),
         progress=False)
     work, out = tmp_path / "work", tmp_path / "scores.json"
     done = subprocess.run([sys.executable, *SCRIPT, str(data), "--conventions", "source",
                            "--no-unconstrained", "--nonneg-oracle", "--work", str(work),
+                           "--oracle-scenes", "32",
                            "--json", str(out), "--threads", "1"],
                           cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -179,13 +179,13 @@ def test_benchmark_without_oracle_reports_measured_columns(tmp_path):
     from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 
     data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
-        sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3), oracle=False),
+        sensor_shape=(32, 32), n_train=4, n_test=1, grid_shape=(3, 3)),
         progress=False)
     out = tmp_path / "kp"
     done = _bench("--out", str(out), "--data", str(data), "--params", "free", "--seeds",
                   "one-psf", "--batch-size", "4")
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "No oracle:" in done.stdout and "--no-oracle" in done.stdout
+    assert "No oracle:" in done.stdout and "--write-dataset" in done.stdout
     assert "oracle: diff. NCC" not in done.stdout and "| λ |" in done.stdout
     doc = json.loads((out / "results.json").read_text())
     assert doc["oracle"] is None and doc["references"] == []

@@ -1,9 +1,11 @@
 """``python -m research.oracle`` (``ekdun oracle`` until issue 44): the oracles of an existing
 virtual-bench dataset from the command line.
 
-The unconstrained operator oracle it computes is the file ``make-dataset`` wrote (same scenes,
-same solver); the non-negative one, warm-started from it, is the library's solve from
-scratch; the PSF oracle is the library's; bad input is one line and writes nothing.
+``--write-dataset`` writes the dataset's oracles into it (``make-dataset`` did until issue 44),
+listed in its manifest, and the dataset is still reused; the unconstrained operator oracle
+``--out`` computes is that file (same scenes, same solver); the non-negative one, warm-started
+from it, is the library's solve from scratch; the PSF oracle is the library's; bad input is
+one line and writes nothing.
 """
 
 from __future__ import annotations
@@ -13,25 +15,63 @@ import json
 import numpy as np
 import pytest
 
-from ekdun.data.oracle import difference_nccs, operator_oracle, psf_oracle
-from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+from ekdun.data.virtual_bench import VirtualBenchSpec, dataset_is_current, make_virtual_bench
 from psfkit.kernelfile import load_kernels
 from research.oracle import main
+from research.oracles import difference_nccs, operator_oracle, oracle_file, psf_oracle
 
 pytestmark = pytest.mark.e2e
 
-SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=4, n_test=2, grid_shape=(3, 3),
-                        oracle_scenes=48)
+SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=4, n_test=2, grid_shape=(3, 3))
 
 
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
-    return make_virtual_bench(tmp_path_factory.mktemp("oracle_cli") / "data", SPEC,
+    """A dataset and its oracles, written by ``--write-dataset`` (48 scenes)."""
+    data = make_virtual_bench(tmp_path_factory.mktemp("oracle_cli") / "data", SPEC,
                               progress=False)
+    assert main([str(data), "--write-dataset", "--oracle-scenes", "48", "--quiet"]) == 0
+    return data
 
 
 def _lines(capsys) -> list[str]:
     return capsys.readouterr().err.strip().splitlines()
+
+
+def test_write_dataset_lists_the_oracles_and_keeps_the_dataset_current(bench, capsys):
+    manifest = json.loads((bench / "manifest.json").read_text())
+    for convention in ("source", "sensor"):
+        for kind in ("operator", "psf"):
+            path = oracle_file(bench, convention, kind)
+            assert path is not None and path.parent == bench / "oracle"
+            assert load_kernels(path).convention == convention
+        assert manifest["oracle"]["files"][convention]["operator_record"]["n_scenes"] == 48
+    assert dataset_is_current(bench, SPEC)              # make-dataset would reuse it
+    # again, with the scenes the dataset's oracle has (the default): kept, nothing written
+    stamp = (bench / "manifest.json").stat().st_mtime_ns
+    assert main([str(bench), "--write-dataset"]) == 0
+    (line,) = _lines(capsys)
+    assert line == (f"oracles (paper, source and sensor): {bench / 'oracle'}; 48 scenes "
+                    "(already there, kept)")
+    assert (bench / "manifest.json").stat().st_mtime_ns == stamp
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--write-dataset", "--kind", "psf"], ["--write-dataset", "--kind"]),
+    (["--write-dataset", "--out", "{tmp}/k.npz"], ["--write-dataset", "--out"]),
+    (["--write-dataset", "--oracle-scenes", "-3"], ["--oracle-scenes"]),
+])
+def test_write_dataset_refuses_what_it_does_not_take(bench, tmp_path, capsys, argv, words):
+    before = (bench / "manifest.json").read_bytes()
+    assert main([str(bench), *[a.format(tmp=tmp_path) for a in argv]]) == 2
+    err = _lines(capsys)
+    assert len(err) == 1 and all(w in err[0] for w in words), err
+    assert (bench / "manifest.json").read_bytes() == before and list(tmp_path.iterdir()) == []
+    # not a dataset: one line, nothing written into the folder
+    assert main([str(tmp_path), "--write-dataset"]) == 2
+    err = _lines(capsys)
+    assert len(err) == 1 and "not a virtual-bench dataset" in err[0], err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_unconstrained_oracle_is_the_datasets_file(bench, tmp_path, capsys):
@@ -42,8 +82,8 @@ def test_unconstrained_oracle_is_the_datasets_file(bench, tmp_path, capsys):
     got = load_kernels(out)
     written = load_kernels(bench / "oracle" / "paper_source.npz")
     assert (got.basis, got.convention, got.kernels.shape) == ("paper", "source", (3, 3, 32, 32))
-    # the same scenes (the manifest's --oracle-scenes) and solver: the same kernels, to the
-    # CG tolerance (1e-7 relative residual); measured 0 (bitwise) on one machine
+    # the same scenes (by default those of the dataset's oracle) and solver: the same kernels,
+    # to the CG tolerance (1e-7 relative residual); measured 0 (bitwise) on one machine
     error = np.linalg.norm(got.kernels - written.kernels) / np.linalg.norm(written.kernels)
     assert error < 1e-5, error
     assert got.provenance["n_scenes"] == 48 and got.provenance["converged"]
@@ -101,9 +141,9 @@ def test_not_a_dataset_and_existing_output(bench, tmp_path, capsys):
     assert len(err) == 1 and "not a virtual-bench dataset" in err[0], err
     existing = tmp_path / "k.npz"
     existing.write_bytes(b"keep")
+    before = (bench / "manifest.json").read_bytes()
     assert main([str(bench), "--kind", "psf", "--out", str(existing)]) != 0
     err = _lines(capsys)
     assert len(err) == 1 and "k.npz" in err[0], err
     assert existing.read_bytes() == b"keep"
-    manifest = json.loads((bench / "manifest.json").read_text())
-    assert manifest["spec"]["oracle_scenes"] == 48       # the dataset is left as it was
+    assert (bench / "manifest.json").read_bytes() == before   # the dataset is left as it was

@@ -53,8 +53,9 @@ def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path
                 name.split("-")[2], 1.0, int(name[-1])), name
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["runs"]) == names
-    # COMPARE=0 and no ORACLE_FLAG: no oracle is fitted (nothing would read it)
-    assert json.loads((out / "data" / "manifest.json").read_text())["spec"]["oracle"] is False
+    # COMPARE=0: no oracle is fitted (nothing would read it)
+    assert "oracle" not in json.loads((out / "data" / "manifest.json").read_text())
+    assert not (out / "data" / "oracle").exists()
     # the training seed reaches the run: same schedule, other seed, other first epoch
     assert (out / "t2-base-s0" / "log.csv").read_text() != (
         out / "t2-base-s1" / "log.csv").read_text()

@@ -34,7 +34,7 @@ def test_absorption_benchmark_freezes_the_oracles(tmp_path):
     assert row["classical"]["EK"]["psnr"] > row["classical"]["SI"]["psnr"] + 0.3
     assert {r["seed"] for r in row["learned"]["SI"]} == {0}
     data = out / "data-fov30-n8"
-    # the benchmark leaves the dataset as make-dataset wrote it
+    # the benchmark adds only the dataset's own oracles to it (the SI oracle goes to OUT)
     assert not list((data / "oracle").glob("si_*"))
     si = load_kernels(out / "si_oracles" / data.name / "si_source.npz")
     ek = load_kernels(data / "oracle" / "paper_source.npz")

@@ -1,10 +1,12 @@
 """The eigen-kernel oracles of the virtual bench (issue 23 item 1): an operator that is itself
 an eigen-kernel model is its own oracle; a shift-invariant bench's oracle is that PSF for every
-kernel; make-dataset writes both oracles, loadable, recorded in the manifest."""
+kernel; ``write_dataset_oracles`` writes both oracles into a dataset, loadable, recorded in its
+manifest, and the dataset is still reused by make-dataset."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,15 +14,7 @@ import torch
 
 from ekdun.data.bench_spec import dense_model_for
 from ekdun.data.dense_model import DenseShiftVariantModel
-from ekdun.data.oracle import (
-    dense_psf_oracle,
-    difference_nccs,
-    operator_oracle,
-    oracle_scenes,
-    psf_oracle,
-    white_scenes,
-)
-from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, oracle_file
+from ekdun.data.virtual_bench import VirtualBenchSpec, dataset_is_current, make_virtual_bench
 from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
 from psfkit.forward.geometry import padded_shape
@@ -28,6 +22,16 @@ from psfkit.kernelfile import KernelModel, load_kernels
 from psfkit.pairs_constraints import projected_fit
 from psfkit.pairs_fit import predict
 from psfkit.pairs_solver import PairBatches, kkt_residual, solve_kernels
+from research.oracles import (
+    dense_psf_oracle,
+    difference_nccs,
+    operator_oracle,
+    oracle_file,
+    oracle_scenes,
+    psf_oracle,
+    white_scenes,
+    write_dataset_oracles,
+)
 
 SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3))
 
@@ -161,12 +165,17 @@ def test_white_scene_operator_oracle_is_the_cropped_dense_psf_fit():
     assert 1 - min(difference_nccs(natural, crop).values()) > 10 * gap[96]
 
 
-def test_make_dataset_writes_the_oracles(tmp_path):
-    root = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
-        sensor_shape=(32, 32), n_train=4, n_test=2, grid_shape=(3, 3), oracle_scenes=48),
-        progress=False)
+def test_write_dataset_oracles_lists_them_and_the_dataset_is_still_reused(tmp_path):
+    spec = VirtualBenchSpec(sensor_shape=(32, 32), n_train=4, n_test=2, grid_shape=(3, 3))
+    root = make_virtual_bench(tmp_path / "data", spec, progress=False)
+    # make-dataset writes no oracles any more
+    assert not (root / "oracle").exists() and oracle_file(root, "source") is None
+    assert "oracle" not in json.loads((root / "manifest.json").read_text())
+    record, computed = write_dataset_oracles(root, n_scenes=48)
+    assert computed
     manifest = json.loads((root / "manifest.json").read_text())
     oracle = manifest["oracle"]
+    assert oracle == json.loads(json.dumps(record))
     for convention in ("source", "sensor"):
         entry = oracle["files"][convention]
         for kind in ("operator", "psf"):
@@ -181,23 +190,21 @@ def test_make_dataset_writes_the_oracles(tmp_path):
         # the operator oracle predicts the dense model at least as well as the PSF oracle
         pred = entry["psf_vs_operator"]["prediction_error"]
         assert pred["operator"] <= pred["psf"] * 1.05
-    assert not (tmp_path / "off").exists()
-    off = make_virtual_bench(tmp_path / "off", VirtualBenchSpec(
-        sensor_shape=(32, 32), n_train=2, n_test=1, grid_shape=(3, 3), oracle=False),
-        progress=False)
-    assert "oracle" not in json.loads((off / "manifest.json").read_text())
-    assert not (off / "oracle").exists()
+    # the manifest's file list and hash cover the oracles: make-dataset of the same spec
+    # reuses the dataset (its oracles included) instead of rebuilding it
+    assert dataset_is_current(root, spec)
+    stamp = (root / "manifest.json").stat().st_mtime_ns
+    assert make_virtual_bench(root, spec, progress=False) == root
+    assert (root / "manifest.json").stat().st_mtime_ns == stamp
+    assert (root / "oracle" / "paper_source.npz").is_file()
+    # the same oracles again: kept, nothing written; other scenes: computed anew
+    assert write_dataset_oracles(root, n_scenes=48)[1] is False
+    assert (root / "manifest.json").stat().st_mtime_ns == stamp
     # oracle_file: the file the manifest lists, None without oracles or outside a dataset
+    off = make_virtual_bench(tmp_path / "off", replace(spec, n_train=2, n_test=1),
+                             progress=False)
     assert oracle_file(root, "sensor") == root / "oracle" / oracle["files"]["sensor"]["operator"]
     assert oracle_file(root, "source", "psf") == root / "oracle" / "psf_paper_source.npz"
     assert oracle_file(off, "source") is None and oracle_file(tmp_path, "source") is None
     with pytest.raises(ValueError, match="kind"):
         oracle_file(root, "source", "grid")
-
-
-def test_bench_spec_round_trips_through_its_manifest_form():
-    spec = VirtualBenchSpec(sensor_shape=(48, 32), grid_shape=(5, 7), photons=123.0, seed=4)
-    doc = json.loads(json.dumps(spec.to_dict()))           # as a manifest stores it
-    assert doc["sensor_shape"] == [48, 32]
-    back = VirtualBenchSpec.from_dict(doc)
-    assert back == spec and isinstance(back.grid_shape, tuple)

@@ -1,5 +1,6 @@
 r"""The eigen-kernel oracles of a virtual bench: the best eigen-kernel model, known from the
-simulator (issue 23, item 1).
+simulator (issue 23, item 1). ``ekdun.data.oracle`` until issue 44: a research instrument, not
+installed with the product.
 
 The virtual bench knows the truth: the noise-free PSF of every grid node and the dense
 shift-variant operator ``A_dense`` that makes its measurements (:mod:`ekdun.data.dense_model`).
@@ -29,11 +30,17 @@ Both are kernel files (:class:`psfkit.kernelfile.KernelModel`) in the dense mode
 (measurement per unit scene radiance), readable by ``psfkit compare``, ``psfkit eval-model``
 and ``ekdun train --kernels``. :func:`compare_oracles` says how much two models differ
 (difference-kernel NCC, kernel error, prediction error on noise-free test pairs).
-``ekdun make-dataset`` writes them under ``DATASET/oracle/`` (:func:`write_oracles`).
+
+``python -m research.oracle DATASET --write-dataset`` (:func:`write_dataset_oracles`) writes the
+unconstrained oracles of both conventions into an existing dataset, ``DATASET/oracle/``, and
+lists them in its manifest; :func:`oracle_file` finds them (``ekdun make-dataset`` wrote them
+until issue 44; such datasets still list theirs).
 """
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,8 +57,11 @@ from ekdun.data.bench_spec import (
     node_psfs,
 )
 from ekdun.data.dense_model import hat_weights
+from ekdun.data.virtual_bench import MANIFEST, _data_files, content_hash, read_manifest
+from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
+from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.kernelfile import KernelModel, save_kernels
 from psfkit.pairs_fit import predict
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
@@ -370,14 +380,16 @@ def compare_oracles(a: KernelModel, b: KernelModel, spec: VirtualBenchSpec,
 
 
 def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
-                  n_scenes: int | None = None) -> dict[str, Any]:
+                  n_scenes: int | None = None, progress: bool = False) -> dict[str, Any]:
     """Write ``{basis}_{convention}.npz`` (operator oracle) and ``psf_{basis}_{convention}.npz``
-    (PSF oracle) for both conventions into ``folder``; returns the manifest's record."""
+    (PSF oracle) for both conventions into ``folder``; returns the manifest's record.
+    ``progress``: the operator oracles' progress bars (stderr)."""
     folder.mkdir(parents=True, exist_ok=True)
     dense = _dense_forward(spec)
     out: dict[str, Any] = {"basis": basis, "dense_convention": spec.convention, "files": {}}
     for convention in CONVENTIONS:
-        op = operator_oracle(spec, convention, basis, n_scenes, forward=dense)
+        op = operator_oracle(spec, convention, basis, n_scenes, forward=dense,
+                             progress=progress)
         psf = psf_oracle(spec, convention, basis)
         name, psf_name = f"{basis}_{convention}.npz", f"psf_{basis}_{convention}.npz"
         save_kernels(folder / name, op.model)
@@ -390,6 +402,124 @@ def write_oracles(folder: Path, spec: VirtualBenchSpec, basis: str = "paper",
     return out
 
 
+def oracle_file(root: str | os.PathLike, convention: str, kind: str = "operator"
+                ) -> Path | None:
+    """The oracle kernel file of ``convention`` that a virtual-bench dataset lists.
+
+    Parameters
+    ----------
+    root : path-like
+        Dataset folder (``ekdun make-dataset``).
+    convention : {"source", "sensor"}
+        Weight convention of the eigen-kernel model to compare with.
+    kind : {"operator", "psf"}
+        The operator oracle (the best eigen-kernel model of the simulator, the default) or the
+        PSF oracle.
+
+    Returns
+    -------
+    pathlib.Path or None
+        ``root/oracle/<file>``; ``None`` when ``root`` is not a virtual-bench dataset, has no
+        oracles (:func:`write_dataset_oracles` writes them) or lists none of that convention.
+    """
+    if kind not in ("operator", "psf"):
+        raise ValueError(f"kind must be 'operator' or 'psf', got {kind!r}")
+    doc = read_manifest(root)
+    files = ((doc or {}).get("oracle") or {}).get("files") or {}
+    name = (files.get(convention) or {}).get(kind)
+    return None if not name else Path(root) / "oracle" / name
+
+
+def dataset_spec(root: str | os.PathLike) -> tuple[dict[str, Any], VirtualBenchSpec]:
+    """``(manifest, spec)`` of a virtual-bench dataset.
+
+    Raises
+    ------
+    InvalidInputError
+        ``root`` is not a virtual-bench dataset, or its manifest's spec is not valid (one
+        line naming the manifest).
+    """
+    manifest = read_manifest(root)
+    if manifest is None or "spec" not in manifest:
+        raise InvalidInputError(f"{root}: not a virtual-bench dataset (no {MANIFEST} from "
+                                "ekdun make-dataset)")
+    try:
+        spec = VirtualBenchSpec.from_dict(manifest["spec"])
+    except (TypeError, ConfigurationError) as exc:   # an edited manifest: name it
+        raise InvalidInputError(f"{Path(root) / MANIFEST}: spec: {exc}") from None
+    return manifest, spec
+
+
+def dataset_oracle_scenes(manifest: dict[str, Any]) -> int | None:
+    """Scenes of the operator oracle a dataset already has: those of the oracle its manifest
+    lists, else the ``oracle_scenes`` of a manifest written before issue 44 (``make-dataset
+    --oracle-scenes``), else ``None`` (:func:`default_oracle_scenes`)."""
+    files = (manifest.get("oracle") or {}).get("files") or {}
+    for entry in files.values():
+        n = (entry.get("operator_record") or {}).get("n_scenes")
+        if n:
+            return int(n)
+    return int((manifest.get("spec") or {}).get("oracle_scenes") or 0) or None
+
+
+def _listed_oracles_exist(root: Path, manifest: dict[str, Any], n_scenes: int) -> bool:
+    files = (manifest.get("oracle") or {}).get("files") or {}
+    if set(files) != set(CONVENTIONS):
+        return False
+    return all((entry.get("operator_record") or {}).get("n_scenes") == n_scenes
+               and all((root / "oracle" / entry[k]).is_file() for k in ("operator", "psf"))
+               for entry in files.values())
+
+
+def write_dataset_oracles(root: str | os.PathLike, n_scenes: int | None = None,
+                          basis: str = "paper", progress: bool = False
+                          ) -> tuple[dict[str, Any], bool]:
+    """Write the unconstrained operator and PSF oracles of both conventions into a dataset.
+
+    ``root/oracle/`` gets ``{basis}_{convention}.npz`` and ``psf_{basis}_{convention}.npz``
+    (:func:`write_oracles`), the manifest an ``oracle`` record (what :func:`oracle_file`
+    reads) and its file list and content hash anew, so that ``ekdun make-dataset`` of the same
+    spec still reuses the dataset. The folder is written atomically and replaced as a whole;
+    the manifest is replaced atomically after it (a crash in between leaves a dataset whose
+    manifest does not list the new files: make-dataset rebuilds it, nothing reads a half
+    oracle).
+
+    Parameters
+    ----------
+    root : path-like
+        A virtual-bench dataset (``ekdun make-dataset``).
+    n_scenes : int, optional
+        Scenes of the operator oracle (default :func:`dataset_oracle_scenes`, else
+        :func:`default_oracle_scenes`).
+    basis : str
+        Weight basis.
+    progress : bool
+        Progress bars of the solves (stderr).
+
+    Returns
+    -------
+    (dict, bool)
+        The manifest's ``oracle`` record, and whether it was computed (``False``: the dataset
+        already had these oracles, of the same scenes, and nothing was written).
+    """
+    root = Path(root)
+    manifest, spec = dataset_spec(root)
+    n = n_scenes or dataset_oracle_scenes(manifest) or default_oracle_scenes(spec)
+    if manifest.get("oracle", {}).get("basis") == basis and \
+            _listed_oracles_exist(root, manifest, n):
+        return manifest["oracle"], False
+    with atomic_directory(root / "oracle", overwrite=True) as tmp:
+        record = write_oracles(tmp, spec, basis, n_scenes=n, progress=progress)
+    # the dataset's own listing (every file but the manifest): the cache check's
+    files = _data_files(root)
+    manifest.update(oracle=record, files=files, content_hash=content_hash(root, files))
+    with atomic_file(root / MANIFEST) as out:
+        out.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    return record, True
+
+
 __all__ = ["COMPARE_STREAM", "ORACLE_STREAM", "ORACLE_TOLERANCE", "OracleResult",
-           "compare_oracles", "default_oracle_scenes", "dense_psf_oracle", "difference_nccs",
-           "operator_oracle", "oracle_scenes", "psf_oracle", "white_scenes", "write_oracles"]
+           "compare_oracles", "dataset_oracle_scenes", "dataset_spec", "default_oracle_scenes",
+           "dense_psf_oracle", "difference_nccs", "operator_oracle", "oracle_file",
+           "oracle_scenes", "psf_oracle", "white_scenes", "write_dataset_oracles",
+           "write_oracles"]
