@@ -9,6 +9,7 @@ studies, ``research/oracles.py``, the best eigen-kernel models).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -188,16 +189,30 @@ def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
     return DenseShiftVariantModel(kernels, rows, cols, spec.sensor_shape, spec.convention)
 
 
-def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+@functools.cache
+def _natural_image(name: str) -> np.ndarray:
+    """``skimage.data.<name>()`` as ``(H, W, 3)`` float64 in [0, 1], decoded once per process.
+
+    Decoding it for every scene cost about 7 ms a scene, and every decode builds an imageio
+    plugin: a signal landing inside that constructor leaves a half-built object whose
+    destructor fails noisily. Read-only, as the cache hands the same array to every caller.
+    """
     import skimage.data
-    from skimage.transform import resize
 
     image = np.asarray(getattr(skimage.data, name)(), dtype=np.float64)
     if image.max() > 1:
         image = image / 255.0
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
-    image = image[..., :3]
+    image = np.ascontiguousarray(image[..., :3])
+    image.flags.writeable = False
+    return image
+
+
+def _natural_crop(name: str, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    from skimage.transform import resize
+
+    image = _natural_image(name)
     ih, iw = image.shape[:2]
     aspect = shape[1] / shape[0]
     side = rng.uniform(0.3, 1.0) * min(ih, iw / aspect)

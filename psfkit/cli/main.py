@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import logging
 import os
@@ -201,6 +202,31 @@ def quiet_libraries() -> Iterator[list[str]]:
         root.removeHandler(handler)
 
 
+@contextlib.contextmanager
+def destructor_errors_of_an_interruption() -> Iterator[list[bool]]:
+    """Within the block, errors raised by destructors (``Exception ignored in ...``) are held
+    back; the caller sets ``flag[0]`` once the command was interrupted, and then they are
+    dropped, else printed as usual when the block ends.
+
+    A signal that lands inside a library's constructor leaves a half-built object whose
+    destructor may fail (imageio's Pillow plugin before its ``images_to_write`` exists).
+    Python reports that whenever the object is collected, often after the command's
+    interruption line, which then is not the last line on stderr. The garbage is collected
+    before the block ends, so that no report escapes it.
+    """
+    interrupted = [False]
+    held: list[object] = []
+    previous = sys.unraisablehook
+    sys.unraisablehook = held.append
+    try:
+        yield interrupted
+    finally:
+        gc.collect()
+        sys.unraisablehook = previous
+        for report in () if interrupted[0] else held:
+            previous(report)
+
+
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     """Parse ``argv`` and run the chosen sub-command.
 
@@ -224,31 +250,39 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
         parser.print_help(sys.stderr)
         return 2
     reuse_freed_memory()         # fewer page faults in the full-resolution passes
-    try:
-        with terminate_like_interrupt(), protected_inputs(input_paths(parser, args)), \
-                (contextlib.nullcontext() if debug else quiet_libraries()):
-            status = int(args.func(args) or 0)
-        # after the work, so that an error stays the one line on stderr
-        for line in deprecation_notices(args):
-            print(line, file=sys.stderr)
-        return status
-    except KeyboardInterrupt as exc:
-        close_progress_bars()   # the line below is the last one on stderr
-        signum = getattr(exc, "signum", signal.SIGINT)
-        print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs "
-              "removed", file=sys.stderr)
-        return 128 + int(signum)
-    except Exception as exc:
-        if debug:
-            raise
-        if isinstance(exc, BrokenPipeError) and _stdout_closed():
-            # the reader of stdout went away (``psfkit register GRID | head -1``): stop
-            # quietly, as Unix tools do on SIGPIPE; outputs are committed before the summary
-            return 128 + signal.SIGPIPE
-        close_progress_bars()
-        line, status = error_line(prog, exc)
-        print(line, file=sys.stderr)
-        return status
+    with destructor_errors_of_an_interruption() as interrupted:
+        try:
+            with terminate_like_interrupt(), protected_inputs(input_paths(parser, args)), \
+                    (contextlib.nullcontext() if debug else quiet_libraries()):
+                status = int(args.func(args) or 0)
+        except KeyboardInterrupt as exc:
+            interrupted[0] = not debug
+            signum = int(getattr(exc, "signum", signal.SIGINT))
+        except Exception as exc:
+            if debug:
+                raise
+            return _failure(prog, exc)
+        else:
+            # after the work, so that an error stays the one line on stderr
+            for line in deprecation_notices(args):
+                print(line, file=sys.stderr)
+            return status
+    close_progress_bars()   # the line below is the last one on stderr
+    print(f"{prog}: interrupted ({signal.Signals(signum).name}); unfinished outputs removed",
+          file=sys.stderr)
+    return 128 + signum
+
+
+def _failure(prog: str, exc: Exception) -> int:
+    """Report a failed command in one line on stderr; its exit status."""
+    if isinstance(exc, BrokenPipeError) and _stdout_closed():
+        # the reader of stdout went away (``psfkit register GRID | head -1``): stop
+        # quietly, as Unix tools do on SIGPIPE; outputs are committed before the summary
+        return 128 + signal.SIGPIPE
+    close_progress_bars()
+    line, status = error_line(prog, exc)
+    print(line, file=sys.stderr)
+    return status
 
 
 def _stdout_closed() -> bool:

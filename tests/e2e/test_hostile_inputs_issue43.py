@@ -112,6 +112,49 @@ def test_the_commands_own_line_is_the_last_one_with_a_bar_open(how, status, line
     assert done.stderr.count(line) == 1
 
 
+#: A command that builds an object whose constructor is interrupted by SIGTERM (``term``)
+#: or completes (``done``) before its destructor, which fails without the attribute the
+#: constructor did not reach (as imageio's Pillow plugin does).
+HALF_BUILT_COMMAND = """
+import argparse, importlib, os, signal, sys, time
+main = importlib.import_module("psfkit.cli.main")
+
+class Writer:
+    def __init__(self, interrupt):
+        if interrupt:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(30)
+        self.pending = []
+
+    def __del__(self):
+        del self.unset_attribute
+
+def command(args):
+    Writer(sys.argv[1] == "term")
+
+parser = argparse.ArgumentParser(prog="psfkit")
+parser.set_defaults(func=command)
+sys.exit(main.run_cli("psfkit", parser, sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("how, debug, status, reported", [
+    ("term", False, 143, False),   # a consequence of the interruption: not shown
+    ("term", True, 143, True),     # --debug shows everything
+    ("done", False, 0, True),      # a destructor failing on its own is still reported
+])
+def test_a_half_built_objects_destructor_does_not_follow_the_interruption_line(
+        how, debug, status, reported):
+    done = subprocess.run([sys.executable, "-c", HALF_BUILT_COMMAND, how]
+                          + (["--debug"] if debug else []),
+                          capture_output=True, text=True, env=_env(), cwd=REPO, timeout=120)
+    assert done.returncode == status, done.stderr
+    assert ("Exception ignored in" in done.stderr) == reported, done.stderr
+    if how == "term":
+        assert _last_line(done.stderr) == \
+            "psfkit: interrupted (SIGTERM); unfinished outputs removed", done.stderr
+
+
 def test_sigterm_during_make_dataset_ends_with_the_interruption_line(tmp_path):
     """The sweep's case: SIGTERM while ``ekdun make-dataset`` draws its scenes bar."""
     out = tmp_path / "ds"
