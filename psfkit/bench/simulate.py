@@ -94,7 +94,7 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
                   grid_shape: tuple[int, int] = (9, 9), extent: float = 1.0,
                   dark_frame: bool = True, suffix: str = ".tiff", overwrite: bool = False,
                   progress: bool = True, backend: str = "numpy", frames: int = 1,
-                  clean_psfs: bool = True) -> Path:
+                  clean_psfs: bool = True, run_file: dict[str, Any] | None = None) -> Path:
     """Simulate and write a PSF grid with ground truth (see the module docstring).
 
     Parameters
@@ -131,6 +131,9 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
         Write ``ground_truth/psfs_clean.npy`` (``(N, M, C, H, W)`` float32). Without it the
         ground truth stays a few kB and :func:`read_ground_truth` recomputes the clean PSFs
         when they are read.
+    run_file : dict, optional
+        The settings of a ``--config`` run file (path and values), recorded in the manifest
+        under ``simulation.run_file``.
 
     Returns
     -------
@@ -140,7 +143,7 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     config = config or BenchConfig()
     monitor = grid_monitor_positions(config, grid_shape, extent)
     return _simulate(out_dir, config, monitor, False, dark_frame, suffix, overwrite, progress,
-                     backend, frames, clean_psfs)
+                     backend, frames, clean_psfs, run_file)
 
 
 def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
@@ -199,7 +202,8 @@ def _checked_frames(frames: int, suffix: str) -> int:
 
 def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
-              backend: str, frames: int, write_clean: bool = True) -> Path:
+              backend: str, frames: int, write_clean: bool = True,
+              run_file: dict[str, Any] | None = None) -> Path:
     """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
     positions (``scan``: an irregular scan, ``N = 1``)."""
     frames = _checked_frames(frames, suffix)
@@ -215,6 +219,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
     }
     if frames > 1:
         header["simulation"]["frames_averaged"] = frames
+    if run_file is not None:
+        header["simulation"]["run_file"] = run_file
     truth_positions = []
     # Enter the writer first: an existing output folder is reported before any work.
     with GridWriter(out_dir, None if scan else grid_shape, suffix=suffix, overwrite=overwrite,

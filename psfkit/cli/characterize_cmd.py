@@ -42,7 +42,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="also register each colour channel separately (lateral colour): "
                         "printed as one shift grid per channel, and in the numbers "
                         "(results.json: positions[].channel_shifts)")
-    add_flag(p, "--threads", command_name(p), note="2 positions processed concurrently")
+    add_flag(p, "--threads", command_name(p))
 
 
 def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
@@ -174,7 +174,7 @@ def _numbers_out(p: argparse.ArgumentParser) -> None:
 #: rarely changes (the registration precision, the dense-flow method, the MAE's smoothing, the
 #: dark-frame outlier threshold, the normalization, the registration-quality threshold).
 REPORT_ADVANCED = ("--upsample", "--method", "--mae-smoothing", "--hot-pixel-sigma",
-                   "--normalization", "--min-ncc")
+                   "--normalization", "--min-ncc", "--threads")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -9,10 +9,17 @@ from pathlib import Path
 from typing import Any
 
 from psfkit.choices import FLOW_METHODS
+from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.options import preprocess_options
 from psfkit.io import OutputTransaction
 from psfkit.kernelfile import load_kernels
 from psfkit.validation import flag
+
+#: Flags that only ``--help-all`` lists (issue 44): how the displacement maps are measured
+#: and how a grid given as the measured side is preprocessed.
+COMPARE_ADVANCED = ("--method", "--smooth", "--warp-positions", "--no-align",
+                    "--normalization", "--saturation-level", "--allow-saturated",
+                    "--hot-pixel-sigma")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "grid, with the warps between the centre and edge PSFs, and with the "
                     "grid's PCA modes; or, given a second kernel file instead of a grid, "
                     "with that file's kernels (no warps or PCA then). Writes figures, "
-                    "compare.json and compare.html.")
+                    "compare.json and compare.html. --help-all lists the advanced flags.")
+    add_help_all(p)
     p.add_argument("learned", help="kernel file of the trained model (.npz)")
     p.add_argument("grid", metavar="MEASURED",
                    help="PSF-grid folder of the same camera, or a kernel file (.npz: a grid "
@@ -47,12 +55,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="do not register the learned Kbase to the measured one first")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     g = p.add_argument_group("preprocessing of the grid")
-    g.add_argument("--normalization", choices=("max", "sum"), default="max")
+    g.add_argument("--normalization", choices=("max", "sum"), default="max",
+                   help="scale the grid's PSFs by the centre PSF's peak (max) or total (sum) "
+                        "(default max)")
     g.add_argument("--saturation-level", type=flag("--saturation-level"), default=None,
-                   metavar="VALUE")
-    g.add_argument("--allow-saturated", action="store_true")
-    g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0)
+                   metavar="VALUE", help="raw value at which the grid's sensor clips "
+                                         "(default: from dtype/bit_depth)")
+    g.add_argument("--allow-saturated", action="store_true",
+                   help="mask the grid's heavily saturated PSFs instead of refusing them")
+    g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0,
+                   help="dark-frame outlier threshold of the grid in robust std (default 8)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    mark_advanced(p, COMPARE_ADVANCED)
     p.set_defaults(func=run_compare)
 
 

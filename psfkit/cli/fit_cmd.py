@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -10,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
+from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.options import (
     add_coverage_options,
     add_grid_options,
@@ -17,6 +19,7 @@ from psfkit.cli.options import (
     preprocess_options,
     print_coverage,
 )
+from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.summaries import pm, print_verdict
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.errors import InvalidInputError
@@ -32,19 +35,28 @@ if TYPE_CHECKING:
     from psfkit.grid_fit import EigenFitOptions, GridEigenResult
 
 
+#: Flags that only ``--help-all`` lists (issue 44): the preprocessing and registration
+#: settings (``psfkit report`` shows the ones a grid needs first), the position placement and
+#: the cross-validation, whose defaults the fit's own verdict checks.
+FIT_EIGEN_ADVANCED = ("--normalization", "--saturation-level", "--allow-saturated",
+                      "--hot-pixel-sigma", "--upsample", "--min-ncc", "--gain-compensate",
+                      "--shifts", "--cv-bases", "--folds")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "fit-eigen", help="fit eigen-kernels (Kbase, Kv, Kh, ...) to a PSF grid",
         description="Least-squares fit of the eigen-kernel model PSF = sum_k W_k K_k (paper "
                     "Eq. 7) to the registered grid, with sensor-side and source-side weights, "
                     "cross-validated against richer bases and compared with a PCA. Writes the "
-                    "kernel file that ekdun trains from.")
+                    "kernel file that ekdun trains from. --help-all lists the advanced flags.")
+    add_help_all(p)
     add_grid_options(p)
     add_coverage_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_flag(p, "--basis", "fit-eigen",
-             note=f"paper; one of ek (= paper), {', '.join(BASIS_NAMES)}, or 'auto' for the "
-                  "best cross-validated one")
+             note=f"paper; one of ek, {', '.join(BASIS_NAMES)}, or auto: the best "
+                  "cross-validated one")
     add_flag(p, "--convention", "fit-eigen",
              note="sensor, or with --basis auto the verdict's; auto fits both and writes the "
                   "one with the lower cross-validated error")
@@ -66,6 +78,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "summary into DIR")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out file or --figures folder")
+    add_config_option(p, "folds = 5", "the kernel file's provenance")
+    mark_advanced(p, FIT_EIGEN_ADVANCED)
     p.set_defaults(func=run_fit_eigen)
 
 
@@ -133,7 +147,11 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     result = fit_eigen_grid(grid, _options(args, basis), progress=not args.quiet)
     if figures is not None:
         write_fit_figures(result, figures, overwrite=True)   # into the empty temporary folder
-    save_kernels(kernels, result.kernel_model())
+    model = result.kernel_model()
+    record = run_file_record(args)
+    if record is not None:   # the settings of --config, with the file's path
+        model = dataclasses.replace(model, provenance={**model.provenance, "run_file": record})
+    save_kernels(kernels, model)
     return result, result.basis_name
 
 

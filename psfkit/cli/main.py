@@ -16,6 +16,7 @@ from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.allocator import reuse_freed_memory
+from psfkit.cli.run_file import parse_args
 from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
 from psfkit.io.atomic import protected_inputs
@@ -243,7 +244,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | No
     """
     debug, argv = split_debug(prog, argv)
     try:
-        args = parser.parse_args(argv)
+        args = parse_args(parser, argv)   # with the command's --config run file, if any
     except SystemExit as exc:  # usage errors (one line, status 2) and --help / --version
         return exc.code if isinstance(exc.code, int) else 2
     if not hasattr(args, "func"):

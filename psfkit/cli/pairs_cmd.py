@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, command_name
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, read_pairs
@@ -22,6 +24,13 @@ from psfkit.pairs_options import PairFitOptions
 from psfkit.validation import dumps_finite, flag, require_finite
 from psfkit.weights import BASIS_NAMES
 from psfkit.zones import ZONE_NAMES
+
+#: Flags that only ``--help-all`` lists (issue 44): the solver and the constraints, whose
+#: defaults are chosen by held-out error or are a measured PSF's; the channel order, which the
+#: pairs folder declares.
+FIT_PAIRS_ADVANCED = ("--channel-order", "--tikhonov", "--difference", "--iterations",
+                      "--no-scale", "--nonneg", "--support", "--support-threshold",
+                      "--support-mask", "--energy", "--projected-iterations", "--leave-one-out")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,13 +44,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "of a measured PSF: non-negative, optionally zero outside a support and "
                     "with fixed energies. Writes a kernel file that ekdun and eval-model "
                     "read; its provenance records the regularisation chosen, the "
-                    "constraints, energies and support.")
+                    "constraints, energies and support. --help-all lists the advanced flags.")
+    add_help_all(p)
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
     add_flag(p, "--basis", "fit-pairs",
-             note=f"si; one of si, ek, {', '.join(BASIS_NAMES)}")
+             note=f"si; one of ek, {', '.join(BASIS_NAMES)}")
     add_flag(p, "--convention", "fit-pairs",
-             note="sensor, Eq. 7, K FFT pairs per iteration; source costs one FFT pair per "
+             note="sensor: K FFT pairs per iteration; source costs one FFT pair per "
                   "iteration and predicts held-out real pairs better (docs/your-camera.md)")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     _add_channel_order(p, "the folder's (pairs.json; BGR for the DLMD layout lensed/ + "
@@ -56,6 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out or --report file")
+    add_config_option(p, "tikhonov = 1e-3", "the kernel file's provenance")
+    mark_advanced(p, FIT_PAIRS_ADVANCED)
     p.set_defaults(func=run_fit_pairs)
 
     e = sub.add_parser(
@@ -256,6 +268,8 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
                   [round(float(e), 6) for e in fit.training_error], "physics": physics}
     if args.support_mask:
         provenance["support_mask"] = str(args.support_mask)
+    if run_file_record(args) is not None:   # the settings of --config, with the file's path
+        provenance["run_file"] = summary["run_file"] = run_file_record(args)
     save_kernels(kernels, fit.kernel_model(provenance, pairs.read_options(args.downsample)))
     if report is not None:
         report.write_text(dumps_finite(jsonable(summary), args.report, indent=1) + "\n",

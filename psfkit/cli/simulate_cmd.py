@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, PsfGrid, read_grid
 from psfkit.io.atomic import check_output
@@ -76,12 +78,21 @@ def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
         raise ConfigurationError(str(exc)) from None
 
 
+#: Flags that only ``--help-all`` lists (issue 44): the capture and the optics of the virtual
+#: camera beyond its size, binning and seed (their defaults are the embedded bench's).
+SIMULATE_ADVANCED = ("--extent", "--format", "--no-dark", "--frames", "--backend")
+BENCH_ADVANCED = ("--bench-config", "--diffusion-angle", "--gap-mm", "--peak-fraction",
+                  "--mono", "--plane-wave")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate-grid", help="simulate a measured PSF grid with the virtual bench",
         description="Simulate a diffuser camera (thin random phase diffuser, angular-spectrum "
                     "propagation, sensor noise) and write an N x M grid of point-source images "
-                    "in the PSF-grid format, with ground truth in DIR/ground_truth/.")
+                    "in the PSF-grid format, with ground truth in DIR/ground_truth/. "
+                    "--help-all lists the advanced flags.")
+    add_help_all(p)
     p.add_argument("--out", required=True, help="output grid folder (created atomically)")
     p.add_argument("--rows", type=flag("--rows"), default=9, help="grid rows (default 9)")
     p.add_argument("--cols", type=flag("--cols"), default=9, help="grid columns (default 9)")
@@ -101,6 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "~5e-7 but another noise realization), numpy (the float64 reference "
                         "path, file for file as before); auto (default) = torch if installed")
     add_bench_options(p)
+    add_config_option(p, "frames = 4", "the grid's manifest.json")
+    mark_advanced(p, SIMULATE_ADVANCED + BENCH_ADVANCED)
     p.set_defaults(func=run_simulate)
 
     d = sub.add_parser(
@@ -109,11 +122,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     f"diffuser camera whose PSF varies over the field (binned {DEMO_DOWNSAMPLE}x "
                     "by default), characterize it (registration, gain, MAE, warp), write the "
                     "HTML report, compare the measurements with the ground truth and fit the "
-                    "eigen-kernels.")
+                    "eigen-kernels. --help-all lists the advanced flags.")
+    add_help_all(d)
     d.add_argument("--out", default="psfkit-demo", help="output folder (default psfkit-demo)")
     d.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     add_bench_options(d, downsample=DEMO_DOWNSAMPLE)
+    add_config_option(d, "gap-mm = 10", "the grid's manifest.json")
+    mark_advanced(d, ("--downsample", *BENCH_ADVANCED))
     d.set_defaults(func=run_demo)
 
 
@@ -124,7 +140,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     out = simulate_grid(args.out, config, grid_shape=(args.rows, args.cols), extent=args.extent,
                         dark_frame=not args.no_dark, suffix=f".{args.format}",
                         overwrite=args.overwrite, progress=not args.quiet, backend=args.backend,
-                        frames=args.frames)
+                        frames=args.frames, run_file=run_file_record(args))
     print(f"wrote {args.rows} x {args.cols} grid to {out}")
     return 0
 
@@ -145,7 +161,7 @@ def run_demo(args: argparse.Namespace) -> int:
             # the ground truth without the clean PSFs (read_ground_truth computes them again
             # when asked): 378 MB of float32 at 2x binning that a user rarely reads
             simulate_grid(grid_dir, config, overwrite=True, progress=not args.quiet,
-                          clean_psfs=False)
+                          clean_psfs=False, run_file=run_file_record(args))
             _demo_steps(args, config, grid_dir, *staged)
     except BaseException:
         if new_grid:

@@ -44,7 +44,7 @@ class SharedFlag:
 
     ``default`` is the parser's default (``None``: not given; the command decides, as
     ``default_text`` says); ``per_command`` maps a command to the keys (``default``,
-    ``choices``) in which that command deliberately differs.
+    ``choices``, ``meaning``, ``default_text``) in which that command deliberately differs.
     """
 
     name: str
@@ -58,32 +58,51 @@ class SharedFlag:
     per_command: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def spec(self, command: str) -> dict[str, Any]:
-        """``default`` and ``choices`` of this flag in ``command``."""
-        spec = {"default": self.default, "choices": self.choices}
+        """``default``, ``choices``, ``meaning`` and ``default_text`` of this flag in
+        ``command`` (the help of each command describes the flag for that command alone)."""
+        spec = {"default": self.default, "choices": self.choices, "meaning": self.meaning,
+                "default_text": self.default_text}
         spec.update(self.per_command.get(command, {}))
         return spec
 
 
 VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
-               "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
-               "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
+               "weight basis of the model: ek (= paper: Kbase, Kv, Kh) or another weight "
+               "basis of psfkit.weights",
                "si (fit-pairs), paper (fit-eigen)", default="si",
-               per_command={"fit-eigen": {"default": "paper"}}),
+               per_command={
+                   "fit-eigen": {"default": "paper", "meaning":
+                                 "weight basis of the eigen-kernel model: ek (= paper: Kbase, "
+                                 "Kv, Kh), another weight basis of psfkit.weights, or auto"},
+                   "fit-pairs": {"meaning":
+                                 "the model to fit: si (one shift-invariant PSF), ek (= paper: "
+                                 "Kbase, Kv, Kh) or another weight basis of psfkit.weights"}}),
     SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
                "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",
                "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
-               "or source (fit-eigen: also auto = the lower cross-validated error)",
+               "or source",
                "sensor", default="sensor", choices=("sensor", "source"),
                # fit-eigen: unset = sensor, or with --basis auto the verdict's convention
                per_command={"fit-eigen": {"choices": ("sensor", "source", "auto"),
-                                          "default": None}}),
-    SharedFlag("--threads", "threads", "CPU threads (torch's intra-op threads in ekdun; "
-               "processes drawing the scenes in ekdun make-dataset; positions processed "
-               "concurrently in psfkit report)",
-               "2 (psfkit), torch's default (ekdun), the CPUs up to 16 and one per 64 "
-               "scenes (make-dataset)", kind="number", metavar="N"),
+                                          "default": None, "meaning":
+                                          "where the weights of the eigen-kernel model live: "
+                                          "sensor (the paper's Eq. 7), source, or auto (the "
+                                          "lower cross-validated error)"}}),
+    SharedFlag("--threads", "threads", "CPU threads",
+               "2 (psfkit report), torch's default (ekdun), the CPUs up to 16 and one per 64 "
+               "scenes (make-dataset)", kind="number", metavar="N",
+               # one meaning per command, each help line describes only its own (issue 44)
+               per_command={
+                   **{cmd: {"meaning": "PSF positions processed at the same time",
+                            "default_text": "2"} for cmd in ("report", "register", "mae",
+                                                             "warp")},
+                   "make-dataset": {"meaning": "processes drawing the scenes at the same time",
+                                    "default_text": "the CPUs up to 16 and one per 64 scenes"},
+                   **{cmd: {"meaning": "torch's CPU threads (intra-op)",
+                            "default_text": "torch's default"}
+                      for cmd in ("train", "eval", "reconstruct", "admm")}}),
     SharedFlag("--loader-workers", "loader_workers",
                "DataLoader worker processes when the dataset does not fit on the device",
                "2", default=2, kind="number", metavar="N"),
@@ -104,8 +123,15 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
     SharedFlag("--holdout", "holdout",
                "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit "
-               "or of training; eval-model: the pairs the model was not fitted on, where its "
-               "file does not record them", "-", metavar="NAME[,NAME]"),
+               "or of training", "-", metavar="NAME[,NAME]",
+               per_command={
+                   "fit-pairs": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
+                                            "repeatable) left out of the fit"},
+                   "train": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
+                                        "repeatable) left out of training"},
+                   "eval-model": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
+                                             "repeatable) the model was not fitted on, where "
+                                             "its file does not record them"}}),
     SharedFlag("--out", "out", "where the outputs go (a file or folder, per command)",
                "required, or none (demo: psfkit-demo)",
                per_command={"demo": {"default": "psfkit-demo"}}),
@@ -149,7 +175,7 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
         kwargs["type"] = device_name
     if entry.metavar:
         kwargs["metavar"] = entry.metavar
-    kwargs["help"] = f"{entry.meaning} (default: {note or entry.default_text})"
+    kwargs["help"] = f"{spec['meaning']} (default: {note or spec['default_text']})"
     kwargs.update(extra)
     action = parser.add_argument(name, **kwargs)
     for (cmd, alias), canonical in DEPRECATED.items():

@@ -1,0 +1,237 @@
+"""``--config RUN.toml``: a command's settings from a TOML run file (issue 44, item 4).
+
+A run file holds flat ``key = value`` settings whose keys are the command's long flag names
+without the dashes (``tikhonov = 1e-3``; ``no-scale`` or ``no_scale``), typed as the flag
+expects: a string, a number, ``true``/``false`` for a switch (``nonneg = false`` is
+``--no-nonneg``), an array for a repeatable flag (``holdout = ["im65", "im66"]``). Every value
+goes through the command's own parser, so a bad value is refused with the parser's one-line
+error, prefixed by the file and the key; an unknown key, a key naming a positional argument,
+or a file that cannot be read or is not TOML is one line too (exit status 2), before any work.
+Flags given on the command line override the file.
+
+The function is generic (:func:`parse_args` takes any ``argparse`` parser, sub-commands
+included): a command opts in with :func:`add_config_option`. The settings used are left on the
+namespace (:data:`RUN_FILE`, :func:`run_file_record`) for the command to record with its
+outputs (the kernel file's provenance, the grid's manifest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 reads TOML with the tomli backport
+    import tomli as tomllib
+
+#: Namespace attribute holding what the run file set (:func:`run_file_record`).
+RUN_FILE = "run_file"
+#: Attribute that marks the ``--config`` action of a command.
+_MARK = "reads_run_file"
+
+
+def add_config_option(parser: argparse.ArgumentParser, example: str, where: str
+                      ) -> argparse.Action:
+    """Add ``--config RUN.toml`` to ``parser`` (a command); ``example`` is one line of a run
+    file of that command, ``where`` the output that records the settings."""
+    action = parser.add_argument(
+        "--config", metavar="RUN.toml",
+        help=f"read settings from this TOML file, one line per flag of this command without "
+             f"its dashes (--help-all lists them), e.g. {example}; flags given on the command "
+             f"line override the file; {where} records the settings used")
+    setattr(action, _MARK, True)
+    return action
+
+
+def run_file_record(args: argparse.Namespace) -> dict[str, Any] | None:
+    """What the run file of ``args`` set: ``{"path", "settings", "overridden"}`` (the file's
+    resolved path, ``{flag: value}`` as parsed, the flags of the file that the command line
+    overrode), or ``None`` without ``--config``."""
+    return getattr(args, RUN_FILE, None)
+
+
+def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, with the settings of the command's ``--config`` file.
+
+    The file's settings are inserted before the command's own arguments, so that a flag on the
+    command line wins; a flag of the file that the command line also gives is left out
+    (a repeatable flag is not merged). Errors are ``parser.error`` lines (exit status 2).
+    """
+    argv = list(argv)
+    found = _command(parser, argv)
+    if found is None:
+        return parser.parse_args(argv)
+    command, start = found
+    path = _config_path(command, argv[start:])
+    if path is None:
+        return parser.parse_args(argv)
+    given = _given(command, argv[start:])
+    tokens: list[str] = []
+    settings: dict[str, Any] = {}
+    overridden: list[str] = []
+    for key, action, value in _settings(command, path):
+        name = action.option_strings[0] if _is_switch_pair(action) else _long_name(key)
+        if action in given:
+            overridden.append(name)
+            continue
+        new, parsed = _tokens(command, path, key, action, value)
+        tokens += new
+        settings[name] = parsed
+    args = parser.parse_args(argv[:start] + tokens + argv[start:])
+    setattr(args, RUN_FILE, {"path": str(Path(path).resolve()), "settings": settings,
+                             "overridden": overridden})
+    return args
+
+
+def _command(parser: argparse.ArgumentParser, argv: list[str]
+             ) -> tuple[argparse.ArgumentParser, int] | None:
+    """The (sub-)parser that takes ``--config`` and where its arguments start in ``argv``."""
+    start = 0
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            break
+        index = next((i for i in range(start, len(argv))
+                      if not argv[i].startswith("-") and argv[i] in subs[0].choices), None)
+        if index is None:
+            return None
+        parser, start = subs[0].choices[argv[index]], index + 1
+    if any(getattr(a, _MARK, False) for a in parser._actions):
+        return parser, start
+    return None
+
+
+def _options(argv: list[str]) -> list[str]:
+    """The option tokens of ``argv`` (before a ``--``)."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    return [t for t in argv[:end] if t.startswith("-") and len(t) > 1]
+
+
+def _resolve(command: argparse.ArgumentParser, token: str) -> argparse.Action | None:
+    """The action of an option token as argparse resolves it (``--opt=v``, unique prefix)."""
+    option = token.split("=", 1)[0]
+    actions = command._option_string_actions
+    if option in actions:
+        return actions[option]
+    if command.allow_abbrev and option.startswith("--"):
+        matches = {a for name, a in actions.items() if name.startswith(option)}
+        if len(matches) == 1:
+            return matches.pop()
+    return None
+
+
+def _given(command: argparse.ArgumentParser, argv: list[str]) -> set[argparse.Action]:
+    return {a for t in _options(argv) if (a := _resolve(command, t)) is not None}
+
+
+def _config_path(command: argparse.ArgumentParser, argv: list[str]) -> str | None:
+    """The value of the command's ``--config`` in ``argv`` (the last one), if any."""
+    path = None
+    end = argv.index("--") if "--" in argv else len(argv)
+    for i, token in enumerate(argv[:end]):
+        action = _resolve(command, token) if token.startswith("--") else None
+        if action is None or not getattr(action, _MARK, False):
+            continue
+        if "=" in token:
+            path = token.split("=", 1)[1]
+        elif i + 1 < end:
+            path = argv[i + 1]
+    return path or None
+
+
+def _long_name(key: str) -> str:
+    return "--" + key.replace("_", "-")
+
+
+def _is_switch_pair(action: argparse.Action) -> bool:
+    return isinstance(action, argparse.BooleanOptionalAction)
+
+
+def _read(command: argparse.ArgumentParser, path: str) -> dict[str, Any]:
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+        return tomllib.loads(text)
+    except OSError as exc:
+        command.error(f"{path}: cannot read the run file ({exc.strerror or exc})")
+    except UnicodeDecodeError:
+        command.error(f"{path}: the run file is not TOML (not UTF-8 text)")
+    except tomllib.TOMLDecodeError as exc:
+        command.error(f"{path}: the run file is not valid TOML ({exc})")
+    raise AssertionError("unreachable")   # parser.error exits
+
+
+def _settings(command: argparse.ArgumentParser, path: str
+              ) -> list[tuple[str, argparse.Action, Any]]:
+    """``(key, action, value)`` of every key of the file, each a flag of ``command``."""
+    from psfkit.cli.help_all import is_advanced
+
+    positionals = {name for a in command._actions if not a.option_strings
+                   for name in (a.dest, str(a.metavar or "").lower()) if name}
+    seen: dict[argparse.Action, str] = {}
+    found = []
+    for key, value in _read(command, path).items():
+        name = _long_name(key)
+        action = command._option_string_actions.get(name)
+        if key.replace("-", "_") in positionals and action is None:
+            command.error(f"{path}: key '{key}' is an argument of the command, not a "
+                          "setting: give it on the command line")
+        listed = action is not None and (action.help != argparse.SUPPRESS
+                                         or is_advanced(action))
+        if not listed or action.dest == argparse.SUPPRESS or getattr(action, _MARK, False) \
+                or isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            command.error(f"{path}: unknown key '{key}' (the keys are the long flag names "
+                          f"of {command.prog}; --help-all lists them)")
+        if isinstance(value, dict):
+            command.error(f"{path}: key '{key}' is a table; a run file holds key = value "
+                          "settings")
+        if action in seen:
+            command.error(f"{path}: keys '{seen[action]}' and '{key}' set the same flag")
+        seen[action] = key
+        found.append((key, action, value))
+    return found
+
+
+def _tokens(command: argparse.ArgumentParser, path: str, key: str, action: argparse.Action,
+            value: Any) -> tuple[list[str], Any]:
+    """The command-line tokens of one setting, and its value as the parser reads it."""
+    name = _long_name(key)
+    if action.nargs == 0:   # a switch: true / false
+        if not isinstance(value, bool):
+            command.error(f"{path}: key '{key}' is a switch: true or false, got {value!r}")
+        if _is_switch_pair(action):
+            on = value == (name == action.option_strings[0])
+            return [action.option_strings[0 if on else 1]], on
+        return ([name] if value else []), value
+    repeatable = isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*")
+    values = value if isinstance(value, list) and repeatable else [value]
+    if not values:
+        command.error(f"{path}: key '{key}' is an empty list")
+    texts = [_text(command, path, key, v) for v in values]
+    parsed = [_parsed(command, path, key, action, t) for t in texts]
+    if isinstance(action, argparse._AppendAction):
+        return [token for t in texts for token in (name, t)], parsed
+    if repeatable:
+        return [name, *texts], parsed
+    return [name, texts[0]], parsed[0]
+
+
+def _text(command: argparse.ArgumentParser, path: str, key: str, value: Any) -> str:
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        command.error(f"{path}: key '{key}' takes a value (a string or a number), got "
+                      f"{value!r}")
+    return str(value)
+
+
+def _parsed(command: argparse.ArgumentParser, path: str, key: str, action: argparse.Action,
+            text: str) -> Any:
+    """``text`` converted and checked as the parser does for ``action`` (same error)."""
+    try:
+        value = command._get_value(action, text)
+        command._check_value(action, value)
+    except argparse.ArgumentError as exc:
+        command.error(f"{path}: key '{key}': {exc}")
+    return value
