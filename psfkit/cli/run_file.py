@@ -174,6 +174,9 @@ def _settings(command: argparse.ArgumentParser, path: str
     seen: dict[argparse.Action, str] = {}
     found = []
     for key, value in _read(command, path).items():
+        if isinstance(value, dict):
+            command.error(f"{path}: key '{key}' is a table; a run file holds key = value "
+                          "settings")
         name = _long_name(key)
         action = command._option_string_actions.get(name)
         if key.replace("-", "_") in positionals and action is None:
@@ -185,9 +188,6 @@ def _settings(command: argparse.ArgumentParser, path: str
                 or isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
             command.error(f"{path}: unknown key '{key}' (the keys are the long flag names "
                           f"of {command.prog}; --help-all lists them)")
-        if isinstance(value, dict):
-            command.error(f"{path}: key '{key}' is a table; a run file holds key = value "
-                          "settings")
         if action in seen:
             command.error(f"{path}: keys '{seen[action]}' and '{key}' set the same flag")
         seen[action] = key
