@@ -57,9 +57,11 @@ def run_file_record(args: argparse.Namespace) -> dict[str, Any] | None:
 def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
     """``parser.parse_args(argv)``, with the settings of the command's ``--config`` file.
 
-    The file's settings are inserted before the command's own arguments, so that a flag on the
-    command line wins; a flag of the file that the command line also gives is left out
-    (a repeatable flag is not merged). Errors are ``parser.error`` lines (exit status 2).
+    A flag of the file that the command line also gives is left out: the command line wins
+    (a repeatable flag is not merged). The file's settings are appended to the command's
+    arguments (before a ``--``), each value joined to its flag (``--tikhonov=0.001``), so that
+    none can be taken for the value of another or for a positional argument. Errors are
+    ``parser.error`` lines (exit status 2).
     """
     argv = list(argv)
     found = _command(parser, argv)
@@ -81,7 +83,8 @@ def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse
         new, parsed = _tokens(command, path, key, action, value)
         tokens += new
         settings[name] = parsed
-    args = parser.parse_args(argv[:start] + tokens + argv[start:])
+    end = argv.index("--", start) if "--" in argv[start:] else len(argv)
+    args = parser.parse_args(argv[:end] + tokens + argv[end:])
     setattr(args, RUN_FILE, {"path": str(Path(path).resolve()), "settings": settings,
                              "overridden": overridden})
     return args
@@ -213,10 +216,10 @@ def _tokens(command: argparse.ArgumentParser, path: str, key: str, action: argpa
     texts = [_text(command, path, key, v) for v in values]
     parsed = [_parsed(command, path, key, action, t) for t in texts]
     if isinstance(action, argparse._AppendAction):
-        return [token for t in texts for token in (name, t)], parsed
+        return [f"{name}={t}" for t in texts], parsed
     if repeatable:
         return [name, *texts], parsed
-    return [name, texts[0]], parsed[0]
+    return [f"{name}={texts[0]}"], parsed[0]
 
 
 def _text(command: argparse.ArgumentParser, path: str, key: str, value: Any) -> str:

@@ -68,8 +68,9 @@ class SharedFlag:
 
 VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
-               "weight basis of the model: ek (= paper: Kbase, Kv, Kh) or another weight "
-               "basis of psfkit.weights",
+               # the general meaning (docs/cli-flags.md); each command's help says its own
+               "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
+               "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
                "si (fit-pairs), paper (fit-eigen)", default="si",
                per_command={
                    "fit-eigen": {"default": "paper", "meaning":
@@ -82,10 +83,12 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",
                "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
-               "or source",
+               "or source (fit-eigen: also auto = the lower cross-validated error)",
                "sensor", default="sensor", choices=("sensor", "source"),
                # fit-eigen: unset = sensor, or with --basis auto the verdict's convention
-               per_command={"fit-eigen": {"choices": ("sensor", "source", "auto"),
+               per_command={"fit-pairs": {"meaning": "where the weights of an eigen-kernel "
+                                          "model live: sensor (the paper's Eq. 7) or source"},
+                            "fit-eigen": {"choices": ("sensor", "source", "auto"),
                                           "default": None, "meaning":
                                           "where the weights of the eigen-kernel model live: "
                                           "sensor (the paper's Eq. 7), source, or auto (the "
@@ -123,7 +126,8 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
     SharedFlag("--holdout", "holdout",
                "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit "
-               "or of training", "-", metavar="NAME[,NAME]",
+               "or of training; eval-model: the pairs the model was not fitted on, where its "
+               "file does not record them", "-", metavar="NAME[,NAME]",
                per_command={
                    "fit-pairs": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
                                             "repeatable) left out of the fit"},

@@ -83,6 +83,16 @@ def test_each_help_line_describes_its_own_command(capsys):
     eigen = _help(capsys, "fit-eigen", "--help")
     basis = " ".join(eigen[eigen.index("--basis BASIS  "):].split("\n  -")[0].split())
     assert "fit-pairs" not in basis and "auto" in basis
+    # no shared flag's help explains what it means in another command
+    from psfkit.cli.help_all import full_help
+    from psfkit.cli.vocabulary import VOCABULARY
+
+    elsewhere = re.compile(r"\b(fit-eigen|fit-pairs|eval-model|make-dataset|train)( only|:)|"
+                           r"\bekdun\b|\(psfkit\)")
+    for name, parser in _commands().items():
+        for action in parser._actions:
+            if set(action.option_strings) & set(VOCABULARY) and full_help(action):
+                assert not elsewhere.search(full_help(action)), (name, full_help(action))
 
 
 def _write(path: Path, text: str) -> Path:
