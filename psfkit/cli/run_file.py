@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from psfkit.cli.help_all import is_advanced
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - Python 3.10 reads TOML with the tomli backport
@@ -32,6 +34,8 @@ else:  # pragma: no cover - Python 3.10 reads TOML with the tomli backport
 RUN_FILE = "run_file"
 #: Attribute that marks the ``--config`` action of a command.
 _MARK = "reads_run_file"
+#: Largest run file read (bytes).
+MAX_RUN_FILE_BYTES = 1 << 20
 
 
 def add_config_option(parser: argparse.ArgumentParser, example: str, where: str
@@ -156,8 +160,14 @@ def _is_switch_pair(action: argparse.Action) -> bool:
 
 def _read(command: argparse.ArgumentParser, path: str) -> dict[str, Any]:
     try:
-        text = Path(path).read_bytes().decode("utf-8")
-        return tomllib.loads(text)
+        with open(path, "rb") as fh:   # a run file is a few lines: never read a huge one
+            data = fh.read(MAX_RUN_FILE_BYTES + 1)
+        if len(data) > MAX_RUN_FILE_BYTES:
+            command.error(f"{path}: the run file is larger than {MAX_RUN_FILE_BYTES} bytes "
+                          "(a run file holds a few settings)")
+        return tomllib.loads(data.decode("utf-8"))
+    except RecursionError:
+        command.error(f"{path}: the run file is nested too deeply to be read")
     except OSError as exc:
         command.error(f"{path}: cannot read the run file ({exc.strerror or exc})")
     except UnicodeDecodeError:
@@ -170,8 +180,6 @@ def _read(command: argparse.ArgumentParser, path: str) -> dict[str, Any]:
 def _settings(command: argparse.ArgumentParser, path: str
               ) -> list[tuple[str, argparse.Action, Any]]:
     """``(key, action, value)`` of every key of the file, each a flag of ``command``."""
-    from psfkit.cli.help_all import is_advanced
-
     positionals = {name for a in command._actions if not a.option_strings
                    for name in (a.dest, str(a.metavar or "").lower()) if name}
     seen: dict[argparse.Action, str] = {}

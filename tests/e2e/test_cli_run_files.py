@@ -229,6 +229,8 @@ BAD_RUN_FILES = [
     ("malformed.toml", "tikhonov = [\n", "not valid TOML"),
     ("binary.toml", None, "not TOML"),
     ("missing.toml", "", "cannot read the run file"),
+    ("deep.toml", "a = " + "[" * 100_000 + "]" * 100_000 + "\n", "nested too deeply"),
+    ("huge.toml", "#" * (1 << 20) + "\n", "larger than"),
 ]
 
 
