@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "Le-ADMM-U, UPDN) for lensless cameras.")
     parser.add_argument("--version", action="version", version=f"ekdun {__version__}")
     add_debug_option(parser)
-    sub = parser.add_subparsers(title="commands", metavar="COMMAND")
+    sub = parser.add_subparsers(title="commands", metavar="COMMAND", dest="command")
     commands.register(sub)
     return parser
 

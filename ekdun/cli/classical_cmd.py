@@ -1,6 +1,9 @@
-"""``ekdun admm`` (alias ``ekdun reconstruct-classical``): reconstruction without training.
+"""``ekdun admm`` (alias ``ekdun reconstruct-classical``): deprecated spellings of classical
+reconstruction, which is now ``ekdun reconstruct`` with a kernel file or a PSF image
+(:mod:`ekdun.cli.reconstruct_cmd`; issue 44, docs/migration.md).
 
-Two forms, a thin layer over :mod:`ekdun.reconstruction`:
+Hidden from ``ekdun --help``, they run exactly as before for one release and then print one
+note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 * ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment
   (:func:`psfkit.preprocess.psf_kernel`: background, binning, clipped to ``>= 0``, unit sum
@@ -11,7 +14,10 @@ Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 Both run the one solver, :class:`~ekdun.reconstruction.classical.ModelReconstructor`, with the
 same options (``--solver``, ``--tv``, ``--nonneg``, ``--tol``, ``--dtype``): a PSF and the SI
-kernel file of that PSF give the same reconstruction (tested).
+kernel file of that PSF give the same reconstruction (tested). The model builders
+(:func:`kernel_file_model`, :func:`psf_image_model`) and the solver flags
+(:func:`add_solver_flags`) are shared with ``ekdun reconstruct``, so that both spellings give
+the same numbers.
 """
 
 from __future__ import annotations
@@ -19,9 +25,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from ekdun.errors import InvalidInputError
-from psfkit.cli.vocabulary import add_flag
+from psfkit.cli.vocabulary import NOTICES, add_flag, deprecation_notices
 from psfkit.validation import flag, require_finite
 
 # One TV default for both forms (the same solver and units since issue 22; 3e-4 was the best of
@@ -31,38 +38,56 @@ _DEFAULTS = {"psf": {"iterations": 100, "tv": 3e-4, "background": "corner"},
 # ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch
 # (tests/e2e/test_cli_classical.py checks that they agree).
 SOLVERS = ("auto", "admm", "pdhg")
+#: The parser defaults of the solver flags that are not ``None`` (``ekdun reconstruct`` refuses
+#: them with a checkpoint only when they differ from these).
+SOLVER_DEFAULTS = {"solver": "auto", "nonneg": True, "tol": 0.0, "dtype": "float32"}
+#: The old spellings, hidden; ``reconstruct-classical`` is an alias of ``admm``.
+DEPRECATED_COMMANDS = ("admm", "reconstruct-classical")
+
+
+def deprecated_note(command: str) -> str:
+    """The one line ``ekdun admm`` / ``reconstruct-classical`` prints after its work."""
+    return (f"note: `ekdun {command}` is deprecated: use `ekdun reconstruct MODEL "
+            "MEASUREMENT... --out DIR` (MODEL: the kernel file, or the PSF image); this "
+            "spelling will be removed in the next release (docs/migration.md)")
+
+
+def add_solver_flags(p: argparse.ArgumentParser, command: str, form_note: str) -> None:
+    """The options of the classical solver (``admm``, ``reconstruct``); ``form_note`` says
+    which inputs they apply to in ``command``."""
+    p.add_argument("--iterations", type=flag("--iterations"),
+                   help=f"solver iterations{form_note} (default 100)")
+    add_flag(p, "--tv", command)
+    p.add_argument("--solver", choices=SOLVERS, default="auto",
+                   help="admm (closed-form ADMM-TV, any model), pdhg (Chambolle-Pock), auto "
+                        f"(default: admm){form_note}")
+    p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
+                   help=f"constrain the image to >= 0{form_note} (default on)")
+    p.add_argument("--tol", type=flag("--tol"), default=0.0,
+                   help="stop when the relative change of the image falls below this"
+                        f"{form_note} (default 0: run all iterations)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help=f"precision of the solver{form_note} (default float32)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``admm`` and its alias ``reconstruct-classical``."""
+    """Add ``admm`` and ``reconstruct-classical``, hidden (deprecated)."""
+    # no help=: not listed by `ekdun --help`; the note is printed after the work (run_admm)
     p = sub.add_parser(
-        "admm", aliases=["reconstruct-classical"],
-        help="classical TV reconstruction with a PSF image or a kernel file (no training)",
-        description="No trained model needed. With a PSF image: its shift-invariant model "
-                    "(background subtracted, clipped to >= 0, unit sum per channel). With "
-                    "--kernels: the SI or eigen-kernel model exactly as fitted (no clipping, "
-                    "no renormalisation); folders of measurements in, a folder of "
-                    "reconstructions out. Both forms run the same solvers with the same "
-                    "options: closed-form ADMM-TV for every model (one split per kernel; "
-                    "weighted-scene splits for source-side models) or PDHG.")
+        "admm", aliases=list(DEPRECATED_COMMANDS[1:]),
+        description="Deprecated: use `ekdun reconstruct MODEL MEASUREMENT... --out DIR` "
+                    "(MODEL: a kernel file or a PSF image). With a PSF image: its "
+                    "shift-invariant model (background subtracted, clipped to >= 0, unit "
+                    "sum per channel). With --kernels: the SI or eigen-kernel model "
+                    "exactly as fitted; folders of measurements in, a folder of "
+                    "reconstructions out.")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="PSF MEASUREMENT, or with --kernels: measurement files and/or folders")
     p.add_argument("--kernels", help="kernel file (.npz) from psfkit fit-eigen / fit-pairs")
     p.add_argument("--out", required=True,
                    help="output .npy (a .png preview is written next to it); with --kernels "
                         "and a folder or several measurements: an output folder")
-    p.add_argument("--iterations", type=flag("--iterations"), help="iterations (default 100)")
-    add_flag(p, "--tv", "admm")
-    p.add_argument("--solver", choices=SOLVERS, default="auto",
-                   help="admm (closed-form ADMM-TV, any model), pdhg (Chambolle-Pock), auto "
-                        "(default: admm)")
-    p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
-                   help="constrain the image to >= 0 (default on)")
-    p.add_argument("--tol", type=flag("--tol"), default=0.0,
-                   help="stop when the relative change of the image falls below this "
-                        "(default 0: run all iterations)")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
-                   help="precision (default float32)")
+    add_solver_flags(p, "admm", "")
     p.add_argument("--downsample", type=flag("--downsample"),
                    help="box-downsample the inputs first (default: with --kernels, the factor "
                         "recorded in the kernel file; else 1)")
@@ -74,44 +99,68 @@ def register(sub: argparse._SubParsersAction) -> None:
                   "model fitted on the DLMD pairs; else RGB; outputs are always RGB")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (file and preview, or folder)")
-    add_flag(p, "--threads", "admm")
+    add_flag(p, "--threads", "admm",
+             help="CPU threads of the solver (torch's intra-op threads; default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_admm)
+
+
+def fill_defaults(args: argparse.Namespace, form: str) -> None:
+    """The defaults of the form (``"psf"`` or ``"kernels"``) for the flags left unset."""
+    for name, value in _DEFAULTS[form].items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
 
 
 def run_admm(args: argparse.Namespace) -> int:
     import torch
 
+    # the note joins the deprecated flags' notes, printed by run_cli after the work
+    # (``command``: the spelling used, set by ekdun's sub-parser action)
+    setattr(args, NOTICES, [*deprecation_notices(args),
+                            deprecated_note(getattr(args, "command", None) or "admm")])
     if args.threads:
         torch.set_num_threads(args.threads)
-    form = "kernels" if args.kernels else "psf"
-    for name, value in _DEFAULTS[form].items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    fill_defaults(args, "kernels" if args.kernels else "psf")
     return run_with_kernels(args) if args.kernels else run_with_psf(args)
+
+
+def classical_options(args: argparse.Namespace) -> Any:
+    """The :class:`~ekdun.reconstruction.classical.ClassicalOptions` of the flags."""
+    from ekdun.reconstruction.classical import ClassicalOptions
+
+    return ClassicalOptions(solver=args.solver, tv=args.tv, iterations=args.iterations,
+                            nonneg=args.nonneg, tol=args.tol, dtype=args.dtype)
+
+
+def kernel_file_model(path: str, channel_order: str | None, downsample: int | None
+                      ) -> tuple[Any, str, int, float | None, list[str]]:
+    """A kernel file as fitted, and how to read its measurements: ``(model, channel order,
+    binning factor, white level, notices)``, the flags overriding the file's record."""
+    from psfkit.io.read_options import choose
+    from psfkit.kernelfile import load_kernels
+
+    model = load_kernels(path)
+    # inputs are read the way the model's data was, unless a flag says otherwise
+    recorded = model.data_read_options()
+    order, order_notice = choose(channel_order, recorded.channel_order, "RGB",
+                                 "--channel-order", path)
+    factor, factor_notice = choose(downsample, recorded.downsample, 1, "--downsample", path)
+    notices = [n for n in (order_notice, factor_notice) if n]
+    return model, order, factor, recorded.white_level, notices
 
 
 def run_with_kernels(args: argparse.Namespace) -> int:
     from ekdun.reconstruction.classical import (
-        ClassicalOptions,
         ModelReconstructor,
         read_classical_measurement,
         reconstruct_folder,
         write_reconstruction,
     )
-    from psfkit.io.read_options import choose
-    from psfkit.kernelfile import load_kernels
 
-    model = load_kernels(args.kernels)
-    # inputs are read the way the model's data was, unless a flag says otherwise
-    recorded = model.data_read_options()
-    order, order_notice = choose(args.channel_order, recorded.channel_order, "RGB",
-                                 "--channel-order", args.kernels)
-    factor, factor_notice = choose(args.downsample, recorded.downsample, 1, "--downsample",
-                                   args.kernels)
-    notices = [n for n in (order_notice, factor_notice) if n]
-    options = ClassicalOptions(solver=args.solver, tv=args.tv, iterations=args.iterations,
-                               nonneg=args.nonneg, tol=args.tol, dtype=args.dtype)
+    model, order, factor, white_level, notices = kernel_file_model(
+        args.kernels, args.channel_order, args.downsample)
+    options = classical_options(args)
     out = Path(args.out)
     single = len(args.inputs) == 1 and Path(args.inputs[0]).is_file()
     if single and out.suffix == ".npy":
@@ -121,7 +170,7 @@ def run_with_kernels(args: argparse.Namespace) -> int:
         with OutputTransaction(overwrite=args.overwrite) as outputs:
             staged, preview = outputs.file(out), outputs.file(out.with_suffix(".png"))
             y = read_classical_measurement(args.inputs[0], order, factor, args.background,
-                                           recorded.white_level)
+                                           white_level)
             require_finite(y, args.inputs[0])
             recon = ModelReconstructor(model, options)
             recon.check(y, args.inputs[0])
@@ -129,20 +178,20 @@ def run_with_kernels(args: argparse.Namespace) -> int:
             write_reconstruction(staged, result.image, preview)
         print(f"{recon.solver} reconstruction {y.shape[1]}x{y.shape[2]} "
               f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
-        _say_all(notices)
+        say_all(notices)
         return 0
     if out.suffix:
         raise InvalidInputError(f"{out}: several measurements need an output folder, not a file")
     written = reconstruct_folder(model, args.inputs, out, options, order,
                                  args.overwrite, progress=not args.quiet,
                                  downsample=factor, background=args.background,
-                                 white_level=recorded.white_level)
+                                 white_level=white_level)
     print(f"{len(written)} reconstruction(s) in {out}", file=sys.stderr)
-    _say_all(notices)
+    say_all(notices)
     return 0
 
 
-def _say_all(notices: list[str]) -> None:
+def say_all(notices: list[str]) -> None:
     """Notices after the work, so that an error stays the one line on stderr."""
     for text in notices:
         print(text, file=sys.stderr)
@@ -180,29 +229,22 @@ def run_with_psf(args: argparse.Namespace) -> int:
     return 0
 
 
-def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
-    """The PSF form: the PSF's shift-invariant kernel model, then the solver of --kernels."""
-    from ekdun.reconstruction.classical import (
-        ClassicalOptions,
-        ModelReconstructor,
-        psf_model,
-        read_classical_measurement,
-        write_reconstruction,
-    )
+def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, factor: int,
+                    background: str) -> tuple[Any, Any]:
+    """The PSF form: the shift-invariant kernel model of a PSF image, for measurements of the
+    size (and channels) of ``measurement_path``, and that measurement ``(C, H, W)``."""
+    from ekdun.reconstruction.classical import psf_model, read_classical_measurement
     from psfkit.io.images import read_image_float
     from psfkit.preprocess import psf_kernel
 
-    order = args.channel_order or "RGB"
-    factor = args.downsample or 1
-    psf_path, measurement_path = args.inputs
-    raw_psf = read_image_float(psf_path, order)
+    raw_psf = read_image_float(psf_path, channel_order)
     if min(raw_psf.shape[-2:]) // factor < 8:
         raise InvalidInputError(f"--downsample {factor}: {psf_path} "
                                 f"({raw_psf.shape[-2]}x{raw_psf.shape[-1]}) would be smaller "
                                 "than 8x8 pixels")
     # the one PSF treatment (background, binning, clipping, unit sum), as ekdun train --psf
-    psf = psf_kernel(raw_psf, args.background, factor, psf_path)
-    y = read_classical_measurement(measurement_path, order, factor, args.background)
+    psf = psf_kernel(raw_psf, background, factor, psf_path)
+    y = read_classical_measurement(measurement_path, channel_order, factor, background)
     require_finite(y, measurement_path)
     if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
         raise InvalidInputError(f"{psf_path}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
@@ -210,10 +252,17 @@ def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
     if psf.shape[0] not in (1, y.shape[0]):
         raise InvalidInputError(f"{psf_path}: PSF has {psf.shape[0]} channels, the "
                                 f"measurement {y.shape[0]}")
-    model = psf_model(psf, y.shape[-2:], y.shape[0])
-    options = ClassicalOptions(solver=args.solver, tv=args.tv, iterations=args.iterations,
-                               nonneg=args.nonneg, tol=args.tol, dtype=args.dtype)
-    recon = ModelReconstructor(model, options)
+    return psf_model(psf, y.shape[-2:], y.shape[0]), y
+
+
+def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
+    """The PSF form: the PSF's shift-invariant kernel model, then the solver of --kernels."""
+    from ekdun.reconstruction.classical import ModelReconstructor, write_reconstruction
+
+    psf_path, measurement_path = args.inputs
+    model, y = psf_image_model(psf_path, measurement_path, args.channel_order or "RGB",
+                               args.downsample or 1, args.background)
+    recon = ModelReconstructor(model, classical_options(args))
     result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
     write_reconstruction(out, result.image, preview_path)
     return result, recon.solver

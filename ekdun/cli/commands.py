@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ekdun.errors import InvalidInputError
+from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.vocabulary import NOTICES, add_flag
 from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
 
@@ -54,6 +55,13 @@ def run_moved(args: argparse.Namespace) -> int:
         f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
 
 
+#: The note of ``ekdun export-kernels`` (deprecated, hidden; docs/migration.md).
+EXPORT_KERNELS_NOTE = (
+    "note: `ekdun export-kernels` is deprecated: `ekdun train` writes the learned kernels as "
+    "RUN/kernels_learned.npz after every epoch; this command stays for one release for "
+    "checkpoints of older runs (docs/migration.md)")
+
+
 #: Flags that no longer do anything, kept hidden for one release (issue 44, docs/migration.md):
 #: ``(command, flag) -> (nargs, note)``. Each prints its note after the work and is otherwise
 #: ignored (a value is still checked as before).
@@ -92,6 +100,19 @@ def _add_retired(p: argparse.ArgumentParser, command: str) -> None:
                            default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
+#: Flags that only ``--help-all`` lists (issue 44): the bench's optics and noise, threads.
+MAKE_DATASET_ADVANCED = ("--half-fov", "--aperture", "--photons", "--grid-frames", "--threads")
+#: ... for train: what the pairs and kernel file decide (binning, channel order), the preset's
+#: schedule overrides, research knobs (kernel parameterisation, kernel learning rate, physics
+#: loss; kept until the baselines issue measures them) and speed settings.
+TRAIN_ADVANCED = ("--downsample", "--channel-order", "--schedule", "--iterations",
+                  "--kernel-param", "--batch-size", "--lr", "--kernel-lr-scale",
+                  "--physics-weight", "--seed", "--threads", "--amp", "--no-amp",
+                  "--channels-last", "--compile", "--loader-workers")
+#: ... for eval: what each checkpoint records (channel order), threads.
+EVAL_ADVANCED = ("--channel-order", "--threads")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     # ---------------------------------------------------------------- make-dataset
     p = sub.add_parser("make-dataset", help="build (or reuse) a cached virtual-bench dataset",
@@ -99,6 +120,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "leaves + scikit-image natural images) and their "
                                    "measurements through a dense shift-variant model with "
                                    "sensor noise. Reused when the manifest matches.")
+    add_help_all(p)
     p.add_argument("out", help="dataset folder")
     p.add_argument("--sensor", type=flag("--sensor"), nargs=2, default=(64, 64), metavar=("H", "W"),
                    help="sensor size in pixels (default 64 64)")
@@ -117,15 +139,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames averaged at each position of the PSF grid: its noise falls as "
                         "1/sqrt(N), as when a lab averages repeated captures (default 1: one "
                         "raw 12-bit frame; the pairs are unchanged)")
-    p.add_argument("--seed", type=flag("--seed"), default=0)
+    add_flag(p, "--seed", "make-dataset", help="seed of the PSF noise, scenes and measurement "
+                                                 "noise: the same seed, the same dataset "
+                                                 "(default 0)")
     add_flag(p, "--device", "make-dataset",
              note="auto; where the noise-free measurements are computed, in float64 on any "
                   "device; the noise is drawn on the CPU")
     add_flag(p, "--threads", "make-dataset",
-             note="the CPUs available, at most 16 and one per 64 scenes: processes drawing "
-                  "the scenes; the dataset is the same for any N")
+             help="processes drawing the scenes; the dataset is the same for any N (default: "
+                  "the CPUs available, at most 16 and one per 64 scenes)")
     _add_retired(p, "make-dataset")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    mark_advanced(p, MAKE_DATASET_ADVANCED)
     p.set_defaults(func=run_make_dataset)
 
     # ---------------------------------------------------------------- train
@@ -133,14 +158,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="MSE, Adam, ExponentialLR per epoch; checkpoint every epoch "
                                    "(atomic); --resume continues exactly. Works under "
                                    "torchrun (DistributedDataParallel; --batch-size is the "
-                                   "global batch).")
+                                   "global batch). EK-DUN runs also write their kernels as psfkit "
+                                   "kernel files: RUN_DIR/kernels_initial.npz (the seed) and "
+                                   "kernels_learned.npz (every epoch).")
+    add_help_all(p)
     p.add_argument("data", help="pairs folder, or a virtual-bench dataset (uses its train/)")
     p.add_argument("run_dir", help="output folder (checkpoint.pt, log.csv, kernel files)")
     add_flag(p, "--network", "train")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--kernels", help="kernel file (.npz, e.g. from psfkit fit-eigen)")
     src.add_argument("--psf", help="measured PSF image (same size as the measurements)")
-    add_flag(p, "--holdout", "train", action="append")
+    add_flag(p, "--holdout", "train", action="append",
+             help="pairs (file stems, e.g. im65; comma-separated, repeatable) left out of "
+                  "training and recorded in the checkpoint, so that eval scores only them "
+                  "(default: none)")
     p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
                    help="bin the pairs N x N (default: 1 if they have the kernels' size, else "
                         "the factor the kernel file was fitted with)")
@@ -165,9 +196,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="EK-DUN: add LAMBDA x the measurement consistency of the network's own "
                         "forward model on the training pairs to the loss (the fit-pairs "
                         "objective; docs/training.md); default 0, the paper's loss")
-    p.add_argument("--seed", type=flag("--seed"), default=0)
+    add_flag(p, "--seed", "train", help="seed of the initial weights and the batch order "
+                                        "(default 0)")
     add_flag(p, "--device", "train")
-    add_flag(p, "--threads", "train")
+    add_flag(p, "--threads", "train",
+             help="CPU threads of the training step (torch's intra-op threads; default: "
+                  "torch's)")
     add_flag(p, "--amp", "train")
     p.add_argument("--no-amp", action="store_true", help="same as --amp off")
     p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
@@ -178,6 +212,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    mark_advanced(p, TRAIN_ADVANCED)
     p.set_defaults(func=run_train)
 
     # ---------------------------------------------------------------- eval
@@ -185,6 +220,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Evaluate checkpoints on held-out pairs and write Table 1 "
                                    "(models) and Table 2 (EK-DUN schedules) as Markdown and "
                                    "JSON.")
+    add_help_all(p)
     p.add_argument("checkpoints", nargs="+", help="checkpoint.pt files (or run folders)")
     p.add_argument("--data", required=True,
                    help="pairs folder, or a virtual-bench dataset (uses its test/)")
@@ -199,36 +235,30 @@ def register(sub: argparse._SubParsersAction) -> None:
              note="the folder's (pairs.json; BGR for the DLMD layout), else the order each "
                   "checkpoint's training pairs were read in, else RGB")
     add_flag(p, "--device", "eval")
-    add_flag(p, "--threads", "eval")
-    p.add_argument("--quiet", action="store_true")
+    add_flag(p, "--threads", "eval",
+             help="CPU threads of the networks and metrics (torch's intra-op threads; "
+                  "default: torch's)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    mark_advanced(p, EVAL_ADVANCED)
     p.set_defaults(func=run_eval)
 
     # ---------------------------------------------------------------- reconstruct
-    p = sub.add_parser("reconstruct", help="reconstruct measurements with a checkpoint")
-    p.add_argument("checkpoint")
-    p.add_argument("measurements", nargs="+", help="image files (npy, png, tiff) or folders")
-    p.add_argument("--out", required=True, help="output folder (NAME.npy + NAME.png)")
-    add_flag(p, "--channel-order", "reconstruct",
-             note="that of the training pairs, e.g. BGR for DLMD; else RGB")
-    p.add_argument("--downsample", type=flag("--downsample"), metavar="N",
-                   help="bin the measurements N x N (default: as the training pairs were)")
-    add_flag(p, "--device", "reconstruct")
-    add_flag(p, "--amp", "reconstruct")
-    p.add_argument("--overwrite", action="store_true")
-    p.set_defaults(func=run_reconstruct)
+    from ekdun.cli import classical_cmd, reconstruct_cmd
 
-    # ---------------------------------------------------------------- admm
-    from ekdun.cli import classical_cmd
-
-    classical_cmd.register(sub)
+    reconstruct_cmd.register(sub)
+    classical_cmd.register(sub)      # admm, reconstruct-classical: deprecated, hidden
 
     # ---------------------------------------------------------------- export-kernels
-    p = sub.add_parser("export-kernels", help="write a trained EK-DUN's kernels as a psfkit "
-                                              "kernel file")
+    # no help=: hidden (deprecated): `ekdun train` writes RUN/kernels_learned.npz every epoch;
+    # kept for checkpoints of older runs
+    p = sub.add_parser("export-kernels",
+                       description="Deprecated: `ekdun train` writes the learned kernels as "
+                                   "RUN/kernels_learned.npz. Writes a trained EK-DUN's "
+                                   "kernels as a psfkit kernel file.")
     p.add_argument("checkpoint")
     p.add_argument("--out", required=True, help="kernel file (.npz)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    p.set_defaults(func=run_export_kernels)
+    p.set_defaults(func=run_export_kernels, **{NOTICES: [EXPORT_KERNELS_NOTE]})
 
     # ---------------------------------------------------------------- moved to research
     for name in MOVED:
@@ -345,19 +375,6 @@ def run_eval(args: argparse.Namespace) -> int:
         if not lpips.available:  # said after the work, so that an input error stays one line
             _say(args, lpips.reason)
         write_tables(folder, results, [lpips.reason] if lpips.reason else [])
-    return 0
-
-
-def run_reconstruct(args: argparse.Namespace) -> int:
-    from ekdun.reconstruction import reconstruct_files
-
-    notices: list[str] = []
-    written = reconstruct_files(args.checkpoint, args.measurements, args.out,
-                                args.channel_order, args.device, args.overwrite,
-                                args.amp, downsample=args.downsample, notify=notices.append)
-    print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
-    for text in notices:
-        print(text, file=sys.stderr)
     return 0
 
 

@@ -442,7 +442,8 @@ def bomb_pairs_case(make: Callable[[Path], Any], name: str
 def admm_kernels_case(kernels: Callable[[np.ndarray], np.ndarray] | None = None,
                       raw: Callable[[Path], Any] | None = None
                       ) -> Callable[[Path, Fixtures], list[str]]:
-    """``ekdun admm --kernels K.npz MEAS --out X.npy`` with a modified kernel file."""
+    """``ekdun reconstruct K.npz MEAS --out X`` (classical, formerly ``ekdun admm --kernels``)
+    with a modified kernel file."""
     def build(work: Path, fx: Fixtures) -> list[str]:
         target = work / "k.npz"
         if raw is not None:
@@ -451,7 +452,7 @@ def admm_kernels_case(kernels: Callable[[np.ndarray], np.ndarray] | None = None,
             _rewrite_kernels(fx.kernels, target, kernels=kernels)
         meas = work / "m.npy"
         np.save(meas, np.load(fx.pairs / "measurement" / "im0.npy"))
-        return ["admm", "--kernels", str(target), str(meas), "--out", str(work / "x.npy"),
+        return ["reconstruct", str(target), str(meas), "--out", str(work / "outdir"),
                 "--iterations", "2", "--quiet"]
     return build
 
@@ -915,7 +916,7 @@ CASES: list[Case] = [
     Case("eval-model-kernels-huge-finite", "psfkit", kernel_case(kernels=_huge_kernel),
          "k.npz", 15, absent="errors.json"),
     Case("admm-kernels-huge-finite", "ekdun", admm_kernels_case(kernels=_huge_kernel),
-         "k.npz", 15, absent="x.npy"),
+         "k.npz", 15, absent="outdir"),
     # found by the sweep around them
     Case("report-over-its-own-grid", "psfkit",
          grid_case("--out", "{work}/grid", "--overwrite", command="report"),
@@ -950,7 +951,7 @@ CASES: list[Case] = [
              (g / "dark.tiff").unlink())), "black_level 65000", 15, absent="no point-source"),
     Case("admm-kernels-tiny-finite", "ekdun",
          admm_kernels_case(kernels=lambda k: (k * np.float32(1e-30)).astype(np.float32)),
-         "k.npz", 15, absent="x.npy"),
+         "k.npz", 15, absent="outdir"),
     Case("fit-pairs-scenes-1e30", "psfkit",
          pairs_case(lambda p: [np.save(f, np.load(f) * np.float32(1e30))
                                for f in (p / "scene").glob("*.npy")], "fit-pairs"),

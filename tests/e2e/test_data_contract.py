@@ -174,14 +174,14 @@ def test_reconstructions_are_the_same_from_every_format(checkpoint, fits, varian
         learned[fmt] = np.stack([np.load(f) for f in sorted(out.glob("*.npy"))])
         out = tmp_path / f"admm-{fmt}"
         # the kernel file records the 4x binning: full-size measurements are binned by default
-        assert ekdun_main(["admm", "--kernels", str(fits["npy"][0]),
+        assert ekdun_main(["reconstruct", str(fits["npy"][0]),
                            str(folder / "measurement"), "--out", str(out), "--iterations",
                            "20", "--quiet"]) == 0
         classical[fmt] = np.stack([np.load(f) for f in sorted(out.glob("*.npy"))])
     assert learned["npy"].shape == (7, 270 // FACTOR, 480 // FACTOR, 3)
     assert classical["npy"].shape == learned["npy"].shape
     for fmt in ("png8", "tiff16"):
-        for name, result in (("reconstruct", learned), ("admm --kernels", classical)):
+        for name, result in (("reconstruct CKPT", learned), ("reconstruct KERNELS", classical)):
             scale = float(np.abs(result["npy"]).max())
             np.testing.assert_allclose(result[fmt], result["npy"], rtol=0, atol=1e-5 * scale,
                                        err_msg=f"{name} {fmt}")
@@ -192,26 +192,26 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
 
-def test_admm_kernels_reads_a_dlmd_measurement_as_its_kernel_file_records(fits, dlmd, tmp_path,
-                                                                          capfd):
+def test_reconstruct_reads_a_dlmd_measurement_as_its_kernel_file_records(fits, dlmd, tmp_path,
+                                                                         capfd):
     """A kernel file fitted on the DLMD pairs (BGR .npy, binned 4x) reconstructs a bare DLMD
     measurement correctly without flags: the same result as with the explicit flags, and
     better than reading it as RGB (which is refused silently no more: a notice says so)."""
     model, name = fits["float"][0], "im394"
     measurement = dlmd / "diffuser" / f"{name}.npy"
 
-    def admm(tag: str, *flags: str) -> np.ndarray:
-        out = tmp_path / f"{tag}.npy"
-        assert ekdun_main(["admm", "--kernels", str(model), str(measurement), "--out",
+    def recon(tag: str, *flags: str) -> np.ndarray:
+        out = tmp_path / tag
+        assert ekdun_main(["reconstruct", str(model), str(measurement), "--out",
                            str(out), "--iterations", "30", "--quiet", *flags]) == 0
-        return np.moveaxis(np.load(out), -1, 0)
+        return np.moveaxis(np.load(out / f"{name}.npy"), -1, 0)
 
     capfd.readouterr()
-    default = admm("default")
+    default = recon("default")
     assert "note:" not in capfd.readouterr().err
-    explicit = admm("explicit", "--channel-order", "BGR", "--downsample", str(FACTOR))
+    explicit = recon("explicit", "--channel-order", "BGR", "--downsample", str(FACTOR))
     np.testing.assert_array_equal(default, explicit)
-    swapped = admm("rgb", "--channel-order", "RGB")
+    swapped = recon("rgb", "--channel-order", "RGB")
     notice = [line for line in capfd.readouterr().err.splitlines() if line.startswith("note:")]
     assert len(notice) == 1 and "--channel-order RGB" in notice[0] and "BGR" in notice[0]
 

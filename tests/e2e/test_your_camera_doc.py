@@ -11,7 +11,8 @@ out of a quick local loop with ``EKDUN_DOC_TEST_LONG=0``; since a skipped block'
 not exist, every block after a long one must be long too (checked here), so the quick run is a
 prefix of the page. The long blocks are training, reconstruction with the network and its
 evaluation (steps 4-6; about a minute on a CPU); the rest is the fits, ``eval-model`` and
-``ekdun admm`` (steps 1-3), whose time is that of the two fit-pairs runs at 4× binning.
+``ekdun reconstruct`` with the kernel files (steps 1-3), whose time is that of the two
+fit-pairs runs at 4× binning.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ def test_the_blocks_are_found_and_long_ones_come_last():
     flags = [long for _, long in blocks]
     assert flags == sorted(flags), "a block after a long one must be long too"
     commands = "\n".join(code for code, _ in blocks)
-    for step in ("psfkit fit-pairs", "psfkit eval-model", "ekdun admm", "ekdun train",
+    for step in ("psfkit fit-pairs", "psfkit eval-model", "ekdun reconstruct si.npz", "ekdun train",
                  "ekdun reconstruct", "ekdun eval"):
         assert step in commands
 
