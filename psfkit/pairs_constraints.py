@@ -1,26 +1,20 @@
-r"""Physical constraints on kernels fitted from pairs, and the solver that enforces them.
+r"""Physical constraints on kernels fitted from pairs: the footprint, the step size of the
+non-negative solve, and what the kernel file records.
 
-A measured PSF is non-negative, lives on the caustic's footprint and carries a fixed energy.
-:func:`projected_fit` minimises the same regularised least-squares objective as the
-conjugate-gradient fit of :mod:`psfkit.pairs_fit`,
+A measured PSF is non-negative and lives on the caustic's footprint. The pairs fit imposes both
+with one solver, projected Newton-CG on the normal equations of the conjugate-gradient fit
+(:func:`psfkit.pairs_solver.projected_newton`); a support without non-negativity is a linear
+constraint, solved exactly by the same conjugate gradients restricted to it
+(:func:`psfkit.pairs_fit.fit_pairs`). This module gives the footprint (:func:`auto_support`),
+the step ``1/L`` of the KKT residual (:func:`lipschitz`) and the physics record
+(:func:`kernel_summary`).
 
-.. math::
-
-    f(K) = \tfrac12\sum_i\lVert A_K x_i - y_i\rVert^2 + \tfrac\lambda2\lVert K\rVert^2
-           + \tfrac\mu2\sum_{k\ge1}\lVert K_k - K_0\rVert^2 ,
-
-over the closed convex set :math:`\mathcal C = \{K \ge 0,\ K = 0 \text{ outside the support},\
-\textstyle\sum_{u} K_{k,c}(u) = e_{k,c}\}` (each part optional), by accelerated projected
-gradient (FISTA) with the step ``1/L`` from a power-iteration estimate of the largest eigenvalue
-of the normal operator and gradient-based adaptive restart (O'Donoghue & Candès 2015). The
-energy constraint is enforced by the exact Euclidean projection onto the scaled simplex
-(:func:`project`), so every iterate is feasible and the energies hold to rounding, rather than
-by a rescale after clipping (which is not a projection and would break the convergence of FISTA).
-Colour channels are independent problems: each gets its own step size and restarts.
-
-FISTA converges slowly when the normal operator is ill-conditioned (the pairs' Gram is).
-For the non-negativity constraint alone, :func:`psfkit.pairs_solver.projected_newton` solves
-the same problem to a KKT residual orders of magnitude smaller for the same work.
+Until issue 44 a second solver lived here: FISTA with adaptive restart, for a fixed per-kernel
+energy (``--energy fit|base``, the projection onto the scaled simplex) or a support without
+non-negativity. Projected Newton reaches the non-negative least squares to a KKT residual
+orders of magnitude smaller in less time, with a held-out error as low or lower (measured in
+docs/forward-models.md), and the energy constraint changed the held-out DLMD error by 3e-4
+(research/notes/forward-model-studies.md): both left.
 """
 
 from __future__ import annotations
@@ -29,71 +23,11 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import torch
 from torch import Tensor
 
-from psfkit.errors import InvalidInputError
 from psfkit.forward.norm import largest_eigenvalue
 
 Normal = Callable[[Tensor], Tensor]
-
-
-def project(kernels: Tensor, nonneg: bool = True, support: Tensor | None = None,
-            energy: Tensor | None = None) -> Tensor:
-    """Euclidean projection of ``(K, C, Hk, Wk)`` kernels onto the constraint set.
-
-    Parameters
-    ----------
-    kernels : Tensor
-        ``(K, C, Hk, Wk)``.
-    nonneg : bool
-        ``K >= 0``.
-    support : Tensor, optional
-        ``(Hk, Wk)`` boolean: pixels outside are set to zero.
-    energy : Tensor, optional
-        ``(K, C)`` sums (must be > 0 with ``nonneg``): with ``nonneg`` the projection onto the
-        scaled simplex ``{K >= 0, Σ K = e}`` (sort-based, Held et al. 1974), without it onto
-        the hyperplane ``Σ K = e`` (a constant shift of the supported pixels).
-
-    Returns
-    -------
-    Tensor
-        The projected kernels, same shape and dtype.
-    """
-    k, c, h, w = kernels.shape
-    flat = kernels.reshape(k * c, h * w)
-    mask = None if support is None else support.reshape(1, h * w).to(torch.bool)
-    if energy is None:
-        out = flat.clamp_min(0) if nonneg else flat.clone()
-        if mask is not None:
-            out = out * mask
-        return out.reshape(k, c, h, w)
-    # float64 for the cumulative sums: the energies then hold to ~1e-12, not float32's 1e-4
-    v = flat.to(torch.float64)
-    target = energy.reshape(k * c, 1).to(torch.float64)
-    count = h * w if mask is None else int(mask.sum())
-    if count == 0:
-        raise InvalidInputError("the kernel support is empty: no pixel can carry the energy")
-    if not nonneg:
-        inside = v if mask is None else v * mask
-        shift = (target - inside.sum(dim=1, keepdim=True)) / count
-        out = v + shift if mask is None else (v + shift) * mask
-        return out.to(kernels.dtype).reshape(k, c, h, w)
-    if bool((target <= 0).any()):
-        raise InvalidInputError("a non-negative kernel needs a positive energy; got "
-                                f"{target.min().item():.3g}")
-    # outside the support: -inf sorts last and is never among the first `count` entries
-    masked = v if mask is None else v.masked_fill(~mask, -torch.inf)
-    u = torch.sort(masked, dim=1, descending=True).values[:, :count]
-    cssv = u.cumsum(dim=1) - target
-    index = torch.arange(1, count + 1, dtype=v.dtype, device=v.device)
-    active = (u - cssv / index) > 0
-    rho = (active * index).argmax(dim=1, keepdim=True)       # last active position (0-based)
-    theta = cssv.gather(1, rho) / (rho + 1).to(v.dtype)
-    out = (v - theta).clamp_min(0)
-    if mask is not None:
-        out = out * mask
-    return out.to(kernels.dtype).reshape(k, c, h, w)
 
 
 def auto_support(base: np.ndarray, threshold: float = 0.1, smoothing: float = 1.0,
@@ -121,10 +55,6 @@ def auto_support(base: np.ndarray, threshold: float = 0.1, smoothing: float = 1.
     return mask
 
 
-def _per_channel_norm(a: Tensor) -> Tensor:
-    return a.pow(2).sum(dim=(0, 2, 3)).sqrt()                                  # (C,)
-
-
 #: Relative accuracy of the step-size eigenvalue (a step size needs no more).
 LIPSCHITZ_TOLERANCE = 1e-2
 
@@ -137,62 +67,6 @@ def lipschitz(normal: Normal, like: Tensor, seed: int = 0) -> Tensor:
     value = largest_eigenvalue(normal, tuple(like.shape), like.dtype, like.device, block_dim=1,
                                tol=LIPSCHITZ_TOLERANCE, seed=seed)
     return 1.05 * value.to(dtype=like.dtype, device=like.device)
-
-
-def projected_fit(normal: Normal, rhs: Tensor, start: Tensor, iterations: int,
-                  nonneg: bool = True, support: Tensor | None = None,
-                  energy: Tensor | None = None, tolerance: float = 1e-6,
-                  bar: Any = None) -> tuple[Tensor, dict[str, Any]]:
-    """FISTA with adaptive restart for ``min ½KᵀNK − rhsᵀK`` over the constraint set.
-
-    Parameters
-    ----------
-    normal : callable
-        ``K ↦ N K`` (the regularised normal operator, block-diagonal over channels).
-    rhs : Tensor
-        ``(K, C, Hk, Wk)``, ``Bᵀy``.
-    start : Tensor
-        Warm start (projected first), e.g. the unconstrained solution.
-    iterations : int
-        Gradient steps (one application of ``normal`` each, plus those of the step size's power
-        iteration, :func:`lipschitz`).
-    nonneg, support, energy
-        The constraints (:func:`project`).
-    tolerance : float
-        Stop when every channel's relative change ``‖K⁺ − K‖/‖K‖`` falls below this.
-
-    Returns
-    -------
-    (Tensor, dict)
-        The kernels (feasible) and ``{"iterations", "restarts", "relative_change",
-        "lipschitz"}``.
-    """
-    step = 1.0 / lipschitz(normal, start)[None, :, None, None]
-    x = project(start, nonneg, support, energy)
-    z = x.clone()
-    t = torch.ones(start.shape[1], dtype=start.dtype, device=start.device)
-    restarts, done, change = 0, 0, float("nan")
-    while done < iterations:
-        done += 1
-        x_new = project(z - step * (normal(z) - rhs), nonneg, support, energy)
-        delta = x_new - x
-        change = float((_per_channel_norm(delta)
-                        / _per_channel_norm(x_new).clamp_min(1e-30)).max())
-        # restart a channel whose momentum points uphill: (z − x⁺)·(x⁺ − x) > 0
-        uphill = ((z - x_new) * delta).sum(dim=(0, 2, 3)) > 0
-        restarts += int(uphill.sum())
-        t_new = (1 + torch.sqrt(1 + 4 * t * t)) / 2
-        momentum = torch.where(uphill, torch.zeros_like(t), (t - 1) / t_new)
-        t = torch.where(uphill, torch.ones_like(t), t_new)
-        z = x_new + momentum[None, :, None, None] * delta
-        x = x_new
-        if bar is not None:
-            bar.update(1)
-        if change < tolerance:
-            break
-    return x, {"method": "fista", "iterations": done, "restarts": restarts,
-               "relative_change": change,
-               "lipschitz": [float(v) for v in (1.0 / step).flatten()]}
 
 
 def kernel_summary(kernels: np.ndarray) -> dict[str, Any]:

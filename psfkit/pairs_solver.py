@@ -49,9 +49,9 @@ virtual bench (96 pairs, paper basis) it reaches a relative residual of 1e-6 in 
 and 92 (sensor) iterations, against 188 and 127 with the scalar per-kernel preconditioner of
 the earlier solver.
 
-Constraints (non-negativity, a support, energies) are imposed afterwards by the projected
-solve of :mod:`psfkit.pairs_constraints`, warm-started from the converged unconstrained
-solution and with the same streaming normal operator.
+Non-negativity (and a support) is imposed afterwards by :func:`projected_newton`, the one
+non-negative solver, warm-started from the converged unconstrained solution and with the same
+streaming normal operator.
 
 Library entry points: :class:`PairBatches` (the pairs, in batches, with optional per-pair
 scales), :class:`FrequencyGram` (the per-frequency blocks, one pass) and
