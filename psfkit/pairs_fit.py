@@ -53,7 +53,12 @@ from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, kernel_summary
+from psfkit.pairs_constraints import (
+    auto_support,
+    kernel_summary,
+    newton_fit,
+    support_least_squares,
+)
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, PairFitOptions
 from psfkit.pairs_select import (
     FOLD_TOLERANCE,
@@ -62,14 +67,7 @@ from psfkit.pairs_select import (
     choose_regularisation,
     selection_binning,
 )
-from psfkit.pairs_solver import (
-    DEFAULT_CACHE_BYTES,
-    PairBatches,
-    projected_newton,
-    regularised_normal,
-    solve_kernels,
-    solve_normal_equations,
-)
+from psfkit.pairs_solver import DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
 from psfkit.resample import bin_mean
 from psfkit.validation import MIN_PAIR_SIDE
 
@@ -366,10 +364,8 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
     """The final solve under ``options``' constraints on the normal equations ``system`` of
     :func:`~psfkit.pairs_solver.solve_kernels`, warm-started from the unconstrained
     (converged) kernels, whose base kernel also gives the automatic support: projected
-    Newton-CG for non-negativity, preconditioned with the unconstrained solve's Gram blocks,
-    its CG on float32 products (half the time of a float64 pass; gradients, line search and
-    the KKT test stay in the working precision); a support alone, the same conjugate
-    gradients restricted to it (a linear constraint: solved exactly)."""
+    Newton-CG for non-negativity; a support alone, conjugate gradients restricted to it
+    (:mod:`psfkit.pairs_constraints`)."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
@@ -377,52 +373,15 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
         support = np.asarray(support_mask) != 0
     mask = None if support is None else torch.as_tensor(support, device=unconstrained.device)
     if options.nonneg:
-        kernels, info = _newton(system, unconstrained, options, mask, progress)
+        kernels, info = newton_fit(system, unconstrained, mask,
+                                   options.final_projected_iterations, NEWTON_CG_ITERATIONS,
+                                   options.tolerance, progress)
     else:
-        kernels, info = _support_cg(system, unconstrained, options, mask)
+        assert mask is not None                   # constrained without nonneg: a support
+        kernels, info = support_least_squares(system, unconstrained, mask, options.tolerance,
+                                              options.final_iterations)
     info["support_fraction"] = 1.0 if support is None else float(support.mean())
     return kernels, support, info
-
-
-def _newton(system: dict[str, Any], unconstrained: Tensor, options: PairFitOptions,
-            mask: Tensor | None, progress: bool) -> tuple[Tensor, dict[str, Any]]:
-    """Projected Newton-CG from ``unconstrained`` (its record, history as ``kkt_history``)."""
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=options.final_projected_iterations, unit="it", leave=False,
-                   desc="projected Newton")
-    batches = system["batches"]
-    twin = system.get("twin")
-    if twin is None and batches.dtype == torch.float64:
-        twin = batches.astype(torch.float32)
-    hessian = None if twin is None else regularised_normal(twin, system["lambda"],
-                                                           system["mu"])
-    kernels, info = projected_newton(system["normal"], system["rhs"], unconstrained,
-                                     system["precondition"], options.final_projected_iterations,
-                                     NEWTON_CG_ITERATIONS, options.tolerance, bar=bar,
-                                     support=mask, hessian=hessian)
-    if bar is not None:
-        bar.close()
-    info = {k: v for k, v in info.items() if k != "history"} | {
-        "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS,
-        "float32_passes": 0 if twin is None else twin.passes}
-    return kernels, info
-
-
-def _support_cg(system: dict[str, Any], unconstrained: Tensor, options: PairFitOptions,
-                mask: Tensor) -> tuple[Tensor, dict[str, Any]]:
-    """Least squares with the kernels zero outside ``mask``: preconditioned CG on the normal
-    equations restricted to the support (``S N S``, ``S P S`` on the support's subspace, where
-    they are symmetric positive definite), from the unconstrained kernels cut to it."""
-    inside = mask.to(unconstrained.dtype)
-    normal, precondition = system["normal"], system["precondition"]
-    kernels, info = solve_normal_equations(
-        lambda v: normal(v * inside) * inside, system["rhs"] * inside,
-        lambda r: precondition(r * inside) * inside, unconstrained * inside,
-        options.tolerance, options.final_iterations)
-    return kernels, {**info.as_dict(), "restricted_to_support": True}
 
 
 def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,

@@ -15,7 +15,7 @@ from psfkit.weights import get_basis
 SUPPORTS = ("none", "auto", "mask")
 #: Projected Newton-CG (the non-negative solve): most steps, CG iterations per step, and the
 #: default tolerance of the relative KKT (natural) residual
-#: (:func:`psfkit.pairs_solver.kkt_residual`; ``PairFitOptions.tolerance``).
+#: (:func:`psfkit.pairs_constraints.kkt_residual`; ``PairFitOptions.tolerance``).
 #: 1e-6 (issue 43; 1e-10 before): on the 7 DLMD pairs at 1/4 resolution the predictions of
 #: the pairs then lie within 2.7e-5 (EK, ``--difference 1``) and 1.4e-6 (SI) of the
 #: measurement's norm from those at 1e-10, and the mean relative error within 1e-6, in 39
@@ -75,7 +75,7 @@ class PairFitOptions:
         off since issue 23; it was needed by the earlier early-stopped solver).
     nonneg : bool
         Constrain the kernels to be non-negative (a measured PSF is): the final solve is then
-        projected Newton-CG (:func:`psfkit.pairs_solver.projected_newton`), warm started from
+        projected Newton-CG (:func:`psfkit.pairs_constraints.projected_newton`), warm started from
         the unconstrained conjugate-gradient solution.
     support : {"none", "auto", "mask"}
         Kernels are zero outside a footprint: ``"auto"`` derives it from the unconstrained base
@@ -89,7 +89,7 @@ class PairFitOptions:
     One solver per problem (:attr:`solver`, issue 44): conjugate gradients on the normal
     equations for the unconstrained kernels (restricted to the support, an exact solve, when
     there is one without non-negativity), and projected Newton-CG
-    (:func:`psfkit.pairs_solver.projected_newton`) to a KKT residual of ``tolerance`` for
+    (:func:`psfkit.pairs_constraints.projected_newton`) to a KKT residual of ``tolerance`` for
     non-negativity (with or without a support): the non-negative least squares itself. FISTA,
     the solver of the removed ``energy`` constraint (and of ``nonneg_solver="fista"`` until
     issue 43), left in issue 44.

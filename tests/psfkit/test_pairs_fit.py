@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support
+from psfkit.pairs_constraints import auto_support, kkt_residual, projected_newton
 from psfkit.pairs_fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -20,7 +20,7 @@ from psfkit.pairs_fit import (
     relative_errors,
 )
 from psfkit.pairs_options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
-from psfkit.pairs_solver import PairBatches, kkt_residual, projected_newton, solve_kernels
+from psfkit.pairs_solver import PairBatches, solve_kernels
 from psfkit.weights import get_basis
 
 
