@@ -28,9 +28,9 @@ in a few alternating rounds (``fit_scale``).
 By default the kernels are then made physical: non-negative, by projected Newton-CG to a
 relative KKT residual of ``PairFitOptions.tolerance``, started from the unconstrained solution
 and scales solved in float32 to ``START_TOLERANCE`` (:func:`_newton_start`), inside a support
-if one is given; with per-kernel energies (or a support without non-negativity), by
-accelerated projected gradient from the converged unconstrained solution
-(:mod:`psfkit.pairs_constraints`; ``PairFitOptions.nonneg``, ``support``, ``energy``).
+if one is given (``PairFitOptions.nonneg``, ``support``); a support without non-negativity is
+solved exactly by the same conjugate gradients restricted to it. One solver per problem: CG on
+the normal equations, projected Newton-CG for non-negativity (issue 44).
 Unless given, the regularisation is chosen by held-out error first (:mod:`psfkit.pairs_select`).
 :meth:`PairFit.physics` is what the kernel file records about them.
 """
@@ -53,7 +53,12 @@ from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, kernel_summary, projected_fit
+from psfkit.pairs_constraints import (
+    auto_support,
+    kernel_summary,
+    newton_fit,
+    support_least_squares,
+)
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, PairFitOptions
 from psfkit.pairs_select import (
     FOLD_TOLERANCE,
@@ -62,13 +67,7 @@ from psfkit.pairs_select import (
     choose_regularisation,
     selection_binning,
 )
-from psfkit.pairs_solver import (
-    DEFAULT_CACHE_BYTES,
-    PairBatches,
-    projected_newton,
-    regularised_normal,
-    solve_kernels,
-)
+from psfkit.pairs_solver import DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
 from psfkit.resample import bin_mean
 from psfkit.validation import MIN_PAIR_SIDE
 
@@ -109,8 +108,7 @@ class PairFit:
         """The constraints imposed and what the kernels are: energies ``[K][C]``, support
         fraction, negative and non-finite pixel counts (recorded in the kernel file)."""
         o = self.options
-        return {"constraints": {"nonneg": o.nonneg, "support": o.support,
-                                "energy": o.energy},
+        return {"constraints": {"nonneg": o.nonneg, "support": o.support},
                 **kernel_summary(self.kernels)}
 
     def kernel_model(self, provenance: dict[str, Any] | None = None,
@@ -182,8 +180,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     Raises
     ------
     InvalidInputError
-        Mismatched shapes, no pairs, a support mask missing or of the wrong size, or an
-        energy constraint that a non-negative kernel cannot meet (a sum <= 0).
+        Mismatched shapes, no pairs, or a support mask missing or of the wrong size.
     """
     options = options or PairFitOptions()
     if scenes.shape != measurements.shape or scenes.ndim != 4 or len(scenes) == 0:
@@ -209,7 +206,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     elif n_kernels > 1 and options.seed_with_si:
         seed = fit_pairs(scenes, measurements,
                          dataclasses.replace(options, basis="si", nonneg=False,
-                                             support="none", energy="free",
+                                             support="none",
                                              tikhonov=weights["tikhonov"]),
                          dtype=dtype, device=device, progress=progress,
                          batch_size=batch_size, cache_bytes=cache_bytes)
@@ -366,52 +363,23 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
                        progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
     """The final solve under ``options``' constraints on the normal equations ``system`` of
     :func:`~psfkit.pairs_solver.solve_kernels`, warm-started from the unconstrained
-    (converged) kernels, whose base kernel also gives the automatic support and the
-    energies: FISTA, or projected Newton-CG (``options.solver``) preconditioned with
-    the unconstrained solve's Gram blocks, its CG on float32 products (half the time of a
-    float64 pass; gradients, line search and the KKT test stay in the working precision)."""
-    normal, rhs = system["normal"], system["rhs"]
+    (converged) kernels, whose base kernel also gives the automatic support: projected
+    Newton-CG for non-negativity; a support alone, conjugate gradients restricted to it
+    (:mod:`psfkit.pairs_constraints`)."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
     elif options.support == "mask":
         support = np.asarray(support_mask) != 0
-    energy = None
-    if options.energy == "fit":
-        energy = unconstrained.sum(dim=(2, 3))
-    elif options.energy == "base":
-        energy = unconstrained[0].sum(dim=(1, 2))[None].expand(unconstrained.shape[0], -1)
-    if energy is not None and options.nonneg and bool((energy <= 0).any()):
-        raise InvalidInputError(f"energy {options.energy!r}: the unconstrained fit has a "
-                                "kernel with sum <= 0, which no non-negative kernel matches")
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=options.final_projected_iterations, unit="it", leave=False,
-                   desc="projected " + ("Newton" if options.solver == "newton"
-                                        else "fit"))
-    mask = None if support is None else torch.as_tensor(support, device=rhs.device)
-    if options.solver == "newton":
-        batches = system["batches"]
-        twin = system.get("twin")
-        if twin is None and batches.dtype == torch.float64:
-            twin = batches.astype(torch.float32)
-        hessian = None if twin is None else regularised_normal(twin, system["lambda"],
-                                                               system["mu"])
-        kernels, info = projected_newton(normal, rhs, unconstrained, system["precondition"],
-                                         options.final_projected_iterations,
-                                         NEWTON_CG_ITERATIONS, options.tolerance, bar=bar,
-                                         support=mask, hessian=hessian)
-        info = {k: v for k, v in info.items() if k != "history"} | {
-            "kkt_history": info["history"], "cg_iterations": NEWTON_CG_ITERATIONS,
-            "float32_passes": 0 if twin is None else twin.passes}
+    mask = None if support is None else torch.as_tensor(support, device=unconstrained.device)
+    if options.nonneg:
+        kernels, info = newton_fit(system, unconstrained, mask,
+                                   options.final_projected_iterations, NEWTON_CG_ITERATIONS,
+                                   options.tolerance, progress)
     else:
-        kernels, info = projected_fit(normal, rhs, unconstrained,
-                                      options.final_projected_iterations,
-                                      options.nonneg, mask, energy, bar=bar)
-    if bar is not None:
-        bar.close()
+        assert mask is not None                   # constrained without nonneg: a support
+        kernels, info = support_least_squares(system, unconstrained, mask, options.tolerance,
+                                              options.final_iterations)
     info["support_fraction"] = 1.0 if support is None else float(support.mean())
     return kernels, support, info
 

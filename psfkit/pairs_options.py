@@ -13,10 +13,9 @@ from psfkit.forward.geometry import CONVENTIONS
 from psfkit.weights import get_basis
 
 SUPPORTS = ("none", "auto", "mask")
-ENERGIES = ("free", "fit", "base")
 #: Projected Newton-CG (the non-negative solve): most steps, CG iterations per step, and the
 #: default tolerance of the relative KKT (natural) residual
-#: (:func:`psfkit.pairs_solver.kkt_residual`; ``PairFitOptions.tolerance``).
+#: (:func:`psfkit.pairs_constraints.kkt_residual`; ``PairFitOptions.tolerance``).
 #: 1e-6 (issue 43; 1e-10 before): on the 7 DLMD pairs at 1/4 resolution the predictions of
 #: the pairs then lie within 2.7e-5 (EK, ``--difference 1``) and 1.4e-6 (SI) of the
 #: measurement's norm from those at 1e-10, and the mean relative error within 1e-6, in 39
@@ -75,34 +74,25 @@ class PairFitOptions:
         scales). Only a warm start: the solve runs to ``tolerance`` from any start (default
         off since issue 23; it was needed by the earlier early-stopped solver).
     nonneg : bool
-        Constrain the kernels to be non-negative (a measured PSF is). Any constraint makes the
-        final solve accelerated projected gradient (:mod:`psfkit.pairs_constraints`), warm
-        started from the unconstrained conjugate-gradient solution.
+        Constrain the kernels to be non-negative (a measured PSF is): the final solve is then
+        projected Newton-CG (:func:`psfkit.pairs_constraints.projected_newton`), warm started from
+        the unconstrained conjugate-gradient solution.
     support : {"none", "auto", "mask"}
         Kernels are zero outside a footprint: ``"auto"`` derives it from the unconstrained base
         kernel (the SI fit for ``si``; :func:`~psfkit.pairs_constraints.auto_support`),
         ``"mask"`` takes the mask passed to :func:`~psfkit.pairs_fit.fit_pairs`.
     support_threshold : float
         ``"auto"`` support: fraction of the smoothed ``|K|``'s maximum kept.
-    energy : {"free", "fit", "base"}
-        Per-kernel energy (sum per channel): free; fixed to the unconstrained fit's sums
-        (``"fit"``); or every kernel of a channel fixed to the unconstrained base kernel's sum
-        (``"base"``: Kv and Kh carry Kbase's energy).
     projected_iterations : int, optional
-        Most iterations of the constrained solve: Newton steps (default
-        ``NEWTON_ITERATIONS``) or, with an energy constraint or a support without
-        non-negativity, FISTA iterations (stops when the kernels change by less than 1e-6 of
-        themselves; default 100, where the held-out error on DLMD at 1/4 resolution stops
-        improving).
+        Most Newton steps of the non-negative solve (default ``NEWTON_ITERATIONS``).
 
-    The constrained solver follows from the constraints (:attr:`solver`): projected Newton-CG
-    (:func:`psfkit.pairs_solver.projected_newton`) to a KKT residual of
-    ``NEWTON_TOLERANCE`` for non-negativity (with or without a support), the non-negative
-    least squares itself; FISTA (:func:`psfkit.pairs_constraints.projected_fit`) only where
-    Newton does not apply (``energy`` constraints, a support without non-negativity). Until
-    issue 43 ``nonneg_solver="fista"`` could force FISTA for non-negativity too, an
-    early-stopped projection that stops far from the non-negative least squares (issue 23):
-    removed.
+    One solver per problem (:attr:`solver`, issue 44): conjugate gradients on the normal
+    equations for the unconstrained kernels (restricted to the support, an exact solve, when
+    there is one without non-negativity), and projected Newton-CG
+    (:func:`psfkit.pairs_constraints.projected_newton`) to a KKT residual of ``tolerance`` for
+    non-negativity (with or without a support): the non-negative least squares itself. FISTA,
+    the solver of the removed ``energy`` constraint (and of ``nonneg_solver="fista"`` until
+    issue 43), left in issue 44.
     """
 
     basis: str = "si"
@@ -119,14 +109,13 @@ class PairFitOptions:
     nonneg: bool = True
     support: str = "none"
     support_threshold: float = 0.1
-    energy: str = "free"
     projected_iterations: int | None = None
 
     @property
     def solver(self) -> str:
-        """The constrained solver that runs: ``"newton"`` for non-negativity (and a
-        support), ``"fista"`` with an energy constraint or without non-negativity."""
-        return "newton" if self.nonneg and self.energy == "free" else "fista"
+        """The final solve: ``"newton"`` for non-negativity (with or without a support),
+        ``"cg"`` (conjugate gradients, restricted to the support if any) otherwise."""
+        return "newton" if self.nonneg else "cg"
 
     @property
     def automatic(self) -> tuple[str, ...]:
@@ -143,8 +132,8 @@ class PairFitOptions:
 
     @property
     def constrained(self) -> bool:
-        """Whether the final solve is the projected one."""
-        return self.nonneg or self.support != "none" or self.energy != "free"
+        """Whether the final solve has a constraint (non-negativity or a support)."""
+        return self.nonneg or self.support != "none"
 
     @property
     def final_iterations(self) -> int:
@@ -154,7 +143,7 @@ class PairFitOptions:
     def final_projected_iterations(self) -> int:
         if self.projected_iterations is not None:
             return self.projected_iterations
-        return NEWTON_ITERATIONS if self.solver == "newton" else 100
+        return NEWTON_ITERATIONS
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-pairs (the ranges of FLAGS in
@@ -176,9 +165,6 @@ class PairFitOptions:
         if self.support not in SUPPORTS:
             raise ConfigurationError(f"--support must be one of {', '.join(SUPPORTS)}, got "
                                      f"{self.support!r}")
-        if self.energy not in ENERGIES:
-            raise ConfigurationError(f"--energy must be one of {', '.join(ENERGIES)}, got "
-                                     f"{self.energy!r}")
         if not 0 <= self.support_threshold < 1:
             raise ConfigurationError(f"--support-threshold must be in [0, 1), got "
                                      f"{self.support_threshold}")

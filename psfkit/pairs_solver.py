@@ -49,16 +49,16 @@ virtual bench (96 pairs, paper basis) it reaches a relative residual of 1e-6 in 
 and 92 (sensor) iterations, against 188 and 127 with the scalar per-kernel preconditioner of
 the earlier solver.
 
-Constraints (non-negativity, a support, energies) are imposed afterwards by the projected
-solve of :mod:`psfkit.pairs_constraints`, warm-started from the converged unconstrained
-solution and with the same streaming normal operator.
+Non-negativity (and a support) is imposed afterwards by projected Newton-CG
+(:func:`psfkit.pairs_constraints.projected_newton`), the one
+non-negative solver, warm-started from the converged unconstrained solution and with the same
+streaming normal operator.
 
 Library entry points: :class:`PairBatches` (the pairs, in batches, with optional per-pair
 scales), :class:`FrequencyGram` (the per-frequency blocks, one pass) and
-:func:`solve_normal_equations` (PCG to a tolerance); :func:`projected_newton` (projected
-Newton-CG for non-negative kernels, Bertsekas 1982: the Newton step on the free pixels by a
-few CG iterations with ``P`` restricted to them, then an Armijo search along the projection
-arc). :func:`psfkit.pairs_fit.fit_pairs` and
+:func:`solve_normal_equations` (PCG to a tolerance). The non-negative solve built on them,
+projected Newton-CG, is :func:`psfkit.pairs_constraints.projected_newton`.
+:func:`psfkit.pairs_fit.fit_pairs` and
 the research studies' operator oracle (``research/oracles.py``) are built on them.
 """
 
@@ -82,9 +82,6 @@ from psfkit.weights import get_basis
 #: Default bytes of scene spectra kept between passes (beyond it, they are recomputed per
 #: batch in every pass: bounded memory, a few more FFTs).
 DEFAULT_CACHE_BYTES = 3 * 2**29
-#: Steps without a new lowest KKT residual after which :func:`projected_newton` gives up its
-#: cheap Hessian products for the exact ones.
-STALL_STEPS = 20
 #: Most pairs per batch of the streaming passes.
 DEFAULT_BATCH = 16
 #: On the CPU a batch's largest temporary (its scene spectra times a residual's) is kept under
@@ -522,179 +519,16 @@ def solve_kernels(batches: PairBatches,
                            "batches": batches}
 
 
-def _per_channel_norm(a: Tensor) -> Tensor:
-    return a.pow(2).sum(dim=(0, 2, 3)).sqrt()                                  # (C,)
-
-
-def _natural_residual(kernels: Tensor, gradient: Tensor, lipschitz: Tensor,
-                      support: Tensor | None = None) -> Tensor:
-    step = kernels - (kernels - gradient / lipschitz[None, :, None, None]).clamp_min(0)
-    if support is not None:                  # pixels held at 0 have no optimality condition
-        step = step * support
-    return _per_channel_norm(step) / _per_channel_norm(kernels).clamp_min(1e-300)
-
-
-def kkt_residual(normal: Callable[[Tensor], Tensor], rhs: Tensor, kernels: Tensor,
-                 support: Tensor | None = None, lipschitz: Tensor | None = None) -> Tensor:
-    r"""Per-channel relative natural residual of ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0`` (and
-    ``K = 0`` outside ``support``), ``(C,)``:
-
-    .. math:: \lVert K - \max(0, K - \nabla/L)\rVert \,/\, \lVert K\rVert ,
-
-    the projected-gradient step of length ``1/L`` (``L`` ≥ the largest eigenvalue of ``N`` per
-    channel, :func:`psfkit.pairs_constraints.lipschitz` when not given) relative to the
-    kernels: 0 exactly at the minimiser, and independent of the units of the kernels and of
-    the data. (The kernels' distance to the minimiser is larger by up to the conditioning of
-    ``N`` on the free pixels: measured at 128², about 10⁵ times.)"""
-    if lipschitz is None:
-        from psfkit.pairs_constraints import lipschitz as estimate
-
-        lipschitz = estimate(normal, kernels)
-    return _natural_residual(kernels, normal(kernels) - rhs, lipschitz, support)
-
-
-def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Tensor,
-                     precondition: Callable[[Tensor], Tensor] | None = None,
-                     iterations: int = 50, cg_iterations: int = 20, tolerance: float = 1e-10,
-                     bar: Any = None, support: Tensor | None = None,
-                     hessian: Callable[[Tensor], Tensor] | None = None
-                     ) -> tuple[Tensor, dict[str, Any]]:
-    """Projected Newton-CG for ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0``, per channel.
-
-    Each step: the gradient ``g = NK − rhs``; the binding pixels ``B = {K = 0, g > 0}`` stay
-    at 0; on the others, ``cg_iterations`` of (preconditioned) CG for the Newton step
-    ``N_F d = −g_F``; then ``K⁺ = max(0, K + αd)``
-    with the largest ``α = 2⁻ʲ`` that decreases the objective by at least
-    ``10⁻⁴ gᵀ(K⁺ − K)`` (Armijo along the projection arc, per channel). Gradients and the
-    line search use ``normal``; the CG of the Newton step may use a cheaper ``hessian``
-    (e.g. the same operator in float32): an inexact Newton step still descends, and the
-    line search and the stopping test are exact.
-
-    Parameters
-    ----------
-    normal : callable
-        ``K ↦ N K``, symmetric positive semi-definite per channel.
-    rhs : Tensor
-        ``(K, C, Hk, Wk)``.
-    start : Tensor
-        Warm start (clipped to ``≥ 0`` first), e.g. the unconstrained solution.
-    precondition : callable, optional
-        Symmetric positive definite approximation of ``N⁻¹`` (e.g.
-        :meth:`psfkit.pairs_solver.FrequencyGram.preconditioner`); applied as
-        ``P_F M P_F`` on the free pixels (positive definite there).
-    iterations, cg_iterations
-        Most Newton steps, and CG iterations per step (20: at 128², 96 pairs, the solution
-        to 1e-4 took 689 operator applications with 20, 1 400 with 40, 770 with 10).
-    tolerance : float
-        Stop when every channel's :func:`kkt_residual` is below this.
-    support : Tensor, optional
-        Boolean, broadcastable to the kernels (e.g. ``(Hk, Wk)``): pixels outside it are held
-        at 0 (a footprint constraint), the others are ``≥ 0``.
-    hessian : callable, optional
-        Approximation of ``normal`` for the CG of the Newton step (default ``normal``). If
-        the residual stops falling with it (``STALL_STEPS`` steps without a new low), the
-        steps go on with ``normal``.
-
-    Returns
-    -------
-    (Tensor, dict)
-        The kernels (``≥ 0``) and ``{"method", "iterations", "kkt_residual", "history",
-        "converged", "stalled"}``: the KKT residual after each step (max over channels);
-        ``stalled`` when in some channel no step size decreased the objective (with the
-        exact products: it can get no closer in its precision; that channel then stops).
-    """
-    from psfkit.pairs_constraints import lipschitz as estimate
-
-    inside = None if support is None else support.to(start.dtype)
-    cheap = normal if hessian is None else hessian
-    exact_from = 0 if hessian is None else None
-
-    def project(v: Tensor) -> Tensor:
-        v = v.clamp_min(0)
-        return v if inside is None else v * inside
-
-    x = project(start)
-    lipschitz = estimate(cheap, x)
-    history: list[float] = []
-    done = 0
-    stuck = torch.zeros(rhs.shape[1], dtype=torch.bool, device=rhs.device)
-    best = torch.full((rhs.shape[1],), float("inf"), dtype=rhs.dtype, device=rhs.device)
-    since = torch.zeros(rhs.shape[1], dtype=torch.int64, device=rhs.device)
-    nx = normal(x)
-    while True:
-        g = nx - rhs
-        residual = _natural_residual(x, g, lipschitz, inside)
-        history.append(float(residual.max()))
-        improved = residual < best
-        best = torch.where(improved, residual, best)
-        since = torch.where(improved, torch.zeros_like(since), since + 1)
-        if cheap is not normal and bool(stuck.any() | (since >= STALL_STEPS).any()):
-            # the cheap products are too coarse for this problem's conditioning (no new low
-            # in STALL_STEPS steps, or no step size descends): go on with the exact ones
-            cheap, exact_from = normal, done
-            stuck[:] = False
-        if bool(((residual < tolerance) | stuck).all()) or done >= iterations:
-            break
-        done += 1
-        bound = (x == 0) & (g > 0)
-        free = (~bound).to(x.dtype)
-        if inside is not None:
-            free = free * inside
-
-        def masked(v: Tensor, free: Tensor = free, product: Any = cheap) -> Tensor:
-            return product(v * free) * free
-
-        def masked_precondition(r: Tensor, free: Tensor = free) -> Tensor:
-            return (r * free if precondition is None else precondition(r * free) * free)
-
-        # inexact Newton: the CG solves the step only as accurately as the KKT residual
-        # calls for (forcing term √residual, Eisenstat & Walker 1996): far from the solution
-        # the active set still changes and a precise step is wasted
-        forcing = min(0.1, float(residual.max()) ** 0.5)
-        d, _ = solve_normal_equations(masked, -g * free, masked_precondition,
-                                      tolerance=forcing, max_iterations=cg_iterations,
-                                      true_residual=False)
-        alpha = torch.ones(rhs.shape[1], dtype=x.dtype, device=x.device)
-        accepted = torch.zeros_like(alpha, dtype=torch.bool)
-        x_new, nx_new = x, nx
-        for _ in range(30):
-            trial = project(x + alpha[None, :, None, None] * d)
-            n_trial = normal(trial)
-            # the decrease f(K + s) − f(K) = sᵀ(g + ½Ns) taken directly: the difference of
-            # two objective values loses it to rounding near the minimiser
-            change = trial - x
-            decrease = _per_channel_dot(change, g + 0.5 * (n_trial - nx))
-            ok = decrease <= 1e-4 * _per_channel_dot(g, change)
-            take = (ok & ~accepted)[None, :, None, None]
-            x_new = torch.where(take, trial, x_new)
-            nx_new = torch.where(take, n_trial, nx_new)
-            accepted |= ok
-            if bool(accepted.all()):
-                break
-            alpha = torch.where(accepted, alpha, alpha / 2)
-        stuck |= ~accepted
-        x, nx = x_new, nx_new
-        if bar is not None:
-            bar.update(1)
-    return x, {"method": "projected-newton-cg", "iterations": done,
-               "kkt_residual": history[-1], "history": history,
-               "converged": history[-1] < tolerance, "stalled": bool(stuck.any()),
-               "exact_hessian_from": exact_from}
-
-
 __all__ = [
     "BATCH_BYTES",
     "DEFAULT_BATCH",
     "DEFAULT_CACHE_BYTES",
-    "STALL_STEPS",
     "FrequencyGram",
     "PairBatches",
     "SolveInfo",
     "auto_batch_size",
     "difference_matrix",
     "embed_kernel",
-    "kkt_residual",
-    "projected_newton",
     "regularised_normal",
     "solve_kernels",
     "solve_normal_equations",

@@ -63,11 +63,11 @@ from psfkit.compare.statistics import normalized_correlation
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.kernelfile import KernelModel, save_kernels
+from psfkit.pairs_constraints import projected_newton
 from psfkit.pairs_fit import predict
 from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
 from psfkit.pairs_solver import (
     PairBatches,
-    projected_newton,
     regularised_normal,
     solve_kernels,
 )
@@ -161,11 +161,11 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         ignored.
     nonneg : bool
         Minimise over non-negative kernels: projected Newton-CG
-        (:func:`psfkit.pairs_solver.projected_newton`) on the same normal equations,
+        (:func:`psfkit.pairs_constraints.projected_newton`) on the same normal equations,
         warm-started from the unconstrained oracle, for at most ``projected_iterations``
         Newton steps of ``cg_iterations`` preconditioned CG iterations each (on float32
         products, with float64 gradients and line search), or until the relative KKT
-        residual (:func:`psfkit.pairs_solver.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ / ‖K‖``
+        residual (:func:`psfkit.pairs_constraints.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ / ‖K‖``
         per channel, the largest) is below ``projected_tolerance``. The record gives both.
     start : numpy.ndarray, optional
         ``(K, C, H, W)`` kernels to warm-start the unconstrained solve from (e.g. the

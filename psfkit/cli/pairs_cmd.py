@@ -13,7 +13,7 @@ import numpy as np
 
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
-from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, command_name
+from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, add_retired, command_name
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
@@ -30,7 +30,7 @@ from psfkit.zones import ZONE_NAMES
 #: pairs folder declares.
 FIT_PAIRS_ADVANCED = ("--channel-order", "--tikhonov", "--difference", "--iterations",
                       "--no-scale", "--nonneg", "--support", "--support-threshold",
-                      "--support-mask", "--energy", "--projected-iterations", "--leave-one-out")
+                      "--support-mask", "--projected-iterations", "--leave-one-out")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,10 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "pairs, by preconditioned conjugate gradients on the normal equations, "
                     "with the regularisation chosen by held-out error (cross-validation over "
                     "the pairs), then (by default) projected Newton under the constraints "
-                    "of a measured PSF: non-negative, optionally zero outside a support and "
-                    "with fixed energies. Writes a kernel file that ekdun and eval-model "
-                    "read; its provenance records the regularisation chosen, the "
-                    "constraints, energies and support. --help-all lists the advanced flags.")
+                    "of a measured PSF: non-negative, optionally zero outside a support. "
+                    "Writes a kernel file that ekdun and eval-model read; its provenance "
+                    "records the regularisation chosen, the constraints and support. "
+                    "--help-all lists the advanced flags.")
     add_help_all(p)
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
@@ -67,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing --out or --report file")
     add_config_option(p, "tikhonov = 1e-3", "the kernel file's provenance")
+    add_retired(p, "fit-pairs")
     mark_advanced(p, FIT_PAIRS_ADVANCED)
     p.set_defaults(func=run_fit_pairs)
 
@@ -134,13 +135,9 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
     c.add_argument("--support-mask", metavar="FILE",
                    help="footprint image (.npy/.png/.tif, nonzero = inside) of the sensor's "
                         "size, binned by --downsample; overrides --support")
-    c.add_argument("--energy", choices=("free", "fit", "base"), default=d.energy,
-                   help="per-kernel energy (sum per channel): free (default), fit (fixed to "
-                        "the unconstrained fit's sums) or base (every kernel carries the "
-                        "unconstrained base kernel's)")
     c.add_argument("--projected-iterations", type=flag("--projected-iterations"), default=None,
-                   help="most iterations of the constrained solve (default 100 projected "
-                        "Newton steps; 100 FISTA iterations with --energy)")
+                   help="most projected Newton steps of the non-negative solve (default "
+                        "100)")
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:
@@ -220,7 +217,7 @@ def run_fit_pairs(args: argparse.Namespace) -> int:
                              difference=args.difference, iterations=args.iterations,
                              fit_scale=not args.no_scale, nonneg=args.nonneg,
                              support="mask" if args.support_mask else args.support,
-                             support_threshold=threshold, energy=args.energy,
+                             support_threshold=threshold,
                              projected_iterations=args.projected_iterations)
     # both outputs are checked before the fit and appear together, or neither does
     with OutputTransaction(overwrite=args.overwrite) as outputs:
@@ -292,13 +289,11 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
     options, physics = fit.options, summary["physics"]
     constraints = [name for name, on in (("non-negative", options.nonneg),
                                          (f"support {options.support}",
-                                          options.support != "none"),
-                                         (f"energy {options.energy}",
-                                          options.energy != "free")) if on]
+                                          options.support != "none")) if on]
     print(f"  kernels: {', '.join(constraints) or 'unconstrained'}; "
           f"{physics['negative_pixels']} negative pixels, support fraction "
           f"{physics['support_fraction']:.3f}")
-    if options.solver == "newton" and options.constrained:
+    if options.nonneg:
         step = fit.history[-1]
         print(f"  non-negative least squares: {step['iterations']} Newton steps, KKT residual "
               f"{step['kkt_residual']:.1e} ("

@@ -216,6 +216,46 @@ def add_deprecated(parser: argparse.ArgumentParser | argparse._ArgumentGroup, al
                                default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
+#: Retired flags: ``(command, flag) -> (nargs, note, choices)``. Accepted (a value is still
+#: checked against ``choices``) and ignored for one release, hidden from ``--help``; the note is
+#: printed once the command has done its work (``docs/migration.md``).
+RETIRED: dict[tuple[str, str], tuple[int, str, tuple[str, ...] | None]] = {
+    ("fit-pairs", "--nonneg-solver"): (
+        1, "note: --nonneg-solver is deprecated and ignored: fit-pairs has one non-negative "
+           "solver, projected Newton-CG to convergence (docs/migration.md)",
+        ("auto", "fista", "newton")),
+    ("fit-pairs", "--energy"): (
+        1, "note: --energy is deprecated and ignored: fit-pairs leaves each kernel's energy "
+           "to the non-negative least squares (docs/migration.md)",
+        ("free", "fit", "base")),
+}
+
+
+class _RetiredFlag(argparse.Action):
+    """A flag that no longer acts: records its note (printed after the work), stores nothing."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, note: str = "",
+                 **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.note = note
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        notices = list(getattr(namespace, NOTICES, None) or [])
+        if self.note not in notices:
+            notices.append(self.note)
+        setattr(namespace, NOTICES, notices)
+
+
+def add_retired(parser: argparse.ArgumentParser, command: str) -> None:
+    """Add ``command``'s retired flags (:data:`RETIRED`) to ``parser``, hidden."""
+    for (cmd, name), (nargs, note, choices) in RETIRED.items():
+        if cmd == command:
+            parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
+                                choices=choices, dest=argparse.SUPPRESS,
+                                default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
 def deprecation_notices(args: argparse.Namespace) -> list[str]:
     """The notice lines of the deprecated spellings ``args`` was parsed from."""
     return list(getattr(args, NOTICES, None) or [])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from psfkit.cli import main
+from psfkit.cli.vocabulary import RETIRED
 from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.pairs_fit import predict
 from psfkit.pairs_options import NEWTON_TOLERANCE
@@ -83,7 +84,8 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
                                                                  capsys) -> None:
     """Default: non-negative kernels, with the constraints, energies and support fraction in
     the kernel file's provenance; --no-nonneg gives the old unconstrained fit (negative
-    lobes); --support-mask and --energy are honoured."""
+    lobes); --support-mask is honoured; the retired --energy and --nonneg-solver are accepted,
+    change nothing and say so in one note each (issue 44)."""
     fit_dir, _, _ = eigen_pairs
     common = ["--basis", "ek", "--convention", "sensor", "--iterations", "40", "--quiet"]
     default, free = tmp_path / "default.npz", tmp_path / "free.npz"
@@ -94,7 +96,7 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
     model, unconstrained = load_kernels(default), load_kernels(free)
     assert model.kernels.min() >= 0 and unconstrained.kernels.min() < 0
     physics = model.provenance["physics"]
-    assert physics["constraints"] == {"nonneg": True, "support": "none", "energy": "free"}
+    assert physics["constraints"] == {"nonneg": True, "support": "none"}
     assert physics["negative_pixels"] == 0 and physics["nonfinite_pixels"] == 0
     np.testing.assert_allclose(physics["energy"], model.kernels.sum(axis=(-2, -1)), rtol=1e-5)
     assert unconstrained.provenance["physics"]["negative_pixels"] > 0
@@ -103,26 +105,38 @@ def test_fit_pairs_writes_physical_kernels_unless_asked_otherwise(eigen_pairs, t
     mask = np.zeros((16, 24), np.uint8)
     mask[3:13, 4:20] = 1
     np.save(tmp_path / "mask.npy", mask)
-    masked = tmp_path / "masked.npz"
-    assert main(["fit-pairs", str(fit_dir), "--out", str(masked), "--support-mask",
-                 str(tmp_path / "mask.npy"), "--energy", "fit", *common]) == 0
+    masked, retired = tmp_path / "masked.npz", tmp_path / "retired.npz"
+    # the weight given: no cross-validation in these two runs
+    support = ["--support-mask", str(tmp_path / "mask.npy"), "--difference", "1"]
+    assert main(["fit-pairs", str(fit_dir), "--out", str(masked), *support, *common]) == 0
+    assert capsys.readouterr().err == ""
     model = load_kernels(masked)
     assert np.abs(model.kernels[..., mask == 0]).max() == 0 and model.kernels.min() >= 0
     physics = model.provenance["physics"]
-    assert physics["constraints"] == {"nonneg": True, "support": "mask", "energy": "fit"}
+    assert physics["constraints"] == {"nonneg": True, "support": "mask"}
     assert physics["support_fraction"] <= mask.mean()
     assert model.provenance["support_mask"].endswith("mask.npy")
-    # energies: those of the unconstrained fit (same data and options, so the same CG solve)
-    np.testing.assert_allclose(model.kernels.sum(axis=(-2, -1)),
-                               unconstrained.kernels.sum(axis=(-2, -1)), rtol=1e-5)
+    assert main(["fit-pairs", str(fit_dir), "--out", str(retired), *support, *common,
+                 "--energy", "fit", "--nonneg-solver", "fista"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [RETIRED[("fit-pairs", "--energy")][1],
+                   RETIRED[("fit-pairs", "--nonneg-solver")][1]]
+    assert all("deprecated and ignored" in line and "migration.md" in line for line in err)
+    assert np.array_equal(load_kernels(retired).kernels, model.kernels)
+    # a retired flag's value is still checked, in one line, and nothing is written
+    assert main(["fit-pairs", str(fit_dir), "--out", str(tmp_path / "bad.npz"), *common,
+                 "--nonneg-solver", "pcg"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--nonneg-solver" in err[0]
+    assert not (tmp_path / "bad.npz").exists()
 
 
 def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Path,
                                                        capsys) -> None:
     """The non-negative solve (projected Newton): kernels at a KKT residual below the fit's
     tolerance (NEWTON_TOLERANCE; printed with "converged", and in the report), inside a
-    --support-mask; with --energy the solve is FISTA's (Newton does not handle it), and with
-    --no-nonneg there is none."""
+    --support-mask; with --no-nonneg there is none: conjugate gradients, restricted to the
+    support when there is one (an exact solve; issue 44: one solver per problem)."""
     fit_dir, _, _ = eigen_pairs
     common = ["--basis", "ek", "--convention", "sensor", "--quiet"]
     out = tmp_path / "newton.npz"
@@ -141,13 +155,19 @@ def test_fit_pairs_newton_solver_converges_and_says_so(eigen_pairs, tmp_path: Pa
     step = json.loads((tmp_path / "r.json").read_text())["solver"][-1]
     assert step["method"] == "projected-newton-cg" and step["converged"]
     assert step["kkt_residual"] == pytest.approx(kkt, rel=0.1)
-    for extra, method in ((["--energy", "base"], "fista"), (["--no-nonneg"], None)):
-        other = tmp_path / f"{method}.npz"
-        assert main(["fit-pairs", str(fit_dir), "--out", str(other), *common, *extra,
-                     "--report", str(tmp_path / f"{method}.json"), "--overwrite"]) == 0
+    for name, extra in (("free", []), ("restricted", ["--support-mask",
+                                                      str(tmp_path / "mask.npy")])):
+        other = tmp_path / f"{name}.npz"
+        assert main(["fit-pairs", str(fit_dir), "--out", str(other), *common, "--no-nonneg",
+                     *extra, "--report", str(tmp_path / f"{name}.json")]) == 0
         assert "Newton" not in capsys.readouterr().out
-        last = json.loads((tmp_path / f"{method}.json").read_text())["solver"][-1]
-        assert last["method"] == (method or "pcg-frequency-gram")
+        last = json.loads((tmp_path / f"{name}.json").read_text())["solver"][-1]
+        assert last["method"] == "pcg-frequency-gram" and last["converged"]
+        assert last.get("restricted_to_support", False) == bool(extra)
+        kernels = load_kernels(other).kernels
+        assert kernels.min() < 0                        # unconstrained: its negative lobes
+        if extra:
+            assert np.abs(kernels[..., mask == 0]).max() == 0
 
 
 def test_bad_input_one_line_errors_and_nothing_written(eigen_pairs, tmp_path: Path,

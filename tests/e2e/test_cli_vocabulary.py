@@ -290,9 +290,12 @@ def flag_table() -> str:
     A flag that only ``--help-all`` lists is marked *(advanced)* after its command; the
     commands that ``--help`` does not list (replaced, kept for one release) *(deprecated)*.
     """
-    from ekdun.cli.commands import RETIRED_FLAGS
+    from ekdun.cli.commands import RETIRED_FLAGS as EKDUN_RETIRED
     from psfkit.cli.help_all import full_help, is_advanced
+    from psfkit.cli.vocabulary import RETIRED as PSFKIT_RETIRED
 
+    # both CLIs' retired flags (accepted, ignored, one note): (nargs, note, ...) alike
+    RETIRED_FLAGS = {**EKDUN_RETIRED, **PSFKIT_RETIRED}
     hidden = hidden_commands()
     rows: dict[str, dict[str, Any]] = {}
     for cli, command, action in all_options():

@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, project, projected_fit
+from psfkit.pairs_constraints import auto_support, kkt_residual, projected_newton
 from psfkit.pairs_fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -20,7 +20,7 @@ from psfkit.pairs_fit import (
     relative_errors,
 )
 from psfkit.pairs_options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
-from psfkit.pairs_solver import PairBatches, kkt_residual, projected_newton, solve_kernels
+from psfkit.pairs_solver import PairBatches, solve_kernels
 from psfkit.weights import get_basis
 
 
@@ -140,47 +140,11 @@ def test_bad_options_and_shapes() -> None:
         PairFitOptions(tikhonov=-1)
     with pytest.raises(ConfigurationError, match="support"):
         PairFitOptions(support="circle")
-    with pytest.raises(ConfigurationError, match="energy"):
-        PairFitOptions(energy="unit")
     x = np.zeros((2, 1, 8, 8), np.float32)
     with pytest.raises(InvalidInputError, match="must both be"):
         fit_pairs(x, x[:1])
     with pytest.raises(InvalidInputError, match="at least two"):
         leave_one_out(x[:1], x[:1], PairFitOptions())
-
-
-@pytest.mark.parametrize("nonneg", [True, False])
-@pytest.mark.parametrize("with_support", [True, False])
-@pytest.mark.parametrize("with_energy", [True, False])
-def test_projection_is_the_euclidean_projection(nonneg: bool, with_support: bool,
-                                                with_energy: bool) -> None:
-    """Feasible, idempotent, and the variational inequality ``(v − P v)·(z − P v) <= 0`` for
-    feasible ``z``: what characterises the projection onto a closed convex set."""
-    rng = np.random.default_rng(5)
-    v = torch.as_tensor(rng.standard_normal((2, 3, 6, 7)))
-    support = torch.as_tensor(rng.random((6, 7)) < 0.6) if with_support else None
-    energy = torch.as_tensor(rng.random((2, 3)) + 0.5) if with_energy else None
-    p = project(v, nonneg, support, energy)
-    if nonneg:
-        assert float(p.min()) >= 0
-    if with_support:
-        assert float(p[..., ~support].abs().max()) == 0
-    if with_energy:
-        assert torch.allclose(p.sum(dim=(2, 3)), energy, rtol=0, atol=1e-12)
-    assert torch.allclose(project(p, nonneg, support, energy), p, atol=1e-12)
-    for _ in range(20):
-        z = project(torch.as_tensor(rng.standard_normal(v.shape)) * 3, nonneg, support, energy)
-        assert float(((v - p) * (z - p)).sum()) <= 1e-9
-    if nonneg and not with_support and not with_energy:
-        assert torch.equal(p, v.clamp_min(0))
-
-
-def test_projection_refuses_an_energy_no_nonnegative_kernel_has() -> None:
-    v = torch.ones((1, 1, 3, 3))
-    with pytest.raises(InvalidInputError, match="positive energy"):
-        project(v, True, None, torch.tensor([[-1.0]]))
-    with pytest.raises(InvalidInputError, match="support is empty"):
-        project(v, True, torch.zeros((3, 3), dtype=torch.bool), torch.tensor([[1.0]]))
 
 
 @pytest.mark.parametrize("preconditioned", [False, True])
@@ -271,12 +235,41 @@ def test_constrained_fit_recovers_non_negative_kernels(noise: float) -> None:
         assert held_out[True] < 0.7 * held_out[False]
 
 
+def _dense_system(normal, rhs: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """The normal matrix ``(C, n, n)`` and right-hand side ``(C, n)`` of a per-channel
+    operator on ``(K, C, Hk, Wk)`` kernels, column by column (n = K·Hk·Wk)."""
+    k, c, h, w = rhs.shape
+    n = k * h * w
+    columns = np.empty((c, n, n))
+    for j in range(n):
+        e = torch.zeros(k * h * w, dtype=rhs.dtype)
+        e[j] = 1.0
+        out = normal(e.reshape(k, 1, h, w).expand(k, c, h, w).contiguous())
+        columns[:, :, j] = out.permute(1, 0, 2, 3).reshape(c, n).numpy()
+    return columns, rhs.permute(1, 0, 2, 3).reshape(c, n).numpy()
+
+
+def _dense_nnls(matrix: np.ndarray, rhs: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """``argmin ½kᵀNk − rhsᵀk`` over ``k ≥ 0``, ``k = 0`` outside ``inside``, by scipy's
+    active-set NNLS on the Cholesky factor (``½‖Lᵀk − L⁻¹rhs‖²`` is the same objective up to
+    a constant)."""
+    from scipy.linalg import cholesky, solve_triangular
+    from scipy.optimize import nnls
+
+    sub = matrix[np.ix_(inside, inside)]
+    upper = cholesky(0.5 * (sub + sub.T))                 # sub = UᵀU
+    got = np.zeros(len(rhs))
+    got[inside] = nnls(upper, solve_triangular(upper, rhs[inside], trans="T"),
+                       maxiter=20 * len(sub))[0]
+    return got
+
+
 @pytest.mark.parametrize("with_support", [False, True])
 def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> None:
     """The non-negative solve (projected Newton-CG, its CG on float32 products) reaches the
-    non-negative least squares (KKT residual below its tolerance), which a long FISTA run on
-    the same normal equations (a second method) agrees with, and which an early-stopped FISTA
-    run has not reached (a larger objective)."""
+    non-negative least squares (KKT residual below its tolerance): the minimiser that scipy's
+    active-set NNLS finds on the dense normal equations of the same fit (an independent
+    method), within and outside a support."""
     _truth, x, y = _tiny_camera()
     noisy = y + 0.03 * y.std() * np.random.default_rng(1).standard_normal(y.shape)
     mask = np.zeros((16, 16), bool)
@@ -285,12 +278,7 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
                   fit_scale=False, support="mask" if with_support else "none", tikhonov=0.0,
                   difference=0.0)
     extra = {"support_mask": mask} if with_support else {}
-
-    def fit(**kw):
-        return fit_pairs(x, noisy, PairFitOptions(**common, **kw), dtype=torch.float64,
-                         **extra)
-
-    newton = fit()
+    newton = fit_pairs(x, noisy, PairFitOptions(**common), dtype=torch.float64, **extra)
     step = newton.history[-1]
     assert step["method"] == "projected-newton-cg" and step["kkt_residual"] < NEWTON_TOLERANCE
     assert step["converged"] and not step["stalled"]
@@ -299,56 +287,77 @@ def test_newton_solver_is_the_non_negative_least_squares(with_support: bool) -> 
     if with_support:
         assert np.abs(newton.kernels[..., ~mask]).max() == 0
     batches = PairBatches(x, "paper", "sensor", (16, 16))
-    start, _, system = solve_kernels(batches, noisy, tolerance=1e-10, max_iterations=300)
-    support = torch.as_tensor(mask) if with_support else None
-    long, _ = projected_fit(system["normal"], system["rhs"], start, 5000, support=support,
-                            tolerance=0)
-    short, _ = projected_fit(system["normal"], system["rhs"], start, 3, support=support)
-    kernels = torch.as_tensor(newton.kernels, dtype=torch.float64)
-    rel = float(torch.linalg.norm(kernels - long) / torch.linalg.norm(long))
-    assert rel < 2e-3, rel
+    _start, _, system = solve_kernels(batches, noisy, max_iterations=0)
+    matrix, rhs = _dense_system(system["normal"], system["rhs"])
+    inside = np.broadcast_to(mask if with_support else np.ones_like(mask), (3, 16, 16))
+    kernels = newton.kernels.astype(np.float64)
+    for c in range(rhs.shape[0]):
+        want = _dense_nnls(matrix[c], rhs[c], inside.reshape(-1))
+        assert (want[inside.reshape(-1)] == 0).sum() > 10        # bounds are active
+        got = kernels[:, c].reshape(-1)
+        rel = np.linalg.norm(got - want) / np.linalg.norm(want)
+        assert rel < 2e-3, rel
 
-    def objective(k: torch.Tensor) -> float:
-        return float(0.5 * (k * system["normal"](k)).sum() - (system["rhs"] * k).sum())
+        def objective(k: np.ndarray, c: int = c) -> float:
+            return float(0.5 * k @ matrix[c] @ k - rhs[c] @ k)
 
-    assert objective(kernels) <= objective(long) + 1e-6 * abs(objective(long)) \
-        < objective(short)
+        assert objective(got) <= objective(want) + 1e-6 * abs(objective(want))
+
+
+def test_support_without_nonnegativity_is_the_exact_restricted_least_squares() -> None:
+    """``--no-nonneg`` with a support: conjugate gradients restricted to it give the least
+    squares over the supported pixels (a dense solve of the same normal equations), zero
+    outside, with their negative lobes."""
+    _truth, x, y = _tiny_camera()
+    noisy = y + 0.03 * y.std() * np.random.default_rng(1).standard_normal(y.shape)
+    mask = np.zeros((16, 16), bool)
+    mask[2:14, 3:15] = True
+    fit = fit_pairs(x, noisy, PairFitOptions(basis="paper", convention="sensor", tikhonov=0.0,
+                                             difference=0.0, tolerance=1e-10, iterations=500,
+                                             fit_scale=False, nonneg=False, support="mask"),
+                    dtype=torch.float64, support_mask=mask)
+    step = fit.history[-1]
+    assert step["method"] == "pcg-frequency-gram" and step["restricted_to_support"]
+    assert step["converged"] and step["relative_residual"] < 1e-9
+    assert np.abs(fit.kernels[..., ~mask]).max() == 0 and fit.kernels.min() < 0
+    batches = PairBatches(x, "paper", "sensor", (16, 16))
+    _start, _, system = solve_kernels(batches, noisy, max_iterations=0)
+    matrix, rhs = _dense_system(system["normal"], system["rhs"])
+    inside = np.broadcast_to(mask, (3, 16, 16)).reshape(-1)
+    for c in range(rhs.shape[0]):
+        want = np.linalg.solve(matrix[c][np.ix_(inside, inside)], rhs[c][inside])
+        got = fit.kernels[:, c].reshape(-1)[inside].astype(np.float64)
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
 
 
 def test_constrained_solver_follows_from_the_constraints() -> None:
-    """Projected Newton for non-negativity (with or without a support), FISTA only where
-    Newton does not apply (issue 43: the choice of solver is no longer an option)."""
-    assert "nonneg_solver" not in PairFitOptions.__dataclass_fields__
+    """One solver per problem (issue 44): projected Newton for non-negativity (with or without
+    a support), conjugate gradients otherwise; no choice of solver, no energy constraint."""
+    fields = PairFitOptions.__dataclass_fields__
+    assert "nonneg_solver" not in fields and "energy" not in fields
     assert PairFitOptions().solver == "newton"
     assert PairFitOptions().final_projected_iterations == NEWTON_ITERATIONS
     assert PairFitOptions(support="auto").solver == "newton"
-    assert PairFitOptions(nonneg=False, support="auto").solver == "fista"
-    assert PairFitOptions(energy="base").solver == "fista"
-    assert PairFitOptions(energy="base").final_projected_iterations == 100
+    assert PairFitOptions(nonneg=False, support="auto").solver == "cg"
+    assert PairFitOptions(nonneg=False).solver == "cg"
+    assert not PairFitOptions(nonneg=False).constrained
 
 
-@pytest.mark.parametrize("energy", ["fit", "base"])
-def test_energy_and_support_constraints_hold(energy: str) -> None:
+def test_support_constraint_holds_and_is_recorded() -> None:
     _truth, x, y = _tiny_camera()
     common = dict(basis="paper", convention="sensor", tikhonov=1e-3, difference=0.1,
                   iterations=50, fit_scale=False)
-    free = fit_pairs(x, y, PairFitOptions(nonneg=False, **common), dtype=torch.float64)
     mask = np.zeros((16, 16), bool)
     mask[2:14, 3:15] = True
-    fit = fit_pairs(x, y, PairFitOptions(energy=energy, support="mask", **common),
+    fit = fit_pairs(x, y, PairFitOptions(support="mask", **common),
                     dtype=torch.float64, support_mask=mask)
-    sums = fit.kernels.sum(axis=(-2, -1))
-    target = free.kernels.sum(axis=(-2, -1))
-    if energy == "base":
-        target = np.repeat(target[:1], 3, axis=0)
-    np.testing.assert_allclose(sums, target, rtol=1e-6, atol=0)
     assert np.abs(fit.kernels[..., ~mask]).max() == 0 and fit.kernels.min() >= 0
     physics = fit.physics()
-    assert physics["constraints"] == {"nonneg": True, "support": "mask", "energy": energy}
+    assert physics["constraints"] == {"nonneg": True, "support": "mask"}
     assert physics["support_fraction"] <= mask.mean()
     # the kernels are handed over in float32 (docs/architecture.md): their sums agree to its
     # rounding
-    np.testing.assert_allclose(physics["energy"], sums, rtol=1e-6)
+    np.testing.assert_allclose(physics["energy"], fit.kernels.sum(axis=(-2, -1)), rtol=1e-6)
     with pytest.raises(InvalidInputError, match="support mask"):
         fit_pairs(x, y, PairFitOptions(support="mask", **common))
     with pytest.raises(InvalidInputError, match="16x16"):

@@ -13,16 +13,14 @@ from psfkit.forward.convolution import extract_kernel, kernel_spectra
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.kernelfile import KernelModel
+from psfkit.pairs_constraints import STALL_STEPS, kkt_residual, projected_newton
 from psfkit.pairs_fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
 from psfkit.pairs_solver import (
     BATCH_BYTES,
     DEFAULT_BATCH,
-    STALL_STEPS,
     FrequencyGram,
     PairBatches,
     auto_batch_size,
-    kkt_residual,
-    projected_newton,
     regularised_normal,
     solve_kernels,
 )

@@ -19,9 +19,8 @@ from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
 from psfkit.forward.geometry import padded_shape
 from psfkit.kernelfile import KernelModel, load_kernels
-from psfkit.pairs_constraints import projected_fit
 from psfkit.pairs_fit import predict
-from psfkit.pairs_solver import PairBatches, kkt_residual, solve_kernels
+from psfkit.pairs_solver import PairBatches, solve_kernels
 from research.oracles import (
     dense_psf_oracle,
     difference_nccs,
@@ -77,7 +76,9 @@ def test_nonnegative_operator_oracle_is_the_best_nonnegative_model():
     """On the bench (whose unconstrained oracle has negative lobes), the non-negative oracle
     is feasible, predicts the dense model worse than the unconstrained oracle (a constraint)
     but better than that oracle clipped to >= 0 (it re-fits, not clips), and its projected
-    Newton solve agrees with an independent solver of the same problem (long FISTA)."""
+    Newton solve meets the optimality (KKT) conditions of the non-negative least squares,
+    checked directly on the normal equations built here: the gradient vanishes where the
+    kernels are positive and points outwards where they are 0."""
     n = 32
     free = operator_oracle(SPEC, "source", n_scenes=n, check_convergence=False)
     nn = operator_oracle(SPEC, "source", n_scenes=n, check_convergence=False, nonneg=True)
@@ -99,16 +100,16 @@ def test_nonnegative_operator_oracle_is_the_best_nonnegative_model():
     assert loss(k_free) < loss(k_nn) < 0.85 * loss(np.clip(k_free, 0, None))
     projected = nn.record["projected"]
     assert projected["method"] == "projected-newton-cg" and projected["kkt_residual"] < 1e-9
-    # the same problem by accelerated projected gradient, from the same start
+    # the optimality conditions, on the normal equations of the same problem built here
+    # (the oracle's kernels are stored in float32: conditions to that rounding)
     batches = PairBatches(scenes, "paper", "source", (32, 32))
-    start, _, system = solve_kernels(batches, clean, tolerance=1e-7, max_iterations=3000)
-    fista, _ = projected_fit(system["normal"], system["rhs"], start, 3000, tolerance=0)
-    ncc = difference_nccs(fista.numpy(), k_nn)
-    # measured 1 - NCC 3e-3 (Kv, Kh) after 1000 FISTA steps, 4e-4 after 3000; the Newton
-    # solve stops at a KKT residual of 2e-11 in 13 steps, FISTA's is 6e-8 after 3000
-    assert min(ncc.values()) > 0.998, ncc
-    assert float(kkt_residual(system["normal"], system["rhs"], fista).max()) > projected[
-        "kkt_residual"]
+    _start, _, system = solve_kernels(batches, clean, max_iterations=0)
+    k = torch.as_tensor(k_nn)
+    gradient = system["normal"](k) - system["rhs"]
+    scale = float(gradient.abs().max()) + float(system["rhs"].abs().max())
+    positive = k > 1e-6 * float(k.max())
+    assert float(gradient[positive].abs().max()) < 1e-4 * scale
+    assert float(gradient[~positive].min()) > -1e-4 * scale
 
 
 def test_shift_invariant_bench_oracles_are_its_psf():
