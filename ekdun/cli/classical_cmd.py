@@ -30,7 +30,11 @@ _DEFAULTS = {"psf": {"iterations": 100, "tv": 3e-4, "background": "corner"},
              "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
 # ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch
 # (tests/e2e/test_cli_classical.py checks that they agree).
-SOLVERS = ("auto", "admm", "pdhg")
+SOLVERS = ("auto", "admm")
+# removed solvers: accepted for one release, run ADMM after one note line (docs/migration.md)
+RETIRED_SOLVERS = {"pdhg": "note: --solver pdhg is deprecated: PDHG was removed (ADMM reached "
+                           "the same objective in fewer iterations and less time on every "
+                           "model); running the ADMM-TV solver"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "no renormalisation); folders of measurements in, a folder of "
                     "reconstructions out. Both forms run the same solvers with the same "
                     "options: closed-form ADMM-TV for every model (one split per kernel; "
-                    "weighted-scene splits for source-side models) or PDHG.")
+                    "weighted-scene splits for source-side models).")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="PSF MEASUREMENT, or with --kernels: measurement files and/or folders")
     p.add_argument("--kernels", help="kernel file (.npz) from psfkit fit-eigen / fit-pairs")
@@ -53,9 +57,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "and a folder or several measurements: an output folder")
     p.add_argument("--iterations", type=flag("--iterations"), help="iterations (default 100)")
     add_flag(p, "--tv", "admm")
-    p.add_argument("--solver", choices=SOLVERS, default="auto",
-                   help="admm (closed-form ADMM-TV, any model), pdhg (Chambolle-Pock), auto "
-                        "(default: admm)")
+    p.add_argument("--solver", choices=(*SOLVERS, *RETIRED_SOLVERS), default="auto",
+                   help="admm, the closed-form ADMM-TV for every model (auto: the same)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help="constrain the image to >= 0 (default on)")
     p.add_argument("--tol", type=flag("--tol"), default=0.0,
@@ -84,6 +87,9 @@ def run_admm(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.solver in RETIRED_SOLVERS:
+        print(RETIRED_SOLVERS[args.solver], file=sys.stderr)
+        args.solver = "admm"
     form = "kernels" if args.kernels else "psf"
     for name, value in _DEFAULTS[form].items():
         if getattr(args, name) is None:
