@@ -32,9 +32,8 @@ _DEFAULTS = {"psf": {"iterations": 100, "tv": 3e-4, "background": "corner"},
 # (tests/e2e/test_cli_classical.py checks that they agree).
 SOLVERS = ("auto", "admm")
 # removed solvers: accepted for one release, run ADMM after one note line (docs/migration.md)
-RETIRED_SOLVERS = {"pdhg": "note: --solver pdhg is deprecated: PDHG was removed (ADMM reached "
-                           "the same objective in fewer iterations and less time on every "
-                           "model); running the ADMM-TV solver"}
+RETIRED_SOLVERS = {"pdhg": "note: --solver pdhg is deprecated: PDHG was removed; the ADMM-TV "
+                           "solver runs instead (docs/migration.md)"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,8 +6,9 @@ and no per-channel renormalisation (both change the model; fit-pairs kernels car
 camera's channel gains and may have negative lobes). The solver is the one ADMM-TV,
 :func:`~ekdun.reconstruction.admm.solve_tv`, with the update rule of the model's form
 (shift-invariant, sensor side, source side). PDHG, the former ``--solver pdhg``, was removed in
-issue 44: on the same objective it needed 4-15x the iterations and time of ADMM on every form
-(docs/migration.md); ``solver="pdhg"`` runs ADMM with a deprecation warning.
+issue 44: on the DLMD models it needed 5-15x ADMM's iterations to a 1e-3 objective gap and gave a
+worse image (source side, 5-100 iterations: research/notes/reconstruction-studies.md);
+``solver="pdhg"`` runs ADMM with a DeprecationWarning.
 
 The scene is solved for on the padded grid (light from outside the view); a
 source-side model's weights continue their edge values outside the view
