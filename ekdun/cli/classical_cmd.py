@@ -57,6 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=flag("--iterations"), help="iterations (default 100)")
     add_flag(p, "--tv", "admm")
     p.add_argument("--solver", choices=(*SOLVERS, *RETIRED_SOLVERS), default="auto",
+                   metavar="{" + ",".join(SOLVERS) + "}",
                    help="admm, the closed-form ADMM-TV for every model (auto: the same)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help="constrain the image to >= 0 (default on)")
