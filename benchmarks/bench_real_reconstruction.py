@@ -12,8 +12,6 @@ rounds on the last pair, with each method at the median of its chosen iteration 
 
 * ``EK admm`` / ``SI admm``: :class:`ekdun.reconstruction.classical.ModelReconstructor`
   (``ekdun admm --kernels``), closed-form ADMM-TV;
-* ``EK pdhg`` / ``SI pdhg``: the same models with PDHG, ``--pdhg-iterations`` (default 300),
-  the ADMM's TV weight;
 * ``SI admm_tv f64``: :func:`ekdun.reconstruction.admm_tv` (float64, the fitted PSF as is),
   the SI ADMM's TV weight and iterations: since issue 22 the PSF form of the same solver
   (before, the DiffuserCam tutorial's separate ADMM);
@@ -100,12 +98,6 @@ def lensless_alignment(model, scene: np.ndarray) -> tuple[tuple[int, int], float
     return best
 
 
-def solver_runs(args: argparse.Namespace, admm_iterations: int) -> list[tuple[str, int]]:
-    """``(solver, iterations)`` of the project's methods (PDHG left out at 0 iterations)."""
-    runs = [("admm", admm_iterations)]
-    return [*runs, ("pdhg", args.pdhg_iterations)] if args.pdhg_iterations > 0 else runs
-
-
 def choose(score, values: list, prefer_smallest_within: float | None = None):
     """The value of ``values`` with the best ``score(value)`` (mean tuning PSNR), or with
     ``prefer_smallest_within``, the first (smallest) value within that many dB of the best."""
@@ -133,11 +125,9 @@ def interleaved_timings(models: dict, chosen: dict, peer: tuple | None, y: np.nd
     methods = {}
     for name, model in models.items():
         tv, its = chosen[name]
-        for solver, n in solver_runs(args, its):
-            recon = ModelReconstructor(model, ClassicalOptions(solver=solver, tv=tv,
-                                                               iterations=n))
-            recon(y)                                            # ‖A‖ once, warm-up
-            methods[f"{name} {solver}"] = lambda r=recon: r(y)
+        recon = ModelReconstructor(model, ClassicalOptions(tv=tv, iterations=its))
+        recon(y)                                                # ‖A‖ once, warm-up
+        methods[f"{name} admm"] = lambda r=recon: r(y)
     if peer is not None:
         solver = Lensless(models["SI"].kernels[0], *peer[:2])
         methods["LenslessPiCam ADMM"] = lambda s=solver, n=peer[2]: s(y, n)
@@ -159,8 +149,6 @@ def main() -> None:
                              "weight is chosen at the largest); one value: fixed")
     parser.add_argument("--iteration-tolerance", type=float, default=0.05,
                         help="choose the fewest iterations within this many dB of the best")
-    parser.add_argument("--pdhg-iterations", type=int, default=300,
-                        help="PDHG iterations (0: leave PDHG out)")
     parser.add_argument("--tv", default="1e-5,3e-5,1e-4,3e-4,1e-3",
                         help="TV weights to choose from")
     parser.add_argument("--lensless-tau", default="1e-6,1e-5,1e-4")
@@ -185,8 +173,7 @@ def main() -> None:
         sys.path.insert(0, args.lensless)
     import torch
 
-    from ekdun.reconstruction.admm_tv import admm_tv
-    from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
+    from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor, admm_tv
     from psfkit.io import read_pairs
     from psfkit.pairs_fit import PairFitOptions, downsample_pairs, fit_pairs
 
@@ -238,13 +225,10 @@ def main() -> None:
             tv = choose(lambda t, f=tuned: f(t, its_grid[-1]), tvs)
             its = choose(lambda k, f=tuned, t=tv: f(t, k), its_grid, args.iteration_tolerance)
             chosen[name] = (tv, its)
-            for solver, n_its in solver_runs(args, its):
-                recon = ModelReconstructor(model, ClassicalOptions(
-                    solver=solver, tv=tv, iterations=n_its))
-                recon(meas[keep[0]])          # ‖A‖ (PDHG's power iteration) once per model
-                result = recon(meas[i])
-                record(f"{name} {solver}", result.image, result.seconds, i,
-                       {"tv": tv, "it": n_its})
+            recon = ModelReconstructor(model, ClassicalOptions(tv=tv, iterations=its))
+            recon(meas[keep[0]])              # ‖A‖ (a power iteration) once per model
+            result = recon(meas[i])
+            record(f"{name} admm", result.image, result.seconds, i, {"tv": tv, "it": its})
         psf = models["SI"].kernels[0]
         # since issue 22 admm_tv is the PSF form of the one solver: tau means tv
         tv, its = chosen["SI"]
@@ -284,7 +268,7 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     for name, r in rows.items():
         its = "/".join(str(x["it"]) for x in r)
-        if name in medians and "pdhg" not in name:
+        if name in medians:
             its += f" (timed: {typical_iterations(r)})"
         med = f"{medians[name]:.2f}" if name in medians else "-"
         print(f"| {name} | {its} | {np.mean([x['psnr'] for x in r]):.2f} | "

@@ -37,7 +37,10 @@ _DEFAULTS = {"psf": {"iterations": 100, "tv": 3e-4, "background": "corner"},
              "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
 # ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch
 # (tests/e2e/test_cli_classical.py checks that they agree).
-SOLVERS = ("auto", "admm", "pdhg")
+SOLVERS = ("auto", "admm")
+# removed solvers: accepted for one release, run ADMM after one note line (docs/migration.md)
+RETIRED_SOLVERS = {"pdhg": "note: --solver pdhg is deprecated: PDHG was removed; the ADMM-TV "
+                           "solver runs instead (docs/migration.md)"}
 #: The parser defaults of the solver flags that are not ``None`` (``ekdun reconstruct`` refuses
 #: them with a checkpoint only when they differ from these).
 SOLVER_DEFAULTS = {"solver": "auto", "nonneg": True, "tol": 0.0, "dtype": "float32"}
@@ -58,9 +61,10 @@ def add_solver_flags(p: argparse.ArgumentParser, command: str, form_note: str) -
     p.add_argument("--iterations", type=flag("--iterations"),
                    help=f"solver iterations{form_note} (default 100)")
     add_flag(p, "--tv", command)
-    p.add_argument("--solver", choices=SOLVERS, default="auto",
-                   help="admm (closed-form ADMM-TV, any model), pdhg (Chambolle-Pock), auto "
-                        f"(default: admm){form_note}")
+    p.add_argument("--solver", choices=(*SOLVERS, *RETIRED_SOLVERS), default="auto",
+                   metavar="{" + ",".join(SOLVERS) + "}",
+                   help="admm, the closed-form ADMM-TV for every model (auto: the same)"
+                        f"{form_note}")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
                    help=f"constrain the image to >= 0{form_note} (default on)")
     p.add_argument("--tol", type=flag("--tol"), default=0.0,
@@ -110,6 +114,9 @@ def fill_defaults(args: argparse.Namespace, form: str) -> None:
     for name, value in _DEFAULTS[form].items():
         if getattr(args, name) is None:
             setattr(args, name, value)
+    if args.solver in RETIRED_SOLVERS:   # its note joins the others, printed after the work
+        setattr(args, NOTICES, [*deprecation_notices(args), RETIRED_SOLVERS[args.solver]])
+        args.solver = "admm"
 
 
 def run_admm(args: argparse.Namespace) -> int:

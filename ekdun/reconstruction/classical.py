@@ -3,21 +3,14 @@
 A shift-invariant or eigen-kernel model from ``psfkit fit-eigen`` or ``psfkit fit-pairs``
 (either weight convention) is used exactly as stored: no clipping of negative kernel values
 and no per-channel renormalisation (both change the model; fit-pairs kernels carry the
-camera's channel gains and may have negative lobes). Solvers:
+camera's channel gains and may have negative lobes). The solver is the one ADMM-TV,
+:func:`~ekdun.reconstruction.admm.solve_tv`, with the update rule of the model's form
+(shift-invariant, sensor side, source side). PDHG, the former ``--solver pdhg``, was removed in
+issue 44: on the DLMD models it needed 5-15x ADMM's iterations to a 1e-3 objective gap and gave a
+worse image (source side, 5-100 iterations: research/notes/reconstruction-studies.md);
+``solver="pdhg"`` runs ADMM with a DeprecationWarning.
 
-``admm``
-    ADMM-TV with closed-form steps, for every model:
-    :func:`~ekdun.reconstruction.ek_admm.ek_admm_tv` (one split per kernel) for
-    shift-invariant and sensor-side eigen-kernel models,
-    :func:`~ekdun.reconstruction.source_admm.source_admm_tv` (splits of the weighted scenes
-    as well) for source-side ones.
-``pdhg``
-    :func:`~ekdun.reconstruction.pdhg_tv.pdhg_tv` (Chambolle–Pock), any model, only ``A`` and
-    ``Aᵀ``; needs several times more iterations than ``admm`` on DLMD.
-``auto``
-    ``admm``.
-
-Both solve for the scene on the padded grid (light from outside the view) by default; a
+The scene is solved for on the padded grid (light from outside the view); a
 source-side model's weights continue their edge values outside the view
 (:meth:`psfkit.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the model's
 channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
@@ -27,22 +20,23 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from ekdun.errors import ConfigurationError, InvalidInputError, TensorShapeError
-from ekdun.physics.operators import EigenKernelOperator
-from ekdun.reconstruction.ek_admm import ek_admm_tv
+from ekdun.reconstruction.admm import solve_tv
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
-from ekdun.reconstruction.pdhg_tv import pdhg_tv
-from ekdun.reconstruction.source_admm import source_admm_tv
 from psfkit.kernelfile import KernelModel
 
-SOLVERS = ("auto", "admm", "pdhg")
+SOLVERS = ("auto", "admm")
+#: Solver names that were removed; they run ADMM (one release, then refused).
+RETIRED_SOLVERS = ("pdhg",)
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -52,9 +46,10 @@ class ClassicalOptions:
 
     Attributes
     ----------
-    solver : {"auto", "admm", "pdhg"}
+    solver : {"auto", "admm"}
+        Both are the one ADMM-TV (``"pdhg"``, removed, runs it with a DeprecationWarning).
     tv : float
-        Relative TV weight (scale-free: see :mod:`ekdun.reconstruction.pdhg_tv`).
+        Relative TV weight (scale-free: see :mod:`ekdun.reconstruction.admm`).
     iterations : int
         Maximum iterations.
     nonneg : bool
@@ -62,10 +57,6 @@ class ClassicalOptions:
     tol : float
         Relative-change stopping rule (0 = off).
     dtype : {"float32", "float64"}
-    extended : bool, optional
-        Solve for the scene on the whole padded grid (light from outside the view) and return
-        its central block. ``admm`` always does; ``None`` (default) or ``True``: so does
-        ``pdhg``; ``False``: ``pdhg`` on the sensor-sized scene.
     """
 
     solver: str = "auto"
@@ -74,10 +65,12 @@ class ClassicalOptions:
     nonneg: bool = True
     tol: float = 0.0
     dtype: str = "float32"
-    extended: bool | None = None
 
     def __post_init__(self) -> None:
-        if self.solver not in SOLVERS:
+        if self.solver in RETIRED_SOLVERS:
+            warnings.warn(f"solver {self.solver!r} was removed (issue 44): the ADMM-TV solver "
+                          "runs instead", DeprecationWarning, stacklevel=3)
+        elif self.solver not in SOLVERS:
             raise ConfigurationError(f"--solver must be one of {', '.join(SOLVERS)}, got "
                                      f"{self.solver!r}")
         if self.dtype not in DTYPES:
@@ -117,15 +110,8 @@ class ModelReconstructor:
         self.model = model
         self.options = options or ClassicalOptions()
         self.dtype = DTYPES[self.options.dtype]
-        solver = "admm" if self.options.solver == "auto" else self.options.solver
-        if solver == "admm" and self.options.extended is False:
-            raise ConfigurationError("the admm solver always solves on the padded grid "
-                                     "(extended=False needs solver 'pdhg')")
-        self.solver = solver
-        self.extended = self.options.extended is not False
-        self.solver_operator = (
-            ExtendedSceneOperator.from_kernel_model(model, self.dtype) if self.extended
-            else EigenKernelOperator.from_kernel_model(model, dtype=self.dtype).prepare())
+        self.solver = "admm"
+        self.solver_operator = ExtendedSceneOperator.from_kernel_model(model, self.dtype)
         self._norm: float | None = None
 
     @property
@@ -150,18 +136,10 @@ class ModelReconstructor:
         t0 = time.perf_counter()
         with torch.no_grad():
             y = torch.as_tensor(measurement, dtype=self.dtype)
-            if self.solver == "pdhg":
-                solve = pdhg_tv
-            elif self.solver_operator.convention == "source":
-                solve = source_admm_tv
-            else:
-                solve = ek_admm_tv
-            result = solve(y, self.solver_operator, tv=o.tv, iterations=o.iterations,
-                           nonneg=o.nonneg, tol=o.tol, norm=self._norm, callback=callback)
+            result = solve_tv(y, self.solver_operator, tv=o.tv, iterations=o.iterations,
+                              nonneg=o.nonneg, tol=o.tol, norm=self._norm, callback=callback)
             self._norm = result.operator_norm              # measured once per model
-            image = result.image
-            if self.extended:
-                image = self.solver_operator.crop(image[None])[0]
+            image = self.solver_operator.crop(result.image[None])[0]
         return ClassicalResult(image.numpy().astype(np.float32), result.iterations,
                                result.converged, time.perf_counter() - t0)
 
@@ -204,6 +182,52 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
     return KernelModel.shift_invariant(kernel, sensor_shape=tuple(sensor_shape),
                                        scene_padding=scene_padding,
                                        normalization="as given (PSF image)")
+
+
+_DTYPE_NAMES = {torch.float32: "float32", torch.float64: "float64"}
+
+
+def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iterations: int = 100,
+            tau: float = 1e-3, scene_padding: int = 2, normalize_psf: bool = True,
+            dtype: torch.dtype = torch.float64) -> Tensor:
+    """Reconstruct a scene from one measurement with ADMM-TV and a shift-invariant PSF.
+
+    Kept for callers of the DiffuserCam tutorial's function: the PSF's shift-invariant model
+    (:func:`psf_model`) through :class:`ModelReconstructor`, the solver of ``ekdun admm``
+    (the scene on the padded grid, ``tau`` relative to the measurement's peak and ``‖A‖``).
+
+    Parameters
+    ----------
+    measurement : array ``(C, H', W')`` or ``(H', W')``
+        Background-subtracted measurement.
+    psf : array ``(C, Hk, Wk)`` or ``(Hk, Wk)``
+        PSF (origin at its centre), ``Hk <= H'``, ``Wk <= W'``; a mono PSF is used for every
+        channel.
+    iterations : int
+        ADMM iterations.
+    tau : float
+        TV weight relative to the measurement's peak and ``‖A‖`` (``--tv``).
+    scene_padding : int
+        Padded-grid factor.
+    normalize_psf : bool
+        Scale each PSF channel to unit sum first (reconstruction in measurement units).
+    dtype : torch.float32 or torch.float64
+
+    Returns
+    -------
+    Tensor
+        ``(C, H', W')`` in ``dtype``.
+    """
+    y = np.asarray(measurement, dtype=np.float64)
+    y = y[None] if y.ndim == 2 else y
+    h = np.asarray(psf, dtype=np.float64)
+    if normalize_psf:
+        h = h / np.maximum(h.sum(axis=(-2, -1), keepdims=True), 1e-12)
+    model = psf_model(h, y.shape[-2:], y.shape[0], scene_padding)
+    options = ClassicalOptions(solver="admm", tv=tau, iterations=iterations,
+                               dtype=_DTYPE_NAMES[dtype])
+    image = ModelReconstructor(model, options)(y).image
+    return torch.as_tensor(image, dtype=dtype)
 
 
 def reconstruct_with_model(measurement: np.ndarray, model: KernelModel,

@@ -2,9 +2,9 @@ r"""The forward model with the scene on the whole padded grid (light from outsid
 
 A real measurement also records scene points outside the ``H' × W'`` field that the sensor-sized
 model ``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` assumes; a reconstruction restricted to that field
-has to explain their light with in-field pixels (artefacts at the borders). The ADMM-TV solvers
-(:mod:`ekdun.reconstruction.ek_admm`, :mod:`ekdun.reconstruction.source_admm`) therefore solve
-on the padded grid, and so does PDHG with this operator. Sensor-side eigen-kernel models need
+has to explain their light with in-field pixels (artefacts at the borders). The ADMM-TV solver
+(:mod:`ekdun.reconstruction.admm`) therefore solves on the padded grid, with this operator.
+Sensor-side eigen-kernel models need
 nothing more (their weights multiply each kernel's image on the sensor); source-side ones
 weight the scene, so they need weights on the whole grid:
 :meth:`psfkit.kernelfile.KernelModel.weight_maps` with ``extent``, which continues the edge
