@@ -37,7 +37,7 @@ from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
 from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
-from psfkit.forward.norm import NORM_MAX_ITERATIONS, NORM_TOLERANCE, spectral_bound
+from psfkit.forward.norm import spectral_bound
 from psfkit.forward.operator import SpectralOperator, kernel_model_tensors
 from psfkit.kernelfile import KernelModel, check_kernels
 from psfkit.weights import get_basis
@@ -104,8 +104,7 @@ def _psf_tensor(psf: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
 class FFTConvolutionOperator(nn.Module, LinearOperator):
     """Common base of the FFT convolution operators: kernels, weights and spectra cache.
 
-    A :class:`~psfkit.forward.base.LinearOperator`: ``norm()`` (of the current kernels) and
-    ``adjointness_error()``.
+    A :class:`~psfkit.forward.base.LinearOperator` (``norm()``, ``adjointness_error()``).
 
     Parameters
     ----------
@@ -180,20 +179,10 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
         """Where the kernels (and so the inputs) live."""
         return self.kernels.device
 
-    def domain_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a scene."""
-        return (1, self.channels, *self.sensor_shape)
-
-    def range_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a measurement."""
-        return (1, self.channels, *self.sensor_shape)
-
-    def norm(self, tol: float = NORM_TOLERANCE, max_iterations: int = NORM_MAX_ITERATIONS,
-             seed: int = 0) -> float:
-        """``‖A‖`` of the current kernels (measured on a fresh :meth:`prepare`: trainable
-        kernels change, so the module itself caches nothing)."""
+    def norm(self, **options: Any) -> float:
+        """``‖A‖`` of the current kernels (on a fresh :meth:`prepare`: caches nothing)."""
         with torch.no_grad():
-            return self.prepare().norm(tol, max_iterations, seed)
+            return self.prepare().norm(**options)
 
     @property
     def trainable(self) -> bool:
@@ -371,9 +360,8 @@ class EigenKernelOperator(FFTConvolutionOperator):
     @classmethod
     def from_kernel_model(cls, model: KernelModel, trainable: bool = False,
                           dtype: torch.dtype = torch.float32) -> EigenKernelOperator:
-        """From a psfkit kernel file's :class:`~psfkit.kernelfile.KernelModel`: its arrays as
-        :func:`psfkit.forward.operator.kernel_model_tensors` converts them for every command
-        (``prepare()`` then equals ``SpectralOperator.from_kernel_model``)."""
+        """From a kernel file's model, its arrays converted as for every command
+        (:func:`psfkit.forward.operator.kernel_model_tensors`)."""
         kernels, maps = kernel_model_tensors(model, dtype)
         return cls(kernels, maps, model.convention, model.scene_padding, trainable,
                    model.kernel_names)

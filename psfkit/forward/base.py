@@ -28,8 +28,9 @@ from psfkit.forward.norm import NORM_MAX_ITERATIONS, NORM_TOLERANCE, operator_no
 class LinearOperator:
     """``A`` and ``Aᵀ`` with their norm and adjointness test.
 
-    Subclasses set (or provide as properties) ``dtype`` and ``device`` and define :meth:`A`,
-    :meth:`A_adjoint`, :meth:`domain_shape` and :meth:`range_shape`.
+    Subclasses set (or provide as properties) ``dtype`` and ``device`` and define :meth:`A` and
+    :meth:`A_adjoint`, and :meth:`domain_shape` and :meth:`range_shape` unless they map a
+    sensor-sized scene (``channels``, ``sensor_shape``) to a measurement of the same size.
     """
 
     dtype: torch.dtype
@@ -44,12 +45,14 @@ class LinearOperator:
         raise NotImplementedError
 
     def domain_shape(self) -> tuple[int, ...]:
-        """Shape of one input of :meth:`A` (batch of 1 where the operator is batched)."""
-        raise NotImplementedError
+        """Shape of one input of :meth:`A`; by default a scene ``(1, C, H', W')`` of
+        ``self.channels`` and ``self.sensor_shape``."""
+        return (1, int(self.channels), *self.sensor_shape)  # type: ignore[attr-defined]
 
     def range_shape(self) -> tuple[int, ...]:
-        """Shape of the output of :meth:`A` for an input of :meth:`domain_shape`."""
-        raise NotImplementedError
+        """Shape of ``A``'s output for an input of :meth:`domain_shape`; by default a
+        measurement ``(1, C, H', W')``."""
+        return (1, int(self.channels), *self.sensor_shape)  # type: ignore[attr-defined]
 
     def norm(self, tol: float = NORM_TOLERANCE, max_iterations: int = NORM_MAX_ITERATIONS,
              seed: int = 0) -> float:

@@ -179,14 +179,6 @@ class SpectralOperator(LinearOperator):
         return cls(spectra, weights, sensor, grid, model.convention,
                    spectra.conj().resolve_conj())
 
-    def domain_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a scene."""
-        return (1, self.channels, *self.sensor_shape)
-
-    def range_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a measurement."""
-        return (1, self.channels, *self.sensor_shape)
-
     def forward(self, x: Tensor) -> Tensor:
         """``y = A x``, scene ``(B, C, H', W')`` → measurement ``(B, C, H', W')``."""
         return eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
