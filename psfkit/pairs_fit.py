@@ -48,9 +48,8 @@ import torch
 from torch import Tensor
 
 from psfkit.errors import InvalidInputError
-from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra, zero_workspace
-from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.forward.operator import SpectralOperator
 from psfkit.io.read_options import ReadOptions
 from psfkit.kernelfile import KernelModel
 from psfkit.pairs_constraints import (
@@ -386,7 +385,9 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
 
 def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,
             *, model_name: str = "", scenes_name: str = "scenes") -> np.ndarray:
-    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``.
+    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``:
+    ``A x`` of :meth:`psfkit.forward.operator.SpectralOperator.from_kernel_model`, the operator
+    every command builds from a kernel file.
 
     ``model_name`` (the kernel file) and ``scenes_name`` (where the scenes come from, e.g. the
     pairs folder) name the two inputs when their sizes or channels disagree.
@@ -400,13 +401,9 @@ def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.f
         raise InvalidInputError(f"{scenes_name}: scenes have {scenes.shape[1]} channel(s) but "
                                 f"{model_text} has {len(model.channels)} "
                                 f"({'/'.join(model.channels)})")
-    grid = padded_shape(tuple(model.sensor_shape), model.scene_padding)
     with torch.no_grad():
-        x = torch.as_tensor(scenes, dtype=dtype)
-        spectra = kernel_spectra(torch.as_tensor(model.kernels, dtype=dtype), grid)
-        weights = torch.as_tensor(model.weight_maps(), dtype=dtype)
-        return eigen_kernel_forward(x, spectra, weights, grid, model.convention,
-                                    zero_workspace(x, grid)).numpy()
+        op = SpectralOperator.from_kernel_model(model, dtype)
+        return op.A(torch.as_tensor(scenes, dtype=dtype)).numpy()
 
 
 def relative_errors(prediction: np.ndarray, measurements: np.ndarray) -> dict[str, np.ndarray]:

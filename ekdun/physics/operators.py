@@ -34,10 +34,11 @@ import torch
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
+from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.forward.norm import spectral_bound
-from psfkit.forward.operator import SpectralOperator
+from psfkit.forward.operator import SpectralOperator, kernel_model_tensors
 from psfkit.kernelfile import KernelModel, check_kernels
 from psfkit.weights import get_basis
 
@@ -100,8 +101,10 @@ def _psf_tensor(psf: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
     return t
 
 
-class FFTConvolutionOperator(nn.Module):
+class FFTConvolutionOperator(nn.Module, LinearOperator):
     """Common base of the FFT convolution operators: kernels, weights and spectra cache.
+
+    A :class:`~psfkit.forward.base.LinearOperator` (``norm()``, ``adjointness_error()``).
 
     Parameters
     ----------
@@ -165,6 +168,21 @@ class FFTConvolutionOperator(nn.Module):
     def channels(self) -> int:
         """Number of channels ``C`` the operator acts on."""
         return int(self.kernels.shape[1])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The kernels' (and so the inputs') dtype."""
+        return self.kernels.dtype
+
+    @property
+    def device(self) -> torch.device:  # type: ignore[override]
+        """Where the kernels (and so the inputs) live."""
+        return self.kernels.device
+
+    def norm(self, **options: Any) -> float:
+        """``‖A‖`` of the current kernels (on a fresh :meth:`prepare`: caches nothing)."""
+        with torch.no_grad():
+            return self.prepare().norm(**options)
 
     @property
     def trainable(self) -> bool:
@@ -342,9 +360,9 @@ class EigenKernelOperator(FFTConvolutionOperator):
     @classmethod
     def from_kernel_model(cls, model: KernelModel, trainable: bool = False,
                           dtype: torch.dtype = torch.float32) -> EigenKernelOperator:
-        """From a psfkit kernel file's :class:`~psfkit.kernelfile.KernelModel`."""
-        kernels = torch.as_tensor(model.kernels, dtype=dtype)
-        maps = torch.as_tensor(model.weight_maps(), dtype=dtype)
+        """From a kernel file's model, its arrays converted as for every command
+        (:func:`psfkit.forward.operator.kernel_model_tensors`)."""
+        kernels, maps = kernel_model_tensors(model, dtype)
         return cls(kernels, maps, model.convention, model.scene_padding, trainable,
                    model.kernel_names)
 

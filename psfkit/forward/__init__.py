@@ -17,9 +17,15 @@ Modules
     ``pad``/``crop``, kernel embedding and spectra, :func:`eigen_kernel_forward` /
     :func:`eigen_kernel_adjoint` (sensor-sized scene) and :func:`padded_scene_forward` /
     :func:`padded_scene_adjoint` (scene on the whole padded grid): Eq. 7, written once.
+:mod:`psfkit.forward.base`
+    :class:`LinearOperator`, the base of every operator: ``A``/``A_adjoint``, ``norm()`` and
+    ``adjointness_error()`` (the dot-product test every operator's tests run).
 :mod:`psfkit.forward.operator`
-    :class:`SpectralOperator`: ``A``/``Aᵀ`` bound to precomputed kernel spectra (what ekdun's
-    operator modules hand to the unrolled networks).
+    The operator of a kernel file, built in one place (``from_kernel_model``;
+    :func:`kernel_model_tensors`): :class:`SpectralOperator` (sensor-sized scene, bound to
+    precomputed kernel spectra; what ekdun's operator modules hand to the unrolled networks and
+    what ``fit-pairs`` predicts with) and :class:`PaddedSceneOperator` (scene on the whole
+    padded grid; the classical solvers).
 :mod:`psfkit.forward.kernel_space`
     :class:`KernelSpaceOperator` (``B: K ↦ (A_K x_i)_i`` and ``Bᵀ``), the fit-pairs form.
 :mod:`psfkit.forward.norm`
@@ -48,7 +54,8 @@ _LAZY = {
     "padded_scene_adjoint_spectrum": "convolution", "kernel_images": "convolution",
     "sum_of_kernel_products": "convolution",
     "zero_workspace": "convolution", "PaddingWorkspace": "operator",
-    "SpectralOperator": "operator",
+    "SpectralOperator": "operator", "PaddedSceneOperator": "operator",
+    "kernel_model_tensors": "operator", "LinearOperator": "base",
     "records_graph": "convolution",
     "KernelSpaceOperator": "kernel_space", "linear_convolution_grid": "kernel_space",
     "operator_norm": "norm", "largest_eigenvalue": "norm", "spectral_bound": "norm",

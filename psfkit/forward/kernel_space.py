@@ -5,8 +5,14 @@ in either convention) is linear in the kernels ``K``: :class:`KernelSpaceOperato
 ``B: K ↦ (A_K x_i)_i`` and its exact adjoint ``Bᵀ`` (correlate each residual with its scene),
 with the scene spectra taken once, on the smallest grid on which the circular convolution is
 still exactly the model's (:func:`linear_convolution_grid`). :mod:`psfkit.pairs_fit` solves the
-normal equations with it; the FFTs go through :func:`~psfkit.forward.fft.rfft2` /
-:func:`~psfkit.forward.fft.irfft2` like every other user of the forward model.
+normal equations with it.
+
+It is a different operator from the kernel file's ``A`` (:mod:`psfkit.forward.operator`: the
+variable here is the kernels, not the scene) and shares with it what is the same model: the
+Eq. 7 fan-out/fan-in core, kernel embedding and FFTs (:mod:`psfkit.forward.convolution`; the
+crop is the top-left block read there), the weight maps of :mod:`psfkit.weights`, and the base
+class :class:`~psfkit.forward.base.LinearOperator` (``A = forward``, ``A_adjoint = adjoint``,
+``norm()``, ``adjointness_error()``).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import copy
 import torch
 from torch import Tensor
 
+from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import (
     _fan_in,
     _fan_out,
@@ -45,7 +52,7 @@ def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[i
                  for s, k, f in zip(sensor_shape, kernel_shape, full, strict=True))
 
 
-class KernelSpaceOperator:
+class KernelSpaceOperator(LinearOperator):
     """``B: K ↦ (A_K x_i)_i`` for fixed scenes, and its exact adjoint, on the padded grid.
 
     The same model as :func:`~psfkit.forward.convolution.eigen_kernel_forward` (checked to
@@ -78,6 +85,8 @@ class KernelSpaceOperator:
         self.weights = None if basis == "si" else torch.as_tensor(
             wb.maps((h, w)), dtype=scenes.dtype, device=scenes.device)
         self.channels = c
+        self.dtype = scenes.dtype
+        self.device = scenes.device
         # Scenes sit at the top-left of the grid and the view is read there (as in
         # eigen_kernel_forward: the centring shift cancels between pad and crop).
         if self.weights is None or convention == "sensor":
@@ -92,7 +101,16 @@ class KernelSpaceOperator:
         copy): a cross-validation fold's training or held-out pairs."""
         part = copy.copy(self)
         part.scene_spectra = self.scene_spectra[pairs]
+        part.__dict__.pop("_operator_norm_cache", None)        # the whole operator's norm
         return part
+
+    def domain_shape(self) -> tuple[int, ...]:
+        """``(K, C, Hk, Wk)``: the kernels."""
+        return (self.n_kernels, self.channels, *self.kernel_shape)
+
+    def range_shape(self) -> tuple[int, ...]:
+        """``(N, C, H', W')``: one measurement per pair."""
+        return (int(self.scene_spectra.shape[0]), self.channels, *self.sensor)
 
     def forward(self, kernels: Tensor) -> Tensor:
         """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 by the one implementation
@@ -122,3 +140,6 @@ class KernelSpaceOperator:
             r_hat = rfft2(residuals, self.grid)[:, None]                  # (N, 1, C, ...)
             spectrum = (r_hat * self.scene_spectra.conj()).sum(dim=0)          # (K or 1, C, ...)
         return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
+
+    A = forward
+    A_adjoint = adjoint

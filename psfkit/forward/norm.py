@@ -47,7 +47,7 @@ MIN_ITERATIONS = 20
 NORM_MAX_ITERATIONS = 300
 
 
-class LinearOperator(Protocol):
+class OperatorLike(Protocol):
     """Anything with ``A`` and its exact adjoint ``A_adjoint`` (deepinv's physics interface)."""
 
     def A(self, x: Tensor) -> Tensor: ...
@@ -157,7 +157,7 @@ def _scene_shape(op: Any) -> tuple[int, ...]:
     return (1, int(op.channels), *op.sensor_shape)
 
 
-def operator_norm(op: LinearOperator, shape: tuple[int, ...] | None = None,
+def operator_norm(op: OperatorLike, shape: tuple[int, ...] | None = None,
                   dtype: torch.dtype | None = None, tol: float = NORM_TOLERANCE,
                   max_iterations: int = NORM_MAX_ITERATIONS, seed: int = 0) -> float:
     """``‖A‖`` (largest singular value) of ``op`` by power iteration on ``AᵀA``, cached on ``op``.

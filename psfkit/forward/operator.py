@@ -1,24 +1,78 @@
-r"""The eigen-kernel operator of Eq. 7 bound to precomputed kernel spectra.
+r"""The eigen-kernel operator of a kernel file, built in one place.
+
+Every command that turns a kernel file into ``A`` goes through here (``docs/architecture.md``):
+``fit-pairs``' predictions (:func:`psfkit.pairs_fit.predict`), classical reconstruction and
+the networks (:meth:`ekdun.physics.operators.EigenKernelOperator.from_kernel_model`, which
+takes its kernels and weight maps from :func:`kernel_model_tensors`), so the same file gives
+the same numbers in every command.
+
+.. math::
+
+    \text{sensor:}\quad A x = \sum_k W_k \odot \mathrm{crop}\big(K_k \circledast
+    \mathrm{pad}(x)\big), \qquad
+    \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
+    \mathrm{pad}(W_k \odot x)\Big)
+
+(Eq. 7; ``K_k`` the file's kernels, ``W_k`` its weight maps, the convolution on the padded
+grid of the file's ``scene_padding``; the shift-invariant model is one kernel of weight 1).
 
 :class:`SpectralOperator` applies ``A`` and ``Aᵀ`` of
 :func:`~psfkit.forward.convolution.eigen_kernel_forward` /
-:func:`~psfkit.forward.convolution.eigen_kernel_adjoint` with the kernel spectra taken once
-(no kernel FFT per call) and the zero-padded FFT input reused outside autograd
-(:class:`PaddingWorkspace`). ekdun's :class:`~ekdun.physics.operators.PreparedOperator` adds
-its input checks on top.
+:func:`~psfkit.forward.convolution.eigen_kernel_adjoint` to a sensor-sized scene, with the
+kernel spectra taken once (no kernel FFT per call) and the zero-padded FFT input reused outside
+autograd (:class:`PaddingWorkspace`); ekdun's :class:`~ekdun.physics.operators.PreparedOperator`
+adds its input checks on top. :class:`PaddedSceneOperator` is the same model with the scene on
+the whole padded grid (light from outside the view: the classical solvers). Both are
+:class:`~psfkit.forward.base.LinearOperator` s: ``norm()`` and ``adjointness_error()``.
 """
 
 from __future__ import annotations
 
+from typing import Protocol
+
+import numpy as np
 import torch
 from torch import Tensor
 
+from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import (
+    crop,
     eigen_kernel_adjoint,
     eigen_kernel_forward,
+    kernel_spectra,
+    pad,
+    padded_scene_adjoint,
+    padded_scene_forward,
     records_graph,
     zero_workspace,
 )
+from psfkit.forward.geometry import padded_shape
+
+
+class KernelFileModel(Protocol):
+    """What the operators read of a kernel file's model (:class:`psfkit.kernelfile.KernelModel`,
+    a layer above this one)."""
+
+    kernels: np.ndarray
+    convention: str
+    sensor_shape: tuple[int, int]
+    scene_padding: int
+
+    def weight_maps(self, extent: tuple[int, int] | None = None) -> np.ndarray: ...
+
+
+def kernel_model_tensors(model: KernelFileModel, dtype: torch.dtype = torch.float32,
+                         device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+    """A kernel file's kernels ``(K, C, Hk, Wk)`` and weight maps ``(K, H', W')`` as tensors.
+
+    The one conversion of a kernel file into the operator's arrays (the file's float32 kernels
+    and float64 weights, both cast to ``dtype``).
+    """
+    kernels = torch.as_tensor(model.kernels, dtype=dtype, device=device)
+    weights = torch.as_tensor(model.weight_maps(), dtype=dtype, device=device)
+    return kernels, weights
+
 
 _REAL_DTYPE = {torch.complex64: torch.float32, torch.complex128: torch.float64}
 
@@ -54,7 +108,7 @@ class PaddingWorkspace:
         return ws
 
 
-class SpectralOperator:
+class SpectralOperator(LinearOperator):
     """An eigen-kernel operator (Eq. 7, either convention) bound to kernel spectra.
 
     Cheap to build (no copies), so unrolled networks build one per forward pass, or several
@@ -110,6 +164,21 @@ class SpectralOperator:
             self._conj_spectra = self.spectra.conj().resolve_conj()
         return self._conj_spectra
 
+    @classmethod
+    def from_kernel_model(cls, model: KernelFileModel, dtype: torch.dtype = torch.float32,
+                          device: torch.device | str | None = None) -> SpectralOperator:
+        """The operator of a kernel file's model (either convention), scene ``(B, C, H', W')``.
+
+        ``dtype`` is the working precision (the kernels are stored as float32).
+        """
+        kernels, weights = kernel_model_tensors(model, dtype, device)
+        sensor = (int(model.sensor_shape[0]), int(model.sensor_shape[1]))
+        grid = padded_shape(sensor, model.scene_padding)
+        with torch.no_grad():
+            spectra = kernel_spectra(kernels, grid)
+        return cls(spectra, weights, sensor, grid, model.convention,
+                   spectra.conj().resolve_conj())
+
     def forward(self, x: Tensor) -> Tensor:
         """``y = A x``, scene ``(B, C, H', W')`` → measurement ``(B, C, H', W')``."""
         return eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
@@ -119,3 +188,131 @@ class SpectralOperator:
         """``x = Aᵀ y``, measurement ``(B, C, H', W')`` → scene ``(B, C, H', W')``."""
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace.for_input(y, self.spectra))
+
+    def A(self, x: Tensor) -> Tensor:
+        """Same as :meth:`forward` (subclasses check their input first)."""
+        return self.forward(x)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Same as :meth:`adjoint`."""
+        return self.adjoint(y)
+
+
+class PaddedSceneOperator(LinearOperator):
+    r"""``A`` and ``Aᵀ`` of an eigen-kernel model with the scene on the whole padded grid.
+
+    A real measurement also records scene points outside the ``H' × W'`` view that
+    :class:`SpectralOperator` assumes; a reconstruction restricted to the view has to explain
+    their light with in-view pixels (artefacts at the borders), so the classical solvers solve
+    on the padded grid:
+
+    .. math::
+
+        \text{sensor:}\quad A x = \sum_k W_k \odot \mathrm{crop}(K_k \circledast x),
+        \qquad
+        \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
+        (V_k \odot x)\Big)
+
+    (:func:`~psfkit.forward.convolution.padded_scene_forward` and its adjoint), with ``V_k``
+    the source-side weights on the whole grid, continuing the edge weights outside the view
+    (the model is fitted on the view only; ``KernelModel.weight_maps(extent=...)``). For a
+    scene zero outside the view ``A pad(x)`` equals :class:`SpectralOperator`'s ``A x``.
+
+    Parameters
+    ----------
+    base : SpectralOperator
+        A prepared eigen-kernel or shift-invariant operator (its spectra, weights and grid).
+    scene_weights : Tensor, optional
+        ``(K, PH, PW)`` weights of a source-side model on the padded grid, whose central
+        ``H' × W'`` block is ``base.weights`` (:meth:`from_kernel_model` builds them); not
+        used by sensor-side and shift-invariant models.
+
+    Raises
+    ------
+    ConfigurationError
+        A source-side eigen-kernel model without ``scene_weights``, or weights that do not
+        match the model's in the view.
+    """
+
+    #: What :meth:`check` raises (ekdun's subclass raises its ``TensorShapeError``).
+    shape_error: type[Exception] = InvalidInputError
+
+    def __init__(self, base: SpectralOperator, scene_weights: Tensor | None = None) -> None:
+        self.weights = base.weights
+        if self.weights is not None and bool((self.weights == 1).all()):
+            self.weights = None                 # shift-invariant: either convention
+        self.convention = "sensor" if self.weights is None else base.convention
+        self.base = base
+        self.sensor_shape = base.sensor_shape
+        self.grid_shape = base.grid_shape
+        self.scene_shape = base.grid_shape          # the scene lives on the whole padded grid
+        self.device = base.device
+        self.channels = base.channels
+        self.dtype = base.dtype
+        self.scene_weights: Tensor | None = None
+        if self.convention == "source":
+            self.scene_weights = self._checked_scene_weights(scene_weights)
+
+    def _checked_scene_weights(self, scene_weights: Tensor | None) -> Tensor:
+        if scene_weights is None:
+            raise ConfigurationError(
+                "the extended scene of a source-side model needs its weights on the padded "
+                "grid (from_kernel_model builds them)")
+        assert self.weights is not None
+        shape = (int(self.base.spectra.shape[0]), *self.grid_shape)
+        if tuple(scene_weights.shape) != shape or not torch.allclose(
+                crop(scene_weights, self.sensor_shape), self.weights.to(scene_weights.dtype),
+                rtol=1e-5, atol=1e-6):
+            raise ConfigurationError(
+                f"scene weights must be {shape} and equal the model's weights in the view")
+        return scene_weights.to(self.dtype).contiguous()
+
+    @classmethod
+    def from_kernel_model(cls, model: KernelFileModel, dtype: torch.dtype = torch.float32
+                          ) -> PaddedSceneOperator:
+        """The padded-scene operator of a kernel file's model (either convention)."""
+        base = SpectralOperator.from_kernel_model(model, dtype)
+        scene_weights = None
+        if model.convention == "source" and model.kernels.shape[0] > 1:
+            scene_weights = torch.as_tensor(model.weight_maps(extent=base.grid_shape),
+                                            dtype=dtype)
+        return cls(base, scene_weights)
+
+    def check(self, y: Tensor, what: str) -> None:
+        """Raise :attr:`shape_error` unless ``y`` is a ``(B, C, H', W')`` measurement of this
+        model."""
+        if y.ndim != 4 or tuple(y.shape[-2:]) != self.sensor_shape \
+                or int(y.shape[1]) != self.channels or y.dtype != self.dtype:
+            raise self.shape_error(f"{what} must be (B, {self.channels}, "
+                                   f"{self.sensor_shape[0]}, {self.sensor_shape[1]}) "
+                                   f"{self.dtype}, got {tuple(y.shape)} {y.dtype}")
+
+    def domain_shape(self) -> tuple[int, ...]:
+        """``(1, C, PH, PW)``: a scene on the padded grid."""
+        return (1, self.channels, *self.grid_shape)
+
+    def range_shape(self) -> tuple[int, ...]:
+        """``(1, C, H', W')``: a measurement."""
+        return (1, self.channels, *self.sensor_shape)
+
+    def A(self, x: Tensor) -> Tensor:
+        """Scene ``(B, C, PH, PW)`` → measurement ``(B, C, H', W')``."""
+        return padded_scene_forward(x, self.base.spectra, self._weights(), self.sensor_shape,
+                                    self.convention)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Measurement ``(B, C, H', W')`` → scene ``(B, C, PH, PW)``."""
+        return padded_scene_adjoint(y, self.base.conj_spectra, self._weights(), self.grid_shape,
+                                    self.convention)
+
+    def _weights(self) -> Tensor | None:
+        """The weights where they act: on the sensor (sensor side) or the padded scene."""
+        return self.scene_weights if self.convention == "source" else self.weights
+
+    def crop(self, x: Tensor) -> Tensor:
+        """The sensor-sized central block of a padded-grid scene."""
+        return crop(x, self.sensor_shape).contiguous()
+
+    def pad(self, x: Tensor) -> Tensor:
+        """A sensor-sized scene zero-filled into the padded grid."""
+        return pad(x, self.grid_shape)

@@ -276,6 +276,55 @@ def test_kernel_file_round_trip(tmp_path, convention):
                                                                            (8, 9)).A(x))
 
 
+
+@pytest.mark.parametrize("basis,convention", [("si", "sensor"), ("paper", "sensor"),
+                                              ("paper", "source")])
+def test_every_command_builds_the_same_operator_from_a_kernel_file(basis, convention):
+    """The data contract: fit-pairs' predictions, the networks' physics (trainable or not) and
+    the classical solvers' operators are the one operator of psfkit.forward.operator, bit for
+    bit (same FFTs in the same order); the padded-scene form agrees to rounding."""
+    from ekdun.reconstruction.classical import ModelReconstructor
+    from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
+    from psfkit.forward.operator import SpectralOperator
+    from psfkit.pairs_fit import predict
+
+    rng = np.random.default_rng(2)
+    n = 1 if basis == "si" else 3
+    model = KernelModel(kernels=rng.random((n, 3, 6, 7)).astype(np.float32), basis=basis,
+                        convention=convention, sensor_shape=(8, 9), optical_center=(3.0, 5.0))
+    x = rng.random((2, 3, 8, 9)).astype(np.float32)
+    xt = torch.as_tensor(x)
+    one = SpectralOperator.from_kernel_model(model).A(xt)
+    with torch.no_grad():
+        outputs = {
+            "predict": torch.as_tensor(predict(model, x)),
+            "ekdun operator": EigenKernelOperator.from_kernel_model(model).A(xt),
+            "network physics": EigenKernelOperator.from_kernel_model(model, trainable=True).A(xt),
+        }
+    for name, y in outputs.items():
+        assert torch.equal(y, one), name
+    f64 = SpectralOperator.from_kernel_model(model, torch.float64)
+    padded = ExtendedSceneOperator.from_kernel_model(model, torch.float64)
+    x64 = xt.double()
+    torch.testing.assert_close(padded.A(padded.pad(x64)), f64.A(x64), rtol=0, atol=1e-12)
+    solver = ModelReconstructor(model).solver_operator
+    assert isinstance(solver, ExtendedSceneOperator)
+    torch.testing.assert_close(solver.A(solver.pad(xt)), one, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_ekdun_operator_passes_the_base_class_tests(kind):
+    """psfkit.forward.base.LinearOperator: adjointness test, and norm() against the dense
+    matrix's largest singular value."""
+    op = make_operator(kind, (5, 6), 1, torch.float64, (3, 4), seed=3)
+    assert op.adjointness_error() < 1e-14
+    assert make_operator(kind, (9, 13), 3, torch.float32, (5, 6)).adjointness_error() < 1e-6
+    n = op.channels * 5 * 6
+    dense = op.A(torch.eye(n, dtype=torch.float64).reshape(n, op.channels, 5, 6))
+    sigma = np.linalg.svd(dense.reshape(n, n).numpy(), compute_uv=False)[0]
+    assert op.norm(tol=1e-8, max_iterations=5000) == pytest.approx(sigma, rel=1e-6)
+    assert op.prepare().norm(tol=1e-8, max_iterations=5000) == pytest.approx(sigma, rel=1e-6)
+
 def test_bad_inputs_raise_one_line_errors():
     op = make_operator("ek-sensor", (8, 10), 3, torch.float32)
     with pytest.raises(TensorShapeError, match="measurement is 8x11 but the operator's sensor "

@@ -178,3 +178,82 @@ def test_largest_eigenvalue_per_block_of_a_block_diagonal_operator():
                                 max_iterations=10000)
     expected = [float(torch.linalg.eigvalsh(b)[-1]) for b in blocks]
     np.testing.assert_allclose(values.numpy(), expected, rtol=1e-6)
+
+
+# --- the operator of a kernel file (one place) and the base class of every operator ---------
+
+def _kernel_model(basis: str, convention: str, seed: int = 4):
+    from psfkit.kernelfile import KernelModel
+
+    rng = np.random.default_rng(seed)
+    n = 1 if basis == "si" else 3
+    kernels = (rng.random((n, 1, 3, 4)) ** 2).astype(np.float32)
+    return KernelModel(kernels=kernels, basis=basis, convention=convention, sensor_shape=SENSOR,
+                       channels=("L",))
+
+
+KINDS = [("si", "sensor"), ("paper", "sensor"), ("paper", "source")]
+
+
+def _operators(basis: str, convention: str, dtype: torch.dtype):
+    """Every operator of the forward model, built from one kernel model (or its scenes)."""
+    from psfkit.forward import PaddedSceneOperator, SpectralOperator
+
+    model = _kernel_model(basis, convention)
+    scenes = torch.rand((3, 1, *SENSOR), generator=torch.Generator().manual_seed(2),
+                        dtype=torch.float64).to(dtype)
+    return {"sensor-sized": SpectralOperator.from_kernel_model(model, dtype),
+            "padded scene": PaddedSceneOperator.from_kernel_model(model, dtype),
+            "kernel space": KernelSpaceOperator(scenes, basis, convention, (3, 4))}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize(("basis", "convention"), KINDS)
+def test_every_operator_passes_the_base_class_adjointness_test(basis, convention, dtype):
+    tol = {torch.float32: 1e-6, torch.float64: 1e-14}[dtype]
+    for name, op in _operators(basis, convention, dtype).items():
+        assert op.adjointness_error() < tol, name
+        assert op.adjointness_error(seed=5) < tol, name
+    # the test sees a wrong adjoint: Aᵀ of the transposed kernels is not the adjoint
+    from psfkit.forward import SpectralOperator
+
+    op = SpectralOperator.from_kernel_model(_kernel_model(basis, convention), dtype)
+    op.adjoint = op.forward                                        # type: ignore[method-assign]
+    assert op.adjointness_error() > 1e-2
+
+
+@pytest.mark.parametrize(("basis", "convention"), KINDS)
+def test_kernel_file_operator_is_eq7_its_dense_matrix_and_its_norm(basis, convention):
+    """Both operators of a kernel file against Eq. 7 written out pixel by pixel
+    (:func:`_dense_reference`), and ``norm()`` against the dense matrix's SVD."""
+    ops = _operators(basis, convention, torch.float64)
+    model = _kernel_model(basis, convention)
+    kernels = model.kernels.astype(np.float64)
+    weights = model.weight_maps(extent=GRID) if convention == "source" else model.weight_maps()
+    rng = np.random.default_rng(8)
+    big = rng.standard_normal((2, 1, *GRID))
+    reference = _dense_reference(big, kernels, weights, convention)
+    padded = ops["padded scene"].A(torch.as_tensor(big)).numpy()
+    np.testing.assert_allclose(padded, reference, rtol=0, atol=1e-12)
+    small = rng.standard_normal((2, 1, *SENSOR))
+    reference = _dense_reference(pad(torch.as_tensor(small), GRID).numpy(), kernels, weights,
+                                 convention)
+    sized = ops["sensor-sized"].A(torch.as_tensor(small)).numpy()
+    np.testing.assert_allclose(sized, reference, rtol=0, atol=1e-12)
+    for name, op in ops.items():
+        n = int(np.prod(op.domain_shape()))
+        eye = torch.eye(n, dtype=torch.float64)
+        dense = np.stack([op.A(e.reshape(op.domain_shape())).numpy().ravel() for e in eye],
+                         axis=1)                                   # column j = A e_j
+        sigma = np.linalg.svd(dense, compute_uv=False)[0]
+        assert op.norm(tol=1e-8, max_iterations=5000) == pytest.approx(sigma, rel=1e-6), name
+        assert op.norm() <= sigma * (1 + 1e-12), name
+
+
+def test_a_subset_of_the_kernel_space_operator_measures_its_own_norm():
+    x = torch.rand((4, 1, *SENSOR), generator=torch.Generator().manual_seed(3),
+                   dtype=torch.float64)
+    whole = KernelSpaceOperator(x, "paper", "sensor", (3, 4))
+    part = whole.subset(slice(0, 1))
+    alone = KernelSpaceOperator(x[:1], "paper", "sensor", (3, 4))
+    assert whole.norm() > part.norm() == pytest.approx(alone.norm(), rel=1e-12)
