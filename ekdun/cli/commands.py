@@ -10,6 +10,7 @@ from typing import Any
 
 from ekdun.errors import InvalidInputError
 from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import NOTICES, add_flag
 from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
 
@@ -212,6 +213,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
     p.add_argument("--overwrite", action="store_true", help="start RUN_DIR over")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_config_option(p, "lr = 1e-4", "the checkpoint's metadata (run_file)")
     mark_advanced(p, TRAIN_ADVANCED)
     p.set_defaults(func=run_train)
 
@@ -341,7 +343,7 @@ def run_train(args: argparse.Namespace) -> int:
                            amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,
                            channels_last=args.channels_last, compile=args.compile,
-                           workers=args.loader_workers)
+                           workers=args.loader_workers, run_file=run_file_record(args))
     result = train(args.run_dir, args.network, seed, dataset, args.preset,
                    overrides, options, resume=args.resume, overwrite=args.overwrite)
     last = result["history"][-1] if result["history"] else {}

@@ -94,6 +94,9 @@ class TrainOptions:
     workers: int = 2
     log_every: int = 25
     on_epoch: Callable[[dict[str, Any]], None] | None = None
+    #: the ``--config`` run file's record (``psfkit.cli.run_file.run_file_record``), kept in
+    #: the checkpoint's metadata
+    run_file: dict[str, Any] | None = None
 
     def resolve(self, preset: str) -> TrainingConfig:
         base = get_preset(preset).training
@@ -322,6 +325,7 @@ def _run_metadata(model_name: str, preset: str, overrides: dict[str, Any],
         # how the pairs were read (channel order, binning, held-out names): reconstruct reuses it
         "data": dataset.describe() if hasattr(dataset, "describe") else {},
         "epoch": 0, "history": [],
+        **({"run_file": options.run_file} if options.run_file else {}),
     }
 
 

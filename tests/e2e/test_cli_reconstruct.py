@@ -185,7 +185,8 @@ def test_psf_image_is_the_library_reference_and_the_admm_spelling(psf_and_measur
         np.testing.assert_array_equal(np.moveaxis(np.load(single), -1, 0), image)
 
 
-@pytest.mark.parametrize("flags", [("--solver", "pdhg"), ("--no-nonneg",), ("--tol", "0.5"),
+# (--solver has one solver left: its retired value is tested in test_cli_classical.py)
+@pytest.mark.parametrize("flags", [("--no-nonneg",), ("--tol", "0.5"),
                                    ("--dtype", "float64"), ("--background", "none")])
 def test_every_advanced_solver_flag_acts(psf_and_measurements, tmp_path, flags):
     psf, folder = psf_and_measurements

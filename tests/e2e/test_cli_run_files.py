@@ -159,6 +159,35 @@ def test_the_command_line_overrides_the_run_file(tiny_data, tmp_path):
     assert args.holdout == ["im2"] and args.run_file["overridden"] == ["--holdout"]
 
 
+def test_ekdun_train_run_file_is_the_flags_and_is_in_the_checkpoint(tiny_data, tmp_path):
+    """``ekdun train --config``: the file's settings train exactly as the same flags (same
+    losses, same weights) and the checkpoint's metadata records them."""
+    import torch
+
+    from ekdun.cli import main as ekdun_main
+    from ekdun.training.checkpoint import load_checkpoint
+
+    pairs, kernels = tiny_data
+    run_file = _write(tmp_path / "train.toml", "lr = 0.005\nbatch-size = 4\niterations = 2\n")
+    common = [str(pairs), "--kernels", str(kernels), "--epochs", "1", "--threads", "1",
+              "--device", "cpu", "--quiet"]
+    assert ekdun_main(["train", common[0], str(tmp_path / "flags"), *common[1:], "--lr",
+                       "0.005", "--batch-size", "4", "--iterations", "2"]) == 0
+    assert ekdun_main(["train", common[0], str(tmp_path / "config"), *common[1:], "--config",
+                       str(run_file)]) == 0
+    flags = load_checkpoint(tmp_path / "flags" / "checkpoint.pt")
+    config = load_checkpoint(tmp_path / "config" / "checkpoint.pt")
+    assert config["metadata"]["run_file"] == {
+        "path": str(run_file.resolve()), "overridden": [],
+        "settings": {"--lr": 0.005, "--batch-size": 4, "--iterations": 2}}
+    assert "run_file" not in flags["metadata"]
+    assert config["metadata"]["training"] == flags["metadata"]["training"]
+    assert config["metadata"]["history"][0]["train_loss"] == \
+        flags["metadata"]["history"][0]["train_loss"]
+    for name, tensor in flags["model"].items():
+        assert torch.equal(tensor, config["model"][name]), name
+
+
 def test_fit_eigen_run_file(grid_3x3, tmp_path):
     run = _write(tmp_path / "run.toml", 'folds = 3\ncv-bases = "none"\n'
                                         'shifts = "registered"\nout = "ignored.npz"\n')
