@@ -11,7 +11,7 @@ from typing import Any
 from ekdun.errors import InvalidInputError
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
-from psfkit.cli.vocabulary import NOTICES, add_flag
+from psfkit.cli.vocabulary import NOTICES, add_flag, add_retired
 from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
 
 
@@ -64,41 +64,17 @@ EXPORT_KERNELS_NOTE = (
 
 
 #: Flags that no longer do anything, kept hidden for one release (issue 44, docs/migration.md):
-#: ``(command, flag) -> (nargs, note)``. Each prints its note after the work and is otherwise
-#: ignored (a value is still checked as before).
+#: ``(command, flag) -> (nargs, note, choices)`` (the shape of psfkit's ``RETIRED``). Each
+#: prints its note after the work and is otherwise ignored (a value is still checked as before).
 RETIRED_FLAGS = {
     ("make-dataset", "--no-oracle"): (
         0, "note: --no-oracle is deprecated and ignored: make-dataset no longer writes the "
-           "eigen-kernel oracles (python -m research.oracle DATASET --write-dataset does)"),
+           "eigen-kernel oracles (python -m research.oracle DATASET --write-dataset does)", None),
     ("make-dataset", "--oracle-scenes"): (
         1, "note: --oracle-scenes is deprecated and ignored: make-dataset no longer writes the "
            "eigen-kernel oracles (python -m research.oracle DATASET --write-dataset "
-           "--oracle-scenes N does)"),
+           "--oracle-scenes N does)", None),
 }
-
-
-class _RetiredFlag(argparse.Action):
-    """A flag that no longer acts: records its note (printed after the work), stores nothing."""
-
-    def __init__(self, option_strings: list[str], dest: str, note: str = "",
-                 **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.note = note
-
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
-        notices = list(getattr(namespace, NOTICES, None) or [])
-        if self.note not in notices:
-            notices.append(self.note)
-        setattr(namespace, NOTICES, notices)
-
-
-def _add_retired(p: argparse.ArgumentParser, command: str) -> None:
-    for (cmd, name), (nargs, note) in RETIRED_FLAGS.items():
-        if cmd == command:
-            p.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
-                           type=flag(name) if nargs else None, dest=argparse.SUPPRESS,
-                           default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 #: Flags that only ``--help-all`` lists (issue 44): the bench's optics and noise, threads.
@@ -149,7 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_flag(p, "--threads", "make-dataset",
              help="processes drawing the scenes; the dataset is the same for any N (default: "
                   "the CPUs available, at most 16 and one per 64 scenes)")
-    _add_retired(p, "make-dataset")
+    add_retired(p, "make-dataset", RETIRED_FLAGS, flag)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     mark_advanced(p, MAKE_DATASET_ADVANCED)
     p.set_defaults(func=run_make_dataset)

@@ -19,7 +19,7 @@ walks both parsers and checks them against this table and ``docs/cli-flags.md``.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -247,13 +247,20 @@ class _RetiredFlag(argparse.Action):
         setattr(namespace, NOTICES, notices)
 
 
-def add_retired(parser: argparse.ArgumentParser, command: str) -> None:
-    """Add ``command``'s retired flags (:data:`RETIRED`) to ``parser``, hidden."""
-    for (cmd, name), (nargs, note, choices) in RETIRED.items():
+def add_retired(parser: argparse.ArgumentParser, command: str,
+                table: Mapping[tuple[str, str], tuple[int, str, tuple[str, ...] | None]]
+                = RETIRED, value_type: Callable[[str], Callable[[str], Any]] | None = None
+                ) -> None:
+    """Add ``command``'s retired flags of ``table`` (psfkit's :data:`RETIRED`, or a CLI's
+    own, same shape) to ``parser``, hidden; ``value_type(flag)``, where given, still checks a
+    retired flag's value as before (e.g. :func:`psfkit.validation.flag`)."""
+    for (cmd, name), (nargs, note, choices) in table.items():
         if cmd == command:
             parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
-                                choices=choices, dest=argparse.SUPPRESS,
-                                default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+                                choices=choices,
+                                type=value_type(name) if value_type and nargs else None,
+                                dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                                help=argparse.SUPPRESS)
 
 
 def deprecation_notices(args: argparse.Namespace) -> list[str]:
