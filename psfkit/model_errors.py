@@ -15,7 +15,7 @@ resolves those errors over the sensor and sorts the pairs:
   over the sensor is the pooled squared relative error ``Σ‖r‖²/Σ‖y‖²``;
 - :func:`pair_roles`: whether the model was fitted on each pair or the pair was held out,
   from the kernel file's record (``provenance["pairs"]``: the folder, ``["names"]``: the pairs
-  it was fitted on; ``fit-pairs`` and ``ekdun export-kernels`` write both) or, for a file that
+  it was fitted on; ``fit-pairs`` and ``ekdun train`` write both) or, for a file that
   does not record this folder, from ``--holdout``.
 """
 

@@ -430,7 +430,7 @@ def load_psf_image(path: str, channel_order: str = "RGB", background: str = "cor
                    downsample: int = 1, white_level: float | None = None) -> np.ndarray:
     """A measured point-source image file as a shift-invariant kernel: the one PSF loader.
 
-    ``ekdun admm PSF RAW`` and ``ekdun train --psf`` both read PSF images through it, so a
+    ``ekdun reconstruct PSF RAW`` and ``ekdun train --psf`` both read PSF images through it, so a
     PSF file gives the same kernel in both: :func:`psfkit.io.images.read_image_float` (the
     toolkit's units and channel order), then :func:`psf_kernel`.
 

@@ -2,7 +2,7 @@ r"""Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM followed by a U
 
 The ADMM-TV of DiffuserCam (Antipa et al. 2018) with learned ``μ1, μ2, μ3, τ`` per iteration
 (kept positive by a log parametrisation), unrolled for a few iterations: the updates are those
-of :mod:`ekdun.models.tv_admm_steps` (shared with ``ekdun admm``), for ``x`` on the
+of :mod:`ekdun.models.tv_admm_steps` (shared with ``ekdun reconstruct``), for ``x`` on the
 padded grid with the splits ``v = Hx`` (crop), ``u = Ψx`` (TV) and ``w = x`` (non-negativity).
 All variables start at zero; each iteration takes two forward and two inverse FFTs. The
 estimate is the central ``H' × W'`` of ``x`` (our scenes have the sensor's size), which the

@@ -1,4 +1,4 @@
-"""Classical (untrained) reconstruction with a kernel file, as fitted (``ekdun admm --kernels``).
+"""Classical reconstruction with a kernel file, as fitted (``ekdun reconstruct K.npz``).
 
 A shift-invariant or eigen-kernel model from ``psfkit fit-eigen`` or ``psfkit fit-pairs``
 (either weight convention) is used exactly as stored: no clipping of negative kernel values
@@ -76,7 +76,7 @@ class ClassicalOptions:
         if self.dtype not in DTYPES:
             raise ConfigurationError(f"--dtype must be one of {', '.join(DTYPES)}, got "
                                      f"{self.dtype!r}")
-        # named as the flags of ekdun admm, never as the fields
+        # named as the flags of ekdun reconstruct, never as the fields
         if self.tv < 0:
             raise ConfigurationError(f"--tv must be >= 0, got {self.tv}")
         if self.tol < 0:
@@ -148,7 +148,7 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
               scene_padding: int = 2) -> KernelModel:
     """The shift-invariant kernel model of a PSF kernel, for measurements of ``sensor_shape``.
 
-    What ``ekdun admm PSF RAW`` reconstructs with (the PSF from
+    What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
     :func:`psfkit.preprocess.load_psf_image`), so that the PSF form and ``--kernels`` run one
     solver.
 
@@ -193,7 +193,7 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
     """Reconstruct a scene from one measurement with ADMM-TV and a shift-invariant PSF.
 
     Kept for callers of the DiffuserCam tutorial's function: the PSF's shift-invariant model
-    (:func:`psf_model`) through :class:`ModelReconstructor`, the solver of ``ekdun admm``
+    (:func:`psf_model`) through :class:`ModelReconstructor`, the solver of ``ekdun reconstruct``
     (the scene on the padded grid, ``tau`` relative to the measurement's peak and ``‖A‖``).
 
     Parameters

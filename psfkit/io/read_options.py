@@ -1,6 +1,6 @@
 """How image files become arrays: the read options recorded with every model.
 
-A kernel file (``psfkit fit-pairs``, ``fit-eigen``, ``ekdun export-kernels``) and a checkpoint
+A kernel file (``psfkit fit-pairs``, ``fit-eigen``, ``ekdun train``) and a checkpoint
 (``ekdun train``) record the :class:`ReadOptions` their data was read with. Every command that
 consumes one applies them by default, so that a measurement file is read the way the model's
 own data was: a model fitted on the DiffuserCam Mirflickr pairs (BGR ``.npy``, binned 4×) reads
