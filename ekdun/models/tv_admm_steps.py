@@ -1,7 +1,7 @@
 r"""The steps of ADMM with total-variation regularisation, written once.
 
 Used by the unrolled Le-ADMM-U (:class:`ekdun.models.le_admm_u.LeADMMU`, learned ``μ1, μ2, μ3, τ``
-per iteration). The classical solver, :mod:`ekdun.reconstruction.admm`, which
+per iteration). The classical solver, :mod:`ekdun.reconstruction.admm`,
 shares its finite differences; its ``ShiftInvariantRule`` is this iteration in normalised units
 (tested to 1e-9), written there with in-place, in-view-only updates, while these stay
 differentiable with tensor ``μ``, ``τ`` and keep the trained networks' arithmetic. The problem
