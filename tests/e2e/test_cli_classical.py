@@ -191,17 +191,10 @@ def test_fit_pairs_cli_file_reconstructs_with_the_source_side_admm(dlmd, tmp_pat
 
 
 @pytest.fixture()
-def psf_and_measurement(tmp_path):
+def psf_and_measurement(tmp_path, caustic_psf):
     """A caustic-like RGB PSF image with a background, and a measurement of a scene through
     its shift-invariant model, as .npy (H, W, C) files."""
-    rng = np.random.default_rng(4)
-    psf = np.full((24, 32, 3), 0.02, np.float32)                       # background level
-    psf[rng.integers(4, 20, 40), rng.integers(4, 28, 40)] += rng.random((40, 3)).astype(
-        np.float32)
-    kernel = psf.transpose(2, 0, 1) - 0.02
-    kernel /= kernel.sum(axis=(-2, -1), keepdims=True)
-    op = EigenKernelOperator.from_kernel_model(psf_model(kernel, (24, 32), 3),
-                                               dtype=torch.float64)
+    psf, op, rng = caustic_psf
     scene = torch.zeros((1, 3, 24, 32), dtype=torch.float64)
     scene[..., 6:18, 8:24] = torch.as_tensor([0.9, 0.5, 0.2], dtype=torch.float64)[:, None, None]
     y = op.A(scene)[0].numpy()

@@ -134,17 +134,10 @@ def test_learned_kernels_of_train_are_a_model_for_reconstruct(tiny_data, trained
 
 
 @pytest.fixture()
-def psf_and_measurements(tmp_path):
+def psf_and_measurements(tmp_path, caustic_psf):
     """A caustic-like RGB PSF image with a background, and two measurements of scenes through
     its shift-invariant model, as ``.npy`` (H, W, C) files (the measurements in a folder)."""
-    rng = np.random.default_rng(4)
-    psf = np.full((24, 32, 3), 0.02, np.float32)                       # background level
-    psf[rng.integers(4, 20, 40), rng.integers(4, 28, 40)] += rng.random((40, 3)).astype(
-        np.float32)
-    kernel = psf.transpose(2, 0, 1) - 0.02
-    kernel /= kernel.sum(axis=(-2, -1), keepdims=True)
-    op = EigenKernelOperator.from_kernel_model(psf_model(kernel, (24, 32), 3),
-                                               dtype=torch.float64)
+    psf, op, rng = caustic_psf
     folder = tmp_path / "meas"
     folder.mkdir()
     for k in range(2):
