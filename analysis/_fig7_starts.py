@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from psfkit.calibration.preprocess import luminance
+from psfkit.calibration.support import support_box
 from psfkit.compare.results import KernelComparison, KernelSetComparison
-from psfkit.figures.compare_figures import draw_kernel_row, quiver_panel
-from psfkit.figures.eigen_figures import _crop_box, difference_limit
-from psfkit.figures.style import PAGE_IN, new_figure, publication_style
-from psfkit.preprocess import luminance
-from psfkit.support import support_box
+from psfkit.report.figures.compare import draw_kernel_row, quiver_panel
+from psfkit.report.figures.eigen import _crop_box, difference_limit
+from psfkit.report.figures.style import PAGE_IN, new_figure, publication_style
 
 
 def start_numbers(comparison: KernelComparison) -> dict[str, Any]:

@@ -19,9 +19,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import run, write_json
 
-from psfkit.characterize import CharacterizeOptions, characterize_grid
-from psfkit.figures import figure_shift_variance, save_figure
+from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
 from psfkit.io import atomic_directory, read_grid
+from psfkit.report.figures import figure_shift_variance, save_figure
 
 
 def main(args: argparse.Namespace) -> int:

@@ -19,10 +19,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import run, write_json
 
-from psfkit.figures import figure_weight_maps, save_figure
+from psfkit.forward.kernelfile import load_kernels
+from psfkit.forward.weights import get_basis
 from psfkit.io import atomic_directory
-from psfkit.kernelfile import load_kernels
-from psfkit.weights import get_basis
+from psfkit.report.figures import figure_weight_maps, save_figure
 
 
 def main(args: argparse.Namespace) -> int:

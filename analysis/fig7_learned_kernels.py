@@ -8,7 +8,7 @@ Usage::
 
 ``LEARNED`` is a kernel file (``kernels_learned.npz``, ``ekdun export-kernels``) or an EK-DUN
 checkpoint (``RUN_DIR/checkpoint.pt``, or the run folder), whose kernels are exported with
-:func:`ekdun.training.export_kernels`; for a checkpoint, ``--initial`` defaults to its seed
+:func:`ekdun.nets.export_kernels`; for a checkpoint, ``--initial`` defaults to its seed
 kernels (:func:`ekdun.training.initial_kernels`).
 Writes ``DIR/figures/fig7.png|pdf`` (the paper's layout, learned kernels alone; ``fig7_zoom``
 the central part of the caustic), ``fig7_starts`` (measured modes and the learned kernels side
@@ -46,11 +46,11 @@ from _common import run
 from _fig7_starts import caption, figure_starts, oracle_caption, start_numbers
 
 from psfkit.compare import check_learned, compare_kernels, compare_model, load_grid
-from psfkit.compare_report import write_comparison
 from psfkit.errors import ModelFileError
-from psfkit.figures import figure_kernels
+from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.io.jsonable import jsonable
-from psfkit.kernelfile import KernelModel, load_kernels
+from psfkit.report.comparison import write_comparison
+from psfkit.report.figures import figure_kernels
 
 
 def load_learned(path: str) -> tuple[KernelModel, KernelModel | None]:

@@ -21,8 +21,8 @@ from pathlib import Path
 CHILD = """
 import json, resource, sys, time
 import numpy as np
-from psfkit.bench import read_ground_truth
-from psfkit.characterize import RELIABLE_OVERLAP, characterize_grid
+from psfkit.simulate import read_ground_truth
+from psfkit.characterization.characterize import RELIABLE_OVERLAP, characterize_grid
 from psfkit.io import read_grid
 grid = read_grid(sys.argv[1], check_pixels=False)
 t0 = time.perf_counter()
@@ -57,7 +57,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         grid = args.grid
         if grid is None:
-            from psfkit.bench import BenchConfig, simulate_grid
+            from psfkit.simulate import BenchConfig, simulate_grid
 
             grid = str(simulate_grid(Path(tmp) / "grid", BenchConfig(downsample=args.downsample),
                                      progress=True))

@@ -1,6 +1,6 @@
 """Benchmark: a compact PSF on full frames and on pre-centred cut-outs (issue 43, item 3).
 
-The compact bench (``psfkit.bench.simulate_compact_scan``): a field of ``--positions`` stars
+The compact bench (``psfkit.simulate.simulate_compact_scan``): a field of ``--positions`` stars
 (a 3 px Airy PSF, brightness over 10×, Poisson–Gaussian noise) at irregular known positions on
 ``--frame``² frames, and the same scan cut into ``--cutout``² cut-outs around each star
 (``cutout_scan``: the same pixels, the same noise). Both are characterized and fitted
@@ -23,11 +23,15 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.bench import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
-from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.characterization.characterize import (
+    RELIABLE_OVERLAP,
+    CharacterizeOptions,
+    characterize_grid,
+)
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
 from psfkit.io.jsonable import write_json
+from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
 
 
 def measure(scan: Path) -> dict[str, Any]:

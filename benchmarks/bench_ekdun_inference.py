@@ -102,13 +102,13 @@ def _build(label: str, args: argparse.Namespace, amp: str = "off"
     """``(inference closure returning the output, parameter count)`` of model ``label``."""
     import torch
 
-    from ekdun.models import build_model
+    from ekdun import device as acc
+    from ekdun.nets import build_model
     from ekdun.physics.synthetic import caustic_psf
-    from ekdun.training import acceleration as acc
 
     device = torch.device(args.device)
     if label == "checkpoint":
-        from ekdun.training.builder import network_from_checkpoint
+        from ekdun.nets.builder import network_from_checkpoint
 
         model = network_from_checkpoint(args.checkpoint)[0]
     else:

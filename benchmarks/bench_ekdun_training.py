@@ -43,14 +43,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from ekdun.models.configs import get_preset
+from ekdun import device as acc
+from ekdun.nets.builder import build_network
+from ekdun.nets.configs import get_preset
 from ekdun.physics.operators import EigenKernelOperator
 from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, train
-from ekdun.training import acceleration as acc
-from ekdun.training.builder import build_network
 from ekdun.training.trainer import make_optimizer
-from psfkit.kernelfile import KernelModel
+from psfkit.forward.kernelfile import KernelModel
 
 
 def seed_model(sensor: tuple[int, int]) -> KernelModel:

@@ -62,7 +62,7 @@ def kernel_difference(a: Path, b: Path, margin: int = 16) -> tuple[float, float,
     """
     import numpy as np
 
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     ka, kb = load_kernels(a).kernels, load_kernels(b).kernels
     inner = (..., slice(margin, -margin), slice(margin, -margin))
@@ -83,7 +83,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         grid = args.grid
         if grid is None:
-            from psfkit.bench import simulate_grid
+            from psfkit.simulate import simulate_grid
 
             grid = str(simulate_grid(Path(tmp) / "grid", progress=True))
         codes = {"new": ROOT}
@@ -112,7 +112,7 @@ def main() -> None:
                 cpus[name].append(float(res.stdout.split("CPU")[-1].split()[0]))
                 print(f"run {i + 1} {name}: {times[name][-1]:.1f} s, CPU {cpus[name][-1]:.1f} s, "
                       f"peak RSS {peaks[name][-1]:.2f} GiB", flush=True)
-        from psfkit.kernelfile import load_kernels
+        from psfkit.forward.kernelfile import load_kernels
 
         summary = load_kernels(Path(tmp) / "new0.npz").provenance["fit"]
         diff = kernel_difference(Path(tmp) / "old0.npz", Path(tmp) / "new0.npz") \

@@ -291,8 +291,8 @@ def main() -> None:
 
 def held_out(pairs: str, downsample: int) -> None:
     """Leave-one-out errors of SI and EK, constrained (default options) and not."""
+    from psfkit.fitting.pairs.fit import PairFitOptions, downsample_pairs, leave_one_out
     from psfkit.io import read_pairs
-    from psfkit.pairs_fit import PairFitOptions, downsample_pairs, leave_one_out
 
     x, y = downsample_pairs(*read_pairs(pairs).load_all(), downsample)
     errors = {}

@@ -2,7 +2,7 @@
 
 Leave-one-out over the shared DiffuserCam Lensless Mirflickr pairs: for each pair, the SI and
 the eigen-kernel (``paper`` basis, source side by default) models are fitted on the other pairs
-(:func:`psfkit.pairs_fit.fit_pairs`, as ``psfkit fit-pairs``), the TV weight and then the
+(:func:`psfkit.fitting.pairs.fit.fit_pairs`, as ``psfkit fit-pairs``), the TV weight and then the
 iteration count of every method are chosen on two of those fit pairs only, and the held-out
 measurement is reconstructed. PSNR and SSIM are against the lensed ground truth after a
 least-squares scale (then clipped to [0, 1]); s/image is the wall time of one reconstruction on
@@ -174,8 +174,8 @@ def main() -> None:
     import torch
 
     from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor, admm_tv
+    from psfkit.fitting.pairs.fit import PairFitOptions, downsample_pairs, fit_pairs
     from psfkit.io import read_pairs
-    from psfkit.pairs_fit import PairFitOptions, downsample_pairs, fit_pairs
 
     torch.set_num_threads(args.threads)
     try:

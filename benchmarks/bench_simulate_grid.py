@@ -30,7 +30,7 @@ from pathlib import Path
 
 CHILD = """
 import json, resource, sys, time
-from psfkit.bench import BenchConfig, simulate_grid
+from psfkit.simulate import BenchConfig, simulate_grid
 out, ds, backend = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 t0 = time.perf_counter()
 extra = {} if backend == "old" else {"backend": backend}   # old code: no backend argument

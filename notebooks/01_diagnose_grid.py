@@ -29,11 +29,11 @@ from pathlib import Path
 
 from IPython.display import display
 
-from psfkit.bench import BenchConfig, read_ground_truth, simulate_grid
-from psfkit.characterize import CharacterizeOptions, characterize_grid
-from psfkit.figures import figure_maps, figure_shift_variance
+from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
 from psfkit.io import read_grid
-from psfkit.report import write_report
+from psfkit.report.figures import figure_maps, figure_shift_variance
+from psfkit.report.grid import write_report
+from psfkit.simulate import BenchConfig, read_ground_truth, simulate_grid
 
 OUT = Path(os.environ.get("EKDUN_NB_OUT", "notebook_outputs")) / "01_diagnose_grid"
 OUT.mkdir(parents=True, exist_ok=True)

@@ -30,14 +30,14 @@ import skimage.transform
 import torch
 from IPython.display import display
 
-from ekdun.models import build_model
-from psfkit.bench import BenchConfig, simulate_grid
-from psfkit.figures import figure_eigen_diagnostics, figure_kernels, figure_weight_maps
-from psfkit.figures.style import new_figure
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from ekdun.nets import build_model
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.pairs.fit import predict
+from psfkit.forward.kernelfile import load_kernels, save_kernels
 from psfkit.io import read_grid
-from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_fit import predict
+from psfkit.report.figures import figure_eigen_diagnostics, figure_kernels, figure_weight_maps
+from psfkit.report.figures.style import new_figure
+from psfkit.simulate import BenchConfig, simulate_grid
 
 OUT = Path(os.environ.get("EKDUN_NB_OUT", "notebook_outputs")) / "02_fit_eigen"
 OUT.mkdir(parents=True, exist_ok=True)

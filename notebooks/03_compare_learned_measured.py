@@ -56,15 +56,15 @@ from IPython.display import display
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from ekdun.evaluation import evaluate_model
+from ekdun.nets.builder import network_from_checkpoint
 from ekdun.training import TrainOptions, export_kernels, initial_kernels, train
-from ekdun.training.builder import network_from_checkpoint
 from psfkit.compare import compare_kernels
-from psfkit.compare_report import write_comparison
-from psfkit.figures import figure_kernels
-from psfkit.figures.compare_figures import figure_displacements, figure_learned_vs_measured
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_grid
-from psfkit.kernelfile import save_kernels
+from psfkit.report.comparison import write_comparison
+from psfkit.report.figures import figure_kernels
+from psfkit.report.figures.compare import figure_displacements, figure_learned_vs_measured
 
 torch.set_num_threads(1)     # small shared CPUs: more threads are much slower, not faster
 OUT = Path(os.environ.get("EKDUN_NB_OUT", "notebook_outputs")) / "03_compare"
@@ -166,7 +166,7 @@ import sys
 
 import ekdun
 from psfkit.compare import compare_model
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 # research/ is not installed: the checkout this notebook runs from (its folder, the
 # repository root, or that of an editable install of ekdun)

@@ -15,7 +15,7 @@
 # # 4. Real data: forward models fitted to DiffuserCam (DLMD) pairs
 #
 # Without a PSF grid, a forward model can still be fitted to (scene, measurement) pairs:
-# `psfkit.pairs_fit` solves for the kernels that best predict the measurements from the
+# `psfkit.fitting.pairs.fit` solves for the kernels that best predict the measurements from the
 # scenes (a regularised least-squares fit by conjugate gradients). Does the paper's
 # eigen-kernel model (`Kbase`, `Kv`, `Kh`) predict *held-out* measurements better than one
 # shift-invariant PSF? We answer with leave-one-out errors on the few DLMD (MirFlickr) pairs
@@ -38,10 +38,10 @@ import numpy as np
 from IPython.display import display
 
 import psfkit
-from psfkit.figures import figure_kernels
-from psfkit.figures.style import new_figure
+from psfkit.fitting.pairs.fit import PairFitOptions, fit_pairs, predict, relative_errors
 from psfkit.io import read_pairs
-from psfkit.pairs_fit import PairFitOptions, fit_pairs, predict, relative_errors
+from psfkit.report.figures import figure_kernels
+from psfkit.report.figures.style import new_figure
 
 
 def shared_data() -> Path:
@@ -111,7 +111,7 @@ if HAVE_DATA:
 # Each pair is predicted by the model fitted to the other pairs. "scaled" allows one unknown
 # brightness factor per image (the ground-truth scenes are normalised per image).
 
-# (`psfkit.pairs_fit.leave_one_out` does the same for one basis; here each fold also seeds
+# (`psfkit.fitting.pairs.fit.leave_one_out` does the same for one basis; here each fold also seeds
 # the eigen-kernel fit with its own shift-invariant fit.)
 
 # %%

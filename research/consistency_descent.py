@@ -46,14 +46,14 @@ from typing import Any
 import torch
 
 from ekdun.data.pairs import PairsDataset
+from ekdun.nets.builder import build_network
+from ekdun.nets.export import export_kernels
 from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
-from ekdun.training.builder import build_network
-from ekdun.training.export import export_kernels
 from ekdun.training.physics_loss import measurement_consistency
 from ekdun.training.trainer import _param_groups
 from psfkit.errors import PsfkitError
+from psfkit.forward.kernelfile import load_kernels
 from psfkit.io.jsonable import jsonable, write_json
-from psfkit.kernelfile import load_kernels
 from research.kernel_parameterisations import vs_oracle
 from research.oracles import oracle_file
 

@@ -88,8 +88,8 @@ def main() -> None:
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
     from ekdun.data.virtual_bench import make_virtual_bench, read_manifest
     from psfkit.compare import compare_kernels
-    from psfkit.kernelfile import load_kernels, save_kernels
-    from psfkit.pairs_fit import predict, relative_errors
+    from psfkit.fitting.pairs.fit import predict, relative_errors
+    from psfkit.forward.kernelfile import load_kernels, save_kernels
     from research.oracles import operator_oracle, white_scenes, write_dataset_oracles
 
     data = Path(args.data)

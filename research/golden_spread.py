@@ -187,8 +187,8 @@ def prediction_difference(new: Path, old: Path, data: Path) -> float:
     """``‖A_new x − A_old x‖ / ‖A_old x‖`` over the (stored) DLMD scenes at 1/4 resolution:
     the kernels compared in the norm the fit minimises."""
     from psfkit.cli.pairs_cmd import _load
-    from psfkit.kernelfile import load_kernels
-    from psfkit.pairs_fit import predict
+    from psfkit.fitting.pairs.fit import predict
+    from psfkit.forward.kernelfile import load_kernels
 
     _, scenes, _ = _load(str(data), 4)
     a = predict(load_kernels(new), scenes).astype(np.float64)

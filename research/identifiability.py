@@ -6,7 +6,7 @@ noise in electrons, so the noise variance per pixel is about ``y₀/P + σ_r²/P
 
 **Fisher information** (:func:`difference_fisher`), in the *no-crop approximation*: for the
 source convention the kernels' normal operator of the uncropped, whole-grid problem is
-block-diagonal in frequency (:class:`psfkit.pairs_solver.FrequencyGram`: one ``K × K`` Gram
+block-diagonal in frequency (:class:`psfkit.fitting.pairs.solver.FrequencyGram`: one ``K × K`` Gram
 block :math:`G(\omega)` per frequency and channel). With white noise of variance
 :math:`\bar\sigma^2` (the mean of the bench's per-pixel variance) the Fisher information is
 :math:`G(\omega)/(M\bar\sigma^2)` (``M`` grid pixels, unnormalised FFT). Written in the
@@ -18,12 +18,12 @@ inverse is the Cramér–Rao covariance: :math:`\mathbb E\lVert\hat\delta_k - \d
 \bar\sigma^2\sum_\omega [S(\omega)^{-1}]_{kk}` (summed over the full spectrum and the
 channels). It is an approximation of the real problem in two ways: the measurement is cropped
 to the sensor and the kernels live on a sensor-sized window (the exact normal operator is not
-per-frequency, :mod:`psfkit.pairs_solver`), and the noise is not white (Poisson). The
+per-frequency, :mod:`psfkit.fitting.pairs.solver`), and the noise is not white (Poisson). The
 Monte-Carlo says how far it is off.
 
 **Monte-Carlo** (:func:`monte_carlo`): noise-free measurements of the scenes (``A x``, any
 forward operator), several noise draws at photon level ``P``, the exact unconstrained
-least-squares fit of each (:func:`psfkit.pairs_fit.fit_pairs`: no ridge, no prior, no scale,
+least-squares fit of each (:func:`psfkit.fitting.pairs.fit.fit_pairs`: no ridge, no prior, no scale,
 no constraint, solved to convergence, so the estimator is linear and its mean is the
 noise-free fit), and the spread over the draws of the difference kernels and of their
 displacement maps (:func:`psfkit.compare.displacement_map`, on the reference model's caustic
@@ -39,15 +39,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from psfkit.calibration.preprocess import luminance
 from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.statistics import normalized_correlation, pearson
 from psfkit.errors import InvalidInputError
-from psfkit.pairs_fit import fit_pairs
-from psfkit.pairs_options import PairFitOptions
-from psfkit.pairs_solver import PairBatches
-from psfkit.preprocess import luminance
-from psfkit.weights import get_basis
+from psfkit.fitting.pairs.fit import fit_pairs
+from psfkit.fitting.pairs.options import PairFitOptions
+from psfkit.fitting.pairs.solver import PairBatches
+from psfkit.forward.weights import get_basis
 
 
 def poisson_gaussian(clean: np.ndarray, photons: float, read_noise_e: float,

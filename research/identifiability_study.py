@@ -72,8 +72,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
+    from psfkit.fitting.pairs.solver import PairBatches
     from psfkit.io.jsonable import write_json
-    from psfkit.pairs_solver import PairBatches
     from research.identifiability import (
         difference_fisher,
         fit_unconstrained,

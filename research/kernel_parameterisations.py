@@ -66,30 +66,30 @@ from ekdun.data.virtual_bench import (
     make_virtual_bench,
     read_manifest,
 )
-from ekdun.evaluation.metrics import psnr, ssim
-from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support
-from ekdun.training import TrainOptions, train
-from ekdun.training.acceleration import (
+from ekdun.device import (
     AMP_CHOICES,
     resolve_amp,
     resolve_device,
 )
-from ekdun.training.builder import (
+from ekdun.evaluation.metrics import psnr, ssim
+from ekdun.nets.builder import (
     build_network,
     encode_overrides,
     network_from_checkpoint,
 )
-from ekdun.training.checkpoint import load_checkpoint
+from ekdun.nets.checkpoint import load_checkpoint
+from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support
+from ekdun.training import TrainOptions, train
 from ekdun.training.trainer import CHECKPOINT, _param_groups
 from psfkit.cli.main import run_cli
 from psfkit.compare import compare_kernels, measure_modes
 from psfkit.compare.options import CompareOptions
 from psfkit.errors import InvalidInputError
+from psfkit.fitting.pairs.fit import fit_pairs, predict, relative_errors
+from psfkit.fitting.pairs.options import PairFitOptions
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.io import read_grid, read_pairs
 from psfkit.io.jsonable import write_json
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.pairs_fit import fit_pairs, predict, relative_errors
-from psfkit.pairs_options import PairFitOptions
 from research._kparam_table import as_document, format_number, markdown_table, run_key
 from research.benchmark_tiny import fit_seed_kernels
 from research.oracles import oracle_file, write_dataset_oracles

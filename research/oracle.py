@@ -24,7 +24,7 @@ from ekdun.errors import InvalidInputError
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
 from psfkit.cli.vocabulary import BASIS_ALIASES
-from psfkit.validation import OneLineArgumentParser, flag
+from psfkit.io.validation import OneLineArgumentParser, flag
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_debug_option(p)
     p.add_argument("--basis", default="paper",
                    help="weight basis: paper (default), ek (= paper) or any weight basis of "
-                        "psfkit.weights")
+                        "psfkit.forward.weights")
     p.add_argument("--convention", choices=("sensor", "source"), default="sensor",
                    help="where the weights live (default sensor, as fit-pairs)")
     p.add_argument("--nonneg", action=argparse.BooleanOptionalAction, default=True,
@@ -80,9 +80,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def run_oracle(args: argparse.Namespace) -> int:
     if args.write_dataset:
         return run_write_dataset(args)
+    from psfkit.forward.kernelfile import load_kernels, save_kernels
+    from psfkit.forward.weights import get_basis
     from psfkit.io import OutputTransaction
-    from psfkit.kernelfile import load_kernels, save_kernels
-    from psfkit.weights import get_basis
     from research.oracles import (
         dataset_oracle_scenes,
         dataset_spec,

@@ -51,7 +51,7 @@ def main() -> None:
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
     from psfkit.compare import compare_kernels
-    from psfkit.pairs_fit import predict, relative_errors
+    from psfkit.fitting.pairs.fit import predict, relative_errors
     from research.oracles import (
         dense_psf_oracle,
         operator_oracle,

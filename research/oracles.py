@@ -17,16 +17,16 @@ For a weight basis and convention it defines two "best" eigen-kernel models:
 
     with ``n`` fresh scenes of :func:`~ekdun.data.virtual_bench.make_scenes` (a random stream
     of their own, not the training scenes), solved to convergence by the exact pairs solver
-    (:mod:`psfkit.pairs_solver`: no ridge, no prior, no constraint, no per-pair scale). Its
+    (:mod:`psfkit.fitting.pairs.solver`: no ridge, no prior, no constraint, no per-pair scale). Its
     convergence in ``n`` is measured: the same solve on the first ``n/2`` scenes, and the
     difference-kernel NCC between the two (``convergence`` in the result);
 
 **PSF oracle** (:func:`psf_oracle`)
-    the grid fit of :mod:`psfkit.eigen` (the closed-form per-pixel fit behind ``psfkit
+    the grid fit of :mod:`psfkit.fitting.grid.eigen` (the closed-form per-pixel fit behind ``psfkit
     fit-eigen``) of the noise-free node PSFs at their true chief-ray positions
     (:func:`~ekdun.data.virtual_bench.node_psfs`): no registration, no noise, no normalisation.
 
-Both are kernel files (:class:`psfkit.kernelfile.KernelModel`) in the dense model's units
+Both are kernel files (:class:`psfkit.forward.kernelfile.KernelModel`) in the dense model's units
 (measurement per unit scene radiance), readable by ``psfkit compare``, ``psfkit eval-model``
 and ``ekdun train --kernels``. :func:`compare_oracles` says how much two models differ
 (difference-kernel NCC, kernel error, prediction error on noise-free test pairs).
@@ -60,18 +60,18 @@ from ekdun.data.dense_model import hat_weights
 from ekdun.data.virtual_bench import MANIFEST, _data_files, content_hash, read_manifest
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.compare.statistics import normalized_correlation
-from psfkit.forward.geometry import CONVENTIONS
-from psfkit.io.atomic import atomic_directory, atomic_file
-from psfkit.kernelfile import KernelModel, save_kernels
-from psfkit.pairs_constraints import projected_newton
-from psfkit.pairs_fit import predict
-from psfkit.pairs_options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
-from psfkit.pairs_solver import (
+from psfkit.fitting.pairs.constraints import projected_newton
+from psfkit.fitting.pairs.fit import predict
+from psfkit.fitting.pairs.options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
+from psfkit.fitting.pairs.solver import (
     PairBatches,
     regularised_normal,
     solve_kernels,
 )
-from psfkit.weights import get_basis
+from psfkit.forward.geometry import CONVENTIONS
+from psfkit.forward.kernelfile import KernelModel, save_kernels
+from psfkit.forward.weights import get_basis
+from psfkit.io.atomic import atomic_directory, atomic_file
 
 #: Random stream of the oracle's scenes (train 0, test 1): same distribution, new scenes.
 ORACLE_STREAM = 2
@@ -161,11 +161,12 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         ignored.
     nonneg : bool
         Minimise over non-negative kernels: projected Newton-CG
-        (:func:`psfkit.pairs_constraints.projected_newton`) on the same normal equations,
+        (:func:`psfkit.fitting.pairs.constraints.projected_newton`) on the same normal equations,
         warm-started from the unconstrained oracle, for at most ``projected_iterations``
         Newton steps of ``cg_iterations`` preconditioned CG iterations each (on float32
         products, with float64 gradients and line search), or until the relative KKT
-        residual (:func:`psfkit.pairs_constraints.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ / ‖K‖``
+        residual (:func:`psfkit.fitting.pairs.constraints.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ /
+        ‖K‖``
         per channel, the largest) is below ``projected_tolerance``. The record gives both.
     start : numpy.ndarray, optional
         ``(K, C, H, W)`` kernels to warm-start the unconstrained solve from (e.g. the
@@ -268,11 +269,12 @@ def psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper",
                ridge: float | None = None) -> OracleResult:
     """The grid fit of the noise-free node PSFs at their true chief-ray positions.
 
-    The per-pixel least squares of :mod:`psfkit.eigen` (``psfkit fit-eigen``'s solver), fed
+    The per-pixel least squares of :mod:`psfkit.fitting.grid.eigen` (``psfkit fit-eigen``'s
+    solver), fed
     with each node's noise-free PSF re-centred on its chief ray (full valid mask) and the true
     chief-ray shift; ``ridge`` defaults to fit-eigen's.
     """
-    from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
+    from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
 
     kernels, shifts, _rows, _cols = node_psfs(spec)
     n, m, c, h, w = kernels.shape
@@ -315,7 +317,7 @@ def dense_psf_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "pape
     oracle (the dataset's scenes) split the distance between the two oracles into its causes
     (``research/oracle_gap.py``).
     """
-    from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
+    from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
 
     if step < 1:
         raise ValueError(f"step must be >= 1, got {step}")

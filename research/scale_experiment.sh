@@ -75,7 +75,7 @@ fi
 $PY - "$OUT/measured.npz" "$OUT/one_psf.npz" <<'PY' || { log "one-psf seed failed"; exit 1; }
 import sys
 from dataclasses import replace
-from psfkit.kernelfile import load_kernels, save_kernels
+from psfkit.forward.kernelfile import load_kernels, save_kernels
 model = load_kernels(sys.argv[1])
 k = model.kernels.copy()
 k[1:] = k[:1]                      # Kv = Kh = Kbase: the network starts from one PSF

@@ -36,12 +36,12 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from psfkit.bench import BenchConfig, read_ground_truth, simulate_grid
-from psfkit.characterize import characterize_grid
+from psfkit.characterization.characterize import characterize_grid
 from psfkit.io import read_grid
 from psfkit.io.images import write_image
 from psfkit.io.jsonable import write_json
-from psfkit.significance import Z_SIGNIFICANT
+from psfkit.numerics.significance import Z_SIGNIFICANT
+from psfkit.simulate import BenchConfig, read_ground_truth, simulate_grid
 
 THRESHOLDS = (2.0, 2.5, 3.0, 3.5, 4.0)
 

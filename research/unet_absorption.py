@@ -55,13 +55,13 @@ from ekdun.data.virtual_bench import (
     read_manifest,
 )
 from ekdun.evaluation.metrics import psnr, ssim
+from ekdun.nets.builder import network_from_checkpoint
+from ekdun.nets.checkpoint import load_checkpoint
 from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
 from ekdun.training import TrainOptions, train
-from ekdun.training.builder import network_from_checkpoint
-from ekdun.training.checkpoint import load_checkpoint
 from ekdun.training.trainer import CHECKPOINT
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.io.jsonable import write_json
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
 from research.oracles import operator_oracle, oracle_file, write_dataset_oracles
 
 TV_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)

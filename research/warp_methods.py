@@ -3,7 +3,8 @@
 The real DiffuserCam PSF (``../shared/data/diffusercam_tutorial/psf_sample.tif``, binned 2×)
 is warped by known fields — small affine maps and smooth random displacements of 0.3–1 px
 RMS — with noise; each method's median endpoint error on the caustic and its time (median of
-repeats) are printed. DIS is the default of :func:`psfkit.warp.dense_flow` because of this
+repeats) are printed. DIS is the default of :func:`psfkit.calibration.warp.dense_flow` because of
+this
 table.
 """
 
@@ -18,8 +19,8 @@ import numpy as np
 import tifffile
 from scipy import ndimage
 
-from psfkit.resample import bin_image
-from psfkit.warp import FLOW_METHODS, dense_flow, warp_field
+from psfkit.calibration.warp import FLOW_METHODS, dense_flow, warp_field
+from psfkit.numerics.resample import bin_image
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, simulate_grid
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.simulate import BenchConfig, simulate_grid
 
 TINY_SENSOR = (16, 16)
 #: Dark level of the DiffuserCam tutorial PSF (mean of its dark corner, ``../shared/data`` README).

@@ -6,7 +6,8 @@ Hidden from ``ekdun --help``, they run exactly as before for one release and the
 note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 * ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment
-  (:func:`psfkit.preprocess.psf_kernel`: background, binning, clipped to ``>= 0``, unit sum
+  (:func:`psfkit.calibration.preprocess.psf_kernel`: background, binning, clipped to ``>= 0``, unit
+  sum
   per channel), becomes a shift-invariant kernel model
   (:func:`~ekdun.reconstruction.classical.psf_model`);
 * ``ekdun admm --kernels MODEL.npz MEASUREMENT... --out X.npy|FOLDER``: a kernel file (SI or
@@ -29,7 +30,7 @@ from typing import Any
 
 from ekdun.errors import InvalidInputError
 from psfkit.cli.vocabulary import NOTICES, add_flag, deprecation_notices
-from psfkit.validation import flag, require_finite
+from psfkit.io.validation import flag, require_finite
 
 # One TV default for both forms (the same solver and units since issue 22; 3e-4 was the best of
 # 1e-4/3e-4/1e-3/3e-3 for the PSF form on DLMD pair im394 at 67x120: 18.90 dB vs 18.54 at 1e-3).
@@ -144,8 +145,8 @@ def kernel_file_model(path: str, channel_order: str | None, downsample: int | No
                       ) -> tuple[Any, str, int, float | None, list[str]]:
     """A kernel file as fitted, and how to read its measurements: ``(model, channel order,
     binning factor, white level, notices)``, the flags overriding the file's record."""
+    from psfkit.forward.kernelfile import load_kernels
     from psfkit.io.read_options import choose
-    from psfkit.kernelfile import load_kernels
 
     model = load_kernels(path)
     # inputs are read the way the model's data was, unless a flag says otherwise
@@ -241,8 +242,8 @@ def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, fa
     """The PSF form: the shift-invariant kernel model of a PSF image, for measurements of the
     size (and channels) of ``measurement_path``, and that measurement ``(C, H, W)``."""
     from ekdun.reconstruction.classical import psf_model, read_classical_measurement
+    from psfkit.calibration.preprocess import psf_kernel
     from psfkit.io.images import read_image_float
-    from psfkit.preprocess import psf_kernel
 
     raw_psf = read_image_float(psf_path, channel_order)
     if min(raw_psf.shape[-2:]) // factor < 8:

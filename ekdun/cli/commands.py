@@ -12,7 +12,7 @@ from ekdun.errors import InvalidInputError
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import NOTICES, add_flag, add_retired
-from psfkit.validation import MAX_GRID_SIDE, bounded_size, flag
+from psfkit.io.validation import MAX_GRID_SIDE, bounded_size, flag
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -254,7 +254,7 @@ def run_make_dataset(args: argparse.Namespace) -> int:
                             half_fov_deg=args.half_fov, aperture_mm=args.aperture,
                             photons=args.photons, grid_frames=args.grid_frames,
                             seed=args.seed)
-    from ekdun.training.acceleration import resolve_device
+    from ekdun.device import resolve_device
 
     # a worker process costs ~2 s to start (it imports torch): none for small datasets
     workers = args.threads or min(16, os.cpu_count() or 1,
@@ -268,8 +268,8 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 def run_train(args: argparse.Namespace) -> int:
 
     from ekdun.data.pairs import PairsDataset, match_downsample
+    from ekdun.nets.builder import seed_kernel_model
     from ekdun.training import TrainOptions, train
-    from ekdun.training.builder import seed_kernel_model
     from psfkit.io.pairs import read_pairs
     from psfkit.io.read_options import choose
 
@@ -292,7 +292,7 @@ def run_train(args: argparse.Namespace) -> int:
     notices: list[str] = []
     if args.psf:
         # the one PSF loader (as ekdun admm PSF), binned like the pairs, in their channel order
-        from psfkit.preprocess import load_psf_image
+        from psfkit.calibration.preprocess import load_psf_image
 
         probe = read_pairs(root, args.channel_order, check_pixels=False)
         seed = seed_kernel_model(load_psf_image(args.psf, probe.channel_order, "corner",
@@ -359,7 +359,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
 def run_export_kernels(args: argparse.Namespace) -> int:
     from ekdun.training import export_kernels
-    from psfkit.kernelfile import save_kernels
+    from psfkit.forward.kernelfile import save_kernels
 
     out = Path(args.out)
     if out.suffix != ".npz":

@@ -23,7 +23,7 @@ from pathlib import Path
 from ekdun.errors import InvalidInputError
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.vocabulary import add_flag
-from psfkit.validation import flag
+from psfkit.io.validation import flag
 
 #: Suffixes of the PSF images ``reconstruct`` accepts as MODEL
 #: (:data:`psfkit.io.images.IMAGE_SUFFIXES`, spelled out so that ``--help`` needs no NumPy).

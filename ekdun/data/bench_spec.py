@@ -20,10 +20,10 @@ import numpy as np
 from ekdun.data.deadleaves import dead_leaves
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.errors import ConfigurationError, InvalidInputError
-from psfkit.bench import BenchConfig
-from psfkit.bench.camera import VirtualCamera, place_patch
-from psfkit.bench.simulate import grid_monitor_positions
-from psfkit.validation import flag_range
+from psfkit.io.validation import flag_range
+from psfkit.simulate import BenchConfig
+from psfkit.simulate.camera import VirtualCamera, place_patch
+from psfkit.simulate.psf_grid import grid_monitor_positions
 
 TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camera", "coins",
                 "brick", "grass", "moon")

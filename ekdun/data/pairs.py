@@ -22,11 +22,11 @@ import torch
 from torch.utils.data import Dataset
 
 from ekdun.errors import InvalidInputError
+from psfkit.forward.kernelfile import KernelModel
 from psfkit.io.pairs import PairSet, parse_names, read_pairs
 from psfkit.io.read_options import ReadOptions
-from psfkit.kernelfile import KernelModel
-from psfkit.resample import bin_mean
-from psfkit.validation import MIN_PAIR_SIDE
+from psfkit.io.validation import MIN_PAIR_SIDE
+from psfkit.numerics.resample import bin_mean
 
 
 def recorded_read_options(data: dict[str, Any], where: str = "checkpoint") -> ReadOptions:

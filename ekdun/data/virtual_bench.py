@@ -49,10 +49,10 @@ from ekdun.data.bench_spec import (
 )
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.errors import ConfigurationError, InvalidInputError
-from psfkit.bench import simulate_grid
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.images import write_image
-from psfkit.validation import read_json_file
+from psfkit.io.validation import read_json_file
+from psfkit.simulate import simulate_grid
 
 __all__ = ["FORMAT", "FULL_PIXEL_UM", "MANIFEST", "TEST_IMAGES", "TRAIN_IMAGES", "VERSION",
            "VirtualBenchSpec", "content_hash", "dataset_is_current", "dense_model_for",

@@ -13,11 +13,11 @@ from typing import Any
 import torch
 from torch.utils.data import Dataset
 
+from ekdun.device import resolve_device
 from ekdun.errors import InvalidInputError
 from ekdun.evaluation.metrics import SSIM_MARGIN, LPIPSMetric, psnr, ssim, ssim_map
-from ekdun.models.unrolled import UnrolledNetwork
-from ekdun.training.acceleration import resolve_device
-from psfkit.zones import ZONE_NAMES, field_zones
+from ekdun.nets.unrolled import UnrolledNetwork
+from psfkit.forward.zones import ZONE_NAMES, field_zones
 
 
 def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
@@ -43,7 +43,7 @@ def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
 
 
 class ZoneScores:
-    """PSNR and SSIM of reconstructions in each field zone (:mod:`psfkit.zones`).
+    """PSNR and SSIM of reconstructions in each field zone (:mod:`psfkit.forward.zones`).
 
     A zone's PSNR is that of the mean squared error over its pixels (every channel); its SSIM
     the mean of the SSIM map (:func:`~ekdun.evaluation.metrics.ssim_map`) over the zone's
@@ -272,7 +272,7 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     from ekdun.evaluation.tables import label_for
 
     device = resolve_device(device)   # an unavailable device is refused before any work
-    from ekdun.training.builder import network_from_checkpoint
+    from ekdun.nets.builder import network_from_checkpoint
 
     models = [(path, *network_from_checkpoint(path))
               for path in map(checkpoint_path, checkpoints)]

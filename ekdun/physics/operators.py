@@ -9,7 +9,7 @@ to a measurement of the same size, ``A_adjoint`` back (``<A x, y> = <x, Aᵀ y>`
 
 :class:`ShiftInvariantOperator` is ``y = crop(K * pad(x))`` with one PSF ``(C, Hk, Wk)``;
 :class:`EigenKernelOperator` Eq. 7 with kernels ``(K, C, Hk, Wk)`` and weight maps
-``(K, H', W')`` from :mod:`psfkit.weights`, sensor side (default) or source side;
+``(K, H', W')`` from :mod:`psfkit.forward.weights`, sensor side (default) or source side;
 :class:`MultiPSFOperator` ``N`` PSFs per colour acting channel-wise (UPDN's learned PSFs).
 
 Kernel spectra are taken by :meth:`FFTConvolutionOperator.spectra`: cached for fixed kernels
@@ -37,10 +37,10 @@ from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
 from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
+from psfkit.forward.kernelfile import KernelModel, check_kernels
 from psfkit.forward.norm import spectral_bound
 from psfkit.forward.operator import SpectralOperator, kernel_model_tensors
-from psfkit.kernelfile import KernelModel, check_kernels
-from psfkit.weights import get_basis
+from psfkit.forward.weights import get_basis
 
 
 class PreparedOperator(SpectralOperator):
@@ -349,7 +349,7 @@ class EigenKernelOperator(FFTConvolutionOperator):
                    optical_center: tuple[float, float] | None = None,
                    convention: str = "sensor", scene_padding: int = 2, trainable: bool = False,
                    dtype: torch.dtype | None = None) -> EigenKernelOperator:
-        """From kernels ``(K, C, Hk, Wk)`` and a :mod:`psfkit.weights` basis name."""
+        """From kernels ``(K, C, Hk, Wk)`` and a :mod:`psfkit.forward.weights` basis name."""
         k = _as_tensor(kernels, dtype)
         sensor = _check_sensor_shape(tuple(k.shape[-2:]) if sensor_shape is None
                                      else sensor_shape)

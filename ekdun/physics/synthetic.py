@@ -13,7 +13,7 @@ def caustic_psf(sensor_shape: tuple[int, int], channels: int = 3, seed: int = 0,
     Bright sharp spots scattered over a disc (the diffuser's footprint on the sensor, centred
     at ``(H'//2, W'//2)``, the kernel origin), blurred by a Gaussian of ``blur`` pixels, with a
     slightly different spot brightness per channel (dispersion). Not a physical simulation;
-    see :mod:`psfkit.bench` for one.
+    see :mod:`psfkit.simulate` for one.
     """
     h, w = sensor_shape
     rng = np.random.default_rng(seed)

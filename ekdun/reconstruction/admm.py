@@ -27,7 +27,7 @@ The update rules differ in how the data term is split (scaled duals throughout):
 
 :class:`ShiftInvariantRule`, ``A x = C H x``
     the DiffuserCam ADMM (Antipa et al. 2018; the differentiable version the unrolled
-    Le-ADMM-U learns its ``μ`` in is :mod:`ekdun.models.tv_admm_steps`), split ``u = Hx``: in
+    Le-ADMM-U learns its ``μ`` in is :mod:`ekdun.nets.tv_admm_steps`), split ``u = Hx``: in
     the view ``u = b + (y − b)/(1 + μ1)``, ``b = Hx + α/μ1``, outside it ``u = b``; the ``x``
     step ``(μ1 HᵀH + μ2 ΨᵀΨ + μ3) x = …`` is diagonal in Fourier space. 4 FFTs an iteration.
 :class:`SensorSideRule`, ``A x = Σ_k W_k ⊙ C H_k x``
@@ -74,7 +74,7 @@ import torch
 from torch import Tensor
 
 from ekdun.errors import ConfigurationError, TensorShapeError
-from ekdun.models.tv_admm_steps import (
+from ekdun.nets.tv_admm_steps import (
     finite_difference_spectrum,
     finite_differences,
     finite_differences_adjoint,

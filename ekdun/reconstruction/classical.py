@@ -12,7 +12,8 @@ worse image (source side, 5-100 iterations: research/notes/reconstruction-studie
 
 The scene is solved for on the padded grid (light from outside the view); a
 source-side model's weights continue their edge values outside the view
-(:meth:`psfkit.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the model's
+(:meth:`psfkit.forward.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the
+model's
 channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
 """
 
@@ -32,7 +33,7 @@ from torch import Tensor
 from ekdun.errors import ConfigurationError, InvalidInputError, TensorShapeError
 from ekdun.reconstruction.admm import solve_tv
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
-from psfkit.kernelfile import KernelModel
+from psfkit.forward.kernelfile import KernelModel
 
 SOLVERS = ("auto", "admm")
 #: Solver names that were removed; they run ADMM (one release, then refused).
@@ -102,7 +103,7 @@ class ModelReconstructor:
     Parameters
     ----------
     model : KernelModel
-        From :func:`psfkit.kernelfile.load_kernels`, used as fitted.
+        From :func:`psfkit.forward.kernelfile.load_kernels`, used as fitted.
     options : ClassicalOptions
     """
 
@@ -149,7 +150,8 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
     """The shift-invariant kernel model of a PSF kernel, for measurements of ``sensor_shape``.
 
     What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
-    :func:`psfkit.preprocess.load_psf_image`), so that the PSF form and ``--kernels`` run one
+    :func:`psfkit.calibration.preprocess.load_psf_image`), so that the PSF form and ``--kernels``
+    run one
     solver.
 
     Parameters
@@ -247,8 +249,8 @@ def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RG
     ``downsample`` and with the mean of its ``[5:15, 5:15]`` corner subtracted
     (``background="corner"``, before downsampling)."""
     from ekdun.reconstruction.reconstruct import read_measurement
-    from psfkit.preprocess import BACKGROUNDS, subtract_background
-    from psfkit.resample import bin_mean
+    from psfkit.calibration.preprocess import BACKGROUNDS, subtract_background
+    from psfkit.numerics.resample import bin_mean
 
     if background not in BACKGROUNDS:
         raise ConfigurationError(f"--background must be none or corner, got {background!r}")

@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ekdun import device as acc
 from ekdun.data.pairs import recorded_read_options
 from ekdun.errors import InvalidInputError, TensorShapeError
-from ekdun.training import acceleration as acc
-from ekdun.training.builder import network_from_checkpoint
-from ekdun.training.checkpoint import checkpoint_sensor, load_checkpoint
+from ekdun.nets.builder import network_from_checkpoint
+from ekdun.nets.checkpoint import checkpoint_sensor, load_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image_float, write_image
 from psfkit.io.read_options import ReadOptions, choose
-from psfkit.resample import bin_mean
+from psfkit.numerics.resample import bin_mean
 
 
 def read_measurement(path: str | os.PathLike, channel_order: str = "RGB",
@@ -80,7 +80,7 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"auto"`` = fp16
     on CUDA and off on CPU, ``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under
     autocast; the physics FFTs stay
-    float32 (:mod:`ekdun.training.acceleration`) and the outputs are float32 either way.
+    float32 (:mod:`ekdun.device`) and the outputs are float32 either way.
     """
     device = acc.resolve_device(device)
     precision = acc.resolve_amp(amp, device)

@@ -43,7 +43,7 @@ def setup(device: str = "auto") -> DistContext:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    from ekdun.training.acceleration import resolve_device
+    from ekdun.device import resolve_device
 
     dev = resolve_device(device, local_rank)
     if world > 1 and not dist.is_initialized():

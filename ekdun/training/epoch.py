@@ -12,8 +12,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ekdun.models.unrolled import UnrolledNetwork
-from ekdun.training import acceleration as acc
+from ekdun import device as acc
+from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.training import distributed as D
 from ekdun.training.batches import BatchSource
 

@@ -58,7 +58,7 @@ class PhysicsObjective(nn.Module):
     Parameters
     ----------
     network : nn.Module
-        An EK-DUN (:class:`ekdun.models.ekdun_net.EKDUN`); its :meth:`forward_model` gives
+        An EK-DUN (:class:`ekdun.nets.ekdun_net.EKDUN`); its :meth:`forward_model` gives
         ``A_θ`` with differentiable kernels.
     """
 

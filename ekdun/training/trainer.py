@@ -5,7 +5,7 @@
 
 ``checkpoint.pt``
     after every epoch, atomically (model, optimizer, scheduler, grad scaler, RNG states,
-    metadata; see :mod:`ekdun.training.checkpoint`): a killed run loses at most the epoch in
+    metadata; see :mod:`ekdun.nets.checkpoint`): a killed run loses at most the epoch in
     progress, and ``resume=True`` continues exactly where the uninterrupted run would be
     (the batch order depends only on ``(seed, epoch)``).
 ``log.csv``
@@ -15,7 +15,7 @@ Speed (``docs/training.md``): the dataset stays on the device when it fits (else
 with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
 device and read once per epoch (and at the progress bar's log points), so the host never
 waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
-``channels_last`` and ``compile`` are described in :mod:`ekdun.training.acceleration`.
+``channels_last`` and ``compile`` are described in :mod:`ekdun.device`.
 ``kernels_initial.npz`` / ``kernels_learned.npz``
     EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
     convention and sensor size as the seed), for ``psfkit compare``.
@@ -36,26 +36,22 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import Dataset
 
+from ekdun import device as acc
 from ekdun.errors import CheckpointError, ConfigurationError, InvalidInputError
-from ekdun.models.configs import TrainingConfig, get_preset
-from ekdun.models.unrolled import UnrolledNetwork
+from ekdun.nets.builder import build_network, encode_overrides, seed_kernel_model
+from ekdun.nets.checkpoint import load_checkpoint, save_checkpoint
+from ekdun.nets.configs import TrainingConfig, get_preset
+from ekdun.nets.export import export_kernels
+from ekdun.nets.export import initial_kernels as checkpoint_seed
+from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
-from ekdun.training import acceleration as acc
 from ekdun.training import distributed as D
 from ekdun.training.batches import BatchSource
-from ekdun.training.builder import build_network, encode_overrides, seed_kernel_model
-from ekdun.training.checkpoint import (
-    load_checkpoint,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-)
 from ekdun.training.epoch import Loop, train_epoch
-from ekdun.training.export import export_kernels
-from ekdun.training.export import initial_kernels as checkpoint_seed
 from ekdun.training.logs import write_csv_log
 from ekdun.training.physics_loss import PhysicsObjective
-from psfkit.kernelfile import KernelModel, save_kernels
+from ekdun.training.rng import rng_state, set_rng_state
+from psfkit.forward.kernelfile import KernelModel, save_kernels
 
 CHECKPOINT = "checkpoint.pt"
 LOG = "log.csv"
@@ -65,7 +61,7 @@ KERNELS_LEARNED = "kernels_learned.npz"
 
 @dataclass(frozen=True)
 class TrainOptions:
-    """Run options; ``None`` takes the preset's :class:`~ekdun.models.configs.TrainingConfig`.
+    """Run options; ``None`` takes the preset's :class:`~ekdun.nets.configs.TrainingConfig`.
 
     ``batch_size`` is the GLOBAL batch (split over ``torchrun`` processes). ``amp``:
     ``"auto"`` (or ``True``: fp16 on CUDA, off elsewhere), ``"bf16"``, ``"fp16"``, ``"off"``

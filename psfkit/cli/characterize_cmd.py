@@ -27,12 +27,12 @@ from psfkit.cli.summaries import (
 )
 from psfkit.cli.vocabulary import NOTICES, add_flag, command_name
 from psfkit.io import OutputTransaction
-from psfkit.validation import flag
+from psfkit.io.validation import flag
 
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.characterize import CharacterizeOptions, GridCharacterization
+    from psfkit.characterization.characterize import CharacterizeOptions, GridCharacterization
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -46,7 +46,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
-    from psfkit.characterize import CharacterizeOptions
+    from psfkit.characterization.characterize import CharacterizeOptions
 
     return CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
                                upsample=args.upsample,
@@ -57,7 +57,7 @@ def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOp
 
 
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
-    from psfkit.characterize import characterize_grid
+    from psfkit.characterization.characterize import characterize_grid
 
     grid = open_grid(args)   # every image is checked as it is processed
     return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
@@ -68,7 +68,7 @@ def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
                            ) -> GridCharacterization:
     """:func:`_run`, then the numbers to ``--out`` (JSON/CSV) when given; a bad output name is
     refused before the work, as is an existing one without ``--overwrite``."""
-    from psfkit.report import check_numbers_path, write_numbers
+    from psfkit.report.grid import check_numbers_path, write_numbers
 
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         numbers = outputs.file(check_numbers_path(args.out)) if args.out else None
@@ -128,7 +128,7 @@ def _grid_print(values: np.ndarray, fmt: str,
 
 
 def _print_warnings(result: GridCharacterization) -> None:
-    from psfkit.report import warnings_for
+    from psfkit.report.grid import warnings_for
 
     for message in warnings_for(result):
         print(f"warning: {message}")
@@ -278,7 +278,7 @@ def run_mae(args: argparse.Namespace) -> int:
 
 
 def run_warp(args: argparse.Namespace) -> int:
-    from psfkit.characterize import RELIABLE_OVERLAP
+    from psfkit.characterization.characterize import RELIABLE_OVERLAP
 
     result = _run_and_write_numbers(args, ("register", "gain", "warp"))
     print("residual displacement rms (px) after the affine part:")
@@ -295,7 +295,7 @@ def run_warp(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from psfkit.report import write_report
+    from psfkit.report.grid import write_report
 
     out = Path(args.out)
     with OutputTransaction(overwrite=args.overwrite) as outputs:

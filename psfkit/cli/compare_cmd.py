@@ -11,9 +11,9 @@ from typing import Any
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.options import preprocess_options
+from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
-from psfkit.kernelfile import load_kernels
-from psfkit.validation import flag
+from psfkit.io.validation import flag
 
 #: Flags that only ``--help-all`` lists (issue 44): how the displacement maps are measured
 #: and how a grid given as the measured side is preprocessed.
@@ -76,7 +76,7 @@ def _fmt(value: float | None) -> str:
 
 def run_compare(args: argparse.Namespace) -> int:
     # imported here, not when the parser is built (scipy, OpenCV, matplotlib)
-    from psfkit.compare_report import write_comparison
+    from psfkit.report.comparison import write_comparison
 
     out = Path(args.out)
     # refuse every bad input before any work (and before anything is written)

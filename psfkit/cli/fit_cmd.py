@@ -23,16 +23,16 @@ from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.summaries import pm, print_verdict
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag
 from psfkit.errors import InvalidInputError
+from psfkit.forward.kernelfile import save_kernels
+from psfkit.forward.weights import BASIS_NAMES
 from psfkit.io import OutputTransaction, atomic_directory
 from psfkit.io.jsonable import jsonable
-from psfkit.kernelfile import save_kernels
-from psfkit.validation import flag
-from psfkit.weights import BASIS_NAMES
+from psfkit.io.validation import flag
 
 # The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
 # not when the parser is built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.grid_fit import EigenFitOptions, GridEigenResult
+    from psfkit.fitting.grid.fit import EigenFitOptions, GridEigenResult
 
 
 #: Flags that only ``--help-all`` lists (issue 44): the preprocessing and registration
@@ -84,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
-    from psfkit.grid_fit import EigenFitOptions
+    from psfkit.fitting.grid.fit import EigenFitOptions
 
     choice = args.cv_bases.strip().lower()
     cv = () if choice == "none" else CV_BASES_ALL if choice == "all" else tuple(
@@ -100,7 +100,7 @@ def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
 def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = False) -> None:
     """Fig. 7 (kernels, and zoomed), Fig. 3 (weight maps), diagnostics and ``fit.json`` of an
     eigen-kernel fit, written atomically into ``folder``."""
-    from psfkit.figures import (
+    from psfkit.report.figures import (
         difference_sizes,
         figure_eigen_diagnostics,
         figure_kernels,
@@ -138,7 +138,7 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
 def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
          ) -> tuple[GridEigenResult, str]:
     """Fit, and write the kernel file (and figures) to the given temporary paths."""
-    from psfkit.grid_fit import fit_eigen_grid
+    from psfkit.fitting.grid.fit import fit_eigen_grid
 
     grid = open_grid(args)   # every image is checked as it is processed
     basis = BASIS_ALIASES.get(args.basis, args.basis)

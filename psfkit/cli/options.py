@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
-from psfkit.preprocess import PreprocessOptions
-from psfkit.validation import flag
+from psfkit.calibration.preprocess import PreprocessOptions
+from psfkit.io.validation import flag
 
 if TYPE_CHECKING:
     from psfkit.io.grid import PsfGrid

@@ -15,15 +15,15 @@ from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, add_retired, command_name
 from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.fitting.pairs.options import PairFitOptions
+from psfkit.forward.kernelfile import load_kernels, save_kernels
+from psfkit.forward.weights import BASIS_NAMES
+from psfkit.forward.zones import ZONE_NAMES
 from psfkit.io import OutputTransaction, read_pairs
 from psfkit.io.jsonable import jsonable
 from psfkit.io.pairs import parse_names
 from psfkit.io.read_options import ReadOptions, choose
-from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_options import PairFitOptions
-from psfkit.validation import dumps_finite, flag, require_finite
-from psfkit.weights import BASIS_NAMES
-from psfkit.zones import ZONE_NAMES
+from psfkit.io.validation import dumps_finite, flag, require_finite
 
 #: Flags that only ``--help-all`` lists (issue 44): the solver and the constraints, whose
 #: defaults are chosen by held-out error or are a measured PSF's; the channel order, which the
@@ -145,7 +145,7 @@ def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> N
     0/0: name the file instead of reporting NaN kernels or errors later. Measurements whose
     light is out of all proportion to their scenes' would need kernels no kernel file may hold
     (``MIN_KERNEL_GAIN`` … ``MAX_KERNEL_GAIN``): the folder is named, not the model."""
-    from psfkit.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
+    from psfkit.io.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
 
     for stack, folder, files in ((scenes, pairs.scene_dir, pairs.scene_files),
                                  (measurements, pairs.measurement_dir, pairs.measurement_files)):
@@ -167,7 +167,7 @@ def _load(folder: str, factor: int, channel_order: str | None = None,
           recorded: ReadOptions | None = None, holdout: list[str] | None = None
           ) -> tuple[Any, np.ndarray, np.ndarray]:
     """The pairs of ``folder`` (less those ``holdout`` names), binned ``factor`` times."""
-    from psfkit.pairs_fit import downsample_pairs
+    from psfkit.fitting.pairs.fit import downsample_pairs
 
     if factor < 1:
         raise InvalidInputError(f"--downsample must be >= 1, got {factor}")
@@ -187,7 +187,7 @@ def _support_mask(path: str | None, factor: int, shape: tuple[int, int]) -> np.n
     if path is None:
         return None
     from psfkit.io.images import read_image
-    from psfkit.resample import bin_mean
+    from psfkit.numerics.resample import bin_mean
 
     image = require_finite(read_image(path), str(path))
     mask = image.astype(np.float64).max(axis=0) != 0
@@ -232,7 +232,7 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
          report: Path | None) -> tuple[Any, np.ndarray, Any, dict[str, Any]]:
     """Fit, and write the kernel file (and report) to the given temporary paths."""
     # torch is imported here, by the commands that use it, not when the parser is built
-    from psfkit.pairs_fit import fit_pairs, leave_one_out
+    from psfkit.fitting.pairs.fit import fit_pairs, leave_one_out
 
     pairs, scenes, measurements = _load(args.pairs, args.downsample, args.channel_order,
                                         holdout=args.holdout)
@@ -340,8 +340,8 @@ def _document(results: list[dict[str, Any]]) -> dict[str, Any]:
 def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],
                 maps: list[np.ndarray], zones: Any, results: list[dict[str, Any]],
                 name: str) -> None:
-    from psfkit.figures.field_figures import figure_residual_maps
-    from psfkit.figures.style import publication_style
+    from psfkit.report.figures.field import figure_residual_maps
+    from psfkit.report.figures.style import publication_style
 
     json_file, npz_file, png_file = files
     json_file.write_text(dumps_finite(document, name, indent=1) + "\n", encoding="utf-8")
@@ -383,7 +383,7 @@ def _print_eval(result: dict[str, Any]) -> None:
 def _evaluate_all(args: argparse.Namespace
                   ) -> tuple[list[dict[str, Any]], list[np.ndarray], Any, list[str]]:
     """Every model of ``args.models`` on the pairs (read once per way of reading them)."""
-    from psfkit.zones import field_zones
+    from psfkit.forward.zones import field_zones
 
     loaded: dict[Any, tuple[Any, np.ndarray, np.ndarray]] = {}
     results, maps, notices, zones = [], [], [], None
@@ -450,8 +450,14 @@ def _evaluate(path: str, model: Any, pairs: Any, scenes: np.ndarray,
               zones: Any) -> tuple[dict[str, Any], np.ndarray]:
     """One model's errors (whole sensor, by zone, held-out and fitted pairs) and its residual
     map (over the held-out pairs where there are any, else over all)."""
-    from psfkit.model_errors import FITTED, HELD_OUT, pair_roles, residual_map, zone_errors
-    from psfkit.pairs_fit import predict, relative_errors
+    from psfkit.fitting.pairs.fit import predict, relative_errors
+    from psfkit.fitting.pairs.model_errors import (
+        FITTED,
+        HELD_OUT,
+        pair_roles,
+        residual_map,
+        zone_errors,
+    )
 
     roles = pair_roles(model.provenance, pairs.root, pairs.names, holdout or (), path)
     prediction = predict(model, scenes, model_name=str(path), scenes_name=str(pairs.root))

@@ -15,12 +15,12 @@ from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, PsfGrid, read_grid
 from psfkit.io.atomic import check_output
-from psfkit.validation import flag, read_json_file
+from psfkit.io.validation import flag, read_json_file
 
 # The virtual bench (scipy) is imported by the commands that run it, not when the parser is
 # built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.bench import BenchConfig
+    from psfkit.simulate import BenchConfig
 
 
 #: The demo's sensor binning, chosen by measurement (``psfkit demo --downsample N``, seed 0):
@@ -32,7 +32,7 @@ DEMO_DOWNSAMPLE = 4
 
 
 def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
-    """Options that build a :class:`~psfkit.bench.BenchConfig` (shared by bench commands)."""
+    """Options that build a :class:`~psfkit.simulate.BenchConfig` (shared by bench commands)."""
     g = p.add_argument_group("virtual camera")
     g.add_argument("--bench-config", metavar="JSON",
                    help="JSON file of BenchConfig parameters (options below override it)")
@@ -55,7 +55,7 @@ def add_bench_options(p: argparse.ArgumentParser, downsample: int = 1) -> None:
 
 
 def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
-    from psfkit.bench import BenchConfig
+    from psfkit.simulate import BenchConfig
 
     values: dict = {}
     if args.bench_config:
@@ -134,7 +134,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    from psfkit.bench import simulate_grid
+    from psfkit.simulate import simulate_grid
 
     config = bench_config_from_args(args)
     out = simulate_grid(args.out, config, grid_shape=(args.rows, args.cols), extent=args.extent,
@@ -146,7 +146,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from psfkit.bench import simulate_grid
+    from psfkit.simulate import simulate_grid
 
     config = bench_config_from_args(args)
     out = check_output(args.out, "folder", args.overwrite)
@@ -175,10 +175,14 @@ def run_demo(args: argparse.Namespace) -> int:
 def _demo_steps(args: argparse.Namespace, config: BenchConfig, grid_dir: Path,
                 report_tmp: Path, kernels_tmp: Path, figures_tmp: Path) -> None:
     """Characterize the simulated grid and fit its eigen-kernels, into the staged outputs."""
-    from psfkit.bench import read_ground_truth
-    from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
+    from psfkit.characterization.characterize import (
+        RELIABLE_OVERLAP,
+        CharacterizeOptions,
+        characterize_grid,
+    )
     from psfkit.cli.summaries import astigmatism_line, growth_line
-    from psfkit.report import write_report
+    from psfkit.report.grid import write_report
+    from psfkit.simulate import read_ground_truth
 
     grid = read_grid(grid_dir)
     truth = read_ground_truth(grid_dir)
@@ -211,8 +215,8 @@ def _demo_eigen_fit(grid: PsfGrid, kernels: Path, figures: Path, quiet: bool) ->
     """The demo's last step: the eigen-kernel fit that seeds EK-DUN (as ``psfkit fit-eigen``)."""
     from psfkit.cli.fit_cmd import write_fit_figures
     from psfkit.cli.summaries import pm
-    from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
-    from psfkit.kernelfile import save_kernels
+    from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+    from psfkit.forward.kernelfile import save_kernels
 
     result = fit_eigen_grid(grid, EigenFitOptions(), progress=not quiet)
     save_kernels(kernels, result.kernel_model())

@@ -1,7 +1,7 @@
 """Terminal lines of fitted field quantities and of the verdict (issue 43).
 
 Every fitted field quantity is printed with its 1σ uncertainty and what the significance rule
-(:mod:`psfkit.significance`) says of it: ``4.00 ± 0.05``, ``not detected (0.3 ± 1.2)`` or
+(:mod:`psfkit.numerics.significance`) says of it: ``4.00 ± 0.05``, ``not detected (0.3 ± 1.2)`` or
 ``not determined (why)``; never a bare number, never ``nan``.
 """
 
@@ -11,11 +11,11 @@ import math
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from psfkit.characterization import GridCharacterization
-    from psfkit.gain import GainFit
-    from psfkit.registration import ShiftMapFit
-    from psfkit.verdict import Verdict
-    from psfkit.warp import GrowthFit
+    from psfkit.calibration.gain import GainFit
+    from psfkit.calibration.registration import ShiftMapFit
+    from psfkit.calibration.warp import GrowthFit
+    from psfkit.characterization.results import GridCharacterization
+    from psfkit.fitting.verdict import Verdict
 
 
 def shift_map_line(fit: ShiftMapFit) -> str:

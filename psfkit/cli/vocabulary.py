@@ -12,7 +12,7 @@ hidden from ``--help`` and, once the command has done its work, print one line
 (``note: --model is deprecated here, use --basis``) on stderr (:func:`deprecation_notices`,
 printed by :func:`psfkit.cli.main.run_cli`), so that an error stays the one line on stderr.
 
-Numeric ranges stay in :data:`psfkit.validation.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
+Numeric ranges stay in :data:`psfkit.io.validation.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
 walks both parsers and checks them against this table and ``docs/cli-flags.md``.
 """
 
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from psfkit.io.read_options import CHANNEL_ORDERS
-from psfkit.validation import device_name, flag
+from psfkit.io.validation import device_name, flag
 
 #: ``namespace`` attribute that collects the notices of deprecated spellings.
 NOTICES = "deprecation_notices"
@@ -32,7 +32,7 @@ NOTICES = "deprecation_notices"
 #: The networks of ``ekdun`` (:data:`ekdun.model_names.MODEL_NAMES`, checked equal by the test;
 #: psfkit never imports ekdun).
 NETWORKS = ("ekdun", "le-admm-u", "updn")
-#: ``--amp`` (:data:`ekdun.training.acceleration.AMP_CHOICES`, checked equal by the test).
+#: ``--amp`` (:data:`ekdun.device.AMP_CHOICES`, checked equal by the test).
 AMP_CHOICES = ("auto", "off", "bf16", "fp16")
 #: Values of ``--basis`` that name another (``ek`` is the paper's basis).
 BASIS_ALIASES = {"ek": "paper"}
@@ -70,15 +70,17 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
                # the general meaning (docs/cli-flags.md); each command's help says its own
                "weight basis of the model: si (one PSF, fit-pairs only), ek (= paper: Kbase, "
-               "Kv, Kh) or any weight basis of psfkit.weights (fit-eigen: also auto)",
+               "Kv, Kh) or any weight basis of psfkit.forward.weights (fit-eigen: also auto)",
                "si (fit-pairs), paper (fit-eigen)", default="si",
                per_command={
                    "fit-eigen": {"default": "paper", "meaning":
                                  "weight basis of the eigen-kernel model: ek (= paper: Kbase, "
-                                 "Kv, Kh), another weight basis of psfkit.weights, or auto"},
+                                 "Kv, Kh), another weight basis of psfkit.forward.weights, "
+                                 "or auto"},
                    "fit-pairs": {"meaning":
                                  "the model to fit: si (one shift-invariant PSF), ek (= paper: "
-                                 "Kbase, Kv, Kh) or another weight basis of psfkit.weights"}}),
+                                 "Kbase, Kv, Kh) or another weight basis of "
+                                 "psfkit.forward.weights"}}),
     SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
                "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",
@@ -253,7 +255,7 @@ def add_retired(parser: argparse.ArgumentParser, command: str,
                 ) -> None:
     """Add ``command``'s retired flags of ``table`` (psfkit's :data:`RETIRED`, or a CLI's
     own, same shape) to ``parser``, hidden; ``value_type(flag)``, where given, still checks a
-    retired flag's value as before (e.g. :func:`psfkit.validation.flag`)."""
+    retired flag's value as before (e.g. :func:`psfkit.io.validation.flag`)."""
     for (cmd, name), (nargs, note, choices) in table.items():
         if cmd == command:
             parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,

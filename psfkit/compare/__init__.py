@@ -6,9 +6,9 @@ those displacements and compares them with what the PSF grid of the same camera 
 
 Measured side (:func:`measure_modes`), from a PSF grid:
 
-- the eigen-kernels fitted to the grid (:func:`psfkit.grid_fit.fit_eigen_grid`) with the
+- the eigen-kernels fitted to the grid (:func:`psfkit.fitting.grid.fit.fit_eigen_grid`) with the
   learned file's basis and weight convention;
-- the top PCA modes of the registered grid (:mod:`psfkit.pca`);
+- the top PCA modes of the registered grid (:mod:`psfkit.fitting.grid.pca`);
 - warp fields: the dense flow from the centre PSF to the (shift-registered, gain-matched) PSFs
   at the outermost reliable positions on the centre column (``v = ±edge, u = 0``) and centre
   row (``v = 0, u = ±edge``). For the model, ``PSF_p − PSF_0 = Σ_k ΔW_k (K_k − Kbase)``
@@ -29,15 +29,16 @@ Learned side: the kernels of a kernel file (after training), padded to the senso
 registered to the measured ``Kbase`` by one global sub-pixel shift.
 
 Displacement maps (:func:`displacement_map`): dense optical flow (OpenCV DIS by default,
-:func:`psfkit.warp.dense_flow`) from ``Kbase`` to ``Kv`` (``Kh``), on luminance, after scaling
+:func:`psfkit.calibration.warp.dense_flow`) from ``Kbase`` to ``Kv`` (``Kh``), on luminance, after
+scaling
 both to the same sum on the caustic mask (gain differences are not displacements), smoothed by
 a masked Gaussian (normalised convolution) and kept on the caustic mask of the measured
-``Kbase`` (:func:`psfkit.warp.caustic_mask`).
+``Kbase`` (:func:`psfkit.calibration.warp.caustic_mask`).
 
 Conventions. A displacement field ``D = (D_u, D_v)`` is ``(2, H, W)`` in pixels of the
 comparison grid (the learned file's sensor grid), ``u`` = column (right), ``v`` = row (down);
 it maps a point of the reference image to where it appears in the other:
-``other(x + D(x)) ≈ reference(x)`` (as in :mod:`psfkit.warp`).
+``other(x + D(x)) ≈ reference(x)`` (as in :mod:`psfkit.calibration.warp`).
 
 Metrics (per non-base kernel, e.g. ``v`` and ``h``):
 
@@ -56,7 +57,8 @@ Modules: :mod:`~psfkit.compare.options` (:class:`CompareOptions`),
 :mod:`~psfkit.compare.resampling` (onto the comparison grid), :mod:`~psfkit.compare.warps` and
 :mod:`~psfkit.compare.measured` (the measured side), :mod:`~psfkit.compare.results` (result
 classes) and :mod:`~psfkit.compare.comparison` (:func:`compare_kernels`). Writing figures, JSON
-and HTML is :mod:`psfkit.compare_report` (it draws with :mod:`psfkit.figures`, which reads these
+and HTML is :mod:`psfkit.report.comparison` (it draws with :mod:`psfkit.report.figures`, which
+reads these
 results, so it sits above this package).
 """
 

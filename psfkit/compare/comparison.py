@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from psfkit.calibration.preprocess import luminance
+from psfkit.calibration.registration import register_shift, shift_image
 from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
 from psfkit.compare.kernel_change import caustic_support, split_kernel_changes
 from psfkit.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
@@ -21,11 +23,9 @@ from psfkit.compare.resampling import pad_kernels, resample
 from psfkit.compare.results import KernelComparison, KernelSetComparison
 from psfkit.compare.statistics import map_agreement, normalized_correlation
 from psfkit.errors import ModelFileError
+from psfkit.fitting.grid.pca import principal_angles_deg
+from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.io.grid import PsfGrid
-from psfkit.kernelfile import KernelModel, load_kernels
-from psfkit.pca import principal_angles_deg
-from psfkit.preprocess import luminance
-from psfkit.registration import register_shift, shift_image
 
 
 def _kernel_displacements(lum: np.ndarray, names: tuple[str, ...], mask: np.ndarray,

@@ -2,7 +2,7 @@
 the caustic (dense optical flow, gain-matched, masked smoothing).
 
 A displacement field ``D = (D_u, D_v)`` is ``(2, H, W)`` in pixels, ``u`` = column (right),
-``v`` = row (down); ``other(x + D(x)) ≈ reference(x)`` (as in :mod:`psfkit.warp`).
+``v`` = row (down); ``other(x + D(x)) ≈ reference(x)`` (as in :mod:`psfkit.calibration.warp`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from psfkit.calibration.warp import caustic_mask, dense_flow
 from psfkit.compare.options import CompareOptions
 from psfkit.errors import InvalidInputError
-from psfkit.warp import caustic_mask, dense_flow
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ def displacement_map(reference: np.ndarray, other: np.ndarray, mask: np.ndarray,
     mask : numpy.ndarray
         ``(H, W)`` bool, where the displacement is meaningful (the caustic).
     method : str
-        Dense-flow method (:func:`psfkit.warp.dense_flow`).
+        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`).
     smooth_px : float
         Sigma (px) of the masked Gaussian smoothing.
 
@@ -95,6 +95,6 @@ def displacement_map(reference: np.ndarray, other: np.ndarray, mask: np.ndarray,
 
 def comparison_mask(base_luminance: np.ndarray, options: CompareOptions) -> np.ndarray:
     """Caustic mask of the measured ``Kbase`` luminance ``(H, W)`` (see
-    :func:`psfkit.warp.caustic_mask`)."""
+    :func:`psfkit.calibration.warp.caustic_mask`)."""
     return caustic_mask(base_luminance, np.ones(base_luminance.shape, bool), options.mask_level,
                         options.mask_border, options.mask_dilate)

@@ -8,7 +8,8 @@ kernel, or the measured one) is split, one part after the other, into
 2. **pedestal** ``P = (Δ − G)·(1 − S)``: what lies outside the support ``S`` (the dilated
    caustic of the measured kernels), e.g. the smooth floor that Adam grows on near-zero pixels;
 3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``: the part a dense optical flow ``F``
-   from ``I`` to ``L`` explains (``psfkit.warp.dense_flow``, the flow ``psfkit compare``'s
+   from ``I`` to ``L`` explains (``psfkit.calibration.warp.dense_flow``, the flow ``psfkit
+   compare``'s
    displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
 4. **other** ``O = S·(Δ − G) − D``: the change inside the support a displacement does not
    explain (new spots, changed shapes).
@@ -28,9 +29,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from psfkit.calibration.preprocess import luminance
+from psfkit.calibration.warp import caustic_mask, dense_flow
 from psfkit.errors import InvalidInputError
-from psfkit.preprocess import luminance
-from psfkit.warp import caustic_mask, dense_flow
 
 #: Parts of a kernel change, in the order they are taken off.
 PARTS = ("gain", "pedestal", "displacement", "other")
@@ -40,7 +41,7 @@ def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -
     """Union of the caustic masks of ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance).
 
     A pixel is in the support when it is within ``dilate`` px of a pixel brighter than
-    ``level`` of its kernel's peak (``psfkit.warp.caustic_mask`` without a border).
+    ``level`` of its kernel's peak (``psfkit.calibration.warp.caustic_mask`` without a border).
 
     Returns
     -------
@@ -79,7 +80,7 @@ def split_change(learned: np.ndarray, reference: np.ndarray, support: np.ndarray
     support : numpy.ndarray
         ``(H, W)`` bool: the caustic support (:func:`caustic_support` of the measured kernels).
     flow_method : str
-        Dense-flow method (:func:`psfkit.warp.dense_flow`).
+        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`).
     smooth_px : float
         Gaussian sigma (px) applied to the flow before warping (0: none).
 

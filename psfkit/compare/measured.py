@@ -4,9 +4,9 @@ grid.
 
 From a grid:
 
-- the eigen-kernels fitted to the grid (:func:`psfkit.grid_fit.fit_eigen_grid`) with the
+- the eigen-kernels fitted to the grid (:func:`psfkit.fitting.grid.fit.fit_eigen_grid`) with the
   learned file's basis and weight convention;
-- the top PCA modes of the registered grid (:mod:`psfkit.pca`);
+- the top PCA modes of the registered grid (:mod:`psfkit.fitting.grid.pca`);
 - warp fields at the outermost reliable positions (:mod:`psfkit.compare.warps`).
 
 From a kernel file (a grid fit, a pairs fit, an oracle): its kernels only; a kernel file has
@@ -22,18 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.alignment import GridAligner
+from psfkit.calibration.alignment import GridAligner
+from psfkit.calibration.preprocess import luminance
 from psfkit.compare.displacement import DisplacementMap, comparison_mask
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import check_shapes, pad_kernels, resample
 from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
 from psfkit.errors import InvalidInputError, ModelFileError
-from psfkit.grid_fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
+from psfkit.forward.kernelfile import KernelModel
+from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid
 from psfkit.io.grid_validation import read_grid
-from psfkit.kernelfile import KernelModel
-from psfkit.preprocess import luminance
-from psfkit.weights import get_basis
 
 
 @dataclass

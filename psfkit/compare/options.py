@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from psfkit.calibration.preprocess import PreprocessOptions
+from psfkit.calibration.warp import FLOW_METHODS
 from psfkit.errors import ConfigurationError
-from psfkit.grid_fit import EigenFitOptions
-from psfkit.preprocess import PreprocessOptions
-from psfkit.warp import FLOW_METHODS
+from psfkit.fitting.grid.fit import EigenFitOptions
 
 
 @dataclass(frozen=True)
@@ -17,13 +17,15 @@ class CompareOptions:
     Attributes
     ----------
     flow_method : str
-        Dense-flow method (:func:`psfkit.warp.dense_flow`): ``"dis"`` (default), ``"farneback"``,
+        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`): ``"dis"`` (default),
+        ``"farneback"``,
         ``"ilk"`` or ``"tvl1"``.
     smooth_px : float
         Standard deviation (px of the comparison grid) of the masked Gaussian applied to every
         displacement map; flows on caustics are noisy off the bright lines.
     mask_level, mask_border, mask_dilate : float, int, int
-        Caustic mask (:func:`psfkit.warp.caustic_mask`): pixels within ``mask_dilate`` px of a
+        Caustic mask (:func:`psfkit.calibration.warp.caustic_mask`): pixels within ``mask_dilate``
+        px of a
         pixel brighter than ``mask_level`` × the peak of the measured ``Kbase``, and
         ``mask_border`` px inside the image.
     min_displacement_px : float

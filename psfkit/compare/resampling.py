@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 
 from psfkit.errors import InvalidInputError
-from psfkit.resample import bin_image
+from psfkit.numerics.resample import bin_image
 
 #: relative difference of aspect ratios (H/W) beyond which two sensor grids are not the same
 ASPECT_TOLERANCE = 0.02

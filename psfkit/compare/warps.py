@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from psfkit.alignment import RELIABLE_OVERLAP, GridAligner
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.compare.displacement import DisplacementMap, displacement_map
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import resample
-from psfkit.eigen import position_weights
+from psfkit.fitting.grid.eigen import position_weights
+from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid
-from psfkit.weights import get_basis
 
 #: kernel names whose displacement a warp along one sensor axis predicts
 WARP_AXES = {"v": "v", "h": "u"}

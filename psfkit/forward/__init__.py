@@ -3,7 +3,8 @@
 ``y = crop(K * pad(x))`` on a padded grid, the eigen-kernel operator of Eq. 7 in both
 conventions with its exact adjoint, and its kernel-space form ``K ↦ A_K x`` used to fit kernels
 from (scene, measurement) pairs. Everything above it calls these functions: psfkit's
-``fit-pairs`` (:mod:`psfkit.pairs_fit`), ekdun's operator classes, the dense virtual-bench model,
+``fit-pairs`` (:mod:`psfkit.fitting.pairs.fit`), ekdun's operator classes, the dense virtual-bench
+model,
 ADMM-TV and Le-ADMM-U.
 
 Modules

@@ -4,13 +4,15 @@ For fixed scenes ``x_i`` the model ``y_i = A_K x_i`` (:mod:`psfkit.forward.convo
 in either convention) is linear in the kernels ``K``: :class:`KernelSpaceOperator` applies
 ``B: K ↦ (A_K x_i)_i`` and its exact adjoint ``Bᵀ`` (correlate each residual with its scene),
 with the scene spectra taken once, on the smallest grid on which the circular convolution is
-still exactly the model's (:func:`linear_convolution_grid`). :mod:`psfkit.pairs_fit` solves the
+still exactly the model's (:func:`linear_convolution_grid`). :mod:`psfkit.fitting.pairs.fit` solves
+the
 normal equations with it.
 
 It is a different operator from the kernel file's ``A`` (:mod:`psfkit.forward.operator`: the
 variable here is the kernels, not the scene) and shares with it what is the same model: the
 Eq. 7 fan-out/fan-in core, kernel embedding and FFTs (:mod:`psfkit.forward.convolution`; the
-crop is the top-left block read there), the weight maps of :mod:`psfkit.weights`, and the base
+crop is the top-left block read there), the weight maps of :mod:`psfkit.forward.weights`, and the
+base
 class :class:`~psfkit.forward.base.LinearOperator` (``A = forward``, ``A_adjoint = adjoint``,
 ``norm()``, ``adjointness_error()``).
 """
@@ -32,7 +34,7 @@ from psfkit.forward.convolution import (
 )
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.geometry import padded_shape
-from psfkit.weights import get_basis
+from psfkit.forward.weights import get_basis
 
 
 def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[int, int],
@@ -64,7 +66,7 @@ class KernelSpaceOperator(LinearOperator):
     scenes : Tensor
         ``(N, C, H', W')``.
     basis : str
-        Weight basis name (:mod:`psfkit.weights`; ``"si"`` for one kernel with weight 1).
+        Weight basis name (:mod:`psfkit.forward.weights`; ``"si"`` for one kernel with weight 1).
     convention : {"sensor", "source"}
         Where the weight maps act.
     kernel_shape : (int, int)

@@ -1,7 +1,7 @@
 r"""The eigen-kernel operator of a kernel file, built in one place.
 
 Every command that turns a kernel file into ``A`` goes through here (``docs/architecture.md``):
-``fit-pairs``' predictions (:func:`psfkit.pairs_fit.predict`), classical reconstruction and
+``fit-pairs``' predictions (:func:`psfkit.fitting.pairs.fit.predict`), classical reconstruction and
 the networks (:meth:`ekdun.physics.operators.EigenKernelOperator.from_kernel_model`, which
 takes its kernels and weight maps from :func:`kernel_model_tensors`), so the same file gives
 the same numbers in every command.
@@ -51,7 +51,8 @@ from psfkit.forward.geometry import padded_shape
 
 
 class KernelFileModel(Protocol):
-    """What the operators read of a kernel file's model (:class:`psfkit.kernelfile.KernelModel`,
+    """What the operators read of a kernel file's model
+    (:class:`psfkit.forward.kernelfile.KernelModel`,
     a layer above this one)."""
 
     kernels: np.ndarray

@@ -34,7 +34,7 @@ import numpy as np
 
 from psfkit.errors import GridFormatError, InvalidInputError
 from psfkit.io.images import read_image
-from psfkit.validation import require_finite
+from psfkit.io.validation import require_finite
 
 FORMAT_NAME = "psfkit-grid"
 FORMAT_VERSION = 1
@@ -82,7 +82,7 @@ class PsfGrid:
     """A validated PSF grid on disk; images are read on demand (one at a time).
 
     Use :func:`read_grid` to create one. Images are returned as ``(C, H, W)`` float32 in the
-    stored units (no dark subtraction; see :mod:`psfkit.preprocess` for that).
+    stored units (no dark subtraction; see :mod:`psfkit.calibration.preprocess` for that).
 
     ``positions`` are the captured positions (sorted by index); ``grid_shape`` is the declared
     lattice (``(1, P)`` for an irregular scan), so an incomplete lattice has fewer positions

@@ -27,7 +27,7 @@ from psfkit.io.manifest import (
     parse_manifest,
     parse_positive,
 )
-from psfkit.validation import (
+from psfkit.io.validation import (
     MAX_GRID_CELLS,
     MIN_PSF_SIDE,
     finite_number,
@@ -36,12 +36,13 @@ from psfkit.validation import (
 )
 
 #: Longest side (px) of the eigen fit's working copy of one PSF (``EigenFitOptions.
-#: working_size``) and of the characterization's thumbnail (``psfkit.characterize.
+#: working_size``) and of the characterization's thumbnail (``psfkit.characterization.characterize.
 #: THUMBNAIL_SIZE``): what the analyses keep of every position (a test checks they agree).
 WORKING_SIDE = 256
 THUMBNAIL_SIDE = 160
 #: Full-resolution float64 row and column vectors the eigen fit keeps per position and
-#: convention (the weight factors of ``psfkit.eigen.NormalEquations``, basis "paper": 4).
+#: convention (the weight factors of ``psfkit.fitting.grid.eigen.NormalEquations``, basis "paper":
+# 4).
 FACTOR_VECTORS = 4
 #: Bytes of the per-position records (numbers, coarse flow, excluded-position details).
 RECORD_BYTES = 16 * 2**10

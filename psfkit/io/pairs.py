@@ -34,7 +34,7 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, unit_range
 from psfkit.io.read_options import FLIPS, MAX_WHITE_LEVEL, ReadOptions
-from psfkit.validation import finite_number, read_json_file
+from psfkit.io.validation import finite_number, read_json_file
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
 MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, simulate_grid
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.forward.kernelfile import KernelModel, save_kernels
 from psfkit.io import read_grid
-from psfkit.kernelfile import KernelModel, save_kernels
+from psfkit.simulate import BenchConfig, simulate_grid
 
 ANALYSIS = Path(__file__).resolve().parents[2] / "analysis"
 
@@ -215,7 +215,7 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
 
     import numpy as np
 
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     seed = load_kernels(kernels)
     one = save_kernels(tmp_path / "one.npz", replace(

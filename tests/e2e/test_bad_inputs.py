@@ -17,7 +17,7 @@ shapes. Classes (issue 12): 1 non-finite values, 2 tracebacks, 3 resource exhaus
 misleading messages (6, leftovers after a kill, is ``test_output_policy.py``'s kill test).
 Classes of issue 21 (each fixed at one root): 8 sizes declared by headers (bombs: tiny or
 sparse files that declare gigabytes), 9 numeric flags outside their range (one table,
-``psfkit.validation.FLAGS``), 10 library warnings and logging, 11 control characters in
+``psfkit.io.validation.FLAGS``), 10 library warnings and logging, 11 control characters in
 names, 12 non-finite or empty results, 13 paths outside their folder, 14 a run folder holding
 foreign files. Class 15 (issue 43): empty paths, frames too small to hold a PSF, and messages
 that blamed the wrong thing (a flag or input file named instead of the output it spoiled).
@@ -500,7 +500,7 @@ def _crop_frames(side: int) -> Callable[[Path], Any]:
 
 def _one_channel_kernels(work: Path, fx: Fixtures) -> list[str]:
     """``eval-model`` of a 1-channel (mono) kernel file on the RGB pairs."""
-    from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+    from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 
     rgb = load_kernels(fx.kernels)
     save_kernels(work / "mono.npz", KernelModel(kernels=rgb.kernels[:, :1], basis=rgb.basis,
@@ -1063,9 +1063,9 @@ def test_bad_input_is_one_line_naming_the_culprit(case: Case, fixtures: Fixtures
 
 def test_non_finite_outputs_are_refused_before_writing(tmp_path):
     from psfkit.errors import InvalidInputError, ModelFileError
+    from psfkit.forward.kernelfile import KernelModel, save_kernels
     from psfkit.io.images import write_image
-    from psfkit.kernelfile import KernelModel, save_kernels
-    from psfkit.validation import dumps_finite, require_finite_output
+    from psfkit.io.validation import dumps_finite, require_finite_output
 
     with pytest.raises(InvalidInputError, match=r"out\.json.*non-finite.*at a\.b\.1"):
         dumps_finite({"a": {"b": [1.0, float("nan")]}}, "out.json")
@@ -1123,7 +1123,7 @@ def _numeric_actions(parser: Any, prog: str) -> list[tuple[str, Any]]:
 def test_every_numeric_flag_of_both_clis_takes_its_range_from_the_one_table():
     from ekdun.cli import build_parser as ekdun_parser
     from psfkit.cli.main import build_parser as psfkit_parser
-    from psfkit.validation import FLAGS, device_name
+    from psfkit.io.validation import FLAGS, device_name
 
     actions = (_numeric_actions(psfkit_parser(), "psfkit")
                + _numeric_actions(ekdun_parser(), "ekdun"))
@@ -1133,7 +1133,7 @@ def test_every_numeric_flag_of_both_clis_takes_its_range_from_the_one_table():
             assert action.type is device_name, where
             continue
         spec = getattr(action.type, "flag_range", None)
-        assert spec is not None, f"{where}: its type is not from psfkit.validation.FLAGS"
+        assert spec is not None, f"{where}: its type is not from psfkit.io.validation.FLAGS"
         assert spec in FLAGS.values(), where
         assert spec.high is not None, f"{where}: no upper bound"
 
@@ -1167,7 +1167,7 @@ def test_warnings_and_library_logging_never_reach_stderr(capsys):
 
 def test_kernel_files_of_zeros_are_refused_when_written(tmp_path):
     from psfkit.errors import ModelFileError
-    from psfkit.kernelfile import KernelModel, save_kernels
+    from psfkit.forward.kernelfile import KernelModel, save_kernels
 
     with pytest.raises(ModelFileError, match="every kernel is zero"):
         save_kernels(tmp_path / "k.npz", KernelModel(kernels=np.zeros((1, 1, 4, 4), np.float32),

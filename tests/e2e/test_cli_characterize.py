@@ -34,7 +34,7 @@ def test_numbers_to_json_and_csv(grid_3x3, tmp_path, capsys, command):
     position, and the registered shifts are the bench's true ones (0.05 px rms is the
     registration's measured accuracy where most of a PSF is seen; 0.5 px at the corners, where
     only part of it is)."""
-    from psfkit.bench import read_ground_truth
+    from psfkit.simulate import read_ground_truth
 
     docs = {}
     for suffix in (".json", ".csv"):

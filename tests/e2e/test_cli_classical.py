@@ -17,9 +17,9 @@ from ekdun.reconstruction.classical import (
     psf_model,
     read_classical_measurement,
 )
+from psfkit.fitting.pairs.fit import PairFitOptions, downsample_pairs, fit_pairs
+from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_pairs
-from psfkit.kernelfile import save_kernels
-from psfkit.pairs_fit import PairFitOptions, downsample_pairs, fit_pairs
 
 HELD_OUT = 3                     # im394 (pairs sorted by name): never used to fit the models
 
@@ -63,7 +63,7 @@ def test_cli_defaults_are_the_library_defaults():
 
 @pytest.mark.parametrize("name", ["ek", "ek_source"])
 def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     out = tmp_path / "rec" / f"{dlmd['measurement'].stem}.npy"
     assert ekdun_main(["reconstruct", str(dlmd["models"][name]), str(dlmd["measurement"]),
@@ -88,8 +88,8 @@ def test_cli_equals_library_and_keeps_the_channel_order(dlmd, tmp_path, name):
 def test_bgr_measurement_gives_rgb_output_and_preview(dlmd, tmp_path):
     """A red-only scene through the real EK model, stored BGR like DLMD: the output .npy and
     the PNG preview are RGB (red first), the toolkit's one output convention."""
+    from psfkit.forward.kernelfile import load_kernels
     from psfkit.io.images import read_image
-    from psfkit.kernelfile import load_kernels
 
     model = load_kernels(dlmd["models"]["ek"])
     scene = np.zeros_like(dlmd["scene"])
@@ -110,7 +110,7 @@ def test_bgr_measurement_gives_rgb_output_and_preview(dlmd, tmp_path):
 
 @pytest.mark.parametrize("name", ["si", "ek", "ek_source"])
 def test_real_reconstructions_beat_the_adjoint_baseline(dlmd, name):
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     model = load_kernels(dlmd["models"][name])
     y = read_classical_measurement(dlmd["measurement"], "BGR", downsample=4)
@@ -165,7 +165,7 @@ def test_fit_pairs_cli_file_reconstructs_with_the_source_side_admm(dlmd, tmp_pat
     weights, as docs/your-camera.md recommends for real pairs) on six pairs, then ``ekdun
     reconstruct`` with its kernel file on the seventh, from the CLIs."""
     from psfkit.cli import main as psfkit_main
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     pairs = read_pairs(dlmd["root"])
     fit6 = tmp_path / "fit6"
@@ -205,7 +205,7 @@ def psf_and_measurement(tmp_path, caustic_psf):
 
 
 def test_a_psf_image_is_its_si_kernel_file(psf_and_measurement, tmp_path):
-    from psfkit.preprocess import load_psf_image
+    from psfkit.calibration.preprocess import load_psf_image
 
     psf, meas = psf_and_measurement
     kernel = load_psf_image(str(psf), background="corner")            # the one PSF loader

@@ -8,8 +8,8 @@ import json
 
 import pytest
 
-from psfkit.bench import CompactCamera, simulate_compact_scan
 from psfkit.cli import main
+from psfkit.simulate import CompactCamera, simulate_compact_scan
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, simulate_grid
 from psfkit.cli import main
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.simulate import BenchConfig, simulate_grid
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from psfkit.cli import main
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 
 def test_fit_eigen_writes_a_kernel_file_and_figures(grid_3x3, tmp_path, capsys):
@@ -50,7 +50,7 @@ def test_fit_eigen_refusals(grid_3x3, tmp_path, capsys, argv, message):
 
 
 def test_singular_design_is_refused(tmp_path, capsys):
-    from psfkit.bench import BenchConfig, simulate_grid
+    from psfkit.simulate import BenchConfig, simulate_grid
 
     row = simulate_grid(tmp_path / "row", BenchConfig(downsample=8), grid_shape=(1, 5),
                         progress=False)

@@ -10,9 +10,9 @@ import pytest
 
 from psfkit.cli import main
 from psfkit.cli.vocabulary import RETIRED
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.pairs_fit import predict
-from psfkit.pairs_options import NEWTON_TOLERANCE
+from psfkit.fitting.pairs.fit import predict
+from psfkit.fitting.pairs.options import NEWTON_TOLERANCE
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 
 
 @pytest.fixture(scope="module")

@@ -88,9 +88,9 @@ def test_demo_measures_the_bench_ground_truth(tmp_path, capsys):
     bench's ground truth, not only for files: at most 50 MB written, every field effect of the
     bench found, and the compact ground truth gives the clean PSFs the captures scatter about.
     (The demo's numbers at 8x binning are the golden test's.)"""
-    from psfkit.bench import read_ground_truth
+    from psfkit.forward.kernelfile import load_kernels
     from psfkit.io import read_grid
-    from psfkit.kernelfile import load_kernels
+    from psfkit.simulate import read_ground_truth
 
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--quiet"]) == 0
@@ -178,9 +178,10 @@ def test_building_the_parser_imports_neither_torch_nor_ekdun():
 
 def test_the_characterization_modules_do_not_import_scipy_signal():
     # scipy.signal (with scipy.stats and scipy.interpolate) costs ~0.4 s of start-up per
-    # command, for one window function (psfkit.windows)
+    # command, for one window function (psfkit.numerics.windows)
     assert _child_output(
-        "import sys, psfkit.grid_fit, psfkit.characterize, psfkit.cli.fit_cmd; "
+        "import sys, psfkit.fitting.grid.fit, psfkit.characterization.characterize, "
+        "psfkit.cli.fit_cmd; "
         "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', "
         "'scipy.stats'))))") == "[]"
 

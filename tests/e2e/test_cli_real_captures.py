@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, degrade_grid, simulate_grid, simulate_scan
 from psfkit.cli import main
+from psfkit.simulate import BenchConfig, degrade_grid, simulate_grid, simulate_scan
 
 
 @pytest.fixture(scope="module")

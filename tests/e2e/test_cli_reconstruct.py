@@ -36,7 +36,7 @@ from ekdun.reconstruction.classical import (
     psf_model,
     read_classical_measurement,
 )
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 pytestmark = pytest.mark.e2e
 
@@ -153,8 +153,8 @@ def psf_and_measurements(tmp_path, caustic_psf):
 
 def test_psf_image_is_the_library_reference_and_the_admm_spelling(psf_and_measurements,
                                                                   tmp_path, capsys):
+    from psfkit.calibration.preprocess import psf_kernel
     from psfkit.io.images import read_image_float
-    from psfkit.preprocess import psf_kernel
 
     psf, folder = psf_and_measurements
     out = tmp_path / "rec"
@@ -196,9 +196,9 @@ def test_every_advanced_solver_flag_acts(psf_and_measurements, tmp_path, flags):
 
 
 def test_checkpoint_is_the_library_reference(tiny_data, trained_run, tmp_path, capsys):
+    from ekdun.nets.builder import network_from_checkpoint
+    from ekdun.nets.checkpoint import load_checkpoint
     from ekdun.reconstruction.reconstruct import read_measurement
-    from ekdun.training.builder import network_from_checkpoint
-    from ekdun.training.checkpoint import load_checkpoint
 
     pairs, kernels = tiny_data
     run = trained_run

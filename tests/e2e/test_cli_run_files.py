@@ -106,7 +106,7 @@ def _kernels(path: Path) -> np.ndarray:
 
 
 def _provenance(path: Path) -> dict:
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     return load_kernels(path).provenance
 
@@ -165,7 +165,7 @@ def test_ekdun_train_run_file_is_the_flags_and_is_in_the_checkpoint(tiny_data, t
     import torch
 
     from ekdun.cli import main as ekdun_main
-    from ekdun.training.checkpoint import load_checkpoint
+    from ekdun.nets.checkpoint import load_checkpoint
 
     pairs, kernels = tiny_data
     run_file = _write(tmp_path / "train.toml", "lr = 0.005\nbatch-size = 4\niterations = 2\n")

@@ -8,7 +8,7 @@ import json
 import re
 
 from psfkit.cli import main
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 NAN = re.compile(r"\bnan\b", re.IGNORECASE)
 

@@ -113,8 +113,8 @@ def test_every_option_string_has_one_meaning_in_every_command():
 
 
 def test_the_vocabulary_agrees_with_ekdun():
+    from ekdun.device import AMP_CHOICES as EKDUN_AMP
     from ekdun.model_names import MODEL_NAMES
-    from ekdun.training.acceleration import AMP_CHOICES as EKDUN_AMP
 
     assert NETWORKS == MODEL_NAMES
     assert AMP_CHOICES == EKDUN_AMP
@@ -182,7 +182,7 @@ def _one_notice(capsys, alias: str, canonical: str) -> str:
 
 def test_fit_pairs_model_is_basis(tiny_data, tmp_path, capsys):
     from psfkit.cli import main
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     pairs, _ = tiny_data
     out = tmp_path / "ek.npz"
@@ -219,7 +219,7 @@ def test_train_model_and_workers_are_network_and_loader_workers(tiny_data, tmp_p
                  "--epochs", "1", "--batch-size", "4", "--iterations", "1", "--threads", "1",
                  "--device", "cpu", "--quiet"]) == 0
     _one_notice(capsys, "--model", "--network")
-    from ekdun.training.checkpoint import load_checkpoint
+    from ekdun.nets.checkpoint import load_checkpoint
 
     assert load_checkpoint(run / "checkpoint.pt")["metadata"]["model"] == "updn"
     # --workers: DataLoader workers, as before (they only act off the device: checked parsed)

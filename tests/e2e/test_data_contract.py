@@ -29,8 +29,8 @@ import pytest
 
 from ekdun.cli import main as ekdun_main
 from psfkit.cli import main as psfkit_main
+from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import read_pairs, write_image
-from psfkit.kernelfile import load_kernels
 
 FACTOR = 4
 FORMATS = {"npy": ".npy", "png8": ".png", "tiff16": ".tif"}
@@ -218,7 +218,7 @@ def test_reconstruct_reads_a_dlmd_measurement_as_its_kernel_file_records(fits, d
     # ground truth: the lensed image, read as the pairs are (BGR -> RGB), binned like the model
     pairs = read_pairs(dlmd)
     truth = pairs.load(pairs.names.index(name))[0]
-    from psfkit.resample import bin_mean
+    from psfkit.numerics.resample import bin_mean
 
     truth = bin_mean(truth, FACTOR)
     assert default.shape == truth.shape

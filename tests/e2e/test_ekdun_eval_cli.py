@@ -30,7 +30,7 @@ from ekdun.physics.operators import ShiftInvariantOperator
 from ekdun.reconstruction import admm_tv
 from ekdun.training import TrainOptions, train
 from ekdun.training.trainer import CHECKPOINT
-from psfkit.zones import field_zones
+from psfkit.forward.zones import field_zones
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 
@@ -84,7 +84,7 @@ def test_one_list_of_model_names_offered_without_importing_torch():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True)
     choices, torch_loaded = json.loads(run.stdout)
-    from ekdun.models import MODEL_NAMES
+    from ekdun.nets import MODEL_NAMES
 
     assert choices == list(MODEL_NAMES) == ["ekdun", "le-admm-u", "updn"]
     assert not torch_loaded

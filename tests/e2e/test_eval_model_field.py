@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from psfkit.cli import main
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.pairs_fit import predict
-from psfkit.zones import ZONE_NAMES, field_zones
+from psfkit.fitting.pairs.fit import predict
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.forward.zones import ZONE_NAMES, field_zones
 
 pytestmark = pytest.mark.e2e
 
@@ -109,7 +109,7 @@ def _overlapping_texts(fig) -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize("shape", [SHAPE, (67, 120), (270, 480)])
 def test_residual_figure_shares_one_labelled_scale_and_no_text_overlaps(shape):
-    from psfkit.figures.field_figures import RESIDUAL_LABEL, figure_residual_maps
+    from psfkit.report.figures.field import RESIDUAL_LABEL, figure_residual_maps
 
     rng = np.random.default_rng(0)
     maps = [rng.random(shape).astype(np.float32), 0.5 * rng.random(shape).astype(np.float32)]

@@ -128,8 +128,8 @@ def assert_kernel_files_equal(new_file: Path, old_file: Path,
     l2 = np.linalg.norm(new_k - old_k) / np.linalg.norm(old_k)
     assert l2 <= table["rel_l2"]["tolerance"], f"{name}: ‖ΔK‖/‖K‖ = {l2:.3g}"
     if scenes is not None:
-        from psfkit.kernelfile import load_kernels
-        from psfkit.pairs_fit import predict
+        from psfkit.fitting.pairs.fit import predict
+        from psfkit.forward.kernelfile import load_kernels
 
         a = predict(load_kernels(new_file), scenes).astype(np.float64)
         b = predict(load_kernels(old_file), scenes).astype(np.float64)

@@ -290,7 +290,7 @@ def _gaussian_grid(out: Path, side: int, step: float = 1.5) -> Path:
 
 
 def test_frames_of_the_minimum_size_register_to_the_truth_one_less_is_refused(tmp_path):
-    from psfkit.validation import MIN_PSF_SIDE
+    from psfkit.io.validation import MIN_PSF_SIDE
 
     small = _gaussian_grid(tmp_path / "below", MIN_PSF_SIDE - 1)
     done = _cli("psfkit", "info", str(small), "--quiet")
@@ -317,9 +317,9 @@ def test_kernel_gain_limits_keep_the_forward_model_finite(tmp_path):
     the kernel file is refused when written and when read, by name; so is one below the lower
     limit."""
     from psfkit.errors import ModelFileError
-    from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-    from psfkit.pairs_fit import predict
-    from psfkit.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
+    from psfkit.fitting.pairs.fit import predict
+    from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
+    from psfkit.io.validation import MAX_KERNEL_GAIN, MIN_KERNEL_GAIN
 
     kernels = np.zeros((1, 1, 8, 8), np.float32)
     kernels[0, 0, 2:6, 2:6] = MAX_KERNEL_GAIN / 16          # sums to the limit
@@ -344,8 +344,8 @@ def test_kernel_gain_limits_keep_the_forward_model_finite(tmp_path):
 
 def test_predict_names_the_model_and_the_scenes_when_channels_differ():
     from psfkit.errors import InvalidInputError
-    from psfkit.kernelfile import KernelModel
-    from psfkit.pairs_fit import predict
+    from psfkit.fitting.pairs.fit import predict
+    from psfkit.forward.kernelfile import KernelModel
 
     model = KernelModel(kernels=np.ones((1, 1, 4, 4), np.float32), basis="si",
                         channels=("L",), sensor_shape=(8, 8))
@@ -393,7 +393,7 @@ def test_a_closed_stdout_ends_the_command_quietly_after_its_outputs(grid_3x3, tm
 
 def test_a_failed_warp_names_the_position(tmp_path):
     """A position whose PSF leaves no warp field to measure is named in the error line."""
-    from psfkit.characterize import _warp_position
+    from psfkit.characterization.characterize import _warp_position
     from psfkit.errors import InvalidInputError
 
     blank = np.zeros((16, 16), np.float32)

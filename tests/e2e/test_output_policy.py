@@ -14,9 +14,9 @@ import pytest
 
 from ekdun.cli import main as ekdun_main
 from psfkit.cli import main
+from psfkit.forward.kernelfile import load_kernels
 from psfkit.io.atomic import TEMP_TAG
 from psfkit.io.temps import HOST
-from psfkit.kernelfile import load_kernels
 
 FAST_FIT = ["--cv-bases", "none", "--quiet"]
 PSFKIT = [str(Path(sys.executable).parent / "psfkit")]   # the installed console script

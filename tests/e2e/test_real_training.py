@@ -17,11 +17,11 @@ import pytest
 import torch
 
 from ekdun.cli import main as ekdun_main
+from ekdun.nets.checkpoint import load_checkpoint
 from ekdun.physics import ShiftInvariantOperator
-from ekdun.training.checkpoint import load_checkpoint
 from psfkit.cli import main as psfkit_main
-from psfkit.kernelfile import load_kernels
-from psfkit.resample import bin_mean
+from psfkit.forward.kernelfile import load_kernels
+from psfkit.numerics.resample import bin_mean
 
 HELD_OUT = "im65"
 FACTOR = 4

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from ekdun.errors import ConfigurationError
-from ekdun.models.tv_admm_steps import finite_differences, finite_differences_adjoint
+from ekdun.nets.tv_admm_steps import finite_differences, finite_differences_adjoint
 from ekdun.physics.operators import EigenKernelOperator
 from ekdun.reconstruction.admm import (
     ShiftInvariantRule,
@@ -24,8 +24,8 @@ from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
 from psfkit.forward.convolution import padded_scene_adjoint, padded_scene_forward
 from psfkit.forward.geometry import centre_offset
+from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.norm import operator_norm
-from psfkit.kernelfile import KernelModel
 
 SENSOR = (20, 28)
 
@@ -229,10 +229,10 @@ def test_model_reconstructor_solvers_and_refusals():
 
 
 def test_unrolled_network_steps_are_the_shift_invariant_rule():
-    # Le-ADMM-U unrolls ekdun.models.tv_admm_steps (differentiable, learned μ, τ per
+    # Le-ADMM-U unrolls ekdun.nets.tv_admm_steps (differentiable, learned μ, τ per
     # iteration, its own arithmetic so that trained networks keep their numbers): with the
     # rule's μ and τ = tv in the solver's units it is the same iteration.
-    from ekdun.models.tv_admm_steps import (
+    from ekdun.nets.tv_admm_steps import (
         admm_tv_context,
         admm_tv_initial_state,
         admm_tv_iteration,

@@ -15,9 +15,9 @@ from ekdun.data.pairs import PairsDataset, match_downsample, parse_names
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, read_manifest
 from ekdun.errors import ConfigurationError, InvalidInputError
 from ekdun.physics.operators import ShiftInvariantOperator
+from psfkit.forward.kernelfile import KernelModel
 from psfkit.io import read_grid
 from psfkit.io.pairs import read_pairs
-from psfkit.kernelfile import KernelModel
 
 SMALL = VirtualBenchSpec(sensor_shape=(32, 32), n_train=3, n_test=2, grid_shape=(3, 3))
 
@@ -293,9 +293,9 @@ def test_match_downsample_uses_the_kernel_files_fit_factor():
 
 
 def test_train_psf_seed_is_the_psf_loaders_kernel(tmp_path):
-    from ekdun.training.builder import seed_kernel_model
+    from ekdun.nets.builder import seed_kernel_model
+    from psfkit.calibration.preprocess import load_psf_image
     from psfkit.io import write_image
-    from psfkit.preprocess import load_psf_image
 
     psf = np.zeros((3, 16, 16), np.float32)
     psf[:, 6:9, 7:10] = 1.0

@@ -10,7 +10,7 @@ import numpy as np
 
 from ekdun.cli import main as ekdun_main
 from ekdun.training import load_checkpoint
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 
 def _train(pairs, kernel_file, run, *extra: str) -> int:

@@ -9,6 +9,7 @@ import torch
 
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import ConfigurationError
+from ekdun.nets.builder import network_from_checkpoint
 from ekdun.physics.kernel_parameterisation import (
     FlowKernels,
     PhysicalKernels,
@@ -19,8 +20,7 @@ from ekdun.physics.kernel_parameterisation import (
 )
 from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, export_kernels, train
-from ekdun.training.builder import network_from_checkpoint
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 
@@ -189,8 +189,8 @@ def test_training_checkpoint_round_trip_and_export(tiny_data, tmp_path, name):
 
 @pytest.mark.parametrize("name", ["free", "physical", "flow", "spectral"])
 def test_kernels_have_their_own_optimiser_group(tiny_data, name):
+    from ekdun.nets.builder import build_network
     from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
-    from ekdun.training.builder import build_network
     from ekdun.training.trainer import _param_groups
 
     _, kernels = tiny_data

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ekdun.errors import ConfigurationError, TensorShapeError
-from ekdun.models import (
+from ekdun.nets import (
     EKDUN,
     PRESETS,
     UPDN,
@@ -21,12 +21,12 @@ from ekdun.models import (
     count_parameters,
     parse_schedule,
 )
-from ekdun.models.tv_admm_steps import finite_differences, finite_differences_adjoint
-from ekdun.models.updn import interleave_copies
+from ekdun.nets.tv_admm_steps import finite_differences, finite_differences_adjoint
+from ekdun.nets.updn import interleave_copies
 from ekdun.physics import PreparedOperator, ShiftInvariantOperator
 from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import crop
-from psfkit.kernelfile import KernelModel, save_kernels
+from psfkit.forward.kernelfile import KernelModel, save_kernels
 
 SENSOR = (32, 48)
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

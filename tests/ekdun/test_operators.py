@@ -15,8 +15,8 @@ from ekdun.physics import (
 )
 from psfkit import forward as Fn
 from psfkit.errors import InvalidInputError
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.weights import get_basis
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.forward.weights import get_basis
 
 KINDS = ("si", "ek-sensor", "ek-source", "multi")
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -285,8 +285,8 @@ def test_every_command_builds_the_same_operator_from_a_kernel_file(basis, conven
     bit (same FFTs in the same order); the padded-scene form agrees to rounding."""
     from ekdun.reconstruction.classical import ModelReconstructor
     from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
+    from psfkit.fitting.pairs.fit import predict
     from psfkit.forward.operator import SpectralOperator
-    from psfkit.pairs_fit import predict
 
     rng = np.random.default_rng(2)
     n = 1 if basis == "si" else 3

@@ -17,12 +17,12 @@ from scipy.optimize import minimize_scalar
 from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import ConfigurationError
+from ekdun.nets.builder import build_network
 from ekdun.physics.operators import EigenKernelOperator
 from ekdun.training import TrainOptions, load_checkpoint, train
-from ekdun.training.builder import build_network
 from ekdun.training.physics_loss import PhysicsObjective, measurement_consistency
 from psfkit.forward.convolution import kernel_spectra
-from psfkit.kernelfile import load_kernels, save_kernels
+from psfkit.forward.kernelfile import load_kernels, save_kernels
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 

@@ -17,7 +17,14 @@ import torch
 from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import CheckpointError
-from ekdun.models import build_model
+from ekdun.nets import build_model
+from ekdun.nets.builder import (
+    build_network,
+    decode_overrides,
+    encode_overrides,
+    network_from_checkpoint,
+)
+from ekdun.nets.checkpoint import save_checkpoint
 from ekdun.training import (
     TrainOptions,
     export_kernels,
@@ -25,15 +32,8 @@ from ekdun.training import (
     load_checkpoint,
     train,
 )
-from ekdun.training.builder import (
-    build_network,
-    decode_overrides,
-    encode_overrides,
-    network_from_checkpoint,
-)
-from ekdun.training.checkpoint import save_checkpoint
 from psfkit.errors import ModelFileError, PsfkitError
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 
 SENSOR = (16, 16)
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
@@ -317,7 +317,7 @@ def test_rng_state_restores_from_a_checkpoint_loaded_onto_the_gpu():
     numpy" before set_rng_state read them through .cpu())."""
     import random
 
-    from ekdun.training.checkpoint import rng_state, set_rng_state
+    from ekdun.training.rng import rng_state, set_rng_state
 
     state = rng_state()
     expected = (np.random.random(3), random.random(), torch.rand(3))  # noqa: NPY002

@@ -11,16 +11,16 @@ import numpy as np
 import pytest
 import torch
 
+from ekdun import device as acc
 from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import ConfigurationError
 from ekdun.evaluation.metrics import psnr
-from ekdun.models import build_model
+from ekdun.nets import build_model
 from ekdun.physics.operators import EigenKernelOperator
 from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, load_checkpoint, train
-from ekdun.training import acceleration as acc
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 CPU = torch.device("cpu")

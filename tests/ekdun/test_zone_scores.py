@@ -10,8 +10,8 @@ from skimage.metrics import structural_similarity
 
 from ekdun.evaluation.evaluate import ZoneScores, recorded_optical_center
 from ekdun.evaluation.metrics import SSIM_MARGIN, psnr
-from psfkit.kernelfile import KernelModel
-from psfkit.zones import ZONE_NAMES, field_zones
+from psfkit.forward.kernelfile import KernelModel
+from psfkit.forward.zones import ZONE_NAMES, field_zones
 
 
 @pytest.mark.parametrize("centre", [None, (12.0, 30.0)])

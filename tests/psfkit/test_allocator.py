@@ -1,4 +1,4 @@
-"""The allocator setting of the image-heavy commands (psfkit.allocator)."""
+"""The allocator setting of the image-heavy commands (psfkit.cli.allocator)."""
 
 import platform
 import resource
@@ -7,12 +7,12 @@ import sys
 
 import pytest
 
-from psfkit.allocator import reuse_freed_memory
+from psfkit.cli.allocator import reuse_freed_memory
 
 
 def test_reuse_freed_memory_takes_effect_on_glibc_and_is_a_no_op_elsewhere():
     # in a child process: the setting is process-wide
-    code = "from psfkit.allocator import reuse_freed_memory; print(reuse_freed_memory())"
+    code = "from psfkit.cli.allocator import reuse_freed_memory; print(reuse_freed_memory())"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             check=True)
     glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
@@ -34,7 +34,7 @@ if ctypes.CDLL(None, use_errno=True).prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) != 0:
     print("no-prctl")
     raise SystemExit(0)
 if sys.argv[1] == "on":
-    from psfkit.allocator import reuse_freed_memory
+    from psfkit.cli.allocator import reuse_freed_memory
     assert reuse_freed_memory()
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for mb in range(2, 31):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from skimage.registration import phase_cross_correlation
 
-from psfkit.bench import BenchConfig, VirtualCamera
-from psfkit.bench.camera import translate_pixels
-from psfkit.bench.propagation import fresnel_transfer_anisotropic, propagate
 from psfkit.errors import ConfigurationError
-from psfkit.resample import bin_image
+from psfkit.numerics.resample import bin_image
+from psfkit.simulate import BenchConfig, VirtualCamera
+from psfkit.simulate.camera import translate_pixels
+from psfkit.simulate.propagation import fresnel_transfer_anisotropic, propagate
 
 
 @pytest.fixture(scope="module")

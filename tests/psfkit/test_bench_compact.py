@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psfkit.bench import (
+from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.io import read_grid
+from psfkit.simulate import (
     CompactCamera,
     cutout_scan,
     read_compact_truth,
     simulate_compact_scan,
 )
-from psfkit.bench.compact import AIRY_HALF_MAX_X, airy_stamp
-from psfkit.errors import ConfigurationError, InvalidInputError
-from psfkit.io import read_grid
+from psfkit.simulate.compact import AIRY_HALF_MAX_X, airy_stamp
 
 
 @pytest.fixture(scope="module")

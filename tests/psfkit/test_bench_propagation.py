@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from psfkit.bench.propagation import (
+from psfkit.simulate.propagation import (
     chief_ray_shift,
     fresnel_transfer_anisotropic,
     oblique_transfer_function,

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from psfkit.bench.sensor import SensorModel, relative_illumination
 from psfkit.errors import ConfigurationError
+from psfkit.simulate.sensor import SensorModel, relative_illumination
 
 
 def test_noise_statistics_are_poisson_gaussian():

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, VirtualCamera, read_ground_truth, simulate_grid
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import read_grid
+from psfkit.simulate import BenchConfig, VirtualCamera, read_ground_truth, simulate_grid
 
 
 def test_grid_loads_back_through_the_reader_with_its_manifest(grid_3x3, small_config):

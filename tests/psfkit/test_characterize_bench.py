@@ -3,10 +3,14 @@
 import numpy as np
 import pytest
 
-from psfkit.bench import read_ground_truth
-from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
+from psfkit.calibration.warp import geometric_anisotropy
+from psfkit.characterization.characterize import (
+    RELIABLE_OVERLAP,
+    CharacterizeOptions,
+    characterize_grid,
+)
 from psfkit.io import read_grid
-from psfkit.warp import geometric_anisotropy
+from psfkit.simulate import read_ground_truth
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +79,7 @@ def test_the_default_camera_at_fine_pixels_shows_significant_gain_warp_and_astig
     """Issue 43 against truth, with pixels fine enough for the warp statistics: vignetting
     (cos⁴, inside its ±Zσ interval), growth of the warp residual (θ², inside its ±Zσ) and
     astigmatism are significant, and the verdict calls the grid shift-variant."""
-    from psfkit.significance import Z_SIGNIFICANT
+    from psfkit.numerics.significance import Z_SIGNIFICANT
 
     result, truth = characterized
     effects = result.effects()

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from psfkit.characterize import characterize_grid
+from psfkit.characterization.characterize import characterize_grid
 from psfkit.io import GridWriter, read_grid
-from psfkit.resample import bin_image
+from psfkit.numerics.resample import bin_image
 
 BLACK = 200
 
@@ -78,9 +78,9 @@ def test_gains_within_1_percent(characterized):
 
 def test_warp_median_endpoint_error_below_01_px(characterized, real_grid):
     """Total displacement (registration + warp) against the known affine maps."""
-    from psfkit.preprocess import GridCalibration, PreprocessOptions
-    from psfkit.registration import shift_image
-    from psfkit.warp import warp_field
+    from psfkit.calibration.preprocess import GridCalibration, PreprocessOptions
+    from psfkit.calibration.registration import shift_image
+    from psfkit.calibration.warp import warp_field
 
     result, truth = characterized
     path, _ = real_grid

@@ -9,12 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psfkit.alignment import RELIABLE_OVERLAP, GridAligner, psf_support, support_overlap
-from psfkit.bench import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
-from psfkit.characterize import CharacterizeOptions, characterize_grid
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid, working_region
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner, psf_support, support_overlap
+from psfkit.calibration.registration import shift_image
+from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid, working_region
 from psfkit.io import read_grid
-from psfkit.registration import shift_image
+from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
 
 N_POSITIONS = 101
 FRAME = (320, 320)

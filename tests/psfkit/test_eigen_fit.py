@@ -4,18 +4,18 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from psfkit.eigen import (
+from psfkit.errors import InvalidInputError
+from psfkit.fitting.grid.eigen import (
     DEFAULT_RIDGE,
     NormalEquations,
     check_design,
     position_weights,
     predict_aligned,
 )
-from psfkit.errors import InvalidInputError
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.pca import principal_angles_deg, stack_pca
+from psfkit.forward.weights import get_basis
 from psfkit.io import GridWriter, read_grid
-from psfkit.pca import principal_angles_deg, stack_pca
-from psfkit.weights import get_basis
 
 SHAPE = (3, 40, 48)
 

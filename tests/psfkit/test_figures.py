@@ -32,9 +32,10 @@ from matplotlib.figure import Figure
 from matplotlib.quiver import QuiverKey
 from matplotlib.text import Text
 
-from psfkit.bench import BenchConfig, simulate_grid, simulate_scan
-from psfkit.characterize import characterize_grid
-from psfkit.figures import (
+from psfkit.characterization.characterize import characterize_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.io import GridWriter, read_grid
+from psfkit.report.figures import (
     figure_eigen_diagnostics,
     figure_kernels,
     figure_maps,
@@ -45,9 +46,8 @@ from psfkit.figures import (
     figure_weight_maps,
     publication_style,
 )
-from psfkit.figures.style import NOT_SIGNIFICANT, Fitted
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
-from psfkit.io import GridWriter, read_grid
+from psfkit.report.figures.style import NOT_SIGNIFICANT, Fitted
+from psfkit.simulate import BenchConfig, simulate_grid, simulate_scan
 
 pytestmark = pytest.mark.slow      # three small grids characterized and fitted (~30 s CPU)
 
@@ -267,7 +267,7 @@ def test_fig3_colour_bars_span_their_own_maps(fitted):
     """The paper basis's correction weights reach 0.5, not 1: each bar spans its map."""
     model = fitted["lattice"].kernel_model()
     fig = figure_weight_maps(model.basis, model.sensor_shape)
-    from psfkit.weights import get_basis
+    from psfkit.forward.weights import get_basis
 
     maps = get_basis(model.basis).maps(model.sensor_shape)
     images = [ax.images[0] for ax in fig.axes if ax.images]
@@ -336,7 +336,7 @@ def test_montage_windows_follow_each_compact_psf(characterized):
 
 
 def test_a_large_scan_montage_shows_a_spread_subset(characterized, monkeypatch):
-    import psfkit.figures.grid_figures as grid_figures
+    import psfkit.report.figures.grid as grid_figures
 
     monkeypatch.setattr(grid_figures, "MONTAGE_MAX", 8)
     result = characterized["compact"]
@@ -400,7 +400,7 @@ def test_fitted_text_never_prints_nan(value, sigma, flag, text):
 def test_comparison_figures_are_legible(fitted):
     """``psfkit compare``'s Fig. 7 layout and displacement maps (a model against itself)."""
     from psfkit.compare import compare_kernels
-    from psfkit.figures import figure_displacements, figure_learned_vs_measured
+    from psfkit.report.figures import figure_displacements, figure_learned_vs_measured
 
     model = fitted["lattice"].kernel_model()
     comparison = compare_kernels(model, model)
@@ -412,7 +412,7 @@ def test_comparison_figures_are_legible(fitted):
 def test_richer_bases_wrap_without_empty_panels(basis):
     """Fig. 7 of more than four kernels wraps into a block of kernels above a block of
     differences; Fig. 3 of any basis; the single-kernel (SI) model has no difference row."""
-    from psfkit.weights import get_basis
+    from psfkit.forward.weights import get_basis
 
     names = list(get_basis(basis).kernel_names)
     rows, cols = np.mgrid[0:48, 0:64]

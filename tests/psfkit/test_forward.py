@@ -24,7 +24,7 @@ from psfkit.forward import (
 
 
 def test_geometry_and_kernel_file_load_without_torch():
-    code = ("import sys, psfkit.forward, psfkit.kernelfile; "
+    code = ("import sys, psfkit.forward, psfkit.forward.kernelfile; "
             "assert psfkit.forward.padded_shape((3, 5), 2) == (6, 10); "
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -183,7 +183,7 @@ def test_largest_eigenvalue_per_block_of_a_block_diagonal_operator():
 # --- the operator of a kernel file (one place) and the base class of every operator ---------
 
 def _kernel_model(basis: str, convention: str, seed: int = 4):
-    from psfkit.kernelfile import KernelModel
+    from psfkit.forward.kernelfile import KernelModel
 
     rng = np.random.default_rng(seed)
     n = 1 if basis == "si" else 3

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 import psfkit.io.grid_validation as grid_validation
-from psfkit.bench import CompactCamera, simulate_compact_scan
-from psfkit.characterize import THUMBNAIL_SIZE
+from psfkit.characterization.characterize import THUMBNAIL_SIZE
 from psfkit.errors import GridFormatError
-from psfkit.grid_fit import EigenFitOptions
+from psfkit.fitting.grid.fit import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.io.grid_validation import analysis_memory_bytes
-from psfkit.validation import MAX_GRID_CELLS, format_bytes, machine_memory_bytes
+from psfkit.io.validation import MAX_GRID_CELLS, format_bytes, machine_memory_bytes
+from psfkit.simulate import CompactCamera, simulate_compact_scan
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from psfkit.calibration.registration import shift_image
 from psfkit.compare.kernel_change import caustic_support, split_change, split_kernel_changes
 from psfkit.errors import InvalidInputError
-from psfkit.registration import shift_image
 
 
 def _caustic(shape: tuple[int, int] = (64, 64), seed: int = 3) -> np.ndarray:

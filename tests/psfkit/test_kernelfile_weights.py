@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from psfkit.errors import ConfigurationError, ModelFileError, PsfkitError
-from psfkit.kernelfile import KernelModel, check_kernels, load_kernels, save_kernels
-from psfkit.weights import BASIS_NAMES, get_basis, normalized_coordinates
+from psfkit.forward.kernelfile import KernelModel, check_kernels, load_kernels, save_kernels
+from psfkit.forward.weights import BASIS_NAMES, get_basis, normalized_coordinates
 
 
 def test_normalized_coordinates_reach_plus_minus_one_at_the_edges():

@@ -1,4 +1,5 @@
-"""Where, and on which pairs, a forward model fails (:mod:`psfkit.model_errors`): errors by
+"""Where, and on which pairs, a forward model fails (:mod:`psfkit.fitting.pairs.model_errors`):
+errors by
 field zone and residual maps against hand computations, and the fitted/held-out roles."""
 
 from __future__ import annotations
@@ -7,9 +8,15 @@ import numpy as np
 import pytest
 
 from psfkit.errors import InvalidInputError
-from psfkit.model_errors import FITTED, HELD_OUT, pair_roles, residual_map, zone_errors
-from psfkit.pairs_fit import relative_errors
-from psfkit.zones import field_zones
+from psfkit.fitting.pairs.fit import relative_errors
+from psfkit.fitting.pairs.model_errors import (
+    FITTED,
+    HELD_OUT,
+    pair_roles,
+    residual_map,
+    zone_errors,
+)
+from psfkit.forward.zones import field_zones
 
 
 def _edge_error_case(seed: int = 0):

@@ -14,13 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from psfkit.alignment import RELIABLE_OVERLAP, GridAligner, nominal_shifts
-from psfkit.bench import BenchConfig, simulate_grid
-from psfkit.eigen import DEFAULT_RIDGE, NormalEquations
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner, nominal_shifts
+from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.forward.weights import get_basis
 from psfkit.io import read_grid
 from psfkit.io.grid import GridPosition
-from psfkit.weights import get_basis
+from psfkit.simulate import BenchConfig, simulate_grid
 
 
 def _lattice(n: int, m: int, step: float = 100.0) -> list[GridPosition]:

@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
-from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import auto_support, kkt_residual, projected_newton
-from psfkit.pairs_fit import (
+from psfkit.fitting.pairs.constraints import auto_support, kkt_residual, projected_newton
+from psfkit.fitting.pairs.fit import (
     KernelSpaceOperator,
     PairFitOptions,
     downsample_pairs,
@@ -19,9 +18,10 @@ from psfkit.pairs_fit import (
     predict,
     relative_errors,
 )
-from psfkit.pairs_options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
-from psfkit.pairs_solver import PairBatches, solve_kernels
-from psfkit.weights import get_basis
+from psfkit.fitting.pairs.options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
+from psfkit.fitting.pairs.solver import PairBatches, solve_kernels
+from psfkit.forward.kernelfile import KernelModel
+from psfkit.forward.weights import get_basis
 
 
 def _scenes(rng: np.random.Generator, n: int, c: int, h: int, w: int) -> np.ndarray:

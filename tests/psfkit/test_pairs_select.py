@@ -11,10 +11,15 @@ import pytest
 import torch
 from test_pairs_solver import bench_scenes, known_eigen_kernels
 
-from psfkit import pairs_select
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.pairs_fit import PairFitOptions, fit_pairs, leave_one_out, predict, relative_errors
-from psfkit.pairs_select import (
+from psfkit.fitting.pairs import regularisation as pairs_select
+from psfkit.fitting.pairs.fit import (
+    PairFitOptions,
+    fit_pairs,
+    leave_one_out,
+    predict,
+    relative_errors,
+)
+from psfkit.fitting.pairs.regularisation import (
     MAX_FOLDS,
     MIN_HELD_OUT,
     PATHS,
@@ -24,7 +29,8 @@ from psfkit.pairs_select import (
     folds_of,
     selection_binning,
 )
-from psfkit.pairs_solver import PairBatches, regularised_normal
+from psfkit.fitting.pairs.solver import PairBatches, regularised_normal
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 
 
 @pytest.fixture(scope="module")
@@ -231,8 +237,8 @@ def test_dlmd_automatic_regularisation_is_as_good_as_the_best_hand_chosen(real_d
     pair plays no part in the choice) against every hand-chosen ``--difference`` of the path's
     neighbourhood: no worse than the best of them within the spread of the paired
     differences."""
+    from psfkit.fitting.pairs.fit import downsample_pairs
     from psfkit.io import read_pairs
-    from psfkit.pairs_fit import downsample_pairs
 
     torch.set_num_threads(1)
     x, y = downsample_pairs(*read_pairs(real_data("dlmd_mirflickr")).load_all(), 8)

@@ -9,13 +9,9 @@ import pytest
 import torch
 
 from psfkit.compare.statistics import normalized_correlation as ncc
-from psfkit.forward.convolution import extract_kernel, kernel_spectra
-from psfkit.forward.fft import irfft2, rfft2
-from psfkit.forward.kernel_space import KernelSpaceOperator
-from psfkit.kernelfile import KernelModel
-from psfkit.pairs_constraints import STALL_STEPS, kkt_residual, projected_newton
-from psfkit.pairs_fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
-from psfkit.pairs_solver import (
+from psfkit.fitting.pairs.constraints import STALL_STEPS, kkt_residual, projected_newton
+from psfkit.fitting.pairs.fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
+from psfkit.fitting.pairs.solver import (
     BATCH_BYTES,
     DEFAULT_BATCH,
     FrequencyGram,
@@ -24,6 +20,10 @@ from psfkit.pairs_solver import (
     regularised_normal,
     solve_kernels,
 )
+from psfkit.forward.convolution import extract_kernel, kernel_spectra
+from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.forward.kernelfile import KernelModel
 
 
 def known_eigen_kernels(shape: tuple[int, int] = (32, 32), channels: int = 3) -> np.ndarray:
@@ -283,7 +283,7 @@ def test_projected_newton_with_coarse_products_ends_at_the_tolerance() -> None:
 
 def test_batch_size_keeps_a_batch_under_the_reuse_threshold() -> None:
     """On the CPU a batch's spectra stay under ``BATCH_BYTES`` (glibc reuses such blocks,
-    :mod:`psfkit.allocator`); small pairs keep ``DEFAULT_BATCH``; other devices too."""
+    :mod:`psfkit.cli.allocator`); small pairs keep ``DEFAULT_BATCH``; other devices too."""
     per_pair = 3 * 3 * 192 * 97 * 16                  # source side, 128² float64: 2.7 MB
     assert auto_batch_size(per_pair) == BATCH_BYTES // per_pair == 9
     assert auto_batch_size(10) == DEFAULT_BATCH

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from psfkit.parallel import bounded_map
+from psfkit.numerics.parallel import bounded_map
 
 
 def test_results_come_in_input_order_even_when_later_items_finish_first():

@@ -3,16 +3,16 @@
 import numpy as np
 import pytest
 
-from psfkit.characterize import characterize_grid
-from psfkit.errors import GridFormatError, InvalidInputError
-from psfkit.io import GridWriter, read_grid
-from psfkit.preprocess import (
+from psfkit.calibration.preprocess import (
     GridCalibration,
     PreprocessOptions,
     hot_pixel_mask,
     prepare_psf,
     saturation_level_for,
 )
+from psfkit.characterization.characterize import characterize_grid
+from psfkit.errors import GridFormatError, InvalidInputError
+from psfkit.io import GridWriter, read_grid
 
 
 def _spot(shape=(64, 80), center=(30, 40), peak=3000.0, width=3.0):

@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
+from psfkit.calibration.preprocess import load_psf_image, subtract_background
 from psfkit.errors import InvalidInputError, ModelFileError
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.io import read_pairs, write_image
 from psfkit.io.images import read_image_float, unit_range
 from psfkit.io.read_options import ReadOptions, choose
-from psfkit.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.preprocess import load_psf_image, subtract_background
 
 RNG = np.random.default_rng(0)
 LEVELS = RNG.integers(0, 256, size=(3, 12, 17)).astype(np.uint8)

@@ -9,11 +9,21 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.bench import BenchConfig, degrade_grid, read_ground_truth, simulate_grid, simulate_scan
-from psfkit.characterize import RELIABLE_OVERLAP, CharacterizeOptions, characterize_grid
+from psfkit.characterization.characterize import (
+    RELIABLE_OVERLAP,
+    CharacterizeOptions,
+    characterize_grid,
+)
 from psfkit.errors import GridFormatError, InvalidInputError, PositionRejected
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
+from psfkit.simulate import (
+    BenchConfig,
+    degrade_grid,
+    read_ground_truth,
+    simulate_grid,
+    simulate_scan,
+)
 
 CORNERS = [(0, 0), (0, 8), (8, 0), (8, 8)]
 SATURATED, EMPTY = (2, 6), (6, 3)
@@ -127,7 +137,7 @@ def test_eigen_kernels_of_an_incomplete_grid_agree_with_the_full_fit(corners, fu
 # ---- bad positions -----------------------------------------------------------------------
 
 def test_bad_positions_are_excluded_with_their_reasons(bad, tmp_path):
-    from psfkit.report import write_report
+    from psfkit.report.grid import write_report
 
     result = characterize_grid(read_grid(bad), CharacterizeOptions(steps=("register", "gain",
                                                                           "mae")))
@@ -168,7 +178,7 @@ def test_strict_restores_all_or_nothing(bad):
 
 
 def test_allow_saturated_keeps_the_saturated_position_masked(bad):
-    from psfkit.preprocess import PreprocessOptions
+    from psfkit.calibration.preprocess import PreprocessOptions
 
     options = CharacterizeOptions(steps=("register",),
                                   preprocess=PreprocessOptions(allow_saturated=True))
@@ -265,7 +275,7 @@ def test_eigen_kernels_of_a_scattered_scan(scan, full_kernels):
 
 
 def test_scatter_maps_of_a_scan(scan, tmp_path):
-    from psfkit.figures import figure_maps, figure_montage, figure_shift_variance
+    from psfkit.report.figures import figure_maps, figure_montage, figure_shift_variance
 
     result = characterize_grid(read_grid(scan), CharacterizeOptions(steps=("register", "gain",
                                                                           "mae")))

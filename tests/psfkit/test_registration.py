@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from psfkit.errors import InvalidInputError
-from psfkit.registration import (
+from psfkit.calibration.registration import (
     fit_shift_map,
     high_frequency_fraction,
     register_shift,
     shift_image,
 )
+from psfkit.errors import InvalidInputError
 
 
 @pytest.fixture(scope="module")
@@ -93,8 +93,8 @@ def test_a_constant_background_does_not_pin_the_shift(caustic):
 
 
 def test_binned_preparation_equals_binning_the_prepared_image():
-    from psfkit.registration import _prepared, _prepared_binned
-    from psfkit.resample import bin_image
+    from psfkit.calibration.registration import _prepared, _prepared_binned
+    from psfkit.numerics.resample import bin_image
 
     rng = np.random.default_rng(5)
     image = (rng.random((101, 130)) * 50 + 7).astype(np.float32)
@@ -105,7 +105,7 @@ def test_binned_preparation_equals_binning_the_prepared_image():
 def test_tukey_window_equals_scipys():
     from scipy.signal.windows import tukey
 
-    from psfkit.windows import tukey_window
+    from psfkit.numerics.windows import tukey_window
 
     for length in (0, 1, 2, 3, 10, 101, 540):
         for alpha in (0.0, 0.25, 0.3, 0.5, 1.0, 1.5):

@@ -1,4 +1,4 @@
-"""psfkit.resample: block sums and means, against hand-computed blocks."""
+"""psfkit.numerics.resample: block sums and means, against hand-computed blocks."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from psfkit.errors import InvalidInputError
-from psfkit.resample import bin_image, bin_mean, binning_factor
+from psfkit.numerics.resample import bin_image, bin_mean, binning_factor
 
 
 def test_bin_image_sums_blocks_of_the_last_two_axes():

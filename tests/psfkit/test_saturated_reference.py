@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from psfkit.characterize import CharacterizeOptions, characterize_grid
+from psfkit.calibration.preprocess import PreprocessOptions
+from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
 from psfkit.errors import InvalidInputError
 from psfkit.io import read_grid
-from psfkit.preprocess import PreprocessOptions
 
 
 def saturate_every_psf(grid, out):

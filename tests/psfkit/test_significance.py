@@ -14,10 +14,11 @@ import re
 import numpy as np
 import pytest
 
-from psfkit.characterize import astigmatism_estimate
-from psfkit.gain import fit_gain
-from psfkit.registration import fit_shift_map
-from psfkit.significance import (
+from psfkit.calibration.gain import fit_gain
+from psfkit.calibration.registration import fit_shift_map
+from psfkit.calibration.warp import fit_growth
+from psfkit.characterization.characterize import astigmatism_estimate
+from psfkit.numerics.significance import (
     Z_SIGNIFICANT,
     Estimate,
     alpha,
@@ -26,7 +27,6 @@ from psfkit.significance import (
     undetermined,
     weighted_lstsq,
 )
-from psfkit.warp import fit_growth
 
 DRAWS = 400
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psfkit.support import crop_window, support_box
+from psfkit.calibration.support import crop_window, support_box
 
 
 def spot(shape: tuple[int, int], centre: tuple[float, float], sigma: float) -> np.ndarray:

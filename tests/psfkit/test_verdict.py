@@ -1,4 +1,4 @@
-"""The verdict's decision logic (psfkit.verdict) on made-up held-out errors: no images."""
+"""The verdict's decision logic (psfkit.fitting.verdict) on made-up held-out errors: no images."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from psfkit.significance import Estimate, undetermined
-from psfkit.verdict import EFFECTS, HeldOutErrors, decide, min_positions
+from psfkit.fitting.verdict import EFFECTS, HeldOutErrors, decide, min_positions
+from psfkit.numerics.significance import Estimate, undetermined
 
 NULL = "si+sampling"
 

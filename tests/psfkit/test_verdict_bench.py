@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psfkit.bench import read_ground_truth
-from psfkit.characterize import characterize_grid
-from psfkit.grid_fit import EigenFitOptions, fit_eigen_grid
+from psfkit.characterization.characterize import characterize_grid
+from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
 from psfkit.io import read_grid
-from psfkit.significance import Z_SIGNIFICANT
+from psfkit.numerics.significance import Z_SIGNIFICANT
+from psfkit.simulate import read_ground_truth
 
 
 @pytest.fixture(scope="module")

@@ -5,11 +5,7 @@ import pytest
 import tifffile
 from scipy import ndimage
 
-from psfkit.bench import BenchConfig, VirtualCamera
-from psfkit.bench.camera import box_blur
-from psfkit.bench.propagation import fresnel_transfer_anisotropic, propagate
-from psfkit.resample import bin_image
-from psfkit.warp import (
+from psfkit.calibration.warp import (
     affine_registration,
     dense_flow,
     fit_growth,
@@ -18,6 +14,10 @@ from psfkit.warp import (
     transport_anisotropy,
     warp_field,
 )
+from psfkit.numerics.resample import bin_image
+from psfkit.simulate import BenchConfig, VirtualCamera
+from psfkit.simulate.camera import box_blur
+from psfkit.simulate.propagation import fresnel_transfer_anisotropic, propagate
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
-"""Field zones (:mod:`psfkit.zones`): three equal-area radial zones around the optical centre,
+"""Field zones (:mod:`psfkit.forward.zones`): three equal-area radial zones around the optical
+centre,
 one definition for psfkit (eval-model) and ekdun (eval)."""
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ import numpy as np
 import pytest
 
 from psfkit.errors import InvalidInputError
-from psfkit.weights import normalized_coordinates
-from psfkit.zones import ZONE_NAMES, field_zones
+from psfkit.forward.weights import normalized_coordinates
+from psfkit.forward.zones import ZONE_NAMES, field_zones
 
 
 @pytest.mark.parametrize("shape", [(67, 120), (270, 480), (64, 64), (31, 17), (5, 5), (1, 3)])

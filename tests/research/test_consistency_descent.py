@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+from psfkit.fitting.pairs.fit import predict, relative_errors
+from psfkit.forward.kernelfile import load_kernels, save_kernels
 from psfkit.io import read_pairs
-from psfkit.kernelfile import load_kernels, save_kernels
-from psfkit.pairs_fit import predict, relative_errors
 from research.oracles import write_dataset_oracles
 
 pytestmark = pytest.mark.e2e

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.e2e
 
 def test_estimators_are_scored_against_every_oracle(tmp_path):
     from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     data = make_virtual_bench(tmp_path / "data", VirtualBenchSpec(
         sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3)),

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from psfkit.kernelfile import KernelModel
-from psfkit.pairs_fit import predict
-from psfkit.pairs_solver import PairBatches
+from psfkit.fitting.pairs.fit import predict
+from psfkit.fitting.pairs.solver import PairBatches
+from psfkit.forward.kernelfile import KernelModel
 from research.identifiability import (
     difference_fisher,
     fit_unconstrained,

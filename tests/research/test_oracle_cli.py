@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from ekdun.data.virtual_bench import VirtualBenchSpec, dataset_is_current, make_virtual_bench
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 from research.oracle import main
 from research.oracles import difference_nccs, operator_oracle, oracle_file, psf_oracle
 

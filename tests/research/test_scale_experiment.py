@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from psfkit.kernelfile import load_kernels
+from psfkit.forward.kernelfile import load_kernels
 
 pytestmark = pytest.mark.e2e
 

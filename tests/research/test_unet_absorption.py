@@ -19,7 +19,7 @@ SCRIPT = ("-m", "research.unet_absorption")
 
 
 def test_absorption_benchmark_freezes_the_oracles(tmp_path):
-    from psfkit.kernelfile import load_kernels
+    from psfkit.forward.kernelfile import load_kernels
 
     out = tmp_path / "absorb"
     done = subprocess.run([sys.executable, *SCRIPT, "--out", str(out), "--sensor", "32",

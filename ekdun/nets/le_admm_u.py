@@ -1,0 +1,85 @@
+r"""Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM followed by a U-Net.
+
+The ADMM-TV of DiffuserCam (Antipa et al. 2018) with learned ``μ1, μ2, μ3, τ`` per iteration
+(kept positive by a log parametrisation), unrolled for a few iterations: the updates are those
+of :mod:`ekdun.nets.tv_admm_steps` (shared with ``ekdun reconstruct``), for ``x`` on the
+padded grid with the splits ``v = Hx`` (crop), ``u = Ψx`` (TV) and ``w = x`` (non-negativity).
+All variables start at zero; each iteration takes two forward and two inverse FFTs. The
+estimate is the central ``H' × W'`` of ``x`` (our scenes have the sensor's size), which the
+U-Net then refines. Differences from the reference code: no per-image max normalisation
+before the U-Net, and the shared U-Net block (see :mod:`ekdun.nets.configs`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ekdun.nets.configs import LeADMMUConfig
+from ekdun.nets.tv_admm_steps import (
+    admm_tv_context,
+    admm_tv_initial_state,
+    admm_tv_iteration,
+    finite_difference_spectrum,
+)
+from ekdun.nets.unet import UNet
+from ekdun.nets.unrolled import State, UnrolledNetwork
+from ekdun.physics.operators import ShiftInvariantOperator
+from psfkit.forward.convolution import crop
+
+
+class LeADMMU(UnrolledNetwork):
+    """Le-ADMM-U baseline.
+
+    Parameters
+    ----------
+    physics : ShiftInvariantOperator
+        The measured PSF (kept fixed: build it with ``trainable=False``).
+    config : LeADMMUConfig
+        Iterations (5), U-Net and initial values.
+    """
+
+    def __init__(self, physics: ShiftInvariantOperator,
+                 config: LeADMMUConfig | None = None) -> None:
+        config = config or LeADMMUConfig()
+        super().__init__(config.iterations)
+        self.config = config
+        self.physics = physics
+        lipschitz = max(physics.lipschitz_bound(), 1e-12)
+        dtype = physics.kernels.dtype
+        n = config.iterations
+        mu2 = config.mu2_scale * lipschitz
+
+        def log_param(value: float) -> nn.Parameter:
+            return nn.Parameter(torch.full((n,), math.log(value), dtype=dtype))
+
+        self.log_mu1 = log_param(config.mu1_init)
+        self.log_mu2 = log_param(mu2)
+        self.log_mu3 = log_param(config.mu3_scale * lipschitz)
+        self.log_tau = log_param(config.tau_scale * mu2)
+        self.register_buffer("tv_spectrum",
+                             finite_difference_spectrum(physics.grid_shape, dtype),
+                             persistent=False)
+        channels = physics.channels
+        self.denoiser = UNet(channels, channels, config.denoiser.widths,
+                             config.denoiser.residual, config.denoiser.zero_init_output)
+
+    def prepare(self, y: Tensor) -> dict[str, Any]:
+        op = self.physics.prepare()
+        op.check(y, "measurement")
+        # conj_spectra are cached (fixed PSF)
+        return admm_tv_context(y, op.spectra[0], op.conj_spectra[0], self.physics.grid_shape)
+
+    def initial_state(self, y: Tensor, context: dict[str, Any]) -> State:
+        return admm_tv_initial_state(context)
+
+    def update(self, i: int, state: State, context: dict[str, Any]) -> State:
+        return admm_tv_iteration(state, context, self.log_mu1[i].exp(), self.log_mu2[i].exp(),
+                                 self.log_mu3[i].exp(), self.log_tau[i].exp(),
+                                 self.tv_spectrum)
+
+    def output(self, state: State, context: dict[str, Any]) -> Tensor:
+        return self.denoiser(crop(state["x"], self.physics.sensor_shape))

@@ -1,0 +1,111 @@
+"""Base class of unrolled reconstruction networks (the loop lives here).
+
+A subclass fills in four steps (the LenslessPiCam pattern)::
+
+    context = self.prepare(y)               # per forward pass: kernel spectra, tiled inputs
+    state = self.initial_state(y, context)  # dict of tensors (f⁰, d⁰, ...)
+    for i in range(self.iterations):
+        state = self.update(i, state, context)
+    return self.output(state, context)
+
+The loop is plain Python over a fixed number of iterations, so ``torch.export.export`` and
+``torch.jit.trace`` unroll it into a static graph for inference.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torch import Tensor, nn
+
+from ekdun.errors import ConfigurationError
+from psfkit.forward.kernelfile import KernelModel
+
+State = dict[str, Tensor]
+
+
+def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
+    """Number of (trainable) scalar parameters of ``module``; buffers are not counted."""
+    return sum(p.numel() for p in module.parameters()
+               if p.requires_grad or not trainable_only)
+
+
+class UnrolledNetwork(nn.Module):
+    """An unrolled iterative reconstruction ``y (B, C, H', W') → x̂ (B, C, H', W')``.
+
+    Parameters
+    ----------
+    iterations : int
+        Number of unrolled iterations.
+
+    Attributes
+    ----------
+    seed_kernels : KernelModel or None
+        The kernel model the network was built from (its physics' initial kernels, with the
+        kernel file's basis, convention and geometry), set by :meth:`set_seed_kernels`
+        (:func:`ekdun.nets.builder.build_network` does); ``None`` for a network built
+        directly. Training writes it as ``kernels_initial.npz`` and into the checkpoint, and
+        the learned kernels are exported with its metadata.
+    """
+
+    seed_kernels: KernelModel | None
+
+    def __init__(self, iterations: int) -> None:
+        super().__init__()
+        if iterations < 1:
+            raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
+        self.iterations = int(iterations)
+        self.seed_kernels = None
+
+    def set_seed_kernels(self, seed: KernelModel) -> None:
+        """Remember the kernel model the network was built from (checked first).
+
+        Raises
+        ------
+        ModelFileError
+            ``seed`` fails :meth:`~psfkit.forward.kernelfile.KernelModel.validate`.
+        """
+        seed.validate(where="seed kernels")
+        self.seed_kernels = seed
+
+    def prepare(self, y: Tensor) -> dict[str, Any]:
+        """Per-forward-pass quantities shared by all iterations (checks ``y``)."""
+        raise NotImplementedError
+
+    def initial_state(self, y: Tensor, context: dict[str, Any]) -> State:
+        """Iteration-0 variables."""
+        raise NotImplementedError
+
+    def update(self, i: int, state: State, context: dict[str, Any]) -> State:
+        """Iteration ``i`` (0-based)."""
+        raise NotImplementedError
+
+    def output(self, state: State, context: dict[str, Any]) -> Tensor:
+        """The reconstruction from the final state."""
+        raise NotImplementedError
+
+    def iterate(self, y: Tensor) -> tuple[State, dict[str, Any]]:
+        """Run all iterations; returns the final state and the context."""
+        context = self.prepare(y)
+        state = self.initial_state(y, context)
+        for i in range(self.iterations):
+            state = self.update(i, state, context)
+        return state, context
+
+    def forward(self, y: Tensor) -> Tensor:
+        """Reconstruct the scene from the measurement ``y`` ``(B, C, H', W')``."""
+        state, context = self.iterate(y)
+        return self.output(state, context)
+
+    def parameter_count(self) -> int:
+        """Trainable scalar parameters (fixed PSFs are buffers and not counted)."""
+        return count_parameters(self)
+
+    def parameter_breakdown(self) -> dict[str, int]:
+        """Trainable parameters per top-level component (``physics``, ``priors``, ...)."""
+        counts: dict[str, int] = {}
+        for name, p in self.named_parameters():
+            if p.requires_grad:
+                key = name.split(".")[0]
+                counts[key] = counts.get(key, 0) + p.numel()
+        return counts

@@ -1,0 +1,473 @@
+"""Bring every PSF of a grid into the centre PSF's frame: preprocess, register, align.
+
+Shared by the characterization (:mod:`psfkit.characterization.characterize`) and the eigen-kernel
+fit
+(:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from psfkit.calibration.preprocess import (
+    GridCalibration,
+    PreparedPsf,
+    PreprocessOptions,
+    luminance,
+    normalization_scale,
+)
+from psfkit.calibration.registration import (
+    ShiftMapFit,
+    ShiftRegistrar,
+    fit_shift_map,
+    high_frequency_fraction,
+    normalized_cross_correlation,
+    psf_region,
+    register_shift,
+    shift_image,
+)
+from psfkit.errors import InvalidInputError, PositionRejected
+from psfkit.io.grid import GridPosition, PsfGrid
+
+MIN_OVERLAP = 0.05       # below this fraction of the centre PSF's light in the registered
+                         # overlap, a position cannot be compared
+RELIABLE_OVERLAP = 0.5   # below this, a PSF is mostly off the sensor: shift and warp less
+                         # reliable (its deformation biases a translation-only registration)
+#: The support of a PSF (:func:`psf_support`): where its luminance, smoothed by
+#: ``SUPPORT_SMOOTHING_PX``, exceeds ``SUPPORT_FRACTION`` of its peak and ``SUPPORT_NOISE``
+#: times the smoothed noise, grown by ``SUPPORT_MARGIN_PX``. Measured in pixels of the PSF,
+#: never of the frame: a star's support is the same on a 1024² frame and on a 63² cut-out,
+#: a caustic's covers most of the sensor.
+SUPPORT_FRACTION = 0.01
+SUPPORT_NOISE = 6.0
+SUPPORT_SMOOTHING_PX = 1.0
+SUPPORT_MARGIN_PX = 3
+#: Default lowest registration quality (NCC with the centre PSF after alignment) of a usable
+#: position; below it the position is excluded ("low NCC"). The virtual bench's 9 × 9 grids
+#: reach 0.95 at the corners; a capture of the wrong thing scores near 0.
+MIN_QUALITY = 0.5
+#: Why a position can be excluded (:class:`~psfkit.errors.PositionRejected`.reason).
+REJECTION_REASONS = {
+    "saturated": "too much of the PSF saturated",
+    "no signal": "no point-source signal above the noise (empty or badly exposed capture)",
+    "non-finite": "NaN/Inf pixel values",
+    "registration failed": "cannot be registered to the reference PSF",
+    "no overlap": "too little of the reference PSF's light lies in the registered overlap",
+    "low NCC": "registration quality (NCC with the reference PSF) below the threshold",
+}
+
+
+@dataclass(frozen=True)
+class ExcludedPosition:
+    """A captured position left out of the analyses, with its reason (a key of
+    :data:`REJECTION_REASONS`) and the one-line detail."""
+
+    row: int
+    col: int
+    file: str
+    reason: str
+    detail: str
+    field_deg: tuple[float, float] | None = None
+    monitor_px: tuple[float, float] | None = None
+
+    @classmethod
+    def of(cls, pos: GridPosition, exc: PositionRejected) -> ExcludedPosition:
+        return cls(row=pos.row, col=pos.col, file=pos.file, reason=exc.reason,
+                   detail=str(exc), field_deg=pos.field_deg, monitor_px=pos.monitor_px)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"row": self.row, "col": self.col, "file": self.file, "reason": self.reason,
+                "detail": self.detail, "field_deg": self.field_deg,
+                "monitor_px": self.monitor_px}
+
+
+#: Share of the sensor the centre PSF's support must cover for the PSF to count as filling it
+#: (a caustic; :meth:`GridAligner.gain_region`). The bench caustic's covers 29 %; a 3 px star's,
+#: with its margin, 0.1 % of a 320² frame and about 10 % of a 41² cut-out (whose numbers must
+#: stay those of the full frame).
+FILLING_SUPPORT = 0.2
+
+
+@dataclass(frozen=True)
+class AlignedPsf:
+    """One grid PSF in the centre PSF's frame.
+
+    ``image`` is ``(C, H, W)`` float32 in the grid's normalization (centre PSF peak or total
+    = 1), displaced back by ``shift`` so that it overlays the centre PSF; ``valid`` marks the
+    pixels that hold data (inside the sensor and unsaturated in both PSFs).
+    """
+
+    position: GridPosition
+    image: np.ndarray
+    valid: np.ndarray
+    shift: tuple[float, float]
+    prepared: PreparedPsf
+    quality: float = float("nan")   # NCC with the reference luminance over ``compared``
+    support: np.ndarray | None = None   # (H, W) bool: this PSF's support or the reference's
+    support_overlap: float = float("nan")   # the reference's light inside ``valid``
+
+    @property
+    def compared(self) -> np.ndarray:
+        """``(H, W)`` bool, the pixels every comparison with the reference uses (MAE, gain,
+        quality): the support of either PSF inside ``valid``."""
+        return self.valid if self.support is None else self.valid & self.support
+
+    @cached_property
+    def luminance(self) -> np.ndarray:
+        """``(H, W)`` luminance of ``image`` (:meth:`GridAligner.align` fills it in: the
+        quality check needs it)."""
+        return luminance(self.image)
+
+    @property
+    def overlap(self) -> float:
+        """Fraction of the sensor where both PSFs hold data (a geometric fact, not a measure
+        of reliability: see ``support_overlap``)."""
+        return float(self.valid.mean())
+
+
+def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """The support of a PSF: the pixels that hold its light, whatever its size or the frame's.
+
+    Smooth the background-subtracted luminance by a Gaussian of ``SUPPORT_SMOOTHING_PX``,
+    keep the pixels above both ``SUPPORT_FRACTION`` of its peak and ``SUPPORT_NOISE`` times
+    the smoothed image's noise, and grow them by ``SUPPORT_MARGIN_PX``. The noise is the
+    robust spread (1.4826 × MAD) of the pixels away from the PSF (farther than
+    ``4 × SUPPORT_MARGIN_PX`` from where it exceeds ``SUPPORT_FRACTION`` of its peak): a
+    frame's empty pixels for a compact PSF, the dark border for a caustic (none: the
+    fraction of the peak alone). The brightest pixel always belongs to the support.
+
+    Parameters
+    ----------
+    lum : numpy.ndarray
+        ``(H, W)`` luminance, any units.
+    valid : numpy.ndarray, optional
+        ``(H, W)`` bool, the pixels that hold data (an aligned PSF's overlap); the noise is
+        measured on these only.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` bool.
+    """
+    import cv2
+
+    smooth = cv2.GaussianBlur(np.ascontiguousarray(lum, dtype=np.float32), (0, 0),
+                              SUPPORT_SMOOTHING_PX, borderType=cv2.BORDER_REFLECT)
+    peak = float(smooth.max())
+    core = (smooth >= SUPPORT_FRACTION * peak).astype(np.uint8)
+    size = 8 * SUPPORT_MARGIN_PX + 1          # a square: separable, fast at full resolution
+    away = cv2.dilate(core, np.ones((size, size), np.uint8)) == 0
+    if valid is not None:       # not the zeros outside an aligned PSF's data (and its edge)
+        away &= cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    sample = smooth[::2, ::2][away[::2, ::2]]       # plenty of samples, a quarter of the work
+    noise = 0.0
+    if sample.size >= 64:
+        noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+    threshold = min(max(SUPPORT_FRACTION * peak, SUPPORT_NOISE * noise), peak)
+    size = 2 * SUPPORT_MARGIN_PX + 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    return cv2.dilate((smooth >= threshold).astype(np.uint8), disk).astype(bool)
+
+
+def support_overlap(reference_light: np.ndarray, valid: np.ndarray) -> float:
+    """Fraction of the reference PSF's light that lies in ``valid`` (the registered overlap):
+    how much of a PSF of that shape at the moving position falls on the sensor.
+
+    ``reference_light`` is the reference's non-negative luminance on its support, zero
+    elsewhere (:attr:`GridAligner.reference_light`).
+    """
+    total = float(np.sum(reference_light, dtype=np.float64))
+    if total <= 0:
+        return float(valid.mean())
+    return float(np.sum(reference_light, where=valid, dtype=np.float64)) / total
+
+
+class GridAligner:
+    """Registers and aligns the PSFs of one grid to its centre PSF.
+
+    Parameters
+    ----------
+    grid : PsfGrid
+    options : PreprocessOptions
+    upsample : int
+        Registration precision ``1/upsample`` px.
+    min_quality : float
+        Lowest registration quality (NCC) of a usable position (0: no check).
+    strict : bool
+        :meth:`try_align` raises for a bad position instead of excluding it.
+
+    Raises
+    ------
+    InvalidInputError
+        The reference (centre) PSF is unusable: one line naming it, its problem, and
+        ``--reference``.
+    """
+
+    def __init__(self, grid: PsfGrid, options: PreprocessOptions | None = None,
+                 upsample: int = 100, min_quality: float = MIN_QUALITY,
+                 strict: bool = False) -> None:
+        self.grid = grid
+        self.options = options or PreprocessOptions()
+        self.upsample = upsample
+        self.min_quality = min_quality
+        self.strict = strict
+        self.center = grid.require_center()
+        self.calibration = GridCalibration.from_grid(grid, self.options)
+        try:
+            self.reference_prepared = self.calibration.prepare(grid, *self.center, self.options)
+        except PositionRejected as exc:
+            if strict:
+                raise
+            raise InvalidInputError(
+                f"{exc}; this is the reference (centre) PSF {grid.describe_index(self.center)}, "
+                "which every position is compared with: fix it, or name another captured "
+                "position with --reference R,C") from None
+        self._check_reference_unsaturated(grid)
+        self.scale = normalization_scale(self.reference_prepared.image,
+                                         self.options.normalization)
+        self.reference = self.reference_prepared.image / np.float32(self.scale)
+        self.reference_luminance = self.reference_prepared.luminance / np.float32(self.scale)
+        self._unsaturated = ~self.reference_prepared.saturated
+        self.reference_support = psf_support(self.reference_luminance)
+        self.fills_sensor = float(self.reference_support.mean()) >= FILLING_SUPPORT
+        self.reference_light = np.where(self.reference_support,
+                                        np.maximum(self.reference_luminance, 0.0), 0.0)
+        self._allow_binning = high_frequency_fraction(self.reference_luminance) < 0.01
+        # a compact PSF is refined around itself, whatever the frame's size
+        self._registrar = ShiftRegistrar(self.reference_luminance, upsample,
+                                         allow_binning=self._allow_binning,
+                                         region=psf_region(self.reference_support))
+
+    def gain_region(self, aligned: AlignedPsf) -> np.ndarray:
+        """``(H, W)`` bool, the pixels a position's gain (its light relative to the centre
+        PSF's) is summed over: ``aligned.compared`` for a compact PSF, where the frame's empty
+        pixels would add only noise; the whole overlap ``aligned.valid`` for a PSF that fills
+        the sensor (:data:`FILLING_SUPPORT`), whose light below the support's threshold is
+        part of it (leaving it out biased the bench caustic's gains by up to 0.27 % towards
+        the edge, its cos-law exponent by 6σ)."""
+        return aligned.valid if self.fills_sensor else aligned.compared
+    def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
+        """Refuse a reference whose saturated pixels (masked with ``allow_saturated``) leave
+        less than :data:`MIN_OVERLAP` of the sensor: no position, the reference included,
+        could be compared with it (issue 43: every position was then excluded and the fits
+        received no measurement)."""
+        saturated = self.reference_prepared.saturated
+        if float(np.mean(~saturated)) >= MIN_OVERLAP:
+            return
+        name = grid.root / grid.position(*self.center).file
+        raise InvalidInputError(
+            f"{name}: {int(saturated.sum())} of its {saturated.size} pixels are saturated, "
+            "and masking them (--allow-saturated) leaves nothing to compare with; this is the "
+            f"reference (centre) PSF {grid.describe_index(self.center)}: lower the exposure, "
+            "or name another captured position with --reference R,C")
+
+    def register(self, reference: np.ndarray, moving: np.ndarray) -> tuple[float, float]:
+        """Shift of ``moving`` relative to ``reference`` with this grid's settings."""
+        return register_shift(reference, moving, upsample=self.upsample,
+                              allow_binning=self._allow_binning)
+
+    def align(self, pos: GridPosition, shift: tuple[float, float] | None = None,
+              check_quality: bool = True) -> AlignedPsf:
+        """Preprocess, register (unless ``shift`` is given) and align one PSF.
+
+        ``check_quality=False`` skips the registration-quality check (the quality is still
+        measured): for a position already accepted at its registered shift and now aligned
+        at another one (:func:`nominal_shifts`).
+
+        Raises
+        ------
+        PositionRejected
+            The PSF fails a quality check (:data:`REJECTION_REASONS`): the message names the
+            file, ``reason`` the check.
+        """
+        name = str(self.grid.root / pos.file)
+        here = (pos.row, pos.col)
+        prep = self.reference_prepared if here == self.center else \
+            self.calibration.prepare(self.grid, pos.row, pos.col, self.options)
+        image = prep.image / np.float32(self.scale)
+        lum = prep.luminance / np.float32(self.scale)
+        if shift is None:
+            if here == self.center:
+                shift = (0.0, 0.0)
+            else:
+                try:
+                    shift = self._registrar.register(lum)
+                except InvalidInputError as exc:
+                    raise PositionRejected(f"{name}: cannot register to the centre PSF "
+                                           f"({exc})", "registration failed") from None
+        aligned, valid = shift_image(image, shift)
+        if prep.n_saturated:
+            sat_aligned, _ = shift_image(prep.saturated.astype(np.float32), shift)
+            valid &= sat_aligned < 0.5
+        valid &= self._unsaturated
+        # reliability in terms of the PSF, not of the sensor: a star near the edge of a large
+        # frame overlaps the centre star on little of the sensor but is all there
+        covered = support_overlap(self.reference_light, valid)
+        if covered < MIN_OVERLAP:
+            raise PositionRejected(f"{name}: only {100 * covered:.1f}% of the centre PSF's "
+                                   "light lies in the registered overlap; cannot compare",
+                                   "no overlap")
+        aligned_luminance = luminance(aligned)
+        support = self.reference_support if here == self.center else \
+            self.reference_support | psf_support(aligned_luminance, valid)
+        quality = normalized_cross_correlation(self.reference_luminance, aligned_luminance,
+                                               valid & support)
+        if check_quality and quality < self.min_quality and here != self.center:
+            raise PositionRejected(f"{name}: registration quality (NCC with the centre PSF) "
+                                   f"{quality:.3f} below {self.min_quality:g}; not the same "
+                                   "PSF pattern (wrong capture?)", "low NCC")
+        item = AlignedPsf(position=pos, image=aligned, valid=valid, shift=shift, prepared=prep,
+                          quality=quality, support=support, support_overlap=covered)
+        item.__dict__["luminance"] = aligned_luminance    # the cached property, computed once
+        return item
+
+    def try_align(self, pos: GridPosition) -> AlignedPsf | ExcludedPosition:
+        """:meth:`align`, or the :class:`ExcludedPosition` of a PSF that fails a quality check
+        (``strict``: the error propagates)."""
+        try:
+            return self.align(pos)
+        except PositionRejected as exc:
+            if self.strict:
+                raise
+            return ExcludedPosition.of(pos, exc)
+
+
+#: Least share of the registered shifts' spread (weighted variance) the affine map must explain
+#: to place the PSFs (:func:`nominal_shifts`): a scan of pre-centred cut-outs has shifts of
+#: centring residuals, which no field map predicts.
+MIN_EXPLAINED = 0.9
+#: How :func:`nominal_shifts` placed the PSFs (``NominalShifts.source``).
+SHIFT_SOURCES = {
+    "affine": "the affine field-to-shift map of the positions with at least "
+              f"{100 * RELIABLE_OVERLAP:.0f}% of the centre PSF's light in their registered "
+              "overlap (reliable positions)",
+    "affine (all positions)": "the affine field-to-shift map of every position, weighted by "
+                              "the centre PSF's light in its overlap (the reliable ones do not "
+                              "span two directions)",
+    "registered": "each PSF's own registered shift (no two-dimensional field to fit a map to)",
+    "registered (no map)": "each PSF's own registered shift: the affine field-to-shift map "
+                           f"explains less than {100 * MIN_EXPLAINED:.0f}% of their spread "
+                           "(cut-outs around each PSF, or a field too small to move it)",
+}
+
+
+@dataclass(frozen=True)
+class NominalShifts:
+    """Where the forward model puts each PSF of a grid (:func:`nominal_shifts`).
+
+    ``shifts`` maps ``(row, col)`` to ``(du, dv)`` in sensor pixels, ``(0, 0)`` at the centre
+    PSF; ``source`` is a key of :data:`SHIFT_SOURCES`; ``fit`` the affine map (``None`` for
+    ``"registered"``); ``deviation_px`` the largest ``|registered − nominal|`` (distortion
+    plus registration error: it stays in the kernels); ``positions_used`` how many positions
+    determined the map.
+    """
+
+    shifts: dict[tuple[int, int], tuple[float, float]]
+    source: str
+    fit: ShiftMapFit | None
+    positions_used: int
+    deviation_px: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "meaning": SHIFT_SOURCES[self.source],
+                "positions_used": self.positions_used,
+                "max_deviation_from_registered_px": self.deviation_px,
+                "map": self.fit.to_dict() if self.fit is not None else None}
+
+
+def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) -> float:
+    """Share of the weighted spread of the registered shifts that the affine map explains
+    (``1 − Σ w |residual|² / Σ w |shift − mean|²``; 1 when the shifts do not spread)."""
+    residuals = fit.residuals.reshape(-1, 2)
+    ok = np.isfinite(residuals).all(axis=1) & (weights > 0)
+    if not ok.any():
+        return 1.0
+    w = weights[ok]
+    spread = registered[ok] - np.average(registered[ok], axis=0, weights=w)
+    total = float(np.sum(w[:, None] * spread**2))
+    return 1.0 - float(np.sum(w[:, None] * residuals[ok] ** 2)) / total if total > 0 else 1.0
+
+
+def _field_coordinates(positions: list[GridPosition], center: GridPosition
+                       ) -> tuple[np.ndarray, str]:
+    """``(P, 2)`` field coordinates of ``positions`` and their unit: monitor pixels, tan of
+    the field angles, or grid steps from ``center`` (as the characterization's shift map)."""
+    if all(p.monitor_px is not None for p in positions):
+        return np.array([p.monitor_px for p in positions], dtype=np.float64), "monitor px"
+    if all(p.field_deg is not None for p in positions):
+        return (np.tan(np.deg2rad(np.array([p.field_deg for p in positions], dtype=np.float64))),
+                "tan(field angle)")
+    return (np.array([(p.col - center.col, p.row - center.row) for p in positions],
+                     dtype=np.float64), "grid steps")
+
+
+def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overlap: np.ndarray,
+                   center: tuple[int, int]) -> NominalShifts:
+    """The shifts at which a shift-invariant forward model sees each PSF: an affine map of
+    the field positions, fitted to the registered shifts.
+
+    The forward model ``y = crop(K * pad(x))`` places the PSF of a scene point at a position
+    that is linear in the point's field position (``docs/forward-models.md``); whatever a PSF
+    does beyond that (distortion, the deformation of its caustic) is what the eigen-kernels
+    must describe. Aligning every PSF by its *own* registered shift removes that part before
+    the fit. Worse, the registration of a PSF mostly off the sensor is biased by its
+    deformation (tenths of a pixel at full resolution, up to ~14 px at a 256² grid's
+    corners). So the map is fitted (:func:`psfkit.calibration.registration.fit_shift_map`, weighted
+    by
+    overlap) to the reliable positions, those with at least :data:`RELIABLE_OVERLAP` of the
+    centre PSF's light in their registered overlap (whatever the PSF's size: a compact PSF
+    anywhere on the sensor is reliable), and re-based so that the centre PSF stays at
+    ``(0, 0)`` (the kernel origin). Fallbacks, in order: every position (when the reliable
+    ones do not span two directions), then the registered shifts (a one-row grid, or a map
+    that explains less than :data:`MIN_EXPLAINED` of the shifts' spread: cut-outs).
+
+    Parameters
+    ----------
+    positions : list of GridPosition
+        The accepted positions, centre included.
+    registered : numpy.ndarray
+        ``(P, 2)`` their registered shifts ``(du, dv)`` in sensor pixels
+        (:meth:`GridAligner.align`).
+    overlap : numpy.ndarray
+        ``(P,)`` fraction of the centre PSF's light in each one's registered overlap
+        (:attr:`AlignedPsf.support_overlap`).
+    center : (int, int)
+        Grid index of the centre PSF.
+
+    Returns
+    -------
+    NominalShifts
+    """
+    registered = np.asarray(registered, dtype=np.float64).reshape(-1, 2)
+    overlap = np.asarray(overlap, dtype=np.float64).reshape(-1)
+    if not len(positions) == len(registered) == len(overlap):
+        raise ValueError("positions, registered and overlap must have one entry per position")
+    at_center = [i for i, p in enumerate(positions) if (p.row, p.col) == center]
+    if not at_center:
+        raise ValueError("the centre PSF must be among the positions")
+    coords, units = _field_coordinates(positions, positions[at_center[0]])
+    fit, source, used = None, "registered", len(positions)
+    for name, weights in (("affine", np.where(overlap >= RELIABLE_OVERLAP, overlap, 0.0)),
+                          ("affine (all positions)", overlap)):
+        try:
+            fit = fit_shift_map(coords[None], registered[None], units, weights[None])
+        except InvalidInputError:
+            continue
+        source, used = name, int(np.count_nonzero(weights > 0))
+        break
+    if fit is not None and _explained(fit, registered, overlap) < MIN_EXPLAINED:
+        fit, source, used = None, "registered (no map)", len(positions)
+    if fit is None:
+        nominal = registered
+    else:
+        linear = coords @ fit.matrix.T
+        nominal = linear - linear[at_center[0]]
+    deviation = float(np.max(np.hypot(*(registered - nominal).T)))
+    shifts = {(p.row, p.col): (float(s[0]), float(s[1]))
+              for p, s in zip(positions, nominal, strict=True)}
+    return NominalShifts(shifts=shifts, source=source, fit=fit, positions_used=used,
+                         deviation_px=deviation)

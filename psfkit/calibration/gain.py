@@ -1,0 +1,163 @@
+r"""Relative illumination (gain, vignetting) of each PSF and low-order fits of it.
+
+The gain of a PSF is its energy relative to the reference (centre) PSF, measured on the
+region both PSFs cover after registration (so that a PSF partly off the sensor is not taken
+for a dim one): :math:`g = \sum_\Omega p / \sum_\Omega p_0`.
+
+A measured gain is the ratio of two captures' energies: it includes any difference in the
+brightness of the sources (a monitor's uniformity, stars of different magnitudes), not only
+the camera's vignetting.
+
+Two fits summarise the map: the cosⁿ law :math:`g = A\cos^n\theta` (n = 4 for natural
+vignetting; microlenses and a thick aperture steepen it) and a quadratic polynomial in the
+field coordinates, whose residual shows what the radial law misses (e.g. a tilted sensor).
+The scale ``A`` is fitted (issue 43): every gain is a ratio to the one reference capture, so
+the reference's own brightness error is common to all of them; a law forced through 1 at the
+centre turned it into an absurd exponent (thousands) on sources of different brightness.
+The exponent carries its 1σ uncertainty (residual-scaled covariance of the log-linear fit)
+and the significance of :mod:`psfkit.numerics.significance` (null: n = 0, no vignetting; the t-test
+of
+the slope).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from psfkit.errors import InvalidInputError
+from psfkit.numerics.significance import Estimate, checked, f_test, undetermined, weighted_lstsq
+
+
+def overlap_gain(reference: np.ndarray, aligned: np.ndarray, valid: np.ndarray) -> float:
+    """Energy ratio of an aligned PSF to the reference over the pixels ``valid`` in both.
+
+    Parameters
+    ----------
+    reference, aligned : numpy.ndarray
+        ``(H, W)`` (e.g. the channel sum or luminance) or ``(C, H, W)``, background-subtracted,
+        same exposure scale.
+    valid : numpy.ndarray
+        ``(H, W)`` bool.
+    """
+    if reference.ndim == 3:
+        reference, aligned = reference.sum(axis=0), aligned.sum(axis=0)
+    ref = float(np.sum(reference, where=valid, dtype=np.float64))
+    if ref <= 0:
+        raise InvalidInputError("the reference PSF has no energy in the overlap region")
+    return float(np.sum(aligned, where=valid, dtype=np.float64)) / ref
+
+
+#: A fitted cosⁿ exponent beyond this is not a vignetting law (natural vignetting is 4;
+#: microlenses and thick apertures reach about 8 to 12): shown as not determined.
+EXPONENT_LIMIT = 50.0
+
+
+@dataclass(frozen=True)
+class GainFit:
+    """Fits of the gain map: ``scale · cos^exponent(θ)`` and a quadratic polynomial in
+    ``(x, y)``; ``estimate`` is the exponent with its uncertainty and significance
+    (:class:`~psfkit.numerics.significance.Estimate`)."""
+
+    exponent: float
+    cos_rms_residual: float
+    poly_coefficients: np.ndarray = field(repr=False)
+    poly_terms: tuple[str, ...] = ("1", "x", "y", "x²", "xy", "y²")
+    poly_rms_residual: float = 0.0
+    estimate: Estimate = field(default_factory=lambda: undetermined("not fitted"))
+    scale: float = 1.0
+
+    @property
+    def exponent_std(self) -> float:
+        """1σ of the exponent (NaN when it is not determined)."""
+        return self.estimate.sigma
+
+    def to_dict(self) -> dict:
+        return {"cos_exponent": self.exponent, "cos_exponent_std": self.exponent_std,
+                "cos_scale": self.scale, "cos_rms_residual": self.cos_rms_residual,
+                "estimates": {"cos_exponent": self.estimate.to_dict()},
+                "note": "gains are energy ratios to the reference capture: they include any "
+                        "difference in source brightness, not only vignetting",
+                "poly_terms": list(self.poly_terms),
+                "poly_coefficients": self.poly_coefficients.tolist(),
+                "poly_rms_residual": self.poly_rms_residual}
+
+
+def fit_cos_law(gains: np.ndarray, field_deg: np.ndarray, weights: np.ndarray
+                ) -> tuple[Estimate, float, float]:
+    """``log g = log A + n log cos θ`` by weighted least squares over the off-axis positions.
+
+    Parameters
+    ----------
+    gains : numpy.ndarray
+        ``(P,)`` gains (positive, finite).
+    field_deg : numpy.ndarray
+        ``(P, 2)`` field angles ``(θx, θy)`` in degrees.
+    weights : numpy.ndarray
+        ``(P,)`` positive weights.
+
+    Returns
+    -------
+    exponent : Estimate
+        ``n`` with its residual-scaled 1σ, tested against ``n = 0`` (t-test of the slope).
+    scale : float
+        ``A`` (NaN when the fit is not possible).
+    rms : float
+        RMS of ``g − A cosⁿθ`` over the positions (NaN when not possible).
+    """
+    t = np.tan(np.deg2rad(field_deg))
+    log_cos = -0.5 * np.log1p(np.sum(t**2, axis=1))      # cos θ = 1/sqrt(1 + tan²θx + tan²θy)
+    use = log_cos < -1e-9          # the reference (θ = 0) is 1 by definition, not a measurement
+    n = int(use.sum())
+    if n < 3 or np.ptp(log_cos[use]) <= 1e-12:
+        return (undetermined(f"{n} off-axis gain(s) at distinct field angles; the cosⁿ law "
+                             "needs at least 3"), math.nan, math.nan)
+    design = np.column_stack([np.ones(n), log_cos[use]])
+    coef, covariance, rss, dof = weighted_lstsq(design, np.log(gains[use]), weights[use])
+    _, _, rss_flat, _ = weighted_lstsq(design[:, :1], np.log(gains[use]), weights[use])
+    p_value = f_test(rss_flat, rss, 1, dof)
+    exponent = checked(coef[1], math.sqrt(covariance[1, 1]), 0.0, p_value, EXPONENT_LIMIT)
+    scale = float(np.exp(coef[0]))
+    rms = float(np.sqrt(np.mean((gains - scale * np.exp(coef[1] * log_cos)) ** 2)))
+    return exponent, scale, rms
+
+
+def fit_gain(gains: np.ndarray, field_deg: np.ndarray | None, positions: np.ndarray,
+             weights: np.ndarray | None = None) -> GainFit:
+    """Fit the gain map.
+
+    Parameters
+    ----------
+    gains : numpy.ndarray
+        ``(N, M)`` gains (1 at the reference).
+    field_deg : numpy.ndarray or None
+        ``(N, M, 2)`` field angles; without them the cos-law fit is skipped (not determined).
+    positions : numpy.ndarray
+        ``(N, M, 2)`` field coordinates for the polynomial (any unit; normalized internally).
+    weights : numpy.ndarray, optional
+        ``(N, M)`` weights, e.g. the overlap fraction of each position.
+    """
+    g = gains.reshape(-1).astype(np.float64)
+    w = np.ones_like(g) if weights is None else np.clip(weights.reshape(-1), 0, None)
+    p = positions.reshape(-1, 2).astype(np.float64)
+    # NaN gains (gaps, excluded positions) and unknown positions are left out
+    ok = np.isfinite(g) & (g > 0) & (w > 0) & np.isfinite(p).all(axis=1)
+    estimate, scale, cos_rms = undetermined("no field angles"), math.nan, math.nan
+    if field_deg is not None:
+        angles = field_deg.reshape(-1, 2).astype(np.float64)
+        usable = ok & np.isfinite(angles).all(axis=1)
+        estimate, scale, cos_rms = fit_cos_law(g[usable], angles[usable], w[usable])
+    known = np.isfinite(p).all(axis=1)
+    p = p / max(float(np.max(np.abs(p[known]), initial=0.0)), 1e-30)
+    x, y = p[:, 0], p[:, 1]
+    design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    if ok.sum() >= design.shape[1] and np.linalg.matrix_rank(design[ok]) == design.shape[1]:
+        sw = np.sqrt(w[ok])
+        coef, *_ = np.linalg.lstsq(design[ok] * sw[:, None], g[ok] * sw, rcond=None)
+        poly_rms = float(np.sqrt(np.mean((design[ok] @ coef - g[ok]) ** 2)))
+    else:  # too few positions (or all on one line) for a 2-D quadratic
+        coef, poly_rms = np.full(6, np.nan), float("nan")
+    return GainFit(exponent=estimate.value, cos_rms_residual=cos_rms, poly_coefficients=coef,
+                   poly_rms_residual=poly_rms, estimate=estimate, scale=scale)

@@ -1,0 +1,404 @@
+"""One pass over a PSF grid: registration, gain, MAE and warp against the centre PSF.
+
+``characterize_grid`` reads one PSF at a time (a full-resolution 9 × 9 RGB grid never sits in
+memory), preprocesses it (:mod:`psfkit.calibration.preprocess`), registers it to the centre PSF
+(:mod:`psfkit.calibration.registration`), aligns it, and measures what each requested step needs.
+The
+result (:class:`~psfkit.characterization.results.GridCharacterization`) keeps the per-position
+numbers plus small images for the figures.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+
+from psfkit.calibration.alignment import (
+    RELIABLE_OVERLAP,
+    AlignedPsf,
+    ExcludedPosition,
+    GridAligner,
+    nominal_shifts,
+)
+from psfkit.calibration.gain import fit_gain, overlap_gain
+from psfkit.calibration.mae import mean_absolute_error
+from psfkit.calibration.registration import ShiftMapFit, fit_shift_map
+from psfkit.calibration.support import crop_window, support_box
+from psfkit.calibration.warp import (
+    fit_growth,
+    geometric_anisotropy,
+    split_rms,
+    transport_anisotropy,
+    warp_field,
+)
+from psfkit.characterization.results import (
+    QUIVER_CELLS,
+    CharacterizeOptions,
+    GridCharacterization,
+    PositionResult,
+)
+from psfkit.choices import CV_BASES_ALL
+from psfkit.errors import InvalidInputError
+from psfkit.fitting.grid.eigen import WorkingStack, working_region
+from psfkit.fitting.grid.heldout import VERDICT_WORKING_SIZE, judge, moved_to
+from psfkit.fitting.verdict import Verdict
+from psfkit.io.grid import IRREGULAR, GridPosition, PsfGrid
+from psfkit.numerics.parallel import bounded_map
+from psfkit.numerics.resample import bin_image, binning_factor
+from psfkit.numerics.significance import Estimate, checked, t_test, undetermined
+
+THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
+
+
+def _field_units(grid: PsfGrid) -> str:
+    if grid.monitor_px() is not None:
+        return "monitor px"
+    if grid.field_deg() is not None:
+        return "tan(field angle)"
+    return "grid steps"
+
+
+def _fig2_positions(grid: PsfGrid, center: tuple[int, int]) -> list[tuple[int, int]]:
+    """Off-axis positions B and C of Fig. 2: halfway to the farther edge and at that edge,
+    along the vertical through the centre as in the paper (horizontal for a one-row grid);
+    of an irregular scan, the position farthest from the centre and the one nearest halfway
+    to it."""
+    if grid.is_irregular:
+        coords = grid.monitor_px() if grid.monitor_px() is not None else grid.field_deg()
+        assert coords is not None
+        radius = np.hypot(*np.moveaxis(coords[0] - coords[center], -1, 0))
+        far = int(np.argmax(radius))
+        half = int(np.argmin(np.where(radius > 0, np.abs(radius - radius[far] / 2), np.inf)))
+        return list(dict.fromkeys([(0, half), (0, far)]))
+    n, m = grid.grid_shape
+    r0, c0 = center
+    if n > 1:
+        far = 0 if r0 >= n - 1 - r0 else n - 1
+        return [((r0 + far) // 2, c0), (far, c0)]
+    far = 0 if c0 >= m - 1 - c0 else m - 1
+    return [(r0, (c0 + far) // 2), (r0, far)]
+
+
+def _smooth(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of every channel of a ``(C, H, W)`` image (identity for σ = 0)."""
+    if sigma <= 0:
+        return image
+    return np.stack([cv2.GaussianBlur(channel, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+                     for channel in image])
+
+
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    factor = binning_factor(image.shape, THUMBNAIL_SIZE)
+    return bin_image(image, factor) / factor**2
+
+
+def _coarse_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Block-average a ``(2, H, W)`` flow over the masked pixels to ``(3, h, w)``:
+    ``(d_u, d_v, fraction of masked pixels)`` for quiver plots."""
+    factor = binning_factor(flow.shape[1:], QUIVER_CELLS)
+    weight = bin_image(mask.astype(np.float64), factor)
+    du = bin_image(np.where(mask, flow[0], 0.0), factor) / np.maximum(weight, 1)
+    dv = bin_image(np.where(mask, flow[1], 0.0), factor) / np.maximum(weight, 1)
+    return np.stack([du, dv, weight / factor**2]).astype(np.float32)
+
+
+def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
+                      progress: bool = False, workers: int | None = None
+                      ) -> GridCharacterization:
+    """Register every PSF of ``grid`` to its centre PSF and measure gain, MAE and warp.
+
+    Parameters
+    ----------
+    grid : PsfGrid
+        From :func:`psfkit.io.read_grid`.
+    options : CharacterizeOptions
+    progress : bool
+        Show a progress bar.
+    workers : int, optional
+        Positions processed concurrently (default: 2, or 1 on a single core).
+
+    Raises
+    ------
+    GridFormatError
+        The grid has no centre position.
+    InvalidInputError
+        A PSF is empty, too saturated, or does not overlap the centre PSF (message names the
+        file).
+    """
+    options = options or CharacterizeOptions()
+    aligner = GridAligner(grid, options.preprocess, options.upsample,
+                          min_quality=options.min_quality, strict=options.strict)
+    center = aligner.center
+    ref_lum = aligner.reference_luminance
+    steps = set(options.steps)
+    working = _WorkingCopy(grid, aligner, enabled="verdict" in steps)
+    fig2 = set(_fig2_positions(grid, center))
+    box = support_box(ref_lum)      # the figures show the PSF, not the frame
+    thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(crop_window(ref_lum, box)).shape),
+                          np.float32)
+
+    result = GridCharacterization(
+        grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
+        channels=grid.channels, center=center, options=options, positions=[],
+        field_units=_field_units(grid), reference=aligner.reference, layout=grid.layout,
+        missing=grid.missing(), psf_box=box)
+
+    measure = _PositionMeasurement(grid, options, aligner, steps, working, fig2, box)
+
+    records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
+    bar: Any = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(grid.positions), desc="characterizing PSFs", unit="psf")
+
+    def collect(index: int, record: PositionResult | ExcludedPosition,
+                extras: dict[str, Any]) -> None:
+        records[index] = record
+        if bar is not None:
+            bar.update()
+        if isinstance(record, ExcludedPosition):
+            return
+        here = (record.row, record.col)
+        thumbnails[here] = extras["thumbnail"]
+        if "example" in extras:
+            result.examples[here] = extras["example"]
+        if "flow" in extras:
+            result.flows[here] = extras["flow"]
+
+    try:
+        for index, (record, extras) in bounded_map(measure, grid.positions, workers):
+            collect(index, record, extras)
+    finally:
+        if bar is not None:
+            bar.close()
+    result.positions = [r for r in records if isinstance(r, PositionResult)]
+    result.excluded = [r for r in records if isinstance(r, ExcludedPosition)]
+
+    result.thumbnails = thumbnails
+    coords = result.field_coordinates()
+    overlaps = result.table("support_overlap")
+    result.shift_fit = _shift_map(result, grid, coords, overlaps, options.upsample)
+    if "gain" in steps:
+        result.gain_fit = fit_gain(result.table("gain"), grid.field_deg(), coords,
+                                   weights=overlaps)
+    if "warp" in steps:
+        _summarise_warp(result)
+    result.verdict = working.verdict(grid, result, records, progress)
+    return result
+
+
+class _PositionMeasurement:
+    """Align one position of the grid to its centre PSF and measure it: its
+    :class:`PositionResult` (or why it is excluded) and what the figures keep of it
+    (``thumbnail``; ``example`` at the Fig. 2 positions; ``flow`` where a warp was measured).
+    Called concurrently on the positions (:func:`~psfkit.numerics.parallel.bounded_map`)."""
+
+    def __init__(self, grid: PsfGrid, options: CharacterizeOptions, aligner: GridAligner,
+                 steps: set[str], working: _WorkingCopy, fig2: set[tuple[int, int]],
+                 box: Any) -> None:
+        self.grid, self.options, self.aligner, self.steps = grid, options, aligner, steps
+        self.working, self.fig2, self.box = working, fig2, box
+        self.ref_total = aligner.reference.sum(axis=0)
+        self.ref_smooth = _smooth(aligner.reference, options.mae_smoothing_px)
+
+    def __call__(self, pos: GridPosition
+                 ) -> tuple[PositionResult | ExcludedPosition, dict[str, Any]]:
+        aligner, options, steps = self.aligner, self.options, self.steps
+        here = (pos.row, pos.col)
+        item = aligner.try_align(pos)
+        if isinstance(item, ExcludedPosition):
+            return item, {}
+        aligned, valid, shift, prep = item.image, item.valid, item.shift, item.prepared
+        window = crop_window(prep.luminance / np.float32(aligner.scale), self.box,
+                             (round(shift[1]), round(shift[0])))
+        extras: dict[str, Any] = {"thumbnail": _thumbnail(window)}
+        record = PositionResult(
+            row=pos.row, col=pos.col, file=pos.file, field_deg=pos.field_deg,
+            monitor_px=pos.monitor_px, shift=shift,
+            quality=item.quality, overlap=item.overlap,
+            n_saturated=prep.n_saturated, saturated_fraction=prep.saturated_fraction,
+            snr=prep.snr, support_overlap=item.support_overlap)
+        if options.per_channel and aligned.shape[0] > 1:
+            record.channel_shifts = self._channel_shifts(here, prep.image)
+        gain = overlap_gain(self.ref_total, aligned.sum(axis=0), aligner.gain_region(item))
+        self.working.put(item, aligned, gain)
+        if "gain" in steps:
+            record.gain = gain
+        if "mae" in steps:
+            self._mae(record, aligned, item.compared, gain)
+        if here in self.fig2:
+            extras["example"] = (aligned, valid)
+        if "warp" in steps and here != aligner.center:
+            measured = _try_warp(aligner.reference_luminance, item.luminance / np.float32(gain),
+                                 valid, shift, options.flow_method, str(self.grid.path(*here)))
+            if measured is not None:
+                record.warp, extras["flow"] = measured
+        return record, extras
+
+    def _channel_shifts(self, here: tuple[int, int], image: np.ndarray
+                        ) -> list[tuple[float, float]]:
+        """The shift of each colour channel against the centre PSF's same channel."""
+        aligner = self.aligner
+        image = image / np.float32(aligner.scale)
+        return [(0.0, 0.0) if here == aligner.center
+                else aligner.register(aligner.reference[c], image[c])
+                for c in range(image.shape[0])]
+
+    def _mae(self, record: PositionResult, aligned: np.ndarray, compared: np.ndarray,
+             gain: float) -> None:
+        # compared over the PSFs' support inside the overlap: frame-size independent (the
+        # noise of a large frame's empty pixels would otherwise dominate a compact PSF)
+        al_smooth = _smooth(aligned, self.options.mae_smoothing_px)
+        record.mae = mean_absolute_error(self.ref_smooth, al_smooth, compared)
+        record.mae_gain_compensated = mean_absolute_error(self.ref_smooth, al_smooth, compared,
+                                                          gain)
+
+
+def _try_warp(ref_lum: np.ndarray, lum: np.ndarray, valid: np.ndarray,
+              shift: tuple[float, float], method: str, where: str
+              ) -> tuple[dict[str, Any], Any] | None:
+    """One position's warp statistics and coarse flow (:func:`_warp_position`), or ``None``
+    when too few PSF pixels overlap for a dense flow (a compact PSF at the sensor's edge): no
+    warp at this position, not the end of the report."""
+    try:
+        warp, (residual, mask) = _warp_position(ref_lum, lum, valid, shift, method, where)
+    except InvalidInputError:
+        return None
+    return warp, _coarse_flow(residual, mask)
+
+
+def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
+               weights: np.ndarray, upsample: int) -> ShiftMapFit | None:
+    """The field → shift map over the measured positions; ``None`` for a one-row lattice or
+    positions that do not span two directions."""
+    if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
+        return None
+    try:
+        return fit_shift_map(coords, result.table("shift"), result.field_units,
+                             weights=weights, resolution_px=1.0 / upsample)
+    except InvalidInputError:
+        return None
+
+
+class _WorkingCopy:
+    """The working copy of the aligned PSFs the verdict is judged on (nothing when not
+    ``enabled``), chosen from the centre PSF's extent as ``psfkit fit-eigen`` chooses its own
+    (:func:`psfkit.fitting.grid.eigen.working_region`); one row per position of the grid, so that
+    the
+    worker threads never write the same one."""
+
+    def __init__(self, grid: PsfGrid, aligner: GridAligner, enabled: bool) -> None:
+        self.stack = None
+        if enabled:
+            region, factor, _ = working_region(aligner.reference_support,
+                                               aligner.reference_luminance,
+                                               VERDICT_WORKING_SIZE)
+            self.stack = WorkingStack.empty(len(grid.positions), grid.image_shape, factor,
+                                            region)
+        self.rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
+
+    def put(self, item: AlignedPsf, image: np.ndarray, gain: float) -> None:
+        if self.stack is not None:
+            self.stack.put(self.rows[(item.position.row, item.position.col)], item, image,
+                           gain)
+
+    def verdict(self, grid: PsfGrid, result: GridCharacterization, records: list[Any],
+                progress: bool) -> Verdict | None:
+        """:func:`judge_grid` on the measured positions (``None`` when not enabled)."""
+        if self.stack is None:
+            return None
+        kept = np.array([isinstance(r, PositionResult) for r in records])
+        return judge_grid(grid, result, self.stack.subset(kept), progress)
+
+
+def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
+               progress: bool = False) -> Verdict:
+    """The verdict of a characterized grid (:mod:`psfkit.fitting.grid.heldout`) from the working
+    copy of
+    its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
+    fit-eigen`` places them (:func:`psfkit.calibration.alignment.nominal_shifts`: the forward
+    model's
+    affine map of the field), so that both commands judge the same data."""
+    positions = [grid.position(p.row, p.col) for p in result.positions]
+    placement = nominal_shifts(positions, np.array([p.shift for p in result.positions]),
+                               np.array([p.support_overlap if math.isfinite(p.support_overlap)
+                                         else p.overlap for p in result.positions]),
+                               result.center)
+    stack = moved_to(stack, np.array([placement.shifts[(p.row, p.col)] for p in positions]))
+    _, verdict = judge(stack, stack.row_of(result.center), result.image_shape[1:],
+                       list(CV_BASES_ALL), effects=result.effects(), progress=progress)
+    return verdict
+
+
+def _summarise_warp(result: GridCharacterization) -> None:
+    """Grid-level warp summary over the positions mostly on the sensor: growth of the residual
+    with field angle, and the tangential/sagittal anisotropy against geometric optics."""
+    theta = result.field_angle_deg()
+    if theta is None:
+        return
+    reliable = result.table("support_overlap") >= RELIABLE_OVERLAP
+    residual = np.where(reliable, result.warp_table("residual_rms"), np.nan)
+    result.warp_growth = fit_growth(theta, residual)
+    anisotropy = result.warp_table("anisotropy")
+    # far enough off axis for the astigmatic displacement to dominate the flow's error floor
+    strong = reliable & np.isfinite(anisotropy) & (anisotropy > 0) \
+        & (theta >= 0.4 * np.nanmax(theta))
+    if strong.any():
+        ratio = anisotropy[strong] / geometric_anisotropy(theta[strong])
+        result.warp_anisotropy = {
+            "positions": int(strong.sum()),
+            "median_measured": float(np.median(anisotropy[strong])),
+            "median_geometric": float(np.median(geometric_anisotropy(theta[strong]))),
+            "median_ratio_to_geometric": float(np.median(ratio)),
+            "fraction_tangential": float(np.mean(anisotropy[strong] > 1.0)),
+        }
+        result.astigmatism = astigmatism_estimate(anisotropy[strong])
+        result.warp_anisotropy["estimates"] = {
+            "tangential_sagittal": result.astigmatism.to_dict()}
+
+
+def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
+    """The tangential/sagittal ratio of the warp residual over the positions, as an
+    :class:`~psfkit.numerics.significance.Estimate`: the geometric mean of the per-position ratios
+    (finite, positive) with its 1σ from their scatter (delta method on the mean of their
+    logarithms), against the null 1 (no astigmatism: an isotropic change), tested by the
+    one-sample t-test of the logarithms."""
+    ratios = np.asarray(anisotropy, dtype=np.float64).ravel()
+    ratios = ratios[np.isfinite(ratios) & (ratios > 0)]
+    if len(ratios) < 3:
+        return undetermined(f"{len(ratios)} position(s) with a measured anisotropy far enough "
+                            "off axis; the test needs at least 3", null=1.0)
+    logs = np.log(ratios)
+    mean, sem = float(np.mean(logs)), float(np.std(logs, ddof=1) / np.sqrt(len(logs)))
+    p_value = t_test(mean, sem, len(logs) - 1) if sem > 0 else 0.0
+    value = math.exp(mean)
+    return checked(value, value * sem if sem > 0 else 1e-12 * value, 1.0, p_value)
+
+
+def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
+                   shift: tuple[float, float], method: str, where: str = "PSF"
+                   ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
+    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures
+    (``where`` names the position's file in an error)."""
+    try:
+        warp = warp_field(ref_lum, al_lum, valid, method)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{where}: {exc}") from None
+    # tangential = direction of the PSF's shift (radial on the sensor)
+    azimuth = float(np.arctan2(shift[1], shift[0]))
+    m = warp.mask
+    residual_rms = float(np.sqrt(np.mean(np.sum(warp.residual[:, m] ** 2, axis=0))))
+    anisotropy = transport_anisotropy(ref_lum, warp.compensated, m, azimuth)
+    rms_t, rms_s = split_rms(residual_rms, anisotropy)
+    stats = {
+        "affine": warp.affine.to_dict(azimuth), "ecc": warp.ecc,
+        "azimuth_deg": float(np.degrees(azimuth)),
+        "residual_rms": residual_rms, "anisotropy": anisotropy,
+        "rms_tangential": rms_t, "rms_sagittal": rms_s,
+        "mask_fraction": float(m.mean()),
+    }
+    return stats, (warp.residual, m)

@@ -1,0 +1,1 @@
+"""Eigen-kernel fits of a measured PSF grid (``psfkit fit-eigen``)."""

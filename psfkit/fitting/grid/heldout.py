@@ -1,0 +1,227 @@
+r"""Held-out test of a field dependence of the PSF shape (issue 43, the verdict's evidence).
+
+Every model here writes the aligned, gain-compensated PSF of position ``p`` as
+:math:`a_p(v) = \sum_k w_{pk} K_k(v)` with weights ``w_p`` that depend on the position only
+(source-side), fitted by least squares at every kernel pixel (the masked normal equations of
+:mod:`psfkit.fitting.grid.eigen`, with weights given per position). Models:
+
+``si+sampling`` (the null)
+    one PSF plus four kernels weighted by the first harmonics of the PSF's sub-pixel phase
+    ``φ = s − round(s)`` (``sin 2πφ``, ``cos 2πφ − 1`` per axis): aligning a PSF that the
+    pixels alias changes it with φ, and a regular grid changes φ steadily over the field;
+``si+sampling+<basis>``
+    the null plus the field weights of an eigen-kernel basis (:data:`FIELD_BASES`) at the
+    position.
+
+Positions are held out as in :func:`psfkit.fitting.grid.eigen.cross_validate_positions` (the same
+folds
+for the same seed); the result is a :class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge`
+runs
+both cross-validations on a working stack and decides the verdict: ``psfkit report`` and
+``psfkit fit-eigen`` call it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from psfkit.calibration.registration import shift_image
+from psfkit.fitting.grid.eigen import (
+    CENTRE_ONLY,
+    CrossValidation,
+    WorkingStack,
+    _solve_spd,
+    cross_validate_positions,
+    fold_groups,
+    position_weights,
+)
+from psfkit.fitting.verdict import HeldOutErrors, Verdict, decide
+from psfkit.forward.kernelfile import CONVENTIONS
+from psfkit.forward.weights import get_basis
+from psfkit.numerics.significance import Estimate
+
+#: Field bases tested against the null model.
+FIELD_BASES = ("paper", "paper+odd", "poly:2")
+NULL_MODEL = "si+sampling"
+#: Longest side (px) of the working copy the verdict of ``psfkit report`` is computed on (as
+#: ``psfkit fit-eigen``'s, :class:`psfkit.fitting.grid.fit.EigenFitOptions`).
+VERDICT_WORKING_SIZE = 256
+#: Ridge on the correction kernels, relative to each pixel's mean diagonal (as
+#: :data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`).
+RIDGE = 1e-4
+
+
+def sampling_weights(shifts_px: np.ndarray) -> np.ndarray:
+    """``(P, 4)`` first harmonics of each shift's sub-pixel phase (full-resolution px)."""
+    phase = 2 * np.pi * (shifts_px - np.round(shifts_px))
+    return np.column_stack([np.sin(phase), np.cos(phase) - 1.0])
+
+
+def field_weights(basis_name: str, shifts_px: np.ndarray, sensor_shape: tuple[int, int]
+                  ) -> np.ndarray:
+    """``(P, K − 1)`` correction weights of ``basis_name`` at each position (source side)."""
+    basis = get_basis(basis_name)
+    return np.array([position_weights(basis, sensor_shape, (float(s[0]), float(s[1])),
+                                      "source")[1:, 0, 0] for s in shifts_px])
+
+
+def _sums(mask: np.ndarray, images: np.ndarray, design: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel normal equations of the listed positions: Gram ``(K, K, N)`` and right-hand
+    sides ``(K, C, N)`` (``mask`` ``(P, N)``, ``images`` ``(P, C, N)``, ``design``
+    ``(P, K)``)."""
+    gram = np.einsum("pn,pk,pl->kln", mask, design, design, optimize=True)
+    rhs = np.einsum("pn,pk,pcn->kcn", mask, design, images, optimize=True)
+    return gram, rhs
+
+
+def solve_position_weights(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Kernels ``(K, C, N)`` of the per-pixel systems. The first weight is 1 (the PSF), the
+    others add corrections: a ridge of :data:`RIDGE` (relative to each pixel's mean
+    diagonal) pulls the corrections towards 0 where few positions see a pixel, as the
+    difference prior of :mod:`psfkit.fitting.grid.eigen` pulls eigen-kernels towards the base
+    kernel."""
+    k = gram.shape[0]
+    scale = np.einsum("kkn->n", gram) / k + 1e-300
+    prior = np.diag([1e-12] + [RIDGE] * (k - 1))
+    system = gram / scale + prior[:, :, None]
+    return _solve_spd(system, rhs / scale)
+
+
+def held_out_models(stack: WorkingStack, center_row: int, sensor_shape: tuple[int, int],
+                    folds: int = 9, seed: int = 0,
+                    bases: tuple[str, ...] = FIELD_BASES) -> HeldOutErrors | None:
+    """Per-position held-out squared errors of the null model and of each field model
+    (module docstring) on the gain-compensated working stack; ``None`` when the positions
+    are too few to determine the null model in every fold.
+
+    The normal equations of all models are blocks of those of one design holding every
+    model's weights: summed once over all positions and once per held-out group (a fold's
+    training sums are the difference), each model's fold is one vectorised solve.
+    """
+    n = len(stack.images)
+    groups = fold_groups(n, center_row, folds, seed)
+    training = n - max((len(g) for g in groups), default=n)
+    shifts = stack.shifts * stack.factor
+    null = np.column_stack([np.ones(n), sampling_weights(shifts)])
+    if not groups or training < 2 * null.shape[1]:
+        return None
+    columns = {NULL_MODEL: list(range(null.shape[1]))}
+    blocks = [null]
+    for name in bases:
+        extra = field_weights(name, shifts, sensor_shape)
+        start = sum(b.shape[1] for b in blocks)
+        if training >= 2 * (null.shape[1] + extra.shape[1]):
+            columns[f"{NULL_MODEL}+{name}"] = columns[NULL_MODEL] + list(
+                range(start, start + extra.shape[1]))
+            blocks.append(extra)
+    design = np.column_stack(blocks)
+    images = (stack.images / np.maximum(stack.gains, 1e-30)[:, None, None, None]).reshape(
+        n, stack.images.shape[1], -1).astype(np.float64)
+    mask = stack.valid.reshape(n, -1).astype(np.float64)
+    gram, rhs = _sums(mask, images, design)
+    held = np.concatenate(groups)
+    norms = np.array([float(np.sum(images[p] ** 2, axis=0)[mask[p] > 0].sum()) for p in held])
+    squared = {name: np.zeros(n) for name in columns}
+    for group in groups:
+        group_gram, group_rhs = _sums(mask[group], images[group], design[group])
+        train_gram, train_rhs = gram - group_gram, rhs - group_rhs
+        for name, cols in columns.items():
+            kernels = solve_position_weights(train_gram[np.ix_(cols, cols)], train_rhs[cols])
+            for p in group:
+                prediction = np.einsum("kcn,k->cn", kernels, design[p, cols])
+                residual = np.sum((prediction - images[p]) ** 2, axis=0)
+                squared[name][p] = float(residual[mask[p] > 0].sum())
+    return HeldOutErrors({name: values[held] for name, values in squared.items()}, norms)
+
+
+def judge(stack: WorkingStack, center_row: int, sensor_shape: tuple[int, int],
+          bases: list[str], folds: int = 9, effects: dict[str, Estimate] | None = None,
+          progress: bool = False) -> tuple[CrossValidation, Verdict]:
+    """Cross-validate the eigen-kernel ``bases`` (both conventions; ``"si"`` always among
+    them) and the field models on a working stack, and decide
+    (:func:`psfkit.fitting.verdict.decide`).
+
+    Returns the cross-validation (per-position errors, kernel differences) and the verdict.
+    """
+    bases = list(dict.fromkeys(["si", *bases]))
+    bar: Any = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(bases) + 1, desc="cross-validating models", unit="basis")
+    try:
+        parts = []
+        for name in bases:
+            parts.append(cross_validate_positions(stack, [name], CONVENTIONS, center_row,
+                                                  folds))
+            if bar is not None:
+                bar.update()
+        validation = merge_validations(parts)
+        field_models = held_out_models(stack, center_row, sensor_shape, folds)
+        if bar is not None:
+            bar.update()
+    finally:
+        if bar is not None:
+            bar.close()
+    return validation, decide(candidate_models(validation), field_models, NULL_MODEL, effects)
+
+
+def merge_validations(parts: list[CrossValidation]) -> CrossValidation:
+    """One :class:`CrossValidation` of several run on the same stack and folds."""
+    squared: dict[str, np.ndarray] = {}
+    differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for part in parts:
+        squared.update(part.held_out.squared)
+        differences.update(part.kernel_differences)
+    return CrossValidation(HeldOutErrors(squared, parts[0].held_out.norms), parts[0].folds,
+                           differences)
+
+
+def candidate_models(validation: CrossValidation) -> HeldOutErrors:
+    """The forward models a user can write, named as the verdict names them: ``"si"`` (one
+    kernel: both conventions are the same model) and ``"basis/convention"``."""
+    held = validation.held_out.squared
+    squared = {name: v for name, v in held.items()
+               if name != CENTRE_ONLY and not name.startswith("si/")}
+    if "si/sensor" in held:
+        squared = {"si": held["si/sensor"], **squared}
+    return HeldOutErrors(squared, validation.held_out.norms)
+
+
+def moved_to(stack: WorkingStack, shifts_px: np.ndarray) -> WorkingStack:
+    """The working copy with every PSF aligned at ``shifts_px`` ``(P, 2)`` (full-resolution
+    ``(du, dv)``) instead of where it was: each binned image moved by the difference (a
+    Fourier shift, :func:`psfkit.calibration.registration.shift_image`), its valid blocks with
+    it."""
+    images = np.empty_like(stack.images)
+    valid = np.empty_like(stack.valid)
+    for p in range(len(stack.images)):
+        move = (np.asarray(shifts_px[p], dtype=np.float64) / stack.factor - stack.shifts[p])
+        step = (float(move[0]), float(move[1]))
+        images[p], inside = shift_image(stack.images[p], step)
+        valid[p] = inside & _moved_mask(stack.valid[p], step)
+    # the same working copy (region, binning, positions) with the PSFs moved
+    return dataclasses.replace(stack, images=images, valid=valid,
+                               shifts=np.asarray(shifts_px, dtype=np.float64) / stack.factor)
+
+
+def _moved_mask(mask: np.ndarray, step: tuple[float, float]) -> np.ndarray:
+    """Pixels ``x`` of a bool ``mask`` moved by ``step = (du, dv)`` (``new(x) = mask(x + s)``)
+    whose neighbours around ``x + s`` (floor and ceiling on each axis) are all in ``mask``."""
+    h, w = mask.shape
+    out = np.ones_like(mask)
+    for dv in {math.floor(step[1]), math.ceil(step[1])}:
+        for du in {math.floor(step[0]), math.ceil(step[0])}:
+            moved = np.zeros_like(mask)
+            src_v = slice(max(dv, 0), h + min(dv, 0))
+            src_u = slice(max(du, 0), w + min(du, 0))
+            dst_v = slice(max(-dv, 0), h - max(dv, 0))
+            dst_u = slice(max(-du, 0), w - max(du, 0))
+            moved[dst_v, dst_u] = mask[src_v, src_u]
+            out &= moved
+    return out

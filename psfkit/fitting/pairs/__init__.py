@@ -1,0 +1,1 @@
+"""Forward models fitted to (scene, measurement) pairs (``psfkit fit-pairs``, ``eval-model``)."""

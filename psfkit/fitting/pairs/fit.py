@@ -1,0 +1,450 @@
+r"""Forward models fitted to (scene, measurement) pairs (``psfkit fit-pairs``, ``eval-model``).
+
+For users without a point-source grid: the kernels of a shift-invariant or eigen-kernel model
+``y = A_K x`` (the forward model of :mod:`psfkit.forward`, which ekdun's operators wrap, so
+the fitted model is exactly the one ekdun trains with) are estimated from pairs by regularised
+least squares (in the kernel-space form :class:`~psfkit.forward.kernel_space.KernelSpaceOperator`),
+
+.. math::
+
+    \min_K \sum_i \lVert A_K x_i - y_i\rVert^2 + \lambda\lVert K\rVert^2
+           + \mu \sum_{k\ge1}\lVert K_k - K_0\rVert^2 ,
+
+which is linear in ``K``: with :math:`B_i: K \mapsto A_K x_i` the normal equations
+:math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved **to
+convergence** (relative residual ``PairFitOptions.tolerance``, recorded in the history) by
+conjugate gradients preconditioned with the per-frequency ``K × K`` Gram blocks of the scenes,
+streaming the pairs in batches (:mod:`psfkit.fitting.pairs.solver`, which says what is exact and
+what
+only preconditions). Both weights default to 0 (issue 23): a ridge or a pull of the
+corrections towards the base kernel biases the kernels where the scenes carry little power,
+and early stopping did the same; with neither, noise-free pairs of an eigen-kernel model give
+back its kernels.
+``λ`` and ``μ`` are relative to the mean of :math:`\sum_i\sum_j|\hat s_{ij}|^2` (the spectra
+of the scenes as the kernels see them: the K weighted scenes of a source-side model), so they do
+not depend on the data's units. Datasets whose ground truth was normalised image by image (the
+DiffuserCam Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated
+in a few alternating rounds (``fit_scale``).
+
+By default the kernels are then made physical: non-negative, by projected Newton-CG to a
+relative KKT residual of ``PairFitOptions.tolerance``, started from the unconstrained solution
+and scales solved in float32 to ``START_TOLERANCE`` (:func:`_newton_start`), inside a support
+if one is given (``PairFitOptions.nonneg``, ``support``); a support without non-negativity is
+solved exactly by the same conjugate gradients restricted to it. One solver per problem: CG on
+the normal equations, projected Newton-CG for non-negativity (issue 44).
+Unless given, the regularisation is chosen by held-out error first
+(:mod:`psfkit.fitting.pairs.regularisation`).
+:meth:`PairFit.physics` is what the kernel file records about them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from psfkit.errors import InvalidInputError
+from psfkit.fitting.pairs.constraints import (
+    auto_support,
+    kernel_summary,
+    newton_fit,
+    support_least_squares,
+)
+from psfkit.fitting.pairs.options import NEWTON_CG_ITERATIONS, PairFitOptions
+from psfkit.fitting.pairs.regularisation import (
+    FOLD_TOLERANCE,
+    PATHS,
+    RegularisationChoice,
+    choose_regularisation,
+    selection_binning,
+)
+from psfkit.fitting.pairs.solver import DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
+from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.forward.kernelfile import KernelModel
+from psfkit.forward.operator import SpectralOperator
+from psfkit.io.read_options import ReadOptions
+from psfkit.io.validation import MIN_PAIR_SIDE
+from psfkit.numerics.resample import bin_mean
+
+__all__ = ["START_TOLERANCE", "KernelSpaceOperator", "PairFit", "PairFitOptions",
+           "downsample_pairs", "fit_pairs", "leave_one_out", "predict", "relative_errors"]
+
+
+@dataclass
+class PairFit:
+    """Result of :func:`fit_pairs`: kernels ``(K, C, Hk, Wk)``, per-pair scales and relative
+    training errors, and the solver's history."""
+
+    kernels: np.ndarray = field(repr=False)
+    basis: str
+    convention: str
+    scales: np.ndarray
+    training_error: np.ndarray
+    history: list[dict[str, Any]]
+    options: PairFitOptions
+    support: np.ndarray | None = field(default=None, repr=False)
+    #: The relative weights solved with (``{"tikhonov", "difference"}``: the given ones and
+    #: those chosen by held-out error).
+    weights: dict[str, float] = field(default_factory=dict)
+    #: How each automatic weight was chosen
+    # (:class:`~psfkit.fitting.pairs.regularisation.RegularisationChoice`).
+    regularisation: list[RegularisationChoice] = field(default_factory=list)
+
+    def regularisation_record(self) -> dict[str, Any]:
+        """What the kernel file and the fit report record about the regularisation: the
+        weights used, and for each weight chosen automatically its held-out errors along the
+        path (:meth:`RegularisationChoice.as_dict`)."""
+        automatic = {c.parameter: c.as_dict() for c in self.regularisation}
+        return {"weights": dict(self.weights),
+                "chosen_by": {p: ("held-out error" if p in automatic else "given")
+                              for p in self.weights},
+                "automatic": automatic}
+
+    def physics(self) -> dict[str, Any]:
+        """The constraints imposed and what the kernels are: energies ``[K][C]``, support
+        fraction, negative and non-finite pixel counts (recorded in the kernel file)."""
+        o = self.options
+        return {"constraints": {"nonneg": o.nonneg, "support": o.support},
+                **kernel_summary(self.kernels)}
+
+    def kernel_model(self, provenance: dict[str, Any] | None = None,
+                     read_options: ReadOptions | None = None) -> KernelModel:
+        """The kernel file content; ``read_options``: how the fitted pairs were read
+        (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
+        channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
+        provenance = {**(provenance or {}), "regularisation": self.regularisation_record()}
+        return KernelModel(kernels=self.kernels, basis=self.basis, convention=self.convention,
+                           sensor_shape=self.kernels.shape[-2:], channels=channels,
+                           scene_padding=self.options.scene_padding,
+                           normalization="fitted in the pairs' own units: y = A x",
+                           provenance=provenance, read_options=read_options)
+
+
+def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
+                     where: str = "pairs") -> tuple[np.ndarray, np.ndarray]:
+    """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements
+    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch.
+
+    Pairs smaller than ``MIN_PAIR_SIDE`` px a side once binned are refused (``where`` names
+    them; with ``factor > 1`` the message names ``--downsample`` too).
+    """
+    h, w = scenes.shape[-2:]
+    if h // factor < MIN_PAIR_SIDE or w // factor < MIN_PAIR_SIDE:
+        binning = f" binned by --downsample {factor} to {h // factor}x{w // factor}" \
+            if factor > 1 else ""
+        raise InvalidInputError(f"{where}: {h}x{w} px pairs{binning} leave too few pixels "
+                                f"to fit or evaluate a model (at least {MIN_PAIR_SIDE}x"
+                                f"{MIN_PAIR_SIDE})")
+    if factor == 1:
+        return scenes, measurements
+    return (bin_mean(scenes, factor).astype(np.float32),
+            bin_mean(measurements, factor).astype(np.float32))
+
+
+def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
+              options: PairFitOptions | None = None, initial: np.ndarray | None = None,
+              dtype: torch.dtype = torch.float64, device: str = "cpu",
+              progress: bool = False, support_mask: np.ndarray | None = None,
+              batch_size: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES
+              ) -> PairFit:
+    """Fit a forward model to ``(N, C, H, W)`` scenes and measurements.
+
+    The least squares is solved to ``options.tolerance`` (relative residual of the normal
+    equations) by conjugate gradients preconditioned with the per-frequency Gram blocks of
+    the scenes (:mod:`psfkit.fitting.pairs.solver`), streaming the pairs in batches: memory is that
+    of
+    the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
+
+    Parameters
+    ----------
+    scenes, measurements : numpy.ndarray
+        ``(N, C, H', W')`` each (scene and measurement of a pair have the sensor's size).
+    options : PairFitOptions
+    initial : numpy.ndarray, optional
+        ``(K, C, Hk, Wk)`` starting kernels (only a warm start: the solution does not depend
+        on it).
+    dtype : torch.dtype
+        Working precision (float64 by default: the solve is run to a relative residual that
+        float32 cannot reach on ill-conditioned data).
+    support_mask : numpy.ndarray, optional
+        ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
+        "mask"``; nonzero = inside).
+    batch_size, cache_bytes
+        Pairs per batch (default: :func:`~psfkit.fitting.pairs.solver.auto_batch_size`), and bytes
+        of scene spectra kept between passes
+        (:class:`~psfkit.fitting.pairs.solver.PairBatches`).
+
+    Raises
+    ------
+    InvalidInputError
+        Mismatched shapes, no pairs, or a support mask missing or of the wrong size.
+    """
+    options = options or PairFitOptions()
+    if scenes.shape != measurements.shape or scenes.ndim != 4 or len(scenes) == 0:
+        raise InvalidInputError(f"scenes {scenes.shape} and measurements {measurements.shape} "
+                                "must both be (N, C, H, W) with N >= 1")
+    if (options.support == "mask") != (support_mask is not None):
+        raise InvalidInputError("a support mask is given exactly when options.support is "
+                                f"'mask' (support {options.support!r})")
+    if support_mask is not None and tuple(support_mask.shape) != tuple(scenes.shape[-2:]):
+        raise InvalidInputError(f"the support mask is {support_mask.shape[0]}x"
+                                f"{support_mask.shape[1]}, the kernels "
+                                f"{scenes.shape[-2]}x{scenes.shape[-1]}")
+    h, w = scenes.shape[-2:]
+    kernel_shape = (int(h), int(w))
+    batches = PairBatches(scenes, options.basis, options.convention, kernel_shape,
+                          options.scene_padding, batch_size, cache_bytes, dtype, device)
+    n_kernels = batches.n_kernels
+    history: list[dict[str, Any]] = []
+    kernels: Tensor | None = None
+    weights = options.weights()
+    if initial is not None:
+        kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
+    elif n_kernels > 1 and options.seed_with_si:
+        seed = fit_pairs(scenes, measurements,
+                         dataclasses.replace(options, basis="si", nonneg=False,
+                                             support="none",
+                                             tikhonov=weights["tikhonov"]),
+                         dtype=dtype, device=device, progress=progress,
+                         batch_size=batch_size, cache_bytes=cache_bytes)
+        kernels = torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
+                                  device=device)
+        batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(unit="it", leave=False, desc=f"fit {options.basis}")
+    choices: list[RegularisationChoice] = []
+    if options.automatic and batches.n >= 2:
+        kernels = _choose_weights(batches, measurements, options, weights, kernels, history,
+                                  choices, bar)
+    if options.solver == "newton":                     # non-negative (a constrained fit)
+        kernels, system = _newton_start(batches, measurements, options, weights, kernels,
+                                        history, bar)
+    else:
+        kernels, system = _solve(batches, measurements, options, weights, kernels, history,
+                                 bar)
+    support = None
+    if options.constrained:
+        t0 = time.perf_counter()
+        kernels, support, info_c = _constrained_solve(system, kernels, options, support_mask,
+                                                      progress)
+        info_c.update(passes=batches.passes, seconds=round(time.perf_counter() - t0, 3))
+        history.append(info_c)
+    if bar is not None:
+        bar.close()
+    err, norm, _num, _den = batches.residual_norms(kernels, measurements)
+    errors = err / norm.clamp_min(1e-300)
+    # solved in ``dtype`` (float64 by default); handed over as psfkit's float32 arrays
+    # (docs/architecture.md), so that a PairFit's kernels build the same operators as a
+    # kernel file's
+    return PairFit(kernels=kernels.to(torch.float32).cpu().numpy(), basis=options.basis,
+                   convention=options.convention,
+                   scales=batches.scales.to(torch.float32).cpu().numpy(),
+                   training_error=errors.to(torch.float32).cpu().numpy(), history=history,
+                   options=options, support=support, weights=weights,
+                   regularisation=choices)
+
+
+def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+                    weights: dict[str, float], kernels: Tensor | None,
+                    history: list[dict[str, Any]], choices: list[RegularisationChoice],
+                    bar: Any) -> Tensor | None:
+    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
+    records into ``choices``): on the pairs binned to at most
+    :data:`~psfkit.fitting.pairs.regularisation.SELECTION_PIXELS` pixels, the scales first, at the
+    path's
+    strongest weights (the best-conditioned solves), then the folds with those scales; both in
+    float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at the
+    chosen
+    weights (``kernels`` as given when the choice was made on binned pairs)."""
+    factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
+    strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
+    if factor > 1:
+        scenes, measured = downsample_pairs(np.asarray(batches.scenes), np.asarray(measurements),
+                                            factor)
+        twin = PairBatches(scenes, options.basis, options.convention, scenes.shape[-2:],
+                           options.scene_padding, None, batches.cache_bytes, torch.float32,
+                           batches.device)
+        first = None
+    else:
+        twin, measured = batches.astype(torch.float32), measurements
+        first = None if kernels is None else kernels.to(torch.float32)
+    start, system = _solve(twin, measured, options, strongest, first, history, bar,
+                           stage="scales", tolerance=FOLD_TOLERANCE)
+    # a pair's scale is its gain, whatever the pixel pitch
+    batches.scales = twin.scales.to(dtype=batches.dtype, device=batches.device)
+    for parameter in options.automatic:
+        if bar is not None:
+            bar.set_description(f"choose --{parameter} ({options.basis})")
+        choice, start = choose_regularisation(
+            twin, measured, parameter,
+            {p: w for p, w in weights.items() if p != parameter}, options.fit_scale,
+            system["reference"], start, bar)
+        choice.binning = factor
+        weights[parameter] = choice.chosen
+        choices.append(choice)
+    if bar is not None:
+        bar.set_description(f"fit {options.basis}")
+    if factor > 1:
+        return kernels
+    return start.to(dtype=batches.dtype, device=batches.device)
+
+
+#: Relative residual of the float32 solves that start the non-negative solve (the
+#: unconstrained kernels and the per-pair scales, which Newton keeps): 1e-4 left the scales of
+#: noise-free pairs 8e-4 from 1 (training error 1.0e-3 against < 1e-3 from float64 solves to
+#: 1e-6); 1e-5, which float32 reaches, does not (tests/psfkit/test_pairs_solver.py). On DLMD
+#: at 1/2 resolution (eigen-kernels, ``--difference 1``) the three rounds took 23 s against
+#: 52 s for float64 to 1e-6.
+START_TOLERANCE = 1e-5
+
+
+def _newton_start(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+                  weights: dict[str, float], kernels: Tensor | None,
+                  history: list[dict[str, Any]], bar: Any) -> tuple[Tensor, dict[str, Any]]:
+    """The start of the non-negative solve: the unconstrained kernels and the per-pair scales
+    solved in float32 to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system
+    (normal equations, Gram preconditioner) that projected Newton converges on: the
+    unconstrained solution only starts Newton, and float64 passes cost 2.6 times float32
+    ones at full DLMD resolution (eigen-kernels)."""
+    twin = batches.astype(torch.float32)
+    start, _ = _solve(twin, measurements, options, weights,
+                      None if kernels is None else kernels.to(torch.float32), history, bar,
+                      stage="start", tolerance=START_TOLERANCE)
+    batches.scales = twin.scales.to(batches.dtype)
+    kernels, _info, system = solve_kernels(batches, measurements, weights["tikhonov"],
+                                           weights["difference"],
+                                           start=start.to(batches.dtype), max_iterations=0)
+    system["twin"] = twin
+    return kernels, system
+
+
+def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
+           weights: dict[str, float], kernels: Tensor | None, history: list[dict[str, Any]],
+           bar: Any, stage: str = "fit", tolerance: float | None = None
+           ) -> tuple[Tensor, dict[str, Any]]:
+    """The unconstrained kernels at the relative ``weights``, with the per-pair scales
+    re-estimated in ``options.rounds`` solves (each to the tolerance, warm-started), appending
+    each solve's record to ``history``; returns the kernels and the last solve's system."""
+    # Every round is solved to the tolerance (warm-started from the previous one): scales
+    # fitted to loosely solved kernels are biased by a percent (measured), and then stay so.
+    scale_rounds = options.rounds - 1 if options.fit_scale else 0
+    round_index = 0
+    while True:
+        final_round = round_index >= scale_rounds
+        t0 = time.perf_counter()
+        kernels, info, system = solve_kernels(
+            batches, measurements, weights["tikhonov"], weights["difference"], start=kernels,
+            tolerance=options.tolerance if tolerance is None else tolerance,
+            max_iterations=options.final_iterations if final_round
+            else options.scale_iterations, bar=bar)
+        record = info.as_dict()
+        record.update(stage=stage, round=round_index, passes=batches.passes,
+                      seconds=round(time.perf_counter() - t0, 3),
+                      **{k: system[k] for k in ("lambda", "mu", "reference")})
+        history.append(record)
+        if final_round:
+            return kernels, system
+        # the model is linear in the scene: fit the best scale to each unscaled prediction
+        _err, _norm, num, den = batches.residual_norms(kernels, measurements)
+        new = num / den.clamp_min(1e-30)
+        new = new / new.mean()                       # the overall scale stays in the kernels
+        if float((new - batches.scales).abs().max()) < 1e-6:
+            scale_rounds = round_index + 1           # converged: go to the final solve
+        batches.scales = new
+        round_index += 1
+
+
+def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
+                       options: PairFitOptions, support_mask: np.ndarray | None,
+                       progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
+    """The final solve under ``options``' constraints on the normal equations ``system`` of
+    :func:`~psfkit.fitting.pairs.solver.solve_kernels`, warm-started from the unconstrained
+    (converged) kernels, whose base kernel also gives the automatic support: projected
+    Newton-CG for non-negativity; a support alone, conjugate gradients restricted to it
+    (:mod:`psfkit.fitting.pairs.constraints`)."""
+    support = None
+    if options.support == "auto":
+        support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
+    elif options.support == "mask":
+        support = np.asarray(support_mask) != 0
+    mask = None if support is None else torch.as_tensor(support, device=unconstrained.device)
+    if options.nonneg:
+        kernels, info = newton_fit(system, unconstrained, mask,
+                                   options.final_projected_iterations, NEWTON_CG_ITERATIONS,
+                                   options.tolerance, progress)
+    else:
+        assert mask is not None                   # constrained without nonneg: a support
+        kernels, info = support_least_squares(system, unconstrained, mask, options.tolerance,
+                                              options.final_iterations)
+    info["support_fraction"] = 1.0 if support is None else float(support.mean())
+    return kernels, support, info
+
+
+def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,
+            *, model_name: str = "", scenes_name: str = "scenes") -> np.ndarray:
+    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``:
+    ``A x`` of :meth:`psfkit.forward.operator.SpectralOperator.from_kernel_model`, the operator
+    every command builds from a kernel file.
+
+    ``model_name`` (the kernel file) and ``scenes_name`` (where the scenes come from, e.g. the
+    pairs folder) name the two inputs when their sizes or channels disagree.
+    """
+    model_text = f"the model {model_name}" if model_name else "the model"
+    if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
+        raise InvalidInputError(f"{scenes_name}: scenes are {scenes.shape[-2]}x"
+                                f"{scenes.shape[-1]} but {model_text} has a "
+                                f"{model.sensor_shape[0]}x{model.sensor_shape[1]} sensor")
+    if scenes.shape[1] != len(model.channels):
+        raise InvalidInputError(f"{scenes_name}: scenes have {scenes.shape[1]} channel(s) but "
+                                f"{model_text} has {len(model.channels)} "
+                                f"({'/'.join(model.channels)})")
+    with torch.no_grad():
+        op = SpectralOperator.from_kernel_model(model, dtype)
+        return op.A(torch.as_tensor(scenes, dtype=dtype)).numpy()
+
+
+def relative_errors(prediction: np.ndarray, measurements: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-pair ``‖y − A x‖/‖y‖`` as predicted (``raw``) and with the best scale per pair
+    (``scaled``: what remains once an unknown per-image normalisation is allowed for)."""
+    p = prediction.reshape(len(prediction), -1).astype(np.float64)
+    y = measurements.reshape(len(measurements), -1).astype(np.float64)
+    norm = np.linalg.norm(y, axis=1)
+    raw = np.linalg.norm(p - y, axis=1) / norm
+    scale = np.sum(p * y, axis=1) / np.maximum(np.sum(p * p, axis=1), 1e-30)
+    scaled = np.linalg.norm(scale[:, None] * p - y, axis=1) / norm
+    return {"raw": raw, "scaled": scaled, "scale": scale}
+
+
+def leave_one_out(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
+                  progress: bool = False, support_mask: np.ndarray | None = None
+                  ) -> dict[str, Any]:
+    """Held-out errors: each pair predicted by the model fitted on all the others."""
+    n = len(scenes)
+    if n < 2:
+        raise InvalidInputError("leave-one-out needs at least two pairs")
+    raw, scaled = np.zeros(n), np.zeros(n)
+    indices: Any = range(n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        indices = tqdm(indices, desc=f"leave-one-out ({options.basis})", unit="fit")
+    for i in indices:
+        keep = np.arange(n) != i
+        fit = fit_pairs(scenes[keep], measurements[keep], options,
+                        support_mask=support_mask)
+        errors = relative_errors(predict(fit.kernel_model(), scenes[i:i + 1]),
+                                 measurements[i:i + 1])
+        raw[i], scaled[i] = errors["raw"][0], errors["scaled"][0]
+    return {"raw": raw, "scaled": scaled,
+            "mean_raw": float(np.mean(raw)), "mean_scaled": float(np.mean(scaled)),
+            "rms_raw": float(math.sqrt(np.mean(raw**2))),
+            "rms_scaled": float(math.sqrt(np.mean(scaled**2)))}

@@ -1,0 +1,345 @@
+r"""The regularisation of a pairs fit, chosen by held-out error (``fit-pairs``' default).
+
+A few pairs do not determine every kernel pixel: on the 7 DiffuserCam pairs the unbiased
+eigen-kernel fit predicts unseen pairs worse than one PSF (issue 43), while hundreds of
+pairs determine the kernels and any prior only biases them (issue 23). So the weight of the
+one regulariser that matters for the model — the ridge ``λ`` of a single PSF (``si``), the
+difference prior ``μ`` of eigen-kernels, both relative to the mean scene power
+(:func:`psfkit.fitting.pairs.solver.solve_kernels`) — is chosen by **cross-validation over pairs**:
+
+* the pairs are split into ``k = min(N, MAX_FOLDS)`` folds of consecutive pairs
+  (leave-one-out up to ``MAX_FOLDS`` pairs); folds are scored in turn until at least
+  ``MIN_HELD_OUT`` pairs and ``MIN_FOLDS`` folds have been held out;
+* along a path of weights from strong to none (:data:`PATHS`, half a decade apart, then 0),
+  each fold's kernels are the unconstrained least squares of its training pairs, solved by
+  preconditioned CG in float32 (the fold's own per-frequency Gram blocks; warm-started from
+  the fold's kernels at the previous weight), and its held-out pairs are predicted;
+* the score of a weight is the mean over held-out pairs of ``‖a p − y‖ / ‖y‖`` with the best
+  gain ``a`` per pair when the fit estimates per-pair scales (a held-out pair's normalisation
+  is unknowable), else of ``‖p − y‖ / ‖y‖``;
+* the path stops at the first weight that scores worse than the best so far by more than
+  ``TIE`` (the score is smooth and unimodal along the path in every case measured), or
+  after 0;
+* the chosen weight is the smallest whose score is within ``TIE`` (relative) of the lowest:
+  where the data determine the kernels, the unbiased end wins.
+* when the path's first (strongest) weight scores best, stronger weights half a decade apart
+  are tried until one scores worse (at most ``STRONGER_STEPS``);
+* pairs of more than :data:`SELECTION_PIXELS` pixels are binned for the choice (the folds at
+  full resolution would cost minutes), and the weight chosen there is used at full resolution
+  (what that costs is measured in :data:`SELECTION_PIXELS`' note).
+
+The per-frequency Gram blocks (:class:`~psfkit.fitting.pairs.solver.FrequencyGram`) would make exact
+leave-one-out cheap for the *uncropped* problem (a rank-``K`` downdate per frequency), but
+every measurement is cropped and on DiffuserCam the kernels are as large as the sensor: the
+blocks are then only a preconditioner, and the held-out errors have to come from solves of the
+cropped problem, which is what the folds do (from the same cached scene spectra).
+
+The fold solves use fixed per-pair scales (estimated beforehand, :func:`psfkit.fitting.pairs.fit`)
+and no constraint: the non-negative solve follows once, at the chosen weight.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from psfkit.fitting.pairs.solver import (
+    FrequencyGram,
+    MeasurementSource,
+    PairBatches,
+    regularised_normal,
+    solve_normal_equations,
+)
+
+#: Relative weights tried, strongest first (then 0, the unbiased fit): ``λ`` for one PSF,
+#: ``μ`` (difference prior) for eigen-kernels. Half a decade apart: on the DLMD pairs the
+#: held-out error changes by about 1 % between neighbours near its minimum.
+PATHS: dict[str, tuple[float, ...]] = {
+    "tikhonov": tuple(round(10 ** (-j / 2), 6) for j in range(0, 9)),        # 1 … 1e-4
+    "difference": tuple(round(10 ** (1 - j / 2), 6) for j in range(0, 9)),   # 10 … 1e-3
+}
+#: When the path's strongest weight scores best, up to this many stronger weights (half a
+#: decade apart) are tried until one scores worse (DLMD at full resolution: 10 won).
+STRONGER_STEPS = 4
+#: Most folds (leave-one-out up to this many pairs).
+MAX_FOLDS = 8
+#: Folds are scored until at least this many pairs, and ``MIN_FOLDS`` folds, were held out
+#: (384 pairs: one fold of 48; the scores of the weights are compared on the same pairs).
+MIN_HELD_OUT = 32
+MIN_FOLDS = 1
+#: Relative residual of the fold solves (float32): the held-out errors then agree with those
+#: of fits solved to 1e-6 in float64 to ~1e-5 (measured on DLMD at 1/4 resolution).
+FOLD_TOLERANCE = 1e-4
+#: Most CG iterations of one fold solve at one weight.
+FOLD_ITERATIONS = 500
+#: Scores within this relative distance of the lowest count as equal (the smaller weight wins).
+TIE = 1e-3
+#: The weight is chosen on the pairs binned (block means) to at most this many pixels and
+#: used at full resolution (the weights are relative to the scenes' mean per-frequency power):
+#: the folds at full resolution cost minutes. What that costs, measured (leave-one-out,
+#: scaled held-out error): on a bench camera with white noise (48², 6 pairs, 20 %) the weight
+#: chosen binned 2x or 3x is the full-resolution one or half a decade below it; on the 7 DLMD
+#: pairs (eigen-kernels) the best ``--difference`` moves up with resolution, 1 at 1/4 and 1/3,
+#: 3.16 at 1/2, 10 at full resolution, along paths flat within their standard error (full
+#: resolution: 0.0588 at 10, 0.0593 at 3.16, ± 0.004). The 384 bench pairs of 128² are
+#: chosen unbinned.
+SELECTION_PIXELS = 128 * 128
+
+
+@dataclass
+class RegularisationChoice:
+    """The weight chosen by :func:`choose_regularisation`, and the evidence.
+
+    ``weights[j]`` scored ``held_out[j]`` (mean over the held-out pairs, ``per_pair[j]``);
+    ``spread[j]`` is the standard error of that mean over the pairs.
+    """
+
+    parameter: str
+    chosen: float
+    fixed: dict[str, float]
+    folds: int
+    scored_folds: int
+    held_out_pairs: int
+    metric: str
+    weights: list[float] = field(default_factory=list)
+    held_out: list[float] = field(default_factory=list)
+    spread: list[float] = field(default_factory=list)
+    per_pair: list[list[float]] = field(default_factory=list)
+    iterations: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+    passes: int = 0
+    #: The pairs were binned by this factor for the choice (:data:`SELECTION_PIXELS`).
+    binning: int = 1
+    #: The binned sensor ``(H, W)`` the folds were solved on.
+    sensor: tuple[int, int] = (0, 0)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready record (kernel file provenance and the fit report)."""
+        return {"method": "cross-validation over pairs", "parameter": self.parameter,
+                "chosen": self.chosen, "fixed": self.fixed, "folds": self.folds,
+                "scored_folds": self.scored_folds, "held_out_pairs": self.held_out_pairs,
+                "metric": self.metric,
+                "path": [{"weight": w, "held_out": e, "spread": s, "cg_iterations": it,
+                          "per_pair": p}
+                         for w, e, s, it, p in zip(self.weights, self.held_out, self.spread,
+                                                   self.iterations, self.per_pair,
+                                                   strict=True)],
+                "seconds": round(self.seconds, 2), "passes": self.passes,
+                "binning": self.binning, "sensor": list(self.sensor)}
+
+    def summary(self) -> str:
+        """One line: the choice, its held-out error and the path."""
+        flag = "--tikhonov" if self.parameter == "tikhonov" else "--difference"
+        best = self.weights.index(self.chosen)
+        how = (f"leave-one-out over {self.held_out_pairs} pairs"
+               if self.held_out_pairs == self.folds == self.scored_folds else
+               f"{self.folds}-fold cross-validation ({self.scored_folds} fold(s) scored, "
+               f"{self.held_out_pairs} pairs held out)")
+        if self.binning > 1:
+            how += f", binned {self.binning}x to {self.sensor[0]}x{self.sensor[1]}"
+        path = ", ".join(f"{w:g}: {e:.4f}" for w, e in zip(self.weights, self.held_out,
+                                                         strict=True))
+        return (f"regularisation: {flag} {self.chosen:g} chosen by {how}: held-out error "
+                f"{self.held_out[best]:.4f} ± {self.spread[best]:.4f} ({self.metric}; "
+                f"path {path})")
+
+
+def folds_of(n: int) -> list[np.ndarray]:
+    """The held-out pairs of each fold scored: ``k = min(n, MAX_FOLDS)`` folds of
+    consecutive pairs (fold ``f``: pairs ``⌊f n/k⌋ … ⌊(f+1) n/k⌋ − 1``, so that a fold's
+    passes visit views of the cached spectra), as many as hold out ``MIN_HELD_OUT`` pairs
+    and ``MIN_FOLDS`` folds."""
+    if n < 2:
+        raise ValueError("cross-validation needs at least two pairs")
+    k = min(n, MAX_FOLDS)
+    folds, held = [], 0
+    for f in range(k):
+        folds.append(np.arange(f * n // k, (f + 1) * n // k))
+        held += len(folds[-1])
+        if held >= MIN_HELD_OUT and len(folds) >= MIN_FOLDS:
+            break
+    return folds
+
+
+def selection_binning(sensor: tuple[int, int], min_side: int) -> int:
+    """The smallest factor that bins a ``sensor`` ``(H, W)`` to at most
+    :data:`SELECTION_PIXELS` pixels, keeping both sides at least ``min_side``."""
+    h, w = sensor
+    factor = 1
+    while (h // factor) * (w // factor) > SELECTION_PIXELS and \
+            min(h // (factor + 1), w // (factor + 1)) >= min_side:
+        factor += 1
+    return factor
+
+
+def held_out_errors(batches: PairBatches, kernels: Tensor,
+                    measurements: np.ndarray | Tensor | MeasurementSource,
+                    best_gain: bool) -> dict[int, float]:
+    """``{pair: relative error}`` of the active pairs of ``batches`` predicted by ``kernels``
+    (unscaled), with the best gain per pair when ``best_gain``."""
+    out = {}
+    for start, stop, op, _s in batches.batches():
+        p = op.forward(kernels.to(batches.dtype)).to(torch.float64)
+        y = batches.measurement(measurements, start, stop).to(torch.float64)
+        if best_gain:
+            gain = (p * y).sum(dim=(1, 2, 3)) / p.pow(2).sum(dim=(1, 2, 3)).clamp_min(1e-300)
+            p = p * gain[:, None, None, None]
+        err = (p - y).pow(2).sum(dim=(1, 2, 3)).sqrt() / \
+            y.pow(2).sum(dim=(1, 2, 3)).sqrt().clamp_min(1e-300)
+        for i, e in enumerate(err.tolist(), start=start):
+            out[i] = e
+    return out
+
+
+def _absolute(parameter: str, weight: float, fixed: dict[str, float], reference: float
+              ) -> tuple[float, float]:
+    """``(λ, μ)`` absolute, from the path's relative weight and the fixed other one."""
+    weights = dict(fixed)
+    weights[parameter] = weight
+    return weights["tikhonov"] * reference, weights["difference"] * reference
+
+
+def choose_regularisation(batches: PairBatches,
+                          measurements: np.ndarray | Tensor | MeasurementSource,
+                          parameter: str, fixed: dict[str, float], best_gain: bool,
+                          reference: float, start: Tensor | None = None, bar: Any = None
+                          ) -> tuple[RegularisationChoice, Tensor]:
+    """Choose ``parameter`` (``"tikhonov"`` or ``"difference"``) by held-out error.
+
+    Parameters
+    ----------
+    batches : PairBatches
+        The pairs (their ``scales`` are used as fixed), in the fold solves' precision
+        (float32: :meth:`PairBatches.astype`).
+    measurements : array or callable
+        ``(N, C, H', W')``.
+    parameter : str
+        The weight chosen; ``fixed`` gives the other one (relative), e.g.
+        ``{"tikhonov": 0.0}``.
+    best_gain : bool
+        Score with the best gain per held-out pair (fits that estimate per-pair scales).
+    reference : float
+        The unit of the relative weights (:meth:`FrequencyGram.reference_power` of all pairs).
+    start : Tensor, optional
+        Warm start of every fold at the path's first weight (e.g. all the pairs' kernels
+        there).
+    bar : tqdm, optional
+        Advanced by one per CG iteration.
+
+    Returns
+    -------
+    (RegularisationChoice, Tensor)
+        The choice, and a warm start for the final fit at the chosen weight (the mean of the
+        folds' kernels there).
+    """
+    t0, passes = time.perf_counter(), batches.passes
+    folds = folds_of(batches.n)
+    fixed = {"tikhonov": 0.0, "difference": 0.0, **fixed}
+    choice = RegularisationChoice(parameter=parameter, chosen=0.0, sensor=batches.sensor,
+                                  fixed={k: v for k, v in fixed.items() if k != parameter},
+                                  folds=min(batches.n, MAX_FOLDS), scored_folds=len(folds),
+                                  held_out_pairs=int(sum(len(f) for f in folds)),
+                                  metric="relative error with the best gain per pair"
+                                  if best_gain else "relative error")
+    path = _FoldPath(batches, measurements, folds, start, best_gain, bar,
+                     lambda w: _absolute(parameter, w, fixed, reference))
+    for weight in (*PATHS[parameter], 0.0):
+        if path.worse(path.evaluate(weight)):
+            break
+    # the strongest weight won: the best may lie beyond the path's start
+    for _ in range(STRONGER_STEPS):
+        strongest = max(path.scores)
+        if path.chosen() != strongest or len(path.scores) < 2:
+            break
+        path.restart_from(strongest)
+        if path.worse(path.evaluate(round(strongest * math.sqrt(10), 6))):
+            break
+    choice.chosen = path.chosen()
+    for weight in sorted(path.scores, reverse=True):
+        score, per_pair, iterations = path.scores[weight]
+        choice.weights.append(weight)
+        choice.held_out.append(score)
+        choice.spread.append(float(np.std(per_pair, ddof=1) / math.sqrt(len(per_pair)))
+                             if len(per_pair) > 1 else float("nan"))
+        choice.per_pair.append(per_pair)
+        choice.iterations.append(iterations)
+    warm = torch.stack(path.at_weight[choice.chosen]).mean(dim=0)
+    choice.seconds = time.perf_counter() - t0
+    choice.passes = batches.passes - passes
+    return choice, warm
+
+
+class _FoldPath:
+    """The folds' kernels along the path of weights, and each weight's held-out errors."""
+
+    def __init__(self, batches: PairBatches,
+                 measurements: np.ndarray | Tensor | MeasurementSource,
+                 folds: list[np.ndarray], start: Tensor | None, best_gain: bool, bar: Any,
+                 absolute: Any) -> None:
+        self.batches, self.measurements = batches, measurements
+        self.best_gain, self.bar, self.absolute = best_gain, bar, absolute
+        self.train = [np.ones(batches.n, bool) for _ in folds]
+        for mask, held in zip(self.train, folds, strict=True):
+            mask[held] = False
+        # a fold's right-hand side and Gram blocks do not depend on the weight: one pass each
+        self.rhs: list[Tensor] = []
+        self.grams: list[FrequencyGram] = []
+        for mask in self.train:
+            with batches.only(mask):
+                self.rhs.append(batches.rhs(measurements))
+                self.grams.append(batches.gram())
+        self.kernels: list[Tensor | None] = [
+            None if start is None else start.to(batches.dtype) for _ in folds]
+        #: ``weight: (score, per-pair errors, CG iterations)``
+        self.scores: dict[float, tuple[float, list[float], int]] = {}
+        #: the folds' kernels at the weights that may still be chosen
+        self.at_weight: dict[float, list[Tensor]] = {}
+
+    def evaluate(self, weight: float) -> float:
+        """Score ``weight``, the folds warm-started from their current kernels."""
+        lam, mu = self.absolute(weight)
+        b = self.batches
+        errors: dict[int, float] = {}
+        iterations = 0
+        for f, mask in enumerate(self.train):
+            with b.only(mask):
+                self.kernels[f], info = solve_normal_equations(
+                    regularised_normal(b, lam, mu), self.rhs[f],
+                    self.grams[f].preconditioner(lam, mu), self.kernels[f], FOLD_TOLERANCE,
+                    FOLD_ITERATIONS, self.bar)
+            iterations += info.iterations
+            with b.only(~mask):
+                errors.update(held_out_errors(b, self.kernels[f], self.measurements,
+                                              self.best_gain))
+        per_pair = [errors[i] for i in sorted(errors)]
+        self.scores[weight] = (float(np.mean(per_pair)), per_pair, iterations)
+        # keep the folds' kernels only where the weight may still be chosen (memory)
+        self.at_weight[weight] = [k.clone() for k in self.kernels if k is not None]
+        for w, v in self.scores.items():
+            if self.worse(v[0]):
+                self.at_weight.pop(w, None)
+        return self.scores[weight][0]
+
+    def worse(self, score: float) -> bool:
+        """Worse than the lowest score so far by more than ``TIE``."""
+        return score > min(v[0] for v in self.scores.values()) * (1 + TIE)
+
+    def chosen(self) -> float:
+        """The smallest weight within ``TIE`` of the lowest score."""
+        return min(w for w, v in self.scores.items() if not self.worse(v[0]))
+
+    def restart_from(self, weight: float) -> None:
+        """Warm-start the next weight from the folds' kernels at ``weight``."""
+        self.kernels = [k.clone() for k in self.at_weight[weight]]
+
+
+__all__ = ["FOLD_TOLERANCE", "MAX_FOLDS", "MIN_FOLDS", "MIN_HELD_OUT", "PATHS",
+           "SELECTION_PIXELS", "STRONGER_STEPS", "TIE", "RegularisationChoice",
+           "choose_regularisation", "folds_of", "held_out_errors",
+           "selection_binning"]

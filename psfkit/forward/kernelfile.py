@@ -1,0 +1,473 @@
+"""The kernel file: the hand-off between measuring (psfkit) and learning (ekdun).
+
+One ``.npz`` file (NumPy, no pickles) holds
+
+``kernels``
+    float32 ``(K, C, Hk, Wk)``: the K kernels of the model in the order of the weight basis'
+    ``kernel_names`` (``base, v, h`` for the paper), C channels (RGB or L), each stored with
+    its origin at the array centre ``(Hk//2, Wk//2)``, the way a PSF image looks.
+``metadata``
+    a JSON string: ``format`` (``"ekdun-kernels"``), ``version``, ``basis`` (weight basis name,
+    see :mod:`psfkit.forward.weights`), ``convention`` (``"sensor"``: weights multiply each kernel's
+    image on the sensor, Eq. 7; ``"source"``: weights multiply the scene before each
+    convolution), ``kernel_names``, ``channels``, ``sensor_shape`` ``[H', W']`` (measurement
+    size, and the grid on which the weights are defined), ``optical_center`` ``[v_c, u_c]``,
+    ``scene_padding`` (the convolution runs on a ``scene_padding × sensor_shape`` grid),
+    ``normalization`` (how the kernels were scaled), ``kernel_origin`` (checked on reading),
+    ``read_options`` (how the data the model was fitted on was read: channel order on disk,
+    flip, binning, white level; :class:`psfkit.io.read_options.ReadOptions`; every command
+    that consumes the file reads its inputs this way by default), and free-form
+    ``provenance``.
+
+Forward model (``docs/architecture.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
+``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` for the sensor-side convention and
+``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` for the source-side one, where ``pad`` zero-fills ``x`` into
+the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A kernel is at most
+``H' × W'``, so with ``scene_padding = 2`` the circular FFT convolution is an exact linear one.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from psfkit.errors import ModelFileError, PsfkitError
+from psfkit.forward.geometry import CONVENTIONS, padded_shape
+from psfkit.forward.weights import WeightBasis, get_basis
+from psfkit.io.atomic import atomic_file
+from psfkit.io.read_options import ReadOptions
+from psfkit.io.validation import (
+    MAX_IMAGE_PIXELS,
+    MAX_JSON_BYTES,
+    MAX_KERNEL_GAIN,
+    MAX_SCENE_PADDING,
+    MIN_KERNEL_GAIN,
+    bounded_size,
+    check_array_shape,
+    dumps_finite,
+    finite_number,
+    load_json_document,
+    npy_header,
+)
+
+KERNEL_FORMAT = "ekdun-kernels"
+KERNEL_VERSION = 1
+KERNEL_ORIGIN = "array centre (H//2, W//2)"   # the one convention (docs/architecture.md)
+_DEFAULT_WHERE = "kernel model"   # how a model without a file names itself in errors
+
+
+@dataclass(frozen=True)
+class KernelModel:
+    """An eigen-kernel (or shift-invariant) forward model, as stored in a kernel file.
+
+    Attributes
+    ----------
+    kernels : numpy.ndarray
+        ``(K, C, Hk, Wk)`` float32, origins at ``(Hk//2, Wk//2)``.
+    basis : str
+        Weight basis name (``"si"`` for a single shift-invariant kernel).
+    convention : {"sensor", "source"}
+        Where the weights live.
+    sensor_shape : (int, int)
+        ``(H', W')``.
+    channels : tuple of str
+        ``("R", "G", "B")`` or ``("L",)``.
+    optical_center : (float, float) or None
+        ``(v_c, u_c)``; ``None`` is the sensor centre.
+    scene_padding : int
+        Size of the convolution grid as a multiple of the sensor size (>= 2; 2 by default).
+    normalization : str
+        Description of the kernels' scale (e.g. ``"base kernel sums to 1 per channel"``).
+    provenance : dict
+        Where the model came from (input files, fit residuals, ...).
+    read_options : ReadOptions or None
+        How the data it was fitted on was read (``None``: not recorded, as in files written
+        before issue 21; see :meth:`data_read_options`).
+    """
+
+    kernels: np.ndarray
+    basis: str = "paper"
+    convention: str = "sensor"
+    sensor_shape: tuple[int, int] = (0, 0)
+    channels: tuple[str, ...] = ("R", "G", "B")
+    optical_center: tuple[float, float] | None = None
+    scene_padding: int = 2
+    normalization: str = "unspecified"
+    provenance: dict[str, Any] = field(default_factory=dict)
+    read_options: ReadOptions | None = None
+
+    def __post_init__(self) -> None:
+        kernels = np.asarray(self.kernels)
+        if not np.issubdtype(kernels.dtype, np.number) or np.issubdtype(kernels.dtype,
+                                                                         np.complexfloating):
+            raise ModelFileError(f"{_DEFAULT_WHERE}: kernels must be real numbers, got dtype "
+                                 f"{kernels.dtype}")
+        object.__setattr__(self, "kernels", kernels.astype(np.float32, copy=False))
+        try:
+            shape = tuple(self.sensor_shape)
+        except TypeError:
+            raise ModelFileError(f"{_DEFAULT_WHERE}: sensor_shape {self.sensor_shape!r} is not "
+                                 "a valid size") from None
+        if shape == (0, 0):
+            shape = tuple(kernels.shape[-2:])
+        # NumPy integers become ints so that the metadata is JSON; anything else is refused.
+        object.__setattr__(self, "sensor_shape", tuple(
+            int(s) if isinstance(s, np.integer) else s for s in shape))
+        self.validate(_DEFAULT_WHERE)
+
+    def validate(self, where: str = _DEFAULT_WHERE) -> None:
+        """Check that the pieces of the model agree; the one check of the kernel-file contract.
+
+        Run on construction, by :func:`save_kernels` (the kernels array can be changed in
+        place after construction), by :func:`load_kernels` and by ekdun before training.
+
+        Parameters
+        ----------
+        where : str
+            What the model is (a file path, ``"seed kernels"``); starts the error message.
+
+        Raises
+        ------
+        ModelFileError
+            Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
+            than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
+            convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels
+            that are all zero, so large (``MAX_KERNEL_GAIN``) that a forward model
+            overflows, or so small (``MIN_KERNEL_GAIN``) that it cannot be inverted.
+        """
+        try:
+            basis = get_basis(self.basis)
+        except PsfkitError as exc:
+            raise ModelFileError(f"{where}: {exc}") from None
+        shape = self.sensor_shape
+        if (len(shape) != 2 or not all(isinstance(s, (int, np.integer)) for s in shape)
+                or min(shape) < 2):
+            raise ModelFileError(f"{where}: sensor_shape {list(shape)} is not a valid size")
+        check_kernels(self.kernels, shape, where)
+        k = self.kernels
+        if not np.any(k):
+            # a model that predicts a black image for every scene: a fit that went wrong (an
+            # empty support mask), never a camera; refused when written and when read
+            raise ModelFileError(f"{where}: every kernel is zero (the model predicts a black "
+                                 "image for every scene)")
+        if k.shape[0] != basis.n_kernels:
+            raise ModelFileError(f"{where}: basis {self.basis!r} needs {basis.n_kernels} "
+                                 f"kernels {basis.kernel_names}, the file has {k.shape[0]}")
+        if k.shape[1] != len(self.channels) or len(self.channels) not in (1, 3):
+            raise ModelFileError(f"{where}: kernels have {k.shape[1]} channel(s) but channels "
+                                 f"are {list(self.channels)}")
+        gain = np.abs(k).sum(axis=(2, 3), dtype=np.float64)   # (K, C)
+        if gain.max() > MAX_KERNEL_GAIN:
+            i, c = np.unravel_index(int(np.argmax(gain)), gain.shape)
+            raise ModelFileError(f"{where}: kernel {basis.kernel_names[i]!r} ({self.channels[c]}) "
+                                 f"sums to {gain[i, c]:.3g} in absolute value, more than the "
+                                 f"{MAX_KERNEL_GAIN:g} a forward model can apply in float32 "
+                                 "without overflowing (a PSF normalised to unit peak or sum is "
+                                 "far below)")
+        if gain.max() < MIN_KERNEL_GAIN:
+            raise ModelFileError(f"{where}: the largest kernel sums to {gain.max():.3g} in "
+                                 f"absolute value, less than {MIN_KERNEL_GAIN:g}: the model "
+                                 "predicts an almost black image and cannot be inverted in "
+                                 "float32 (a PSF normalised to unit peak or sum is far above)")
+        if self.convention not in CONVENTIONS:
+            raise ModelFileError(f"{where}: convention must be 'sensor' or 'source', got "
+                                 f"{self.convention!r}")
+        if (isinstance(self.scene_padding, bool) or not isinstance(self.scene_padding, int)
+                or not 2 <= self.scene_padding <= MAX_SCENE_PADDING):
+            raise ModelFileError(f"{where}: scene_padding must be an integer in 2..."
+                                 f"{MAX_SCENE_PADDING}, got {self.scene_padding!r}")
+        h, w = int(shape[0]), int(shape[1])
+        if self.scene_padding**2 * h * w > 4 * MAX_IMAGE_PIXELS:   # before torch allocates it
+            raise ModelFileError(f"{where}: the convolution grid {self.scene_padding}x{h} x "
+                                 f"{self.scene_padding}x{w} exceeds the limit of "
+                                 f"{4 * MAX_IMAGE_PIXELS} pixels")
+        centre = self.optical_center
+        if centre is not None and not _two_finite_numbers(centre):
+            raise ModelFileError(f"{where}: optical_center must be None or two finite numbers "
+                                 f"(v_c, u_c), got {centre!r}")
+
+    def to_metadata(self) -> dict[str, Any]:
+        """The model without its kernels as JSON-able values: the ``metadata`` of a kernel file
+        (see the module docstring) and of an ekdun checkpoint's seed kernels.
+
+        :meth:`from_metadata` is its inverse.
+        """
+        return {
+            "format": KERNEL_FORMAT, "version": KERNEL_VERSION,
+            "basis": self.basis, "convention": self.convention,
+            "kernel_names": list(self.kernel_names), "channels": list(self.channels),
+            "sensor_shape": [int(s) for s in self.sensor_shape],
+            "optical_center": None if self.optical_center is None
+            else [float(c) for c in self.optical_center],
+            "scene_padding": self.scene_padding, "normalization": self.normalization,
+            "kernel_origin": KERNEL_ORIGIN,
+            "provenance": self.provenance,
+            **({} if self.read_options is None
+               else {"read_options": self.read_options.to_json()}),
+        }
+
+    def data_read_options(self) -> ReadOptions:
+        """How inputs for this model are read by default: the recorded :attr:`read_options`,
+        or for older files the binning recorded in ``provenance['downsample']`` (channel order
+        not recorded)."""
+        if self.read_options is not None:
+            return self.read_options
+        factor = self.provenance.get("downsample")
+        ok = isinstance(factor, int) and not isinstance(factor, bool) and 1 <= factor <= 64
+        return ReadOptions(downsample=factor if ok else None)
+
+    @classmethod
+    def from_metadata(cls, kernels: np.ndarray, meta: dict[str, Any],
+                      where: str = _DEFAULT_WHERE) -> KernelModel:
+        """The model of ``kernels`` ``(K, C, Hk, Wk)`` and ``meta`` (:meth:`to_metadata`'s).
+
+        ``format`` and ``version`` are the file's business (:func:`load_kernels` checks them);
+        they may be absent, as in checkpoints written before they were recorded there.
+        ``scene_padding``, ``normalization``, ``optical_center``, ``kernel_names`` and
+        ``provenance`` are optional.
+
+        Raises
+        ------
+        ModelFileError
+            ``meta`` lacks or mangles a field, or the model fails :meth:`validate`; the message
+            starts with ``where``.
+        """
+        if not isinstance(meta, dict):
+            raise ModelFileError(f"{where}: metadata is not a JSON object")
+        try:
+            values = _checked_metadata(meta, f"{where}: metadata")
+        except KeyError as exc:
+            raise ModelFileError(f"{where}: metadata lacks {exc}") from None
+        except PsfkitError as exc:
+            raise ModelFileError(str(exc)) from None
+        try:
+            model = cls(kernels=kernels, **values)
+        except ModelFileError as exc:
+            # Re-issued with ``where`` in front of the problem (construction says "kernel model").
+            reason = str(exc).removeprefix(f"{_DEFAULT_WHERE}: ")
+            raise ModelFileError(f"{where}: {reason}") from None
+        except (TypeError, ValueError) as exc:
+            raise ModelFileError(f"{where}: metadata mangles a field ({exc})") from None
+        names = meta.get("kernel_names", list(model.kernel_names))
+        if list(names) != list(model.kernel_names):
+            raise ModelFileError(f"{where}: kernel_names {names} do not match basis "
+                                 f"{model.basis!r} {list(model.kernel_names)}")
+        return model
+
+    @property
+    def weight_basis(self) -> WeightBasis:
+        return get_basis(self.basis)
+
+    @property
+    def kernel_names(self) -> tuple[str, ...]:
+        return self.weight_basis.kernel_names
+
+    @property
+    def padded_shape(self) -> tuple[int, int]:
+        """Size of the grid on which the convolutions run (:func:`psfkit.forward.padded_shape`)."""
+        return padded_shape(self.sensor_shape, self.scene_padding)
+
+    def weight_maps(self, extent: tuple[int, int] | None = None) -> np.ndarray:
+        """``(K, H', W')`` float64 weights (of the sensor pixels or of the scene pixels,
+        depending on ``convention``; both arrays have the sensor's size), or ``(K, H, W)`` on a
+        larger centred grid ``extent`` with the edge weights continued outside the sensor
+        (:meth:`psfkit.forward.weights.WeightBasis.maps`)."""
+        return self.weight_basis.maps(self.sensor_shape, self.optical_center, extent)
+
+    @classmethod
+    def shift_invariant(cls, psf: np.ndarray, **kwargs: Any) -> KernelModel:
+        """A one-kernel model from a ``(C, H, W)`` PSF (origin at its centre)."""
+        psf = np.asarray(psf)
+        if psf.ndim != 3:
+            raise ModelFileError(f"a PSF must be (C, H, W), got shape {psf.shape}")
+        channels = ("L",) if psf.shape[0] == 1 else ("R", "G", "B")
+        kwargs.setdefault("channels", channels)
+        return cls(kernels=psf[None], basis="si", **kwargs)
+
+
+def _checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
+    """The model fields of kernel metadata, each checked for type and range (``where: field
+    ...`` in messages), before anything is allocated; ``KeyError`` for a missing field."""
+    def text(key: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise ModelFileError(f"{where}: '{key}' must be a string, got {value!r}")
+        return value
+
+    channels = meta["channels"]
+    if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
+        raise ModelFileError(f"{where}: 'channels' must be a list of names, got {channels!r}")
+    sensor = tuple(bounded_size(meta["sensor_shape"], f"{where}: 'sensor_shape'"))
+    if len(sensor) != 2:
+        raise ModelFileError(f"{where}: 'sensor_shape' must be [H, W], got {list(sensor)}")
+    center = _optical_center(meta.get("optical_center"), sensor, where)
+    provenance = meta.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise ModelFileError(f"{where}: 'provenance' must be an object, got {provenance!r}")
+    origin = meta.get("kernel_origin", KERNEL_ORIGIN)
+    if origin != KERNEL_ORIGIN:
+        raise ModelFileError(f"{where}: 'kernel_origin' is {origin!r}; this toolkit stores "
+                             f"kernels with their origin at the {KERNEL_ORIGIN}")
+    read_options = _read_options(meta, where)
+    padding = meta.get("scene_padding", 2)
+    if isinstance(padding, bool) or not isinstance(padding, int):
+        raise ModelFileError(f"{where}: 'scene_padding' must be an integer, got {padding!r}")
+    return dict(basis=text("basis", meta["basis"]),
+                convention=text("convention", meta["convention"]),
+                sensor_shape=sensor, channels=tuple(channels), optical_center=center,
+                scene_padding=padding,
+                normalization=text("normalization", meta.get("normalization", "unspecified")),
+                provenance=provenance, read_options=read_options)
+
+
+def _optical_center(center: Any, sensor: tuple[int, ...], where: str
+                    ) -> tuple[float, float] | None:
+    """The metadata's ``optical_center`` ``[v, u]`` (finite, within ten sensor sizes)."""
+    if center is None:
+        return None
+    if not isinstance(center, list) or len(center) != 2:
+        raise ModelFileError(f"{where}: 'optical_center' must be [v, u], got {center!r}")
+    low, high = -10.0 * max(sensor), 10.0 * max(sensor)
+    v, u = (finite_number(x, f"{where}: 'optical_center'", low, high) for x in center)
+    return v, u
+
+
+def _read_options(meta: dict[str, Any], where: str) -> ReadOptions | None:
+    """How the data were read, if the file records it (files written before ``read_options``
+    record only their binning, in the provenance: checked here)."""
+    read_options = meta.get("read_options")
+    if read_options is not None:
+        return ReadOptions.from_json(read_options, where)
+    if isinstance(meta.get("provenance"), dict) and "downsample" in meta["provenance"]:
+        factor = meta["provenance"]["downsample"]
+        if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= 64:
+            raise ModelFileError(f"{where}: provenance 'downsample' must be an integer in "
+                                 f"1..64, got {factor!r}")
+    return None
+
+
+def _two_finite_numbers(values: Any) -> bool:
+    try:
+        return len(values) == 2 and all(np.isfinite(float(v)) for v in values)
+    except (TypeError, ValueError):
+        return False
+
+
+def check_kernels(kernels: Any, sensor_shape: tuple[int, int], where: str = "",
+                  error: type[PsfkitError] = ModelFileError) -> None:
+    """Check a kernel array ``(K, C, Hk, Wk)`` against the sensor ``(H', W')``.
+
+    The array part of :meth:`KernelModel.validate`, shared with ekdun's operators.
+
+    Parameters
+    ----------
+    kernels : numpy.ndarray or torch.Tensor
+        The kernels. A tensor is checked through its own ``is_floating_point`` and
+        ``isfinite`` methods (so on its device, without importing torch here).
+    sensor_shape : (int, int)
+        ``(H', W')``; a kernel may not be larger.
+    where : str
+        Starts the message (``"{where}: ..."``) when not empty.
+    error : PsfkitError subclass
+        The class raised (ekdun raises its ``KernelShapeError``).
+
+    Raises
+    ------
+    error
+        Not 4-D, no kernel or channel, not floating point, larger than the sensor, NaN/Inf.
+    """
+    prefix = f"{where}: " if where else ""
+    shape = tuple(int(s) for s in kernels.shape)
+    if len(shape) != 4:
+        raise error(f"{prefix}kernels must be (K, C, H, W), got shape {shape}")
+    if shape[0] < 1 or shape[1] < 1:
+        raise error(f"{prefix}kernels must have at least one kernel and channel, got shape "
+                    f"{shape}")
+    if hasattr(kernels, "is_floating_point"):
+        floating = bool(kernels.is_floating_point())
+    else:
+        floating = bool(np.issubdtype(np.asarray(kernels).dtype, np.floating))
+    if not floating:
+        raise error(f"{prefix}kernels must be float32 or float64, got {kernels.dtype}")
+    h, w = int(sensor_shape[0]), int(sensor_shape[1])
+    if shape[2] > h or shape[3] > w:
+        raise error(f"{prefix}kernels {shape[2]}x{shape[3]} are larger than the sensor {h}x{w}")
+    finite = (kernels.isfinite().all() if hasattr(kernels, "isfinite")
+              else np.isfinite(kernels).all())
+    if not bool(finite):
+        raise error(f"{prefix}kernels contain NaN/Inf values")
+
+
+def save_kernels(path: str | os.PathLike, model: KernelModel) -> Path:
+    """Write a kernel file atomically (``.npz``)."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise ModelFileError(f"{path}: kernel files are .npz")
+    model.validate(where=str(path))
+    text = dumps_finite(model.to_metadata(), f"{path}: metadata")  # never a bare NaN in a file
+    with atomic_file(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, kernels=model.kernels, metadata=np.array(text))
+    return path
+
+
+def _check_declared_members(path: Path) -> None:
+    """Refuse a kernel file whose members declare absurd sizes, from their ``.npy`` headers
+    (only those bytes are decompressed) and the zip's declared sizes: a few kilobytes of
+    compressed zeros cannot make :func:`numpy.load` inflate gigabytes."""
+    # bytes: kernels of MAX_IMAGE_PIXELS float64 values, metadata of MAX_JSON_BYTES characters
+    limits = {"kernels": 8 * MAX_IMAGE_PIXELS, "metadata": 4 * MAX_JSON_BYTES}
+    with zipfile.ZipFile(path) as archive:
+        for name, max_bytes in limits.items():
+            try:
+                info = archive.getinfo(f"{name}.npy")
+            except KeyError:
+                continue            # np.load reports the missing member
+            what = f"{path}: member '{name}'"
+            with archive.open(info) as member:
+                shape, _, dtype = npy_header(member, what)
+                header_bytes = member.tell()
+            if dtype.hasobject:    # pickled objects: never loaded (np.load would refuse too)
+                raise ModelFileError(f"{path}: not a readable kernel file (member '{name}' "
+                                     "holds Python objects)")
+            elements = check_array_shape(shape, dtype, what, MAX_IMAGE_PIXELS)
+            declared = int(np.prod(elements, dtype=np.int64)) * dtype.itemsize
+            if declared > max_bytes:
+                raise ModelFileError(f"{what}: declares {declared} bytes, more than the "
+                                     f"{max_bytes} a kernel file may hold")
+            if info.file_size > header_bytes + declared:
+                raise ModelFileError(f"{what}: the archive declares {info.file_size} bytes for "
+                                     f"an array of {declared}")
+
+
+def load_kernels(path: str | os.PathLike) -> KernelModel:
+    """Read and validate a kernel file; never executes code (no pickles)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: no such kernel file")
+    try:
+        _check_declared_members(path)
+        with np.load(path, allow_pickle=False) as data:
+            if "kernels" not in data.files or "metadata" not in data.files:
+                raise ModelFileError(f"{path}: not a kernel file (needs 'kernels' and "
+                                     "'metadata' arrays)")
+            kernels = np.array(data["kernels"])
+            text = str(data["metadata"])
+    except ModelFileError:
+        raise
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ModelFileError(f"{path}: not a readable kernel file ({reason})") from None
+    try:
+        meta = load_json_document(text, f"{path}: metadata")
+    except PsfkitError as exc:
+        raise ModelFileError(str(exc)) from None
+    if not isinstance(meta, dict) or meta.get("format") != KERNEL_FORMAT:
+        raise ModelFileError(f"{path}: not an {KERNEL_FORMAT} file")
+    if isinstance(meta.get("version"), bool) or meta.get("version") != KERNEL_VERSION:
+        raise ModelFileError(f"{path}: kernel file version {meta.get('version')!r} is not "
+                             f"supported (this toolkit reads version {KERNEL_VERSION})")
+    return KernelModel.from_metadata(kernels, meta, where=str(path))

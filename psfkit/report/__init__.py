@@ -1,0 +1,1 @@
+"""Writing results: figures, JSON/CSV numbers and self-contained HTML pages."""

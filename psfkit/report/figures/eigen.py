@@ -1,0 +1,282 @@
+"""Figures of eigen-kernel models: kernels and differences (Fig. 7), weight maps (Fig. 3),
+and the diagnostics of a grid fit (scree plot, cross-validation, residuals)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import matplotlib
+import numpy as np
+from matplotlib import colors
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
+from matplotlib.ticker import MaxNLocator
+
+from psfkit.calibration.preprocess import luminance
+from psfkit.calibration.support import support_box
+from psfkit.fitting.grid.fit import GridEigenResult
+from psfkit.forward.weights import get_basis
+from psfkit.report.figures.style import (
+    PAGE_IN,
+    Fitted,
+    fitted,
+    new_figure,
+    psf_cmap,
+    psf_norm,
+    publication_style,
+)
+
+#: Fig. 7 in one row (the paper's layout) up to this many kernels; more wrap into rows
+ONE_ROW_KERNELS = 4
+#: panels per row of a wrapped Fig. 7 or Fig. 3
+WRAP = 6
+
+
+def _crop_box(image: np.ndarray, level: float = 0.02, margin: int = 4) -> tuple[slice, slice]:
+    """Bounding box of the pixels of a mask (or noiseless map) above ``level`` × its maximum,
+    with ``margin`` px (a PSF's support: :func:`psfkit.calibration.support.support_box`)."""
+    rows, cols = np.nonzero(image > level * image.max())
+    if rows.size == 0:
+        return slice(None), slice(None)
+    return (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
+            slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
+
+
+def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
+    """The central ``zoom`` fraction of ``box``."""
+    (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
+    hr, hc = max(1, int((r1 - r0) * zoom / 2)), max(1, int((c1 - c0) * zoom / 2))
+    mr, mc = (r0 + r1) // 2, (c0 + c1) // 2
+    return slice(max(mr - hr, 0), mr + hr), slice(max(mc - hc, 0), mc + hc)
+
+
+def difference_limit(lum: np.ndarray) -> float:
+    """Colour limit of ``K_k − K_base`` as a fraction of the kernels' peak (99.9th
+    percentile of ``|difference|``; 1 where there is none), for ``(K, h, w)`` kernels."""
+    if len(lum) < 2:
+        return 1.0
+    diffs = (lum[1:] - lum[0]) / (float(np.nanmax(lum)) or 1.0)
+    return float(np.percentile(np.abs(diffs), 99.9)) or 1.0
+
+
+def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np.ndarray,
+                 names: Sequence[str], titles: bool = True,
+                 sizes: Sequence[Fitted] | None = None, limit: float | None = None
+                 ) -> AxesImage | None:
+    """The kernels' luminance ``lum`` ``(K, h, w)`` as fractions of their peak on a square-root
+    scale (:func:`~psfkit.report.figures.style.psf_norm`), and ``K_k − K_base`` in the same unit on
+    a
+    symmetric linear scale (±``limit``, default :func:`difference_limit` of ``lum``: pass one
+    limit to rows that are compared).
+
+    ``sizes`` (one per difference, optional): the size of each difference with its uncertainty,
+    printed under its title; a difference that is not significant is faded and titled "not
+    detected". Returns the last difference image (``None`` for one kernel).
+    """
+    k = len(names)
+    peak = float(np.nanmax(lum)) or 1.0
+    diffs = (lum[1:] - lum[0]) / peak
+    limit = limit or difference_limit(lum)
+    for i in range(k):
+        ax = kernel_axes[i]
+        ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
+        ax.set_title(f"K_{names[i]}" if titles else "")
+        ax.set_xticks([])
+        ax.set_yticks([])           # (the axis stays: a row label may be set on it)
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+    cmap = matplotlib.colormaps["RdBu_r"]
+    im = None
+    for i in range(1, k):
+        ax = diff_axes[i - 1]
+        size = sizes[i - 1] if sizes is not None else None
+        faded = size is not None and not size.detected
+        im = ax.imshow(diffs[i - 1], cmap=cmap, vmin=-limit, vmax=limit,
+                       alpha=0.35 if faded else None)
+        title = f"K_{names[i]} − K_{names[0]}" if titles else ""
+        if size is not None:
+            title += f"\n{size.text('.2g')}"
+        ax.set_title(title, color=size.colour if size is not None else "k")
+        ax.set_axis_off()
+    return im
+
+
+def _kernel_axes(fig: Figure, k: int) -> tuple[list[Axes], list[Axes]]:
+    """Axes for ``k`` kernels and their ``k − 1`` differences: one row (the paper's Fig. 7)
+    up to :data:`ONE_ROW_KERNELS` kernels, else a block of kernels above a block of
+    differences, :data:`WRAP` a row (no empty panels)."""
+    if k <= ONE_ROW_KERNELS:
+        axes = list(np.atleast_1d(fig.subplots(1, 2 * k - 1)))
+        return axes[:k], axes[k:]
+    top, bottom = fig.subfigures(2, 1, height_ratios=[math.ceil(k / WRAP),
+                                                      math.ceil((k - 1) / WRAP)])
+    out = []
+    for sub, n in ((top, k), (bottom, k - 1)):
+        grid = list(np.atleast_1d(sub.subplots(math.ceil(n / WRAP), min(n, WRAP),
+                                               squeeze=False).ravel()))
+        for ax in grid[n:]:
+            ax.set_visible(False)
+        out.append(grid[:n])
+    return out[0], out[1]
+
+
+def figure_kernels(kernels: np.ndarray, names: Sequence[str], title: str = "",
+                   zoom: float | None = None, sizes: Sequence[Fitted] | None = None
+                   ) -> Figure:
+    """Fig. 7: every kernel and every kernel minus the base kernel, cropped to the base
+    kernel's support, with colour bars in one unit (the kernels' peak): the size of the
+    correction can be read against the kernel.
+
+    Parameters
+    ----------
+    kernels : numpy.ndarray
+        ``(K, C, H, W)``, base kernel first.
+    names : sequence of str
+        Kernel names (``base, v, h`` for the paper's basis).
+    zoom : float, optional
+        Show only the central ``zoom`` fraction of the support's bounding box (sub-pixel spot
+        displacements become visible).
+    sizes : sequence of Fitted, optional
+        ``K − 1`` sizes of the differences with their uncertainty and significance
+        (:func:`difference_sizes`); differences that are not significant are greyed.
+    """
+    lum = np.stack([luminance(k.astype(np.float32)) for k in kernels])
+    box = support_box(lum[0])
+    if zoom is not None:
+        box = _zoom(box, zoom)
+    lum = lum[:, box[0], box[1]]
+    k = len(kernels)
+    rows = 1 if k <= ONE_ROW_KERNELS else math.ceil(k / WRAP) + math.ceil((k - 1) / WRAP)
+    with publication_style():
+        fig = new_figure(PAGE_IN, 2.6 if rows == 1 else 1.3 * rows + 0.8)
+        kernel_axes, diff_axes = _kernel_axes(fig, k)
+        im = draw_kernels(kernel_axes, diff_axes, lum, names, sizes=sizes)
+        fig.colorbar(kernel_axes[0].images[0], ax=kernel_axes, location="bottom", shrink=0.8,
+                     label="kernel (fraction of peak, √ scale)")
+        if im is not None:
+            fig.colorbar(im, ax=diff_axes, location="bottom", shrink=0.8,
+                         label=f"K_k − K_{names[0]} (fraction of peak)")
+        if title:
+            fig.suptitle(title)
+    return fig
+
+
+def difference_sizes(result: Any, names: Sequence[str]) -> list[Fitted] | None:
+    """The sizes of ``K_k − K_base`` with uncertainty and significance, where the fit result
+    provides them (``result.differences``: a dict by kernel name of entries with ``value``,
+    ``sigma`` and ``significant``); ``None`` otherwise."""
+    table = getattr(result, "differences", None)
+    if not isinstance(table, dict) or not all(name in table for name in names[1:]):
+        return None
+    return [fitted(table[name], "value") for name in names[1:]]
+
+
+def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure:
+    """Fig. 3: the weight maps of a basis on the sensor (``1 − Wh − Wv``, ``Wv``, ``Wh`` for
+    the paper's), each colour bar spanning its own map's range."""
+    basis = get_basis(basis_name)
+    maps = basis.maps(sensor_shape)
+    labels = ["base (1 − Σ W)"] + [f"W_{name}" for name in basis.kernel_names[1:]]
+    with publication_style():
+        n = len(maps)
+        cols = min(n, 3)
+        rows = int(np.ceil(n / cols))
+        aspect = float(np.clip(sensor_shape[0] / sensor_shape[1], 0.4, 1.6))
+        fig = new_figure(PAGE_IN, rows * (1.5 * aspect + 0.8) + 0.35)   # bars as tall as maps
+        axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False).ravel())
+        for ax, m, label in zip(axes, maps, labels, strict=False):
+            lo, hi = float(m.min()), float(m.max())
+            if hi - lo < 1e-6:          # a constant map (the SI basis): a readable bar
+                lo, hi = lo - 0.5, hi + 0.5
+            im = ax.imshow(m, cmap="viridis", vmin=lo, vmax=hi)
+            ax.set_title(label)
+            ax.set_xlabel("u (px)")
+            ax.set_ylabel("v (px)")
+            ax.xaxis.set_major_locator(MaxNLocator(4))
+            ax.yaxis.set_major_locator(MaxNLocator(4))
+            fig.colorbar(im, ax=ax, shrink=0.8, pad=0.08, label="weight (dimensionless)")
+        for ax in axes[n:]:
+            ax.set_visible(False)
+        fig.suptitle(f"weight maps, basis {basis_name!r}")
+    return fig
+
+
+def _cv_sigma(cv: dict[str, Any]) -> dict[str, float] | None:
+    """1σ of each candidate's held-out error, where the cross-validation provides it."""
+    for key in ("held_out_relative_error_sigma", "held_out_relative_error_std"):
+        if isinstance(cv.get(key), dict):
+            return cv[key]
+    return None
+
+
+def _cv_panel(ax: Axes, cv: dict[str, Any]) -> None:
+    errors = cv["held_out_relative_error"]
+    names = list(errors)
+    sigma = _cv_sigma(cv)
+    bar_colours = ["0.6" if n == "centre PSF only" else
+                   ("C0" if n.endswith("/sensor") else "C1") for n in names]
+    xerr = [sigma.get(n, 0.0) for n in names] if sigma else None
+    ax.barh(range(len(names)), [errors[n] for n in names], color=bar_colours, xerr=xerr,
+            error_kw={"lw": 0.8, "capsize": 2})
+    ax.set_yticks(range(len(names)), names)
+    ax.invert_yaxis()
+    ax.xaxis.set_major_locator(MaxNLocator(4))
+    ax.set_xlabel("held-out relative error" + (" (±1σ)" if sigma else ""))
+    ax.set_title(f"{cv['folds']}-fold leave-positions-out CV")
+
+
+def _residual_panels(fig: Figure, axes: Sequence[Axes], result: GridEigenResult) -> None:
+    """The in-sample residual of each position for both conventions on one scale: lattice
+    maps, or for an irregular scan points at the PSFs' positions on the sensor."""
+    residuals = [result.residuals[conv] for conv in ("sensor", "source")]
+    values = np.concatenate([r.ravel() for r in residuals])
+    norm = colors.Normalize(float(np.nanmin(values)), float(np.nanmax(values)))
+    irregular = result.layout == "irregular"
+    for ax, conv, residual in zip(axes, ("sensor", "source"), residuals, strict=True):
+        if irregular:       # the registered shift places each PSF on the sensor
+            shifts = result.shifts[0]
+            ok = np.isfinite(residual[0])
+            im = ax.scatter(shifts[ok, 0], shifts[ok, 1], c=residual[0][ok], cmap="magma",
+                            norm=norm, s=18, ec="k", lw=0.3)
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.invert_yaxis()
+            ax.set_xlabel("PSF shift u (px)")
+            ax.set_ylabel("PSF shift v (px)")
+            ax.xaxis.set_major_locator(MaxNLocator(3))
+            ax.yaxis.set_major_locator(MaxNLocator(4))
+        else:
+            im = ax.imshow(residual, cmap="magma", norm=norm)
+            ax.xaxis.set_major_locator(MaxNLocator(5, integer=True))
+            ax.yaxis.set_major_locator(MaxNLocator(5, integer=True))
+            ax.set_xlabel("column")
+            ax.set_ylabel("row")
+        ax.set_title(f"{conv}-side fit:\nresidual per position")
+    fig.colorbar(im, ax=list(axes), location="bottom", shrink=0.8,
+                 label="in-sample error (‖model − PSF‖ / ‖PSF‖)")
+
+
+def figure_eigen_diagnostics(result: GridEigenResult) -> Figure:
+    """Scree plot of the grid's PCA, cross-validated errors of the candidate models (±1σ
+    where known), and the in-sample residual of each position for both weight conventions
+    on one scale."""
+    panels = [result.pca is not None, result.cv is not None]
+    ratios = [r for r, shown in zip((1.1, 1.6), panels, strict=True) if shown] + [1, 1]
+    with publication_style():
+        fig = new_figure(PAGE_IN, 2.8)
+        axes = list(np.atleast_1d(fig.subplots(1, len(ratios), width_ratios=ratios)))
+        if result.pca is not None:
+            ax = axes.pop(0)
+            ranks = np.arange(1, len(result.pca.explained) + 1)
+            ax.semilogy(ranks, result.pca.residual(), "o-", label="uncentred")
+            ax.semilogy(ranks, result.pca.residual(centred=True), "s--", label="centred")
+            ax.set_xlabel("rank")
+            ax.set_ylabel("relative residual")
+            ax.set_title("PCA of the registered grid")
+            ax.legend(frameon=False)
+        if result.cv is not None:
+            _cv_panel(axes.pop(0), result.cv)
+        _residual_panels(fig, axes, result)
+    return fig

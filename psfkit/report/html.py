@@ -1,0 +1,77 @@
+"""HTML building blocks shared by psfkit's self-contained report pages (grid report,
+learned-vs-measured comparison): the stylesheet, table cells and embedded figures."""
+
+from __future__ import annotations
+
+import html
+import math
+from typing import Any
+
+REPORT_CSS = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 0.5em 0; }
+th, td { padding: 2px 8px; text-align: left; border-bottom: 1px solid #eee; }
+table.grid td { text-align: right; }
+figure { margin: 1em 0; } img { max-width: 100%; }
+figcaption { font-size: 0.85em; color: #555; }
+.warn { background: #fff6e0; padding: 0.5em 1em; border-left: 3px solid #e0a000; }
+.verdict { background: #eef5ff; padding: 0.6em 1em; border-left: 4px solid #2a6fdb;
+           font-size: 1.05em; }
+.nd { color: #999; } .nd small { font-size: 0.8em; }
+"""
+"""The stylesheet shared by psfkit's HTML reports."""
+
+
+class Html(str):
+    """Text that is already HTML (a cell :func:`format_value` must not escape)."""
+
+
+def format_value(value: Any, spec: str = ".4g") -> str:
+    """A number or text for an HTML cell (``–`` for missing or non-finite values)."""
+    if isinstance(value, Html):
+        return value
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    if isinstance(value, float):
+        return format(value, spec)
+    return html.escape(str(value))
+
+
+def html_table(rows: list[tuple[str, Any]]) -> str:
+    """A two-column key/value HTML table."""
+    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{format_value(v)}</td></tr>"
+                    for k, v in rows)
+    return f"<table class='kv'>{cells}</table>"
+
+
+def figures_html(figures: list[tuple[str, str, str]]) -> str:
+    """``<figure>`` elements of ``(stem, caption, base64 PNG)``, each linking to
+    ``figures/<stem>.pdf`` and ``.png``."""
+    return "".join(
+        f"<figure id='{stem}'><img alt='{html.escape(caption)}' "
+        f"src='data:image/png;base64,{data}'><figcaption>{html.escape(caption)} "
+        f"(<a href='figures/{stem}.pdf'>PDF</a>, <a href='figures/{stem}.png'>PNG</a>)"
+        f"</figcaption></figure>" for stem, caption, data in figures)
+
+
+def estimate_html(estimate: dict[str, Any] | None, spec: str = ".4g", unit: str = "") -> Html:
+    """An estimate (``Estimate.to_dict()`` of :mod:`psfkit.numerics.significance`) for a table cell:
+    ``value ± sigma`` when significant; greyed ``not detected`` with the number and its ± in
+    small print and a tooltip (z, p) when not; greyed ``not determined`` with the reason as
+    tooltip when the data cannot give it."""
+    if not estimate:
+        return Html("<span class='nd'>not measured</span>")
+    unit = f" {html.escape(unit)}" if unit else ""
+    if estimate.get("status") == "not determined" or estimate.get("value") is None:
+        reason = html.escape(str(estimate.get("reason", "")), quote=True)
+        return Html(f"<span class='nd' title='{reason}'>not determined</span>")
+    number = (f"{format(estimate['value'], spec)} ± {format(estimate['sigma'], spec)}"
+              f"{unit}")
+    if estimate.get("significant"):
+        return Html(html.escape(number))
+    z, p = estimate.get("z"), estimate.get("p_value")
+    tip = f"{number}; z = {z:.2f}" + (f", p = {p:.2g}" if p is not None else "") \
+        if z is not None else number
+    return Html(f"<span class='nd' title='{html.escape(tip, quote=True)}'>not detected "
+                f"<small>({html.escape(number)})</small></span>")

@@ -1,0 +1,24 @@
+"""The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
+
+from psfkit.simulate.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.simulate.compact import (
+    CompactCamera,
+    CompactTruth,
+    cutout_scan,
+    read_compact_truth,
+    simulate_compact_scan,
+)
+from psfkit.simulate.degrade import degrade_grid
+from psfkit.simulate.psf_grid import (
+    GroundTruth,
+    grid_monitor_positions,
+    read_ground_truth,
+    simulate_grid,
+    simulate_scan,
+)
+from psfkit.simulate.sensor import SensorModel
+
+__all__ = ["BenchConfig", "CompactCamera", "CompactTruth", "GroundTruth", "PsfPatch",
+           "SensorModel", "VirtualCamera", "cutout_scan", "degrade_grid",
+           "grid_monitor_positions", "place_patch", "read_compact_truth", "read_ground_truth",
+           "simulate_compact_scan", "simulate_grid", "simulate_scan"]

@@ -1,0 +1,524 @@
+r"""The virtual bench: a simulated diffuser camera whose PSF really varies over the field.
+
+Optics (scalar, thin element): a point source on a monitor at distance :math:`z` sends a
+spherical (or, optionally, plane) wave onto a thin random phase diffuser behind a finite
+aperture; the field is propagated over the diffuser–sensor gap :math:`d` with the exact
+angular-spectrum transfer function evaluated on the frequency grid shifted by the source's
+carrier (:mod:`psfkit.simulate.propagation`). Nothing is warped by hand: the off-axis PSF's
+shift (:math:`d\tan\theta`), its oblique-incidence astigmatism (effective distances
+:math:`d/\cos^3\theta` tangential, :math:`d/\cos\theta` sagittal), and its small magnification
+changes all come out of the propagation.
+
+Coordinates follow ``docs/architecture.md``: sensor rows ``v`` (y, down) and columns ``u``
+(x, right), optical axis at the sensor centre. Field positions are given in the monitor
+image frame (x right, y down, as seen from the camera); a source at ``+x`` moves the PSF to
+``-u``. Lengths carry their unit in their name.
+
+Radiometry: the envelope has unit intensity over the aperture, so the noise-free PSF of a
+channel sums to ``gain(θ)`` (relative illumination, cos⁴ by default) when all of it falls on
+the sensor; on axis it sums to 1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.fft as sfft
+
+from psfkit.errors import ConfigurationError, PsfkitError
+from psfkit.io.validation import bounded_size, flag_range
+from psfkit.numerics.resample import bin_image
+from psfkit.simulate.diffuser import (
+    DiffuserSurface,
+    caustic_correlation_length,
+    slope_rms_for_angle,
+)
+from psfkit.simulate.propagation import (
+    box_blur,
+    chief_ray_shift,
+    oblique_transfer_function,
+    unit_phasor,
+)
+from psfkit.simulate.propagation_torch import resolve_backend
+from psfkit.simulate.sensor import SensorModel, relative_illumination
+
+if TYPE_CHECKING:
+    from psfkit.simulate.propagation_torch import TorchOptics
+
+CHANNEL_NAMES = {1: ("L",), 3: ("R", "G", "B")}
+#: BenchConfig fields set by command-line flags: the flags' ranges (``psfkit.io.validation.FLAGS``)
+#: apply to them wherever they come from
+MAX_PROPAGATION_PIXELS = 2**26   # samples of one propagation grid (complex128: 1 GB)
+BENCH_FLAGS = {"diffusion_angle_deg": "--diffusion-angle", "gap_mm": "--gap-mm",
+               "peak_fraction": "--peak-fraction", "seed": "--seed",
+               "downsample": "--downsample"}
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Parameters of the virtual diffuser camera (defaults follow the EK-DUN prototype).
+
+    Attributes
+    ----------
+    diffusion_angle_deg : float
+        Full width at half maximum of the diffuser's scattering profile (1° engineered
+        diffuser).
+    refractive_index : float
+        Of the diffuser material.
+    correlation_length_um : float or None
+        Correlation length of the surface; ``None`` chooses the one whose caustics focus at
+        the sensor (:func:`~psfkit.simulate.diffuser.caustic_correlation_length`).
+    aperture_mm : (float, float)
+        ``(height, width)`` of the rectangular aperture in front of the diffuser.
+    gap_mm : float
+        Diffuser–sensor distance ``d``. The default maps the 442×614-pixel monitor field of
+        view onto the 1080×1440 sensor (PSF shift of half the sensor width at the FoV edge).
+    wavelengths_nm : tuple of float
+        One wavelength per channel (R, G, B); a single value simulates a mono camera.
+    monitor_distance_mm, monitor_pixel_pitch_mm : float
+        Monitor geometry (50 cm, a 0.2768 mm pixel pitch of a 24" full-HD panel).
+    fov_monitor_px : (int, int)
+        ``(height, width)`` of the field of view on the monitor, in monitor pixels.
+    source_size_px : float
+        Side of the displayed square point source, monitor pixels (0 for an ideal point).
+    spherical_source : bool
+        Spherical wave from the monitor distance (True) or a plane wave (False).
+    sensor_shape : (int, int)
+        ``(H, W)`` at full resolution; ``pixel_pitch_um`` at full resolution.
+    downsample : int
+        Integer binning factor for fast runs (sensor ``H/downsample × W/downsample`` with
+        ``downsample`` times larger pixels; the optics are unchanged).
+    oversample : int or None
+        Optical samples per pixel and axis; ``None`` picks the smallest that samples the
+        scattered light at Nyquist (and at least 2, so pixels integrate the caustic).
+    vignetting_exponent : float
+        Relative illumination ``cos(θ)**exponent``.
+    field_free : bool
+        A camera without field variation, for tests of the analysis (issue 43): every
+        position's PSF is the on-axis PSF *as sampled by the pixels* translated by the
+        chief-ray shift (exactly linear in tan θ; the sub-pixel part as a band-limited
+        translation), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and
+        no other change of shape: the camera a shift-invariant pixel-level model describes
+        exactly. (Translating the optical PSF before the pixels integrate it instead, as a
+        physical isoplanatic camera would, changes the sampled PSF with each position's
+        sub-pixel phase wherever the pixels alias it, e.g. the default camera binned 8×: a
+        change no shift-invariant pixel-level model represents.) A bench facility, not a
+        model of a real camera.
+    sensor : SensorModel
+        Noise, black level, bit depth, saturation.
+    peak_fraction : float
+        Exposure is set so that the brightest on-axis pixel reaches this fraction of full
+        well (above 1 saturates on purpose).
+    seed : int
+        Seed of the diffuser surface and of the sensor noise.
+    """
+
+    diffusion_angle_deg: float = 1.0
+    refractive_index: float = 1.5
+    correlation_length_um: float | None = None
+    aperture_mm: tuple[float, float] = (2.6, 2.6)
+    gap_mm: float = 14.6
+    wavelengths_nm: tuple[float, ...] = (610.0, 530.0, 470.0)
+    monitor_distance_mm: float = 500.0
+    monitor_pixel_pitch_mm: float = 0.2768
+    fov_monitor_px: tuple[int, int] = (442, 614)
+    source_size_px: float = 1.0
+    spherical_source: bool = True
+    sensor_shape: tuple[int, int] = (1080, 1440)
+    pixel_pitch_um: float = 3.45
+    downsample: int = 1
+    oversample: int | None = None
+    vignetting_exponent: float = 4.0
+    field_free: bool = False
+    sensor: SensorModel = field(default_factory=SensorModel)
+    peak_fraction: float = 0.8
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self._check_flag_ranges()
+        self._check_optics()
+        self._check_sampling()
+
+    def _check_flag_ranges(self) -> None:
+        # the ranges of the command-line flags (one table), for --bench-config files too
+        for name, flag_name in BENCH_FLAGS.items():
+            try:
+                flag_range(flag_name).check(getattr(self, name), f"{name} ({flag_name})")
+            except PsfkitError as exc:
+                raise ConfigurationError(str(exc)) from None
+
+    def _check_optics(self) -> None:
+        positive = ["diffusion_angle_deg", "gap_mm", "monitor_distance_mm",
+                    "monitor_pixel_pitch_mm", "pixel_pitch_um", "peak_fraction"]
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ConfigurationError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.refractive_index <= 1.0:
+            raise ConfigurationError("refractive_index must be > 1")
+        if len(self.wavelengths_nm) not in CHANNEL_NAMES or min(self.wavelengths_nm) <= 0:
+            raise ConfigurationError("wavelengths_nm needs 1 (mono) or 3 (RGB) positive values")
+        if min(self.aperture_mm) <= 0 or min(self.fov_monitor_px) <= 0:
+            raise ConfigurationError("aperture_mm and fov_monitor_px must be positive")
+
+    def _check_sampling(self) -> None:
+        if not isinstance(self.downsample, int) or self.downsample < 1:
+            raise ConfigurationError(f"downsample must be an integer >= 1, got {self.downsample}")
+        h, w = self.sensor_shape
+        if h // self.downsample < 16 or w // self.downsample < 16:
+            raise ConfigurationError(f"downsample {self.downsample} leaves fewer than 16 pixels")
+        if self.oversample is not None and self.oversample < 1:
+            raise ConfigurationError("oversample must be >= 1")
+        if self.correlation_length_um is not None and self.correlation_length_um <= 0:
+            raise ConfigurationError("correlation_length_um must be positive")
+        if self.source_size_px < 0:
+            raise ConfigurationError("source_size_px must be >= 0")
+
+    def to_dict(self) -> dict:
+        """JSON-friendly description of every parameter."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, SensorModel):
+                value = {g.name: getattr(value, g.name) for g in fields(value)}
+            out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> BenchConfig:
+        """Inverse of :meth:`to_dict` (unknown keys are an error)."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ConfigurationError(f"unknown bench parameter(s): {', '.join(sorted(unknown))}")
+        kwargs = dict(data)
+        if isinstance(kwargs.get("sensor"), dict):
+            sensor = dict(kwargs["sensor"])
+            if "quantum_efficiency" in sensor:
+                sensor["quantum_efficiency"] = tuple(sensor["quantum_efficiency"])
+            kwargs["sensor"] = SensorModel(**sensor)
+        for name in ("aperture_mm", "wavelengths_nm", "fov_monitor_px", "sensor_shape"):
+            if name in kwargs:
+                kwargs[name] = tuple(kwargs[name])
+        return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class PsfPatch:
+    """A noise-free PSF on a block of sensor pixels around the chief ray.
+
+    ``image`` is ``(C, h, w)``; its top-left pixel sits at sensor pixel ``offset = (v0, u0)``
+    (may be negative or run past the sensor: :meth:`VirtualCamera.psf` crops).
+    ``shift_px = (du, dv)`` is the exact chief-ray shift relative to the on-axis PSF.
+    """
+
+    image: np.ndarray
+    offset: tuple[int, int]
+    shift_px: tuple[float, float]
+
+
+def _fast_block(min_pixels: int, parity: int, q: int) -> int:
+    """Smallest block size (pixels) >= min_pixels with the given parity and an FFT-friendly
+    number of optical samples ``q·n``."""
+    n = max(min_pixels, 2)
+    while True:
+        if (n - parity) % 2 == 0 and sfft.next_fast_len(q * n) == q * n:
+            return n
+        n += 1
+
+
+def _aperture_profile(coords_um: np.ndarray, size_um: float, pitch_um: float) -> np.ndarray:
+    """Fraction of each sample cell inside ``|x| <= size/2`` (anti-aliased hard edge)."""
+    half = size_um / 2.0
+    lo = np.maximum(coords_um - pitch_um / 2.0, -half)
+    hi = np.minimum(coords_um + pitch_um / 2.0, half)
+    return np.clip((hi - lo) / pitch_um, 0.0, 1.0)
+
+
+class VirtualCamera:
+    """A simulated diffuser camera; :meth:`psf` gives the noise-free PSF at any field point.
+
+    Parameters
+    ----------
+    config : BenchConfig
+        All physical parameters; the diffuser surface is drawn from ``config.seed``.
+    surface : callable, optional
+        ``surface(y_um, x_um) -> height_um`` on the grid spanned by two increasing 1-D
+        coordinate arrays (relative to the optical axis); replaces the random diffuser, e.g.
+        with a measured surface profile.
+    backend : {"auto", "torch", "numpy"}
+        ``"torch"`` runs the optics of :meth:`psf_patch` as batched float32 FFTs in PyTorch
+        (:mod:`psfkit.simulate.propagation_torch`, CUDA if present, else all CPU cores; PSFs
+        equal to the NumPy path's to ~1e-5 relative); ``"numpy"`` is the reference path
+        (scipy.fft, float64 phases); ``"auto"`` is torch where it can be imported.
+    device : str, optional
+        torch device of the torch backend (default CUDA if available, else CPU).
+
+    Examples
+    --------
+    >>> cam = VirtualCamera(BenchConfig(downsample=8))
+    >>> psf = cam.psf((3.0, -2.0))          # (C, H, W), field angles in degrees
+    >>> cam.true_shift_px((3.0, -2.0))      # (du, dv) relative to the on-axis PSF
+    """
+
+    def __init__(self, config: BenchConfig | None = None,
+                 surface: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                 backend: str = "auto", device: str | None = None) -> None:
+        self.config = config = config or BenchConfig()
+        self.backend = resolve_backend(backend)
+        self.sensor_shape = (config.sensor_shape[0] // config.downsample,
+                             config.sensor_shape[1] // config.downsample)
+        self.pixel_um = config.pixel_pitch_um * config.downsample
+        self.gap_um = config.gap_mm * 1e3
+        self.z_um = config.monitor_distance_mm * 1e3
+        self.wavelengths_um = tuple(w * 1e-3 for w in config.wavelengths_nm)
+        self.channels = CHANNEL_NAMES[len(self.wavelengths_um)]
+
+        sigma_angle = np.deg2rad(config.diffusion_angle_deg) / 2.3548200450309493
+        aperture_um = (config.aperture_mm[0] * 1e3, config.aperture_mm[1] * 1e3)
+        # Widest angle (relative to the chief ray) carrying light: 4.5σ of the diffuser plus
+        # the divergence of the spherical wave across the aperture.
+        divergence = (0.5 * max(aperture_um) / self.z_um) if config.spherical_source else 0.0
+        max_angle = 4.5 * sigma_angle + divergence
+        if config.oversample is None:
+            nyquist_pitch = min(self.wavelengths_um) / (2.0 * np.sin(max_angle))
+            self.oversample = max(2, int(np.ceil(self.pixel_um / nyquist_pitch)))
+        else:
+            self.oversample = int(config.oversample)
+        q = self.oversample
+        self.sim_pitch_um = self.pixel_um / q
+
+        # Block: aperture + spread of the scattered light + astigmatic growth at the FoV edge
+        margin_um = self.gap_um * 1.15 * np.tan(max_angle) + 4 * self.pixel_um
+        blur_um = self.source_blur_um()
+        minimum = tuple(int(np.ceil((a + 2 * margin_um + blur_um) / self.pixel_um))
+                        for a in aperture_um)
+        # the propagation grid follows from the geometry: sized before anything is allocated
+        # (a wide diffusion angle or a long gap would otherwise run out of memory or time)
+        try:
+            bounded_size(tuple(q * m for m in minimum), "the virtual bench's propagation grid",
+                         max_side=2**14, max_total=MAX_PROPAGATION_PIXELS)
+        except PsfkitError as exc:
+            raise ConfigurationError(f"{exc} (from gap_mm {config.gap_mm:g}, "
+                                     f"diffusion_angle_deg {config.diffusion_angle_deg:g}, "
+                                     f"aperture_mm {list(config.aperture_mm)}, oversample {q}); "
+                                     "use a smaller gap, angle or aperture") from None
+        self.block_pixels = tuple(_fast_block(m, s % 2, q)
+                                  for m, s in zip(minimum, self.sensor_shape, strict=True))
+        n_y, n_x = (q * b for b in self.block_pixels)
+        self.y_um = (np.arange(n_y) - (n_y - 1) / 2.0) * self.sim_pitch_um
+        self.x_um = (np.arange(n_x) - (n_x - 1) / 2.0) * self.sim_pitch_um
+
+        ell = config.correlation_length_um or caustic_correlation_length(
+            config.diffusion_angle_deg, self.gap_um)
+        self.correlation_length_um = ell
+        self.diffuser = DiffuserSurface.generate(
+            extent_um=(aperture_um[0] + 4 * ell, aperture_um[1] + 4 * ell),
+            correlation_length_um=ell,
+            slope_rms=slope_rms_for_angle(config.diffusion_angle_deg, config.refractive_index),
+            seed=config.seed)
+        self._height_um = (surface or self.diffuser.height)(self.y_um, self.x_um)
+        if self._height_um.shape != (self.y_um.size, self.x_um.size):
+            raise ConfigurationError(f"surface returned shape {self._height_um.shape}, expected "
+                                     f"{(self.y_um.size, self.x_um.size)}")
+        aperture = (_aperture_profile(self.y_um, aperture_um[0], self.sim_pitch_um)[:, None]
+                    * _aperture_profile(self.x_um, aperture_um[1], self.sim_pitch_um)[None])
+        self._aperture = aperture.astype(np.float32)
+        self._aperture_power = float(np.sum(aperture**2))
+        self._plane_spectra: dict[int, np.ndarray] = {}
+        self._torch: TorchOptics | None = None
+        if self.backend == "torch":
+            from psfkit.simulate.propagation_torch import TorchOptics
+
+            self._torch = TorchOptics(
+                self.x_um, self.y_um, (config.refractive_index - 1.0) * self._height_um,
+                aperture, self.wavelengths_um, self.gap_um, self.z_um, self.sim_pitch_um,
+                q, config.spherical_source, device)
+
+    @property
+    def device_type(self) -> str:
+        """``"cpu"`` or ``"cuda"``: where the optics run."""
+        return self._torch.device.type if self._torch is not None else "cpu"
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def magnification(self) -> float:
+        """Sensor pixels of PSF shift per monitor pixel of source displacement."""
+        return self.gap_um * self.config.monitor_pixel_pitch_mm * 1e3 / (self.z_um * self.pixel_um)
+
+    def field_from_monitor(self, x_px: float | np.ndarray, y_px: float | np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """Field angles ``(θx, θy)`` in degrees of monitor positions (pixels from the axis)."""
+        pitch_um = self.config.monitor_pixel_pitch_mm * 1e3
+        return (np.rad2deg(np.arctan(np.asarray(x_px) * pitch_um / self.z_um)),
+                np.rad2deg(np.arctan(np.asarray(y_px) * pitch_um / self.z_um)))
+
+    def _source_position_um(self, field_deg: tuple[float, float]) -> tuple[float, float]:
+        tx, ty = np.deg2rad(field_deg[0]), np.deg2rad(field_deg[1])
+        return self.z_um * np.tan(tx), self.z_um * np.tan(ty)
+
+    def direction_cosines(self, field_deg: tuple[float, float]) -> tuple[float, float, float]:
+        """Direction ``(α, β, γ)`` of the chief ray from a source at ``field_deg``."""
+        xs, ys = self._source_position_um(field_deg)
+        r0 = np.sqrt(xs**2 + ys**2 + self.z_um**2)
+        return -xs / r0, -ys / r0, self.z_um / r0
+
+    def true_shift_px(self, field_deg: tuple[float, float]) -> tuple[float, float]:
+        """Exact chief-ray shift ``(du, dv)`` in sensor pixels: ``−d·tanθ / pixel``."""
+        alpha, beta, _ = self.direction_cosines(field_deg)
+        sx, sy = chief_ray_shift(self.gap_um, alpha, beta)
+        return sx / self.pixel_um + 0.0, sy / self.pixel_um + 0.0  # + 0.0: no negative zeros
+
+    def gain(self, field_deg: tuple[float, float]) -> float:
+        """Relative illumination (vignetting) of the source, 1 on axis (and everywhere for a
+        ``field_free`` camera)."""
+        if self.config.field_free:
+            return 1.0
+        return float(relative_illumination(self.direction_cosines(field_deg)[2],
+                                           self.config.vignetting_exponent))
+
+    def source_blur_um(self) -> float:
+        """Width on the sensor of the displayed square source's geometric image (µm)."""
+        return (self.gap_um * self.config.source_size_px * self.config.monitor_pixel_pitch_mm
+                * 1e3 / self.z_um)
+
+    # ------------------------------------------------------------------ optics
+
+    def optical_path_um(self, field_deg: tuple[float, float]) -> np.ndarray:
+        """Wavelength-independent optical path (µm) across the optical grid, carrier removed.
+
+        ``(n−1)·h(x, y) + (R − R0 − α x − β y)``: the diffuser's surface plus, for a spherical
+        source, the curvature of the incoming wavefront (``R`` the distance to the source).
+        """
+        opl = (self.config.refractive_index - 1.0) * self._height_um
+        if not self.config.spherical_source:
+            return opl
+        xs, ys = self._source_position_um(field_deg)
+        r0 = np.sqrt(xs**2 + ys**2 + self.z_um**2)
+        x = self.x_um[None, :]
+        y = self.y_um[:, None]
+        r = np.sqrt((x - xs) ** 2 + (y - ys) ** 2 + self.z_um**2)
+        # R − R0 − αx − βy written without cancellation
+        return opl + ((x * x - 2 * x * xs) + (y * y - 2 * y * ys)) / (r + r0) \
+            + (x * xs + y * ys) / r0
+
+    def envelope(self, field_deg: tuple[float, float], channel: int,
+                 optical_path_um: np.ndarray | None = None) -> np.ndarray:
+        """Complex envelope just behind the diffuser (carrier removed), on the optical grid:
+        ``aperture · exp(i 2π/λ · optical_path)`` (complex64)."""
+        if optical_path_um is None:
+            optical_path_um = self.optical_path_um(field_deg)
+        k = 2.0 * np.pi / self.wavelengths_um[channel]
+        return self._aperture * unit_phasor(k * optical_path_um)
+
+    def _spectrum(self, field_deg: tuple[float, float], channel: int,
+                  optical_path_um: np.ndarray | None) -> np.ndarray:
+        if self.config.spherical_source:
+            return sfft.fft2(self.envelope(field_deg, channel, optical_path_um), workers=-1)
+        if channel not in self._plane_spectra:
+            self._plane_spectra[channel] = sfft.fft2(self.envelope((0.0, 0.0), channel),
+                                                     workers=-1)
+        return self._plane_spectra[channel]
+
+    def psf_patch(self, field_deg: tuple[float, float], subpixel_shift: bool = True) -> PsfPatch:
+        """Noise-free PSF of a source at ``field_deg`` on the block around its chief ray.
+
+        Parameters
+        ----------
+        field_deg : (float, float)
+            Field angles ``(θx, θy)`` in degrees.
+        subpixel_shift : bool
+            Apply the sub-pixel part of the chief-ray shift (True for a physical PSF). With
+            False the block is the PSF in the frame moving with the chief ray (used to study
+            its change of shape alone).
+
+        Returns
+        -------
+        PsfPatch
+            ``image`` in relative irradiance (the on-axis PSF sums to 1 per channel).
+        """
+        du, dv = self.true_shift_px(field_deg)
+        nu, nv = int(np.round(du)), int(np.round(dv))
+        if self.config.field_free:
+            out = self._optics_patch((0.0, 0.0), (0.0, 0.0))
+            if subpixel_shift and (du != nu or dv != nv):
+                out = translate_pixels(out, (du - nu, dv - nv))
+        else:
+            residual_um = ((du - nu) * self.pixel_um, (dv - nv) * self.pixel_um) \
+                if subpixel_shift else (0.0, 0.0)
+            out = self._optics_patch(field_deg, residual_um)
+        v0 = (self.sensor_shape[0] - self.block_pixels[0]) // 2 + nv
+        u0 = (self.sensor_shape[1] - self.block_pixels[1]) // 2 + nu
+        return PsfPatch(image=out, offset=(v0, u0), shift_px=(du, dv))
+
+    def _optics_patch(self, field_deg: tuple[float, float],
+                      residual_um: tuple[float, float]) -> np.ndarray:
+        """The block's ``(C, h, w)`` PSF of a source at ``field_deg`` whose chief ray lands
+        ``residual_um`` from the block's centre pixel."""
+        alpha, beta, _ = self.direction_cosines(field_deg)
+        scale = self.gain(field_deg) / self._aperture_power
+        blur_px = self.source_blur_um() / self.pixel_um
+        if self._torch is not None:
+            return self._torch_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+        return self._numpy_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+
+    def _numpy_patch(self, field_deg: tuple[float, float], alpha: float, beta: float,
+                     residual_um: tuple[float, float], scale: float, blur_px: float
+                     ) -> np.ndarray:
+        """The block's ``(C, h, w)`` float64 PSF with scipy.fft (the reference path)."""
+        shape = (self.y_um.size, self.x_um.size)
+        opl = self.optical_path_um(field_deg) if self.config.spherical_source else None
+        out = np.empty((len(self.channels), *self.block_pixels), dtype=np.float64)
+        for c, lam in enumerate(self.wavelengths_um):
+            transfer = oblique_transfer_function(shape, self.sim_pitch_um, lam, self.gap_um,
+                                                 alpha, beta, residual_um)
+            transfer *= self._spectrum(field_deg, c, opl)
+            field_at_sensor = sfft.ifft2(transfer, workers=-1, overwrite_x=True)
+            # sensor-pixel integration of the oversampled intensity
+            intensity = bin_image(np.abs(field_at_sensor) ** 2, self.oversample, exact=True)
+            out[c] = intensity * scale
+        return box_blur(out, blur_px) if blur_px > 0 else out
+
+    def _torch_patch(self, field_deg: tuple[float, float], alpha: float, beta: float,
+                     residual_um: tuple[float, float], scale: float, blur_px: float
+                     ) -> np.ndarray:
+        """The block's ``(C, h, w)`` PSF with batched float32 FFTs in torch."""
+        from psfkit.simulate.propagation_torch import to_numpy
+
+        optics = self._torch
+        assert optics is not None
+        out = optics.intensity(self._source_position_um(field_deg), alpha, beta, residual_um)
+        out *= scale
+        if blur_px > 0:
+            out = optics.box_blur(out, blur_px)
+        return to_numpy(out)
+
+    def psf(self, field_deg: tuple[float, float]) -> np.ndarray:
+        """Noise-free PSF on the sensor, ``(C, H, W)`` float32, relative irradiance."""
+        return place_patch(self.psf_patch(field_deg), self.sensor_shape)
+
+
+def translate_pixels(image: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
+    """``(C, h, w)`` image moved by the sub-pixel ``shift = (du, dv)`` as a band-limited
+    signal (a Fourier phase ramp; the block's dark border keeps the wrap-around out)."""
+    du, dv = shift
+    ramp = np.exp(-2j * np.pi * (np.fft.fftfreq(image.shape[-2])[:, None] * dv
+                                 + np.fft.rfftfreq(image.shape[-1])[None, :] * du))
+    moved = sfft.irfft2(sfft.rfft2(image, axes=(-2, -1)) * ramp, s=image.shape[-2:],
+                        axes=(-2, -1))
+    return moved.astype(image.dtype, copy=False)
+
+
+def place_patch(patch: PsfPatch, sensor_shape: tuple[int, int]) -> np.ndarray:
+    """Paste a :class:`PsfPatch` into a zero ``(C, H, W)`` float32 sensor frame (cropping)."""
+    c, h, w = patch.image.shape
+    out = np.zeros((c, *sensor_shape), dtype=np.float32)
+    v0, u0 = patch.offset
+    sv0, su0 = max(v0, 0), max(u0, 0)
+    sv1, su1 = min(v0 + h, sensor_shape[0]), min(u0 + w, sensor_shape[1])
+    if sv1 > sv0 and su1 > su0:
+        out[:, sv0:sv1, su0:su1] = patch.image[:, sv0 - v0:sv1 - v0, su0 - u0:su1 - u0]
+    return out
