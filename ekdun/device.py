@@ -27,9 +27,9 @@ from collections.abc import Iterator
 import torch
 from torch import nn
 
+from ekdun.choices import AMP_CHOICES
 from ekdun.errors import ConfigurationError
 
-AMP_CHOICES = ("auto", "off", "bf16", "fp16")
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
@@ -46,7 +46,8 @@ def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.dev
         return device
     if device == "auto":
         return torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
-    from psfkit.io.validation import DEVICE_PATTERN, escape_line
+    from ekdun.flag_ranges import DEVICE_PATTERN
+    from psfkit.io.validation import escape_line
 
     if not DEVICE_PATTERN.fullmatch(device):
         raise ConfigurationError(f"--device {escape_line(device)}: expected auto, cpu, cuda, "

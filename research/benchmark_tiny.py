@@ -28,16 +28,17 @@ from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from ekdun.evaluation import LPIPSMetric, evaluate_model, write_tables
 from ekdun.evaluation.evaluate import recorded_optical_center
 from ekdun.evaluation.tables import label_for
+from ekdun.flag_ranges import flag
 from ekdun.nets.builder import network_from_checkpoint
 from ekdun.nets.checkpoint import load_checkpoint
 from ekdun.training.trainer import CHECKPOINT, TrainOptions, train
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
+from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
 from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_grid
 from psfkit.io.atomic import atomic_file
-from psfkit.io.validation import OneLineArgumentParser, flag
 
 RUNS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("ekdun-last-2", "ekdun", {"schedule": "last-2"}),

@@ -21,10 +21,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ekdun.errors import InvalidInputError
+from ekdun.flag_ranges import flag
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
+from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.cli.vocabulary import BASIS_ALIASES
-from psfkit.io.validation import OneLineArgumentParser, flag
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from ekdun import __version__
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
-from psfkit.io.validation import OneLineArgumentParser
+from psfkit.cli.parser import OneLineArgumentParser
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -28,9 +28,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ekdun.cli.vocabulary import add_flag
 from ekdun.errors import InvalidInputError
-from psfkit.cli.vocabulary import NOTICES, add_flag, deprecation_notices
-from psfkit.io.validation import flag, require_finite
+from ekdun.flag_ranges import flag
+from psfkit.cli.vocabulary import NOTICES, deprecation_notices
+from psfkit.io.validation import require_finite
 
 # One TV default for both forms (the same solver and units since issue 22; 3e-4 was the best of
 # 1e-4/3e-4/1e-3/3e-3 for the PSF form on DLMD pair im394 at 67x120: 18.90 dB vs 18.54 at 1e-3).

@@ -8,11 +8,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ekdun.cli.vocabulary import add_flag
 from ekdun.errors import InvalidInputError
+from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
-from psfkit.cli.vocabulary import NOTICES, add_flag, add_retired
-from psfkit.io.validation import MAX_GRID_SIDE, bounded_size, flag
+from psfkit.cli.vocabulary import NOTICES, add_retired
+from psfkit.io.validation import MAX_GRID_SIDE, bounded_size
 
 
 def _say(args: argparse.Namespace, text: str) -> None:

@@ -20,10 +20,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from ekdun.cli.vocabulary import add_flag
 from ekdun.errors import InvalidInputError
+from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_help_all, mark_advanced
-from psfkit.cli.vocabulary import add_flag
-from psfkit.io.validation import flag
 
 #: Suffixes of the PSF images ``reconstruct`` accepts as MODEL
 #: (:data:`psfkit.io.images.IMAGE_SUFFIXES`, spelled out so that ``--help`` needs no NumPy).

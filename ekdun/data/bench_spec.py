@@ -20,7 +20,7 @@ import numpy as np
 from ekdun.data.deadleaves import dead_leaves
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.errors import ConfigurationError, InvalidInputError
-from psfkit.io.validation import flag_range
+from ekdun.flag_ranges import flag_range
 from psfkit.simulate import BenchConfig
 from psfkit.simulate.camera import VirtualCamera, place_patch
 from psfkit.simulate.psf_grid import grid_monitor_positions

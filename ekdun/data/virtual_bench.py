@@ -51,7 +51,7 @@ from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.images import write_image
-from psfkit.io.validation import read_json_file
+from psfkit.io.json_documents import read_json_file
 from psfkit.simulate import simulate_grid
 
 __all__ = ["FORMAT", "FULL_PIXEL_UM", "MANIFEST", "TEST_IMAGES", "TRAIN_IMAGES", "VERSION",

@@ -11,7 +11,7 @@ from typing import Any
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.forward.zones import ZONE_NAMES
 from psfkit.io.atomic import atomic_file
-from psfkit.io.validation import dumps_finite, read_json_file
+from psfkit.io.json_documents import dumps_finite, read_json_file
 
 MODEL_LABELS = {"le-admm-u": "Le-ADMM-U", "updn": "UPDN", "ekdun": "EK-DUN"}
 SCHEDULE_LABELS = {"base": "base only", "last-2": "last-2", "last-k": "last-2", "all": "all"}

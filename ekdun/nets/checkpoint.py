@@ -36,14 +36,11 @@ from typing import Any
 import torch
 
 from ekdun.errors import CheckpointError
+from ekdun.flag_ranges import MAX_UNROLLED_ITERATIONS
 from psfkit.errors import PsfkitError
 from psfkit.io.atomic import atomic_file
-from psfkit.io.validation import (
-    MAX_UNROLLED_ITERATIONS,
-    bounded_size,
-    exact_int,
-    load_json_document,
-)
+from psfkit.io.json_documents import load_json_document
+from psfkit.io.validation import bounded_size, exact_int
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "checkpoint_sensor", "load_checkpoint",
            "save_checkpoint"]  # CheckpointError: defined in ekdun.errors

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ekdun.choices import MODEL_NAMES
 from ekdun.errors import ConfigurationError, KernelShapeError
-from ekdun.model_names import MODEL_NAMES
 from ekdun.nets.configs import (
     EKDUNConfig,
     LeADMMUConfig,

@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
-from psfkit.compare.kernel_change import caustic_support
+from psfkit.calibration.caustic import caustic_support
 
 #: Parameterisations ``EKDUNConfig.kernel_param`` accepts.
 KERNEL_PARAMETERISATIONS = ("free", "physical", "flow", "spectral")
@@ -56,7 +56,7 @@ LR_MULTIPLIER = {"free": 1.0, "physical": 100.0, "flow": 100.0, "spectral": 1.0}
 
 def seed_support(kernels: Tensor, level: float = 0.02, dilate: int = 3) -> Tensor:
     """Dilated caustic support of kernels ``(K, C, H, W)``: ``(H, W)`` bool, the union over
-    kernels (:func:`psfkit.compare.kernel_change.caustic_support`)."""
+    kernels (:func:`psfkit.calibration.caustic.caustic_support`)."""
     k = kernels.detach().cpu().numpy().astype(np.float32)
     return torch.as_tensor(caustic_support(k, level, dilate))
 

@@ -42,6 +42,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy import optimize
 
+from psfkit.calibration.caustic import caustic_mask, erode
 from psfkit.choices import FLOW_METHODS
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.numerics.significance import Estimate, checked, f_test, undetermined
@@ -210,29 +211,6 @@ def dense_flow(reference: np.ndarray, moving: np.ndarray, method: str = "dis") -
     return np.stack([u, v]).astype(np.float32)
 
 
-def caustic_mask(reference: np.ndarray, valid: np.ndarray, level: float = 0.02,
-                 border: int = 8, dilate: int = 3) -> np.ndarray:
-    """Pixels where a displacement is meaningful: on or beside the caustic (within ``dilate``
-    px of a pixel above ``level`` of the peak, so that the flanks of thin caustic lines, where
-    the gradients are, are kept), inside ``valid`` and ``border`` px away from its edge."""
-    inner = _erode(valid, border)
-    if not inner.any():
-        return inner
-    bright = (reference > level * float(reference[inner].max())).astype(np.uint8)
-    near = cv2.dilate(bright, np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)) > 0
-    return inner & near
-
-
-def _erode(mask: np.ndarray, pixels: int) -> np.ndarray:
-    """Erode a bool mask by a square of half-size ``pixels`` (outside counts as False)."""
-    if pixels <= 0:
-        return mask
-    padded = np.pad(mask.astype(np.uint8), 1)
-    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
-    return cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)[
-        1:-1, 1:-1] > 0
-
-
 def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
     rows, cols = np.nonzero(mask)
     return (slice(max(rows.min() - margin, 0), min(rows.max() + margin + 1, mask.shape[0])),
@@ -266,7 +244,7 @@ def warp_field(reference: np.ndarray, moving: np.ndarray, valid: np.ndarray | No
     box = _bounding_box(mask, margin=16)
     ref = np.where(valid, reference, 0).astype(np.float32)[box]
     mov = np.where(valid, moving, 0).astype(np.float32)[box]
-    local, ecc = affine_registration(ref, mov, _erode(valid[box], 4))
+    local, ecc = affine_registration(ref, mov, erode(valid[box], 4))
     origin = np.array([box[1].start, box[0].start], dtype=np.float64)   # (u0, v0)
     # the same affine map written about the full image's centre
     center = ((h - 1) / 2.0, (w - 1) / 2.0)

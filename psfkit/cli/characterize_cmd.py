@@ -27,7 +27,7 @@ from psfkit.cli.summaries import (
 )
 from psfkit.cli.vocabulary import NOTICES, add_flag, command_name
 from psfkit.io import OutputTransaction
-from psfkit.io.validation import flag
+from psfkit.io.flag_ranges import flag
 
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).

@@ -13,7 +13,7 @@ from psfkit.cli.help_all import add_help_all, mark_advanced
 from psfkit.cli.options import preprocess_options
 from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
-from psfkit.io.validation import flag
+from psfkit.io.flag_ranges import flag
 
 #: Flags that only ``--help-all`` lists (issue 44): how the displacement maps are measured
 #: and how a grid given as the measured side is preprocessed.

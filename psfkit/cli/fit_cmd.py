@@ -26,8 +26,8 @@ from psfkit.errors import InvalidInputError
 from psfkit.forward.kernelfile import save_kernels
 from psfkit.forward.weights import BASIS_NAMES
 from psfkit.io import OutputTransaction, atomic_directory
+from psfkit.io.flag_ranges import flag
 from psfkit.io.jsonable import jsonable
-from psfkit.io.validation import flag
 
 # The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
 # not when the parser is built (``psfkit --help`` stays fast).

@@ -16,12 +16,13 @@ from collections.abc import Iterator, Sequence
 
 from psfkit import __version__
 from psfkit.cli.allocator import reuse_freed_memory
+from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.cli.run_file import parse_args
 from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
 from psfkit.io.atomic import protected_inputs
 from psfkit.io.temps import public_name
-from psfkit.io.validation import OneLineArgumentParser, escape_line
+from psfkit.io.validation import escape_line
 
 
 def split_debug(prog: str, argv: Sequence[str] | None) -> tuple[bool, list[str]]:

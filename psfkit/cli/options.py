@@ -6,7 +6,7 @@ import argparse
 from typing import TYPE_CHECKING, Any
 
 from psfkit.calibration.preprocess import PreprocessOptions
-from psfkit.io.validation import flag
+from psfkit.io.flag_ranges import flag
 
 if TYPE_CHECKING:
     from psfkit.io.grid import PsfGrid

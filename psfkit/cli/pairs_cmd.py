@@ -20,10 +20,12 @@ from psfkit.forward.kernelfile import load_kernels, save_kernels
 from psfkit.forward.weights import BASIS_NAMES
 from psfkit.forward.zones import ZONE_NAMES
 from psfkit.io import OutputTransaction, read_pairs
+from psfkit.io.flag_ranges import flag
+from psfkit.io.json_documents import dumps_finite
 from psfkit.io.jsonable import jsonable
 from psfkit.io.pairs import parse_names
 from psfkit.io.read_options import ReadOptions, choose
-from psfkit.io.validation import dumps_finite, flag, require_finite
+from psfkit.io.validation import require_finite
 
 #: Flags that only ``--help-all`` lists (issue 44): the solver and the constraints, whose
 #: defaults are chosen by held-out error or are a measured PSF's; the channel order, which the

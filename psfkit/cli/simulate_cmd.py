@@ -15,7 +15,8 @@ from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, PsfGrid, read_grid
 from psfkit.io.atomic import check_output
-from psfkit.io.validation import flag, read_json_file
+from psfkit.io.flag_ranges import flag
+from psfkit.io.json_documents import read_json_file
 
 # The virtual bench (scipy) is imported by the commands that run it, not when the parser is
 # built (``psfkit --help`` stays fast).

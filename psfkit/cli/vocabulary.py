@@ -1,9 +1,10 @@
-"""One flag vocabulary for both command-line interfaces (``psfkit`` and ``ekdun``).
+"""One flag vocabulary: a flag means one thing in every command that has it.
 
-Every flag that more than one command uses, or whose meaning the two CLIs once disagreed on,
-is declared here once: its meaning, its destination, its default and its choices
-(:data:`VOCABULARY`). Both CLIs add these flags with :func:`add_flag`, so that ``--threads``
-means CPU threads and ``--device`` defaults to ``auto`` wherever they appear. A command may
+Every flag that more than one command uses is declared here once: its meaning, its
+destination, its default and its choices (:data:`VOCABULARY`). Commands add these flags with
+:func:`add_flag`, so that ``--threads`` means CPU threads and ``--seed`` defaults to 0
+wherever they appear. Another command-line interface built on psfkit extends the
+table with its own flags and passes its table to :func:`add_flag`. A command may
 differ from the declaration only where the declaration itself says so (``per_command``: e.g.
 ``fit-eigen --convention`` also offers ``auto``).
 
@@ -12,8 +13,8 @@ hidden from ``--help`` and, once the command has done its work, print one line
 (``note: --model is deprecated here, use --basis``) on stderr (:func:`deprecation_notices`,
 printed by :func:`psfkit.cli.main.run_cli`), so that an error stays the one line on stderr.
 
-Numeric ranges stay in :data:`psfkit.io.validation.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
-walks both parsers and checks them against this table and ``docs/cli-flags.md``.
+Numeric ranges stay in :data:`psfkit.io.flag_ranges.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
+walks the parsers and checks them against this table and ``docs/cli-flags.md``.
 """
 
 from __future__ import annotations
@@ -23,17 +24,12 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from psfkit.io.flag_ranges import flag
 from psfkit.io.read_options import CHANNEL_ORDERS
-from psfkit.io.validation import device_name, flag
 
 #: ``namespace`` attribute that collects the notices of deprecated spellings.
 NOTICES = "deprecation_notices"
 
-#: The networks of ``ekdun`` (:data:`ekdun.model_names.MODEL_NAMES`, checked equal by the test;
-#: psfkit never imports ekdun).
-NETWORKS = ("ekdun", "le-admm-u", "updn")
-#: ``--amp`` (:data:`ekdun.device.AMP_CHOICES`, checked equal by the test).
-AMP_CHOICES = ("auto", "off", "bf16", "fp16")
 #: Values of ``--basis`` that name another (``ek`` is the paper's basis).
 BASIS_ALIASES = {"ek": "paper"}
 
@@ -53,8 +49,9 @@ class SharedFlag:
     default_text: str
     default: Any = None
     choices: tuple[str, ...] | None = None
-    kind: str = "text"          # "text", "number" (type from FLAGS) or "device"
+    kind: str = "text"          # "text" or "number" (type from the flag ranges)
     metavar: str | None = None
+    parse: Callable[[str], Any] | None = None   # argparse type of a "text" flag
     per_command: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def spec(self, command: str) -> dict[str, Any]:
@@ -81,8 +78,6 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                                  "the model to fit: si (one shift-invariant PSF), ek (= paper: "
                                  "Kbase, Kv, Kh) or another weight basis of "
                                  "psfkit.forward.weights"}}),
-    SharedFlag("--network", "network", "reconstruction network: ekdun, le-admm-u or updn",
-               "ekdun", default="ekdun", choices=NETWORKS),
     SharedFlag("--convention", "convention",
                "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
                "or source (fit-eigen: also auto = the lower cross-validated error)",
@@ -95,46 +90,26 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                                           "where the weights of the eigen-kernel model live: "
                                           "sensor (the paper's Eq. 7), source, or auto (the "
                                           "lower cross-validated error)"}}),
-    SharedFlag("--threads", "threads", "CPU threads",
-               "2 (psfkit report), torch's default (ekdun), the CPUs up to 16 and one per 64 "
-               "scenes (make-dataset)", kind="number", metavar="N",
+    SharedFlag("--threads", "threads", "CPU threads", "2", kind="number", metavar="N",
                # one meaning per command, each help line describes only its own (issue 44)
                per_command={
                    **{cmd: {"meaning": "PSF positions processed at the same time",
                             "default_text": "2"} for cmd in ("report", "register", "mae",
-                                                             "warp")},
-                   "make-dataset": {"meaning": "processes drawing the scenes at the same time",
-                                    "default_text": "the CPUs up to 16 and one per 64 scenes"},
-                   **{cmd: {"meaning": "torch's CPU threads (intra-op)",
-                            "default_text": "torch's default"}
-                      for cmd in ("train", "eval", "reconstruct", "admm")}}),
-    SharedFlag("--loader-workers", "loader_workers",
-               "DataLoader worker processes when the dataset does not fit on the device",
-               "2", default=2, kind="number", metavar="N"),
-    SharedFlag("--device", "device", "torch device: auto (cuda if present, else cpu), cpu, "
-               "cuda, cuda:N or mps", "auto", default="auto", kind="device"),
-    SharedFlag("--amp", "amp", "autocast precision of the network (the physics FFTs stay "
-               "float32): auto = fp16 on CUDA, off on CPU; bf16 also works on CPU; fp16 "
-               "needs CUDA", "auto", default="auto", choices=AMP_CHOICES),
+                                                             "warp")}}),
     SharedFlag("--channel-order", "channel_order",
                "channel order of the .npy/TIFF files on disk (RGB or BGR)",
                "the data's declaration (pairs.json, the DLMD layout: BGR) or the model's "
                "record, else RGB", choices=CHANNEL_ORDERS),
-    SharedFlag("--tv", "tv", "TV weight relative to the measurement's peak and the operator "
-               "norm ||A|| (power iteration, crop included): the same objective for every "
-               "model and solver", "3e-4", kind="number"),
     SharedFlag("--seed", "seed", "random seed", "0 (simulate-grid, demo: the --bench-config "
                "file's, else 0)", default=0, kind="number",
                per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
     SharedFlag("--holdout", "holdout",
-               "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit "
-               "or of training; eval-model: the pairs the model was not fitted on, where its "
+               "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit; "
+               "eval-model: the pairs the model was not fitted on, where its "
                "file does not record them", "-", metavar="NAME[,NAME]",
                per_command={
                    "fit-pairs": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
                                             "repeatable) left out of the fit"},
-                   "train": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
-                                        "repeatable) left out of training"},
                    "eval-model": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
                                              "repeatable) the model was not fitted on, where "
                                              "its file does not record them"}}),
@@ -151,9 +126,6 @@ DEPRECATED: dict[tuple[str, str], str] = {
     ("mae", "--workers"): "--threads",
     ("warp", "--workers"): "--threads",
     ("report", "--workers"): "--threads",
-    ("train", "--model"): "--network",
-    ("train", "--workers"): "--loader-workers",
-    ("admm", "--tau"): "--tv",
 }
 
 
@@ -163,28 +135,34 @@ def command_name(parser: argparse.ArgumentParser) -> str:
 
 
 def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
-             command: str, note: str = "", **extra: Any) -> argparse.Action:
+             command: str, note: str = "", *, vocabulary: Mapping[str, SharedFlag] = VOCABULARY,
+             deprecated: Mapping[tuple[str, str], str] = DEPRECATED,
+             number_type: Callable[[str, str], Callable[[str], Any]] = flag,
+             **extra: Any) -> argparse.Action:
     """Add the vocabulary's flag ``name`` to ``parser`` for ``command``, and its deprecated
-    spellings for that command (:data:`DEPRECATED`).
+    spellings for that command.
 
     ``note`` is appended to the help (what the default means for this command); ``extra``
     passes other ``add_argument`` keywords (``type`` for a per-command range, ``required``).
+    ``vocabulary``, ``deprecated`` and ``number_type`` (the type of a numeric flag from its
+    range) default to psfkit's (:data:`VOCABULARY`, :data:`DEPRECATED`,
+    :func:`psfkit.io.flag_ranges.flag`); another CLI passes its own.
     """
-    entry = VOCABULARY[name]
+    entry = vocabulary[name]
     spec = entry.spec(command)
     kwargs: dict[str, Any] = {"dest": entry.dest, "default": spec["default"]}
     if spec["choices"] is not None:
         kwargs["choices"] = spec["choices"]
     if entry.kind == "number":
-        kwargs["type"] = flag(name, command)
-    elif entry.kind == "device":
-        kwargs["type"] = device_name
+        kwargs["type"] = number_type(name, command)
+    elif entry.parse is not None:
+        kwargs["type"] = entry.parse
     if entry.metavar:
         kwargs["metavar"] = entry.metavar
     kwargs["help"] = f"{spec['meaning']} (default: {note or spec['default_text']})"
     kwargs.update(extra)
     action = parser.add_argument(name, **kwargs)
-    for (cmd, alias), canonical in DEPRECATED.items():
+    for (cmd, alias), canonical in deprecated.items():
         if cmd == command and canonical == name:
             add_deprecated(parser, alias, action)
     return action
@@ -255,7 +233,7 @@ def add_retired(parser: argparse.ArgumentParser, command: str,
                 ) -> None:
     """Add ``command``'s retired flags of ``table`` (psfkit's :data:`RETIRED`, or a CLI's
     own, same shape) to ``parser``, hidden; ``value_type(flag)``, where given, still checks a
-    retired flag's value as before (e.g. :func:`psfkit.io.validation.flag`)."""
+    retired flag's value as before (e.g. :func:`psfkit.io.flag_ranges.flag`)."""
     for (cmd, name), (nargs, note, choices) in table.items():
         if cmd == command:
             parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,

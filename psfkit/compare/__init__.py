@@ -33,7 +33,7 @@ Displacement maps (:func:`displacement_map`): dense optical flow (OpenCV DIS by 
 scaling
 both to the same sum on the caustic mask (gain differences are not displacements), smoothed by
 a masked Gaussian (normalised convolution) and kept on the caustic mask of the measured
-``Kbase`` (:func:`psfkit.calibration.warp.caustic_mask`).
+``Kbase`` (:func:`psfkit.calibration.caustic.caustic_mask`).
 
 Conventions. A displacement field ``D = (D_u, D_v)`` is ``(2, H, W)`` in pixels of the
 comparison grid (the learned file's sensor grid), ``u`` = column (right), ``v`` = row (down);

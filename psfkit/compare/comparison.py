@@ -13,10 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from psfkit.calibration.caustic import caustic_support
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.registration import register_shift, shift_image
 from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
-from psfkit.compare.kernel_change import caustic_support, split_kernel_changes
+from psfkit.compare.kernel_change import split_kernel_changes
 from psfkit.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import pad_kernels, resample

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from psfkit.calibration.warp import caustic_mask, dense_flow
+from psfkit.calibration.caustic import caustic_mask
+from psfkit.calibration.warp import dense_flow
 from psfkit.compare.options import CompareOptions
 from psfkit.errors import InvalidInputError
 
@@ -95,6 +96,6 @@ def displacement_map(reference: np.ndarray, other: np.ndarray, mask: np.ndarray,
 
 def comparison_mask(base_luminance: np.ndarray, options: CompareOptions) -> np.ndarray:
     """Caustic mask of the measured ``Kbase`` luminance ``(H, W)`` (see
-    :func:`psfkit.calibration.warp.caustic_mask`)."""
+    :func:`psfkit.calibration.caustic.caustic_mask`)."""
     return caustic_mask(base_luminance, np.ones(base_luminance.shape, bool), options.mask_level,
                         options.mask_border, options.mask_dilate)

@@ -30,35 +30,11 @@ import cv2
 import numpy as np
 
 from psfkit.calibration.preprocess import luminance
-from psfkit.calibration.warp import caustic_mask, dense_flow
+from psfkit.calibration.warp import dense_flow
 from psfkit.errors import InvalidInputError
 
 #: Parts of a kernel change, in the order they are taken off.
 PARTS = ("gain", "pedestal", "displacement", "other")
-
-
-def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -> np.ndarray:
-    """Union of the caustic masks of ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance).
-
-    A pixel is in the support when it is within ``dilate`` px of a pixel brighter than
-    ``level`` of its kernel's peak (``psfkit.calibration.warp.caustic_mask`` without a border).
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(H, W)`` bool.
-    """
-    k = np.asarray(kernels, np.float32)
-    if k.ndim == 4:
-        k = np.stack([luminance(x) for x in k])
-    if k.ndim != 3:
-        raise InvalidInputError("caustic_support needs (K, C, H, W) or (K, H, W) kernels")
-    valid = np.ones(k.shape[-2:], bool)
-    out = np.zeros(k.shape[-2:], bool)
-    for img in k:
-        if float(np.abs(img).max()) > 0:
-            out |= caustic_mask(np.clip(img, 0, None), valid, level, border=0, dilate=dilate)
-    return out
 
 
 def _warp(image: np.ndarray, flow: np.ndarray) -> np.ndarray:

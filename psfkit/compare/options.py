@@ -24,10 +24,9 @@ class CompareOptions:
         Standard deviation (px of the comparison grid) of the masked Gaussian applied to every
         displacement map; flows on caustics are noisy off the bright lines.
     mask_level, mask_border, mask_dilate : float, int, int
-        Caustic mask (:func:`psfkit.calibration.warp.caustic_mask`): pixels within ``mask_dilate``
-        px of a
-        pixel brighter than ``mask_level`` × the peak of the measured ``Kbase``, and
-        ``mask_border`` px inside the image.
+        Caustic mask (:func:`psfkit.calibration.caustic.caustic_mask`): pixels within
+        ``mask_dilate`` px of a pixel brighter than ``mask_level`` × the peak of the measured
+        ``Kbase``, and ``mask_border`` px inside the image.
     min_displacement_px : float
         A displacement map whose RMS over the mask is below this (px) counts as "no
         displacement": its correlations are NaN.

@@ -40,6 +40,7 @@ from psfkit.errors import ModelFileError, PsfkitError
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
 from psfkit.forward.weights import WeightBasis, get_basis
 from psfkit.io.atomic import atomic_file
+from psfkit.io.json_documents import dumps_finite, load_json_document
 from psfkit.io.read_options import ReadOptions
 from psfkit.io.validation import (
     MAX_IMAGE_PIXELS,
@@ -49,9 +50,7 @@ from psfkit.io.validation import (
     MIN_KERNEL_GAIN,
     bounded_size,
     check_array_shape,
-    dumps_finite,
     finite_number,
-    load_json_document,
     npy_header,
 )
 

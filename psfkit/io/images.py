@@ -18,12 +18,7 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_file
 from psfkit.io.png import decode_png, png_declared_shape
-from psfkit.io.validation import (
-    bounded_size,
-    check_array_shape,
-    npy_header,
-    require_finite_output,
-)
+from psfkit.io.validation import bounded_size, check_array_shape, npy_header, require_finite_output
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 

@@ -18,7 +18,8 @@ from psfkit.io.grid import (
     MANIFEST_JSON,
     GridPosition,
 )
-from psfkit.io.validation import MAX_GRID_CELLS, read_json_file
+from psfkit.io.json_documents import read_json_file
+from psfkit.io.validation import MAX_GRID_CELLS
 
 CSV_COLUMNS = ("file", "row", "col", "monitor_x_px", "monitor_y_px", "field_x_deg",
                 "field_y_deg", "exposure_s", "role")

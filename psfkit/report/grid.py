@@ -24,8 +24,8 @@ from psfkit.calibration.alignment import RELIABLE_OVERLAP
 from psfkit.characterization.results import GridCharacterization
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.io.json_documents import dumps_finite
 from psfkit.io.jsonable import jsonable
-from psfkit.io.validation import dumps_finite
 from psfkit.report.html import (
     REPORT_CSS,
     estimate_html,

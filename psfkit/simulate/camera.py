@@ -29,7 +29,8 @@ import numpy as np
 import scipy.fft as sfft
 
 from psfkit.errors import ConfigurationError, PsfkitError
-from psfkit.io.validation import bounded_size, flag_range
+from psfkit.io.flag_ranges import flag_range
+from psfkit.io.validation import bounded_size
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate.diffuser import (
     DiffuserSurface,
@@ -49,7 +50,7 @@ if TYPE_CHECKING:
     from psfkit.simulate.propagation_torch import TorchOptics
 
 CHANNEL_NAMES = {1: ("L",), 3: ("R", "G", "B")}
-#: BenchConfig fields set by command-line flags: the flags' ranges (``psfkit.io.validation.FLAGS``)
+#: BenchConfig fields set by command-line flags: the flags' ranges (``psfkit.io.flag_ranges.FLAGS``)
 #: apply to them wherever they come from
 MAX_PROPAGATION_PIXELS = 2**26   # samples of one propagation grid (complex128: 1 GB)
 BENCH_FLAGS = {"diffusion_angle_deg": "--diffusion-angle", "gap_mm": "--gap-mm",

@@ -52,7 +52,7 @@ from scipy import special
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_validation import read_grid
 from psfkit.io.grid_writer import GridWriter
-from psfkit.io.validation import read_json_file
+from psfkit.io.json_documents import read_json_file
 from psfkit.simulate.sensor import SensorModel
 
 TRUTH_DIR = "ground_truth"

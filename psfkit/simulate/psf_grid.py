@@ -36,7 +36,7 @@ import numpy as np
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_writer import GridWriter
-from psfkit.io.validation import read_json_file
+from psfkit.io.json_documents import read_json_file
 from psfkit.simulate.camera import BenchConfig, VirtualCamera
 
 TRUTH_DIR = "ground_truth"

@@ -17,7 +17,7 @@ shapes. Classes (issue 12): 1 non-finite values, 2 tracebacks, 3 resource exhaus
 misleading messages (6, leftovers after a kill, is ``test_output_policy.py``'s kill test).
 Classes of issue 21 (each fixed at one root): 8 sizes declared by headers (bombs: tiny or
 sparse files that declare gigabytes), 9 numeric flags outside their range (one table,
-``psfkit.io.validation.FLAGS``), 10 library warnings and logging, 11 control characters in
+``psfkit.io.flag_ranges.FLAGS``), 10 library warnings and logging, 11 control characters in
 names, 12 non-finite or empty results, 13 paths outside their folder, 14 a run folder holding
 foreign files. Class 15 (issue 43): empty paths, frames too small to hold a PSF, and messages
 that blamed the wrong thing (a flag or input file named instead of the output it spoiled).
@@ -1065,7 +1065,8 @@ def test_non_finite_outputs_are_refused_before_writing(tmp_path):
     from psfkit.errors import InvalidInputError, ModelFileError
     from psfkit.forward.kernelfile import KernelModel, save_kernels
     from psfkit.io.images import write_image
-    from psfkit.io.validation import dumps_finite, require_finite_output
+    from psfkit.io.json_documents import dumps_finite
+    from psfkit.io.validation import require_finite_output
 
     with pytest.raises(InvalidInputError, match=r"out\.json.*non-finite.*at a\.b\.1"):
         dumps_finite({"a": {"b": [1.0, float("nan")]}}, "out.json")
@@ -1120,21 +1121,25 @@ def _numeric_actions(parser: Any, prog: str) -> list[tuple[str, Any]]:
     return found
 
 
-def test_every_numeric_flag_of_both_clis_takes_its_range_from_the_one_table():
+def test_every_numeric_flag_of_both_clis_takes_its_range_from_its_table():
     from ekdun.cli import build_parser as ekdun_parser
+    from ekdun.flag_ranges import FLAGS as EKDUN_FLAGS
+    from ekdun.flag_ranges import device_name
     from psfkit.cli.main import build_parser as psfkit_parser
-    from psfkit.io.validation import FLAGS, device_name
+    from psfkit.io.flag_ranges import FLAGS as PSFKIT_FLAGS
 
-    actions = (_numeric_actions(psfkit_parser(), "psfkit")
-               + _numeric_actions(ekdun_parser(), "ekdun"))
+    actions = [(where, action, PSFKIT_FLAGS)
+               for where, action in _numeric_actions(psfkit_parser(), "psfkit")]
+    actions += [(where, action, EKDUN_FLAGS)
+                for where, action in _numeric_actions(ekdun_parser(), "ekdun")]
     assert len(actions) > 40
-    for where, action in actions:
+    for where, action, table in actions:
         if action.option_strings[0] == "--device":
             assert action.type is device_name, where
             continue
         spec = getattr(action.type, "flag_range", None)
-        assert spec is not None, f"{where}: its type is not from psfkit.io.validation.FLAGS"
-        assert spec in FLAGS.values(), where
+        assert spec is not None, f"{where}: its type is not from its CLI's flag table"
+        assert spec in table.values(), where
         assert spec.high is not None, f"{where}: no upper bound"
 
 

@@ -1,12 +1,13 @@
 """One flag vocabulary for both command-line interfaces (issue 22, item 4).
 
-Table-driven from :data:`psfkit.cli.vocabulary.VOCABULARY` and
-:data:`psfkit.cli.vocabulary.DEPRECATED`: every sub-parser of ``psfkit`` and ``ekdun`` is
-walked, and
+Table-driven from :data:`psfkit.cli.vocabulary.VOCABULARY` and its extension
+:data:`ekdun.cli.vocabulary.VOCABULARY`, and their ``DEPRECATED`` spellings: every sub-parser
+of ``psfkit`` and ``ekdun`` is walked, and
 
 - every option string has one meaning: the same destination, default and choices in every
   command where it appears, except the listed deprecated aliases; a vocabulary flag has exactly
   the declared ones (a per-command difference only where the vocabulary declares it);
+- psfkit's tables name psfkit's flags and commands only (psfkit knows nothing of ekdun);
 - ``--model`` appears nowhere except as a listed deprecated alias;
 - every flag of every command is in ``docs/cli-flags.md``, with that command;
 - every deprecated alias works through the real CLI and prints exactly one notice line, after
@@ -29,7 +30,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from psfkit.cli.vocabulary import AMP_CHOICES, DEPRECATED, NETWORKS, VOCABULARY
+from ekdun.cli.vocabulary import DEPRECATED as EKDUN_DEPRECATED
+from ekdun.cli.vocabulary import VOCABULARY
+from psfkit.cli import vocabulary as psfkit_vocabulary
+
+DEPRECATED = {**psfkit_vocabulary.DEPRECATED, **EKDUN_DEPRECATED}
 
 pytestmark = pytest.mark.e2e
 
@@ -112,12 +117,30 @@ def test_every_option_string_has_one_meaning_in_every_command():
         assert len(found) == 1, f"{option} means different things: {sorted(map(str, found))}"
 
 
-def test_the_vocabulary_agrees_with_ekdun():
-    from ekdun.device import AMP_CHOICES as EKDUN_AMP
-    from ekdun.model_names import MODEL_NAMES
+def test_psfkit_knows_nothing_of_ekdun():
+    """psfkit's vocabulary, deprecated spellings and numeric ranges name only psfkit's flags
+    and commands; ekdun's extension keeps psfkit's meaning of every flag they share."""
+    from psfkit.cli.main import build_parser as psfkit_parser
+    from psfkit.io.flag_ranges import FLAGS as PSFKIT_FLAGS
 
-    assert NETWORKS == MODEL_NAMES
-    assert AMP_CHOICES == EKDUN_AMP
+    psfkit = [(cmd, action) for cli, cmd, action in all_options() if cli == "psfkit"]
+    commands = {cmd for cmd, _ in psfkit}
+    flags = {option for _, action in psfkit for option in action.option_strings}
+    assert psfkit_parser().prog == "psfkit"
+    assert set(psfkit_vocabulary.VOCABULARY) <= flags, set(psfkit_vocabulary.VOCABULARY) - flags
+    for entry in psfkit_vocabulary.VOCABULARY.values():
+        assert set(entry.per_command) <= commands, (entry.name, set(entry.per_command) - commands)
+        ekdun_entry = VOCABULARY[entry.name]
+        assert (ekdun_entry.dest, ekdun_entry.default, ekdun_entry.choices, ekdun_entry.kind) \
+            == (entry.dest, entry.default, entry.choices, entry.kind), entry.name
+        for cmd, spec in entry.per_command.items():
+            assert ekdun_entry.per_command[cmd] == spec, (entry.name, cmd)
+    assert {cmd for cmd, _ in psfkit_vocabulary.DEPRECATED} <= commands
+    assert {cmd for cmd, _ in psfkit_vocabulary.RETIRED} <= commands
+    numeric = {option for _, action in psfkit if getattr(action.type, "flag_range", None)
+               for option in action.option_strings[:1]}
+    assert {key.split()[-1] for key in PSFKIT_FLAGS} <= numeric, \
+        {key.split()[-1] for key in PSFKIT_FLAGS} - numeric
 
 
 def test_shared_flags_where_the_vocabulary_says():

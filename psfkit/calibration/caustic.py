@@ -1,0 +1,62 @@
+"""The caustic of a PSF or kernel: where its light is, as a mask.
+
+A diffuser PSF is a network of thin bright lines (the caustic) on a dark floor. Displacements,
+kernel changes and kernel parameterisations are only meaningful on or beside it:
+:func:`caustic_mask` marks one image's caustic, :func:`caustic_support` the union over a set of
+kernels.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from psfkit.calibration.preprocess import luminance
+from psfkit.errors import InvalidInputError
+
+
+def caustic_mask(reference: np.ndarray, valid: np.ndarray, level: float = 0.02,
+                 border: int = 8, dilate: int = 3) -> np.ndarray:
+    """Pixels where a displacement is meaningful: on or beside the caustic (within ``dilate``
+    px of a pixel above ``level`` of the peak, so that the flanks of thin caustic lines, where
+    the gradients are, are kept), inside ``valid`` and ``border`` px away from its edge."""
+    inner = erode(valid, border)
+    if not inner.any():
+        return inner
+    bright = (reference > level * float(reference[inner].max())).astype(np.uint8)
+    near = cv2.dilate(bright, np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)) > 0
+    return inner & near
+
+
+def erode(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """Erode a bool mask by a square of half-size ``pixels`` (outside counts as False)."""
+    if pixels <= 0:
+        return mask
+    padded = np.pad(mask.astype(np.uint8), 1)
+    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
+    return cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)[
+        1:-1, 1:-1] > 0
+
+
+def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -> np.ndarray:
+    """Union of the caustic masks of ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance).
+
+    A pixel is in the support when it is within ``dilate`` px of a pixel brighter than
+    ``level`` of its kernel's peak (``psfkit.calibration.warp.caustic_mask`` without a border).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` bool.
+    """
+    k = np.asarray(kernels, np.float32)
+    if k.ndim == 4:
+        k = np.stack([luminance(x) for x in k])
+    if k.ndim != 3:
+        raise InvalidInputError("caustic_support needs (K, C, H, W) or (K, H, W) kernels")
+    valid = np.ones(k.shape[-2:], bool)
+    out = np.zeros(k.shape[-2:], bool)
+    for img in k:
+        if float(np.abs(img).max()) > 0:
+            out |= caustic_mask(np.clip(img, 0, None), valid, level, border=0, dilate=dilate)
+    return out

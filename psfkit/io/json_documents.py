@@ -1,0 +1,166 @@
+"""JSON documents from outside, read strictly, and JSON outputs that are always finite.
+
+- :func:`load_json_document`: strict JSON (duplicate keys, NaN/Infinity literals and absurd
+  nesting refused) that names the file;
+- :func:`read_json_file`: :func:`load_json_document` of a file whose size is checked first;
+- :func:`dumps_finite`: JSON for outputs, refusing NaN/Inf instead of writing bare ``NaN``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from psfkit.errors import InvalidInputError
+from psfkit.io.validation import MAX_JSON_BYTES, MAX_JSON_DEPTH
+
+
+def _refuse_duplicates(where: str):
+    def hook(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        doc: dict[str, Any] = {}
+        for key, value in pairs:
+            if key in doc:
+                raise InvalidInputError(f"{where}: key {key!r} appears twice")
+            doc[key] = value
+        return doc
+    return hook
+
+
+def _refuse_constant(where: str):
+    def hook(name: str) -> float:
+        raise InvalidInputError(f"{where}: {name} is not a valid JSON number")
+    return hook
+
+
+def _nesting_depth(text: str) -> int:
+    """Deepest bracket nesting outside strings (cheap, linear, no recursion)."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _refuse_overflow(where: str):
+    def hook(text: str) -> float:
+        value = float(text)
+        if not math.isfinite(value):
+            raise InvalidInputError(f"{where}: number {text} is out of range")
+        return value
+    return hook
+
+
+def load_json_document(text: str | bytes, where: str) -> Any:
+    """Parse JSON from a file we were given, strictly.
+
+    Duplicate keys, ``NaN``/``Infinity`` literals, numbers that overflow to infinity
+    (``1e400``) and nesting deeper than ``MAX_JSON_DEPTH``
+    (which would exhaust the parser's recursion) are refused; errors name ``where``.
+
+    Raises
+    ------
+    InvalidInputError
+    """
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InvalidInputError(f"{where}: not a UTF-8 text file") from None
+    if _nesting_depth(text) > MAX_JSON_DEPTH:
+        raise InvalidInputError(f"{where}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
+    try:
+        return json.loads(text, object_pairs_hook=_refuse_duplicates(where),
+                          parse_constant=_refuse_constant(where),
+                          parse_float=_refuse_overflow(where))
+    except json.JSONDecodeError as exc:
+        raise InvalidInputError(f"{where}: invalid JSON at line {exc.lineno}: {exc.msg}") \
+            from None
+    except RecursionError:
+        raise InvalidInputError(f"{where}: JSON nested too deeply") from None
+
+
+def read_json_file(path: str | os.PathLike, where: str | None = None,
+                   max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """:func:`load_json_document` of a file, its size checked before it is read (a sparse
+    1 GB ``manifest.json`` is refused from its size, not read).
+
+    Raises
+    ------
+    InvalidInputError
+        Missing, larger than ``max_bytes``, or not valid JSON; ``where`` (default: the path)
+        names it.
+    """
+    path = Path(path)
+    where = where or str(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InvalidInputError(f"{where}: no such file") from None
+    if size > max_bytes:
+        raise InvalidInputError(f"{where}: {size} bytes is larger than the {max_bytes} bytes a "
+                                "JSON document of this toolkit may have")
+    with open(path, "rb") as fh:
+        return load_json_document(fh.read(max_bytes + 1), where)
+
+
+def dumps_finite(doc: Any, what: str, **kwargs: Any) -> str:
+    """``json.dumps(doc, allow_nan=False)``: a NaN/Inf in an output is an error naming it.
+
+    Parameters
+    ----------
+    doc : JSON-able object
+    what : str
+        The output (file name) for the message.
+    **kwargs
+        Passed to :func:`json.dumps` (``indent``, ``default``...).
+
+    Raises
+    ------
+    InvalidInputError
+        ``"{what}: refusing to write a non-finite number (NaN/Inf) at KEY"``.
+    """
+    try:
+        return json.dumps(doc, allow_nan=False, **kwargs)
+    except ValueError:
+        pass
+    where = _first_non_finite(doc, kwargs.get("default"))
+    raise InvalidInputError(f"{what}: refusing to write a non-finite number (NaN/Inf)"
+                            + (f" at {where}" if where else "")
+                            + "; an input or a parameter made the result diverge")
+
+
+def _first_non_finite(value: Any, default: Any, path: str = "") -> str | None:
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        if not isinstance(value, (int, float, str, bool, type(None))) and default is not None:
+            try:
+                value = default(value)
+            except Exception:
+                return None
+        if isinstance(value, float) and not math.isfinite(value):
+            return path or "top level"
+        return None
+    for key, item in items:
+        found = _first_non_finite(item, default, f"{path}.{key}" if path else str(key))
+        if found:
+            return found
+    return None
