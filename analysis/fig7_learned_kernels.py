@@ -8,7 +8,7 @@ Usage::
 
 ``LEARNED`` is a kernel file (``kernels_learned.npz``, ``ekdun export-kernels``) or an EK-DUN
 checkpoint (``RUN_DIR/checkpoint.pt``, or the run folder), whose kernels are exported with
-:func:`ekdun.nets.export_kernels`; for a checkpoint, ``--initial`` defaults to its seed
+:func:`ekdun.nets.export.export_kernels`; for a checkpoint, ``--initial`` defaults to its seed
 kernels (:func:`ekdun.training.initial_kernels`).
 Writes ``DIR/figures/fig7.png|pdf`` (the paper's layout, learned kernels alone; ``fig7_zoom``
 the central part of the caustic), ``fig7_starts`` (measured modes and the learned kernels side
