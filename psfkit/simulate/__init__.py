@@ -1,6 +1,7 @@
 """The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
 
-from psfkit.simulate.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.simulate.bench_config import BenchConfig
+from psfkit.simulate.camera import VirtualCamera
 from psfkit.simulate.compact import (
     CompactCamera,
     CompactTruth,
@@ -16,6 +17,7 @@ from psfkit.simulate.psf_grid import (
     simulate_grid,
     simulate_scan,
 )
+from psfkit.simulate.psf_patch import PsfPatch, place_patch
 from psfkit.simulate.sensor import SensorModel
 
 __all__ = ["BenchConfig", "CompactCamera", "CompactTruth", "GroundTruth", "PsfPatch",
