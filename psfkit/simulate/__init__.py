@@ -3,12 +3,12 @@
 from psfkit.simulate.bench_config import BenchConfig
 from psfkit.simulate.camera import VirtualCamera
 from psfkit.simulate.compact import (
-    CompactCamera,
     CompactTruth,
     cutout_scan,
     read_compact_truth,
     simulate_compact_scan,
 )
+from psfkit.simulate.compact_camera import CompactCamera
 from psfkit.simulate.degrade import degrade_grid
 from psfkit.simulate.psf_grid import (
     GroundTruth,
