@@ -157,7 +157,7 @@ def scaling(data: str, old_ref: str, old_max: int, flags: list[str] | None = Non
     in one run."""
     import numpy as np
 
-    from psfkit.cli.pairs_cmd import _load
+    from psfkit.cli.pairs_folder import load_pairs
 
     full = {}
     repo = Path(__file__).resolve().parents[1]
@@ -175,7 +175,7 @@ def scaling(data: str, old_ref: str, old_max: int, flags: list[str] | None = Non
             (pairs / "measurement").mkdir()
             if side not in full:
                 full.clear()
-                full[side] = _load(str(Path(data) / "train"), 128 // side)[1:]
+                full[side] = load_pairs(str(Path(data) / "train"), 128 // side)[1:]
             x, y = full[side]
             for i in range(n):
                 np.save(pairs / "scene" / f"p{i:04d}.npy", np.moveaxis(x[i], 0, -1))

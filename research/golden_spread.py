@@ -186,11 +186,11 @@ def _kernel_doc(file: Path) -> tuple[np.ndarray, Any]:
 def prediction_difference(new: Path, old: Path, data: Path) -> float:
     """``‖A_new x − A_old x‖ / ‖A_old x‖`` over the (stored) DLMD scenes at 1/4 resolution:
     the kernels compared in the norm the fit minimises."""
-    from psfkit.cli.pairs_cmd import _load
+    from psfkit.cli.pairs_folder import load_pairs
     from psfkit.fitting.pairs.fit import predict
     from psfkit.forward.kernelfile import load_kernels
 
-    _, scenes, _ = _load(str(data), 4)
+    _, scenes, _ = load_pairs(str(data), 4)
     a = predict(load_kernels(new), scenes).astype(np.float64)
     b = predict(load_kernels(old), scenes).astype(np.float64)
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))

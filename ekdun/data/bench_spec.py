@@ -22,8 +22,9 @@ from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.errors import ConfigurationError, InvalidInputError
 from ekdun.flag_ranges import flag_range
 from psfkit.simulate import BenchConfig
-from psfkit.simulate.camera import VirtualCamera, place_patch
+from psfkit.simulate.camera import VirtualCamera
 from psfkit.simulate.psf_grid import grid_monitor_positions
+from psfkit.simulate.psf_patch import place_patch
 
 TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camera", "coins",
                 "brick", "grass", "moon")

@@ -317,6 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     from psfkit.cli import (
         characterize_cmd,
         compare_cmd,
+        eval_cmd,
         fit_cmd,
         inspect_cmd,
         pairs_cmd,
@@ -334,6 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     characterize_cmd.register(sub)
     fit_cmd.register(sub)
     pairs_cmd.register(sub)
+    eval_cmd.register(sub)
     compare_cmd.register(sub)
     return parser
 

@@ -1,13 +1,14 @@
 """The virtual bench: a physics-based simulated diffuser camera with known ground truth."""
 
-from psfkit.simulate.camera import BenchConfig, PsfPatch, VirtualCamera, place_patch
+from psfkit.simulate.bench_config import BenchConfig
+from psfkit.simulate.camera import VirtualCamera
 from psfkit.simulate.compact import (
-    CompactCamera,
     CompactTruth,
     cutout_scan,
     read_compact_truth,
     simulate_compact_scan,
 )
+from psfkit.simulate.compact_camera import CompactCamera
 from psfkit.simulate.degrade import degrade_grid
 from psfkit.simulate.psf_grid import (
     GroundTruth,
@@ -16,6 +17,7 @@ from psfkit.simulate.psf_grid import (
     simulate_grid,
     simulate_scan,
 )
+from psfkit.simulate.psf_patch import PsfPatch, place_patch
 from psfkit.simulate.sensor import SensorModel
 
 __all__ = ["BenchConfig", "CompactCamera", "CompactTruth", "GroundTruth", "PsfPatch",

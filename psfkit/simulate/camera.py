@@ -22,16 +22,15 @@ the sensor; on axis it sums to 1.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.fft as sfft
 
 from psfkit.errors import ConfigurationError, PsfkitError
-from psfkit.io.flag_ranges import flag_range
 from psfkit.io.validation import bounded_size
 from psfkit.numerics.resample import bin_image
+from psfkit.simulate.bench_config import CHANNEL_NAMES, BenchConfig
 from psfkit.simulate.diffuser import (
     DiffuserSurface,
     caustic_correlation_length,
@@ -44,180 +43,13 @@ from psfkit.simulate.propagation import (
     unit_phasor,
 )
 from psfkit.simulate.propagation_torch import resolve_backend
-from psfkit.simulate.sensor import SensorModel, relative_illumination
+from psfkit.simulate.psf_patch import PsfPatch, place_patch, translate_pixels
+from psfkit.simulate.sensor import relative_illumination
 
 if TYPE_CHECKING:
     from psfkit.simulate.propagation_torch import TorchOptics
 
-CHANNEL_NAMES = {1: ("L",), 3: ("R", "G", "B")}
-#: BenchConfig fields set by command-line flags: the flags' ranges (``psfkit.io.flag_ranges.FLAGS``)
-#: apply to them wherever they come from
 MAX_PROPAGATION_PIXELS = 2**26   # samples of one propagation grid (complex128: 1 GB)
-BENCH_FLAGS = {"diffusion_angle_deg": "--diffusion-angle", "gap_mm": "--gap-mm",
-               "peak_fraction": "--peak-fraction", "seed": "--seed",
-               "downsample": "--downsample"}
-
-
-@dataclass(frozen=True)
-class BenchConfig:
-    """Parameters of the virtual diffuser camera (defaults follow the EK-DUN prototype).
-
-    Attributes
-    ----------
-    diffusion_angle_deg : float
-        Full width at half maximum of the diffuser's scattering profile (1° engineered
-        diffuser).
-    refractive_index : float
-        Of the diffuser material.
-    correlation_length_um : float or None
-        Correlation length of the surface; ``None`` chooses the one whose caustics focus at
-        the sensor (:func:`~psfkit.simulate.diffuser.caustic_correlation_length`).
-    aperture_mm : (float, float)
-        ``(height, width)`` of the rectangular aperture in front of the diffuser.
-    gap_mm : float
-        Diffuser–sensor distance ``d``. The default maps the 442×614-pixel monitor field of
-        view onto the 1080×1440 sensor (PSF shift of half the sensor width at the FoV edge).
-    wavelengths_nm : tuple of float
-        One wavelength per channel (R, G, B); a single value simulates a mono camera.
-    monitor_distance_mm, monitor_pixel_pitch_mm : float
-        Monitor geometry (50 cm, a 0.2768 mm pixel pitch of a 24" full-HD panel).
-    fov_monitor_px : (int, int)
-        ``(height, width)`` of the field of view on the monitor, in monitor pixels.
-    source_size_px : float
-        Side of the displayed square point source, monitor pixels (0 for an ideal point).
-    spherical_source : bool
-        Spherical wave from the monitor distance (True) or a plane wave (False).
-    sensor_shape : (int, int)
-        ``(H, W)`` at full resolution; ``pixel_pitch_um`` at full resolution.
-    downsample : int
-        Integer binning factor for fast runs (sensor ``H/downsample × W/downsample`` with
-        ``downsample`` times larger pixels; the optics are unchanged).
-    oversample : int or None
-        Optical samples per pixel and axis; ``None`` picks the smallest that samples the
-        scattered light at Nyquist (and at least 2, so pixels integrate the caustic).
-    vignetting_exponent : float
-        Relative illumination ``cos(θ)**exponent``.
-    field_free : bool
-        A camera without field variation, for tests of the analysis (issue 43): every
-        position's PSF is the on-axis PSF *as sampled by the pixels* translated by the
-        chief-ray shift (exactly linear in tan θ; the sub-pixel part as a band-limited
-        translation), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and
-        no other change of shape: the camera a shift-invariant pixel-level model describes
-        exactly. (Translating the optical PSF before the pixels integrate it instead, as a
-        physical isoplanatic camera would, changes the sampled PSF with each position's
-        sub-pixel phase wherever the pixels alias it, e.g. the default camera binned 8×: a
-        change no shift-invariant pixel-level model represents.) A bench facility, not a
-        model of a real camera.
-    sensor : SensorModel
-        Noise, black level, bit depth, saturation.
-    peak_fraction : float
-        Exposure is set so that the brightest on-axis pixel reaches this fraction of full
-        well (above 1 saturates on purpose).
-    seed : int
-        Seed of the diffuser surface and of the sensor noise.
-    """
-
-    diffusion_angle_deg: float = 1.0
-    refractive_index: float = 1.5
-    correlation_length_um: float | None = None
-    aperture_mm: tuple[float, float] = (2.6, 2.6)
-    gap_mm: float = 14.6
-    wavelengths_nm: tuple[float, ...] = (610.0, 530.0, 470.0)
-    monitor_distance_mm: float = 500.0
-    monitor_pixel_pitch_mm: float = 0.2768
-    fov_monitor_px: tuple[int, int] = (442, 614)
-    source_size_px: float = 1.0
-    spherical_source: bool = True
-    sensor_shape: tuple[int, int] = (1080, 1440)
-    pixel_pitch_um: float = 3.45
-    downsample: int = 1
-    oversample: int | None = None
-    vignetting_exponent: float = 4.0
-    field_free: bool = False
-    sensor: SensorModel = field(default_factory=SensorModel)
-    peak_fraction: float = 0.8
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        self._check_flag_ranges()
-        self._check_optics()
-        self._check_sampling()
-
-    def _check_flag_ranges(self) -> None:
-        # the ranges of the command-line flags (one table), for --bench-config files too
-        for name, flag_name in BENCH_FLAGS.items():
-            try:
-                flag_range(flag_name).check(getattr(self, name), f"{name} ({flag_name})")
-            except PsfkitError as exc:
-                raise ConfigurationError(str(exc)) from None
-
-    def _check_optics(self) -> None:
-        positive = ["diffusion_angle_deg", "gap_mm", "monitor_distance_mm",
-                    "monitor_pixel_pitch_mm", "pixel_pitch_um", "peak_fraction"]
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ConfigurationError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.refractive_index <= 1.0:
-            raise ConfigurationError("refractive_index must be > 1")
-        if len(self.wavelengths_nm) not in CHANNEL_NAMES or min(self.wavelengths_nm) <= 0:
-            raise ConfigurationError("wavelengths_nm needs 1 (mono) or 3 (RGB) positive values")
-        if min(self.aperture_mm) <= 0 or min(self.fov_monitor_px) <= 0:
-            raise ConfigurationError("aperture_mm and fov_monitor_px must be positive")
-
-    def _check_sampling(self) -> None:
-        if not isinstance(self.downsample, int) or self.downsample < 1:
-            raise ConfigurationError(f"downsample must be an integer >= 1, got {self.downsample}")
-        h, w = self.sensor_shape
-        if h // self.downsample < 16 or w // self.downsample < 16:
-            raise ConfigurationError(f"downsample {self.downsample} leaves fewer than 16 pixels")
-        if self.oversample is not None and self.oversample < 1:
-            raise ConfigurationError("oversample must be >= 1")
-        if self.correlation_length_um is not None and self.correlation_length_um <= 0:
-            raise ConfigurationError("correlation_length_um must be positive")
-        if self.source_size_px < 0:
-            raise ConfigurationError("source_size_px must be >= 0")
-
-    def to_dict(self) -> dict:
-        """JSON-friendly description of every parameter."""
-        out = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, SensorModel):
-                value = {g.name: getattr(value, g.name) for g in fields(value)}
-            out[f.name] = list(value) if isinstance(value, tuple) else value
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict) -> BenchConfig:
-        """Inverse of :meth:`to_dict` (unknown keys are an error)."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ConfigurationError(f"unknown bench parameter(s): {', '.join(sorted(unknown))}")
-        kwargs = dict(data)
-        if isinstance(kwargs.get("sensor"), dict):
-            sensor = dict(kwargs["sensor"])
-            if "quantum_efficiency" in sensor:
-                sensor["quantum_efficiency"] = tuple(sensor["quantum_efficiency"])
-            kwargs["sensor"] = SensorModel(**sensor)
-        for name in ("aperture_mm", "wavelengths_nm", "fov_monitor_px", "sensor_shape"):
-            if name in kwargs:
-                kwargs[name] = tuple(kwargs[name])
-        return cls(**kwargs)
-
-
-@dataclass(frozen=True)
-class PsfPatch:
-    """A noise-free PSF on a block of sensor pixels around the chief ray.
-
-    ``image`` is ``(C, h, w)``; its top-left pixel sits at sensor pixel ``offset = (v0, u0)``
-    (may be negative or run past the sensor: :meth:`VirtualCamera.psf` crops).
-    ``shift_px = (du, dv)`` is the exact chief-ray shift relative to the on-axis PSF.
-    """
-
-    image: np.ndarray
-    offset: tuple[int, int]
-    shift_px: tuple[float, float]
 
 
 def _fast_block(min_pixels: int, parity: int, q: int) -> int:
@@ -500,26 +332,3 @@ class VirtualCamera:
     def psf(self, field_deg: tuple[float, float]) -> np.ndarray:
         """Noise-free PSF on the sensor, ``(C, H, W)`` float32, relative irradiance."""
         return place_patch(self.psf_patch(field_deg), self.sensor_shape)
-
-
-def translate_pixels(image: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
-    """``(C, h, w)`` image moved by the sub-pixel ``shift = (du, dv)`` as a band-limited
-    signal (a Fourier phase ramp; the block's dark border keeps the wrap-around out)."""
-    du, dv = shift
-    ramp = np.exp(-2j * np.pi * (np.fft.fftfreq(image.shape[-2])[:, None] * dv
-                                 + np.fft.rfftfreq(image.shape[-1])[None, :] * du))
-    moved = sfft.irfft2(sfft.rfft2(image, axes=(-2, -1)) * ramp, s=image.shape[-2:],
-                        axes=(-2, -1))
-    return moved.astype(image.dtype, copy=False)
-
-
-def place_patch(patch: PsfPatch, sensor_shape: tuple[int, int]) -> np.ndarray:
-    """Paste a :class:`PsfPatch` into a zero ``(C, H, W)`` float32 sensor frame (cropping)."""
-    c, h, w = patch.image.shape
-    out = np.zeros((c, *sensor_shape), dtype=np.float32)
-    v0, u0 = patch.offset
-    sv0, su0 = max(v0, 0), max(u0, 0)
-    sv1, su1 = min(v0 + h, sensor_shape[0]), min(u0 + w, sensor_shape[1])
-    if sv1 > sv0 and su1 > su0:
-        out[:, sv0:sv1, su0:su1] = patch.image[:, sv0 - v0:sv1 - v0, su0 - u0:su1 - u0]
-    return out

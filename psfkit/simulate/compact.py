@@ -42,150 +42,24 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import special
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_validation import read_grid
 from psfkit.io.grid_writer import GridWriter
 from psfkit.io.json_documents import read_json_file
-from psfkit.simulate.sensor import SensorModel
+from psfkit.simulate.airy import airy_stamp
+from psfkit.simulate.compact_camera import CompactCamera
 
 TRUTH_DIR = "ground_truth"
 TRUTH_FILE = "truth.json"
 STAMPS_FILE = "stamps.npy"
 #: Half-size of the drawn PSF stamp, in FWHMs of the widest PSF of the scan.
 STAMP_RADIUS_FWHM = 10.0
-#: Sub-samples per pixel side (pixel integration).
-OVERSAMPLE = 5
-#: ``x`` at which the Airy intensity ``(2 J₁(x)/x)²`` is half its peak.
-AIRY_HALF_MAX_X = 1.616339948310703
-
-
-@dataclass(frozen=True)
-class CompactCamera:
-    """Parameters of the compact-PSF camera (see the module docstring).
-
-    Attributes
-    ----------
-    fwhm_px : float
-        FWHM of the on-axis Airy PSF, sensor px.
-    width_growth : float
-        Fractional FWHM increase at the field edge (∝ radius²); 0: a field-independent PSF.
-    ellipticity : float
-        Radial stretch − 1 at the field edge (∝ radius²); 0: round everywhere.
-    plate_scale_deg : float
-        Field angle per sensor pixel on axis, degrees (sets the magnification).
-    rotation_deg : float
-        Rotation of the image on the detector (the true shift map's rotation besides the
-        inversion).
-    distortion_px : float
-        Radial displacement at the field edge from cubic distortion, px (+: pincushion).
-    axis_offset_px : (float, float)
-        Optical axis ``(x, y)`` relative to the frame centre, px.
-    peak_fraction : float
-        Peak of the brightest (reference) source as a fraction of full well.
-    brightness_range : float
-        Brightest / faintest source flux (log-uniform in between).
-    background_e : float
-        Uniform background (sky, stray light) per pixel, electrons.
-    edge_margin_px : int
-        Sources image at least this far inside the frame.
-    sensor : SensorModel
-        Noise, black level and bit depth (mono: the first quantum efficiency is unused, the
-        fluxes are detected electrons).
-    """
-
-    fwhm_px: float = 3.0
-    width_growth: float = 0.0
-    ellipticity: float = 0.0
-    plate_scale_deg: float = 0.005
-    rotation_deg: float = 0.3
-    distortion_px: float = 0.0
-    axis_offset_px: tuple[float, float] = (0.3, -0.2)
-    peak_fraction: float = 0.7
-    brightness_range: float = 10.0
-    background_e: float = 0.0
-    edge_margin_px: int = 24
-    sensor: SensorModel = field(default_factory=SensorModel)
-
-    def __post_init__(self) -> None:
-        if not 0.5 <= self.fwhm_px <= 64:
-            raise ConfigurationError(f"fwhm_px must be in [0.5, 64], got {self.fwhm_px}")
-        if self.width_growth < 0 or self.ellipticity < 0:
-            raise ConfigurationError("width_growth and ellipticity must be >= 0")
-        if not 0 < self.peak_fraction <= 1 or self.brightness_range < 1:
-            raise ConfigurationError("peak_fraction must be in (0, 1], brightness_range >= 1")
-        if self.plate_scale_deg <= 0 or self.background_e < 0 or self.edge_margin_px < 0:
-            raise ConfigurationError("plate_scale_deg must be > 0, background_e and "
-                                     "edge_margin_px >= 0")
-
-    @property
-    def magnification(self) -> float:
-        """Sensor px per unit ``tan θ`` on axis."""
-        return 1.0 / math.tan(math.radians(self.plate_scale_deg))
-
-    def shift_matrix(self) -> np.ndarray:
-        """The true affine map ``A`` (``shift = A · tan θ``, px), an inverted, rotated image."""
-        rho = math.radians(self.rotation_deg)
-        rotation = np.array([[math.cos(rho), -math.sin(rho)], [math.sin(rho), math.cos(rho)]])
-        return -self.magnification * rotation
-
-    def to_dict(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["axis_offset_px"] = list(self.axis_offset_px)
-        out["sensor"] = {k: (list(v) if isinstance(v, tuple) else v)
-                         for k, v in asdict(self.sensor).items()}
-        return out
-
-    @classmethod
-    def from_dict(cls, doc: dict[str, Any]) -> CompactCamera:
-        doc = dict(doc)
-        sensor = dict(doc.pop("sensor"))
-        sensor["quantum_efficiency"] = tuple(sensor["quantum_efficiency"])
-        doc["axis_offset_px"] = tuple(doc["axis_offset_px"])
-        return cls(sensor=SensorModel(**sensor), **doc)
-
-
-def airy_stamp(size: int, centre: tuple[float, float], fwhm_px: float, axis_ratio: float = 1.0,
-               orientation_rad: float = 0.0) -> np.ndarray:
-    """A pixel-integrated Airy PSF on a ``size × size`` stamp, unit sum.
-
-    Parameters
-    ----------
-    size : int
-        Stamp side, px.
-    centre : (float, float)
-        ``(x, y)`` of the PSF centre in stamp pixel coordinates (pixel centres at integers).
-    fwhm_px : float
-        FWHM along the minor axis, px.
-    axis_ratio : float
-        Major / minor FWHM (≥ 1).
-    orientation_rad : float
-        Direction of the major axis, radians from ``+x`` towards ``+y``.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(size, size)`` float64, sums to 1 (the energy within the stamp).
-    """
-    offsets = (np.arange(OVERSAMPLE) + 0.5) / OVERSAMPLE - 0.5
-    grid = (np.arange(size)[:, None] + offsets[None, :]).ravel()       # sub-sample centres
-    dx = grid[None, :] - centre[0]
-    dy = grid[:, None] - centre[1]
-    cos, sin = math.cos(orientation_rad), math.sin(orientation_rad)
-    along = (dx * cos + dy * sin) / axis_ratio
-    across = -dx * sin + dy * cos
-    x = np.hypot(along, across) * (2.0 * AIRY_HALF_MAX_X / fwhm_px)
-    small = x < 1e-8
-    x = np.where(small, 1.0, x)
-    intensity = np.where(small, 1.0, (2.0 * special.j1(x) / x) ** 2)
-    pixels = intensity.reshape(size, OVERSAMPLE, size, OVERSAMPLE).sum(axis=(1, 3))
-    return pixels / pixels.sum()
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,8 @@ import numpy as np
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_writer import GridWriter
 from psfkit.io.json_documents import read_json_file
-from psfkit.simulate.camera import BenchConfig, VirtualCamera
+from psfkit.simulate.bench_config import BenchConfig
+from psfkit.simulate.camera import VirtualCamera
 
 TRUTH_DIR = "ground_truth"
 CLEAN_FILE = "psfs_clean.npy"

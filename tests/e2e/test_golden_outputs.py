@@ -171,7 +171,7 @@ def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, mod
                                                         torch_one_thread):
     # one torch thread only to keep the other pytest-xdist worker's core free: the tolerances
     # hold for one and two threads (measured)
-    from psfkit.cli.pairs_cmd import _load
+    from psfkit.cli.pairs_folder import load_pairs
 
     pairs = real_data("dlmd_mirflickr")
     kernels = tmp_path / f"{model}.npz"
@@ -180,7 +180,7 @@ def test_fit_pairs_and_eval_model_outputs_are_unchanged(tmp_path, real_data, mod
     assert main(["fit-pairs", str(pairs), "--basis", model, "--downsample", "4",
                  "--convention", "source", *PAIRS_FLAGS[model], "--out", str(kernels),
                  "--quiet"]) == 0
-    _, scenes, _ = _load(str(pairs), 4)
+    _, scenes, _ = load_pairs(str(pairs), 4)
     assert_kernel_files_equal(kernels, GOLDEN / f"dlmd_ds4_{model}.npz", scenes)
     errors = tmp_path / "errors.json"
     assert main(["eval-model", str(kernels), str(pairs), "--downsample", "4",

@@ -9,8 +9,8 @@ from skimage.registration import phase_cross_correlation
 from psfkit.errors import ConfigurationError
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.camera import translate_pixels
 from psfkit.simulate.propagation import fresnel_transfer_anisotropic, propagate
+from psfkit.simulate.psf_patch import translate_pixels
 
 
 @pytest.fixture(scope="module")

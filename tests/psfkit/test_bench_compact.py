@@ -14,7 +14,7 @@ from psfkit.simulate import (
     read_compact_truth,
     simulate_compact_scan,
 )
-from psfkit.simulate.compact import AIRY_HALF_MAX_X, airy_stamp
+from psfkit.simulate.airy import AIRY_HALF_MAX_X, airy_stamp
 
 
 @pytest.fixture(scope="module")

@@ -336,16 +336,17 @@ def test_montage_windows_follow_each_compact_psf(characterized):
 
 
 def test_a_large_scan_montage_shows_a_spread_subset(characterized, monkeypatch):
-    import psfkit.report.figures.grid as grid_figures
+    import psfkit.report.figures.montage as montage
+    from psfkit.report.figures.grid_layout import scatter_coordinates
 
-    monkeypatch.setattr(grid_figures, "MONTAGE_MAX", 8)
+    monkeypatch.setattr(montage, "MONTAGE_MAX", 8)
     result = characterized["compact"]
-    cells, rows, cols = grid_figures._montage_cells(result)
+    cells, rows, cols = montage._montage_cells(result)
     assert len(cells) == 8 and (0, result.center[1]) in cells and rows * cols >= 8
     fig = figure_montage(result)
     assert "8 of 20 positions" in fig.get_suptitle()
     # spread: the picks reach farther out than the 8 positions nearest the centre
-    coords, _ = grid_figures._scatter_coordinates(result)
+    coords, _ = scatter_coordinates(result)
     radius = np.hypot(*(coords - coords[result.center[1]]).T)
     assert max(radius[c] for _, c in cells) == pytest.approx(radius.max())
     assert figure_defects(fig) == []

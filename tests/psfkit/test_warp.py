@@ -16,8 +16,7 @@ from psfkit.calibration.warp import (
 )
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.camera import box_blur
-from psfkit.simulate.propagation import fresnel_transfer_anisotropic, propagate
+from psfkit.simulate.propagation import box_blur, fresnel_transfer_anisotropic, propagate
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,9 @@ from psfkit.report.figures.eigen import (
     figure_kernels,
     figure_weight_maps,
 )
-from psfkit.report.figures.grid import (
-    figure_maps,
-    figure_montage,
-    figure_shift_variance,
-    figure_warp,
-    figure_warp_summary,
-)
+from psfkit.report.figures.maps import figure_maps
+from psfkit.report.figures.montage import figure_montage
+from psfkit.report.figures.shift_variance import figure_shift_variance
 from psfkit.report.figures.style import (
     Fitted,
     fitted,
@@ -22,6 +18,7 @@ from psfkit.report.figures.style import (
     publication_style,
     save_figure,
 )
+from psfkit.report.figures.warp import figure_warp, figure_warp_summary
 
 __all__ = [
     "Fitted",

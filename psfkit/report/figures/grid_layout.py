@@ -1,0 +1,58 @@
+"""What every figure of a grid characterization shares: how a position is labelled and placed.
+
+The reference PSF's support box (PSFs are cropped to it, moved by each position's shift), a
+position's field label, the field coordinates of an irregular scan, bare image axes, and the
+hatching styles of the gaps: a cell of the lattice that was never captured is hatched grey, an
+excluded position (a failed quality check) is hatched red with a red ×. The figures themselves
+are in :mod:`~psfkit.report.figures.shift_variance`, :mod:`~psfkit.report.figures.maps`,
+:mod:`~psfkit.report.figures.montage` and :mod:`~psfkit.report.figures.warp`; each takes a
+:class:`~psfkit.characterization.characterize.GridCharacterization` and returns a matplotlib
+``Figure`` (nothing is shown or saved; see :func:`psfkit.report.figures.save_figure`), following
+the conventions of :mod:`psfkit.report.figures.style`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.axes import Axes
+
+from psfkit.characterization.results import GridCharacterization
+
+MISSING_STYLE = {"fill": True, "fc": "0.93", "ec": "0.6", "hatch": "////", "lw": 0.0}
+EXCLUDED_STYLE = {"fill": True, "fc": "#fde0e0", "ec": "#c00000", "hatch": "xx", "lw": 0.8}
+
+
+def support_box(result: GridCharacterization) -> tuple[slice, slice]:
+    """The reference PSF's support box (the whole frame for results without one)."""
+    if result.psf_box is not None:
+        return result.psf_box
+    _, h, w = result.image_shape
+    return slice(0, h), slice(0, w)
+
+
+def field_label(result: GridCharacterization, row: int, col: int) -> str:
+    """The field position of a PSF as a panel label: field angles, monitor pixels or index."""
+    pos = next(p for p in result.captured if (p.row, p.col) == (row, col))
+    if pos.field_deg is not None:
+        return f"({pos.field_deg[0]:+.1f}°, {pos.field_deg[1]:+.1f}°)"
+    if pos.monitor_px is not None:
+        return f"({pos.monitor_px[0]:+.0f}, {pos.monitor_px[1]:+.0f}) px"
+    if result.layout == "irregular":
+        return f"#{col}"
+    return f"[{row}, {col}]"
+
+
+def scatter_coordinates(result: GridCharacterization) -> tuple[np.ndarray, str]:
+    """``(P, 2)`` field positions of an irregular scan for scatter maps, and their unit."""
+    coords = result.field_coordinates()[0]
+    if result.field_units == "tan(field angle)":
+        return np.rad2deg(np.arctan(coords)), "°"
+    return coords, result.field_units
+
+
+def no_ticks(ax: Axes) -> None:
+    """Bare image axes: no ticks, no frame."""
+    ax.set_xticks([])
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
