@@ -21,15 +21,14 @@ from psfkit.calibration.preprocess import (
     normalization_scale,
 )
 from psfkit.calibration.registration import (
-    ShiftMapFit,
     ShiftRegistrar,
-    fit_shift_map,
     high_frequency_fraction,
     normalized_cross_correlation,
     psf_region,
     register_shift,
     shift_image,
 )
+from psfkit.calibration.shift_map import ShiftMapFit, fit_shift_map
 from psfkit.errors import InvalidInputError, PositionRejected
 from psfkit.io.grid import GridPosition, PsfGrid
 
@@ -416,7 +415,7 @@ def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overla
     must describe. Aligning every PSF by its *own* registered shift removes that part before
     the fit. Worse, the registration of a PSF mostly off the sensor is biased by its
     deformation (tenths of a pixel at full resolution, up to ~14 px at a 256² grid's
-    corners). So the map is fitted (:func:`psfkit.calibration.registration.fit_shift_map`, weighted
+    corners). So the map is fitted (:func:`psfkit.calibration.shift_map.fit_shift_map`, weighted
     by
     overlap) to the reliable positions, those with at least :data:`RELIABLE_OVERLAP` of the
     centre PSF's light in their registered overlap (whatever the PSF's size: a compact PSF

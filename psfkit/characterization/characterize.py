@@ -25,7 +25,7 @@ from psfkit.calibration.alignment import (
 )
 from psfkit.calibration.gain import fit_gain, overlap_gain
 from psfkit.calibration.mae import mean_absolute_error
-from psfkit.calibration.registration import ShiftMapFit, fit_shift_map
+from psfkit.calibration.shift_map import ShiftMapFit, fit_shift_map
 from psfkit.calibration.support import crop_window, support_box
 from psfkit.calibration.warp import (
     fit_growth,
