@@ -6,7 +6,7 @@ Hidden from ``ekdun --help``, they run exactly as before for one release and the
 note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 * ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment
-  (:func:`psfkit.calibration.preprocess.psf_kernel`: background, binning, clipped to ``>= 0``, unit
+  (:func:`psfkit.calibration.psf_image.psf_kernel`: background, binning, clipped to ``>= 0``, unit
   sum
   per channel), becomes a shift-invariant kernel model
   (:func:`~ekdun.reconstruction.classical.psf_model`);
@@ -244,7 +244,7 @@ def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, fa
     """The PSF form: the shift-invariant kernel model of a PSF image, for measurements of the
     size (and channels) of ``measurement_path``, and that measurement ``(C, H, W)``."""
     from ekdun.reconstruction.classical import psf_model, read_classical_measurement
-    from psfkit.calibration.preprocess import psf_kernel
+    from psfkit.calibration.psf_image import psf_kernel
     from psfkit.io.images import read_image_float
 
     raw_psf = read_image_float(psf_path, channel_order)

@@ -294,7 +294,7 @@ def run_train(args: argparse.Namespace) -> int:
     notices: list[str] = []
     if args.psf:
         # the one PSF loader (as ekdun admm PSF), binned like the pairs, in their channel order
-        from psfkit.calibration.preprocess import load_psf_image
+        from psfkit.calibration.psf_image import load_psf_image
 
         probe = read_pairs(root, args.channel_order, check_pixels=False)
         seed = seed_kernel_model(load_psf_image(args.psf, probe.channel_order, "corner",

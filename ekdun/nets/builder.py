@@ -21,7 +21,7 @@ from psfkit.forward.weights import get_basis
 
 def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> KernelModel:
     """A kernel model from a kernel file, a loaded model, a measured PSF image file (read by
-    the one PSF loader, :func:`psfkit.calibration.preprocess.load_psf_image`: corner background,
+    the one PSF loader, :func:`psfkit.calibration.psf_image.load_psf_image`: corner background,
     clipped,
     unit sum per channel) or a PSF array ``(C, H, W)`` (used as given)."""
     if isinstance(source, KernelModel):
@@ -30,7 +30,7 @@ def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> K
         path = str(source)
         if path.endswith(".npz"):
             return load_kernels(path)
-        from psfkit.calibration.preprocess import load_psf_image
+        from psfkit.calibration.psf_image import load_psf_image
 
         source = load_psf_image(path)
     psf = np.asarray(source, dtype=np.float32)

@@ -43,8 +43,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from psfkit.forward.convolution import kernel_images, pad
+from psfkit.forward.convolution import pad
 from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.padded_scene import kernel_images
 
 #: State of an iteration: ``x``, ``hx`` (``Hx``), and the duals ``alpha1..3``.
 AdmmState = dict[str, Tensor]

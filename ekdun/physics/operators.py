@@ -37,7 +37,8 @@ from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
 from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.geometry import CONVENTIONS, padded_shape
-from psfkit.forward.kernelfile import KernelModel, check_kernels
+from psfkit.forward.kernel_checks import check_kernels
+from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.norm import spectral_bound
 from psfkit.forward.operator import SpectralOperator, kernel_model_tensors
 from psfkit.forward.weights import get_basis

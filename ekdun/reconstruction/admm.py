@@ -80,14 +80,10 @@ from ekdun.nets.tv_admm_steps import (
     finite_differences_adjoint,
 )
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
-from psfkit.forward.convolution import (
-    crop,
-    kernel_images,
-    padded_scene_adjoint_spectrum,
-    sum_of_kernel_products,
-)
+from psfkit.forward.convolution import crop, sum_of_kernel_products
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.norm import operator_norm
+from psfkit.forward.padded_scene import kernel_images, padded_scene_adjoint_spectrum
 
 
 @dataclass

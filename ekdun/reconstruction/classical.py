@@ -150,7 +150,7 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
     """The shift-invariant kernel model of a PSF kernel, for measurements of ``sensor_shape``.
 
     What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
-    :func:`psfkit.calibration.preprocess.load_psf_image`), so that the PSF form and ``--kernels``
+    :func:`psfkit.calibration.psf_image.load_psf_image`), so that the PSF form and ``--kernels``
     run one
     solver.
 
@@ -249,7 +249,7 @@ def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RG
     ``downsample`` and with the mean of its ``[5:15, 5:15]`` corner subtracted
     (``background="corner"``, before downsampling)."""
     from ekdun.reconstruction.reconstruct import read_measurement
-    from psfkit.calibration.preprocess import BACKGROUNDS, subtract_background
+    from psfkit.calibration.psf_image import BACKGROUNDS, subtract_background
     from psfkit.numerics.resample import bin_mean
 
     if background not in BACKGROUNDS:

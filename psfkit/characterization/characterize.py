@@ -21,11 +21,11 @@ from psfkit.calibration.alignment import (
     AlignedPsf,
     ExcludedPosition,
     GridAligner,
-    nominal_shifts,
 )
 from psfkit.calibration.gain import fit_gain, overlap_gain
 from psfkit.calibration.mae import mean_absolute_error
-from psfkit.calibration.registration import ShiftMapFit, fit_shift_map
+from psfkit.calibration.nominal_shifts import nominal_shifts
+from psfkit.calibration.shift_map import ShiftMapFit, fit_shift_map
 from psfkit.calibration.support import crop_window, support_box
 from psfkit.calibration.warp import (
     fit_growth,
@@ -320,7 +320,7 @@ def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
     """The verdict of a characterized grid (:mod:`psfkit.fitting.grid.heldout`) from the working
     copy of
     its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
-    fit-eigen`` places them (:func:`psfkit.calibration.alignment.nominal_shifts`: the forward
+    fit-eigen`` places them (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`: the forward
     model's
     affine map of the field), so that both commands judge the same data."""
     positions = [grid.position(p.row, p.col) for p in result.positions]

@@ -20,7 +20,7 @@ from psfkit.calibration.alignment import (
 )
 from psfkit.calibration.gain import GainFit
 from psfkit.calibration.preprocess import PreprocessOptions
-from psfkit.calibration.registration import ShiftMapFit
+from psfkit.calibration.shift_map import ShiftMapFit
 from psfkit.calibration.warp import FLOW_METHODS, GrowthFit
 from psfkit.errors import ConfigurationError
 from psfkit.fitting.verdict import Verdict

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from psfkit.calibration.gain import GainFit
-    from psfkit.calibration.registration import ShiftMapFit
+    from psfkit.calibration.shift_map import ShiftMapFit
     from psfkit.calibration.warp import GrowthFit
     from psfkit.characterization.results import GridCharacterization
     from psfkit.fitting.verdict import Verdict

@@ -16,8 +16,12 @@ Modules
     :func:`rfft2` / :func:`irfft2`, the only FFT entry points, and :func:`count_ffts`.
 :mod:`psfkit.forward.convolution`
     ``pad``/``crop``, kernel embedding and spectra, :func:`eigen_kernel_forward` /
-    :func:`eigen_kernel_adjoint` (sensor-sized scene) and :func:`padded_scene_forward` /
-    :func:`padded_scene_adjoint` (scene on the whole padded grid): Eq. 7, written once.
+    :func:`eigen_kernel_adjoint` (sensor-sized scene): Eq. 7, written once (its fan-out /
+    fan-in core).
+:mod:`psfkit.forward.padded_scene`
+    :func:`padded_scene_forward` / :func:`padded_scene_adjoint` (scene on the whole padded
+    grid) and the pieces ADMM keeps apart (:func:`kernel_images`,
+    :func:`padded_scene_adjoint_spectrum`).
 :mod:`psfkit.forward.base`
     :class:`LinearOperator`, the base of every operator: ``A``/``A_adjoint``, ``norm()`` and
     ``adjointness_error()`` (the dot-product test every operator's tests run).
@@ -51,8 +55,8 @@ _LAZY = {
     "pad": "convolution", "crop": "convolution", "embed_kernel": "convolution",
     "extract_kernel": "convolution", "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
-    "padded_scene_forward": "convolution", "padded_scene_adjoint": "convolution",
-    "padded_scene_adjoint_spectrum": "convolution", "kernel_images": "convolution",
+    "padded_scene_forward": "padded_scene", "padded_scene_adjoint": "padded_scene",
+    "padded_scene_adjoint_spectrum": "padded_scene", "kernel_images": "padded_scene",
     "sum_of_kernel_products": "convolution",
     "zero_workspace": "convolution", "PaddingWorkspace": "operator",
     "SpectralOperator": "operator", "PaddedSceneOperator": "operator",

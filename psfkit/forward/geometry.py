@@ -28,7 +28,7 @@ def padded_shape(sensor_shape: tuple[int, int], scene_padding: int = 2) -> tuple
 def kernel_origin(kernel_shape: tuple[int, int]) -> tuple[int, int]:
     """``(row, column)`` of a kernel's origin in its array: the centre pixel ``(Hk//2, Wk//2)``,
     the way a PSF image looks (the one definition; the kernel file records it as
-    :data:`psfkit.forward.kernelfile.KERNEL_ORIGIN`)."""
+    :data:`psfkit.forward.kernel_checks.KERNEL_ORIGIN`)."""
     return (int(kernel_shape[0]) // 2, int(kernel_shape[1]) // 2)
 
 

@@ -26,9 +26,9 @@ from torch import Tensor
 
 from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import (
-    _fan_in,
-    _fan_out,
     extract_kernel,
+    fan_in,
+    fan_out,
     kernel_spectra,
     records_graph,
 )
@@ -120,9 +120,9 @@ class KernelSpaceOperator(LinearOperator):
         spectra = kernel_spectra(kernels, self.grid)                   # (K, C, ...)
         graph = records_graph(spectra)
         if self.weights is None or self.convention == "sensor":
-            return _fan_out(self.scene_spectra[:, 0], spectra, self.weights, self.grid,
+            return fan_out(self.scene_spectra[:, 0], spectra, self.weights, self.grid,
                             self.sensor, graph, overwrite=False)
-        return _fan_in(lambda k: self.scene_spectra[:, k].clone(), spectra, self.grid,
+        return fan_in(lambda k: self.scene_spectra[:, k].clone(), spectra, self.grid,
                        self.sensor, graph)
 
     def adjoint(self, residuals: Tensor) -> Tensor:

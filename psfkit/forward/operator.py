@@ -42,12 +42,11 @@ from psfkit.forward.convolution import (
     eigen_kernel_forward,
     kernel_spectra,
     pad,
-    padded_scene_adjoint,
-    padded_scene_forward,
     records_graph,
     zero_workspace,
 )
 from psfkit.forward.geometry import padded_shape
+from psfkit.forward.padded_scene import padded_scene_adjoint, padded_scene_forward
 
 
 class KernelFileModel(Protocol):
@@ -214,7 +213,7 @@ class PaddedSceneOperator(LinearOperator):
         \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
         (V_k \odot x)\Big)
 
-    (:func:`~psfkit.forward.convolution.padded_scene_forward` and its adjoint), with ``V_k``
+    (:func:`~psfkit.forward.padded_scene.padded_scene_forward` and its adjoint), with ``V_k``
     the source-side weights on the whole grid, continuing the edge weights outside the view
     (the model is fitted on the view only; ``KernelModel.weight_maps(extent=...)``). For a
     scene zero outside the view ``A pad(x)`` equals :class:`SpectralOperator`'s ``A x``.

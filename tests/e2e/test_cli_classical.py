@@ -205,7 +205,7 @@ def psf_and_measurement(tmp_path, caustic_psf):
 
 
 def test_a_psf_image_is_its_si_kernel_file(psf_and_measurement, tmp_path):
-    from psfkit.calibration.preprocess import load_psf_image
+    from psfkit.calibration.psf_image import load_psf_image
 
     psf, meas = psf_and_measurement
     kernel = load_psf_image(str(psf), background="corner")            # the one PSF loader

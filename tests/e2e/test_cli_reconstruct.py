@@ -153,7 +153,7 @@ def psf_and_measurements(tmp_path, caustic_psf):
 
 def test_psf_image_is_the_library_reference_and_the_admm_spelling(psf_and_measurements,
                                                                   tmp_path, capsys):
-    from psfkit.calibration.preprocess import psf_kernel
+    from psfkit.calibration.psf_image import psf_kernel
     from psfkit.io.images import read_image_float
 
     psf, folder = psf_and_measurements

@@ -22,10 +22,10 @@ from ekdun.reconstruction.admm import (
 )
 from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
 from ekdun.reconstruction.extended_scene import ExtendedSceneOperator
-from psfkit.forward.convolution import padded_scene_adjoint, padded_scene_forward
 from psfkit.forward.geometry import centre_offset
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.norm import operator_norm
+from psfkit.forward.padded_scene import padded_scene_adjoint, padded_scene_forward
 
 SENSOR = (20, 28)
 

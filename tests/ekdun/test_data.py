@@ -294,7 +294,7 @@ def test_match_downsample_uses_the_kernel_files_fit_factor():
 
 def test_train_psf_seed_is_the_psf_loaders_kernel(tmp_path):
     from ekdun.nets.builder import seed_kernel_model
-    from psfkit.calibration.preprocess import load_psf_image
+    from psfkit.calibration.psf_image import load_psf_image
     from psfkit.io import write_image
 
     psf = np.zeros((3, 16, 16), np.float32)

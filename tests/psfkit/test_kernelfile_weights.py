@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from psfkit.errors import ConfigurationError, ModelFileError, PsfkitError
-from psfkit.forward.kernelfile import KernelModel, check_kernels, load_kernels, save_kernels
+from psfkit.forward.kernel_checks import check_kernels
+from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.forward.weights import BASIS_NAMES, get_basis, normalized_coordinates
 
 

@@ -14,7 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner, nominal_shifts
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner
+from psfkit.calibration.nominal_shifts import nominal_shifts
 from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
 from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
 from psfkit.forward.weights import get_basis

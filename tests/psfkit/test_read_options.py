@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from psfkit.calibration.preprocess import load_psf_image, subtract_background
+from psfkit.calibration.psf_image import load_psf_image, subtract_background
 from psfkit.errors import InvalidInputError, ModelFileError
 from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.io import read_pairs, write_image

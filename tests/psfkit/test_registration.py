@@ -5,11 +5,11 @@ import pytest
 from scipy import ndimage
 
 from psfkit.calibration.registration import (
-    fit_shift_map,
     high_frequency_fraction,
     register_shift,
     shift_image,
 )
+from psfkit.calibration.shift_map import fit_shift_map
 from psfkit.errors import InvalidInputError
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from psfkit.calibration.gain import fit_gain
-from psfkit.calibration.registration import fit_shift_map
+from psfkit.calibration.shift_map import fit_shift_map
 from psfkit.calibration.warp import fit_growth
 from psfkit.characterization.characterize import astigmatism_estimate
 from psfkit.numerics.significance import (

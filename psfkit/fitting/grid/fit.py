@@ -29,10 +29,9 @@ from psfkit.calibration.alignment import (
     AlignedPsf,
     ExcludedPosition,
     GridAligner,
-    NominalShifts,
-    nominal_shifts,
 )
 from psfkit.calibration.gain import overlap_gain
+from psfkit.calibration.nominal_shifts import NominalShifts, nominal_shifts
 from psfkit.calibration.preprocess import PreprocessOptions
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.errors import ConfigurationError
@@ -100,10 +99,11 @@ class EigenFitOptions:
     shifts : {"affine", "registered"}
         Where each PSF is placed before the fit. ``"affine"`` (default): at the shift of the
         affine field-to-shift map fitted to the reliably registered positions
-        (:func:`psfkit.calibration.alignment.nominal_shifts`), the geometry of the forward model
-        ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
-        the kernels. ``"registered"``: at each PSF's own registered shift (before 2026-11-25;
-        it removes that part, and is biased where a PSF is mostly off the sensor).
+        (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the
+        forward model ``y = crop(K * pad(x))``, so that distortion and the caustic's
+        deformation stay in the kernels. ``"registered"``: at each PSF's own registered
+        shift (before 2026-11-25; it removes that part, and is biased where a PSF is mostly
+        off the sensor).
     """
 
     basis: str = "paper"

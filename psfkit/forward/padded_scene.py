@@ -1,0 +1,167 @@
+r"""Eq. 7 with the scene on the whole padded grid: light from outside the sensor's view.
+
+:func:`padded_scene_forward` and its exact adjoint :func:`padded_scene_adjoint` (the operator
+of the classical solvers, :class:`psfkit.forward.operator.PaddedSceneOperator`), and the pieces
+of them that ADMM keeps apart: each kernel's image :func:`kernel_images` and the spectrum of
+the sensor-side adjoint :func:`padded_scene_adjoint_spectrum`. Conventions and the fan-out /
+fan-in core are those of :mod:`psfkit.forward.convolution` (the sensor-sized scene).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from psfkit.forward.convolution import (
+    crop,
+    fan_in,
+    fan_out,
+    pad,
+    records_model_graph,
+    sum_of_kernel_products,
+)
+from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.geometry import centre_offset
+
+
+def _to_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """Circularly shift a padded-grid array so that its centred view block is top-left."""
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return torch.roll(z, shifts=(-top, -left), dims=(-2, -1))
+
+
+def _from_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
+    """Inverse of :func:`_to_corner` (its adjoint too: a circular shift is orthogonal)."""
+    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
+    return torch.roll(z, shifts=(top, left), dims=(-2, -1))
+
+
+def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
+                         sensor_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""Eq. 7 with the scene on the whole padded grid (light from outside the view).
+
+    .. math::
+
+        \text{sensor:}\quad y = \sum_k W_k \odot \mathrm{crop}(K_k \circledast x),
+        \qquad
+        \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
+        (V_k \odot x)\Big),
+
+    with ``W_k`` ``(K, H', W')`` the sensor weights and ``V_k`` ``(K, PH, PW)`` the scene
+    weights on the whole grid (edge-continued outside the view:
+    :meth:`psfkit.forward.kernelfile.KernelModel.weight_maps` with ``extent``). For a scene zero
+    outside
+    the view, ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``. Sensor side: 1 FFT
+    and K inverse FFTs; source side: K FFTs and 1 inverse FFT.
+
+    Parameters
+    ----------
+    x : Tensor
+        Scene ``(B, C, PH, PW)``.
+    spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` kernel spectra (:func:`kernel_spectra`).
+    weights : Tensor or None
+        Sensor side ``(K, H', W')``, source side ``(K, PH, PW)``; ``None`` for one kernel with
+        weight 1.
+    sensor_shape : (int, int)
+        ``(H', W')``.
+    convention : {"sensor", "source"}
+
+    Returns
+    -------
+    Tensor
+        Measurement ``(B, C, H', W')``.
+    """
+    grid = (x.shape[-2], x.shape[-1])
+    graph = records_model_graph(x, spectra, weights)
+    # the crop is centred: shift the view to the top-left corner, where irfft2 crops cheaply
+    shifted = _to_corner(x, sensor_shape)
+    if convention == "sensor" or weights is None:
+        return fan_out(rfft2(shifted), spectra, weights, grid, sensor_shape, graph)
+    scene_weights = _to_corner(weights, sensor_shape)
+    return fan_in(lambda k: rfft2(shifted * scene_weights[k]), spectra, grid, sensor_shape,
+                   graph)
+
+
+def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                         grid_shape: tuple[int, int], convention: str = "sensor") -> Tensor:
+    r"""The exact adjoint of :func:`padded_scene_forward`.
+
+    .. math::
+
+        \text{sensor:}\quad A^\top y = \sum_k K_k \star \mathrm{pad}(W_k \odot y),
+        \qquad
+        \text{source:}\quad A^\top y = \sum_k V_k \odot \big(K_k \star
+        \mathrm{pad}(y)\big).
+
+    ``y`` is ``(B, C, H', W')``, ``conj_spectra`` the conjugated kernel spectra, ``weights``
+    as in :func:`padded_scene_forward`; returns the ``(B, C, PH, PW)`` scene. Sensor side:
+    K FFTs and 1 inverse FFT; source side: 1 FFT and K inverse FFTs.
+    """
+    sensor = (y.shape[-2], y.shape[-1])
+    graph = records_model_graph(y, conj_spectra, weights)
+    if convention == "sensor" and weights is not None:
+        corner = fan_in(lambda k: rfft2(y * weights[k], grid_shape), conj_spectra,
+                         grid_shape, grid_shape, graph)
+    else:
+        scene_weights = None if weights is None else _to_corner(weights, sensor)
+        corner = fan_out(rfft2(y, grid_shape), conj_spectra, scene_weights, grid_shape,
+                          grid_shape, graph)
+    return _from_corner(corner, sensor)
+
+
+def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int, int],
+                  sensor_shape: tuple[int, int] | None = None) -> Tensor:
+    r"""``crop(K_k ⊛ x)`` for every kernel, from the spectrum of a padded-grid scene.
+
+    The images that sensor-side weights multiply in Eq. 7 (:func:`padded_scene_forward` sums
+    them weighted), for solvers that keep them apart (ADMM's split ``u_k = H_k x``) and that
+    already hold ``x̂`` (after a Fourier-diagonal update).
+
+    Parameters
+    ----------
+    scene_spectrum : Tensor
+        ``(..., C, PH, PW//2 + 1)``, ``rfft2`` of the ``(..., C, PH, PW)`` scene.
+    spectra : Tensor
+        Kernel spectra broadcastable against it, e.g. ``(K, C, PH, PW//2 + 1)``.
+    grid_shape : (int, int)
+        ``(PH, PW)``.
+    sensor_shape : (int, int), optional
+        Keep the centred ``(H', W')`` view (the crop); ``None``: the whole grid (``H_k x``).
+
+    Returns
+    -------
+    Tensor
+        ``(K, ..., H', W')`` (or the grid) real.
+    """
+    images = irfft2(spectra * scene_spectrum, grid_shape)
+    return images if sensor_shape is None else crop(images, sensor_shape)
+
+
+def padded_scene_adjoint_spectrum(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
+                                  grid_shape: tuple[int, int]) -> Tensor:
+    r"""``rfft2`` of the sensor-side :func:`padded_scene_adjoint`:
+    ``Σ_k K̂_k^* · F(pad(W_k ⊙ y))`` (K FFTs, no inverse).
+
+    For solvers that apply a Fourier-diagonal inverse to ``Aᵀy`` before transforming back
+    (ADMM's ``x`` update), which saves the inverse FFT.
+
+    Parameters
+    ----------
+    y : Tensor
+        ``(..., C, H', W')``.
+    conj_spectra : Tensor
+        ``(K, C, PH, PW//2 + 1)`` conjugated kernel spectra.
+    weights : Tensor or None
+        ``(K, H', W')`` sensor weights, or ``None`` (one kernel, weight 1).
+    grid_shape : (int, int)
+
+    Returns
+    -------
+    Tensor
+        ``(..., C, PH, PW//2 + 1)`` complex.
+    """
+    graph = records_model_graph(y, conj_spectra, weights)
+    return sum_of_kernel_products(
+        lambda k: rfft2(pad(y if weights is None else y * weights[k], grid_shape)),
+        conj_spectra, graph)
