@@ -22,11 +22,8 @@ from ekdun.nets.ekdun_net import EKDUN
 from ekdun.nets.le_admm_u import LeADMMU
 from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.nets.updn import UPDN
-from ekdun.physics.operators import (
-    EigenKernelOperator,
-    MultiPSFOperator,
-    ShiftInvariantOperator,
-)
+from ekdun.physics.multi_psf import MultiPSFOperator
+from ekdun.physics.operators import EigenKernelOperator, ShiftInvariantOperator
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.forward.weights import get_basis
 

@@ -34,7 +34,7 @@ from torch import Tensor, nn
 from ekdun.nets.configs import UPDNConfig
 from ekdun.nets.unet import UNet, channels_last
 from ekdun.nets.unrolled import State, UnrolledNetwork
-from ekdun.physics.operators import MultiPSFOperator
+from ekdun.physics.multi_psf import MultiPSFOperator
 
 
 def interleave_copies(copies: int, *tensors: Tensor) -> Tensor:

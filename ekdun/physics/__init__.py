@@ -5,10 +5,10 @@ correlation, Eq. 7 in both conventions) lives in :mod:`psfkit.forward`;
 :mod:`ekdun.physics.operators` holds the :class:`torch.nn.Module` operator classes wrapping it.
 """
 
+from ekdun.physics.multi_psf import MultiPSFOperator
 from ekdun.physics.operators import (
     EigenKernelOperator,
     FFTConvolutionOperator,
-    MultiPSFOperator,
     PreparedOperator,
     ShiftInvariantOperator,
 )
