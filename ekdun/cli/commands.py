@@ -308,9 +308,8 @@ def run_train(args: argparse.Namespace) -> int:
         probe = read_pairs(root, args.channel_order, check_pixels=False, recorded=recorded)
     factor = match_downsample(probe.shape, seed, args.downsample,
                               where=f"the pairs in {root}", model_name=str(source))
-    dataset = PairsDataset(root, args.channel_order, holdout=args.holdout or (),
-                           downsample=factor,
-                           recorded=None if args.psf else seed.data_read_options())
+    # the folder listed once: the probe was read with the dataset's channel order and options
+    dataset = PairsDataset(probe, holdout=args.holdout or (), downsample=factor)
     if factor > 1 or dataset.holdout:
         _say(args, f"training on {len(dataset)} pairs of {root}"
                    + (f" (held out: {', '.join(dataset.holdout)})" if dataset.holdout else "")

@@ -59,8 +59,9 @@ class PairsDataset(Dataset):
 
     Parameters
     ----------
-    root : path-like
-        Pairs folder.
+    root : path-like or PairSet
+        Pairs folder, or the folder already listed by :func:`psfkit.io.pairs.read_pairs` (then
+        ``channel_order`` and ``recorded`` were given to that call and are not used here).
     channel_order : {"RGB", "BGR"}, optional
         Overrides the folder's channel order.
     recorded : ReadOptions, optional
@@ -85,11 +86,12 @@ class PairsDataset(Dataset):
         4 pixels a side.
     """
 
-    def __init__(self, root: str | os.PathLike, channel_order: str | None = None,
+    def __init__(self, root: str | os.PathLike | PairSet, channel_order: str | None = None,
                  preload: bool = True, holdout: Iterable[str] = (), downsample: int = 1,
                  only: Iterable[str] = (), recorded: ReadOptions | None = None) -> None:
-        self.pairs: PairSet = read_pairs(root, channel_order, check_pixels=False,
-                                         recorded=recorded)
+        self.pairs: PairSet = (root if isinstance(root, PairSet) else
+                               read_pairs(root, channel_order, check_pixels=False,
+                                          recorded=recorded))
         self.holdout = parse_names(holdout)
         self.indices = list(self.pairs.select(self.holdout, only))
         if int(downsample) != downsample or downsample < 1:
@@ -99,8 +101,9 @@ class PairsDataset(Dataset):
         if h // self.downsample < MIN_PAIR_SIDE or w // self.downsample < MIN_PAIR_SIDE:
             binning = (f" binned by --downsample {self.downsample} to {h // self.downsample}x"
                        f"{w // self.downsample}" if self.downsample > 1 else "")
-            raise InvalidInputError(f"{root}: {h}x{w} px pairs{binning} leave too few pixels "
-                                    f"to train on (at least {MIN_PAIR_SIDE}x{MIN_PAIR_SIDE})")
+            raise InvalidInputError(f"{self.pairs.root}: {h}x{w} px pairs{binning} leave too "
+                                    f"few pixels to train on (at least {MIN_PAIR_SIDE}x"
+                                    f"{MIN_PAIR_SIDE})")
         self._cache: tuple[np.ndarray, np.ndarray] | None = None
         if preload:
             pairs = [self._read(i) for i in self.indices]
