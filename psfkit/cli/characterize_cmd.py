@@ -254,12 +254,17 @@ def _print_per_channel(args: argparse.Namespace, result: GridCharacterization) -
         print_channel_shifts(result)
 
 
-def run_register(args: argparse.Namespace) -> int:
-    result = _run_and_write_numbers(args, ("register",))
-    print_registration(result)
+def _print_closing(args: argparse.Namespace, result: GridCharacterization) -> int:
+    """The lines every characterization command ends with: per-channel shifts, warnings."""
     _print_per_channel(args, result)
     _print_warnings(result)
     return 0
+
+
+def run_register(args: argparse.Namespace) -> int:
+    result = _run_and_write_numbers(args, ("register",))
+    print_registration(result)
+    return _print_closing(args, result)
 
 
 def run_mae(args: argparse.Namespace) -> int:
@@ -272,9 +277,7 @@ def run_mae(args: argparse.Namespace) -> int:
     print("after gain compensation, %:")
     _grid_print(result.table("mae_gain_compensated") * 100, "7.2f", result)
     print_coverage(result)
-    _print_per_channel(args, result)
-    _print_warnings(result)
-    return 0
+    return _print_closing(args, result)
 
 
 def run_warp(args: argparse.Namespace) -> int:
@@ -289,9 +292,7 @@ def run_warp(args: argparse.Namespace) -> int:
     print(f"{growth_line(result.warp_growth)} (positions with >= {RELIABLE_OVERLAP:.0%} of "
           "the centre PSF's light in their overlap)")
     print(astigmatism_line(result))
-    _print_per_channel(args, result)
-    _print_warnings(result)
-    return 0
+    return _print_closing(args, result)
 
 
 def run_report(args: argparse.Namespace) -> int:
