@@ -36,19 +36,17 @@ from psfkit.calibration.gain import overlap_gain
 from psfkit.calibration.preprocess import PreprocessOptions
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.errors import ConfigurationError
-from psfkit.fitting.grid.eigen import (
-    DEFAULT_RIDGE,
+from psfkit.fitting.grid.design import check_design
+from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
+from psfkit.fitting.grid.heldout import judge
+from psfkit.fitting.grid.pca import PcaResult, principal_angles_deg, stack_pca
+from psfkit.fitting.grid.stack_fit import (
     CrossValidation,
-    NormalEquations,
-    WorkingStack,
-    check_design,
     fit_stack,
     kernel_difference_estimates,
     stack_residuals,
-    working_region,
 )
-from psfkit.fitting.grid.heldout import judge
-from psfkit.fitting.grid.pca import PcaResult, principal_angles_deg, stack_pca
+from psfkit.fitting.grid.working_stack import WorkingStack, working_region
 from psfkit.fitting.verdict import Verdict
 from psfkit.forward.kernelfile import CONVENTIONS, KernelModel
 from psfkit.forward.weights import get_basis
@@ -180,7 +178,7 @@ class GridEigenResult:
     def kernel_differences(self) -> dict[str, Estimate]:
         """``"Kv − Kbase"``-style names to each correction kernel's relative difference
         ``‖K_k − K_0‖/‖K_0‖`` on the working copy, with its jackknife 1σ and significance
-        (:func:`psfkit.fitting.grid.eigen.kernel_difference_estimates`); empty for ``"si"``."""
+        (:func:`psfkit.fitting.grid.stack_fit.kernel_difference_estimates`); empty for ``"si"``."""
         names = get_basis(self.basis_name).kernel_names
         if len(names) < 2:
             return {}

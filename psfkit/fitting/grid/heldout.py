@@ -13,12 +13,10 @@ Every model here writes the aligned, gain-compensated PSF of position ``p`` as
     the null plus the field weights of an eigen-kernel basis (:data:`FIELD_BASES`) at the
     position.
 
-Positions are held out as in :func:`psfkit.fitting.grid.eigen.cross_validate_positions` (the same
-folds
-for the same seed); the result is a :class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge`
-runs
-both cross-validations on a working stack and decides the verdict: ``psfkit report`` and
-``psfkit fit-eigen`` call it.
+Positions are held out as in :func:`psfkit.fitting.grid.stack_fit.cross_validate_positions`
+(the same folds for the same seed); the result is a
+:class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge` runs both cross-validations on a
+working stack and decides the verdict: ``psfkit report`` and ``psfkit fit-eigen`` call it.
 """
 
 from __future__ import annotations
@@ -30,15 +28,15 @@ from typing import Any
 import numpy as np
 
 from psfkit.calibration.registration import shift_image
-from psfkit.fitting.grid.eigen import (
+from psfkit.fitting.grid.design import position_weights
+from psfkit.fitting.grid.eigen import _solve_spd
+from psfkit.fitting.grid.stack_fit import (
     CENTRE_ONLY,
     CrossValidation,
-    WorkingStack,
-    _solve_spd,
     cross_validate_positions,
     fold_groups,
-    position_weights,
 )
+from psfkit.fitting.grid.working_stack import WorkingStack
 from psfkit.fitting.verdict import HeldOutErrors, Verdict, decide
 from psfkit.forward.kernelfile import CONVENTIONS
 from psfkit.forward.weights import get_basis
