@@ -50,6 +50,7 @@ import torch
 from torch import Tensor
 
 from psfkit.errors import InvalidInputError
+from psfkit.fitting.pairs.batches import DEFAULT_CACHE_BYTES, PairBatches
 from psfkit.fitting.pairs.constraints import (
     auto_support,
     kernel_summary,
@@ -64,7 +65,7 @@ from psfkit.fitting.pairs.regularisation import (
     choose_regularisation,
     selection_binning,
 )
-from psfkit.fitting.pairs.solver import DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
+from psfkit.fitting.pairs.solver import solve_kernels
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.operator import SpectralOperator
@@ -176,9 +177,9 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
         "mask"``; nonzero = inside).
     batch_size, cache_bytes
-        Pairs per batch (default: :func:`~psfkit.fitting.pairs.solver.auto_batch_size`), and bytes
+        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and bytes
         of scene spectra kept between passes
-        (:class:`~psfkit.fitting.pairs.solver.PairBatches`).
+        (:class:`~psfkit.fitting.pairs.batches.PairBatches`).
 
     Raises
     ------
