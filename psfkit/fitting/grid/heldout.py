@@ -46,7 +46,7 @@ from psfkit.numerics.significance import Estimate
 FIELD_BASES = ("paper", "paper+odd", "poly:2")
 NULL_MODEL = "si+sampling"
 #: Longest side (px) of the working copy the verdict of ``psfkit report`` is computed on (as
-#: ``psfkit fit-eigen``'s, :class:`psfkit.fitting.grid.fit.EigenFitOptions`).
+#: ``psfkit fit-eigen``'s, :class:`psfkit.fitting.grid.options.EigenFitOptions`).
 VERDICT_WORKING_SIZE = 256
 #: Ridge on the correction kernels, relative to each pixel's mean diagonal (as
 #: :data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`).
