@@ -28,7 +28,8 @@ from psfkit.characterization.characterize import (
     CharacterizeOptions,
     characterize_grid,
 )
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.io.jsonable import write_json
 from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan

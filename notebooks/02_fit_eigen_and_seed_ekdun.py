@@ -31,7 +31,8 @@ import torch
 from IPython.display import display
 
 from ekdun.nets import build_model
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.fitting.pairs.fit import predict
 from psfkit.forward.kernelfile import load_kernels, save_kernels
 from psfkit.io import read_grid

@@ -59,7 +59,8 @@ from ekdun.evaluation import evaluate_model
 from ekdun.nets.builder import network_from_checkpoint
 from ekdun.training import TrainOptions, export_kernels, initial_kernels, train
 from psfkit.compare import compare_kernels
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_grid
 from psfkit.report.comparison import write_comparison

@@ -35,7 +35,8 @@ from ekdun.training.trainer import CHECKPOINT, TrainOptions, train
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
 from psfkit.cli.parser import OneLineArgumentParser
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_grid
 from psfkit.io.atomic import atomic_file

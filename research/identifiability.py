@@ -6,7 +6,7 @@ noise in electrons, so the noise variance per pixel is about ``y₀/P + σ_r²/P
 
 **Fisher information** (:func:`difference_fisher`), in the *no-crop approximation*: for the
 source convention the kernels' normal operator of the uncropped, whole-grid problem is
-block-diagonal in frequency (:class:`psfkit.fitting.pairs.solver.FrequencyGram`: one ``K × K`` Gram
+block-diagonal in frequency (:class:`psfkit.fitting.pairs.gram.FrequencyGram`: one ``K × K`` Gram
 block :math:`G(\omega)` per frequency and channel). With white noise of variance
 :math:`\bar\sigma^2` (the mean of the bench's per-pixel variance) the Fisher information is
 :math:`G(\omega)/(M\bar\sigma^2)` (``M`` grid pixels, unnormalised FFT). Written in the
@@ -44,9 +44,9 @@ from psfkit.compare.displacement import DisplacementMap, comparison_mask, displa
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.statistics import normalized_correlation, pearson
 from psfkit.errors import InvalidInputError
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import fit_pairs
 from psfkit.fitting.pairs.options import PairFitOptions
-from psfkit.fitting.pairs.solver import PairBatches
 from psfkit.forward.weights import get_basis
 
 

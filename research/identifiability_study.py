@@ -72,7 +72,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
-    from psfkit.fitting.pairs.solver import PairBatches
+    from psfkit.fitting.pairs.batches import PairBatches
     from psfkit.io.jsonable import write_json
     from research.identifiability import (
         difference_fisher,

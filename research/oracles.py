@@ -60,14 +60,11 @@ from ekdun.data.dense_model import hat_weights
 from ekdun.data.virtual_bench import MANIFEST, _data_files, content_hash, read_manifest
 from ekdun.errors import ConfigurationError, InvalidInputError
 from psfkit.compare.statistics import normalized_correlation
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.constraints import projected_newton
 from psfkit.fitting.pairs.fit import predict
 from psfkit.fitting.pairs.options import NEWTON_CG_ITERATIONS, NEWTON_ITERATIONS
-from psfkit.fitting.pairs.solver import (
-    PairBatches,
-    regularised_normal,
-    solve_kernels,
-)
+from psfkit.fitting.pairs.solver import regularised_normal, solve_kernels
 from psfkit.forward.geometry import CONVENTIONS
 from psfkit.forward.kernelfile import KernelModel, save_kernels
 from psfkit.forward.weights import get_basis

@@ -42,8 +42,8 @@ from psfkit.characterization.results import (
 )
 from psfkit.choices import CV_BASES_ALL
 from psfkit.errors import InvalidInputError
-from psfkit.fitting.grid.eigen import WorkingStack, working_region
 from psfkit.fitting.grid.heldout import VERDICT_WORKING_SIZE, judge, moved_to
+from psfkit.fitting.grid.working_stack import WorkingStack, working_region
 from psfkit.fitting.verdict import Verdict
 from psfkit.io.grid import IRREGULAR, GridPosition, PsfGrid
 from psfkit.numerics.parallel import bounded_map
@@ -287,9 +287,8 @@ def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
 class _WorkingCopy:
     """The working copy of the aligned PSFs the verdict is judged on (nothing when not
     ``enabled``), chosen from the centre PSF's extent as ``psfkit fit-eigen`` chooses its own
-    (:func:`psfkit.fitting.grid.eigen.working_region`); one row per position of the grid, so that
-    the
-    worker threads never write the same one."""
+    (:func:`psfkit.fitting.grid.working_stack.working_region`); one row per position of the
+    grid, so that the worker threads never write the same one."""
 
     def __init__(self, grid: PsfGrid, aligner: GridAligner, enabled: bool) -> None:
         self.stack = None

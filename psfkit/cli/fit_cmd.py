@@ -32,7 +32,8 @@ from psfkit.io.jsonable import jsonable
 # The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
 # not when the parser is built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.fitting.grid.fit import EigenFitOptions, GridEigenResult
+    from psfkit.fitting.grid.options import EigenFitOptions
+    from psfkit.fitting.grid.result import GridEigenResult
 
 
 #: Flags that only ``--help-all`` lists (issue 44): the preprocessing and registration
@@ -84,7 +85,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _options(args: argparse.Namespace, basis: str) -> EigenFitOptions:
-    from psfkit.fitting.grid.fit import EigenFitOptions
+    from psfkit.fitting.grid.options import EigenFitOptions
 
     choice = args.cv_bases.strip().lower()
     cv = () if choice == "none" else CV_BASES_ALL if choice == "all" else tuple(

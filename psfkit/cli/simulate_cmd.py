@@ -216,7 +216,8 @@ def _demo_eigen_fit(grid: PsfGrid, kernels: Path, figures: Path, quiet: bool) ->
     """The demo's last step: the eigen-kernel fit that seeds EK-DUN (as ``psfkit fit-eigen``)."""
     from psfkit.cli.fit_cmd import write_fit_figures
     from psfkit.cli.summaries import pm
-    from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+    from psfkit.fitting.grid.fit import fit_eigen_grid
+    from psfkit.fitting.grid.options import EigenFitOptions
     from psfkit.forward.kernelfile import save_kernels
 
     result = fit_eigen_grid(grid, EigenFitOptions(), progress=not quiet)

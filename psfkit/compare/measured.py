@@ -29,7 +29,9 @@ from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import check_shapes, pad_kernels, resample
 from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
 from psfkit.errors import InvalidInputError, ModelFileError
-from psfkit.fitting.grid.fit import EigenFitOptions, GridEigenResult, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
+from psfkit.fitting.grid.result import GridEigenResult
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid

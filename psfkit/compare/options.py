@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from psfkit.calibration.preprocess import PreprocessOptions
 from psfkit.calibration.warp import FLOW_METHODS
 from psfkit.errors import ConfigurationError
-from psfkit.fitting.grid.fit import EigenFitOptions
+from psfkit.fitting.grid.options import EigenFitOptions
 
 
 @dataclass(frozen=True)

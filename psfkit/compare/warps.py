@@ -22,7 +22,7 @@ from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.compare.displacement import DisplacementMap, displacement_map
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import resample
-from psfkit.fitting.grid.eigen import position_weights
+from psfkit.fitting.grid.design import position_weights
 from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid
 

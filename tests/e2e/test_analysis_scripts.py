@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.forward.kernelfile import KernelModel, save_kernels
 from psfkit.io import read_grid
 from psfkit.simulate import BenchConfig, simulate_grid

@@ -12,7 +12,9 @@ import pytest
 from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner, psf_support, support_overlap
 from psfkit.calibration.registration import shift_image
 from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid, working_region
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
+from psfkit.fitting.grid.working_stack import working_region
 from psfkit.io import read_grid
 from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
 

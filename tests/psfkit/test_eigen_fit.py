@@ -5,14 +5,10 @@ import pytest
 from scipy import ndimage
 
 from psfkit.errors import InvalidInputError
-from psfkit.fitting.grid.eigen import (
-    DEFAULT_RIDGE,
-    NormalEquations,
-    check_design,
-    position_weights,
-    predict_aligned,
-)
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.design import check_design, position_weights, predict_aligned
+from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.fitting.grid.pca import principal_angles_deg, stack_pca
 from psfkit.forward.weights import get_basis
 from psfkit.io import GridWriter, read_grid

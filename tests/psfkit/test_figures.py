@@ -33,7 +33,8 @@ from matplotlib.quiver import QuiverKey
 from matplotlib.text import Text
 
 from psfkit.characterization.characterize import characterize_grid
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import GridWriter, read_grid
 from psfkit.report.figures import (
     figure_eigen_diagnostics,

@@ -11,7 +11,7 @@ import pytest
 import psfkit.io.grid_validation as grid_validation
 from psfkit.characterization.characterize import THUMBNAIL_SIZE
 from psfkit.errors import GridFormatError
-from psfkit.fitting.grid.fit import EigenFitOptions
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.io.grid_validation import analysis_memory_bytes
 from psfkit.io.validation import MAX_GRID_CELLS, format_bytes, machine_memory_bytes

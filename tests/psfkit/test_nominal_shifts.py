@@ -17,7 +17,8 @@ import pytest
 from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner
 from psfkit.calibration.nominal_shifts import nominal_shifts
 from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.forward.weights import get_basis
 from psfkit.io import read_grid
 from psfkit.io.grid import GridPosition

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.constraints import auto_support, kkt_residual, projected_newton
 from psfkit.fitting.pairs.fit import (
     KernelSpaceOperator,
@@ -19,7 +20,7 @@ from psfkit.fitting.pairs.fit import (
     relative_errors,
 )
 from psfkit.fitting.pairs.options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
-from psfkit.fitting.pairs.solver import PairBatches, solve_kernels
+from psfkit.fitting.pairs.solver import solve_kernels
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.weights import get_basis
 

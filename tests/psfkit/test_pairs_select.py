@@ -12,6 +12,7 @@ import torch
 from test_pairs_solver import bench_scenes, known_eigen_kernels
 
 from psfkit.fitting.pairs import regularisation as pairs_select
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import (
     PairFitOptions,
     fit_pairs,
@@ -29,7 +30,7 @@ from psfkit.fitting.pairs.regularisation import (
     folds_of,
     selection_binning,
 )
-from psfkit.fitting.pairs.solver import PairBatches, regularised_normal
+from psfkit.fitting.pairs.solver import regularised_normal
 from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 
 

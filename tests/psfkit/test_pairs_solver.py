@@ -9,17 +9,11 @@ import pytest
 import torch
 
 from psfkit.compare.statistics import normalized_correlation as ncc
+from psfkit.fitting.pairs.batches import BATCH_BYTES, DEFAULT_BATCH, PairBatches, auto_batch_size
 from psfkit.fitting.pairs.constraints import STALL_STEPS, kkt_residual, projected_newton
 from psfkit.fitting.pairs.fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
-from psfkit.fitting.pairs.solver import (
-    BATCH_BYTES,
-    DEFAULT_BATCH,
-    FrequencyGram,
-    PairBatches,
-    auto_batch_size,
-    regularised_normal,
-    solve_kernels,
-)
+from psfkit.fitting.pairs.gram import FrequencyGram
+from psfkit.fitting.pairs.solver import regularised_normal, solve_kernels
 from psfkit.forward.convolution import extract_kernel, kernel_spectra
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator

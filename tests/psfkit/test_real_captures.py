@@ -15,7 +15,8 @@ from psfkit.characterization.characterize import (
     characterize_grid,
 )
 from psfkit.errors import GridFormatError, InvalidInputError, PositionRejected
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.simulate import (
     BenchConfig,

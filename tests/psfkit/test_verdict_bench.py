@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from psfkit.characterization.characterize import characterize_grid
-from psfkit.fitting.grid.fit import EigenFitOptions, fit_eigen_grid
+from psfkit.fitting.grid.fit import fit_eigen_grid
+from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.numerics.significance import Z_SIGNIFICANT
 from psfkit.simulate import read_ground_truth

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import predict
-from psfkit.fitting.pairs.solver import PairBatches
 from psfkit.forward.kernelfile import KernelModel
 from research.identifiability import (
     difference_fisher,

@@ -16,8 +16,9 @@ from ekdun.data.bench_spec import dense_model_for
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.data.virtual_bench import VirtualBenchSpec, dataset_is_current, make_virtual_bench
 from ekdun.physics.synthetic import caustic_psf
+from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import predict
-from psfkit.fitting.pairs.solver import PairBatches, solve_kernels
+from psfkit.fitting.pairs.solver import solve_kernels
 from psfkit.forward.convolution import eigen_kernel_forward, kernel_spectra
 from psfkit.forward.geometry import padded_shape
 from psfkit.forward.kernelfile import KernelModel, load_kernels

@@ -11,6 +11,9 @@ The working copy's resolution follows the PSF (:func:`working_region`): a compac
 pixels on a large frame) is kept on a crop around the centre PSF's support at full
 resolution; a PSF that fills the sensor (a caustic) is kept whole, binned to at most
 ``working_size`` px. Either way at most ``working_size``² pixels per channel and position.
+
+The options are :class:`psfkit.fitting.grid.options.EigenFitOptions`, the result
+:class:`psfkit.fitting.grid.result.GridEigenResult`.
 """
 
 from __future__ import annotations
@@ -18,13 +21,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from psfkit.calibration.alignment import (
-    MIN_QUALITY,
     RELIABLE_OVERLAP,
     AlignedPsf,
     ExcludedPosition,
@@ -32,226 +33,20 @@ from psfkit.calibration.alignment import (
 )
 from psfkit.calibration.gain import overlap_gain
 from psfkit.calibration.nominal_shifts import NominalShifts, nominal_shifts
-from psfkit.calibration.preprocess import PreprocessOptions
-from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
-from psfkit.errors import ConfigurationError
-from psfkit.fitting.grid.eigen import (
-    DEFAULT_RIDGE,
-    CrossValidation,
-    NormalEquations,
-    WorkingStack,
-    check_design,
-    fit_stack,
-    kernel_difference_estimates,
-    stack_residuals,
-    working_region,
-)
+from psfkit.choices import CV_BASES_ALL
+from psfkit.fitting.grid.design import check_design
+from psfkit.fitting.grid.eigen import NormalEquations
 from psfkit.fitting.grid.heldout import judge
-from psfkit.fitting.grid.pca import PcaResult, principal_angles_deg, stack_pca
+from psfkit.fitting.grid.options import AUTO, EigenFitOptions
+from psfkit.fitting.grid.pca import principal_angles_deg, stack_pca
+from psfkit.fitting.grid.result import GridEigenResult
+from psfkit.fitting.grid.stack_fit import CrossValidation, fit_stack, stack_residuals
+from psfkit.fitting.grid.working_stack import WorkingStack, working_region
 from psfkit.fitting.verdict import Verdict
-from psfkit.forward.kernelfile import CONVENTIONS, KernelModel
+from psfkit.forward.kernelfile import CONVENTIONS
 from psfkit.forward.weights import get_basis
-from psfkit.io.grid import FULL_LATTICE, GridPosition, PsfGrid
-from psfkit.io.jsonable import jsonable
-from psfkit.io.read_options import ReadOptions
+from psfkit.io.grid import GridPosition, PsfGrid
 from psfkit.numerics.parallel import bounded_map
-from psfkit.numerics.significance import Estimate, undetermined
-
-#: ``EigenFitOptions.basis`` (``psfkit fit-eigen --basis auto``): the verdict's model.
-AUTO = "auto"
-
-
-@dataclass(frozen=True)
-class EigenFitOptions:
-    """Options of :func:`fit_eigen_grid`.
-
-    Attributes
-    ----------
-    basis : str
-        Weight basis of the fitted model (:func:`psfkit.forward.weights.get_basis`), or ``"auto"``:
-        the basis *and* convention of the verdict (:mod:`psfkit.fitting.verdict`; ``"si"`` when the
-        PSF shape does not change over the field beyond noise), every basis of
-        :data:`psfkit.choices.CV_BASES_ALL` cross-validated, one full-resolution fit.
-    convention : {"sensor", "source", "auto"}
-        Convention fitted at full resolution and written to the kernel file: ``"sensor"``
-        (Eq. 7 as written, the default), ``"source"``, or ``"auto"`` (both, and the one with
-        the lower cross-validated error is written). Both are always compared on the working
-        copy. With ``basis="auto"`` the verdict chooses it (``"sensor"`` for ``"si"``, where
-        both are the same model).
-    gain_compensate : bool
-        Divide every PSF by its gain before fitting (kernels then describe shape only); by
-        default the gains stay in the kernels, as the forward model needs them.
-    cv_bases : tuple of str
-        Bases compared by leave-positions-out cross-validation (empty: no CV).
-    folds : int
-        Cross-validation groups of positions.
-    working_size : int
-        Longest side (px) of the binned working copy used for CV, residuals and PCA.
-    ridge : float
-        Relative weight of the prior pulling correction kernels towards the base kernel
-        (:data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that
-        the
-        pixels the data do not constrain are well-conditioned).
-    min_quality : float
-        Positions whose registration quality (NCC) is below this are excluded.
-    strict : bool
-        All or nothing: a position that fails a quality check ends the fit.
-    shifts : {"affine", "registered"}
-        Where each PSF is placed before the fit. ``"affine"`` (default): at the shift of the
-        affine field-to-shift map fitted to the reliably registered positions
-        (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the
-        forward model ``y = crop(K * pad(x))``, so that distortion and the caustic's
-        deformation stay in the kernels. ``"registered"``: at each PSF's own registered
-        shift (before 2026-11-25; it removes that part, and is biased where a PSF is mostly
-        off the sensor).
-    """
-
-    basis: str = "paper"
-    convention: str = "sensor"
-    gain_compensate: bool = False
-    cv_bases: tuple[str, ...] = CV_BASES
-    folds: int = 9
-    working_size: int = 256
-    ridge: float = DEFAULT_RIDGE
-    upsample: int = 100
-    preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
-    min_quality: float = MIN_QUALITY
-    strict: bool = False
-    shifts: str = "affine"
-
-    def __post_init__(self) -> None:
-        # every message names the flag of psfkit fit-eigen, never a Python field
-        for flag_name, names in (("--basis", (self.basis,)), ("--cv-bases", self.cv_bases)):
-            for name in names:
-                if flag_name == "--basis" and name == AUTO:
-                    continue
-                try:
-                    get_basis(name)
-                except ConfigurationError as exc:
-                    raise ConfigurationError(f"{flag_name}: {exc}") from None
-        if self.convention not in (*CONVENTIONS, "auto"):
-            raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)} "
-                                     f"or auto, got {self.convention!r}")
-        if self.shifts not in SHIFT_MODES:
-            raise ConfigurationError(f"--shifts must be one of {', '.join(SHIFT_MODES)}, got "
-                                     f"{self.shifts!r}")
-        if self.folds < 2:
-            raise ConfigurationError(f"--folds must be >= 2, got {self.folds}")
-        if self.working_size < 32:
-            raise ConfigurationError("EigenFitOptions: working_size must be >= 32 (no flag "
-                                     "sets it)")
-
-
-@dataclass
-class GridEigenResult:
-    """Everything :func:`fit_eigen_grid` measured."""
-
-    grid_root: str
-    grid_shape: tuple[int, int]
-    image_shape: tuple[int, int, int]
-    channels: tuple[str, ...]
-    center: tuple[int, int]
-    options: EigenFitOptions
-    convention: str
-    full_kernels: dict[str, np.ndarray] = field(repr=False)       # convention → (K, C, H, W)
-    residuals: dict[str, np.ndarray] = field(repr=False)          # convention → (N, M)
-    conditioning: dict[str, np.ndarray] = field(repr=False)       # convention → (h, w)
-    shifts: np.ndarray = field(repr=False)
-    stack: WorkingStack = field(repr=False)
-    kernel_scale: float = 1.0
-    cv: dict[str, Any] | None = None
-    pca: PcaResult | None = None
-    channel_order: str = "RGB"   # of the grid's files on disk (recorded in the kernel file)
-    angles_deg: np.ndarray | None = None
-    layout: str = FULL_LATTICE
-    excluded: list[ExcludedPosition] = field(default_factory=list)
-    missing: list[tuple[int, int]] = field(default_factory=list)
-    placement: NominalShifts | None = None      # None: each PSF at its registered shift
-    working: dict[str, Any] = field(default_factory=dict)   # how the working copy was chosen
-    basis: str = ""                             # the fitted basis ("auto" resolved)
-    cross_validation: CrossValidation | None = field(default=None, repr=False)
-    verdict: Verdict | None = None
-
-    @property
-    def basis_name(self) -> str:
-        """The fitted basis (``options.basis``, or what ``"auto"`` chose)."""
-        return self.basis or self.options.basis
-
-    def kernel_differences(self) -> dict[str, Estimate]:
-        """``"Kv − Kbase"``-style names to each correction kernel's relative difference
-        ``‖K_k − K_0‖/‖K_0‖`` on the working copy, with its jackknife 1σ and significance
-        (:func:`psfkit.fitting.grid.eigen.kernel_difference_estimates`); empty for ``"si"``."""
-        names = get_basis(self.basis_name).kernel_names
-        if len(names) < 2:
-            return {}
-        labels = [f"K{name} − K{names[0]}" for name in names[1:]]
-        stats = None if self.cross_validation is None else \
-            self.cross_validation.kernel_differences.get(f"{self.basis_name}/{self.convention}")
-        if stats is None:
-            return {label: undetermined("no cross-validation (--cv-bases none)")
-                    for label in labels}
-        p_value = math.nan
-        if self.verdict is not None and self.verdict.field_test.determined:
-            p_value = self.verdict.field_test.p_value
-        return dict(zip(labels, kernel_difference_estimates(*stats, p_value), strict=True))
-
-    @property
-    def n_positions(self) -> int:
-        """Positions the kernels were fitted to."""
-        return len(self.stack.images)
-
-    @property
-    def kernels(self) -> np.ndarray:
-        """Kernels ``(K, C, H, W)`` of the chosen convention, in kernel-file scale."""
-        return self.full_kernels[self.convention] / self.kernel_scale
-
-    def kernel_model(self) -> KernelModel:
-        """The kernel file content (see :mod:`psfkit.forward.kernelfile`)."""
-        return KernelModel(
-            kernels=self.kernels, basis=self.basis_name, convention=self.convention,
-            sensor_shape=self.image_shape[1:], channels=self.channels,
-            normalization="kernels divided by the mean over channels of Kbase's channel sum "
-                          "(Kbase sums to about 1 per channel; colour balance and gains kept"
-                          + (", PSFs gain-compensated before the fit" if
-                             self.options.gain_compensate else "") + ")",
-            # NaN/Inf (an undetermined σ, an infinite z) as null: the metadata is strict JSON
-            provenance={"source": "psfkit fit-eigen", "grid": self.grid_root,
-                        "fit": jsonable(self.summary())},
-            # measurements of this camera are taken to be stored like its PSF grid
-            read_options=ReadOptions(channel_order=self.channel_order))
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-ready numbers of the fit."""
-        out: dict[str, Any] = {
-            "basis": self.basis_name, "convention": self.convention,
-            "kernel_names": list(get_basis(self.basis_name).kernel_names),
-            "gain_compensated": self.options.gain_compensate,
-            "working_binning": self.stack.factor,
-            "working_region": self.working,
-            "shifts": (self.placement.to_dict() if self.placement is not None
-                       else {"source": "registered"}),
-            "in_sample_relative_error": {
-                conv: {"median": float(np.nanmedian(res)), "max": float(np.nanmax(res))}
-                for conv, res in self.residuals.items()},
-            "unconstrained_pixel_fraction": {
-                conv: float(np.mean(cond < 1e-6)) for conv, cond in self.conditioning.items()},
-        }
-        if self.cv is not None:
-            out["cross_validation"] = self.cv
-        if self.verdict is not None:
-            out["verdict"] = self.verdict.to_dict()
-            out["kernel_differences"] = {name: e.to_dict()
-                                         for name, e in self.kernel_differences().items()}
-        if self.pca is not None:
-            out["pca"] = self.pca.to_dict()
-        if self.angles_deg is not None:
-            out["principal_angles_deg_eigen_vs_pca"] = self.angles_deg.tolist()
-        if self.layout != FULL_LATTICE or self.excluded:    # (a full grid's record as before)
-            out["layout"] = self.layout
-            out["positions_fitted"] = self.n_positions
-            out["missing"] = [list(index) for index in self.missing]
-            out["excluded"] = [e.to_dict() for e in self.excluded]
-        return out
 
 
 def _solve_all(equations: dict[str, NormalEquations], ridge: float) -> dict[str, np.ndarray]:

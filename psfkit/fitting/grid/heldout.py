@@ -13,12 +13,10 @@ Every model here writes the aligned, gain-compensated PSF of position ``p`` as
     the null plus the field weights of an eigen-kernel basis (:data:`FIELD_BASES`) at the
     position.
 
-Positions are held out as in :func:`psfkit.fitting.grid.eigen.cross_validate_positions` (the same
-folds
-for the same seed); the result is a :class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge`
-runs
-both cross-validations on a working stack and decides the verdict: ``psfkit report`` and
-``psfkit fit-eigen`` call it.
+Positions are held out as in :func:`psfkit.fitting.grid.stack_fit.cross_validate_positions`
+(the same folds for the same seed); the result is a
+:class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge` runs both cross-validations on a
+working stack and decides the verdict: ``psfkit report`` and ``psfkit fit-eigen`` call it.
 """
 
 from __future__ import annotations
@@ -30,15 +28,15 @@ from typing import Any
 import numpy as np
 
 from psfkit.calibration.registration import shift_image
-from psfkit.fitting.grid.eigen import (
+from psfkit.fitting.grid.design import position_weights
+from psfkit.fitting.grid.eigen import _solve_spd
+from psfkit.fitting.grid.stack_fit import (
     CENTRE_ONLY,
     CrossValidation,
-    WorkingStack,
-    _solve_spd,
     cross_validate_positions,
     fold_groups,
-    position_weights,
 )
+from psfkit.fitting.grid.working_stack import WorkingStack
 from psfkit.fitting.verdict import HeldOutErrors, Verdict, decide
 from psfkit.forward.kernelfile import CONVENTIONS
 from psfkit.forward.weights import get_basis
@@ -48,7 +46,7 @@ from psfkit.numerics.significance import Estimate
 FIELD_BASES = ("paper", "paper+odd", "poly:2")
 NULL_MODEL = "si+sampling"
 #: Longest side (px) of the working copy the verdict of ``psfkit report`` is computed on (as
-#: ``psfkit fit-eigen``'s, :class:`psfkit.fitting.grid.fit.EigenFitOptions`).
+#: ``psfkit fit-eigen``'s, :class:`psfkit.fitting.grid.options.EigenFitOptions`).
 VERDICT_WORKING_SIZE = 256
 #: Ridge on the correction kernels, relative to each pixel's mean diagonal (as
 #: :data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`).

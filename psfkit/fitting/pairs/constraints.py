@@ -148,7 +148,7 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         Warm start (clipped to ``≥ 0`` first), e.g. the unconstrained solution.
     precondition : callable, optional
         Symmetric positive definite approximation of ``N⁻¹`` (e.g.
-        :meth:`psfkit.fitting.pairs.solver.FrequencyGram.preconditioner`); applied as
+        :meth:`psfkit.fitting.pairs.gram.FrequencyGram.preconditioner`); applied as
         ``P_F M P_F`` on the free pixels (positive definite there).
     iterations, cg_iterations
         Most Newton steps, and CG iterations per step (20: at 128², 96 pairs, the solution

@@ -34,7 +34,8 @@ solved exactly by the same conjugate gradients restricted to it. One solver per 
 the normal equations, projected Newton-CG for non-negativity (issue 44).
 Unless given, the regularisation is chosen by held-out error first
 (:mod:`psfkit.fitting.pairs.regularisation`).
-:meth:`PairFit.physics` is what the kernel file records about them.
+:meth:`psfkit.fitting.pairs.result.PairFit.physics` is what the kernel file records about
+them.
 """
 
 from __future__ import annotations
@@ -42,7 +43,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,12 +50,8 @@ import torch
 from torch import Tensor
 
 from psfkit.errors import InvalidInputError
-from psfkit.fitting.pairs.constraints import (
-    auto_support,
-    kernel_summary,
-    newton_fit,
-    support_least_squares,
-)
+from psfkit.fitting.pairs.batches import DEFAULT_CACHE_BYTES, PairBatches
+from psfkit.fitting.pairs.constraints import auto_support, newton_fit, support_least_squares
 from psfkit.fitting.pairs.options import NEWTON_CG_ITERATIONS, PairFitOptions
 from psfkit.fitting.pairs.regularisation import (
     FOLD_TOLERANCE,
@@ -64,66 +60,16 @@ from psfkit.fitting.pairs.regularisation import (
     choose_regularisation,
     selection_binning,
 )
-from psfkit.fitting.pairs.solver import DEFAULT_CACHE_BYTES, PairBatches, solve_kernels
+from psfkit.fitting.pairs.result import PairFit
+from psfkit.fitting.pairs.solver import solve_kernels
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.operator import SpectralOperator
-from psfkit.io.read_options import ReadOptions
 from psfkit.io.validation import MIN_PAIR_SIDE
 from psfkit.numerics.resample import bin_mean
 
-__all__ = ["START_TOLERANCE", "KernelSpaceOperator", "PairFit", "PairFitOptions",
+__all__ = ["START_TOLERANCE", "KernelSpaceOperator", "PairFitOptions",
            "downsample_pairs", "fit_pairs", "leave_one_out", "predict", "relative_errors"]
-
-
-@dataclass
-class PairFit:
-    """Result of :func:`fit_pairs`: kernels ``(K, C, Hk, Wk)``, per-pair scales and relative
-    training errors, and the solver's history."""
-
-    kernels: np.ndarray = field(repr=False)
-    basis: str
-    convention: str
-    scales: np.ndarray
-    training_error: np.ndarray
-    history: list[dict[str, Any]]
-    options: PairFitOptions
-    support: np.ndarray | None = field(default=None, repr=False)
-    #: The relative weights solved with (``{"tikhonov", "difference"}``: the given ones and
-    #: those chosen by held-out error).
-    weights: dict[str, float] = field(default_factory=dict)
-    #: How each automatic weight was chosen
-    # (:class:`~psfkit.fitting.pairs.regularisation.RegularisationChoice`).
-    regularisation: list[RegularisationChoice] = field(default_factory=list)
-
-    def regularisation_record(self) -> dict[str, Any]:
-        """What the kernel file and the fit report record about the regularisation: the
-        weights used, and for each weight chosen automatically its held-out errors along the
-        path (:meth:`RegularisationChoice.as_dict`)."""
-        automatic = {c.parameter: c.as_dict() for c in self.regularisation}
-        return {"weights": dict(self.weights),
-                "chosen_by": {p: ("held-out error" if p in automatic else "given")
-                              for p in self.weights},
-                "automatic": automatic}
-
-    def physics(self) -> dict[str, Any]:
-        """The constraints imposed and what the kernels are: energies ``[K][C]``, support
-        fraction, negative and non-finite pixel counts (recorded in the kernel file)."""
-        o = self.options
-        return {"constraints": {"nonneg": o.nonneg, "support": o.support},
-                **kernel_summary(self.kernels)}
-
-    def kernel_model(self, provenance: dict[str, Any] | None = None,
-                     read_options: ReadOptions | None = None) -> KernelModel:
-        """The kernel file content; ``read_options``: how the fitted pairs were read
-        (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
-        channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
-        provenance = {**(provenance or {}), "regularisation": self.regularisation_record()}
-        return KernelModel(kernels=self.kernels, basis=self.basis, convention=self.convention,
-                           sensor_shape=self.kernels.shape[-2:], channels=channels,
-                           scene_padding=self.options.scene_padding,
-                           normalization="fitted in the pairs' own units: y = A x",
-                           provenance=provenance, read_options=read_options)
 
 
 def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
@@ -176,9 +122,9 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
         "mask"``; nonzero = inside).
     batch_size, cache_bytes
-        Pairs per batch (default: :func:`~psfkit.fitting.pairs.solver.auto_batch_size`), and bytes
+        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and bytes
         of scene spectra kept between passes
-        (:class:`~psfkit.fitting.pairs.solver.PairBatches`).
+        (:class:`~psfkit.fitting.pairs.batches.PairBatches`).
 
     Raises
     ------

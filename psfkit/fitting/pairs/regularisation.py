@@ -28,7 +28,7 @@ difference prior ``μ`` of eigen-kernels, both relative to the mean scene power
   full resolution would cost minutes), and the weight chosen there is used at full resolution
   (what that costs is measured in :data:`SELECTION_PIXELS`' note).
 
-The per-frequency Gram blocks (:class:`~psfkit.fitting.pairs.solver.FrequencyGram`) would make exact
+The per-frequency Gram blocks (:class:`~psfkit.fitting.pairs.gram.FrequencyGram`) would make exact
 leave-one-out cheap for the *uncropped* problem (a rank-``K`` downdate per frequency), but
 every measurement is cropped and on DiffuserCam the kernels are as large as the sensor: the
 blocks are then only a preconditioner, and the held-out errors have to come from solves of the
@@ -49,13 +49,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psfkit.fitting.pairs.solver import (
-    FrequencyGram,
-    MeasurementSource,
-    PairBatches,
-    regularised_normal,
-    solve_normal_equations,
-)
+from psfkit.fitting.pairs.batches import MeasurementSource, PairBatches
+from psfkit.fitting.pairs.gram import FrequencyGram
+from psfkit.fitting.pairs.solver import regularised_normal, solve_normal_equations
 
 #: Relative weights tried, strongest first (then 0, the unbiased fit): ``λ`` for one PSF,
 #: ``μ`` (difference prior) for eigen-kernels. Half a decade apart: on the DLMD pairs the

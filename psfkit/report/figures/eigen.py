@@ -17,7 +17,7 @@ from matplotlib.ticker import MaxNLocator
 
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
-from psfkit.fitting.grid.fit import GridEigenResult
+from psfkit.fitting.grid.result import GridEigenResult
 from psfkit.forward.weights import get_basis
 from psfkit.report.figures.style import (
     PAGE_IN,

@@ -1,0 +1,147 @@
+"""The design of an eigen-kernel model of a PSF grid: where a grid's pixels lie on the sensor
+(:class:`PixelFrame`), the K kernel weights of each grid position in its aligned frame, the
+model's PSF at a position, and the refusal of a basis that the positions cannot determine.
+
+The maths of the fit these weights enter: :mod:`psfkit.fitting.grid.eigen`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from psfkit.errors import ConfigurationError, InvalidInputError
+from psfkit.forward.geometry import kernel_origin
+from psfkit.forward.kernelfile import CONVENTIONS
+from psfkit.forward.weights import WeightBasis
+
+
+@dataclass(frozen=True)
+class PixelFrame:
+    """Where the pixels of an ``(h, w)`` grid lie in the sensor's normalized coordinates
+    (``psfkit.forward.weights``), for the weights of a fit on that grid.
+
+    The whole sensor (:meth:`of`), or a working copy cropped and binned from it
+    (:meth:`crop`): a compact PSF is fitted on a crop around it instead of a whole frame
+    binned until the PSF is a pixel wide, and its weights must still be those of the pixels'
+    places on the sensor. All lengths are in the grid's own pixels: ``center`` ``(v_c, u_c)``
+    the optical centre, ``half`` ``(H/2, W/2)`` the sensor's half size, ``origin`` the
+    kernel origin (where the centre PSF's origin lies, :func:`kernel_origin` of the sensor).
+    """
+
+    shape: tuple[int, int]
+    center: tuple[float, float]
+    half: tuple[float, float]
+    origin: tuple[float, float]
+
+    @classmethod
+    def of(cls, sensor_shape: tuple[int, int],
+           optical_center: tuple[float, float] | None = None) -> PixelFrame:
+        """The sensor's own pixel grid (optical centre: the middle, unless given)."""
+        h, w = sensor_shape
+        center = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
+        origin = kernel_origin(sensor_shape)
+        return cls((h, w), (center[0], center[1]), (h / 2.0, w / 2.0),
+                   (float(origin[0]), float(origin[1])))
+
+    @classmethod
+    def crop(cls, sensor_shape: tuple[int, int], corner: tuple[int, int], factor: int,
+             shape: tuple[int, int]) -> PixelFrame:
+        """An ``shape`` grid of ``factor × factor`` blocks whose first block's corner is at
+        sensor pixel ``corner`` ``(row, col)`` (sensor centre as the optical centre)."""
+        h, w = sensor_shape
+        offset = (factor - 1) / 2.0          # a block's centre from its corner, sensor px
+
+        def local(v: float, axis: int) -> float:
+            return (v - corner[axis] - offset) / factor
+
+        origin = kernel_origin(sensor_shape)
+        return cls((int(shape[0]), int(shape[1])),
+                   (local((h - 1) / 2, 0), local((w - 1) / 2, 1)),
+                   (h / 2.0 / factor, w / 2.0 / factor),
+                   (local(origin[0], 0), local(origin[1], 1)))
+
+    def axes(self, shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Normalized coordinates ``u_n`` ``(1, w)`` and ``v_n`` ``(h, 1)`` of the pixels
+        plus ``shift`` (grid px): where the sensor-side weights of a PSF displaced by
+        ``shift`` are read in its aligned frame."""
+        h, w = self.shape
+        (v_c, u_c), (hh, hw) = self.center, self.half
+        du, dv = shift
+        return (((np.arange(w) - u_c) / hw)[None, :] + du / hw,
+                ((np.arange(h) - v_c) / hh)[:, None] + dv / hh)
+
+    def source(self, shift: tuple[float, float]) -> tuple[float, float]:
+        """Normalized ``(u_n, v_n)`` of the source whose PSF origin lands at the kernel
+        origin displaced by ``shift`` (grid px)."""
+        (v_c, u_c), (hh, hw), (o_v, o_u) = self.center, self.half, self.origin
+        du, dv = shift
+        return (o_u + du - u_c) / hw, (o_v + dv - v_c) / hh
+
+
+def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
+                     shift: tuple[float, float], convention: str,
+                     optical_center: tuple[float, float] | None = None,
+                     frame: PixelFrame | None = None) -> np.ndarray:
+    """Weights of the K kernels for the PSF displaced by ``shift``, in its aligned frame.
+
+    Returns ``(K, H, W)`` (sensor-side: :math:`W_k(v + s)`) or ``(K, 1, 1)`` (source-side:
+    :math:`W_k(s)`, the source at the sensor pixel where its PSF origin lands). ``frame``
+    places a cropped or binned grid on the sensor (default: ``sensor_shape`` is the sensor).
+    """
+    frame = frame if frame is not None else PixelFrame.of(sensor_shape, optical_center)
+    if convention == "sensor":
+        u_n, v_n = frame.axes(shift)
+        return basis.evaluate(u_n, v_n)
+    if convention == "source":
+        u_s, v_s = frame.source(shift)
+        return basis.evaluate(np.array([[u_s]]), np.array([[v_s]]))
+    raise ConfigurationError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+
+
+def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
+                    convention: str, optical_center: tuple[float, float] | None = None,
+                    frame: PixelFrame | None = None) -> np.ndarray:
+    """The model's PSF for a source displaced by ``shift``, in the aligned frame, ``(C,H,W)``
+    (``frame``: where the kernels' pixels lie on the sensor, as :func:`position_weights`)."""
+    weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center,
+                               frame)
+    return np.einsum("khw,kchw->chw", np.broadcast_to(weights, (len(kernels), *kernels.shape[-2:])),
+                     kernels)
+
+
+def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int, int],
+                 where: str, left_out: str = "") -> None:
+    """Refuse a basis that the grid positions cannot determine.
+
+    ``shifts`` may hold NaN rows (positions not measured); ``left_out`` is appended to the
+    count in the message (e.g. `` (2 excluded, 4 not captured)``).
+
+    Raises
+    ------
+    InvalidInputError
+        Fewer positions than kernels, or a weight term that does not vary independently over
+        the positions (e.g. all positions on one row).
+    """
+    shifts = np.asarray(shifts, dtype=np.float64).reshape(-1, 2)
+    shifts = shifts[np.isfinite(shifts).all(axis=1)]     # gaps and excluded positions
+    if len(shifts) < basis.n_kernels:
+        raise InvalidInputError(f"{where}: basis {basis.name!r} needs at least "
+                                f"{basis.n_kernels} positions ({basis.n_kernels} kernels) but "
+                                f"only {len(shifts)} {'remain' if len(shifts) != 1 else 'remains'}"
+                                f"{left_out}; use a smaller basis (--basis)")
+    design = np.concatenate([position_weights(basis, sensor_shape, tuple(s), "source")[:, 0, 0][
+        None] for s in shifts])
+    for k, name in enumerate(basis.kernel_names[1:], start=1):
+        column = design[:, k]
+        if np.ptp(column) <= 1e-9 * (1.0 + np.abs(column).max()):
+            raise InvalidInputError(
+                f"{where}: singular design: the weight of kernel {name!r} of basis "
+                f"{basis.name!r} does not vary over the grid positions, so the kernel is not "
+                "determined (are all positions on one row or column?)")
+    if np.linalg.matrix_rank(design, tol=1e-9 * np.abs(design).max()) < basis.n_kernels:
+        raise InvalidInputError(
+            f"{where}: singular design: the weights of the {basis.n_kernels} kernels of basis "
+            f"{basis.name!r} are linearly dependent over the grid positions; use a grid that "
+            "spans both directions or a smaller basis")

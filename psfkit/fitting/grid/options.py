@@ -1,0 +1,98 @@
+"""The options of ``psfkit fit-eigen``'s fit (:class:`EigenFitOptions`), checked as they are
+made: every message names the command's flag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from psfkit.calibration.alignment import MIN_QUALITY
+from psfkit.calibration.preprocess import PreprocessOptions
+from psfkit.choices import CV_BASES, SHIFT_MODES
+from psfkit.errors import ConfigurationError
+from psfkit.fitting.grid.eigen import DEFAULT_RIDGE
+from psfkit.forward.kernelfile import CONVENTIONS
+from psfkit.forward.weights import get_basis
+
+#: ``EigenFitOptions.basis`` (``psfkit fit-eigen --basis auto``): the verdict's model.
+AUTO = "auto"
+
+
+@dataclass(frozen=True)
+class EigenFitOptions:
+    """Options of :func:`psfkit.fitting.grid.fit.fit_eigen_grid`.
+
+    Attributes
+    ----------
+    basis : str
+        Weight basis of the fitted model (:func:`psfkit.forward.weights.get_basis`), or ``"auto"``:
+        the basis *and* convention of the verdict (:mod:`psfkit.fitting.verdict`; ``"si"`` when the
+        PSF shape does not change over the field beyond noise), every basis of
+        :data:`psfkit.choices.CV_BASES_ALL` cross-validated, one full-resolution fit.
+    convention : {"sensor", "source", "auto"}
+        Convention fitted at full resolution and written to the kernel file: ``"sensor"``
+        (Eq. 7 as written, the default), ``"source"``, or ``"auto"`` (both, and the one with
+        the lower cross-validated error is written). Both are always compared on the working
+        copy. With ``basis="auto"`` the verdict chooses it (``"sensor"`` for ``"si"``, where
+        both are the same model).
+    gain_compensate : bool
+        Divide every PSF by its gain before fitting (kernels then describe shape only); by
+        default the gains stay in the kernels, as the forward model needs them.
+    cv_bases : tuple of str
+        Bases compared by leave-positions-out cross-validation (empty: no CV).
+    folds : int
+        Cross-validation groups of positions.
+    working_size : int
+        Longest side (px) of the binned working copy used for CV, residuals and PCA.
+    ridge : float
+        Relative weight of the prior pulling correction kernels towards the base kernel
+        (:data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that
+        the
+        pixels the data do not constrain are well-conditioned).
+    min_quality : float
+        Positions whose registration quality (NCC) is below this are excluded.
+    strict : bool
+        All or nothing: a position that fails a quality check ends the fit.
+    shifts : {"affine", "registered"}
+        Where each PSF is placed before the fit. ``"affine"`` (default): at the shift of the
+        affine field-to-shift map fitted to the reliably registered positions
+        (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the forward
+        model ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
+        the kernels. ``"registered"``: at each PSF's own registered shift (before 2026-11-25;
+        it removes that part, and is biased where a PSF is mostly off the sensor).
+    """
+
+    basis: str = "paper"
+    convention: str = "sensor"
+    gain_compensate: bool = False
+    cv_bases: tuple[str, ...] = CV_BASES
+    folds: int = 9
+    working_size: int = 256
+    ridge: float = DEFAULT_RIDGE
+    upsample: int = 100
+    preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
+    min_quality: float = MIN_QUALITY
+    strict: bool = False
+    shifts: str = "affine"
+
+    def __post_init__(self) -> None:
+        # every message names the flag of psfkit fit-eigen, never a Python field
+        for flag_name, names in (("--basis", (self.basis,)), ("--cv-bases", self.cv_bases)):
+            for name in names:
+                if flag_name == "--basis" and name == AUTO:
+                    continue
+                try:
+                    get_basis(name)
+                except ConfigurationError as exc:
+                    raise ConfigurationError(f"{flag_name}: {exc}") from None
+        if self.convention not in (*CONVENTIONS, "auto"):
+            raise ConfigurationError(f"--convention must be one of {', '.join(CONVENTIONS)} "
+                                     f"or auto, got {self.convention!r}")
+        if self.shifts not in SHIFT_MODES:
+            raise ConfigurationError(f"--shifts must be one of {', '.join(SHIFT_MODES)}, got "
+                                     f"{self.shifts!r}")
+        if self.folds < 2:
+            raise ConfigurationError(f"--folds must be >= 2, got {self.folds}")
+        if self.working_size < 32:
+            raise ConfigurationError("EigenFitOptions: working_size must be >= 32 (no flag "
+                                     "sets it)")

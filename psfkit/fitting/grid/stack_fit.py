@@ -1,0 +1,181 @@
+"""Eigen-kernel models fitted and scored on a working stack
+(:mod:`psfkit.fitting.grid.working_stack`): the fit on chosen positions, its in-sample errors,
+the leave-positions-out cross-validation and the jackknifed differences of the eigen-kernels
+from the base kernel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from psfkit.fitting.grid.design import predict_aligned
+from psfkit.fitting.grid.eigen import DEFAULT_RIDGE, NormalEquations
+from psfkit.fitting.grid.working_stack import WorkingStack
+from psfkit.fitting.verdict import HeldOutErrors
+from psfkit.forward.weights import WeightBasis, get_basis
+from psfkit.numerics.significance import Estimate, checked, undetermined
+
+
+def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) -> float:
+    """``‖pred − data‖ / ‖data‖`` over the valid pixels of all channels."""
+    diff = np.sum((prediction - data) ** 2, axis=0)[valid].sum()
+    norm = np.sum(data**2, axis=0)[valid].sum()
+    return float(math.sqrt(diff / norm)) if norm > 0 else float("nan")
+
+
+def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
+              members: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack,
+    and the per-pixel conditioning of the design."""
+    members = np.ones(len(stack.images), bool) if members is None else members
+    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
+    for p in np.flatnonzero(members):
+        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+    kernels, conditioning = equations.solve(ridge)
+    assert conditioning is not None
+    return kernels, conditioning
+
+
+def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis,
+                    convention: str) -> np.ndarray:
+    """In-sample relative error ``(P,)`` of a model on every position of a working stack."""
+    return np.array([relative_error(predict_aligned(kernels, basis, tuple(stack.shifts[p]),
+                                                    convention, frame=stack.frame),
+                                    stack.images[p], stack.valid[p])
+                     for p in range(len(stack.images))])
+
+
+def fold_groups(n: int, center_row: int, folds: int = 9, seed: int = 0) -> list[np.ndarray]:
+    """The positions other than the centre (stack rows) in ``folds`` random groups (seeded:
+    every cross-validation of a stack holds out the same groups)."""
+    others = np.array([p for p in range(n) if p != center_row])
+    if len(others) == 0:
+        return []
+    rng = np.random.default_rng(seed)
+    return np.array_split(rng.permutation(others), min(folds, len(others)))
+
+
+@dataclass
+class CrossValidation:
+    """Per-position held-out errors of cross-validated models (:func:`cross_validate_positions`).
+
+    ``held_out`` has one entry per model (``"basis/convention"`` and ``"centre PSF only"``);
+    ``kernel_differences[model]`` is ``(full, folds)``: the squared relative differences
+    ``‖K_k − K_0‖² / ‖K_0‖²`` (k ≥ 1) of the kernels fitted on all positions ``(K − 1,)``
+    and on each fold's training positions ``(G, K − 1)``, for a jackknife over the folds.
+    """
+
+    held_out: HeldOutErrors
+    folds: int
+    kernel_differences: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``cross_validation`` record of a fit: pooled errors, their 1σ, the best."""
+        names = list(self.held_out.squared)
+        errors = {name: self.held_out.error(name) for name in names}
+        best = min((k for k in errors if k != CENTRE_ONLY), key=errors.__getitem__,
+                   default=None)
+        return {"held_out_relative_error": errors,
+                "held_out_sigma": {name: self.held_out.sigma(name) for name in names},
+                "best": best, "folds": self.folds}
+
+
+def squared_relative_differences(kernels: np.ndarray) -> np.ndarray:
+    """``‖K_k − K_0‖² / ‖K_0‖²`` for k ≥ 1 of ``(K, C, h, w)`` kernels, ``(K − 1,)``."""
+    base = float(np.sum(kernels[0].astype(np.float64) ** 2))
+    return np.array([float(np.sum((kernels[k] - kernels[0]).astype(np.float64) ** 2))
+                     / max(base, 1e-300) for k in range(1, len(kernels))])
+
+
+def kernel_difference_estimates(full: np.ndarray, folds: np.ndarray, p_value: float
+                                ) -> list[Estimate]:
+    """Each eigen-kernel's relative difference from the base kernel, ``‖K_k − K_0‖/‖K_0‖``,
+    as an :class:`~psfkit.numerics.significance.Estimate` from the delete-a-fold jackknife of its
+    square: the jackknife removes the square's noise bias (of order 1/positions), its spread
+    over the folds gives the 1σ; ``p_value`` is that of the held-out test of a field
+    dependence (the differences matter only where the field model predicts better).
+
+    ``full`` ``(K − 1,)`` and ``folds`` ``(G, K − 1)`` as in
+    :attr:`CrossValidation.kernel_differences`.
+    """
+    g = len(folds)
+    if g < 2:
+        return [undetermined("fewer than two cross-validation folds") for _ in full]
+    mean = folds.mean(axis=0)
+    debiased = g * full - (g - 1) * mean
+    spread = np.sqrt((g - 1) / g * np.sum((folds - mean) ** 2, axis=0))
+    out = []
+    for value2, se2 in zip(debiased, spread, strict=True):
+        value = math.sqrt(max(float(value2), 0.0))
+        # delta method on the square root, kept finite where the square is within its noise
+        sigma = float(se2) / (2.0 * max(value, math.sqrt(float(se2)), 1e-300))
+        out.append(checked(value, sigma, 0.0, p_value))
+    return out
+
+
+CENTRE_ONLY = "centre PSF only"
+
+
+def cross_validate_positions(stack: WorkingStack, bases: list[str],
+                             conventions: tuple[str, ...], center_row: int, folds: int = 9,
+                             seed: int = 0) -> CrossValidation:
+    """Leave-positions-out cross-validation of eigen-kernel models, per position.
+
+    Positions other than the centre are split into ``folds`` random groups
+    (:func:`fold_groups`); each model is fitted without one group (the centre is always kept:
+    it defines the frame) and predicts it. The normal equations are accumulated once per
+    group, so a fold's training system is the total minus its group. Also the centre PSF
+    alone (every position predicted by the centre PSF, shifted) is scored.
+    """
+    n = len(stack.images)
+    groups = fold_groups(n, center_row, folds, seed)
+    held = np.concatenate(groups) if groups else np.zeros(0, int)
+    training_size = n - max((len(g) for g in groups), default=0)
+    norms = np.array([_squared_norm(stack, p) for p in held])
+    centre = stack.images[center_row]
+    squared = {CENTRE_ONLY: np.array([_squared_error(stack, p, centre) for p in held])}
+    differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    shape = stack.images.shape[1:]
+    for name in bases:
+        basis = get_basis(name)
+        if training_size < basis.n_kernels:
+            continue                       # too few training positions for this basis
+        for convention in conventions:
+            per_group = []
+            for group in groups:
+                eq = NormalEquations(basis, convention, shape, frame=stack.frame)
+                for p in group:
+                    eq.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+                per_group.append(eq)
+            total = NormalEquations(basis, convention, shape, frame=stack.frame)
+            total.add(stack.images[center_row], stack.valid[center_row],
+                      tuple(stack.shifts[center_row]))
+            for eq in per_group:
+                total += eq
+            errors = {}
+            fold_differences = []
+            for group, eq in zip(groups, per_group, strict=True):
+                kernels = total.minus(eq).solve(conditioning=False)[0]
+                fold_differences.append(squared_relative_differences(kernels))
+                for p in group:
+                    errors[p] = _squared_error(stack, p, predict_aligned(
+                        kernels, basis, tuple(stack.shifts[p]), convention, frame=stack.frame))
+            key = f"{name}/{convention}"
+            squared[key] = np.array([errors[p] for p in held])
+            if basis.n_kernels > 1:
+                full = squared_relative_differences(total.solve(conditioning=False)[0])
+                differences[key] = (full, np.array(fold_differences))
+    return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
+
+
+def _squared_norm(stack: WorkingStack, p: int) -> float:
+    return float(np.sum(stack.images[p] ** 2, axis=0)[stack.valid[p]].sum())
+
+
+def _squared_error(stack: WorkingStack, p: int, prediction: np.ndarray) -> float:
+    return float(np.sum((prediction - stack.images[p]) ** 2, axis=0)[stack.valid[p]].sum())

@@ -1,0 +1,138 @@
+"""The per-frequency ``K × K`` Gram blocks of the scenes of a pairs fit
+(:class:`FrequencyGram`), the preconditioner of the streaming least-squares solver
+(:mod:`psfkit.fitting.pairs.solver`, whose docstring says what they are exact for), and the
+difference prior's matrix ``D`` they are regularised with.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from psfkit.forward.convolution import extract_kernel, kernel_spectra
+from psfkit.forward.fft import irfft2
+from psfkit.forward.kernel_space import KernelSpaceOperator
+from psfkit.forward.weights import get_basis
+
+
+def difference_matrix(n_kernels: int) -> np.ndarray:
+    """``D`` of :math:`\\tfrac12\\sum_{k\\ge1}\\lVert K_k - K_0\\rVert^2 = \\tfrac12 K^\\top D K`
+    (``(K, K)``; the one definition, shared with :mod:`psfkit.fitting.grid.eigen`)."""
+    from psfkit.fitting.grid.eigen import _difference_prior
+
+    return _difference_prior(n_kernels)
+
+
+class PairLayout(Protocol):
+    """What the Gram blocks read of the pairs (a
+    :class:`psfkit.fitting.pairs.batches.PairBatches`): grids, model, channels, device."""
+
+    grid: tuple[int, int]
+    sensor: tuple[int, int]
+    kernel_shape: tuple[int, int]
+    n_kernels: int
+    convention: str
+    basis: str
+    channels: int
+    device: str
+
+
+class FrequencyGram:
+    r"""Per-frequency ``K × K`` Gram blocks of the weighted scenes, accumulated batch by batch.
+
+    ``blocks`` is ``(C, PH, PW//2 + 1, K, K)`` complex128 (Hermitian per frequency). Source
+    side (and SI): :math:`\sum_i s_i^2\,\overline{\hat S_{ik}}\hat S_{il}` — exactly the normal
+    operator of the uncropped, whole-grid problem. Sensor side: :math:`m_{kl}\sum_i
+    s_i^2|\hat x_i|^2` with :math:`m_{kl}` the mean of :math:`W_kW_l` over the sensor (an
+    approximation; see :mod:`psfkit.fitting.pairs.solver`).
+    """
+
+    def __init__(self, batches: PairLayout) -> None:
+        self.grid, self.sensor = batches.grid, batches.sensor
+        self.kernel_shape = batches.kernel_shape
+        self.n_kernels = batches.n_kernels
+        self.convention = batches.convention
+        self.basis = batches.basis
+        self.channels = batches.channels
+        self.device = batches.device
+        freq = (self.grid[0], self.grid[1] // 2 + 1)
+        k = self.n_kernels
+        self.blocks = torch.zeros((self.channels, *freq, k, k), dtype=torch.complex128,
+                                  device=self.device)
+        self._power: Tensor | None = None
+        self.mean_products = np.ones((1, 1))
+        if self.basis != "si":
+            w = get_basis(self.basis).maps(self.sensor).astype(np.float64)     # (K, H, W)
+            self.mean_products = np.einsum("khw,lhw->kl", w, w) / (w.shape[1] * w.shape[2])
+
+    def add(self, op: KernelSpaceOperator, scales: Tensor) -> None:
+        """Add one batch (its operator's scene spectra, times the scales)."""
+        spectra = op.scene_spectra.to(torch.complex128)              # (b, K or 1, C, F...)
+        s2 = (scales.to(torch.float64) ** 2)[:, None, None, None, None]
+        if spectra.shape[1] == 1:
+            power = (spectra[:, 0].abs() ** 2 * s2[:, 0]).sum(dim=0)         # (C, F...)
+            self._power = power if self._power is None else self._power + power
+            return
+        weighted = spectra * s2
+        self.blocks += torch.einsum("bkcuv,blcuv->cuvkl", spectra.conj(), weighted)
+
+    def matrix(self) -> Tensor:
+        """The blocks ``(C, PH, PW//2+1, K, K)`` (sensor side and SI: from the summed power)."""
+        if self._power is not None:
+            m = torch.as_tensor(self.mean_products, dtype=torch.complex128, device=self.device)
+            return self._power[..., None, None].to(torch.complex128) * m
+        return self.blocks
+
+    def reference_power(self) -> float:
+        """Mean over frequencies and channels of the summed power of the scene spectra the
+        kernels see (the scenes; source side: the K weighted scenes, summed): the unit of
+        ``--tikhonov`` and ``--difference``."""
+        if self._power is not None:
+            return float(self._power.mean())
+        return float(torch.diagonal(self.blocks, dim1=-2, dim2=-1).real.sum(-1).mean())
+
+    def inverse(self, tikhonov: float, difference: float, floor: float = 1e-12) -> Tensor:
+        """``[G(ω) + λ I + μ D + ε]^{-1}`` per frequency and channel; ``ε`` (``floor`` times the
+        mean trace) keeps an unexcited frequency from dividing by zero (preconditioner only)."""
+        k = self.n_kernels
+        if self._power is not None and k == 1:           # one kernel: a division
+            eps = floor * max(float(self._power.mean()), 1e-300)
+            return (1.0 / (self._power + (tikhonov + eps))).to(torch.complex128)[..., None,
+                                                                                  None]
+        g = self.matrix()
+        eye = torch.eye(k, dtype=torch.complex128, device=self.device)
+        reg = tikhonov * eye + difference * torch.as_tensor(
+            difference_matrix(k), dtype=torch.complex128, device=self.device)
+        scale = float(torch.diagonal(g, dim1=-2, dim2=-1).real.mean())
+        eps = floor * max(scale, 1e-300)
+        return torch.linalg.inv(g + reg + eps * eye)
+
+    def preconditioner(self, tikhonov: float, difference: float
+                       ) -> Callable[[Tensor], Tensor]:
+        """``P`` of :mod:`psfkit.fitting.pairs.solver`, a callable on ``(K, C, Hk, Wk)``
+        residuals, applied in the residual's precision (a float32 solve gets float32 FFTs: it is
+        only a preconditioner)."""
+        # (K, K, C, PH, PW//2+1): one multiply-add per block entry beats a batched matmul of
+        # 3 x 3 matrices over the frequencies
+        inverses = {torch.float64: self.inverse(tikhonov, difference).permute(3, 4, 0, 1, 2)
+                    .contiguous()}
+
+        def apply(r: Tensor) -> Tensor:
+            if r.dtype not in inverses:
+                inverses[r.dtype] = inverses[torch.float64].to(
+                    torch.complex64 if r.dtype == torch.float32 else torch.complex128)
+            inv = inverses[r.dtype]
+            spectra = kernel_spectra(r, self.grid)
+            solved = torch.stack([sum(inv[k, j] * spectra[j] for j in range(len(inv)))
+                                  for k in range(len(inv))])
+            return extract_kernel(irfft2(solved, self.grid), self.kernel_shape)
+
+        return apply
+
+
+
+__all__ = ["FrequencyGram", "PairLayout", "difference_matrix"]
