@@ -14,6 +14,13 @@ from psfkit.simulate import BenchConfig, simulate_grid
 TINY_SENSOR = (16, 16)
 #: Dark level of the DiffuserCam tutorial PSF (mean of its dark corner, ``../shared/data`` README).
 CAUSTIC_DARK_LEVEL = 34.0
+# CI runs two pytest-xdist workers on two cores. A numerical library that starts a thread per
+# core in each worker (and in each CLI or notebook the tests start, which inherit this) spins in
+# OpenMP/BLAS waits against the other worker: notebook 04 took 1245 s that way, 134 s with one
+# thread each. Set before the workers start, so that their numpy and torch read it at import.
+for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
 REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
                               Path(__file__).resolve().parents[2] / "shared" / "data"))
 

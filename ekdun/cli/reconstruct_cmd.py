@@ -23,7 +23,7 @@ from pathlib import Path
 from ekdun.cli.vocabulary import add_flag
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 
 #: Suffixes of the PSF images ``reconstruct`` accepts as MODEL
 #: (:data:`psfkit.io.images.IMAGE_SUFFIXES`, spelled out so that ``--help`` needs no NumPy).
@@ -66,14 +66,13 @@ def model_kind(path: str | Path) -> str:
 def register(sub: argparse._SubParsersAction) -> None:
     from ekdun.cli.classical_cmd import add_solver_flags
 
-    p = sub.add_parser(
-        "reconstruct", help="reconstruct measurements with a checkpoint, a kernel file or a PSF",
-        description="MODEL is a trained checkpoint (the network), a kernel file (classical "
-                    "ADMM-TV with the model as fitted) or a PSF image (classical ADMM-TV with "
-                    "its shift-invariant model: background subtracted, clipped to >= 0, unit "
-                    "sum per channel). Writes NAME.npy (H x W x C float32, RGB) and a NAME.png "
-                    "preview per measurement into the --out folder, atomically.")
-    add_help_all(p)
+    p = add_command(sub, "reconstruct",
+                    "reconstruct measurements with a checkpoint, a kernel file or a PSF", """
+        MODEL is a trained checkpoint (the network), a kernel file (classical ADMM-TV with the
+        model as fitted) or a PSF image (classical ADMM-TV with its shift-invariant model:
+        background subtracted, clipped to >= 0, unit sum per channel). Writes NAME.npy (H x W
+        x C float32, RGB) and a NAME.png preview per measurement into the --out folder,
+        atomically.""")
     p.add_argument("model", metavar="MODEL",
                    help="checkpoint (.pt or run folder), kernel file (.npz) or PSF image")
     p.add_argument("measurements", nargs="+", metavar="MEASUREMENT",

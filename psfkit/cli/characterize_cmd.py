@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psfkit.choices import FLOW_METHODS
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import (
     add_coverage_options,
     add_grid_options,
@@ -154,20 +155,17 @@ def replaced_note(command: str) -> str:
             "(docs/migration.md)")
 
 
-def _replaced(sub: argparse._SubParsersAction, name: str, description: str
-              ) -> argparse.ArgumentParser:
+def _replaced(sub: argparse._SubParsersAction, name: str, description: str,
+              run: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
     # no help=: not listed by `psfkit --help`; the note is printed once the work is done
     # (psfkit.cli.main.run_cli), so that an error stays the one line on stderr
-    p = sub.add_parser(name, description=f"{description} Replaced by `psfkit report`: "
-                                         f"{REPLACED_BY_REPORT[name]}.")
+    p = sub.add_parser(name, description=f"{' '.join(description.split())} Replaced by "
+                                         f"`psfkit report`: {REPLACED_BY_REPORT[name]}.")
     _common(p)
-    p.set_defaults(**{NOTICES: [replaced_note(name)]})
-    return p
-
-
-def _numbers_out(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.set_defaults(func=run, **{NOTICES: [replaced_note(name)]})
+    return p
 
 
 #: Flags of ``psfkit report`` that only ``--help-all`` lists: settings an optics engineer
@@ -178,35 +176,23 @@ REPORT_ADVANCED = ("--upsample", "--method", "--mae-smoothing", "--hot-pixel-sig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = _replaced(sub, "register", "Register every PSF to the centre one (phase correlation, "
-                                   "1/UPSAMPLE px) and fit the field-position -> shift map.")
-    _numbers_out(p)
-    p.set_defaults(func=run_register)
-
-    m = _replaced(sub, "mae", "MAE of every PSF against the centre one after shift (and "
-                              "gain) compensation: the error of a shift-invariant model "
-                              "(paper Fig. 2).")
+    _replaced(sub, "register", """Register every PSF to the centre one (phase correlation,
+        1/UPSAMPLE px) and fit the field-position -> shift map.""", run_register)
+    m = _replaced(sub, "mae", """MAE of every PSF against the centre one after shift (and
+        gain) compensation: the error of a shift-invariant model (paper Fig. 2).""", run_mae)
     m.add_argument("--mae-smoothing", type=flag("--mae-smoothing"), default=1.0, metavar="SIGMA",
                    help="Gaussian sigma (px) applied before the MAE to suppress sensor noise "
                         "(0 = raw pixels; default 1)")
-    _numbers_out(m)
-    m.set_defaults(func=run_mae)
-
-    w = _replaced(sub, "warp", "Dense displacement field between the centre PSF and each "
-                               "registered PSF, split into an affine part (ECC) and a "
-                               "residual (dense flow) with its tangential/sagittal RMS.")
+    w = _replaced(sub, "warp", """Dense displacement field between the centre PSF and each
+        registered PSF, split into an affine part (ECC) and a residual (dense flow) with its
+        tangential/sagittal RMS.""", run_warp)
     w.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method for the residual (default dis)")
-    _numbers_out(w)
-    w.set_defaults(func=run_warp)
 
-    r = sub.add_parser("report", help="characterize a PSF grid: shifts, gain, MAE, warp and "
-                                      "a verdict, as an HTML report",
-                       description="Register every PSF to the centre one, measure gain, MAE "
-                                   "and warp, and write an HTML report with figures (PNG/PDF), "
-                                   "results.json and positions.csv into DIR. --help-all lists "
-                                   "the advanced flags.")
-    add_help_all(r)
+    r = add_command(sub, "report", "characterize a PSF grid: shifts, gain, MAE, warp and a "
+                                   "verdict, as an HTML report", """
+        Register every PSF to the centre one, measure gain, MAE and warp, and write an HTML
+        report with figures (PNG/PDF), results.json and positions.csv into DIR.""")
     _common(r)
     r.add_argument("--out", required=True, metavar="DIR",
                    help="output folder (created atomically)")

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from psfkit.choices import FLOW_METHODS
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import preprocess_options
 from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
@@ -23,17 +23,14 @@ COMPARE_ADVANCED = ("--method", "--smooth", "--warp-positions", "--no-align",
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "compare", help="compare learned eigen-kernels with the measured PSF grid or another "
-                        "kernel file (Fig. 7)",
-        description="Did the network learn the physics? Measures the local sub-pixel "
-                    "displacement of the caustic in each learned correction kernel (Kv, Kh) "
-                    "relative to Kbase and compares it with the eigen-kernels fitted to the "
-                    "grid, with the warps between the centre and edge PSFs, and with the "
-                    "grid's PCA modes; or, given a second kernel file instead of a grid, "
-                    "with that file's kernels (no warps or PCA then). Writes figures, "
-                    "compare.json and compare.html. --help-all lists the advanced flags.")
-    add_help_all(p)
+    p = add_command(sub, "compare", "compare learned eigen-kernels with the measured PSF grid or "
+                                    "another kernel file (Fig. 7)", """
+        Did the network learn the physics? Measures the local sub-pixel displacement of the
+        caustic in each learned correction kernel (Kv, Kh) relative to Kbase and compares it
+        with the eigen-kernels fitted to the grid, with the warps between the centre and edge
+        PSFs, and with the grid's PCA modes; or, given a second kernel file instead of a grid,
+        with that file's kernels (no warps or PCA then). Writes figures, compare.json and
+        compare.html.""")
     p.add_argument("learned", help="kernel file of the trained model (.npz)")
     p.add_argument("grid", metavar="MEASURED",
                    help="PSF-grid folder of the same camera, or a kernel file (.npz: a grid "

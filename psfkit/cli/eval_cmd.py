@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from psfkit.cli.help_all import add_command
 from psfkit.cli.pairs_folder import add_channel_order, load_pairs
 from psfkit.cli.vocabulary import add_flag
 from psfkit.errors import InvalidInputError
@@ -22,15 +23,14 @@ from psfkit.io.read_options import choose
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    e = sub.add_parser(
-        "eval-model", help="prediction error of kernel files on image pairs, over the field",
-        description="Predict every measurement of a pairs folder from its scene with the "
-                    "model of each kernel file and print ||y - A x|| / ||y|| per pair, raw "
-                    "and with the best per-pair scale (for per-image normalised datasets), "
-                    "whether the model was fitted on the pair or it was held out (the kernel "
-                    "file's record), and the scaled error in three equal-area radial zones "
-                    "of the sensor (centre, middle, edge). Give SI and EK files together to "
-                    "compare them.")
+    e = add_command(sub, "eval-model",
+                    "prediction error of kernel files on image pairs, over the field", """
+        Predict every measurement of a pairs folder from its scene with the model of each
+        kernel file and print ||y - A x|| / ||y|| per pair, raw and with the best per-pair
+        scale (for per-image normalised datasets), whether the model was fitted on the pair or
+        it was held out (the kernel file's record), and the scaled error in three equal-area
+        radial zones of the sensor (centre, middle, edge). Give SI and EK files together to
+        compare them.""", advanced=False)
     e.add_argument("models", nargs="+", metavar="MODEL",
                    help="kernel file(s) (.npz) from fit-pairs or fit-eigen, of one sensor")
     e.add_argument("pairs", help="pairs folder")

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import (
     add_coverage_options,
     add_grid_options,
@@ -45,13 +45,10 @@ FIT_EIGEN_ADVANCED = ("--normalization", "--saturation-level", "--allow-saturate
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "fit-eigen", help="fit eigen-kernels (Kbase, Kv, Kh, ...) to a PSF grid",
-        description="Least-squares fit of the eigen-kernel model PSF = sum_k W_k K_k (paper "
-                    "Eq. 7) to the registered grid, with sensor-side and source-side weights, "
-                    "cross-validated against richer bases and compared with a PCA. Writes the "
-                    "kernel file that ekdun trains from. --help-all lists the advanced flags.")
-    add_help_all(p)
+    p = add_command(sub, "fit-eigen", "fit eigen-kernels (Kbase, Kv, Kh, ...) to a PSF grid", """
+        Least-squares fit of the eigen-kernel model PSF = sum_k W_k K_k (paper Eq. 7) to the
+        registered grid, with sensor-side and source-side weights, cross-validated against
+        richer bases and compared with a PCA. Writes the kernel file that ekdun trains from.""")
     add_grid_options(p)
     add_coverage_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")

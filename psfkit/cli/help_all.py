@@ -33,6 +33,21 @@ class _HelpAll(argparse.Action):
         parser.exit()
 
 
+def add_command(sub: argparse._SubParsersAction, name: str, summary: str, description: str,
+                advanced: bool = True) -> argparse.ArgumentParser:
+    """The parser of command ``name``: ``summary`` in the list of commands, ``description`` atop
+    its ``--help`` (white space folded, so it can be written as an indented block) and, where
+    the command has ``advanced`` flags, ``--help-all`` listed first and named in the
+    description."""
+    text = " ".join(description.split())
+    if advanced:
+        text += " --help-all lists the advanced flags."
+    parser = sub.add_parser(name, help=summary, description=text)
+    if advanced:
+        add_help_all(parser)
+    return parser
+
+
 def add_help_all(parser: argparse.ArgumentParser) -> None:
     """Add ``--help-all`` to ``parser`` (call it first, so that it is listed beside ``-h``)."""
     parser.add_argument("--help-all", action=_HelpAll,

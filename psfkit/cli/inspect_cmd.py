@@ -6,15 +6,16 @@ import argparse
 
 import numpy as np
 
+from psfkit.cli.help_all import add_command
 from psfkit.cli.options import STRICT_HELP
 from psfkit.io import read_grid
 from psfkit.io.grid import IRREGULAR
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="validate a PSF grid and print a summary",
-                       description="Read and validate a PSF-grid folder (manifest and every "
-                                   "image) and print what it holds.")
+    p = add_command(sub, "info", "validate a PSF grid and print a summary", """
+        Read and validate a PSF-grid folder (manifest and every image) and print what it
+        holds.""", advanced=False)
     p.add_argument("grid", help="PSF-grid folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.pairs_folder import add_channel_order, load_pairs
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, add_retired
@@ -34,18 +34,15 @@ FIT_PAIRS_ADVANCED = ("--channel-order", "--tikhonov", "--difference", "--iterat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "fit-pairs", help="fit a shift-invariant or eigen-kernel model to image pairs",
-        description="Regularised least-squares fit of the forward model y = crop(K * pad(x)) "
-                    "(one PSF, or eigen-kernels with weight maps) to (scene, measurement) "
-                    "pairs, by preconditioned conjugate gradients on the normal equations, "
-                    "with the regularisation chosen by held-out error (cross-validation over "
-                    "the pairs), then (by default) projected Newton under the constraints "
-                    "of a measured PSF: non-negative, optionally zero outside a support. "
-                    "Writes a kernel file that ekdun and eval-model read; its provenance "
-                    "records the regularisation chosen, the constraints and support. "
-                    "--help-all lists the advanced flags.")
-    add_help_all(p)
+    p = add_command(sub, "fit-pairs",
+                    "fit a shift-invariant or eigen-kernel model to image pairs", """
+        Regularised least-squares fit of the forward model y = crop(K * pad(x)) (one PSF, or
+        eigen-kernels with weight maps) to (scene, measurement) pairs, by preconditioned
+        conjugate gradients on the normal equations, with the regularisation chosen by held-out
+        error (cross-validation over the pairs), then (by default) projected Newton under the
+        constraints of a measured PSF: non-negative, optionally zero outside a support. Writes
+        a kernel file that ekdun and eval-model read; its provenance records the regularisation
+        chosen, the constraints and support.""")
     p.add_argument("pairs", help="pairs folder (scene/ + measurement/, or the DLMD layout "
                                  "lensed/ + diffuser/)")
     add_flag(p, "--basis", "fit-pairs",

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import OutputTransaction, PsfGrid, read_grid
@@ -87,13 +87,10 @@ BENCH_ADVANCED = ("--bench-config", "--diffusion-angle", "--gap-mm", "--peak-fra
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "simulate-grid", help="simulate a measured PSF grid with the virtual bench",
-        description="Simulate a diffuser camera (thin random phase diffuser, angular-spectrum "
-                    "propagation, sensor noise) and write an N x M grid of point-source images "
-                    "in the PSF-grid format, with ground truth in DIR/ground_truth/. "
-                    "--help-all lists the advanced flags.")
-    add_help_all(p)
+    p = add_command(sub, "simulate-grid", "simulate a measured PSF grid with the virtual bench", """
+        Simulate a diffuser camera (thin random phase diffuser, angular-spectrum propagation,
+        sensor noise) and write an N x M grid of point-source images in the PSF-grid format,
+        with ground truth in DIR/ground_truth/.""")
     p.add_argument("--out", required=True, help="output grid folder (created atomically)")
     p.add_argument("--rows", type=flag("--rows"), default=9, help="grid rows (default 9)")
     p.add_argument("--cols", type=flag("--cols"), default=9, help="grid columns (default 9)")
@@ -117,14 +114,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     mark_advanced(p, SIMULATE_ADVANCED + BENCH_ADVANCED)
     p.set_defaults(func=run_simulate)
 
-    d = sub.add_parser(
-        "demo", help="simulate a grid with the virtual bench and characterize it",
-        description="The main job on the embedded default: simulate a 9 x 9 grid of a "
-                    f"diffuser camera whose PSF varies over the field (binned {DEMO_DOWNSAMPLE}x "
-                    "by default), characterize it (registration, gain, MAE, warp), write the "
-                    "HTML report, compare the measurements with the ground truth and fit the "
-                    "eigen-kernels. --help-all lists the advanced flags.")
-    add_help_all(d)
+    d = add_command(sub, "demo", "simulate a grid with the virtual bench and characterize it", f"""
+        The main job on the embedded default: simulate a 9 x 9 grid of a diffuser camera whose
+        PSF varies over the field (binned {DEMO_DOWNSAMPLE}x by default), characterize it
+        (registration, gain, MAE, warp), write the HTML report, compare the measurements with
+        the ground truth and fit the eigen-kernels.""")
     d.add_argument("--out", default="psfkit-demo", help="output folder (default psfkit-demo)")
     d.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     d.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -168,6 +168,14 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
     return action
 
 
+def record_notice(namespace: argparse.Namespace, line: str) -> None:
+    """Keep ``line`` (once) among the notes printed after the command's work."""
+    notices = list(getattr(namespace, NOTICES, None) or [])
+    if line not in notices:
+        notices.append(line)
+    setattr(namespace, NOTICES, notices)
+
+
 class _DeprecatedAlias(argparse.Action):
     """Stores like the canonical flag and records one notice in the namespace."""
 
@@ -179,11 +187,8 @@ class _DeprecatedAlias(argparse.Action):
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
                  values: Any, option_string: str | None = None) -> None:
         setattr(namespace, self.dest, values)
-        notices = list(getattr(namespace, NOTICES, None) or [])
-        line = f"note: {option_string} is deprecated here, use {self.canonical}"
-        if line not in notices:
-            notices.append(line)
-        setattr(namespace, NOTICES, notices)
+        record_notice(namespace, f"note: {option_string} is deprecated here, use "
+                                 f"{self.canonical}")
 
 
 def add_deprecated(parser: argparse.ArgumentParser | argparse._ArgumentGroup, alias: str,
@@ -221,10 +226,7 @@ class _RetiredFlag(argparse.Action):
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
                  values: Any, option_string: str | None = None) -> None:
-        notices = list(getattr(namespace, NOTICES, None) or [])
-        if self.note not in notices:
-            notices.append(self.note)
-        setattr(namespace, NOTICES, notices)
+        record_notice(namespace, self.note)
 
 
 def add_retired(parser: argparse.ArgumentParser, command: str,

@@ -94,12 +94,11 @@ def require_finite(array: Any, what: str) -> np.ndarray:
         ``"{what}: contains N NaN/Inf value(s)"``.
     """
     values = np.asarray(array)
-    if values.dtype.kind in "fc":
-        bad = int(np.count_nonzero(~np.isfinite(values)))
-        if bad:
-            raise InvalidInputError(f"{what}: contains {bad} NaN/Inf value(s)")
-    elif values.dtype.kind not in "biu":
+    if values.dtype.kind not in "fcbiu":
         raise InvalidInputError(f"{what}: expected numbers, got {values.dtype} data")
+    bad = _count_nonfinite(values)
+    if bad:
+        raise InvalidInputError(f"{what}: contains {bad} NaN/Inf value(s)")
     return values
 
 
@@ -112,12 +111,18 @@ def require_finite_output(array: Any, what: str) -> np.ndarray:
         ``"{what}: refusing to write N non-finite value(s) (NaN/Inf); ..."``.
     """
     values = np.asarray(array)
-    if values.dtype.kind in "fc":
-        bad = int(np.count_nonzero(~np.isfinite(values)))
-        if bad:
-            raise InvalidInputError(f"{what}: refusing to write {bad} non-finite value(s) "
-                                    "(NaN/Inf); an input or a parameter made the result diverge")
+    bad = _count_nonfinite(values)
+    if bad:
+        raise InvalidInputError(f"{what}: refusing to write {bad} non-finite value(s) "
+                                "(NaN/Inf); an input or a parameter made the result diverge")
     return values
+
+
+def _count_nonfinite(values: np.ndarray) -> int:
+    """NaN/Inf count of a float or complex array; 0 for any other kind (integers are finite)."""
+    if values.dtype.kind not in "fc":
+        return 0
+    return int(np.count_nonzero(~np.isfinite(values)))
 
 
 def finite_number(value: Any, what: str, minimum: float | None = None,

@@ -63,6 +63,8 @@ def test_every_command_shows_at_most_12_flags_and_help_all_every_one(capsys):
         assert set(shown) == every - advanced, name
         usage = short[:short.index("\n\n")]
         assert not any(re.search(rf"\[{re.escape(f)}\b", usage) for f in advanced), name
+        # the description points to --help-all exactly where there is more to see
+        assert ("--help-all lists the advanced flags" in parser.description) == bool(advanced)
         if advanced:   # --help-all lists every flag, the advanced ones under their groups
             assert set(_flags(_help(capsys, name, "--help-all"))) == every, name
             assert "--help-all" in short
