@@ -187,6 +187,7 @@ def test_table_scripts_fail_in_one_line(runs, tiny_data, tmp_path):
         assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     """A real (1-epoch) EK-DUN trained on a tiny virtual-bench dataset (its run folder as
     LEARNED), compared with the dataset's grid; ``--initial`` defaults to the checkpoint's seed

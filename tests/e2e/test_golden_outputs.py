@@ -156,6 +156,7 @@ def test_tolerances_cover_every_group_and_are_tight():
     assert growth["warp_growth.floor"]["abs"] <= 0.01 * floor
 
 
+@pytest.mark.slow
 def test_demo_outputs_are_unchanged(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--downsample", "8", "--quiet"]) == 0

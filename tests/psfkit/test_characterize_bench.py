@@ -19,6 +19,7 @@ def characterized(bench_grid_ds2):
     return characterize_grid(grid), read_ground_truth(bench_grid_ds2)
 
 
+@pytest.mark.slow
 def test_shifts_within_005_px_rms(characterized):
     result, truth = characterized
     error = np.hypot(*np.moveaxis(result.table("shift") - truth.shift_px, -1, 0))

@@ -232,6 +232,7 @@ def test_non_negative_solve_stops_at_a_kkt_point(camera) -> None:
     assert int((k == 0).sum()) > 0                     # some pixels are held at 0
 
 
+@pytest.mark.slow
 def test_dlmd_automatic_regularisation_is_as_good_as_the_best_hand_chosen(real_data) -> None:
     """Real DiffuserCam pairs at 1/8 resolution: leave-one-out of the default eigen-kernel fit
     (each fold chooses its own difference prior on its 6 training pairs: nested, so the held-out
@@ -245,10 +246,10 @@ def test_dlmd_automatic_regularisation_is_as_good_as_the_best_hand_chosen(real_d
     x, y = downsample_pairs(*read_pairs(real_data("dlmd_mirflickr")).load_all(), 8)
     auto = leave_one_out(x, y, PairFitOptions(basis="paper"))
     # Measured (one thread, 2026-11-28): auto 0.05335; hand 0 0.05964, 0.1 0.05373, 0.316
-    # 0.05296, 1 0.05337, 3.16 0.05561, 10 0.05900. 0.1 and 10 are left out for CI time (10
+    # 0.05296, 1 0.05337, 3.16 0.05561, 10 0.05900. 3.16 and 10 are left out for CI time (10
     # alone took 53 s of the test's 170: a strong prior slows the non-negative solve).
     hand = {mu: leave_one_out(x, y, PairFitOptions(basis="paper", difference=mu))
-            for mu in (0.0, 0.316228, 1.0, 3.162278)}
+            for mu in (0.0, 0.1, 0.316228, 1.0)}
     best = min(hand, key=lambda mu: hand[mu]["mean_scaled"])
     difference = auto["scaled"] - hand[best]["scaled"]
     spread = float(np.std(difference, ddof=1) / np.sqrt(len(difference)))

@@ -16,7 +16,7 @@ import pytest
 
 from psfkit.forward.kernelfile import load_kernels
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 SCRIPT = Path(__file__).resolve().parents[2] / "research" / "scale_experiment.sh"
 
