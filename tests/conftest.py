@@ -25,17 +25,6 @@ REAL_DATA = Path(os.environ.get("PSFKIT_SHARED_DATA",
                               Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
-@pytest.hookimpl(trylast=True)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The modules that hold a ``slow`` test run first, in collection order otherwise.
-
-    pytest-xdist deals tests out in collection order: a long test collected last (the research
-    studies are) kept one worker busy for a minute and a half after the other had finished.
-    Whole modules move, so that a module's fixtures are still built once per worker."""
-    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow)   # stable
-
-
 @pytest.fixture
 def fft_counter():
     """Counts of the forward model's FFT calls during the test (:func:`psfkit.forward.count_ffts`,
