@@ -80,12 +80,12 @@ def add_solver_flags(p: argparse.ArgumentParser, command: str, form_note: str) -
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``admm`` and ``reconstruct-classical``, hidden (deprecated)."""
     # no help=: not listed by `ekdun --help`; the note is printed after the work (run_admm)
-    p = sub.add_parser("admm", aliases=list(DEPRECATED_COMMANDS[1:]), description=" ".join("""
+    p = sub.add_parser("admm", aliases=list(DEPRECATED_COMMANDS[1:]), description="""
         Deprecated: use `ekdun reconstruct MODEL MEASUREMENT... --out DIR` (MODEL: a kernel
         file or a PSF image). With a PSF image: its shift-invariant model (background
         subtracted, clipped to >= 0, unit sum per channel). With --kernels: the SI or
         eigen-kernel model exactly as fitted; folders of measurements in, a folder of
-        reconstructions out.""".split()))
+        reconstructions out.""")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="PSF MEASUREMENT, or with --kernels: measurement files and/or folders")
     p.add_argument("--kernels", help="kernel file (.npz) from psfkit fit-eigen / fit-pairs")

@@ -159,8 +159,8 @@ def _replaced(sub: argparse._SubParsersAction, name: str, description: str,
               run: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
     # no help=: not listed by `psfkit --help`; the note is printed once the work is done
     # (psfkit.cli.main.run_cli), so that an error stays the one line on stderr
-    p = sub.add_parser(name, description=f"{' '.join(description.split())} Replaced by "
-                                         f"`psfkit report`: {REPLACED_BY_REPORT[name]}.")
+    p = sub.add_parser(name, description=f"{description} Replaced by `psfkit report`: "
+                                         f"{REPLACED_BY_REPORT[name]}.")
     _common(p)
     p.add_argument("--out", help="write the numbers to FILE.json or FILE.csv")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")

@@ -36,13 +36,12 @@ class _HelpAll(argparse.Action):
 def add_command(sub: argparse._SubParsersAction, name: str, summary: str, description: str,
                 advanced: bool = True) -> argparse.ArgumentParser:
     """The parser of command ``name``: ``summary`` in the list of commands, ``description`` atop
-    its ``--help`` (white space folded, so it can be written as an indented block) and, where
-    the command has ``advanced`` flags, ``--help-all`` listed first and named in the
-    description."""
-    text = " ".join(description.split())
+    its ``--help`` (argparse folds its white space, so it can be written as an indented block)
+    and, where the command has ``advanced`` flags, ``--help-all`` listed first and named in
+    the description."""
     if advanced:
-        text += " --help-all lists the advanced flags."
-    parser = sub.add_parser(name, help=summary, description=text)
+        description += " --help-all lists the advanced flags."
+    parser = sub.add_parser(name, help=summary, description=description)
     if advanced:
         add_help_all(parser)
     return parser

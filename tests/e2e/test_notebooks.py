@@ -37,11 +37,6 @@ def kernel_env(tmp_path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.setenv("EKDUN_NB_OUT", str(tmp_path / "outputs"))
     monkeypatch.setenv("EKDUN_NB_HELD_OUT", "1")       # notebook 04: 1 of 7 folds in CI
-    # One thread per library in the kernel process: the suite runs two pytest-xdist workers on
-    # two cores, and a kernel with a thread per core beside the other worker's work spins in
-    # OpenMP/BLAS waits (notebook 04: 98 s alone, 378 s beside a busy core, 1245 s in CI).
-    for variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        monkeypatch.setenv(variable, "1")
     return tmp_path
 
 

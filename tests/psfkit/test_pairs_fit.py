@@ -370,7 +370,7 @@ def test_dlmd_held_out_error_eigen_kernel_vs_shift_invariant(real_data) -> None:
     the eigen-kernel model against the best shift-invariant PSF, and of the default
     (non-negative) fits against the unconstrained ones, at 1/8 resolution for CI time
     (benchmarks/bench_fit_pairs.py reports full and half resolution; the 1/4-resolution fits
-    are the golden files')."""
+    are the golden files)."""
     from psfkit.io import read_pairs
 
     torch.set_num_threads(1)
@@ -396,9 +396,9 @@ def test_dlmd_held_out_error_eigen_kernel_vs_shift_invariant(real_data) -> None:
     assert ek["mean_raw"] <= 0.95 * si["mean_raw"]
     # Non-negativity helps held out: measured at 1/8 si 0.0634 vs 0.0645 scaled, 0.0862 vs
     # 0.0871 raw; ek 0.0527 vs 0.0540, 0.0768 vs 0.0775 (gains 7e-4 .. 1.4e-3; at 1/4 1.0e-3
-    # .. 2.2e-3). The errors move by
-    # at most 3e-5 between threads or for a one-ulp change of the inputs
-    # (tests/e2e/golden/tolerances.json), so a gain of 2e-4 is required, not merely no loss.
+    # .. 2.2e-3). The errors move by at most 3e-5 between threads or for a one-ulp change of
+    # the inputs (tests/e2e/golden/tolerances.json), so a gain of 2e-4 is required, not merely
+    # no loss.
     for constrained, free in ((si, si_free), (ek, ek_free)):
         for kind in ("mean_raw", "mean_scaled"):
             assert constrained[kind] < free[kind] - 2e-4, (kind, constrained[kind], free[kind])
