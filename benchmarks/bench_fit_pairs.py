@@ -46,12 +46,14 @@ scaled, constrained (default) and unconstrained:
 | si | 0.0866 / 0.0638 | 0.0869 / 0.0641 |
 | ek | 0.0804 / 0.0545 | 0.0819 / 0.0562 |
 
-EK/SI 0.929 raw, 0.854 scaled (constrained): the target of 0.70 is not met. Issue 23's
-figures with hand-chosen weights (``--tikhonov 0``, ``--difference 1``) were SI 0.0748 / 0.0637
-and EK 0.0532 / 0.0531 (0.711 raw, 0.834 scaled). The SI raw figure is not reproduced: SI with
-``--tikhonov 0`` gives 0.0865 / 0.0637 here and with the code before this pass alike (0.0864 /
-0.0636 at 0.1, 0.0870 / 0.0643 at 1); the scaled error, which the choice scores (DLMD
-normalises each image), is unchanged.
+EK/SI 0.929 raw, 0.854 scaled (constrained): the target of 0.70 is not met. The issue's
+"previous release with hand-chosen flags: 0.711" is not an EK/SI ratio of this protocol: the
+release before the unbiased defaults (69a41ed^, EK source side with its then defaults)
+measured EK 0.0520 / SI 0.0636 scaled (0.82) and 0.0767 / 0.0864 raw (0.89), and issue 23
+(69a41ed, ``--difference 1``) 0.0535 / 0.0636 (0.84) and 0.0748 / 0.0864 (0.87), both in
+``tests/psfkit/test_pairs_fit.py`` of their commits; no EK/SI ratio below 0.82 is recorded in
+the repository's history. SI's raw error has been 0.0864 to 0.0866 throughout (an earlier
+version of this note misread issue 23's EK raw 0.0748 as SI's).
 
 ``--scaling DATA`` (issue 23) instead times ``psfkit fit-pairs DATA/train --basis ek
 --convention source`` (defaults otherwise) against pairs × size, on the first N pairs of a

@@ -182,7 +182,9 @@ else:
     sys.path.append(str(checkout))
     from research.oracles import oracle_file, write_dataset_oracles
 
-    write_dataset_oracles(data)              # once: kept in the dataset afterwards
+    # once: kept in the dataset afterwards (`EKDUN_NB_ORACLE_SCENES`: fewer scenes, for CI)
+    write_dataset_oracles(data, n_scenes=int(os.environ.get("EKDUN_NB_ORACLE_SCENES", "0"))
+                          or None)
     oracle_path = oracle_file(data, learned.convention)
     print(f"operator oracle ({learned.convention} side): {oracle_path.name}")
     oracle = load_kernels(oracle_path)

@@ -36,12 +36,13 @@ def _epochs(run: Path) -> int:
 
 def test_seeds_run_concurrently_and_a_time_budget_keeps_finished_epochs(tmp_path):
     out = tmp_path / "scale"
+    # the Fig. 7 runs of one seed: two seeds of the Table 2 runs show that the seed reaches
+    # the run (below), two parameterisations that each run gets its own
     done = _run(out, SEEDS="0 1", CONCURRENT="2", EPOCHS="1", MEASURED_LAMBDAS="1",
-                MEASURED_PARAMS="free flow", F7_SEEDS="0 1")
+                MEASURED_PARAMS="free flow", F7_SEEDS="0")
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     names = {"t2-base-s0", "t2-last-2-s0", "t2-base-s1", "t2-last-2-s1",
-             "f7-measured-free-l1-s0", "f7-measured-flow-l1-s0",
-             "f7-measured-free-l1-s1", "f7-measured-flow-l1-s1"}
+             "f7-measured-free-l1-s0", "f7-measured-flow-l1-s0"}
     rows = json.loads((out / "eval" / "results.json").read_text())["results"]
     assert {Path(r["checkpoint"]).parent.name for r in rows} == names
     assert all(r["epochs"] == 1 for r in rows)
