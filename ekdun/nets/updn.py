@@ -13,15 +13,20 @@ and dual ``q`` both have ``N·C`` channels and the sensor's size; the measuremen
 ``Γ⁽ⁱ⁾`` is ``Conv3×3 (groups = N) → ReLU → Conv1×1`` from ``3·N·C`` to ``N·C`` channels and
 ``Λ⁽ⁱ⁾`` the same from ``2·N·C``; the inputs are interleaved per PSF copy so that each 3×3 group
 sees one copy's ``(A p, q, ỹ)`` (resp. ``(Aᵀq, p)``), and the ``1×1`` convolution mixes the
-copies. ``p`` and ``q`` start at zero. The output is ``p[:, :C] + U-Net(p)``.
+copies. ``p`` and ``q`` start at zero and live on the sensor; the output is
+``p[:, :C] + U-Net(p)``. With ``UPDNConfig.primal_grid = "padded"`` the primal lives on the
+padded scene grid ``(PH, PW)`` of the physics instead, as in the reference code, where
+``A p = crop(K ⊛ p)`` and ``Aᵀq = K ⋆ pad(q)`` (circular convolution and correlation on that
+grid: light from outside the field of view has somewhere to be), and the U-Net sees
+``crop(p)``.
 
 Following ``oliland/lensless-primal-dual`` (``ImageOptimizerMixColors``): 5 tiled PSFs, 10
 primal-dual blocks of this form, a U-Net on the primal channels with a residual on the first
-copy. Differences: the primal lives on the sensor-sized scene grid (our convention, ``x`` and
-``y`` both ``H' × W'``) instead of the padded grid, the groups are aligned with the PSF copies,
-and there is no output sigmoid (as for the other models, the loss sees linear values). The PSF
-copies are identical at initialisation; they diverge in training because each copy's group of
-the convolutions has its own random weights.
+copy. Differences, and what they cost, are in docs/baselines.md: the primal on the sensor by
+default (same PSNR on the bench, less time), the groups aligned with the PSF copies, and no
+output sigmoid (as for the other models, the loss sees linear values). The PSF copies are
+identical at initialisation; they diverge in training because each copy's group of the
+convolutions has its own random weights.
 """
 
 from __future__ import annotations
@@ -31,10 +36,16 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ekdun.errors import ConfigurationError
 from ekdun.nets.configs import UPDNConfig
 from ekdun.nets.unet import UNet, channels_last
 from ekdun.nets.unrolled import State, UnrolledNetwork
 from ekdun.physics.multi_psf import MultiPSFOperator
+from psfkit.forward.convolution import crop, pad
+from psfkit.forward.fft import irfft2, rfft2
+
+#: Where UPDN's primal can live (:class:`~ekdun.nets.configs.UPDNConfig`).
+PRIMAL_GRIDS = ("padded", "sensor")
 
 
 def interleave_copies(copies: int, *tensors: Tensor) -> Tensor:
@@ -65,6 +76,9 @@ class UPDN(UnrolledNetwork):
 
     def __init__(self, physics: MultiPSFOperator, config: UPDNConfig | None = None) -> None:
         config = config or UPDNConfig()
+        if config.primal_grid not in PRIMAL_GRIDS:
+            raise ConfigurationError(f"UPDN primal_grid must be one of "
+                                     f"{', '.join(PRIMAL_GRIDS)}, got {config.primal_grid!r}")
         super().__init__(config.iterations)
         self.config = config
         self.physics = physics
@@ -82,21 +96,31 @@ class UPDN(UnrolledNetwork):
         op = self.physics.prepare()
         tiled = self.physics.tile(y)
         op.check(tiled, "measurement (tiled per PSF copy)")
-        return {"op": op, "y": tiled}
+        if self.config.primal_grid == "sensor":
+            return {"op": op, "y": tiled, "A": op.A, "A_adjoint": op.A_adjoint}
+        spectra, conj = op.spectra[0], op.conj_spectra[0]                  # (N·C, PH, PW//2+1)
+        grid, sensor = self.physics.grid_shape, self.physics.sensor_shape
+        return {"op": op, "y": tiled,
+                "A": lambda p: crop(irfft2(spectra * rfft2(p), grid), sensor),
+                "A_adjoint": lambda q: irfft2(conj * rfft2(pad(q, grid)), grid)}
 
     def initial_state(self, y: Tensor, context: dict[str, Any]) -> State:
-        zeros = torch.zeros_like(context["y"])
-        return {"primal": zeros, "dual": zeros}
+        dual = torch.zeros_like(context["y"])
+        if self.config.primal_grid == "sensor":
+            return {"primal": dual, "dual": dual}
+        return {"primal": pad(dual, self.physics.grid_shape), "dual": dual}
 
     def update(self, i: int, state: State, context: dict[str, Any]) -> State:
-        op, n = context["op"], self.physics.copies
+        n = self.physics.copies
         primal, dual = state["primal"], state["dual"]
         # the convolutions run channels-last; the FFTs of A and Aᵀ want contiguous planes
         dual = dual + channels_last(self.dual_updates[i],
-                                    interleave_copies(n, op.A(primal), dual, context["y"]))
+                                    interleave_copies(n, context["A"](primal), dual,
+                                                      context["y"]))
         primal = primal + channels_last(self.primal_updates[i],
-                                        interleave_copies(n, op.A_adjoint(dual), primal))
+                                        interleave_copies(n, context["A_adjoint"](dual),
+                                                          primal))
         return {"primal": primal, "dual": dual}
 
     def output(self, state: State, context: dict[str, Any]) -> Tensor:
-        return self.denoiser(state["primal"])
+        return self.denoiser(crop(state["primal"], self.physics.sensor_shape))

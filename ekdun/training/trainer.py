@@ -94,8 +94,9 @@ class TrainOptions:
     #: the checkpoint's metadata
     run_file: dict[str, Any] | None = None
 
-    def resolve(self, preset: str) -> TrainingConfig:
-        base = get_preset(preset).training
+    def resolve(self, preset: str, network: str = "ekdun") -> TrainingConfig:
+        """The preset's settings for ``network`` (its recipe), replaced by those given."""
+        base = get_preset(preset).training_for(network)
         values = {k: getattr(self, k) for k in asdict(base) if getattr(self, k) is not None}
         return replace(base, **values)
 
@@ -198,7 +199,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
         ``{"history": [...], "run_dir": str, "parameters": int, "seconds": float}``.
     """
     options = options or TrainOptions()
-    cfg = options.resolve(preset)
+    cfg = options.resolve(preset, model_name)
     check_training_config(cfg)
     ctx = D.setup(options.device)
     if options.threads:

@@ -330,3 +330,37 @@ def test_model_errors(psf):
         build_model("ekdun", psf, schedule="sometimes")
     with pytest.raises(ConfigurationError, match=r"ekdun: .*no_such_field"):
         build_model("ekdun", psf, no_such_field=1)
+
+
+def test_updn_primal_lives_on_the_padded_grid_with_exact_adjoints(psf):
+    """The reference's primal grid (``primal_grid="padded"``): ``A p = crop(K ⊛ p)`` and
+    ``Aᵀq = K ⋆ pad(q)`` on the physics' padded grid, an exact adjoint pair that equals the
+    sensor-grid operator on scenes that vanish outside the sensor."""
+    from psfkit.forward.convolution import pad
+
+    assert build_model("updn", psf, "paper").config.primal_grid == "sensor"   # the default
+    model = build_model("updn", psf, "paper", primal_grid="padded", dtype=torch.float64)
+    y = torch.rand(2, 3, *SENSOR, dtype=torch.float64)
+    context = model.prepare(y)
+    grid = model.physics.grid_shape
+    gen = torch.Generator().manual_seed(3)
+    p = torch.randn(2, 15, *grid, dtype=torch.float64, generator=gen)
+    q = torch.randn(2, 15, *SENSOR, dtype=torch.float64, generator=gen)
+    with torch.no_grad():                        # the PSF copies are parameters
+        lhs = float((context["A"](p) * q).sum())
+        rhs = float((p * context["A_adjoint"](q)).sum())
+    assert lhs == pytest.approx(rhs, rel=1e-12)
+    x = torch.randn(2, 15, *SENSOR, dtype=torch.float64, generator=gen)
+    torch.testing.assert_close(context["A"](pad(x, grid)), context["op"].A(x))
+    torch.testing.assert_close(crop(context["A_adjoint"](q), SENSOR), context["op"].A_adjoint(q))
+    # light outside the field of view reaches the sensor: the padded primal can explain it
+    outside = torch.zeros(1, 15, *grid, dtype=torch.float64)
+    outside[..., 0, 0] = 1.0
+    with torch.no_grad():
+        assert float(context["A"](outside).abs().sum()) > 0
+    assert model.initial_state(y, context)["primal"].shape[-2:] == grid
+    with torch.no_grad():
+        assert model.float()(y.float()).shape == (2, 3, *SENSOR)
+    with pytest.raises(ConfigurationError, match="primal_grid"):
+        build_model("updn", psf, "paper", primal_grid="scene")
+

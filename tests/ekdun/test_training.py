@@ -328,3 +328,23 @@ def test_rng_state_restores_from_a_checkpoint_loaded_onto_the_gpu():
     np.testing.assert_array_equal(got[0], expected[0])
     assert got[1] == expected[1]
     torch.testing.assert_close(got[2], expected[2], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("network", ["le-admm-u", "updn", "ekdun"])
+def test_each_network_trains_with_its_own_recipe(tiny_data, tmp_path, network):
+    """A preset's recipe for a network replaces the preset's shared settings for it (its
+    learning rate is the one the first epoch runs at); a learning rate given replaces both."""
+    from ekdun.nets.configs import get_preset
+
+    pairs, kernels = tiny_data
+    small = {"ekdun": SMALL, "le-admm-u": {"iterations": 2, "denoiser": {"widths": [4, 8]}},
+             "updn": {"iterations": 2, "denoiser": {"widths": [4, 8]}}}[network]
+    preset = get_preset("tiny")
+    expected = preset.recipes.get(network, {}).get("lr", preset.training.lr)
+    for given, lr in ((None, expected), (3e-4, 3e-4)):
+        options = TrainOptions(epochs=1, batch_size=4, lr=given, progress=False, threads=1)
+        run = tmp_path / f"run-{given}"
+        train(run, network, kernels, PairsDataset(pairs), "tiny", small, options)
+        first = (run / "log.csv").read_text().splitlines()[1].split(",")
+        assert float(first[2]) == pytest.approx(lr, rel=1e-12), (network, given)
+    assert preset.training_for(network.replace("-", "_")) == preset.training_for(network)
