@@ -42,7 +42,7 @@ from ekdun.nets.unet import UNet, channels_last
 from ekdun.nets.unrolled import State, UnrolledNetwork
 from ekdun.physics.multi_psf import MultiPSFOperator
 from psfkit.forward.convolution import crop, pad
-from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.padded_scene import padded_scene_adjoint, padded_scene_forward
 
 #: Where UPDN's primal can live (:class:`~ekdun.nets.configs.UPDNConfig`).
 PRIMAL_GRIDS = ("padded", "sensor")
@@ -98,11 +98,11 @@ class UPDN(UnrolledNetwork):
         op.check(tiled, "measurement (tiled per PSF copy)")
         if self.config.primal_grid == "sensor":
             return {"op": op, "y": tiled, "A": op.A, "A_adjoint": op.A_adjoint}
-        spectra, conj = op.spectra[0], op.conj_spectra[0]                  # (N·C, PH, PW//2+1)
+        spectra, conj = op.spectra, op.conj_spectra                     # (1, N·C, PH, PW//2+1)
         grid, sensor = self.physics.grid_shape, self.physics.sensor_shape
         return {"op": op, "y": tiled,
-                "A": lambda p: crop(irfft2(spectra * rfft2(p), grid), sensor),
-                "A_adjoint": lambda q: irfft2(conj * rfft2(pad(q, grid)), grid)}
+                "A": lambda p: padded_scene_forward(p, spectra, None, sensor),
+                "A_adjoint": lambda q: padded_scene_adjoint(q, conj, None, grid)}
 
     def initial_state(self, y: Tensor, context: dict[str, Any]) -> State:
         dual = torch.zeros_like(context["y"])
