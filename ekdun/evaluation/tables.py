@@ -75,17 +75,25 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int
 #: :func:`zone_cells`): where in the field a network gains or loses.
 ZONE_COLUMNS = [("psnr_by_zone", "PSNR centre / middle / edge (dB)", -1),
                 ("ssim_by_zone", "SSIM centre / middle / edge", -1)]
-TABLE1_COLUMNS = [("label", "Method", -1), ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4),
+TABLE1_COLUMNS = [("label", "Method", -1), ("seed", "Training seed", 0),
+                  ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4),
                   ("lpips", "LPIPS", 4), ("parameters", "Parameters", 0),
                   ("runtime_ms_median", "Runtime / image (ms, median)", 1),
                   ("peak_memory_mib", "Peak memory (MiB)", 1), *ZONE_COLUMNS]
 TABLE2_COLUMNS = [("label", "Eigen-kernel model in", -1), ("seed", "Training seed", 0),
                   ("psnr", "PSNR (dB)", 2), ("ssim", "SSIM", 4), ("lpips", "LPIPS", 4),
                   ("runtime_ms_median", "Inference / image (ms, median)", 2), *ZONE_COLUMNS]
-SUMMARY_COLUMNS = [("label", "Eigen-kernel model in", -1),
-                   ("psnr_text", "PSNR (dB), mean ± sd", -1), ("ssim_mean", "SSIM", 4),
-                   ("delta_text", "Δ PSNR to base only, paired by seed (dB)", -1),
-                   ("runtime_ms_median", "Inference / image (ms, median)", 2)]
+
+#: Each table's reference row, the one the others are compared with seed by seed.
+REFERENCE = {"table1": "EK-DUN (last-2)", "table2": "base only"}
+
+
+def summary_columns(which: str) -> list[tuple[str, str, int]]:
+    """The columns of table ``which``'s summary over training seeds."""
+    return [("label", "Method" if which == "table1" else "Eigen-kernel model in", -1),
+            ("psnr_text", "PSNR (dB), mean ± sd", -1), ("ssim_mean", "SSIM", 4),
+            ("delta_text", f"Δ PSNR to {REFERENCE[which]}, paired by seed (dB)", -1),
+            ("runtime_ms_median", "Inference / image (ms, median)", 2)]
 
 
 def _distinct_variants(results: list[dict[str, Any]]) -> list[str]:
@@ -122,9 +130,16 @@ def split_tables(results: list[dict[str, Any]]) -> tuple[list[dict], list[dict]]
                 table1.append({**r, "label": label_for("ekdun", f"{r.get('schedule')}, "
                                                                   f"{variant}")}
                               if variant else r)
+    def by_seed(r: dict[str, Any]) -> int:
+        return r.get("seed") if isinstance(r.get("seed"), int) else -1
+
+    # the paper's order; a label's training seeds together
+    first = {label: i for i, label in enumerate(dict.fromkeys(str(r.get("label"))
+                                                             for r in table1))}
+    table1.sort(key=lambda r: (first[str(r.get("label"))], by_seed(r)))
     order = {"base only": 0, "last-2": 1, "all": 2}
     table2.sort(key=lambda r: (order.get(r["label"].split(" (")[0], 9), r["label"],
-                               r.get("seed") if isinstance(r.get("seed"), int) else -1))
+                               by_seed(r)))
     return table1, table2
 
 
@@ -138,22 +153,27 @@ def _pm(mean: float, sd: float | None, n: int, signed: bool = False) -> str:
     return f"{text} ± {sd:.2f} (n = {n})" if sd is not None else f"{text} (n = 1)"
 
 
-def seed_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Table 2 over training seeds: for each row label, PSNR mean ± sample sd, mean SSIM,
-    median inference time, and the PSNR difference to ``base only`` paired by training seed.
+def seed_summary(rows: list[dict[str, Any]], reference: str = "base only"
+                 ) -> list[dict[str, Any]]:
+    """A table over training seeds: for each row label, PSNR mean ± sample sd, mean SSIM,
+    median inference time, and the PSNR difference to the ``reference`` row paired by
+    training seed.
 
     Parameters
     ----------
     rows : list of dict
-        Table 2 rows (:func:`table_rows` ``"table2"``), each with ``label``, ``psnr``,
-        ``ssim``, ``seed`` and ``runtime_ms_median``.
+        A table's rows (:func:`table_rows`), each with ``label``, ``psnr``, ``ssim``,
+        ``seed`` and ``runtime_ms_median``.
+    reference : str
+        The label the others are compared with (:data:`REFERENCE`: ``base only`` in
+        Table 2, ``EK-DUN (last-2)`` in Table 1).
 
     Returns
     -------
     list of dict
         One entry per label, in the rows' order: ``label``, ``runs``, ``seeds``,
         ``psnr_mean``, ``psnr_sd`` (None for one run), ``ssim_mean``, ``runtime_ms_median``,
-        ``delta_base_mean`` / ``delta_base_sd`` / ``delta_base_seeds`` (None where no seed
+        ``reference``, ``delta_mean`` / ``delta_sd`` / ``delta_seeds`` (None where no seed
         has exactly one run of both), and the Markdown cells ``psnr_text`` / ``delta_text``.
         A paired difference cancels what the seeds share (weights and batch order), so it is
         resolved where the unpaired means are not.
@@ -167,7 +187,7 @@ def seed_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         return {r.get("seed"): float(r["psnr"]) for r in group
                 if r.get("seed") is not None and seeds.count(r.get("seed")) == 1}
 
-    base = by_seed(groups.get("base only", []))
+    base = by_seed(groups.get(reference, []))
     summary = []
     for label, group in groups.items():
         psnr_mean, psnr_sd = _mean_sd([float(r["psnr"]) for r in group])
@@ -180,15 +200,15 @@ def seed_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "ssim_mean": statistics.fmean(float(r["ssim"]) for r in group),
             "runtime_ms_median": statistics.median(times) if times else None,
             "psnr_text": _pm(psnr_mean, psnr_sd, len(group)),
-            "delta_base_mean": None, "delta_base_sd": None, "delta_base_seeds": [],
-            "delta_text": "-" if label == "base only" else "n/a",
+            "reference": reference, "delta_mean": None, "delta_sd": None, "delta_seeds": [],
+            "delta_text": "-" if label == reference else "n/a",
         }
         own = by_seed(group)
         paired = sorted((s for s in own if s in base), key=str)
-        if label != "base only" and paired:
+        if label != reference and paired:
             deltas = [own[s] - base[s] for s in paired]
             mean, sd = _mean_sd(deltas)
-            entry.update(delta_base_mean=mean, delta_base_sd=sd, delta_base_seeds=paired,
+            entry.update(delta_mean=mean, delta_sd=sd, delta_seeds=paired,
                          delta_text=_pm(mean, sd, len(paired), signed=True))
         summary.append(entry)
     return summary
@@ -248,14 +268,17 @@ def render_table(results: list[dict[str, Any]], which: str,
     """
     rows = [{**r, **zone_cells(r)} for r in table_rows(results, which)]
     title, columns = TABLES[which]
+    if not any(isinstance(r.get("seed"), int) for r in rows):   # runs of unknown seed
+        columns = [c for c in columns if c[0] != "seed"]
     if not rows:
         raise InvalidInputError(f"no rows for {title.split(':')[0]}: it needs "
                                 f"{', '.join(EXPECTED[which])} results")
     footer = "\n".join(f"\n{n}" for n in (notes or []))
     text = f"### {title}\n\n{markdown_table(rows, columns)}\n"
-    if which == "table2" and len(rows) > len({r["label"] for r in rows}):
+    if len(rows) > len({r["label"] for r in rows}):
+        summary = seed_summary(rows, REFERENCE[which])
         text += ("\nOver training seeds (sample sd; Δ paired by training seed):\n\n"
-                 f"{markdown_table(seed_summary(rows), SUMMARY_COLUMNS)}\n")
+                 f"{markdown_table(summary, summary_columns(which))}\n")
     return f"{text}{footer}\n"
 
 
@@ -280,8 +303,8 @@ def write_table(out_dir: str | os.PathLike, results: list[dict[str, Any]], which
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = table_rows(results, which)
     doc: dict[str, Any] = {"title": TABLES[which][0], "rows": rows, "notes": notes or []}
-    if which == "table2":
-        doc["over_seeds"] = seed_summary(rows)
+    if which == "table2" or len(rows) > len({r["label"] for r in rows}):
+        doc["over_seeds"] = seed_summary(rows, REFERENCE[which])
     written = {f"{which}.json": _write_json(out_dir / f"{which}.json", doc)}
     with atomic_file(out_dir / f"{which}.md") as tmp:
         tmp.write_text(text, encoding="utf-8")

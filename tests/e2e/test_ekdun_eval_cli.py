@@ -127,6 +127,24 @@ def ekdun_row(schedule: str, seed: int, psnr: float, **extra) -> dict:
             "kernel_param": "free", "physics_weight": 0.0, **extra}
 
 
+def test_table1_over_training_seeds_compares_each_baseline_with_ekdun_seed_by_seed(tmp_path):
+    rows = [ekdun_row("last-2", s, p) for s, p in ((0, 22.0), (1, 23.0), (2, 24.0))]
+    rows += [{**ekdun_row("last-2", s, p), "model": "updn", "schedule": None, "label": "UPDN"}
+             for s, p in ((2, 23.5), (0, 21.0), (1, 22.5))]
+    write_tables(tmp_path, rows)
+    doc = json.loads((tmp_path / "table1.json").read_text())
+    assert [(r["label"], r["seed"]) for r in doc["rows"]] == [
+        ("EK-DUN (last-2)", 0), ("EK-DUN (last-2)", 1), ("EK-DUN (last-2)", 2),
+        ("UPDN", 0), ("UPDN", 1), ("UPDN", 2)]
+    updn = {e["label"]: e for e in doc["over_seeds"]}["UPDN"]
+    # paired Δ −1.0, −0.5, −0.5 (the unpaired means differ by −0.67 too, but with a wider sd)
+    assert updn["reference"] == "EK-DUN (last-2)"
+    assert updn["delta_mean"] == pytest.approx(-2 / 3) and updn["delta_seeds"] == [0, 1, 2]
+    assert updn["delta_sd"] == pytest.approx(np.std([-1.0, -0.5, -0.5], ddof=1))
+    text = (tmp_path / "table1.md").read_text()
+    assert "| UPDN | 22.33 ± 1.26 (n = 3) |" in text and "Δ PSNR to EK-DUN (last-2)" in text
+
+
 def test_table2_over_training_seeds_pairs_by_seed_and_keeps_variants_apart(tmp_path):
     rows = [ekdun_row("base", s, p) for s, p in ((0, 20.0), (1, 21.0), (2, 22.0))]
     rows += [ekdun_row("last-2", s, p) for s, p in ((2, 22.5), (0, 21.0), (1, 22.5))]
@@ -141,17 +159,17 @@ def test_table2_over_training_seeds_pairs_by_seed_and_keeps_variants_apart(tmp_p
         ("last-2 (λ = 1)", 0), ("all", 0), ("all", 0)]
     summary = {e["label"]: e for e in doc["over_seeds"]}
     last2 = summary["last-2"]           # Δ 1.0, 1.5, 0.5 paired; unpaired means differ by 0.67
-    assert last2["delta_base_mean"] == pytest.approx(1.0)
-    assert last2["delta_base_sd"] == pytest.approx(0.5)
-    assert last2["delta_base_seeds"] == [0, 1, 2]
+    assert last2["delta_mean"] == pytest.approx(1.0)
+    assert last2["delta_sd"] == pytest.approx(0.5)
+    assert last2["delta_seeds"] == [0, 1, 2]
     assert last2["psnr_mean"] == pytest.approx(22.0) and last2["psnr_sd"] == pytest.approx(
         np.std([21.0, 22.5, 22.5], ddof=1))
     assert last2["runtime_ms_median"] == pytest.approx(2.0)
-    assert summary["last-2 (λ = 1)"]["delta_base_mean"] == pytest.approx(0.5)
+    assert summary["last-2 (λ = 1)"]["delta_mean"] == pytest.approx(0.5)
     assert summary["last-2 (λ = 1)"]["psnr_sd"] is None
-    assert summary["last-2 (flow kernels)"]["delta_base_mean"] == pytest.approx(2.0)
-    assert summary["all"]["delta_base_seeds"] == [] and summary["all"]["delta_text"] == "n/a"
-    assert summary["base only"]["delta_base_mean"] is None
+    assert summary["last-2 (flow kernels)"]["delta_mean"] == pytest.approx(2.0)
+    assert summary["all"]["delta_seeds"] == [] and summary["all"]["delta_text"] == "n/a"
+    assert summary["base only"]["delta_mean"] is None
     text = (tmp_path / "table2.md").read_text()
     assert "| last-2 | 22.00 ± 0.87 (n = 3) | 0.5100 | +1.00 ± 0.50 (n = 3) | 2.00 |" in text
     # Table 1 takes the paper's last-2 rows; variants keep their own labels
@@ -207,7 +225,7 @@ def test_one_table_at_a_time_and_results_round_trip(tmp_path):
     back, notes = read_results(tmp_path / "r")              # a folder means its results.json
     assert back == rows and notes == ["a note"]
     text = render_table(back, "table2", notes)
-    assert "| all | n/a | 20.00 | 0.5000 | n/a | 1.00 | n/a | n/a |" in text   # no zones
+    assert "| all | 20.00 | 0.5000 | n/a | 1.00 | n/a | n/a |" in text   # no zones, no seed
     assert text.rstrip().endswith("a note") and "Over training seeds" not in text
     assert missing_rows(back, "table2") == ["base only", "last-2"]
     assert missing_rows(back, "table1") == ["EK-DUN (last-2)", "Le-ADMM-U"]

@@ -332,6 +332,24 @@ def test_model_errors(psf):
         build_model("ekdun", psf, no_such_field=1)
 
 
+@pytest.mark.parametrize("grid", ["sensor", "padded"])
+def test_updn_primal_dual_blocks_ignore_autocast(psf, grid):
+    """Issue 45: half precision compounded over UPDN's ten primal-dual updates (−8.6 dB
+    untrained on an H100 under fp16). The blocks run in float32 under autocast, so the
+    unrolled state is the same with and without it; only the U-Net sees half precision."""
+    model = build_model("updn", psf, "tiny", primal_grid=grid).eval()
+    y = torch.rand(2, 3, *SENSOR, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        plain, _ = model.iterate(y)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            mixed, _ = model.iterate(y)
+            out = model(y)
+    for key in ("primal", "dual"):
+        assert mixed[key].dtype == torch.float32
+        torch.testing.assert_close(mixed[key], plain[key], rtol=1e-6, atol=1e-7)
+    assert out.shape == (2, 3, *SENSOR) and bool(torch.isfinite(out).all())
+
+
 def test_updn_primal_lives_on_the_padded_grid_with_exact_adjoints(psf):
     """The reference's primal grid (``primal_grid="padded"``): ``A p = crop(K ⊛ p)`` and
     ``Aᵀq = K ⋆ pad(q)`` on the physics' padded grid, an exact adjoint pair that equals the

@@ -1,0 +1,353 @@
+"""Are the baselines trained fairly, and do they work? (issue 45)
+
+    python -m research.baseline_checks sweep OUT [--sensor 64 64] [--n-train 128] [--epochs 8]
+        [--seeds 0,1] [--lrs 5e-4,1e-3,2e-3,4e-3,8e-3,1.6e-2] [--networks updn,le-admm-u,ekdun]
+    python -m research.baseline_checks field-free OUT [--sensor 64 64] [--n-train 128]
+        [--epochs 15] [--seeds 0,1,2]
+    python -m research.baseline_checks overfit OUT [--sensor 32 32] [--pairs 8] [--steps 1500]
+
+``sweep``: each network trained at each learning rate on the varying virtual bench, same
+budget (pairs, epochs, batch, decay) for all; held-out PSNR per rate, the best rate, and how far
+the preset's recipe (:meth:`ekdun.nets.configs.Preset.training_for`) lies from the best.
+
+``field-free``: a bench camera whose PSF does *not* vary (every field point sees the bench's
+noise-free centre PSF; the bench's scenes and noise), every network seeded with that PSF. There
+EK-DUN *base only* and UPDN are both ten unrolled iterations with learned priors and the right
+physics, so at equal budget they should reach the same quality; a large gap means a broken
+baseline (or a broken EK-DUN). Le-ADMM-U learns only ADMM's scalars inside its iterations and a
+U-Net after them; its distance from the two is its architecture's.
+
+``overfit``: each network fitted to a few pairs, full batch, Adam: a network that cannot drive
+its training loss far below the scenes' variance is broken.
+
+Each writes ``OUT/<check>.json`` and ``OUT/<check>.md``; trainings are resumable under
+``OUT/runs``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ekdun.data.bench_spec import make_scenes, node_psfs
+from ekdun.data.dense_model import DenseShiftVariantModel
+from ekdun.data.pairs import PairsDataset
+from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench, simulate_measurements
+from ekdun.errors import ConfigurationError
+from ekdun.evaluation import LPIPSMetric
+from ekdun.evaluation.tables import markdown_table, seed_summary
+from ekdun.nets.builder import build_network, seed_kernel_model
+from ekdun.nets.configs import get_preset
+from ekdun.training.trainer import TrainOptions, make_optimizer
+from psfkit.cli import run_cli
+from psfkit.cli.main import add_debug_option
+from psfkit.cli.parser import OneLineArgumentParser
+from psfkit.io.atomic import atomic_directory, atomic_file
+from psfkit.io.images import write_image
+from research.benchmark_tiny import fit_seed_kernels, int_list, train_and_evaluate
+
+NETWORKS = {"ekdun": ("ekdun-last-2", "ekdun", {"schedule": "last-2"}),
+            "ekdun-base": ("ekdun-base", "ekdun", {"schedule": "base"}),
+            "le-admm-u": ("le-admm-u", "le-admm-u", {}),
+            "updn": ("updn", "updn", {})}
+LRS = (5e-4, 1e-3, 2e-3, 4e-3, 8e-3, 1.6e-2)
+#: Issue 45's targets: a recipe within this of its own sweep's best; UPDN within this of
+#: EK-DUN base only on the field-free bench.
+RECIPE_MARGIN_DB = 0.3
+FIELD_FREE_MARGIN_DB = 1.0
+
+
+def _write(out: Path, name: str, doc: dict[str, Any], text: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_file(out / f"{name}.json") as tmp:
+        tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+    with atomic_file(out / f"{name}.md") as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def _bench_pairs(out: Path, spec: VirtualBenchSpec, progress: bool
+                 ) -> tuple[Path, PairsDataset, PairsDataset]:
+    data = make_virtual_bench(out / "dataset", spec, progress=progress)
+    kernels = out / "kernels_fit.npz"
+    if not kernels.is_file():
+        fit_seed_kernels(data, kernels)
+    return kernels, PairsDataset(data / "train"), PairsDataset(data / "test")
+
+
+# --- learning-rate sweep -------------------------------------------------------------------
+
+def lr_sweep(out: str | os.PathLike, spec: VirtualBenchSpec, networks: Sequence[str],
+             lrs: Sequence[float], seeds: Sequence[int], options: TrainOptions,
+             preset: str = "tiny", log: Any = print) -> dict[str, Any]:
+    """Train every network at every rate and seed; held-out PSNR and the recipe's distance
+    from the best rate (``recipe_gap_db``: recipe minus best, mean over seeds)."""
+    out = Path(out)
+    kernels, train_set, test_set = _bench_pairs(out, spec, options.progress)
+    lpips = LPIPSMetric(None)
+    rows = []
+    for name in networks:
+        run = NETWORKS[name]
+        for lr in lrs:
+            for seed in seeds:
+                run_dir = out / "runs" / f"{name}-lr{lr:g}-s{seed}"
+                row = train_and_evaluate(run, seed, kernels, train_set, test_set,
+                                          preset, replace(options, lr=lr), lpips, run_dir)
+                rows.append({"network": name, "lr": lr, "seed": seed, "psnr": row["psnr"],
+                             "ssim": row["ssim"], "train_seconds": row["train_seconds"]})
+                log(f"{name} lr {lr:g} seed {seed}: {row['psnr']:.2f} dB")
+    summary = {name: _sweep_summary([r for r in rows if r["network"] == name],
+                                    get_preset(preset).training_for(NETWORKS[name][1]).lr)
+               for name in networks}
+    doc = {"spec": spec.to_dict(), "preset": preset, "epochs": options.epochs,
+           "seeds": list(seeds), "rows": rows, "summary": summary}
+    _write(out, "sweep", doc, _sweep_markdown(doc, lrs))
+    return doc
+
+
+def _sweep_summary(rows: list[dict[str, Any]], recipe_lr: float) -> dict[str, Any]:
+    by_lr: dict[float, list[float]] = {}
+    for r in rows:
+        by_lr.setdefault(r["lr"], []).append(r["psnr"])
+    means = {lr: statistics.fmean(v) for lr, v in by_lr.items()}
+    best = max(means, key=means.__getitem__)
+    recipe = next((lr for lr in means if np.isclose(lr, recipe_lr)), None)
+    gap = None if recipe is None else means[recipe] - means[best]
+    return {"mean_psnr_by_lr": {f"{lr:g}": m for lr, m in means.items()}, "best_lr": best,
+            "best_psnr": means[best], "recipe_lr": recipe_lr, "recipe_gap_db": gap,
+            "recipe_within_margin": None if gap is None else gap >= -RECIPE_MARGIN_DB}
+
+
+def _sweep_markdown(doc: dict[str, Any], lrs: Sequence[float]) -> str:
+    names = list(doc["summary"])
+    cells = {(r["network"], r["lr"]): [] for r in doc["rows"]}
+    for r in doc["rows"]:
+        cells[(r["network"], r["lr"])].append(f"{r['psnr']:.2f}")
+    lines = ["| lr | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    lines += [f"| {lr:g} | " + " | ".join(" / ".join(cells.get((n, lr), ["-"])) for n in names)
+              + " |" for lr in lrs]
+    lines += ["", "| network | best lr | recipe lr | recipe − best (dB) |", "|---|---|---|---|"]
+    for n, s in doc["summary"].items():
+        gap = "n/a" if s["recipe_gap_db"] is None else f"{s['recipe_gap_db']:+.2f}"
+        lines.append(f"| {n} | {s['best_lr']:g} | {s['recipe_lr']:g} | {gap} |")
+    spec = doc["spec"]
+    return (f"### Learning-rate sweep (held-out PSNR, dB; seeds {doc['seeds']})\n\n"
+            + "\n".join(lines) + f"\n\nVirtual bench {spec['sensor_shape']}, "
+            f"{spec['n_train']} / {spec['n_test']} pairs, preset {doc['preset']}, "
+            f"{doc['epochs']} epochs.\n")
+
+
+# --- field-free bench -----------------------------------------------------------------------
+
+def centre_psf(spec: VirtualBenchSpec) -> np.ndarray:
+    """The bench's noise-free PSF at the centre of the field, ``(C, H', W')`` float32 (the
+    dense model's units: measurement per unit scene radiance)."""
+    kernels, _shifts, _rows, _cols = node_psfs(spec)
+    return kernels[kernels.shape[0] // 2, kernels.shape[1] // 2].astype(np.float32)
+
+
+def make_field_free_pairs(root: str | os.PathLike, spec: VirtualBenchSpec,
+                          progress: bool = False) -> Path:
+    """The bench's scenes measured through one PSF everywhere (its centre PSF, the bench's
+    noise), as a pairs folder ``root/{train,test}/{scene,measurement}``; kept when there."""
+    root = Path(root)
+    if (root / "centre_psf.npy").is_file():
+        return root
+    psf = centre_psf(spec)
+    h, w = spec.sensor_shape
+    model = DenseShiftVariantModel(psf[None, None], np.array([h // 2]), np.array([w // 2]),
+                                   spec.sensor_shape, spec.convention)
+    with atomic_directory(root, overwrite=True) as tmp:
+        for split_id, split in enumerate(("train", "test")):
+            scenes = make_scenes(spec, split, progress=progress)
+            measured = simulate_measurements(model, scenes, spec, split_id, progress=progress)
+            for sub, arrays in (("scene", scenes), ("measurement", measured)):
+                (tmp / split / sub).mkdir(parents=True)
+                for i, image in enumerate(arrays):
+                    write_image(tmp / split / sub / f"{split}{i:04d}.npy",
+                                image.astype(np.float32))
+        np.save(tmp / "centre_psf.npy", psf)
+    return root
+
+
+def field_free_check(out: str | os.PathLike, spec: VirtualBenchSpec, seeds: Sequence[int],
+                     options: TrainOptions, preset: str = "tiny",
+                     networks: Sequence[str] = ("ekdun-base", "updn", "le-admm-u"),
+                     log: Any = print) -> dict[str, Any]:
+    """Train ``networks`` on the field-free bench at equal budget; PSNR over seeds and each
+    one's difference to EK-DUN base only, paired by seed."""
+    out = Path(out)
+    data = make_field_free_pairs(out / "field_free", spec, options.progress)
+    psf = np.load(data / "centre_psf.npy")
+    train_set, test_set = PairsDataset(data / "train"), PairsDataset(data / "test")
+    lpips = LPIPSMetric(None)
+    rows = []
+    for seed in seeds:
+        for name in networks:
+            row = train_and_evaluate(NETWORKS[name], seed, psf, train_set, test_set,
+                                      preset, options, lpips,
+                                      out / "runs" / f"field-free-{name}-s{seed}")
+            rows.append(row)
+            log(f"field-free {name} seed {seed}: {row['psnr']:.2f} dB")
+    summary = seed_summary(rows, reference="EK-DUN (base)")
+    updn = next((e for e in summary if e["label"] == "UPDN"), None)
+    gap = None if updn is None else updn["delta_mean"]
+    doc = {"spec": spec.to_dict(), "preset": preset, "seeds": list(seeds),
+           "rows": [{k: r[k] for k in ("label", "seed", "psnr", "ssim", "lr", "epochs",
+                                       "train_seconds", "parameters")} for r in rows],
+           "summary": summary, "updn_minus_base_db": gap,
+           "updn_within_margin": None if gap is None else abs(gap) <= FIELD_FREE_MARGIN_DB}
+    columns = [("label", "Method", -1), ("psnr_text", "PSNR (dB), mean ± sd", -1),
+               ("ssim_mean", "SSIM", 4),
+               ("delta_text", "Δ PSNR to EK-DUN base only, paired by seed (dB)", -1)]
+    text = (f"### Field-free bench (one PSF everywhere), seeds {list(seeds)}\n\n"
+            f"{markdown_table(summary, columns)}\n\nVirtual bench {spec.sensor_shape}, "
+            f"{spec.n_train} / {spec.n_test} pairs, preset {preset} (each network's recipe), "
+            f"every network seeded with the noise-free centre PSF.\n")
+    _write(out, "field_free", doc, text)
+    return doc
+
+
+# --- overfitting a few pairs ----------------------------------------------------------------
+
+def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
+                  lr: float | None = None,
+                  networks: Sequence[str] = ("ekdun", "le-admm-u", "updn"),
+                  preset: str = "tiny", seed: int = 0, log: Any = print) -> dict[str, Any]:
+    """Fit each network to the bench's ``spec.n_train`` training pairs (full batch, ``steps``
+    steps of training's own optimiser: Adam with the kernels' group, at ``lr`` or the
+    network's recipe); the training MSE along the way, against the scenes' variance (the MSE
+    of predicting their mean)."""
+    out = Path(out)
+    kernels, train_set, _test = _bench_pairs(out, spec, progress=False)
+    x = torch.stack([train_set[i][0] for i in range(len(train_set))])
+    y = torch.stack([train_set[i][1] for i in range(len(train_set))])
+    variance = float(x.var())
+    results = {}
+    for name in networks:
+        _run, model_name, overrides = NETWORKS[name]
+        torch.manual_seed(seed)
+        model = build_network(model_name, seed_kernel_model(kernels), preset, overrides)
+        cfg = TrainOptions(lr=lr).resolve(preset, model_name)
+        started = time.perf_counter()
+        curve = _fit_pairs(model, x, y, steps, make_optimizer(model, cfg, torch.device("cpu")))
+        results[name] = {"lr": cfg.lr, "mse": curve, "final_mse": curve[-1][1],
+                         "final_over_variance": curve[-1][1] / variance,
+                         "seconds": time.perf_counter() - started}
+        log(f"overfit {name}: MSE {curve[0][1]:.4g} -> {curve[-1][1]:.4g} "
+            f"({curve[-1][1] / variance:.1%} of the scenes' variance)")
+    doc = {"spec": spec.to_dict(), "steps": steps, "variance": variance,
+           "networks": results}
+    lines = ["| network | lr | MSE at step 0 | final MSE | final / variance | time (s) |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {n} | {r['lr']:g} | {r['mse'][0][1]:.4g} | {r['final_mse']:.4g} | "
+              f"{r['final_over_variance']:.1%} | {r['seconds']:.0f} |" for n, r in results.items()]
+    _write(out, "overfit", doc, f"### Overfitting {spec.n_train} pairs ({steps} full-batch "
+                                f"steps, scenes' variance {variance:.4f})\n\n"
+                                + "\n".join(lines) + "\n")
+    return doc
+
+
+def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: int,
+               optimizer: torch.optim.Optimizer) -> list[tuple[int, float]]:
+    """Full-batch steps; ``(step, MSE)`` at 0, every tenth of the run and the end."""
+    marks = set(np.linspace(0, steps, 11).astype(int).tolist())
+    curve = []
+    for step in range(steps + 1):
+        loss = torch.nn.functional.mse_loss(model(y), x)
+        if step in marks:
+            curve.append((step, float(loss.detach())))
+        if step == steps:
+            break
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return curve
+
+
+# --- command line ---------------------------------------------------------------------------
+
+def _float_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}"
+                                         ) from None
+    if not values or min(values) <= 0:
+        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
+    return values
+
+
+def _names(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names or any(n not in NETWORKS for n in names):
+        raise argparse.ArgumentTypeError(f"networks are {', '.join(NETWORKS)}; got {text!r}")
+    return names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m research.baseline_checks``."""
+    p = OneLineArgumentParser(prog="python -m research.baseline_checks",
+                              description="Learning-rate sweep, field-free bench and "
+                                          "overfitting checks of the baselines (issue 45).")
+    add_debug_option(p)
+    sub = p.add_subparsers(dest="check", required=True, metavar="CHECK")
+    for name, epochs, n_train, size in (("sweep", 8, 128, 64), ("field-free", 15, 128, 64),
+                                        ("overfit", None, 8, 32)):
+        q = sub.add_parser(name, help=f"the {name} check")
+        q.add_argument("out", help="output folder (resumable)")
+        q.add_argument("--sensor", type=int, nargs=2, default=(size, size), metavar=("H", "W"))
+        q.add_argument("--n-train" if name != "overfit" else "--pairs", dest="n_train",
+                       type=int, default=n_train)
+        q.add_argument("--n-test", type=int, default=16)
+        q.add_argument("--threads", type=int, default=1)
+        q.add_argument("--quiet", action="store_true", help="no progress bars")
+        if epochs:
+            q.add_argument("--epochs", type=int, default=epochs)
+            q.add_argument("--seeds", type=int_list, default=[0, 1] if name == "sweep"
+                           else [0, 1, 2])
+        q.set_defaults(func=_run)
+    sweep = sub.choices["sweep"]
+    sweep.add_argument("--lrs", type=_float_list, default=list(LRS))
+    sweep.add_argument("--networks", type=_names, default=["updn", "le-admm-u", "ekdun"])
+    sub.choices["overfit"].add_argument("--steps", type=int, default=1500)
+    sub.choices["overfit"].add_argument("--lr", type=float, default=None,
+                                        help="default: each network's recipe")
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    if min(args.sensor) < 16 or args.n_train < 1 or args.n_test < 1 or args.threads < 1:
+        raise ConfigurationError("--sensor must be >= 16 16 and the counts >= 1")
+    torch.set_num_threads(args.threads)
+    spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
+                            n_test=args.n_test)
+    log = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr))
+    if args.check == "overfit":
+        overfit_check(args.out, spec, args.steps, args.lr, log=log)
+        return 0
+    options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads)
+    if args.check == "sweep":
+        lr_sweep(args.out, spec, args.networks, args.lrs, args.seeds, options, log=log)
+    else:
+        field_free_check(args.out, spec, args.seeds, options, log=log)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``python -m research.baseline_checks`` with ``argv``; returns the exit code."""
+    return run_cli("research.baseline_checks", build_parser(), argv)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
