@@ -12,11 +12,13 @@ from scipy.signal import fftconvolve
 
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
+from ekdun.nets.configs import get_preset
 from ekdun.training.trainer import TrainOptions
 from research import baseline_checks as bc
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 QUIET = TrainOptions(epochs=1, progress=False, threads=1)
+RECIPE = get_preset("tiny").training_for("updn").lr      # UPDN's own learning rate
 
 
 def _noise_ratio(measured: np.ndarray, clean: np.ndarray, spec: VirtualBenchSpec) -> float:
@@ -60,20 +62,20 @@ def test_field_free_check_pairs_each_network_with_ekdun_base_only_by_seed(tmp_pa
     assert doc["updn_minus_base_db"] == pytest.approx(np.mean(gaps))
     assert doc["updn_within_margin"] == (abs(np.mean(gaps)) <= bc.FIELD_FREE_MARGIN_DB)
     # each network trained with its own recipe, at the same budget
-    assert {r["lr"] for r in doc["rows"] if r["label"] == "UPDN"} == {8e-3}
+    assert {r["lr"] for r in doc["rows"] if r["label"] == "UPDN"} == {RECIPE}
     assert {r["epochs"] for r in doc["rows"]} == {1}
     assert "Δ PSNR to EK-DUN base only" in (tmp_path / "field_free.md").read_text()
 
 
 def test_sweep_reports_the_recipe_against_the_best_rate(tmp_path):
     spec = VirtualBenchSpec(sensor_shape=(16, 16), n_train=4, n_test=2)
-    doc = bc.lr_sweep(tmp_path, spec, ["updn"], [1e-3, 8e-3], [0], QUIET,
+    doc = bc.lr_sweep(tmp_path, spec, ["updn"], [1e-3, RECIPE], [0], QUIET,
                       log=lambda text: None)
     by_lr = {r["lr"]: r["psnr"] for r in doc["rows"]}
     summary = doc["summary"]["updn"]
     assert summary["best_lr"] == max(by_lr, key=by_lr.get)
-    assert summary["recipe_lr"] == 8e-3
-    assert summary["recipe_gap_db"] == pytest.approx(by_lr[8e-3] - max(by_lr.values()))
+    assert summary["recipe_lr"] == RECIPE
+    assert summary["recipe_gap_db"] == pytest.approx(by_lr[RECIPE] - max(by_lr.values()))
     back = json.loads((tmp_path / "sweep.json").read_text())
     assert back["summary"]["updn"]["best_lr"] == summary["best_lr"]
 

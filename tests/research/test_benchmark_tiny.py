@@ -9,6 +9,7 @@ import json
 import pytest
 
 from ekdun.data.virtual_bench import VirtualBenchSpec
+from ekdun.nets.configs import get_preset
 from ekdun.training.trainer import TrainOptions
 from research.benchmark_tiny import RUNS, run_tiny_benchmark
 
@@ -26,7 +27,7 @@ def test_table1_over_seeds_pairs_each_baseline_with_ekdun(tmp_path):
         ("ekdun-last-2", 0), ("updn", 0), ("ekdun-last-2", 1), ("updn", 1)]
     for r in rows:                      # each network with its own recipe, one folder a seed
         assert (tmp_path / "runs" / r["run"] / f"seed-{r['seed']}" / "checkpoint.pt").is_file()
-        assert r["lr"] == (8e-3 if r["model"] == "updn" else 2e-3)
+        assert r["lr"] == get_preset("tiny").training_for(r["model"]).lr
     table = json.loads((tmp_path / "tables" / "table1.json").read_text())
     updn = {e["label"]: e for e in table["over_seeds"]}["UPDN"]
     psnr = {(r["model"], r["seed"]): r["psnr"] for r in rows}
