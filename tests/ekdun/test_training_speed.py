@@ -70,18 +70,24 @@ def test_autocast_runs_the_convolutions_in_bf16_and_the_physics_in_float32():
     torch.testing.assert_close(adjoint, op.A_adjoint(y), rtol=0, atol=0)
     for name in ("ekdun", "le-admm-u", "updn"):
         model = build_model(name, psf, "tiny", iterations=2)
-        conv_dtypes: list[torch.dtype] = []
+        conv_dtypes: dict[str, set[torch.dtype]] = {}
 
-        def record(_m, _i, out, seen=conv_dtypes):
-            seen.append(out.dtype)
+        def record(module, _i, out, seen=conv_dtypes):
+            seen.setdefault(module.part, set()).add(out.dtype)
 
-        for m in model.modules():
+        for part, m in model.named_modules():
             if isinstance(m, torch.nn.Conv2d):
+                m.part = part.split(".")[0]
                 m.register_forward_hook(record)
         with acc.autocast("bf16", CPU):
             out = model(y)
         assert out.dtype == torch.float32, name
-        assert conv_dtypes and set(conv_dtypes) == {torch.bfloat16}, name
+        # UPDN's primal-dual blocks stay in float32 (issue 45: half precision compounds over
+        # its updates); every U-Net runs in bf16
+        full = {"dual_updates", "primal_updates"} if name == "updn" else set()
+        assert conv_dtypes and all(
+            dtypes == ({torch.float32} if part in full else {torch.bfloat16})
+            for part, dtypes in conv_dtypes.items()), (name, conv_dtypes)
 
 
 def test_streamed_and_channels_last_batches_train_like_resident(tiny_data, tmp_path):
