@@ -51,6 +51,7 @@ from ekdun.training.epoch import Loop, train_epoch
 from ekdun.training.logs import write_csv_log
 from ekdun.training.physics_loss import PhysicsObjective
 from ekdun.training.rng import rng_state, set_rng_state
+from ekdun.training.signals import deferred_termination
 from psfkit.forward.kernelfile import KernelModel, save_kernels
 
 CHECKPOINT = "checkpoint.pt"
@@ -265,7 +266,8 @@ def train(run_dir: str | os.PathLike, model_name: str,
         metadata["history"].append(row)
         metadata["epoch"] = epoch
         if ctx.is_main:
-            _save_epoch(run_dir, model_name, loop, metadata, initial_kernels, options)
+            with deferred_termination():       # the epoch's files agree, even when killed
+                _save_epoch(run_dir, model_name, loop, metadata, initial_kernels, options)
         D.barrier(ctx)
     loop.net = model          # the DDP wrapper holds the process group (see D.teardown)
     D.teardown(ctx)
