@@ -55,7 +55,7 @@ from psfkit.cli.main import add_debug_option
 from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.images import write_image
-from research.benchmark_tiny import fit_seed_kernels, int_list, train_and_evaluate
+from research.benchmark_tiny import comma_list, fit_seed_kernels, int_list, train_and_evaluate
 
 NETWORKS = {"ekdun": ("ekdun-last-2", "ekdun", {"schedule": "last-2"}),
             "ekdun-base": ("ekdun-base", "ekdun", {"schedule": "base"}),
@@ -277,17 +277,6 @@ def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: 
 
 # --- command line ---------------------------------------------------------------------------
 
-def _float_list(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}"
-                                         ) from None
-    if not values or min(values) <= 0:
-        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
-    return values
-
-
 def _names(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names or any(n not in NETWORKS for n in names):
@@ -318,7 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
                            else [0, 1, 2])
         q.set_defaults(func=_run)
     sweep = sub.choices["sweep"]
-    sweep.add_argument("--lrs", type=_float_list, default=list(LRS))
+    sweep.add_argument("--lrs", type=comma_list(float, "positive numbers", lambda v: v > 0),
+                       default=list(LRS))
     sweep.add_argument("--networks", type=_names, default=["updn", "le-admm-u", "ekdun"])
     sub.choices["overfit"].add_argument("--steps", type=int, default=1500)
     sub.choices["overfit"].add_argument("--lr", type=float, default=None,
@@ -327,8 +317,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if min(args.sensor) < 16 or args.n_train < 1 or args.n_test < 1 or args.threads < 1:
-        raise ConfigurationError("--sensor must be >= 16 16 and the counts >= 1")
+    counts = [args.n_train, args.n_test, args.threads,
+              getattr(args, "epochs", 1), getattr(args, "steps", 1)]
+    if min(args.sensor) < 16 or min(counts) < 1 or (getattr(args, "lr", None) or 1) <= 0:
+        raise ConfigurationError("--sensor must be >= 16 16, the counts >= 1 and --lr > 0")
     torch.set_num_threads(args.threads)
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
                             n_test=args.n_test)

@@ -18,7 +18,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -144,15 +144,23 @@ def run_tiny_benchmark(out: str | os.PathLike, spec: VirtualBenchSpec | None = N
     return {"results": results, "timings": timings}
 
 
-def int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected integers separated by commas, got {text!r}"
-                                         ) from None
-    if not values or min(values) < 0:
-        raise argparse.ArgumentTypeError(f"expected integers >= 0, got {text!r}")
-    return values
+def comma_list(cast: Callable[[str], Any], what: str, valid: Callable[[Any], bool]
+               ) -> Callable[[str], list[Any]]:
+    """An argparse type for ``"a,b,c"``: each item ``cast``, all ``valid`` (``what`` names
+    them in the one-line error)."""
+    def parse(text: str) -> list[Any]:
+        try:
+            values = [cast(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            values = []
+        if not values or not all(valid(v) for v in values):
+            raise argparse.ArgumentTypeError(f"expected {what} separated by commas, got "
+                                             f"{text!r}")
+        return values
+    return parse
+
+
+int_list = comma_list(int, "integers >= 0", lambda v: v >= 0)
 
 
 def _run_names(text: str) -> tuple[tuple[str, str, dict[str, Any]], ...]:
