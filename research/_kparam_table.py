@@ -21,7 +21,7 @@ SETUP_DEFAULTS: dict[str, Any] = {"schedule": "last-2", "preset": "tiny",
                                   "physics_weight": 0.0, "train_seed": 0}
 #: Row order of the table.
 SEED_ORDER = ("measured", "pairs-free", "pairs", "one-psf")
-PARAM_ORDER = ("free", "physical", "physical-gain", "flow", "spectral")
+PARAM_ORDER = ("free", "physical", "physical-gain", "flow")
 
 
 def as_document(doc: Any) -> dict[str, Any]:

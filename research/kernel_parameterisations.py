@@ -97,7 +97,7 @@ from research.oracles import oracle_file, write_dataset_oracles
 PARAMS = ("free", "physical", "flow")
 #: Model overrides of each run name (``--params``); ``physical-gain`` is not in the default set.
 OVERRIDES = {"free": {"kernel_param": "free"}, "physical": {"kernel_param": "physical"},
-             "flow": {"kernel_param": "flow"}, "spectral": {"kernel_param": "spectral"},
+             "flow": {"kernel_param": "flow"},
              "physical-gain": {"kernel_param": "physical", "kernel_gain": True}}
 SEEDS = ("measured", "one-psf")
 #: Every start ``--seeds`` accepts: the default two, and the pairs fits (``psfkit fit-pairs`` of

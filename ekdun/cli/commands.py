@@ -163,7 +163,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=flag("--iterations", "train"),
                    help="override the preset's iterations")
-    p.add_argument("--kernel-param", choices=("free", "physical", "flow", "spectral"),
+    p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
                    help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
     p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
     p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")

@@ -63,7 +63,7 @@ class EKDUNConfig:
         Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
-    kernel_param : {"free", "physical", "flow", "spectral"}
+    kernel_param : {"free", "physical", "flow"}
         How the trainable kernels are parameterised
         (:mod:`ekdun.physics.kernel_parameterisation`): free pixels (the paper's), non-negative
         on the seed's dilated caustic with its energy kept, ``Kbase`` warped by smooth
@@ -184,10 +184,12 @@ PRESETS: dict[str, Preset] = {
         le_admm_u=LeADMMUConfig(denoiser=UNetConfig(widths=(8, 16, 32, 64))),
         updn=UPDNConfig(iterations=5, denoiser=UNetConfig(widths=(15, 30, 60))),
         training=TrainingConfig(epochs=15, batch_size=4, lr=2e-3, gamma=0.95),
-        # the best of a learning-rate sweep on the 64² bench at this batch, 8 epochs, 3 seeds
-        # (python -m research.baseline_checks sweep; docs/baselines.md); EK-DUN's 2e-3 is
-        # 0.03 dB from its best there (4e-3), a tie
-        recipes={"updn": {"lr": 4e-3}, "le-admm-u": {"lr": 8e-3}}),
+        # UPDN: the best of a learning-rate sweep on the 64² bench at this batch, 8 epochs,
+        # 3 seeds (python -m research.baseline_checks sweep; docs/baselines.md); EK-DUN's 2e-3
+        # is 0.03 dB from its best there (4e-3), a tie. Le-ADMM-U: 4e-3, 0.36 dB below the
+        # sweep's 8e-3 at 64² (inside its seeds' spread), but 8e-3 collapsed two of three
+        # seeds at 128² (Table 1: 16.88 ± 1.56 dB against 18.38 ± 0.21 at 4e-3)
+        recipes={"updn": {"lr": 4e-3}, "le-admm-u": {"lr": 4e-3}}),
     # UPDN: its authors' Adam at 5e-4, constant (oliland/lensless-primal-dual)
     "paper": Preset("paper", (1080, 1440), recipes={"updn": {"lr": 5e-4, "gamma": 1.0}}),
 }

@@ -17,15 +17,10 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
   bilinear resampling written out (not ``grid_sample``) so that ``D = 0`` gives ``Kbase``
   bit for bit. From a measured seed the fields and gains are fitted to the seed's ``Kv, Kh``
   first (:meth:`FlowKernels.fit_to`), the rest of the seed going into ``R`` if enabled.
-* ``"spectral"`` (:class:`SpectralKernels`): the free pixels in other coordinates, their
-  orthonormal 2-D real Fourier coefficients, ``K = irfft2(Ẑ)``; the same set of kernels as
-  ``"free"``, no constraint. Adam scales each coordinate's step by that coordinate's gradient
-  history; per pixel that scale cannot tell spatial frequencies apart, per Fourier
-  coefficient it is one scale per frequency: a diagonal preconditioner for the
-  measurement-consistency term, whose curvature is the scenes' power spectrum (steep for
-  natural scenes). On the consistency term alone it takes the kernels from one PSF to NCC
-  0.93 of the oracle in 15 epochs where free pixels reach 0.61
-  (``research/consistency_descent.py``, research/notes/compare-studies.md).
+* ``"spectral"`` (the free pixels as their orthonormal Fourier coefficients) was measured
+  against ``"free"`` from the measured seed (issue 45: −0.21 ± 0.09 dB at 64², −0.11 ± 0.11
+  at 128², 3 training seeds each) and left the product
+  (research/notes/baselines-measurements.md).
 
 Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
 log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
@@ -44,14 +39,13 @@ from ekdun.errors import ConfigurationError
 from psfkit.calibration.caustic import caustic_support
 
 #: Parameterisations ``EKDUNConfig.kernel_param`` accepts.
-KERNEL_PARAMETERISATIONS = ("free", "physical", "flow", "spectral")
+KERNEL_PARAMETERISATIONS = ("free", "physical", "flow")
 
 #: Multiplier of ``TrainingConfig.kernel_lr_scale`` (1e-2 of the network's rate) for the
 #: kernel parameter group: free pixels 1 (unchanged), log-intensities and displacements
 #: (px) 100, i.e. the network's rate (tiny preset: 2e-3 per Adam step; over 360 steps a
 #: field can move ~0.7 px, the size of the measured displacements). Chosen by the lr sweep.
-#: Orthonormal Fourier coefficients have the pixels' RMS (Parseval): the free pixels' rate.
-LR_MULTIPLIER = {"free": 1.0, "physical": 100.0, "flow": 100.0, "spectral": 1.0}
+LR_MULTIPLIER = {"free": 1.0, "physical": 100.0, "flow": 100.0}
 
 
 def seed_support(kernels: Tensor, level: float = 0.02, dilate: int = 3) -> Tensor:
@@ -216,35 +210,6 @@ class FlowKernels(nn.Module):
         return error
 
 
-class SpectralKernels(nn.Module):
-    """Kernels ``(K, C, H, W)`` as their orthonormal 2-D real FFT coefficients.
-
-    ``forward`` is ``irfft2(Ẑ, s=(H, W), norm="ortho")``: linear and exact up to rounding
-    (it reproduces the seed to ~1e-7 of its peak in float32), so it spans the same kernels as
-    free pixels. Only the optimiser's coordinates change (see the module docstring).
-
-    Parameters
-    ----------
-    seed : Tensor
-        ``(K, C, H, W)`` initial kernels.
-    """
-
-    def __init__(self, seed: Tensor) -> None:
-        super().__init__()
-        if seed.ndim != 4:
-            raise ConfigurationError("spectral kernels need (K, C, H, W) seeds")
-        self.size = tuple(seed.shape[-2:])
-        spectrum = torch.fft.rfft2(seed.detach(), norm="ortho")
-        # real and imaginary parts as a real parameter (..., W//2 + 1, 2): Adam, DDP and
-        # checkpoints handle it like any other
-        self.coefficients = nn.Parameter(torch.view_as_real(spectrum).contiguous())
-
-    def forward(self) -> Tensor:
-        """The kernels ``(K, C, H, W)``."""
-        return torch.fft.irfft2(torch.view_as_complex(self.coefficients), s=self.size,
-                                norm="ortho")
-
-
 def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: int = 8,
                            flow_residual: bool = False, gain: bool = False
                            ) -> nn.Module | None:
@@ -260,8 +225,6 @@ def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: 
                                  f"{', '.join(KERNEL_PARAMETERISATIONS)})")
     if name == "free":
         return None
-    if name == "spectral":
-        return SpectralKernels(seed)
     support = seed_support(seed, dilate=dilate).to(seed.device)
     if name == "physical":
         return PhysicalKernels(seed, support, gain=gain)

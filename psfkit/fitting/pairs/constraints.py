@@ -253,10 +253,17 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
                ) -> tuple[Tensor, dict[str, Any]]:
     """Non-negative kernels (zero outside ``mask``) on the normal equations ``system`` of
     :func:`psfkit.fitting.pairs.solver.solve_kernels`, by :func:`projected_newton` from ``start``
-    (the
-    unconstrained kernels), preconditioned with the fit's Gram blocks, its CG on float32
-    products (``system["twin"]``, else a float32 copy of the batches: half the time of a
-    float64 pass; gradients, line search and the KKT test stay in the working precision).
+    (the unconstrained kernels), its CG on float32 products (``system["twin"]``, else a
+    float32 copy of the batches: half the time of a float64 pass; gradients, line search and
+    the KKT test stay in the working precision).
+
+    The Newton steps are preconditioned with the fit's Gram blocks kernel by kernel
+    (:meth:`~psfkit.fitting.pairs.gram.FrequencyGram.preconditioner` with ``coupled=False``):
+    the free set differs between the kernels, and the coupled blocks restricted to it stop
+    approximating the reduced Hessian's inverse where the difference prior couples the
+    kernels. On the 7 DLMD pairs (research/notes/forward-model-studies.md) the coupled blocks
+    took 388 steps at 1/4 resolution with ``--difference 10`` (64 kernel by kernel) and
+    did not converge in 100 at 1/2 resolution with ``--difference 1``.
     Returns the kernels and the record (the KKT history as ``kkt_history``)."""
     bar = None
     if progress:
@@ -269,8 +276,10 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
         twin = batches.astype(torch.float32)
     hessian = None if twin is None else regularised_normal(twin, system["lambda"],
                                                            system["mu"])
+    precondition = system["precondition"] if "gram" not in system else \
+        system["gram"].preconditioner(system["lambda"], system["mu"], coupled=False)
     kernels, info = projected_newton(system["normal"], system["rhs"], start,
-                                     system["precondition"], steps, cg_iterations, tolerance,
+                                     precondition, steps, cg_iterations, tolerance,
                                      bar=bar, support=mask, hessian=hessian)
     if bar is not None:
         bar.close()

@@ -95,9 +95,13 @@ class FrequencyGram:
             return float(self._power.mean())
         return float(torch.diagonal(self.blocks, dim1=-2, dim2=-1).real.sum(-1).mean())
 
-    def inverse(self, tikhonov: float, difference: float, floor: float = 1e-12) -> Tensor:
+    def inverse(self, tikhonov: float, difference: float, floor: float = 1e-12,
+                coupled: bool = True) -> Tensor:
         """``[G(ω) + λ I + μ D + ε]^{-1}`` per frequency and channel; ``ε`` (``floor`` times the
-        mean trace) keeps an unexcited frequency from dividing by zero (preconditioner only)."""
+        mean trace) keeps an unexcited frequency from dividing by zero (preconditioner only).
+        ``coupled=False`` inverts only the blocks' diagonal, kernel by kernel (block Jacobi
+        over the kernels: what a non-negative solve's free set, which differs between the
+        kernels, leaves of the blocks' meaning)."""
         k = self.n_kernels
         if self._power is not None and k == 1:           # one kernel: a division
             eps = floor * max(float(self._power.mean()), 1e-300)
@@ -109,17 +113,19 @@ class FrequencyGram:
             difference_matrix(k), dtype=torch.complex128, device=self.device)
         scale = float(torch.diagonal(g, dim1=-2, dim2=-1).real.mean())
         eps = floor * max(scale, 1e-300)
+        if not coupled:
+            return torch.diag_embed(1.0 / torch.diagonal(g + reg + eps * eye, dim1=-2, dim2=-1))
         return torch.linalg.inv(g + reg + eps * eye)
 
-    def preconditioner(self, tikhonov: float, difference: float
+    def preconditioner(self, tikhonov: float, difference: float, coupled: bool = True
                        ) -> Callable[[Tensor], Tensor]:
         """``P`` of :mod:`psfkit.fitting.pairs.solver`, a callable on ``(K, C, Hk, Wk)``
         residuals, applied in the residual's precision (a float32 solve gets float32 FFTs: it is
-        only a preconditioner)."""
+        only a preconditioner); ``coupled`` as in :meth:`inverse`."""
         # (K, K, C, PH, PW//2+1): one multiply-add per block entry beats a batched matmul of
         # 3 x 3 matrices over the frequencies
-        inverses = {torch.float64: self.inverse(tikhonov, difference).permute(3, 4, 0, 1, 2)
-                    .contiguous()}
+        inverses = {torch.float64: self.inverse(tikhonov, difference, coupled=coupled)
+                    .permute(3, 4, 0, 1, 2).contiguous()}
 
         def apply(r: Tensor) -> Tensor:
             if r.dtype not in inverses:
@@ -127,8 +133,11 @@ class FrequencyGram:
                     torch.complex64 if r.dtype == torch.float32 else torch.complex128)
             inv = inverses[r.dtype]
             spectra = kernel_spectra(r, self.grid)
-            solved = torch.stack([sum(inv[k, j] * spectra[j] for j in range(len(inv)))
-                                  for k in range(len(inv))])
+            if coupled:
+                solved = torch.stack([sum(inv[k, j] * spectra[j] for j in range(len(inv)))
+                                      for k in range(len(inv))])
+            else:
+                solved = torch.stack([inv[k, k] * spectra[k] for k in range(len(inv))])
             return extract_kernel(irfft2(solved, self.grid), self.kernel_shape)
 
         return apply

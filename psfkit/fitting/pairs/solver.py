@@ -197,7 +197,8 @@ def solve_kernels(batches: PairBatches,
     (Tensor, SolveInfo, dict)
         Kernels ``(K, C, Hk, Wk)`` in the batches' dtype, the solve's record, and
         ``{"lambda", "mu", "reference"}`` (the absolute regularisation weights used), with
-        the system solved: ``"normal"``, ``"rhs"``, ``"precondition"``, ``"batches"``.
+        the system solved: ``"normal"``, ``"rhs"``, ``"precondition"``, ``"batches"``,
+        ``"gram"``.
     """
     gram = batches.gram()
     reference = gram.reference_power()
@@ -210,7 +211,7 @@ def solve_kernels(batches: PairBatches,
         normal, rhs, precondition, start, tolerance, max_iterations, bar)
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
                            "normal": normal, "rhs": rhs, "precondition": precondition,
-                           "batches": batches}
+                           "batches": batches, "gram": gram}
 
 
 __all__ = [
