@@ -26,7 +26,10 @@ non-negative solve to a KKT residual of 1e-6 from a float32 start; two threads,
 ``--basis ek`` 14 min 57 s wall, 1783 s CPU, peak RSS 1.33 GiB: ``--difference 1`` chosen on
 the pairs binned 3x (about 10 s), the float32 start 125 s, the non-negative solve 751 s, not
 converged (100 Newton steps, KKT residual 3.0e-05; the float32 Hessian stalled, the exact one
-took over at step 44). Targets: SI met, EK not.
+took over at step 44). Targets: SI met, EK not. Third pass (stop 54: the Newton steps
+preconditioned kernel by kernel): ``--basis ek`` 10 min 12 s wall, 1211 s CPU, peak RSS
+1.41 GiB, the float32 start 91 s, the non-negative solve 506 s and still capped (100 Newton
+steps, KKT residual 7.9e-6; exact products from step 58). EK target still not met.
 The 384 bench pairs of 128² (``--skip-dlmd``, one thread on the shared machine, between the
 two passes: Newton to 1e-6, float64 start): 1943 s wall, 1880 s CPU, peak RSS 1.36 GiB,
 ``--difference 0`` chosen (8 folds, 10 weights, 124 s), 49 Newton steps (KKT residual
