@@ -276,8 +276,7 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
         twin = batches.astype(torch.float32)
     hessian = None if twin is None else regularised_normal(twin, system["lambda"],
                                                            system["mu"])
-    precondition = system["precondition"] if "gram" not in system else \
-        system["gram"].preconditioner(system["lambda"], system["mu"], coupled=False)
+    precondition = system["gram"].preconditioner(system["lambda"], system["mu"], coupled=False)
     kernels, info = projected_newton(system["normal"], system["rhs"], start,
                                      precondition, steps, cg_iterations, tolerance,
                                      bar=bar, support=mask, hessian=hessian)
