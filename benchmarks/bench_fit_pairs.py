@@ -29,7 +29,10 @@ converged (100 Newton steps, KKT residual 3.0e-05; the float32 Hessian stalled, 
 took over at step 44). Targets: SI met, EK not. Third pass (stop 54: the Newton steps
 preconditioned kernel by kernel): ``--basis ek`` 10 min 12 s wall, 1211 s CPU, peak RSS
 1.41 GiB, the float32 start 91 s, the non-negative solve 506 s and still capped (100 Newton
-steps, KKT residual 7.9e-6; exact products from step 58). EK target still not met.
+steps, KKT residual 7.9e-6; exact products from step 58). EK target still not met. Fourth
+(stop 55: float32 kept while precise, a stall doubles the CG iterations per step):
+``--basis ek`` 7 min 1 s wall, 834 s CPU, peak RSS 1.35 GiB, converged (80 Newton steps, KKT
+residual 9.3e-7, Newton 327 s). EK time target still not met; the converged solve is.
 The 384 bench pairs of 128² (``--skip-dlmd``, one thread on the shared machine, between the
 two passes: Newton to 1e-6, float64 start): 1943 s wall, 1880 s CPU, peak RSS 1.36 GiB,
 ``--difference 0`` chosen (8 folds, 10 weights, 124 s), 49 Newton steps (KKT residual

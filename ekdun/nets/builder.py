@@ -80,6 +80,18 @@ def build_network(name: str, seed: KernelModel, preset: str,
     return model
 
 
+def _recorded_overrides(meta: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
+    """The checkpoint's config overrides, with UPDN's iterations read from its weights when
+    not recorded: ``tiny`` gave UPDN 5 iterations before it took its authors' 10, and those
+    checkpoints record no override."""
+    overrides = dict(meta.get("overrides", {}))
+    if meta.get("model") == "updn" and "iterations" not in overrides:
+        blocks = {key.split(".")[1] for key in state if key.startswith("dual_updates.")}
+        if blocks:
+            overrides["iterations"] = len(blocks)
+    return overrides
+
+
 def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any],
                             where: str | None = None) -> tuple[UnrolledNetwork, dict[str, Any]]:
     """Rebuild the network of a checkpoint and load its weights.
@@ -94,7 +106,8 @@ def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any],
         seed = KernelModel.from_metadata(doc["initial_kernels"].numpy(),
                                          meta["kernel_metadata"],
                                          where="initial kernels")
-        model = build_network(meta["model"], seed, meta["preset"], meta.get("overrides", {}))
+        model = build_network(meta["model"], seed, meta["preset"],
+                              _recorded_overrides(meta, doc["model"]))
         model.load_state_dict(doc["model"])
     except (KeyError, RuntimeError, TypeError, ValueError, AttributeError,
             ConfigurationError, ModelFileError) as exc:

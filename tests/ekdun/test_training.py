@@ -348,3 +348,22 @@ def test_each_network_trains_with_its_own_recipe(tiny_data, tmp_path, network):
         first = (run / "log.csv").read_text().splitlines()[1].split(",")
         assert float(first[2]) == pytest.approx(lr, rel=1e-12), (network, given)
     assert preset.training_for(network.replace("-", "_")) == preset.training_for(network)
+
+
+def test_a_tiny_updn_checkpoint_of_five_iterations_still_loads(tiny_data, tmp_path):
+    """``tiny`` UPDN had 5 iterations before it took its authors' 10; its checkpoints record
+    no override, and load with the iterations their weights hold, giving the same output."""
+    _, kernels = tiny_data
+    seed = load_kernels(kernels)
+    torch.manual_seed(0)
+    old = build_network("updn", seed, "tiny", {"iterations": 5})
+    path = save_checkpoint(tmp_path / "updn5.pt", {
+        "metadata": {"model": "updn", "preset": "tiny", "overrides": {},
+                     "sensor_shape": list(SENSOR), "kernel_metadata": seed.to_metadata(),
+                     "epoch": 1},
+        "model": old.state_dict(), "initial_kernels": torch.as_tensor(seed.kernels)})
+    model, _ = network_from_checkpoint(path)
+    assert model.iterations == 5 and build_network("updn", seed, "tiny").iterations == 10
+    y = torch.rand(1, 3, *SENSOR)
+    with torch.no_grad():
+        torch.testing.assert_close(model(y), old(y), rtol=0, atol=0)

@@ -10,7 +10,12 @@ import torch
 
 from psfkit.compare.statistics import normalized_correlation as ncc
 from psfkit.fitting.pairs.batches import BATCH_BYTES, DEFAULT_BATCH, PairBatches, auto_batch_size
-from psfkit.fitting.pairs.constraints import STALL_STEPS, kkt_residual, projected_newton
+from psfkit.fitting.pairs.constraints import (
+    STALL_STEPS,
+    _cheap_products_too_coarse,
+    kkt_residual,
+    projected_newton,
+)
 from psfkit.fitting.pairs.fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
 from psfkit.fitting.pairs.gram import FrequencyGram
 from psfkit.fitting.pairs.solver import regularised_normal, solve_kernels
@@ -255,6 +260,23 @@ def test_projected_newton_leaves_too_coarse_cheap_products_for_exact_ones() -> N
     assert 1 <= info["exact_hessian_from"] <= STALL_STEPS
     assert info["converged"] and not info["stalled"]
     assert float(x.min()) >= 0 and float(kkt_residual(normal, rhs, x).max()) < 1e-11
+
+
+def test_a_stall_leaves_the_cheap_products_only_when_they_are_less_precise_than_asked() -> None:
+    """The stall check compares the cheap products' error on the last Newton step with the
+    CG's forcing term: float32 products (relative error ~1e-7) pass at a forcing of 1e-3, so
+    a stalled residual is the active set's swing and they are kept; bfloat16 ones (8-bit
+    mantissa, ~4e-3), the wrong operator (``−N``) or no step at all are too coarse."""
+    _mats, _ys, normal, _rhs = _dense_nnls_problem(0)
+    step = torch.as_tensor(np.random.default_rng(1).random((2, 2, 4, 5)))
+
+    def in_precision(dtype: torch.dtype):
+        return lambda v: normal(v.to(dtype).to(torch.float64))
+
+    assert not _cheap_products_too_coarse(normal, in_precision(torch.float32), step, 1e-3)
+    assert _cheap_products_too_coarse(normal, in_precision(torch.bfloat16), step, 1e-3)
+    assert _cheap_products_too_coarse(normal, lambda v: -normal(v), step, 1e-3)
+    assert _cheap_products_too_coarse(normal, normal, torch.zeros_like(step), 1e-3)
 
 
 def test_projected_newton_with_coarse_products_ends_at_the_tolerance() -> None:
