@@ -32,7 +32,7 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -277,11 +277,39 @@ def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: 
 
 # --- command line ---------------------------------------------------------------------------
 
-def _names(text: str) -> list[str]:
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    if not names or any(n not in NETWORKS for n in names):
-        raise argparse.ArgumentTypeError(f"networks are {', '.join(NETWORKS)}; got {text!r}")
-    return names
+def name_list(known: Sequence[str], what: str) -> Callable[[str], list[str]]:
+    """An argparse type: a comma-separated list of names out of ``known``."""
+    def parse(text: str) -> list[str]:
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        if not names or any(n not in known for n in names):
+            raise argparse.ArgumentTypeError(f"{what} are {', '.join(known)}; got {text!r}")
+        return names
+    return parse
+
+
+def add_bench_arguments(q: argparse.ArgumentParser, size: int, n_train: int,
+                        pairs_flag: str = "--n-train") -> None:
+    """The output folder and the virtual bench's size, pairs, threads and quiet flags."""
+    q.add_argument("out", help="output folder (resumable)")
+    q.add_argument("--sensor", type=int, nargs=2, default=(size, size), metavar=("H", "W"))
+    q.add_argument(pairs_flag, dest="n_train", type=int, default=n_train)
+    q.add_argument("--n-test", type=int, default=16)
+    q.add_argument("--threads", type=int, default=1)
+    q.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def bench_setup(args: argparse.Namespace, *counts: int,
+                rule: str = "--sensor must be >= 16 16 and the counts >= 1"
+                ) -> tuple[VirtualBenchSpec, Callable[[str], None]]:
+    """The bench of :func:`add_bench_arguments`' flags (checked, ``rule`` otherwise) and the
+    log (stderr unless ``--quiet``); sets the threads."""
+    if min(args.sensor) < 16 or min(args.n_train, args.n_test, args.threads, *counts) < 1:
+        raise ConfigurationError(rule)
+    torch.set_num_threads(args.threads)
+    spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
+                            n_test=args.n_test)
+    log = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr))
+    return spec, log
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -294,13 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, epochs, n_train, size in (("sweep", 8, 128, 64), ("field-free", 15, 128, 64),
                                         ("overfit", None, 8, 32)):
         q = sub.add_parser(name, help=f"the {name} check")
-        q.add_argument("out", help="output folder (resumable)")
-        q.add_argument("--sensor", type=int, nargs=2, default=(size, size), metavar=("H", "W"))
-        q.add_argument("--n-train" if name != "overfit" else "--pairs", dest="n_train",
-                       type=int, default=n_train)
-        q.add_argument("--n-test", type=int, default=16)
-        q.add_argument("--threads", type=int, default=1)
-        q.add_argument("--quiet", action="store_true", help="no progress bars")
+        add_bench_arguments(q, size, n_train, "--n-train" if name != "overfit" else "--pairs")
         if epochs:
             q.add_argument("--epochs", type=int, default=epochs)
             q.add_argument("--seeds", type=int_list, default=[0, 1] if name == "sweep"
@@ -309,7 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = sub.choices["sweep"]
     sweep.add_argument("--lrs", type=comma_list(float, "positive numbers", lambda v: v > 0),
                        default=list(LRS))
-    sweep.add_argument("--networks", type=_names, default=["updn", "le-admm-u", "ekdun"])
+    sweep.add_argument("--networks", type=name_list(list(NETWORKS), "networks"),
+                       default=["updn", "le-admm-u", "ekdun"])
     sub.choices["overfit"].add_argument("--steps", type=int, default=1500)
     sub.choices["overfit"].add_argument("--lr", type=float, default=None,
                                         help="default: each network's recipe")
@@ -317,14 +340,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    counts = [args.n_train, args.n_test, args.threads,
-              getattr(args, "epochs", 1), getattr(args, "steps", 1)]
-    if min(args.sensor) < 16 or min(counts) < 1 or (getattr(args, "lr", None) or 1) <= 0:
-        raise ConfigurationError("--sensor must be >= 16 16, the counts >= 1 and --lr > 0")
-    torch.set_num_threads(args.threads)
-    spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
-                            n_test=args.n_test)
-    log = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr))
+    rule = "--sensor must be >= 16 16, the counts >= 1 and --lr > 0"
+    if (getattr(args, "lr", None) or 1) <= 0:
+        raise ConfigurationError(rule)
+    spec, log = bench_setup(args, getattr(args, "epochs", 1), getattr(args, "steps", 1),
+                            rule=rule)
     if args.check == "overfit":
         overfit_check(args.out, spec, args.steps, args.lr, log=log)
         return 0

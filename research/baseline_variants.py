@@ -47,7 +47,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ekdun.data.virtual_bench import VirtualBenchSpec
-from ekdun.errors import ConfigurationError
 from ekdun.evaluation import LPIPSMetric
 from ekdun.evaluation.tables import markdown_table, seed_summary
 from ekdun.nets.le_admm_u import LeADMMU
@@ -57,7 +56,13 @@ from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
 from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.forward.convolution import crop
-from research.baseline_checks import _bench_pairs, _write
+from research.baseline_checks import (
+    _bench_pairs,
+    _write,
+    add_bench_arguments,
+    bench_setup,
+    name_list,
+)
 from research.benchmark_tiny import int_list, train_and_evaluate
 
 
@@ -125,30 +130,29 @@ def _reference_unet_init(self: LeADMMU, physics: Any, config: Any = None) -> Non
 class Variant:
     """A network (``model``, as ``ekdun train`` names it) with config ``overrides``, training
     options changed (``training``: fields of :class:`TrainOptions`) and methods replaced
-    (``patches``: ``(class, name, function)``); ``base`` names the variant it is compared
-    with."""
+    (``patches``: ``(class, name, function)``); it is compared with the variant labelled
+    ``model``, the network as we build it."""
 
     label: str
     model: str
-    base: str
     overrides: dict[str, Any] = field(default_factory=dict)
     training: dict[str, Any] = field(default_factory=dict)
     patches: tuple[tuple[type, str, Callable[..., Any]], ...] = ()
 
 
 VARIANTS = {v.label: v for v in (
-    Variant("le-admm-u", "le-admm-u", "le-admm-u"),
-    Variant("le-admm-u-normalised", "le-admm-u", "le-admm-u",
+    Variant("le-admm-u", "le-admm-u"),
+    Variant("le-admm-u-normalised", "le-admm-u",
             patches=((LeADMMU, "output", _normalised_output),)),
-    Variant("le-admm-u-reference-unet", "le-admm-u", "le-admm-u",
+    Variant("le-admm-u-reference-unet", "le-admm-u",
             patches=((LeADMMU, "__init__", _reference_unet_init),)),
-    Variant("le-admm-u-reference", "le-admm-u", "le-admm-u",
+    Variant("le-admm-u-reference", "le-admm-u",
             patches=((LeADMMU, "__init__", _reference_unet_init),
                      (LeADMMU, "output", _normalised_output))),
-    Variant("updn", "updn", "updn"),
-    Variant("updn-sigmoid", "updn", "updn", patches=((UPDN, "output", _sigmoid_output),)),
-    Variant("updn-5", "updn", "updn", overrides={"iterations": 5}),
-    Variant("updn-psf-rate", "updn", "updn", training={"kernel_lr_scale": 1.0}),
+    Variant("updn", "updn"),
+    Variant("updn-sigmoid", "updn", patches=((UPDN, "output", _sigmoid_output),)),
+    Variant("updn-5", "updn", overrides={"iterations": 5}),
+    Variant("updn-psf-rate", "updn", training={"kernel_lr_scale": 1.0}),
 )}
 
 
@@ -186,8 +190,8 @@ def variants_check(out: str | Path, spec: VirtualBenchSpec, labels: Sequence[str
             rows.append(row)
             log(f"{label} seed {seed}: {row['psnr']:.2f} dB")
     summaries = {}
-    for base in sorted({VARIANTS[label].base for label in labels}):
-        group = [r for r in rows if VARIANTS[r["label"]].base == base]
+    for base in sorted({VARIANTS[label].model for label in labels}):
+        group = [r for r in rows if VARIANTS[r["label"]].model == base]
         if any(r["label"] == base for r in group):
             summaries[base] = seed_summary(group, reference=base)
     doc = {"spec": spec.to_dict(), "preset": preset, "seeds": list(seeds),
@@ -204,39 +208,23 @@ def variants_check(out: str | Path, spec: VirtualBenchSpec, labels: Sequence[str
     return doc
 
 
-def _labels(text: str) -> list[str]:
-    labels = [n.strip() for n in text.split(",") if n.strip()]
-    if not labels or any(n not in VARIANTS for n in labels):
-        raise argparse.ArgumentTypeError(f"variants are {', '.join(VARIANTS)}; got {text!r}")
-    return labels
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m research.baseline_variants``."""
     p = OneLineArgumentParser(prog="python -m research.baseline_variants",
                               description="The cost of each difference of the baselines "
                                           "from their authors' code (issue 45).")
     add_debug_option(p)
-    p.add_argument("out", help="output folder (resumable)")
-    p.add_argument("--variants", type=_labels, default=list(VARIANTS))
-    p.add_argument("--sensor", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
-    p.add_argument("--n-train", type=int, default=128)
-    p.add_argument("--n-test", type=int, default=16)
+    add_bench_arguments(p, 64, 128)
+    p.add_argument("--variants", type=name_list(list(VARIANTS), "variants"),
+                   default=list(VARIANTS))
     p.add_argument("--epochs", type=int, default=8)
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
     return p
 
 
 def _run(args: argparse.Namespace) -> int:
-    if min(args.sensor) < 16 or min(args.n_train, args.n_test, args.epochs, args.threads) < 1:
-        raise ConfigurationError("--sensor must be >= 16 16 and the counts >= 1")
-    torch.set_num_threads(args.threads)
-    spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
-                            n_test=args.n_test)
-    log = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr))
+    spec, log = bench_setup(args, args.epochs)
     options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads)
     variants_check(args.out, spec, args.variants, args.seeds, options, log=log)
     return 0

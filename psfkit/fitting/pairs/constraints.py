@@ -179,8 +179,9 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         Approximation of ``normal`` for the CG of the Newton step (default ``normal``). If
         the residual stops falling with it (``STALL_STEPS`` steps without a new low) and its
         error on the last step exceeds the CG's tolerance, or no step size descends, the
-        steps go on with ``normal``; a stall with precise products doubles the CG
-        iterations per step instead (up to ``MAX_CG_GROWTH`` times ``cg_iterations``).
+        steps go on with ``normal``. Any other stall (precise products, or ``normal``
+        itself) doubles the CG iterations per Newton step, up to ``MAX_CG_GROWTH`` times
+        ``cg_iterations``.
 
     Returns
     -------
@@ -215,9 +216,10 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         improved = residual < best
         best = torch.where(improved, residual, best)
         since = torch.where(improved, torch.zeros_like(since), since + 1)
-        if cheap is not normal and bool(stuck.any() | (since >= STALL_STEPS).any()):
-            if bool(stuck.any()) or last is None or _cheap_products_too_coarse(
-                    normal, cheap, *last):
+        cheap_stuck = cheap is not normal and bool(stuck.any())
+        if cheap_stuck or (last is not None and bool((since >= STALL_STEPS).any())):
+            if cheap is not normal and (cheap_stuck or _cheap_products_too_coarse(
+                    normal, cheap, *last)):
                 # the cheap products are too coarse for this problem's conditioning: go on
                 # with the exact ones
                 cheap, exact_from = normal, done
