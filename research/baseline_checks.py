@@ -5,6 +5,7 @@
     python -m research.baseline_checks field-free OUT [--sensor 64 64] [--n-train 128]
         [--epochs 15] [--seeds 0,1,2]
     python -m research.baseline_checks overfit OUT [--sensor 32 32] [--pairs 8] [--steps 1500]
+        [--networks ekdun,le-admm-u,updn] [--field-free]
 
 ``sweep``: each network trained at each learning rate on the varying virtual bench, same
 budget (pairs, epochs, batch, decay) for all; held-out PSNR per rate, the best rate, and how far
@@ -17,8 +18,8 @@ physics, so at equal budget they should reach the same quality; a large gap mean
 baseline (or a broken EK-DUN). Le-ADMM-U learns only ADMM's scalars inside its iterations and a
 U-Net after them; its distance from the two is its architecture's.
 
-``overfit``: each network fitted to a few pairs, full batch, Adam: a network that cannot drive
-its training loss far below the scenes' variance is broken.
+``overfit``: each network fitted to a few pairs, full batch, Adam with a cosine-annealed rate:
+a network that cannot drive its training loss far below the scenes' variance is broken.
 
 Each writes ``OUT/<check>.json`` and ``OUT/<check>.md``; trainings are resumable under
 ``OUT/runs``.
@@ -223,13 +224,20 @@ def field_free_check(out: str | os.PathLike, spec: VirtualBenchSpec, seeds: Sequ
 def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
                   lr: float | None = None,
                   networks: Sequence[str] = ("ekdun", "le-admm-u", "updn"),
-                  preset: str = "tiny", seed: int = 0, log: Any = print) -> dict[str, Any]:
+                  preset: str = "tiny", seed: int = 0, field_free: bool = False,
+                  log: Any = print) -> dict[str, Any]:
     """Fit each network to the bench's ``spec.n_train`` training pairs (full batch, ``steps``
-    steps of training's own optimiser: Adam with the kernels' group, at ``lr`` or the
-    network's recipe); the training MSE along the way, against the scenes' variance (the MSE
-    of predicting their mean)."""
+    steps of training's own optimiser: Adam with the kernels' group, from ``lr`` or the
+    network's recipe, annealed to 0 along a cosine); the training MSE along the way, against
+    the scenes' variance (the MSE of predicting their mean). With ``field_free`` the pairs are
+    the field-free bench's (one PSF everywhere, :func:`make_field_free_pairs`), every network
+    seeded with that PSF: what a single-PSF network's floor owes to the field's variation."""
     out = Path(out)
-    kernels, train_set, _test = _bench_pairs(out, spec, progress=False)
+    if field_free:
+        data = make_field_free_pairs(out / "field_free", spec)
+        kernels, train_set = np.load(data / "centre_psf.npy"), PairsDataset(data / "train")
+    else:
+        kernels, train_set, _test = _bench_pairs(out, spec, progress=False)
     x = torch.stack([train_set[i][0] for i in range(len(train_set))])
     y = torch.stack([train_set[i][1] for i in range(len(train_set))])
     variance = float(x.var())
@@ -247,12 +255,13 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
         log(f"overfit {name}: MSE {curve[0][1]:.4g} -> {curve[-1][1]:.4g} "
             f"({curve[-1][1] / variance:.1%} of the scenes' variance)")
     doc = {"spec": spec.to_dict(), "steps": steps, "variance": variance,
-           "networks": results}
+           "field_free": field_free, "networks": results}
     lines = ["| network | lr | MSE at step 0 | final MSE | final / variance | time (s) |",
              "|---|---|---|---|---|---|"]
     lines += [f"| {n} | {r['lr']:g} | {r['mse'][0][1]:.4g} | {r['final_mse']:.4g} | "
               f"{r['final_over_variance']:.1%} | {r['seconds']:.0f} |" for n, r in results.items()]
-    _write(out, "overfit", doc, f"### Overfitting {spec.n_train} pairs ({steps} full-batch "
+    _write(out, "overfit", doc, f"### Overfitting {spec.n_train} "
+                                f"{'field-free ' if field_free else ''}pairs ({steps} full-batch "
                                 f"steps, scenes' variance {variance:.4f})\n\n"
                                 + "\n".join(lines) + "\n")
     return doc
@@ -260,8 +269,11 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
 
 def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: int,
                optimizer: torch.optim.Optimizer) -> list[tuple[int, float]]:
-    """Full-batch steps; ``(step, MSE)`` at 0, every tenth of the run and the end."""
+    """Full-batch steps, the learning rate annealed to 0 along a cosine (at a constant rate
+    Adam hovers at a loss floor set by the rate, not by the network's capacity); ``(step,
+    MSE)`` at 0, every tenth of the run and the end."""
     marks = set(np.linspace(0, steps, 11).astype(int).tolist())
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, steps))
     curve = []
     for step in range(steps + 1):
         loss = torch.nn.functional.mse_loss(model(y), x)
@@ -272,6 +284,7 @@ def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: 
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+        schedule.step()
     return curve
 
 
@@ -336,6 +349,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub.choices["overfit"].add_argument("--steps", type=int, default=1500)
     sub.choices["overfit"].add_argument("--lr", type=float, default=None,
                                         help="default: each network's recipe")
+    sub.choices["overfit"].add_argument("--networks", type=name_list(list(NETWORKS),
+                                                                     "networks"),
+                                        default=["ekdun", "le-admm-u", "updn"])
+    sub.choices["overfit"].add_argument("--field-free", action="store_true",
+                                        help="the field-free bench's pairs (one PSF)")
     return p
 
 
@@ -346,7 +364,8 @@ def _run(args: argparse.Namespace) -> int:
     spec, log = bench_setup(args, getattr(args, "epochs", 1), getattr(args, "steps", 1),
                             rule=rule)
     if args.check == "overfit":
-        overfit_check(args.out, spec, args.steps, args.lr, log=log)
+        overfit_check(args.out, spec, args.steps, args.lr, args.networks,
+                      field_free=args.field_free, log=log)
         return 0
     options = TrainOptions(epochs=args.epochs, progress=not args.quiet, threads=args.threads)
     if args.check == "sweep":

@@ -187,10 +187,10 @@ PRESETS: dict[str, Preset] = {
         training=TrainingConfig(epochs=15, batch_size=4, lr=2e-3, gamma=0.95),
         # UPDN: the best of a learning-rate sweep on the 64² bench at this batch, 8 epochs,
         # 3 seeds (python -m research.baseline_checks sweep; docs/baselines.md); EK-DUN's 2e-3
-        # is 0.03 dB from its best there (4e-3), a tie. Le-ADMM-U: 4e-3, 0.36 dB below the
-        # sweep's 8e-3 at 64² (inside its seeds' spread), but 8e-3 collapsed two of three
-        # seeds at 128² (Table 1: 16.88 ± 1.56 dB against 18.38 ± 0.21 at 4e-3)
-        recipes={"updn": {"lr": 4e-3}, "le-admm-u": {"lr": 4e-3}}),
+        # is 0.03 dB from its best there (4e-3), a tie. Le-ADMM-U: the shared 2e-3, the best
+        # of the sweep at Table 1's 128² and 15 epochs (1e-3 18.22, 2e-3 18.75, 4e-3 18.38,
+        # 8e-3 16.88 dB: two seeds of three collapsed)
+        recipes={"updn": {"lr": 4e-3}}),
     # UPDN: its authors' Adam at 5e-4, constant (oliland/lensless-primal-dual)
     "paper": Preset("paper", (1080, 1440), recipes={"updn": {"lr": 5e-4, "gamma": 1.0}}),
 }
