@@ -14,7 +14,6 @@ this measures the numbers of half-precision arithmetic, not a GPU's kernels.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from collections.abc import Sequence
@@ -30,8 +29,7 @@ from ekdun.evaluation.metrics import psnr
 from ekdun.nets.builder import network_from_checkpoint
 from psfkit.cli.main import add_debug_option, run_cli
 from psfkit.cli.parser import OneLineArgumentParser
-from psfkit.io.atomic import atomic_file
-from research.baseline_checks import name_list
+from research.baseline_checks import _write, name_list
 
 AMPS = ("fp16", "bf16")
 
@@ -74,18 +72,14 @@ def precision_check(out: str | Path, checkpoints: Sequence[str], pairs: str,
             gap = precision_gap(model, items, amp)
             runs.append({"checkpoint": str(path), "model": doc["metadata"].get("model"),
                          **gap})
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     result = {"pairs": str(pairs), "n_pairs": len(items), "runs": runs}
-    with atomic_file(out / "precision.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=1))
     lines = ["| checkpoint | amp | mean Δ (dB) | max abs Δ (dB) | lowest agreement (dB) |",
              "|---|---|---|---|---|"]
     lines += [f"| {r['checkpoint']} | {r['amp']} | {r['mean_delta_db']:+.4f} | "
               f"{r['max_abs_delta_db']:.4f} | {r['min_agreement_db']:.1f} |" for r in runs]
-    with atomic_file(out / "precision.md") as tmp:
-        tmp.write_text(f"{len(items)} test pairs of {pairs}; autocast on the CPU\n\n"
-                       + "\n".join(lines) + "\n")
+    _write(Path(out), "precision", result,
+           f"{len(items)} test pairs of {pairs}; autocast on the CPU\n\n"
+           + "\n".join(lines) + "\n")
     return result
 
 
