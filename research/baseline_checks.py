@@ -19,7 +19,11 @@ baseline (or a broken EK-DUN). Le-ADMM-U learns only ADMM's scalars inside its i
 U-Net after them; its distance from the two is its architecture's.
 
 ``overfit``: each network fitted to a few pairs, full batch, Adam with a cosine-annealed rate:
-a network that cannot drive its training loss far below the scenes' variance is broken.
+a network that cannot drive its training loss far below the scenes' variance is broken. For a
+network that ends in a U-Net (Le-ADMM-U, UPDN) it also measures what that U-Net is handed
+(the part of the scenes a per-pixel affine map of its input leaves unexplained) and where the
+same U-Net gets alone from noise (:func:`denoiser_floor`): a floor at the noise floor is the
+U-Net memorising, with nothing from the physics stage.
 
 Each writes ``OUT/<check>.json`` and ``OUT/<check>.md``; trainings are resumable under
 ``OUT/runs``.
@@ -50,6 +54,7 @@ from ekdun.evaluation import LPIPSMetric
 from ekdun.evaluation.tables import markdown_table, seed_summary
 from ekdun.nets.builder import build_network, seed_kernel_model
 from ekdun.nets.configs import get_preset
+from ekdun.nets.unet import UNet
 from ekdun.training.trainer import TrainOptions, make_optimizer
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
@@ -254,12 +259,21 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
                          "seconds": time.perf_counter() - started}
         log(f"overfit {name}: MSE {curve[0][1]:.4g} -> {curve[-1][1]:.4g} "
             f"({curve[-1][1] / variance:.1%} of the scenes' variance)")
+        if hasattr(model, "denoiser"):
+            results[name]["denoiser"] = denoiser_floor(model, x, y, steps, cfg.lr, seed)
+            floor = results[name]["denoiser"]
+            log(f"  its U-Net's input leaves {floor['unexplained']:.1%} unexplained; the "
+                f"U-Net alone from noise {floor['noise_floor']:.1%}, from the scenes plus "
+                f"noise ({floor['informed_unexplained']:.1%} unexplained) "
+                f"{floor['informed_floor']:.1%}")
     doc = {"spec": spec.to_dict(), "steps": steps, "variance": variance,
            "field_free": field_free, "networks": results}
-    lines = ["| network | lr | MSE at step 0 | final MSE | final / variance | time (s) |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| network | lr | MSE at step 0 | final MSE | final / variance | U-Net's input: "
+             "unexplained | U-Net alone: from noise | from the scenes + noise | time (s) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {n} | {r['lr']:g} | {r['mse'][0][1]:.4g} | {r['final_mse']:.4g} | "
-              f"{r['final_over_variance']:.1%} | {r['seconds']:.0f} |" for n, r in results.items()]
+              f"{r['final_over_variance']:.1%} | {_floor_cells(r)} | {r['seconds']:.0f} |"
+              for n, r in results.items()]
     _write(out, "overfit", doc, f"### Overfitting {spec.n_train} "
                                 f"{'field-free ' if field_free else ''}pairs ({steps} full-batch "
                                 f"steps, scenes' variance {variance:.4f})\n\n"
@@ -267,8 +281,70 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
     return doc
 
 
-def _fit_pairs(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: int,
-               optimizer: torch.optim.Optimizer) -> list[tuple[int, float]]:
+def _floor_cells(result: dict[str, Any]) -> str:
+    floor = result.get("denoiser")
+    return "– | – | –" if floor is None else (
+        f"{floor['unexplained']:.1%} | {floor['noise_floor']:.1%} | "
+        f"{floor['informed_floor']:.1%} ({floor['informed_unexplained']:.1%} unexplained)")
+
+
+def denoiser_floor(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, steps: int,
+                   lr: float, seed: int = 0) -> dict[str, float]:
+    """What a network that ends in a U-Net (``model.denoiser``: Le-ADMM-U, UPDN) can owe to
+    that U-Net, once the network has been fitted to the pairs ``(x, y)``:
+
+    * ``unexplained``: the part of the scenes' variance that the best per-pixel affine map of
+      the U-Net's input (least squares per colour over all its channels) leaves, i.e. how
+      little of the scenes the physics stage hands the U-Net;
+    * ``noise_floor``: the same U-Net (fresh, same seed), fitted alone in the same way
+      (``steps``, ``lr``, cosine) from uniform noise to the scenes, over their variance: what
+      it reaches by memorising alone. A network whose own floor sits at this one gets nothing
+      from its physics that the U-Net can use;
+    * ``informed_floor`` (and ``informed_unexplained``): the same from an input that does hold
+      the scenes (the scenes plus white noise of half their standard deviation, each colour
+      repeated over the U-Net's input channels of that colour, so that every network is
+      handed the same): what the U-Net reaches when it is handed the scenes.
+    """
+    captured: list[torch.Tensor] = []
+    hook = model.denoiser.register_forward_pre_hook(lambda _m, args: captured.append(args[0]))
+    try:
+        with torch.no_grad():
+            model(y)
+    finally:
+        hook.remove()
+    features = captured[0].detach()
+    variance = float(x.var())
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.rand(features.shape, generator=generator, dtype=features.dtype)
+    colours = torch.arange(features.shape[1]) % x.shape[1]
+    informed = (x + 0.5 * variance ** 0.5 * torch.randn(
+        x.shape, generator=generator, dtype=features.dtype))[:, colours]
+    floors = {}
+    for name, inputs in (("noise_floor", noise), ("informed_floor", informed)):
+        torch.manual_seed(seed)
+        config = model.config.denoiser
+        unet = UNet(features.shape[1], x.shape[1], config.widths, config.residual,
+                    config.zero_init_output)
+        curve = _fit_pairs(lambda _y, unet=unet, inputs=inputs: unet(inputs), x, y, steps,
+                           torch.optim.Adam(unet.parameters(), lr=lr))
+        floors[name] = curve[-1][1] / variance
+    return {"unexplained": _affine_unexplained(features, x) / variance,
+            "informed_unexplained": _affine_unexplained(informed, x) / variance, **floors}
+
+
+def _affine_unexplained(features: torch.Tensor, x: torch.Tensor) -> float:
+    """Mean squared residual of the least-squares per-pixel affine map from ``features``
+    ``(B, F, H, W)`` to ``x`` ``(B, C, H, W)`` (one map per colour, pooled over pixels)."""
+    design = features.double().permute(0, 2, 3, 1).reshape(-1, features.shape[1])
+    design = torch.cat([design, torch.ones(len(design), 1, dtype=design.dtype)], dim=1)
+    target = x.double().permute(0, 2, 3, 1).reshape(-1, x.shape[1])
+    solution = torch.linalg.lstsq(design, target).solution
+    return float((design @ solution - target).pow(2).mean())
+
+
+def _fit_pairs(model: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
+               y: torch.Tensor, steps: int, optimizer: torch.optim.Optimizer
+               ) -> list[tuple[int, float]]:
     """Full-batch steps, the learning rate annealed to 0 along a cosine (at a constant rate
     Adam hovers at a loss floor set by the rate, not by the network's capacity); ``(step,
     MSE)`` at 0, every tenth of the run and the end."""
