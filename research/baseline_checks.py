@@ -263,14 +263,15 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
             results[name]["denoiser"] = denoiser_floor(model, x, y, steps, cfg.lr, seed)
             floor = results[name]["denoiser"]
             log(f"  its U-Net's input leaves {floor['unexplained']:.1%} unexplained; the "
-                f"U-Net alone from noise {floor['noise_floor']:.1%}, from the scenes plus "
+                f"U-Net alone from noise {floor['noise_floor']:.1%}, from that input "
+                f"{floor['own_floor']:.1%}, from the scenes plus "
                 f"noise ({floor['informed_unexplained']:.1%} unexplained) "
                 f"{floor['informed_floor']:.1%}")
     doc = {"spec": spec.to_dict(), "steps": steps, "variance": variance,
            "field_free": field_free, "networks": results}
     lines = ["| network | lr | MSE at step 0 | final MSE | final / variance | U-Net's input: "
-             "unexplained | U-Net alone: from noise | from the scenes + noise | time (s) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "unexplained | U-Net alone: from noise | from that input | from the scenes + "
+             "noise | time (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {n} | {r['lr']:g} | {r['mse'][0][1]:.4g} | {r['final_mse']:.4g} | "
               f"{r['final_over_variance']:.1%} | {_floor_cells(r)} | {r['seconds']:.0f} |"
               for n, r in results.items()]
@@ -283,8 +284,8 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
 
 def _floor_cells(result: dict[str, Any]) -> str:
     floor = result.get("denoiser")
-    return "– | – | –" if floor is None else (
-        f"{floor['unexplained']:.1%} | {floor['noise_floor']:.1%} | "
+    return "– | – | – | –" if floor is None else (
+        f"{floor['unexplained']:.1%} | {floor['noise_floor']:.1%} | {floor['own_floor']:.1%} | "
         f"{floor['informed_floor']:.1%} ({floor['informed_unexplained']:.1%} unexplained)")
 
 
@@ -300,6 +301,8 @@ def denoiser_floor(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, ste
       (``steps``, ``lr``, cosine) from uniform noise to the scenes, over their variance: what
       it reaches by memorising alone. A network whose own floor sits at this one gets nothing
       from its physics that the U-Net can use;
+    * ``own_floor``: the same from the network's own fitted input, held fixed: below the
+      network's floor, the joint fit (not what the U-Net is handed) holds the network;
     * ``informed_floor`` (and ``informed_unexplained``): the same from an input that does hold
       the scenes (the scenes plus white noise of half their standard deviation, each colour
       repeated over the U-Net's input channels of that colour, so that every network is
@@ -320,7 +323,8 @@ def denoiser_floor(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, ste
     informed = (x + 0.5 * variance ** 0.5 * torch.randn(
         x.shape, generator=generator, dtype=features.dtype))[:, colours]
     floors = {}
-    for name, inputs in (("noise_floor", noise), ("informed_floor", informed)):
+    for name, inputs in (("noise_floor", noise), ("own_floor", features),
+                         ("informed_floor", informed)):
         torch.manual_seed(seed)
         config = model.config.denoiser
         unet = UNet(features.shape[1], x.shape[1], config.widths, config.residual,

@@ -101,6 +101,32 @@ def test_every_network_overfits_two_pairs(tmp_path):
         assert 0.1 < floor["informed_unexplained"] < 0.3, name
 
 
+def test_a_u_net_handed_the_scenes_fits_them_from_its_own_input_and_not_from_noise():
+    """A network whose physics stage hands its (residual, zero-started) U-Net the scenes
+    themselves: nothing is left unexplained and the U-Net alone from that input fits them
+    exactly, while from noise it must memorise."""
+    from types import SimpleNamespace
+
+    from ekdun.nets.configs import UNetConfig
+    from ekdun.nets.unet import UNet
+
+    # not seed 0: the floor's noise is drawn with the seed it is given (0)
+    x = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+
+    class Handed(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.config = SimpleNamespace(denoiser=UNetConfig(widths=(4, 8)))
+            self.denoiser = UNet(3, 3, (4, 8))
+
+        def forward(self, y):
+            return self.denoiser(x)
+
+    floor = bc.denoiser_floor(Handed(), x, torch.zeros_like(x), steps=30, lr=1e-2)
+    assert floor["unexplained"] < 1e-20 and floor["own_floor"] < 1e-12
+    assert floor["noise_floor"] > 0.1
+
+
 def test_the_affine_map_explains_what_the_features_hold():
     """A per-pixel affine map of features that contain the scenes explains them exactly;
     of pure noise it explains (almost) nothing but each colour's mean."""
