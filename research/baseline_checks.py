@@ -22,8 +22,9 @@ U-Net after them; its distance from the two is its architecture's.
 a network that cannot drive its training loss far below the scenes' variance is broken. For a
 network that ends in a U-Net (Le-ADMM-U, UPDN) it also measures what that U-Net is handed
 (the part of the scenes a per-pixel affine map of its input leaves unexplained) and where the
-same U-Net gets alone from noise (:func:`denoiser_floor`): a floor at the noise floor is the
-U-Net memorising, with nothing from the physics stage.
+same U-Net gets alone (:func:`denoiser_floor`): from noise (memorising only), from the
+network's own input held fixed (below the network's floor: the joint fit holds it), and from
+the scenes plus noise (what it reaches when handed them).
 
 Each writes ``OUT/<check>.json`` and ``OUT/<check>.md``; trainings are resumable under
 ``OUT/runs``.
@@ -322,11 +323,11 @@ def denoiser_floor(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, ste
     colours = torch.arange(features.shape[1]) % x.shape[1]
     informed = (x + 0.5 * variance ** 0.5 * torch.randn(
         x.shape, generator=generator, dtype=features.dtype))[:, colours]
+    config = model.config.denoiser
     floors = {}
     for name, inputs in (("noise_floor", noise), ("own_floor", features),
                          ("informed_floor", informed)):
-        torch.manual_seed(seed)
-        config = model.config.denoiser
+        torch.manual_seed(seed)                    # every U-Net starts from the same weights
         unet = UNet(features.shape[1], x.shape[1], config.widths, config.residual,
                     config.zero_init_output)
         curve = _fit_pairs(lambda _y, unet=unet, inputs=inputs: unet(inputs), x, y, steps,

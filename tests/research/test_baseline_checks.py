@@ -5,6 +5,7 @@ measured."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,7 +14,8 @@ from scipy.signal import fftconvolve
 
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
-from ekdun.nets.configs import get_preset
+from ekdun.nets.configs import UNetConfig, get_preset
+from ekdun.nets.unet import UNet
 from ekdun.training.trainer import TrainOptions
 from research import baseline_checks as bc
 
@@ -87,7 +89,7 @@ def test_every_network_overfits_two_pairs(tmp_path):
     0.0272, Le-ADMM-U 0.214 → 0.0417, UPDN 0.851 → 0.0272 (the scenes' variance 0.051).
     The two networks that end in a U-Net also report what their U-Net was handed (its
     input left 90.5 % and 73.3 % of the scenes' variance unexplained) and how far it gets
-    alone from noise."""
+    alone from noise, from that input and from the scenes plus noise."""
     spec = VirtualBenchSpec(sensor_shape=(16, 16), n_train=2, n_test=1)
     doc = bc.overfit_check(tmp_path, spec, steps=150, log=lambda text: None)
     for name, result in doc["networks"].items():
@@ -105,11 +107,6 @@ def test_a_u_net_handed_the_scenes_fits_them_from_its_own_input_and_not_from_noi
     """A network whose physics stage hands its (residual, zero-started) U-Net the scenes
     themselves: nothing is left unexplained and the U-Net alone from that input fits them
     exactly, while from noise it must memorise."""
-    from types import SimpleNamespace
-
-    from ekdun.nets.configs import UNetConfig
-    from ekdun.nets.unet import UNet
-
     # not seed 0: the floor's noise is drawn with the seed it is given (0)
     x = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(1))
 
