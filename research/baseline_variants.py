@@ -27,6 +27,10 @@ network as we build it, paired by seed. Variants:
 ``updn-psf-rate``
     UPDN with its PSFs trained at the network's learning rate, as the reference (ours: 1e-2
     of it, ``kernel_lr_scale``).
+``updn-unet-fast``, ``updn-blocks-slow``
+    Not the reference's (one rate for all): UPDN's U-Net at twice the network's rate, or its
+    primal-dual blocks at a quarter of it; whether its joint fit is held by one part chasing
+    the other (research/notes/baselines-measurements.md, overfitting).
 
 A variant that changes a method is applied by replacing the method for the duration of its
 training and evaluation (:func:`applied`); the product's classes are not changed.
@@ -51,6 +55,7 @@ from ekdun.evaluation import LPIPSMetric
 from ekdun.evaluation.tables import markdown_table, seed_summary
 from ekdun.nets.le_admm_u import LeADMMU
 from ekdun.nets.updn import UPDN
+from ekdun.training import trainer
 from ekdun.training.trainer import TrainOptions
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
@@ -118,6 +123,22 @@ class ReferenceUNet(nn.Module):
 
 
 _LE_ADMM_U_INIT = LeADMMU.__init__
+_PARAM_GROUPS = trainer._param_groups
+
+
+def _scaled_groups(prefix: str | tuple[str, ...], scale: float
+                   ) -> Callable[..., list[dict[str, Any]]]:
+    """The trainer's parameter groups with the parameters named ``prefix…`` at ``scale`` × the
+    network's rate, in a group of their own."""
+
+    def groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
+        out = _PARAM_GROUPS(model, lr, kernel_lr_scale)
+        chosen = {id(p) for name, p in model.named_parameters() if name.startswith(prefix)}
+        rest = [p for p in out[0]["params"] if id(p) not in chosen]
+        picked = [p for p in out[0]["params"] if id(p) in chosen]
+        return [{"params": rest, "lr": lr}, {"params": picked, "lr": lr * scale}, *out[1:]]
+
+    return groups
 
 
 def _reference_unet_init(self: LeADMMU, physics: Any, config: Any = None) -> None:
@@ -153,6 +174,11 @@ VARIANTS = {v.label: v for v in (
     Variant("updn-sigmoid", "updn", patches=((UPDN, "output", _sigmoid_output),)),
     Variant("updn-5", "updn", overrides={"iterations": 5}),
     Variant("updn-psf-rate", "updn", training={"kernel_lr_scale": 1.0}),
+    Variant("updn-unet-fast", "updn",
+            patches=((trainer, "_param_groups", _scaled_groups("denoiser.", 2.0)),)),
+    Variant("updn-blocks-slow", "updn",
+            patches=((trainer, "_param_groups", _scaled_groups(("dual_updates.",
+                                                                 "primal_updates."), 0.25)),)),
 )}
 
 

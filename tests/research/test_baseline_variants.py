@@ -58,6 +58,27 @@ def test_the_sigmoid_variant_squashes_updns_output_and_is_undone_after():
     assert UPDN.__dict__["output"] is not bv._sigmoid_output
 
 
+@pytest.mark.parametrize("label, prefixes, scale", [
+    ("updn-unet-fast", ("denoiser.",), 2.0),
+    ("updn-blocks-slow", ("dual_updates.", "primal_updates."), 0.25)])
+def test_a_rate_variant_moves_exactly_its_part_of_updn_to_its_rate(label, prefixes, scale):
+    from ekdun.training import trainer
+
+    model = build_network("updn", seed_kernel_model(_psf()), "tiny")
+    plain = trainer._param_groups(model, 1e-3, 1e-2)
+    with bv.applied(bv.VARIANTS[label]):
+        groups = trainer._param_groups(model, 1e-3, 1e-2)
+    assert trainer._param_groups is bv._PARAM_GROUPS
+    rate = {id(p): g["lr"] for g in groups for p in g["params"]}
+    expected = {id(p): g["lr"] for g in plain for p in g["params"]}
+    assert rate.keys() == expected.keys()                    # every parameter, once
+    assert sum(len(g["params"]) for g in groups) == len(rate)
+    for name, p in model.named_parameters():
+        want = expected[id(p)] * (scale if name.startswith(prefixes) else 1.0)
+        assert rate[id(p)] == pytest.approx(want), name
+    assert any(name.startswith(prefixes) for name, _p in model.named_parameters())
+
+
 def test_a_method_is_restored_when_the_training_fails():
     original = LeADMMU.__dict__["output"]
     with pytest.raises(RuntimeError), bv.applied(bv.VARIANTS["le-admm-u-normalised"]):
