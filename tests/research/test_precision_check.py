@@ -79,3 +79,33 @@ def test_the_report_is_written(tmp_path, monkeypatch) -> None:
     doc = json.loads((tmp_path / "precision.json").read_text())
     assert doc == json.loads(json.dumps(result)) and doc["n_pairs"] == 2
     assert "| a.pt | bf16 |" in (tmp_path / "precision.md").read_text()
+
+
+def test_the_float32_reference_runs_without_tf32_and_restores_it() -> None:
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    seen = []
+
+    class Probe(nn.Module):
+        def forward(self, y: torch.Tensor) -> torch.Tensor:
+            seen.append((torch.backends.cudnn.allow_tf32,
+                         torch.backends.cuda.matmul.allow_tf32, torch.is_autocast_enabled("cpu")))
+            return y
+
+    try:
+        torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = True
+        pc.precision_gap(Probe(), _pairs(1), "bf16")
+        # the float32 pass without TF32; the autocast pass as the network runs it
+        assert seen == [(False, False, False), (True, True, True)]
+        assert torch.backends.cudnn.allow_tf32 and torch.backends.cuda.matmul.allow_tf32
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+
+
+def test_a_device_this_machine_lacks_is_one_line(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    (tmp_path / "pairs").mkdir()
+    code = pc.main([str(tmp_path / "out"), str(tmp_path / "a.pt"), "--pairs",
+                    str(tmp_path / "pairs"), "--device", "cuda"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "CUDA is not available" in err[0]
+    assert not (tmp_path / "out").exists()
