@@ -163,7 +163,8 @@ def comma_list(cast: Callable[[str], Any], what: str, valid: Callable[[Any], boo
 int_list = comma_list(int, "integers >= 0", lambda v: v >= 0)
 
 
-def _run_names(text: str) -> tuple[tuple[str, str, dict[str, Any]], ...]:
+def run_names(text: str) -> tuple[tuple[str, str, dict[str, Any]], ...]:
+    """An argparse type: comma-separated names of :data:`RUNS`, their runs in that order."""
     known = {r[0]: r for r in RUNS}
     names = [n.strip() for n in text.split(",") if n.strip()]
     unknown = [n for n in names if n not in known]
@@ -195,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "± sd and the difference to EK-DUN paired by seed")
     p.add_argument("--sensor", type=int, nargs=2, default=(64, 64), metavar=("H", "W"),
                    help="sensor size of the dataset (default 64 64)")
-    p.add_argument("--runs", type=_run_names, default=RUNS,
+    p.add_argument("--runs", type=run_names, default=RUNS,
                    help=f"runs, comma-separated (default all: "
                         f"{','.join(r[0] for r in RUNS)})")
     p.add_argument("--lpips-weights", help="local AlexNet weights for LPIPS")

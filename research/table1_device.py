@@ -49,7 +49,7 @@ from ekdun.training.trainer import CHECKPOINT, TrainOptions, train
 from psfkit.cli import run_cli
 from psfkit.cli.main import add_debug_option
 from psfkit.cli.parser import OneLineArgumentParser
-from research.benchmark_tiny import RUNS, _run_names, fit_seed_kernels, int_list
+from research.benchmark_tiny import RUNS, fit_seed_kernels, int_list, run_names
 from research.precision_check import precision_check
 
 #: Seconds a stopped training has to finish writing its epoch before it is killed.
@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-test", type=int, default=64)
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
-    p.add_argument("--runs", type=_run_names,
+    p.add_argument("--runs", type=run_names,
                    default=tuple(r for r in RUNS if r[0] in ("ekdun-last-2", "updn",
                                                              "le-admm-u")))
     p.add_argument("--stop-at", type=float, default=420.0,
@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     if args.worker:
-        run = _run_names(args.worker[0])[0]
+        run = run_names(args.worker[0])[0]
         train_one(Path(args.out), run, int(args.worker[1]), args.epochs, args.device)
         return 0
     spec = VirtualBenchSpec(sensor_shape=tuple(args.sensor), n_train=args.n_train,
