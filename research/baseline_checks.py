@@ -75,7 +75,9 @@ RECIPE_MARGIN_DB = 0.3
 FIELD_FREE_MARGIN_DB = 1.0
 
 
-def _write(out: Path, name: str, doc: dict[str, Any], text: str) -> None:
+def write_study(out: Path, name: str, doc: dict[str, Any], text: str) -> None:
+    """A study's results: ``OUT/NAME.json`` (``doc``) and ``OUT/NAME.md`` (``text``), each
+    written atomically."""
     out.mkdir(parents=True, exist_ok=True)
     with atomic_file(out / f"{name}.json") as tmp:
         tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
@@ -83,8 +85,10 @@ def _write(out: Path, name: str, doc: dict[str, Any], text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
-def _bench_pairs(out: Path, spec: VirtualBenchSpec, progress: bool
-                 ) -> tuple[Path, PairsDataset, PairsDataset]:
+def bench_pairs(out: Path, spec: VirtualBenchSpec, progress: bool
+                ) -> tuple[Path, PairsDataset, PairsDataset]:
+    """The varying bench of ``spec`` in ``OUT/dataset`` and its grid's seed kernels (both
+    reused when there): the kernel file, the training and the test pairs."""
     data = make_virtual_bench(out / "dataset", spec, progress=progress)
     kernels = out / "kernels_fit.npz"
     if not kernels.is_file():
@@ -100,7 +104,7 @@ def lr_sweep(out: str | os.PathLike, spec: VirtualBenchSpec, networks: Sequence[
     """Train every network at every rate and seed; held-out PSNR and the recipe's distance
     from the best rate (``recipe_gap_db``: recipe minus best, mean over seeds)."""
     out = Path(out)
-    kernels, train_set, test_set = _bench_pairs(out, spec, options.progress)
+    kernels, train_set, test_set = bench_pairs(out, spec, options.progress)
     lpips = LPIPSMetric(None)
     rows = []
     for name in networks:
@@ -118,7 +122,7 @@ def lr_sweep(out: str | os.PathLike, spec: VirtualBenchSpec, networks: Sequence[
                for name in networks}
     doc = {"spec": spec.to_dict(), "preset": preset, "epochs": options.epochs,
            "seeds": list(seeds), "rows": rows, "summary": summary}
-    _write(out, "sweep", doc, _sweep_markdown(doc, lrs))
+    write_study(out, "sweep", doc, _sweep_markdown(doc, lrs))
     return doc
 
 
@@ -221,7 +225,7 @@ def field_free_check(out: str | os.PathLike, spec: VirtualBenchSpec, seeds: Sequ
             f"{markdown_table(summary, columns)}\n\nVirtual bench {spec.sensor_shape}, "
             f"{spec.n_train} / {spec.n_test} pairs, preset {preset} (each network's recipe), "
             f"every network seeded with the noise-free centre PSF.\n")
-    _write(out, "field_free", doc, text)
+    write_study(out, "field_free", doc, text)
     return doc
 
 
@@ -243,7 +247,7 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
         data = make_field_free_pairs(out / "field_free", spec)
         kernels, train_set = np.load(data / "centre_psf.npy"), PairsDataset(data / "train")
     else:
-        kernels, train_set, _test = _bench_pairs(out, spec, progress=False)
+        kernels, train_set, _test = bench_pairs(out, spec, progress=False)
     x = torch.stack([train_set[i][0] for i in range(len(train_set))])
     y = torch.stack([train_set[i][1] for i in range(len(train_set))])
     variance = float(x.var())
@@ -276,7 +280,7 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
     lines += [f"| {n} | {r['lr']:g} | {r['mse'][0][1]:.4g} | {r['final_mse']:.4g} | "
               f"{r['final_over_variance']:.1%} | {_floor_cells(r)} | {r['seconds']:.0f} |"
               for n, r in results.items()]
-    _write(out, "overfit", doc, f"### Overfitting {spec.n_train} "
+    write_study(out, "overfit", doc, f"### Overfitting {spec.n_train} "
                                 f"{'field-free ' if field_free else ''}pairs ({steps} full-batch "
                                 f"steps, scenes' variance {variance:.4f})\n\n"
                                 + "\n".join(lines) + "\n")

@@ -62,11 +62,11 @@ from psfkit.cli.main import add_debug_option
 from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.forward.convolution import crop
 from research.baseline_checks import (
-    _bench_pairs,
-    _write,
     add_bench_arguments,
+    bench_pairs,
     bench_setup,
     name_list,
+    write_study,
 )
 from research.benchmark_tiny import int_list, train_and_evaluate
 
@@ -201,7 +201,7 @@ def variants_check(out: str | Path, spec: VirtualBenchSpec, labels: Sequence[str
     """Train every variant over ``seeds`` on the varying bench; PSNR and each variant's
     difference to its base network, paired by seed."""
     out = Path(out)
-    kernels, train_set, test_set = _bench_pairs(out, spec, options.progress)
+    kernels, train_set, test_set = bench_pairs(out, spec, options.progress)
     lpips = LPIPSMetric(None)
     rows = []
     for label in labels:
@@ -229,7 +229,7 @@ def variants_check(out: str | Path, spec: VirtualBenchSpec, labels: Sequence[str
                ("ssim_mean", "SSIM", 4), ("delta_text", "Δ to ours, paired by seed (dB)", -1)]
     text = "".join(f"### {base}: variants, seeds {list(seeds)}\n\n"
                    f"{markdown_table(s, columns)}\n\n" for base, s in summaries.items())
-    _write(out, "variants", doc, text + f"Virtual bench {spec.sensor_shape}, {spec.n_train} / "
+    write_study(out, "variants", doc, text + f"Virtual bench {spec.sensor_shape}, {spec.n_train} / "
                                         f"{spec.n_test} pairs, preset {preset} (recipes).\n")
     return doc
 

@@ -32,7 +32,7 @@ from ekdun.evaluation.metrics import psnr
 from ekdun.nets.builder import network_from_checkpoint
 from psfkit.cli.main import add_debug_option, run_cli
 from psfkit.cli.parser import OneLineArgumentParser
-from research.baseline_checks import _write, name_list
+from research.baseline_checks import name_list, write_study
 
 AMPS = ("fp16", "bf16")
 
@@ -97,7 +97,7 @@ def precision_check(out: str | Path, checkpoints: Sequence[str], pairs: str,
              "|---|---|---|---|---|"]
     lines += [f"| {r['checkpoint']} | {r['amp']} | {r['mean_delta_db']:+.4f} | "
               f"{r['max_abs_delta_db']:.4f} | {r['min_agreement_db']:.1f} |" for r in runs]
-    _write(Path(out), "precision", result,
+    write_study(Path(out), "precision", result,
            f"{len(items)} test pairs of {pairs}; autocast on {name}\n\n"
            + "\n".join(lines) + "\n")
     return result
