@@ -281,9 +281,8 @@ def overfit_check(out: str | os.PathLike, spec: VirtualBenchSpec, steps: int,
               f"{r['final_over_variance']:.1%} | {_floor_cells(r)} | {r['seconds']:.0f} |"
               for n, r in results.items()]
     write_study(out, "overfit", doc, f"### Overfitting {spec.n_train} "
-                                f"{'field-free ' if field_free else ''}pairs ({steps} full-batch "
-                                f"steps, scenes' variance {variance:.4f})\n\n"
-                                + "\n".join(lines) + "\n")
+                f"{'field-free ' if field_free else ''}pairs ({steps} full-batch steps, "
+                f"scenes' variance {variance:.4f})\n\n" + "\n".join(lines) + "\n")
     return doc
 
 

@@ -229,8 +229,9 @@ def variants_check(out: str | Path, spec: VirtualBenchSpec, labels: Sequence[str
                ("ssim_mean", "SSIM", 4), ("delta_text", "Δ to ours, paired by seed (dB)", -1)]
     text = "".join(f"### {base}: variants, seeds {list(seeds)}\n\n"
                    f"{markdown_table(s, columns)}\n\n" for base, s in summaries.items())
-    write_study(out, "variants", doc, text + f"Virtual bench {spec.sensor_shape}, {spec.n_train} / "
-                                        f"{spec.n_test} pairs, preset {preset} (recipes).\n")
+    write_study(out, "variants", doc,
+                text + f"Virtual bench {spec.sensor_shape}, {spec.n_train} / {spec.n_test} "
+                       f"pairs, preset {preset} (recipes).\n")
     return doc
 
 

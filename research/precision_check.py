@@ -98,8 +98,8 @@ def precision_check(out: str | Path, checkpoints: Sequence[str], pairs: str,
     lines += [f"| {r['checkpoint']} | {r['amp']} | {r['mean_delta_db']:+.4f} | "
               f"{r['max_abs_delta_db']:.4f} | {r['min_agreement_db']:.1f} |" for r in runs]
     write_study(Path(out), "precision", result,
-           f"{len(items)} test pairs of {pairs}; autocast on {name}\n\n"
-           + "\n".join(lines) + "\n")
+                f"{len(items)} test pairs of {pairs}; autocast on {name}\n\n"
+                + "\n".join(lines) + "\n")
     return result
 
 
