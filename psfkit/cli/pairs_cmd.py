@@ -48,8 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_flag(p, "--basis", "fit-pairs",
              note=f"si; one of ek, {', '.join(BASIS_NAMES)}")
     add_flag(p, "--convention", "fit-pairs",
-             note="sensor: K FFT pairs per iteration; source costs one FFT pair per "
-                  "iteration and predicts held-out real pairs better (docs/your-camera.md)")
+             note="auto: each convention at its own chosen regularisation on the same folds, "
+                  "the sensor side unless the source side predicts the held-out pairs "
+                  "better; the kernel file records the choice")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_channel_order(p, "the folder's (pairs.json; BGR for the DLMD layout lensed/ + "
                          "diffuser/), else RGB; recorded in the kernel file")
@@ -168,18 +169,20 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
     physics = fit.physics()
     summary: dict[str, Any] = {
         "pairs": str(pairs.root), "names": list(pairs.names), "holdout": held, "model": basis,
-        "convention": options.convention, "downsample": args.downsample,
+        "convention": fit.convention, "downsample": args.downsample,
         "sensor_shape": list(scenes.shape[-2:]), "options": options.__dict__,
         "training_error": dict(zip(pairs.names, fit.training_error.tolist(), strict=True)),
         "scales": dict(zip(pairs.names, fit.scales.tolist(), strict=True)),
         "solver": fit.history, "physics": physics}
-    regularisation = fit.regularisation_record()
-    summary["regularisation"] = regularisation
+    summary["regularisation"] = fit.regularisation_record()
+    if fit.convention_choice:
+        summary["convention_choice"] = fit.convention_choice
     if args.leave_one_out:
         # each fold fitted with the weights chosen on all the pairs (choosing them again in
         # every fold would nest one cross-validation in another)
         summary["leave_one_out"] = leave_one_out(
-            scenes, measurements, dataclasses.replace(options, **fit.weights),
+            scenes, measurements,
+            dataclasses.replace(options, convention=fit.convention, **fit.weights),
             progress=not args.quiet, support_mask=mask)
     # the folder (resolved: eval-model compares it with the folder it is given) and the
     # names fitted on; "holdout" only where pairs were held out (files without it held none)
@@ -227,6 +230,10 @@ def _print_fit(args: argparse.Namespace, basis: str, out: Path, pairs: Any,
                  f"{options.final_projected_iterations}") + ")")
     for choice in fit.regularisation:
         print(f"  {choice.summary()}")
+    if fit.convention_choice:
+        from psfkit.fitting.pairs.regularisation import convention_summary
+
+        print(f"  {convention_summary(fit.convention_choice)}")
     if args.leave_one_out:
         loo = summary["leave_one_out"]
         print(f"  leave-one-out relative error: mean {loo['mean_raw']:.4f} raw, "

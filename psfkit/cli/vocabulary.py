@@ -80,11 +80,14 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                                  "psfkit.forward.weights"}}),
     SharedFlag("--convention", "convention",
                "where the weights of an eigen-kernel model live: sensor (the paper's Eq. 7) "
-               "or source (fit-eigen: also auto = the lower cross-validated error)",
-               "sensor", default="sensor", choices=("sensor", "source"),
+               "or source (also auto = the lower held-out error)",
+               "sensor (fit-pairs: auto)", default="sensor", choices=("sensor", "source"),
                # fit-eigen: unset = sensor, or with --basis auto the verdict's convention
-               per_command={"fit-pairs": {"meaning": "where the weights of an eigen-kernel "
-                                          "model live: sensor (the paper's Eq. 7) or source"},
+               per_command={"fit-pairs": {"choices": ("sensor", "source", "auto"),
+                                          "default": "auto", "meaning":
+                                          "where the weights of an eigen-kernel model live: "
+                                          "sensor (the paper's Eq. 7), source, or auto (the "
+                                          "lower held-out error)"},
                             "fit-eigen": {"choices": ("sensor", "source", "auto"),
                                           "default": None, "meaning":
                                           "where the weights of the eigen-kernel model live: "

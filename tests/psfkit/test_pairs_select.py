@@ -203,6 +203,53 @@ def test_the_choice_is_recorded_in_the_kernel_file(camera, tmp_path) -> None:
     assert all(len(p["per_pair"]) == 5 for p in auto["path"])
 
 
+@pytest.mark.parametrize("truth", ["sensor", "source"])
+def test_the_convention_is_chosen_by_held_out_error(camera, truth, tmp_path) -> None:
+    """``convention="auto"`` (the default) finds where a known camera's weight maps act: pairs
+    of the same kernels with sensor-side or source-side weights (1 % noise) each get their own
+    convention, every convention scored on the same held-out pairs at its own chosen weight,
+    and the kernel file records the choice."""
+    model, scenes, _ = camera
+    camera_model = KernelModel(kernels=model.kernels, basis="paper", convention=truth,
+                               sensor_shape=(24, 24), channels=("R", "G", "B"))
+    clean = predict(camera_model, scenes[:12].astype(np.float32), dtype=torch.float64)
+    rng = np.random.default_rng(2)
+    noisy = clean + 0.01 * clean.std() * rng.standard_normal(clean.shape)
+    fit = fit_pairs(scenes[:12], noisy, PairFitOptions(basis="paper"))
+    record = fit.convention_choice
+    assert fit.convention == fit.options.convention == record["chosen"] == truth
+    other = "source" if truth == "sensor" else "sensor"
+    assert record["held_out"][truth] < record["held_out"][other]
+    assert all(len(v) == 12 for v in record["per_pair"].values())       # the same folds
+    assert record["held_out"][truth] == pytest.approx(
+        np.mean(fit.regularisation[0].per_pair[fit.regularisation[0].weights.index(
+            fit.regularisation[0].chosen)]))
+    kept = load_kernels(save_kernels(tmp_path / "k.npz", fit.kernel_model()))
+    assert kept.convention == truth and kept.provenance["convention_choice"]["chosen"] == truth
+
+
+def test_the_convention_choice_ties_go_to_the_paper_and_given_weights_are_scored() -> None:
+    tie = pairs_select.convention_record({"sensor": [0.1, 0.2], "source": [0.1, 0.2]}, "m")
+    assert tie["chosen"] == "sensor" and tie["source_minus_sensor"] == 0.0
+    close = 1 - TIE / 2
+    assert pairs_select.convention_record(
+        {"sensor": [0.1, 0.2], "source": [0.1 * close, 0.2 * close]}, "m")["chosen"] == "sensor"
+    assert pairs_select.convention_record(
+        {"sensor": [0.1, 0.2], "source": [0.09, 0.19]}, "m")["chosen"] == "source"
+    one = PairFitOptions(basis="si")                       # one kernel: no weight maps
+    assert one.convention == "auto"
+
+
+def test_given_weights_still_choose_the_convention(camera) -> None:
+    _, scenes, clean = camera
+    fit = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="paper", difference=0.0))
+    assert fit.regularisation == [] and fit.convention == "source"      # the camera's
+    held = fit.convention_choice["held_out"]
+    assert held["source"] < 0.5 * held["sensor"]     # noise-free pairs: 0.0015 against 0.0055
+    si = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="si"))
+    assert si.convention == "sensor" and si.convention_choice is None
+
+
 def test_non_negative_solve_stops_at_a_kkt_point(camera) -> None:
     """At the returned kernels of the default (non-negative) fit: K >= 0, and the gradient of
     the least squares at the chosen weight is ~0 on the positive pixels and >= ~0 on the

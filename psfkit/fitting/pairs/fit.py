@@ -58,13 +58,17 @@ from psfkit.fitting.pairs.regularisation import (
     PATHS,
     RegularisationChoice,
     choose_regularisation,
+    convention_record,
+    held_out_score,
     selection_binning,
 )
 from psfkit.fitting.pairs.result import PairFit
 from psfkit.fitting.pairs.solver import solve_kernels
+from psfkit.forward.geometry import CONVENTIONS
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.operator import SpectralOperator
+from psfkit.forward.weights import get_basis
 from psfkit.io.validation import MIN_PAIR_SIDE
 from psfkit.numerics.resample import bin_mean
 
@@ -142,35 +146,16 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         raise InvalidInputError(f"the support mask is {support_mask.shape[0]}x"
                                 f"{support_mask.shape[1]}, the kernels "
                                 f"{scenes.shape[-2]}x{scenes.shape[-1]}")
-    h, w = scenes.shape[-2:]
-    kernel_shape = (int(h), int(w))
-    batches = PairBatches(scenes, options.basis, options.convention, kernel_shape,
-                          options.scene_padding, batch_size, cache_bytes, dtype, device)
-    n_kernels = batches.n_kernels
-    history: list[dict[str, Any]] = []
-    kernels: Tensor | None = None
-    weights = options.weights()
-    if initial is not None:
-        kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
-    elif n_kernels > 1 and options.seed_with_si:
-        seed = fit_pairs(scenes, measurements,
-                         dataclasses.replace(options, basis="si", nonneg=False,
-                                             support="none",
-                                             tikhonov=weights["tikhonov"]),
-                         dtype=dtype, device=device, progress=progress,
-                         batch_size=batch_size, cache_bytes=cache_bytes)
-        kernels = torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
-                                  device=device)
-        batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(unit="it", leave=False, desc=f"fit {options.basis}")
-    choices: list[RegularisationChoice] = []
-    if options.automatic and batches.n >= 2:
-        kernels = _choose_weights(batches, measurements, options, weights, kernels, history,
-                                  choices, bar)
+    trial = _set_up(scenes, measurements, options, initial, batch_size, cache_bytes, dtype,
+                    device, progress, bar)
+    batches, options, weights, kernels = (trial.batches, trial.options, trial.weights,
+                                          trial.kernels)
+    history, choices = trial.history, trial.choices
     if options.solver == "newton":                     # non-negative (a constrained fit)
         kernels, system = _newton_start(batches, measurements, options, weights, kernels,
                                         history, bar)
@@ -196,13 +181,82 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
                    scales=batches.scales.to(torch.float32).cpu().numpy(),
                    training_error=errors.to(torch.float32).cpu().numpy(), history=history,
                    options=options, support=support, weights=weights,
-                   regularisation=choices)
+                   regularisation=choices, convention_choice=trial.convention_choice)
+
+
+@dataclasses.dataclass
+class _Trial:
+    """One convention's set-up of a fit: its pairs, options, weights and warm start, the
+    records of the weights' choice, and the held-out errors at them (``None`` when nothing was
+    held out)."""
+
+    batches: PairBatches
+    options: PairFitOptions
+    weights: dict[str, float]
+    kernels: Tensor | None
+    history: list[dict[str, Any]]
+    choices: list[RegularisationChoice]
+    held_out: list[float] | None = None
+    convention_choice: dict[str, Any] | None = None
+
+
+def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
+            initial: np.ndarray | None, batch_size: int | None, cache_bytes: int,
+            dtype: torch.dtype, device: str, progress: bool, bar: Any) -> _Trial:
+    """The pairs, weights and warm start of the fit. With ``convention="auto"`` (eigen-kernels,
+    at least two pairs) both conventions are set up, each with its weights chosen by held-out
+    error on the same folds, and the one that predicts the held-out pairs better is kept
+    (:func:`~psfkit.fitting.pairs.regularisation.convention_record`); one kernel has no
+    weight maps, and one pair nothing to hold out: then the paper's sensor side."""
+    n_kernels = get_basis(options.basis).n_kernels
+    conventions = ((options.convention,) if options.convention != "auto" else
+                   CONVENTIONS if n_kernels > 1 and len(scenes) >= 2 else ("sensor",))
+    trials = []
+    for convention in conventions:
+        opts = dataclasses.replace(options, convention=convention)
+        batches = PairBatches(scenes, opts.basis, convention, tuple(scenes.shape[-2:]),
+                              opts.scene_padding, batch_size, cache_bytes, dtype, device)
+        trial = _Trial(batches, opts, opts.weights(), None, [], [])
+        if initial is not None:
+            trial.kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
+        elif n_kernels > 1 and opts.seed_with_si:
+            trial.kernels = _si_seed(scenes, measurements, opts, batches, batch_size,
+                                     cache_bytes, dtype, device, progress)
+        if (opts.automatic or len(conventions) > 1) and batches.n >= 2:
+            trial.kernels, trial.held_out = _choose_weights(
+                batches, measurements, opts, trial.weights, trial.kernels, trial.history,
+                trial.choices, bar)
+        trials.append(trial)
+    if len(trials) == 1:
+        return trials[0]
+    metric = ("relative error with the best gain per pair" if options.fit_scale
+              else "relative error")
+    record = convention_record({t.options.convention: t.held_out or [] for t in trials},
+                               metric)
+    chosen = next(t for t in trials if t.options.convention == record["chosen"])
+    chosen.convention_choice = record
+    return chosen
+
+
+def _si_seed(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
+             batches: PairBatches, batch_size: int | None, cache_bytes: int,
+             dtype: torch.dtype, device: str, progress: bool) -> Tensor:
+    """Every kernel started at the shift-invariant fit, whose scales ``batches`` takes."""
+    seed = fit_pairs(scenes, measurements,
+                     dataclasses.replace(options, basis="si", convention="sensor",
+                                         nonneg=False, support="none",
+                                         tikhonov=options.weights()["tikhonov"]),
+                     dtype=dtype, device=device, progress=progress,
+                     batch_size=batch_size, cache_bytes=cache_bytes)
+    batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
+    return torch.as_tensor(np.repeat(seed.kernels, batches.n_kernels, axis=0), dtype=dtype,
+                           device=device)
 
 
 def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
                     weights: dict[str, float], kernels: Tensor | None,
                     history: list[dict[str, Any]], choices: list[RegularisationChoice],
-                    bar: Any) -> Tensor | None:
+                    bar: Any) -> tuple[Tensor | None, list[float]]:
     """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
     records into ``choices``): on the pairs binned to at most
     :data:`~psfkit.fitting.pairs.regularisation.SELECTION_PIXELS` pixels, the scales first, at the
@@ -210,7 +264,8 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
     strongest weights (the best-conditioned solves), then the folds with those scales; both in
     float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at the
     chosen
-    weights (``kernels`` as given when the choice was made on binned pairs)."""
+    weights (``kernels`` as given when the choice was made on binned pairs), and the held-out
+    errors at the weights used (given weights are scored on the same folds)."""
     factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
     if factor > 1:
@@ -237,11 +292,17 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
         choice.binning = factor
         weights[parameter] = choice.chosen
         choices.append(choice)
+    if choices and choices[-1].parameter in options.automatic:
+        best = choices[-1].weights.index(choices[-1].chosen)
+        held_out = choices[-1].per_pair[best]
+    else:
+        held_out = held_out_score(twin, measured, weights, options.fit_scale,
+                                  system["reference"], start, bar)
     if bar is not None:
         bar.set_description(f"fit {options.basis}")
     if factor > 1:
-        return kernels
-    return start.to(dtype=batches.dtype, device=batches.device)
+        return kernels, held_out
+    return start.to(dtype=batches.dtype, device=batches.device), held_out
 
 
 #: Relative residual of the float32 solves that start the non-negative solve (the

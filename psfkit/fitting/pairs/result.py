@@ -35,6 +35,9 @@ class PairFit:
     #: How each automatic weight was chosen
     # (:class:`~psfkit.fitting.pairs.regularisation.RegularisationChoice`).
     regularisation: list[RegularisationChoice] = field(default_factory=list)
+    #: How ``convention="auto"`` chose the convention
+    #: (:func:`~psfkit.fitting.pairs.regularisation.convention_record`), or ``None``.
+    convention_choice: dict[str, Any] | None = None
 
     def regularisation_record(self) -> dict[str, Any]:
         """What the kernel file and the fit report record about the regularisation: the
@@ -58,7 +61,9 @@ class PairFit:
         """The kernel file content; ``read_options``: how the fitted pairs were read
         (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
         channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
-        provenance = {**(provenance or {}), "regularisation": self.regularisation_record()}
+        provenance = {**(provenance or {}), "regularisation": self.regularisation_record(),
+                      **({"convention_choice": self.convention_choice}
+                         if self.convention_choice else {})}
         return KernelModel(kernels=self.kernels, basis=self.basis, convention=self.convention,
                            sensor_shape=self.kernels.shape[-2:], channels=channels,
                            scene_padding=self.options.scene_padding,
