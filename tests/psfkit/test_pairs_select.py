@@ -228,7 +228,7 @@ def test_the_convention_is_chosen_by_held_out_error(camera, truth, tmp_path) -> 
     assert kept.convention == truth and kept.provenance["convention_choice"]["chosen"] == truth
 
 
-def test_the_convention_choice_ties_go_to_the_paper_and_given_weights_are_scored() -> None:
+def test_the_convention_choice_ties_go_to_the_paper_and_auto_is_the_default() -> None:
     tie = pairs_select.convention_record({"sensor": [0.1, 0.2], "source": [0.1, 0.2]}, "m")
     assert tie["chosen"] == "sensor" and tie["source_minus_sensor"] == 0.0
     close = 1 - TIE / 2
@@ -248,6 +248,22 @@ def test_given_weights_still_choose_the_convention(camera) -> None:
     assert held["source"] < 0.5 * held["sensor"]     # noise-free pairs: 0.0015 against 0.0055
     si = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="si"))
     assert si.convention == "sensor" and si.convention_choice is None
+
+
+def test_the_si_seed_is_only_a_warm_start_for_every_convention(camera) -> None:
+    """``seed_with_si``: one shift-invariant fit starts both conventions' trials; the fit
+    chooses the same convention and about the same kernels as without it (the fold
+    solves stop at ``FOLD_TOLERANCE``, so their held-out errors move with the start: by up to
+    3 % on the sensor side here)."""
+    _, scenes, clean = camera
+    common = dict(basis="paper", nonneg=False, difference=0.1, tolerance=1e-8)
+    plain = fit_pairs(scenes[:8], clean[:8], PairFitOptions(**common))
+    seeded = fit_pairs(scenes[:8], clean[:8], PairFitOptions(seed_with_si=True, **common))
+    assert seeded.convention == plain.convention == "source"
+    assert set(seeded.convention_choice["held_out"]) == {"sensor", "source"}
+    # the per-pair scales come from a few alternating rounds, so the start moves them a
+    # little: 4.2e-4 of the kernels' peak measured
+    assert np.abs(seeded.kernels - plain.kernels).max() < 2e-3 * np.abs(plain.kernels).max()
 
 
 def test_non_negative_solve_stops_at_a_kkt_point(camera) -> None:

@@ -59,6 +59,7 @@ from psfkit.fitting.pairs.regularisation import (
     RegularisationChoice,
     choose_regularisation,
     convention_record,
+    held_out_metric,
     held_out_score,
     selection_binning,
 )
@@ -211,6 +212,10 @@ def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOption
     n_kernels = get_basis(options.basis).n_kernels
     conventions = ((options.convention,) if options.convention != "auto" else
                    CONVENTIONS if n_kernels > 1 and len(scenes) >= 2 else ("sensor",))
+    seed = None                     # (kernels, scales): one SI fit serves every convention
+    if initial is None and n_kernels > 1 and options.seed_with_si:
+        seed = _si_seed(scenes, measurements, options, batch_size, cache_bytes, dtype, device,
+                        progress)
     trials = []
     for convention in conventions:
         opts = dataclasses.replace(options, convention=convention)
@@ -219,9 +224,8 @@ def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOption
         trial = _Trial(batches, opts, opts.weights(), None, [], [])
         if initial is not None:
             trial.kernels = torch.as_tensor(initial, dtype=dtype, device=device).clone()
-        elif n_kernels > 1 and opts.seed_with_si:
-            trial.kernels = _si_seed(scenes, measurements, opts, batches, batch_size,
-                                     cache_bytes, dtype, device, progress)
+        elif seed is not None:
+            trial.kernels, batches.scales = seed[0].clone(), seed[1].clone()
         if (opts.automatic or len(conventions) > 1) and batches.n >= 2:
             trial.kernels, trial.held_out = _choose_weights(
                 batches, measurements, opts, trial.weights, trial.kernels, trial.history,
@@ -229,28 +233,29 @@ def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOption
         trials.append(trial)
     if len(trials) == 1:
         return trials[0]
-    metric = ("relative error with the best gain per pair" if options.fit_scale
-              else "relative error")
-    record = convention_record({t.options.convention: t.held_out or [] for t in trials},
-                               metric)
+    # two conventions only with at least two pairs, so both were scored
+    record = convention_record({t.options.convention: t.held_out for t in trials
+                                if t.held_out is not None},
+                               held_out_metric(options.fit_scale))
     chosen = next(t for t in trials if t.options.convention == record["chosen"])
     chosen.convention_choice = record
     return chosen
 
 
 def _si_seed(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
-             batches: PairBatches, batch_size: int | None, cache_bytes: int,
-             dtype: torch.dtype, device: str, progress: bool) -> Tensor:
-    """Every kernel started at the shift-invariant fit, whose scales ``batches`` takes."""
+             batch_size: int | None, cache_bytes: int, dtype: torch.dtype, device: str,
+             progress: bool) -> tuple[Tensor, Tensor]:
+    """Every kernel at the shift-invariant fit, and that fit's per-pair scales."""
     seed = fit_pairs(scenes, measurements,
                      dataclasses.replace(options, basis="si", convention="sensor",
                                          nonneg=False, support="none",
                                          tikhonov=options.weights()["tikhonov"]),
                      dtype=dtype, device=device, progress=progress,
                      batch_size=batch_size, cache_bytes=cache_bytes)
-    batches.scales = torch.as_tensor(seed.scales, dtype=dtype, device=device)
-    return torch.as_tensor(np.repeat(seed.kernels, batches.n_kernels, axis=0), dtype=dtype,
-                           device=device)
+    n_kernels = get_basis(options.basis).n_kernels
+    return (torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
+                            device=device),
+            torch.as_tensor(seed.scales, dtype=dtype, device=device))
 
 
 def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,

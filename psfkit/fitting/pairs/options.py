@@ -39,7 +39,7 @@ class PairFitOptions:
         predicts held-out pairs better, each at its own chosen regularisation, on the folds
         that choose it (:func:`psfkit.fitting.pairs.regularisation.convention_record`; the
         sensor side of Eq. 7 unless the source side is better by more than ``TIE``); on the
-        7 DLMD pairs the source side, whose passes also cost 0.35× the sensor side's at full
+        7 DLMD pairs the source side, whose passes also cost 0.37× the sensor side's at full
         resolution.
     tikhonov : float or None
         ``λ`` relative to the mean scene power (the mean over frequencies of the summed power

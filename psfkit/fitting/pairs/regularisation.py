@@ -241,8 +241,7 @@ def choose_regularisation(batches: PairBatches,
                                   fixed={k: v for k, v in fixed.items() if k != parameter},
                                   folds=min(batches.n, MAX_FOLDS), scored_folds=len(folds),
                                   held_out_pairs=int(sum(len(f) for f in folds)),
-                                  metric="relative error with the best gain per pair"
-                                  if best_gain else "relative error")
+                                  metric=held_out_metric(best_gain))
     path = _FoldPath(batches, measurements, folds, start, best_gain, bar,
                      lambda w: _absolute(parameter, w, fixed, reference))
     for weight in (*PATHS[parameter], 0.0):
@@ -269,6 +268,11 @@ def choose_regularisation(batches: PairBatches,
     choice.seconds = time.perf_counter() - t0
     choice.passes = batches.passes - passes
     return choice, warm
+
+
+def held_out_metric(best_gain: bool) -> str:
+    """What the held-out errors measure (the records' ``metric``)."""
+    return "relative error with the best gain per pair" if best_gain else "relative error"
 
 
 def held_out_score(batches: PairBatches,
@@ -383,4 +387,4 @@ class _FoldPath:
 __all__ = ["FOLD_TOLERANCE", "MAX_FOLDS", "MIN_FOLDS", "MIN_HELD_OUT", "PATHS",
            "SELECTION_PIXELS", "STRONGER_STEPS", "TIE", "RegularisationChoice",
            "choose_regularisation", "convention_record", "convention_summary", "folds_of",
-           "held_out_errors", "held_out_score", "selection_binning"]
+           "held_out_errors", "held_out_metric", "held_out_score", "selection_binning"]
