@@ -36,7 +36,11 @@ residual 9.3e-7, Newton 327 s). EK time target still not met; the converged solv
 (stop 59: ``--convention auto`` chooses the source side, whose passes now cost half):
 ``--basis si`` 50.7 s wall, 0.76 GiB; ``--basis ek`` 5 min 51 s wall, 697 s CPU, peak RSS
 1.31 GiB, ``--difference 3.16``, converged (80 Newton steps, KKT residual 9.1e-7). EK ≤ 4 min
-still not met.
+still not met. Sixth (stop 60: the kernels' FFTs once per pass, the start from the binned fit,
+the Newton preconditioner in float32): ``--basis si`` 38.6 / 39.7 s; ``--basis ek`` 255.4 s
+(86 Newton steps, before the float32 preconditioner) and 291.3 s (78 steps), 1.33 GiB, both
+converged; a ``/usr/bin/time`` run of the CLI 4 min 7 s (78 steps). EK ≤ 4 min not met
+reliably.
 The 384 bench pairs of 128² (``--skip-dlmd``, one thread on the shared machine, between the
 two passes: Newton to 1e-6, float64 start): 1943 s wall, 1880 s CPU, peak RSS 1.36 GiB,
 ``--difference 0`` chosen (8 folds, 10 weights, 124 s), 49 Newton steps (KKT residual

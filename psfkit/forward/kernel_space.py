@@ -117,7 +117,15 @@ class KernelSpaceOperator(LinearOperator):
     def forward(self, kernels: Tensor) -> Tensor:
         """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 by the one implementation
         (:mod:`psfkit.forward.convolution`), with the scenes' spectra taken once."""
-        spectra = kernel_spectra(kernels, self.grid)                   # (K, C, ...)
+        return self.forward_spectra(self.spectra_of(kernels))
+
+    def spectra_of(self, kernels: Tensor) -> Tensor:
+        """The kernels' spectra on the grid, ``(K, C, PH, PW//2 + 1)``: what
+        :meth:`forward_spectra` takes (a pass over many batches takes them once)."""
+        return kernel_spectra(kernels, self.grid)
+
+    def forward_spectra(self, spectra: Tensor) -> Tensor:
+        """:meth:`forward` from the kernels' spectra (:meth:`spectra_of`)."""
         graph = records_graph(spectra)
         if self.weights is None or self.convention == "sensor":
             return fan_out(self.scene_spectra[:, 0], spectra, self.weights, self.grid,
@@ -133,13 +141,21 @@ class KernelSpaceOperator(LinearOperator):
         This is the adjoint with respect to the kernels (a map into kernel space, summed over
         the pairs), not Eq. 7's adjoint ``Aᵀ`` (a map into scene space).
         """
+        return self.kernels_of(self.adjoint_spectra(residuals))
+
+    def adjoint_spectra(self, residuals: Tensor) -> Tensor:
+        """:meth:`adjoint` before the inverse FFT, ``(K, C, PH, PW//2 + 1)``: linear, so a
+        pass over many batches sums these and takes one :meth:`kernels_of`."""
         if self.weights is not None and self.convention == "sensor":
-            spectrum = torch.stack([
+            return torch.stack([
                 _correlate(rfft2(residuals * self.weights[k], self.grid)[:, None],
                            self.scene_spectra)[0] for k in range(self.n_kernels)])
-        else:
-            spectrum = _correlate(rfft2(residuals, self.grid)[:, None], self.scene_spectra)
-        return extract_kernel(irfft2(spectrum, self.grid), self.kernel_shape)
+        return _correlate(rfft2(residuals, self.grid)[:, None], self.scene_spectra)
+
+    def kernels_of(self, spectra: Tensor) -> Tensor:
+        """The kernels ``(K, C, Hk, Wk)`` of spectra on the grid (the inverse of
+        :meth:`spectra_of` on the kernel window)."""
+        return extract_kernel(irfft2(spectra, self.grid), self.kernel_shape)
 
     A = forward
     A_adjoint = adjoint

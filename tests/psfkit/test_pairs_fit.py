@@ -18,6 +18,7 @@ from psfkit.fitting.pairs.fit import (
     leave_one_out,
     predict,
     relative_errors,
+    upsampled_kernels,
 )
 from psfkit.fitting.pairs.options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
 from psfkit.fitting.pairs.solver import solve_kernels
@@ -132,6 +133,26 @@ def test_downsample_pairs_averages_blocks() -> None:
     assert np.allclose(m, s + 1)
     with pytest.raises(InvalidInputError, match="too few pixels"):
         downsample_pairs(a, a, 5)
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+@pytest.mark.parametrize("shape", [(31, 47), (30, 45)])
+def test_upsampled_kernels_keep_each_binned_pixel_where_it_acts(factor: int,
+                                                                shape: tuple[int, int]) -> None:
+    """A binned pixel at offset ``(a, b)`` from the binned origin acts at fine offsets
+    ``factor·(a, b)`` (within half a pixel for an even factor): its energy lands there, whole,
+    in the unbinned grid's centred origin convention."""
+    coarse_shape = (shape[0] // factor, shape[1] // factor)
+    rows, cols = np.mgrid[:shape[0], :shape[1]]
+    for a, b in ((0, 0), (2, -3), (-1, 4)):
+        coarse = torch.zeros((1, 1, *coarse_shape), dtype=torch.float64)
+        coarse[0, 0, coarse_shape[0] // 2 + a, coarse_shape[1] // 2 + b] = 2.0
+        fine = upsampled_kernels(coarse, factor, shape)[0, 0].numpy()
+        assert fine.shape == shape and fine.sum() == pytest.approx(2.0 / factor**2 * factor**2)
+        centroid = ((fine * rows).sum() / fine.sum() - shape[0] // 2,
+                    (fine * cols).sum() / fine.sum() - shape[1] // 2)
+        assert np.allclose(centroid, (factor * a, factor * b), atol=0.5 if factor % 2 == 0
+                           else 1e-12), (a, b, centroid)
 
 
 def test_bad_options_and_shapes() -> None:

@@ -142,6 +142,15 @@ def test_streaming_normal_operator_is_the_whole_one(scenes: np.ndarray,
             got = batches.normal(k)
             assert float((got - expected).abs().max()) <= 1e-10 * float(expected.abs().max())
         assert batches.cached_pairs == kept, (cache, batches.cached_pairs)
+    # the right-hand side and the forward model, with the kernels' spectra shared by the
+    # batches and the adjoint spectra summed before one inverse FFT
+    y = torch.as_tensor(rng.standard_normal((n, 3, *scenes.shape[-2:])))
+    expected_rhs = whole.adjoint(y)
+    assert float((batches.rhs(y) - expected_rhs).abs().max()) <= \
+        1e-10 * float(expected_rhs.abs().max())
+    predicted = torch.cat([p for _a, _b, p in batches.forward(k)])
+    expected_y = whole.forward(k)
+    assert float((predicted - expected_y).abs().max()) <= 1e-10 * float(expected_y.abs().max())
 
 
 @pytest.mark.parametrize("convention", ["source", "sensor"])
