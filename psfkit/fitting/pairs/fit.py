@@ -51,6 +51,7 @@ from torch import Tensor
 
 from psfkit.errors import InvalidInputError
 from psfkit.fitting.pairs.batches import DEFAULT_CACHE_BYTES, PairBatches
+from psfkit.fitting.pairs.binning import downsample_pairs, upsampled_kernels
 from psfkit.fitting.pairs.constraints import auto_support, newton_fit, support_least_squares
 from psfkit.fitting.pairs.options import NEWTON_CG_ITERATIONS, PairFitOptions
 from psfkit.fitting.pairs.regularisation import (
@@ -71,31 +72,10 @@ from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.operator import SpectralOperator
 from psfkit.forward.weights import get_basis
 from psfkit.io.validation import MIN_PAIR_SIDE
-from psfkit.numerics.resample import bin_mean
 
 __all__ = ["START_TOLERANCE", "KernelSpaceOperator", "PairFitOptions",
-           "downsample_pairs", "fit_pairs", "leave_one_out", "predict", "relative_errors"]
-
-
-def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
-                     where: str = "pairs") -> tuple[np.ndarray, np.ndarray]:
-    """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements
-    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch.
-
-    Pairs smaller than ``MIN_PAIR_SIDE`` px a side once binned are refused (``where`` names
-    them; with ``factor > 1`` the message names ``--downsample`` too).
-    """
-    h, w = scenes.shape[-2:]
-    if h // factor < MIN_PAIR_SIDE or w // factor < MIN_PAIR_SIDE:
-        binning = f" binned by --downsample {factor} to {h // factor}x{w // factor}" \
-            if factor > 1 else ""
-        raise InvalidInputError(f"{where}: {h}x{w} px pairs{binning} leave too few pixels "
-                                f"to fit or evaluate a model (at least {MIN_PAIR_SIDE}x"
-                                f"{MIN_PAIR_SIDE})")
-    if factor == 1:
-        return scenes, measurements
-    return (bin_mean(scenes, factor).astype(np.float32),
-            bin_mean(measurements, factor).astype(np.float32))
+           "downsample_pairs", "fit_pairs", "leave_one_out", "predict", "relative_errors",
+           "upsampled_kernels"]
 
 
 def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
@@ -313,19 +293,6 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
             dtype=batches.dtype, device=batches.device)
         return (fine if kernels is None else kernels + (fine - fine[:1])), held_out
     return start.to(dtype=batches.dtype, device=batches.device), held_out
-
-
-def upsampled_kernels(coarse: Tensor, factor: int, shape: tuple[int, int]) -> Tensor:
-    """Kernels fitted to pairs binned ``factor`` times, on the unbinned pixel grid ``shape``
-    (a warm start): each binned pixel spread over its ``factor × factor`` pixels (a binned
-    kernel is the sum over its block), its origin at the centre as the binned one's."""
-    fine = coarse.repeat_interleave(factor, -2).repeat_interleave(factor, -1) / factor**2
-    out = fine.new_zeros((*fine.shape[:-2], *shape))
-    h, w = min(shape[0], fine.shape[-2]), min(shape[1], fine.shape[-1])
-    out[..., :h, :w] = fine[..., :h, :w]
-    shifts = tuple(n // 2 - factor * (c // 2) - factor // 2
-                   for n, c in zip(shape, coarse.shape[-2:], strict=True))
-    return torch.roll(out, shifts, dims=(-2, -1))
 
 
 #: Relative residual of the float32 solves that start the non-negative solve (the
