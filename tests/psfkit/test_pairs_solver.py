@@ -329,3 +329,18 @@ def test_float32_twin_is_the_same_operator(scenes: np.ndarray) -> None:
     twin = regularised_normal(batches.astype(torch.float32), 2.0, 3.0)(k)
     assert twin.dtype == torch.float64
     assert float((twin - exact).abs().max()) < 1e-5 * float(exact.abs().max())
+
+
+@pytest.mark.parametrize("coupled", [True, False])
+def test_preconditioner_in_float32_is_the_float64_one(scenes: np.ndarray,
+                                                      coupled: bool) -> None:
+    """``dtype=float32`` (the Newton steps' preconditioner) applies the same ``P`` to a float64
+    residual, to float32 rounding, and hands it back in float64."""
+    rng = np.random.default_rng(4)
+    gram = PairBatches(scenes, "paper", "source", (32, 32), batch_size=6).gram()
+    r = torch.as_tensor(rng.standard_normal((3, 3, 32, 32)))
+    exact = gram.preconditioner(0.1, 1.0, coupled=coupled)(r)
+    cheap = gram.preconditioner(0.1, 1.0, coupled=coupled, dtype=torch.float32)(r)
+    assert exact.dtype == cheap.dtype == torch.float64
+    error = float((cheap - exact).abs().max()) / float(exact.abs().max())
+    assert 0 < error < 1e-5, error                    # computed in float32, not float64

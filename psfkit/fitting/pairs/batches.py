@@ -161,24 +161,28 @@ class PairBatches:
         return torch.as_tensor(y, dtype=self.dtype, device=self.device)
 
     # -------------------------------------------------------------------- operators
-    def forward(self, kernels: Tensor) -> Iterator[tuple[int, int, Tensor]]:
-        """``(start, stop, s_i B_i K)`` per batch (one pass)."""
+    def predictions(self, kernels: Tensor
+                    ) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor, Tensor]]:
+        """``(start, stop, operator, scales, B_i K)`` per batch (one pass; the prediction
+        unscaled). The kernels' FFTs are taken once per pass, not once per batch (at full
+        DLMD resolution a float32 pass has 4 batches: they were most of its cost)."""
         spectra = None
         for start, stop, op, s in self.batches():
-            if spectra is None:                      # the kernels' FFTs once per pass
+            if spectra is None:
                 spectra = op.spectra_of(kernels)
-            yield start, stop, op.forward_spectra(spectra) * s[:, None, None, None]
+            yield start, stop, op, s, op.forward_spectra(spectra)
+
+    def forward(self, kernels: Tensor) -> Iterator[tuple[int, int, Tensor]]:
+        """``(start, stop, s_i B_i K)`` per batch (one pass)."""
+        for start, stop, _op, s, p in self.predictions(kernels):
+            yield start, stop, p * s[:, None, None, None]
 
     def normal(self, kernels: Tensor) -> Tensor:
         r""":math:`\sum_i s_i^2 B_i^\top B_i K` (one pass over the pairs, exact: crop and
-        weights included). The kernels' FFTs are taken once per pass and the batches' adjoint
-        spectra summed before one inverse FFT (at full DLMD resolution a float32 pass has 4
-        batches: the FFTs of the kernels were most of its cost)."""
-        spectra = total = op = None
-        for _start, _stop, op, s in self.batches():
-            if spectra is None:
-                spectra = op.spectra_of(kernels)
-            term = op.adjoint_spectra(op.forward_spectra(spectra) * (s * s)[:, None, None, None])
+        weights included), the batches' adjoint spectra summed before one inverse FFT."""
+        total = op = None
+        for _start, _stop, op, s, p in self.predictions(kernels):
+            term = op.adjoint_spectra(p * (s * s)[:, None, None, None])
             total = term if total is None else total.add_(term)
         return torch.zeros_like(kernels) if op is None else op.kernels_of(total)
 
@@ -207,11 +211,7 @@ class PairBatches:
         ``⟨B_i K, y_i⟩`` and ``‖B_i K‖²`` of the unscaled prediction (for the scales)."""
         err = torch.zeros(self.n, dtype=self.dtype, device=self.device)
         norm, num, den = err.clone(), err.clone(), err.clone()
-        spectra = None
-        for start, stop, op, s in self.batches():
-            if spectra is None:
-                spectra = op.spectra_of(kernels)
-            p = op.forward_spectra(spectra)
+        for start, stop, _op, s, p in self.predictions(kernels):
             y = self.measurement(measurements, start, stop)
             err[start:stop] = (p * s[:, None, None, None] - y).pow(2).sum(dim=(1, 2, 3)).sqrt()
             norm[start:stop] = y.pow(2).sum(dim=(1, 2, 3)).sqrt()

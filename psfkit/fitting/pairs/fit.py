@@ -288,7 +288,7 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
     if factor > 1:
         # the binned fit's corrections on the unbinned grid, added to the given start's
         # detail: the first full-resolution solve from the SI seed took 400 CG iterations on
-        # the 7 DLMD pairs, 277 from this start
+        # the 7 DLMD pairs, 276 from this start
         fine = upsampled_kernels(start, factor, batches.kernel_shape).to(
             dtype=batches.dtype, device=batches.device)
         return (fine if kernels is None else kernels + (fine - fine[:1])), held_out

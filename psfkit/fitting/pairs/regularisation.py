@@ -180,8 +180,8 @@ def held_out_errors(batches: PairBatches, kernels: Tensor,
     """``{pair: relative error}`` of the active pairs of ``batches`` predicted by ``kernels``
     (unscaled), with the best gain per pair when ``best_gain``."""
     out = {}
-    for start, stop, op, _s in batches.batches():
-        p = op.forward(kernels.to(batches.dtype)).to(torch.float64)
+    for start, stop, _op, _s, p in batches.predictions(kernels.to(batches.dtype)):
+        p = p.to(torch.float64)
         y = batches.measurement(measurements, start, stop).to(torch.float64)
         if best_gain:
             gain = (p * y).sum(dim=(1, 2, 3)) / p.pow(2).sum(dim=(1, 2, 3)).clamp_min(1e-300)
