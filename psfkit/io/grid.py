@@ -43,8 +43,6 @@ MANIFEST_CSV = "manifest.csv"
 FULL_LATTICE = "full lattice"
 INCOMPLETE_LATTICE = "incomplete lattice"
 IRREGULAR = "irregular"
-#: The layouts a grid can have (:attr:`PsfGrid.layout`).
-LAYOUTS = (FULL_LATTICE, INCOMPLETE_LATTICE, IRREGULAR)
 
 
 @dataclass(frozen=True)

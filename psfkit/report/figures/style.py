@@ -1,7 +1,7 @@
 """Publication style and saving for all psfkit figures (PNG at 300 dpi and vector PDF), and
 the conventions every figure follows (tests/psfkit/test_figures.py checks them):
 
-- text at least :data:`MIN_FONT_PT` at the saved size (a one- or two-column paper figure);
+- text at least 7 pt at the saved size (a one- or two-column paper figure);
 - every colour bar labelled ``quantity (unit)``; panels that are compared share one scale;
 - PSFs cropped to their support (:mod:`psfkit.calibration.support`), on a square-root scale
   (:func:`psf_norm`), off-sensor pixels in :data:`OFF_SENSOR`;
@@ -48,8 +48,6 @@ STYLE = {
 
 #: widths (inches) of a single and a double journal column
 COLUMN_IN, PAGE_IN = 3.5, 7.2
-#: smallest font (pt) at the saved size
-MIN_FONT_PT = 7.0
 #: colour of a PSF window's pixels that lie off the sensor, and of a non-significant quantity
 OFF_SENSOR, NOT_SIGNIFICANT = "#b9c9de", "0.6"
 
