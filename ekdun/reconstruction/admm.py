@@ -15,7 +15,7 @@ with ``Ψ`` circular forward differences (anisotropic TV). What every form share
 * **units**: ``y`` is divided by its peak and the operator by ``‖A‖``
   (:func:`psfkit.forward.norm.operator_norm`, the one estimate, cached on the operator), so the
   relative weight ``tv`` and the penalties ``μ`` are scale-free; the objective's weight is
-  ``λ = tv · peak(|y|) · ‖A‖`` (:func:`tv_objective`), and the result is scaled back by
+  ``λ = tv · peak(|y|) · ‖A‖``, and the result is scaled back by
   ``peak/‖A‖`` into the units of ``y = A x``;
 * **splitting**: ``s = Ψx`` (TV, soft threshold ``𝒮_{tv/μ2}``), a copy of ``x`` for
   non-negativity (``max(·, 0)``), the data term split so that each step is closed-form:
@@ -110,13 +110,6 @@ class TVResult:
     converged: bool
     relative_change: list[float] = field(default_factory=list)
     operator_norm: float = 1.0
-
-
-def tv_objective(op: ExtendedSceneOperator, x: Tensor, y: Tensor, weight: float) -> float:
-    """``½‖A x − y‖² + weight·‖Ψx‖₁`` for ``x`` ``(1, C, PH, PW)`` and ``y`` ``(1, C, H', W')``
-    (``weight = tv · peak(|y|) · ‖A‖`` is :func:`solve_tv`'s objective)."""
-    r = op.A(x) - y
-    return float(0.5 * (r * r).sum() + weight * finite_differences(x).abs().sum())
 
 
 @dataclass

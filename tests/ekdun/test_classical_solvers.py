@@ -17,7 +17,6 @@ from ekdun.reconstruction.admm import (
     ShiftInvariantRule,
     SourceSideRule,
     solve_tv,
-    tv_objective,
     update_rule,
 )
 from ekdun.reconstruction.classical import ClassicalOptions, ModelReconstructor
@@ -28,6 +27,14 @@ from psfkit.forward.norm import operator_norm
 from psfkit.forward.padded_scene import padded_scene_adjoint, padded_scene_forward
 
 SENSOR = (20, 28)
+
+
+def tv_objective(op: ExtendedSceneOperator, x: torch.Tensor, y: torch.Tensor,
+                 weight: float) -> float:
+    """``½‖A x − y‖² + weight·‖Ψx‖₁`` for ``x`` ``(1, C, PH, PW)`` and ``y`` ``(1, C, H', W')``
+    (``weight = tv · peak(|y|) · ‖A‖`` is :func:`solve_tv`'s objective)."""
+    r = op.A(x) - y
+    return float(0.5 * (r * r).sum() + weight * finite_differences(x).abs().sum())
 
 
 def _model(convention: str = "sensor", basis: str = "paper") -> KernelModel:
