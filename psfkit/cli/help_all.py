@@ -4,7 +4,7 @@ A command marks its rarely-used flags advanced (:func:`mark_advanced`): they kee
 exactly as before, but ``--help`` (and the usage line) leave them out, so that the first
 screen stays short. ``--help-all`` (:func:`add_help_all`) prints the full help, the advanced
 flags included, each under its group. The help text of an advanced flag is kept on its action
-(:func:`full_help`), so that the flag tables of the docs (``docs/cli-flags.md``) still list it.
+(:data:`ADVANCED_HELP`), so that the flag tables of the docs (``docs/cli-flags.md``) still list it.
 """
 
 from __future__ import annotations
@@ -64,11 +64,6 @@ def mark_advanced(parser: argparse.ArgumentParser, names: Sequence[str]) -> None
         action = actions[name]
         setattr(action, ADVANCED_HELP, action.help)
         action.help = argparse.SUPPRESS
-
-
-def full_help(action: argparse.Action) -> str | None:
-    """The help of ``action`` as ``--help-all`` shows it (an advanced flag's too)."""
-    return getattr(action, ADVANCED_HELP, action.help)
 
 
 def is_advanced(action: argparse.Action) -> bool:

@@ -87,7 +87,7 @@ def test_each_help_line_describes_its_own_command(capsys):
     assert "fit-pairs" not in basis and "auto" in basis
     # no shared flag's help explains what it means in another command
     from ekdun.cli.vocabulary import VOCABULARY  # psfkit's, extended by ekdun's
-    from psfkit.cli.help_all import full_help
+    from tests.helpers.cli import full_help
 
     elsewhere = re.compile(r"\b(fit-eigen|fit-pairs|eval-model|make-dataset|train)( only|:)|"
                            r"\bekdun\b|\(psfkit\)")

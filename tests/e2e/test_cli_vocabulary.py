@@ -172,7 +172,7 @@ def _doc_rows() -> dict[str, str]:
 
 def test_every_flag_of_both_clis_is_in_the_docs_table():
     from ekdun.cli.commands import RETIRED_FLAGS
-    from psfkit.cli.help_all import full_help
+    from tests.helpers.cli import full_help
 
     rows = _doc_rows()
     missing = []
@@ -316,8 +316,9 @@ def flag_table() -> str:
     commands that ``--help`` does not list (replaced, kept for one release) *(deprecated)*.
     """
     from ekdun.cli.commands import RETIRED_FLAGS as EKDUN_RETIRED
-    from psfkit.cli.help_all import full_help, is_advanced
+    from psfkit.cli.help_all import is_advanced
     from psfkit.cli.vocabulary import RETIRED as PSFKIT_RETIRED
+    from tests.helpers.cli import full_help
 
     # both CLIs' retired flags (accepted, ignored, one note): (nargs, note, ...) alike
     RETIRED_FLAGS = {**EKDUN_RETIRED, **PSFKIT_RETIRED}
