@@ -162,8 +162,8 @@ def operator_oracle(spec: VirtualBenchSpec, convention: str, basis: str = "paper
         warm-started from the unconstrained oracle, for at most ``projected_iterations``
         Newton steps of ``cg_iterations`` preconditioned CG iterations each (on float32
         products, with float64 gradients and line search), or until the relative KKT
-        residual (:func:`psfkit.fitting.pairs.constraints.kkt_residual`: ``‖K − max(0, K − ∇/L)‖ /
-        ‖K‖``
+        residual (``kkt_residual`` of :func:`psfkit.fitting.pairs.constraints.projected_newton`:
+        ``‖K − max(0, K − ∇/L)‖ / ‖K‖``
         per channel, the largest) is below ``projected_tolerance``. The record gives both.
     start : numpy.ndarray, optional
         ``(K, C, H, W)`` kernels to warm-start the unconstrained solve from (e.g. the

@@ -9,7 +9,7 @@ import torch
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.fitting.pairs.batches import PairBatches
-from psfkit.fitting.pairs.constraints import auto_support, kkt_residual, projected_newton
+from psfkit.fitting.pairs.constraints import auto_support, projected_newton
 from psfkit.fitting.pairs.fit import (
     KernelSpaceOperator,
     PairFitOptions,
@@ -24,6 +24,7 @@ from psfkit.fitting.pairs.options import NEWTON_ITERATIONS, NEWTON_TOLERANCE
 from psfkit.fitting.pairs.solver import solve_kernels
 from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.weights import get_basis
+from tests.helpers.pairs import kkt_residual
 
 
 def _scenes(rng: np.random.Generator, n: int, c: int, h: int, w: int) -> np.ndarray:

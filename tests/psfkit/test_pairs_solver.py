@@ -13,7 +13,6 @@ from psfkit.fitting.pairs.batches import BATCH_BYTES, DEFAULT_BATCH, PairBatches
 from psfkit.fitting.pairs.constraints import (
     STALL_STEPS,
     _cheap_products_too_coarse,
-    kkt_residual,
     projected_newton,
 )
 from psfkit.fitting.pairs.fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
@@ -23,6 +22,7 @@ from psfkit.forward.convolution import extract_kernel, kernel_spectra
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
+from tests.helpers.pairs import kkt_residual
 
 
 def known_eigen_kernels(shape: tuple[int, int] = (32, 32), channels: int = 3) -> np.ndarray:

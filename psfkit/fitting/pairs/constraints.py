@@ -5,8 +5,8 @@ A measured PSF is non-negative and lives on the caustic's footprint. :func:`proj
 iterations with the Gram preconditioner restricted to them, then an Armijo search along the
 projection arc) minimises the objective of the conjugate-gradient fit
 (:mod:`psfkit.fitting.pairs.solver`) over ``K ≥ 0`` (and ``K = 0`` outside a support) to a relative
-KKT
-residual (:func:`kkt_residual`); :func:`newton_fit` runs it on a fit's normal equations. A
+KKT residual (``‖K − max(0, K − ∇/L)‖ / ‖K‖`` per channel, the record's ``kkt_residual``);
+:func:`newton_fit` runs it on a fit's normal equations. A
 support without non-negativity is a linear constraint: :func:`support_least_squares` solves it
 exactly by the same conjugate gradients restricted to the support. :func:`auto_support` gives
 the footprint, :func:`kernel_summary` what the kernel file records.
@@ -102,27 +102,20 @@ def _per_channel_norm(a: Tensor) -> Tensor:
 
 def _natural_residual(kernels: Tensor, gradient: Tensor, lipschitz: Tensor,
                       support: Tensor | None = None) -> Tensor:
-    step = kernels - (kernels - gradient / lipschitz[None, :, None, None]).clamp_min(0)
-    if support is not None:                  # pixels held at 0 have no optimality condition
-        step = step * support
-    return _per_channel_norm(step) / _per_channel_norm(kernels).clamp_min(1e-300)
-
-
-def kkt_residual(normal: Callable[[Tensor], Tensor], rhs: Tensor, kernels: Tensor,
-                 support: Tensor | None = None, lipschitz: Tensor | None = None) -> Tensor:
     r"""Per-channel relative natural residual of ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0`` (and
-    ``K = 0`` outside ``support``), ``(C,)``:
+    ``K = 0`` outside ``support``), ``(C,)``, from the ``gradient`` ``NK − rhs``:
 
     .. math:: \lVert K - \max(0, K - \nabla/L)\rVert \,/\, \lVert K\rVert ,
 
     the projected-gradient step of length ``1/L`` (``L`` ≥ the largest eigenvalue of ``N`` per
-    channel, :func:`lipschitz_constant` when not given) relative to the
+    channel, :func:`lipschitz_constant`) relative to the
     kernels: 0 exactly at the minimiser, and independent of the units of the kernels and of
     the data. (The kernels' distance to the minimiser is larger by up to the conditioning of
     ``N`` on the free pixels: measured at 128², about 10⁵ times.)"""
-    if lipschitz is None:
-        lipschitz = lipschitz_constant(normal, kernels)
-    return _natural_residual(kernels, normal(kernels) - rhs, lipschitz, support)
+    step = kernels - (kernels - gradient / lipschitz[None, :, None, None]).clamp_min(0)
+    if support is not None:                  # pixels held at 0 have no optimality condition
+        step = step * support
+    return _per_channel_norm(step) / _per_channel_norm(kernels).clamp_min(1e-300)
 
 
 def _cheap_products_too_coarse(normal: Normal, cheap: Normal, step: Tensor,
@@ -171,7 +164,7 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
         Most Newton steps, and CG iterations per step (20: at 128², 96 pairs, the solution
         to 1e-4 took 689 operator applications with 20, 1 400 with 40, 770 with 10).
     tolerance : float
-        Stop when every channel's :func:`kkt_residual` is below this.
+        Stop when every channel's relative KKT residual (``kkt_residual``) is below this.
     support : Tensor, optional
         Boolean, broadcastable to the kernels (e.g. ``(Hk, Wk)``): pixels outside it are held
         at 0 (a footprint constraint), the others are ``≥ 0``.

@@ -15,7 +15,7 @@ from psfkit.forward.weights import get_basis
 SUPPORTS = ("none", "auto", "mask")
 #: Projected Newton-CG (the non-negative solve): most steps, CG iterations per step, and the
 #: default tolerance of the relative KKT (natural) residual
-#: (:func:`psfkit.fitting.pairs.constraints.kkt_residual`; ``PairFitOptions.tolerance``).
+#: (:func:`psfkit.fitting.pairs.constraints.projected_newton`; ``PairFitOptions.tolerance``).
 #: 1e-6 (issue 43; 1e-10 before): on the 7 DLMD pairs at 1/4 resolution the predictions of
 #: the pairs then lie within 2.7e-5 (EK, ``--difference 1``) and 1.4e-6 (SI) of the
 #: measurement's norm from those at 1e-10, and the mean relative error within 1e-6, in 39
