@@ -141,7 +141,8 @@ def test_streaming_normal_operator_is_the_whole_one(scenes: np.ndarray,
         for _ in range(2):                          # the second pass uses the kept operators
             got = batches.normal(k)
             assert float((got - expected).abs().max()) <= 1e-10 * float(expected.abs().max())
-        assert batches.cached_pairs == kept, (cache, batches.cached_pairs)
+        # pairs whose operators are kept between passes (at most cache_bytes of them)
+        assert batches._cached_pairs == kept, (cache, batches._cached_pairs)
     # the right-hand side and the forward model, with the kernels' spectra shared by the
     # batches and the adjoint spectra summed before one inverse FFT
     y = torch.as_tensor(rng.standard_normal((n, 3, *scenes.shape[-2:])))

@@ -123,11 +123,6 @@ class PairBatches:
             self._cached_pairs += stop - start
         return op
 
-    @property
-    def cached_pairs(self) -> int:
-        """Pairs whose operators are kept between passes (at most ``cache_bytes`` of them)."""
-        return self._cached_pairs
-
     @contextmanager
     def only(self, active: Tensor | np.ndarray) -> Iterator[PairBatches]:
         """Within the ``with`` block every pass visits only the pairs where ``active``
