@@ -174,37 +174,13 @@ class WeightBasis:
         return np.pad(maps, ((0, 0), (top, eh - h - top), (left, ew - w - left)), mode="edge")
 
 
-def normalized_coordinates(sensor_shape: tuple[int, int],
-                           optical_center: tuple[float, float] | None = None,
-                           extent: tuple[int, int] | None = None,
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """Normalized coordinates ``(u_n, v_n)``, each ``(H, W)``, reaching ±1 at the sensor edges.
-
-    Parameters
-    ----------
-    sensor_shape : (int, int)
-        ``(H', W')`` sensor grid that defines the normalization.
-    optical_center : (float, float), optional
-        ``(v_c, u_c)`` in sensor pixels; default the sensor centre.
-    extent : (int, int), optional
-        Evaluate on a larger grid ``(H, W)`` centred on the sensor (e.g. the padded scene
-        grid of the forward model); default the sensor grid itself.
-    """
-    h, w = sensor_shape
-    v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
-    eh, ew = extent if extent is not None else (h, w)
-    v = np.arange(eh) - (eh - h) // 2
-    u = np.arange(ew) - (ew - w) // 2
-    u_norm = np.broadcast_to(((u - u_c) / (w / 2))[None, :], (eh, ew))
-    v_norm = np.broadcast_to(((v - v_c) / (h / 2))[:, None], (eh, ew))
-    return u_norm, v_norm
-
-
 def separable_coordinates(sensor_shape: tuple[int, int],
                           optical_center: tuple[float, float] | None = None
                           ) -> tuple[np.ndarray, np.ndarray]:
-    """Normalized coordinates as a ``(1, W)`` row and a ``(H, 1)`` column (see
-    :func:`normalized_coordinates`), for cheap evaluation of separable weights."""
+    """Normalized coordinates ``(u_n, v_n)``, reaching ±1 at the sensor edges, as a ``(1, W)``
+    row and a ``(H, 1)`` column, for cheap evaluation of separable weights.
+
+    ``optical_center`` is ``(v_c, u_c)`` in sensor pixels; default the sensor centre."""
     h, w = sensor_shape
     v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
     return ((np.arange(w) - u_c) / (w / 2))[None, :], ((np.arange(h) - v_c) / (h / 2))[:, None]

@@ -20,7 +20,7 @@ between two radii ``r1 <= r2`` (:attr:`FieldZones.radii`); pixels at exactly a b
 are equal.
 
 The optical centre ``(v_c, u_c)`` (row, column, in sensor pixels) is the one of the eigen-kernel
-model's weight maps (:func:`psfkit.forward.weights.normalized_coordinates`): a kernel file's
+model's weight maps (:func:`psfkit.forward.weights.separable_coordinates`): a kernel file's
 ``optical_center`` where it records one, else the sensor centre ``((H-1)/2, (W-1)/2)``.
 
 NumPy only (and :mod:`psfkit.errors`), at the bottom of psfkit's layers, so that both

@@ -8,7 +8,8 @@ import pytest
 from psfkit.errors import ConfigurationError, ModelFileError, PsfkitError
 from psfkit.forward.kernel_checks import check_kernels
 from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
-from psfkit.forward.weights import BASIS_NAMES, get_basis, normalized_coordinates
+from psfkit.forward.weights import BASIS_NAMES, get_basis
+from tests.helpers.weights import normalized_coordinates
 
 
 def test_normalized_coordinates_reach_plus_minus_one_at_the_edges():

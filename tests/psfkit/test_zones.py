@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from psfkit.errors import InvalidInputError
-from psfkit.forward.weights import normalized_coordinates
 from psfkit.forward.zones import ZONE_NAMES, field_zones
+from tests.helpers.weights import normalized_coordinates
 
 
 @pytest.mark.parametrize("shape", [(67, 120), (270, 480), (64, 64), (31, 17), (5, 5), (1, 3)])
