@@ -18,7 +18,7 @@ intensity :math:`|U_d|^2` needs only the envelope. The first-order term of
 (the caller places the pattern at the shift) so that the simulated block stays small. The
 second-order term is the oblique-incidence astigmatism: the envelope evolves as if propagated
 over :math:`d/\cos^3\theta` along the tangential and :math:`d/\cos\theta` along the sagittal
-direction (:func:`fresnel_transfer_anisotropic` is that paraxial reference model).
+direction (the paraxial reference model the tests check the simulation against).
 
 All lengths are in micrometres; arrays are in NumPy FFT order (zero frequency first).
 """
@@ -109,24 +109,6 @@ def unit_phasor(phase: np.ndarray) -> np.ndarray:
     np.cos(phase32, out=out.real)
     np.sin(phase32, out=out.imag)
     return out
-
-
-def fresnel_transfer_anisotropic(shape: tuple[int, int], pitch_um: float,
-                                 wavelength_um: float, distance_tangential_um: float,
-                                 distance_sagittal_um: float, azimuth_rad: float) -> np.ndarray:
-    r"""Paraxial transfer function with different distances along two orthogonal directions.
-
-    :math:`H(g) = \exp(-i\pi\lambda(d_t g_t^2 + d_s g_s^2))`, with :math:`g_t` the frequency
-    component along the unit vector at ``azimuth_rad`` (measured from +x towards +y) and
-    :math:`g_s` the component perpendicular to it. With ``d_t = d/cos³θ`` and ``d_s = d/cosθ``
-    this is the second-order model of oblique propagation at field angle θ.
-    """
-    gy, gx = frequency_grid(shape, pitch_um)
-    c, s = np.cos(azimuth_rad), np.sin(azimuth_rad)
-    g_t = c * gx + s * gy
-    g_s = -s * gx + c * gy
-    return np.exp(-1j * np.pi * wavelength_um * (distance_tangential_um * g_t**2
-                                                 + distance_sagittal_um * g_s**2))
 
 
 def propagate(field: np.ndarray, transfer: np.ndarray, workers: int | None = None) -> np.ndarray:

@@ -9,8 +9,9 @@ from skimage.registration import phase_cross_correlation
 from psfkit.errors import ConfigurationError
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.propagation import fresnel_transfer_anisotropic, propagate
+from psfkit.simulate.propagation import propagate
 from psfkit.simulate.psf_patch import translate_pixels
+from tests.helpers.optics import fresnel_transfer_anisotropic
 
 
 @pytest.fixture(scope="module")

@@ -5,10 +5,10 @@ import pytest
 
 from psfkit.simulate.propagation import (
     chief_ray_shift,
-    fresnel_transfer_anisotropic,
     oblique_transfer_function,
     propagate,
 )
+from tests.helpers.optics import fresnel_transfer_anisotropic
 
 
 def _gaussian(shape, pitch, w0, x0=0.0, y0=0.0):

@@ -16,7 +16,8 @@ from psfkit.calibration.warp import (
 )
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.propagation import box_blur, fresnel_transfer_anisotropic, propagate
+from psfkit.simulate.propagation import box_blur, propagate
+from tests.helpers.optics import fresnel_transfer_anisotropic
 
 
 @pytest.fixture(scope="module")
