@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from ekdun.errors import InvalidInputError
 from ekdun.evaluation import (
@@ -18,8 +19,18 @@ from ekdun.evaluation import (
     write_results,
     write_table,
 )
-from ekdun.evaluation.tables import missing_rows
+from ekdun.evaluation.tables import EXPECTED, label_for, table_rows, variant_of
 from psfkit.io import atomic_directory
+
+
+def missing_rows(results: list[dict[str, Any]], which: str) -> list[str]:
+    """Labels of the paper's rows of table ``which`` that ``results`` lack."""
+    rows = table_rows(results, which)
+    if which == "table1":      # its only EK-DUN row is last-2, whatever its label says
+        have = {label_for(str(r.get("model")), "last-2") for r in rows if not variant_of(r)}
+    else:
+        have = {str(r.get("label")) for r in rows}
+    return [label for label in EXPECTED[which] if label not in have]
 
 
 def make_table(args: argparse.Namespace, which: str) -> int:

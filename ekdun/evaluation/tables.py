@@ -247,16 +247,6 @@ def table_rows(results: list[dict[str, Any]], which: str) -> list[dict[str, Any]
     return table1 if which == "table1" else table2
 
 
-def missing_rows(results: list[dict[str, Any]], which: str) -> list[str]:
-    """Labels of the paper's rows of table ``which`` that ``results`` lack."""
-    rows = table_rows(results, which)
-    if which == "table1":      # its only EK-DUN row is last-2, whatever its label says
-        have = {label_for(str(r.get("model")), "last-2") for r in rows if not variant_of(r)}
-    else:
-        have = {str(r.get("label")) for r in rows}
-    return [label for label in EXPECTED[which] if label not in have]
-
-
 def render_table(results: list[dict[str, Any]], which: str,
                  notes: list[str] | None = None) -> str:
     """Table ``which`` as Markdown (title, table, notes).

@@ -11,6 +11,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from analysis._tables import missing_rows
 from ekdun.cli import main as ekdun_main
 from ekdun.data.deadleaves import dead_leaves
 from ekdun.errors import InvalidInputError, TensorShapeError
@@ -25,7 +26,6 @@ from ekdun.evaluation import (
     write_tables,
 )
 from ekdun.evaluation.evaluate import seed_kernels_identity
-from ekdun.evaluation.tables import missing_rows
 from ekdun.physics.operators import ShiftInvariantOperator
 from ekdun.reconstruction import admm_tv
 from ekdun.training import TrainOptions, train
