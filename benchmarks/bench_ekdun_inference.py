@@ -119,7 +119,7 @@ def _build(label: str, args: argparse.Namespace, amp: str = "off"
     y = _scene_and_measurement(args)[1].to(device)
 
     def infer() -> object:
-        with acc.inference_precision(amp, device):
+        with torch.inference_mode(), acc.autocast(amp, device):   # the resolved amp
             out = model(y)
         if device.type == "cuda":
             torch.cuda.synchronize(device)

@@ -22,7 +22,6 @@ compile
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
 
 import torch
 from torch import nn
@@ -120,10 +119,3 @@ def cuda_synchronize(device: torch.device) -> None:
     """Wait for ``device`` (timings; a no-op on CPU)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-@contextlib.contextmanager
-def inference_precision(amp: str, device: torch.device) -> Iterator[None]:
-    """``torch.inference_mode`` plus the autocast of a resolved ``amp``."""
-    with torch.inference_mode(), autocast(amp, device):
-        yield
