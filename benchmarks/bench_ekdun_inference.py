@@ -44,6 +44,10 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
+
+# research/ (not installed) holds the synthetic PSF: import it from this checkout
+sys.path.append(str(Path(__file__).resolve().parents[1]))
 
 MODELS = {  # label: (model name, configuration overrides)
     "ekdun-base": ("ekdun", {"schedule": "base"}),
@@ -83,7 +87,7 @@ def _scene_and_measurement(args: argparse.Namespace):
 
     from ekdun.data.deadleaves import dead_leaves
     from ekdun.physics.operators import ShiftInvariantOperator
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     if args.pairs:
         from ekdun.data.pairs import PairsDataset
@@ -104,7 +108,7 @@ def _build(label: str, args: argparse.Namespace, amp: str = "off"
 
     from ekdun import device as acc
     from ekdun.nets import build_model
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     device = torch.device(args.device)
     if label == "checkpoint":

@@ -13,14 +13,19 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 
 from ekdun.physics import EigenKernelOperator, PreparedOperator, ShiftInvariantOperator
-from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.fft import count_ffts
+
+# research/ (not installed) holds the synthetic PSF: import it from this checkout
+sys.path.append(str(Path(__file__).resolve().parents[1]))
+from research.synthetic import caustic_psf
 
 
 def fft_calls(fn: Callable[[], object]) -> tuple[int, int]:

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -47,10 +48,13 @@ from ekdun import device as acc
 from ekdun.nets.builder import build_network
 from ekdun.nets.configs import get_preset
 from ekdun.physics.operators import EigenKernelOperator
-from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, train
 from ekdun.training.trainer import make_optimizer
 from psfkit.forward.kernelfile import KernelModel
+
+# research/ (not installed) holds the synthetic PSF: import it from this checkout
+sys.path.append(str(Path(__file__).resolve().parents[1]))
+from research.synthetic import caustic_psf
 
 
 def seed_model(sensor: tuple[int, int]) -> KernelModel:

@@ -119,7 +119,7 @@ def tiny_data(tmp_path_factory) -> tuple[Path, Path]:
 
     from ekdun.data.deadleaves import dead_leaves
     from ekdun.physics.operators import EigenKernelOperator
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     root = tmp_path_factory.mktemp("tiny")
     psf = caustic_psf(TINY_SENSOR, 3, seed=3)

@@ -17,9 +17,9 @@ from ekdun.physics.kernel_parameterisation import (
     seed_support,
     warp_bilinear,
 )
-from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, export_kernels, train
 from psfkit.forward.kernelfile import load_kernels
+from research.synthetic import caustic_psf
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 

@@ -24,9 +24,9 @@ from ekdun.nets import (
 from ekdun.nets.tv_admm_steps import finite_differences, finite_differences_adjoint
 from ekdun.nets.updn import interleave_copies
 from ekdun.physics import PreparedOperator, ShiftInvariantOperator
-from ekdun.physics.synthetic import caustic_psf
 from psfkit.forward.convolution import crop
 from psfkit.forward.kernelfile import KernelModel, save_kernels
+from research.synthetic import caustic_psf
 
 SENSOR = (32, 48)
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

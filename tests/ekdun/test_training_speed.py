@@ -18,9 +18,9 @@ from ekdun.errors import ConfigurationError
 from ekdun.evaluation.metrics import psnr
 from ekdun.nets import build_model
 from ekdun.physics.operators import EigenKernelOperator
-from ekdun.physics.synthetic import caustic_psf
 from ekdun.training import TrainOptions, load_checkpoint, train
 from psfkit.forward.kernelfile import load_kernels
+from research.synthetic import caustic_psf
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 CPU = torch.device("cpu")

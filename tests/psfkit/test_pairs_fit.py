@@ -220,7 +220,7 @@ def _tiny_camera() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``tests/conftest.py``'s tiny eigen-kernel camera (non-negative caustic kernels, sensor
     convention) and 8 dead-leaves scenes with their exact measurements, float64."""
     from ekdun.data.deadleaves import dead_leaves
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     shape = (16, 16)
     psf = caustic_psf(shape, 3, seed=3)

@@ -30,7 +30,7 @@ def known_eigen_kernels(shape: tuple[int, int] = (32, 32), channels: int = 3) ->
     the base (the astigmatism the bench shows), ``(3, C, H, W)`` float64."""
     from scipy.ndimage import affine_transform
 
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     base = caustic_psf(shape, channels, seed=5).astype(np.float64)
     centre = np.array([shape[0] // 2, shape[1] // 2], dtype=np.float64)

@@ -28,7 +28,7 @@ def _model() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     from scipy.ndimage import shift
 
     from ekdun.data.bench_spec import VirtualBenchSpec, make_scenes
-    from ekdun.physics.synthetic import caustic_psf
+    from research.synthetic import caustic_psf
 
     base = caustic_psf(SHAPE, 1, seed=3).astype(np.float64)
     base /= base.sum()

@@ -15,7 +15,6 @@ import torch
 from ekdun.data.bench_spec import dense_model_for
 from ekdun.data.dense_model import DenseShiftVariantModel
 from ekdun.data.virtual_bench import VirtualBenchSpec, dataset_is_current, make_virtual_bench
-from ekdun.physics.synthetic import caustic_psf
 from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import predict
 from psfkit.fitting.pairs.solver import solve_kernels
@@ -32,6 +31,7 @@ from research.oracles import (
     white_scenes,
     write_dataset_oracles,
 )
+from research.synthetic import caustic_psf
 
 SPEC = VirtualBenchSpec(sensor_shape=(32, 32), n_train=8, n_test=2, grid_shape=(3, 3))
 

@@ -1,4 +1,8 @@
-"""A synthetic diffuser-like PSF for examples, tests and benchmarks (no data needed)."""
+"""A synthetic diffuser-like PSF for tests and benchmarks (no data needed).
+
+Was ``ekdun.physics.synthetic`` until issue 44: no product code calls it. The benchmarks in
+``benchmarks/`` put the checkout's root on ``sys.path`` to import it.
+"""
 
 from __future__ import annotations
 
