@@ -126,6 +126,15 @@ def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
     return torch.cat([rows[..., pw - col:], rows[..., :wk - col]], dim=-1)
 
 
+def kernels_from_spectra(spectra: Tensor, grid_shape: tuple[int, int],
+                         kernel_shape: tuple[int, int]) -> Tensor:
+    """``extract_kernel(irfft2(spectra), kernel_shape)``: the centred ``(Hk, Wk)`` kernels of
+    spectra on the grid, computing only the window's rows and columns (:func:`irfft2` with a
+    wrapped block; on the 7 DLMD pairs' grid 0.64× the time of the whole inverse)."""
+    row, col = kernel_origin(kernel_shape)
+    return irfft2(spectra, grid_shape, kernel_shape, start=(-row, -col))
+
+
 def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     """Half spectra ``rfft2(embed_kernel(kernels))``, ``(..., PH, PW//2 + 1)`` complex.
 
@@ -193,12 +202,13 @@ def fan_out(x_hat: Tensor, spectra: Tensor, weights: Tensor | None,
 
 
 def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
-                           graph: bool) -> Tensor:
+                           graph: bool, fresh: bool = True) -> Tensor:
     """``Σ_k Ŝ_k · spectrum_of(k)``: the kernel-by-input products of Eq. 7 summed in the
     Fourier domain (source-side forward, sensor-side adjoint, before the inverse FFT).
 
     ``spectrum_of(k)`` gives the spectrum of the ``k``-th (weighted) input ``(..., C, PH,
-    PW//2+1)``; outside autograd (``graph`` false) the first is overwritten with the sum.
+    PW//2+1)``; outside autograd (``graph`` false) the first is overwritten with the sum,
+    unless it is not ``fresh`` (e.g. cached spectra): then the sum is a new array.
     """
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
@@ -207,7 +217,7 @@ def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor
             term = term * spectra[k]
             acc = term if acc is None else acc + term
         elif acc is None:
-            acc = term.mul_(spectra[k])
+            acc = term.mul_(spectra[k]) if fresh else torch.mul(term, spectra[k])
         else:
             acc.addcmul_(term, spectra[k])
     assert acc is not None
@@ -215,14 +225,16 @@ def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor
 
 
 def fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
-            grid_shape: tuple[int, int], block: tuple[int, int], graph: bool) -> Tensor:
+            grid_shape: tuple[int, int], block: tuple[int, int], graph: bool,
+            fresh: bool = True) -> Tensor:
     r"""``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT.
 
     The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
     (source-side forward, sensor-side adjoint); ``spectrum_of(k)`` is the spectrum of the
-    ``k``-th weighted input (a fresh array: it is overwritten outside autograd).
+    ``k``-th weighted input (overwritten outside autograd if ``fresh``).
     """
-    return irfft2(sum_of_kernel_products(spectrum_of, spectra, graph), grid_shape, block)
+    return irfft2(sum_of_kernel_products(spectrum_of, spectra, graph, fresh), grid_shape,
+                  block)
 
 
 def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,

@@ -84,14 +84,15 @@ def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
 
 
 def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
-           crop_shape: tuple[int, int] | None = None) -> Tensor:
+           crop_shape: tuple[int, int] | None = None,
+           start: tuple[int, int] = (0, 0)) -> Tensor:
     """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
 
     ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
-    With ``crop_shape`` only the top-left ``crop_shape`` block is returned, and only computed:
-    the complex inverse along the columns runs on the whole grid, but the real inverse along
-    the rows only on the rows kept (the same numbers as ``irfft2`` then slicing, for about
-    three quarters of the work).
+    With ``crop_shape`` only the ``crop_shape`` block at ``start`` is returned, and only
+    computed: the complex inverse along the columns runs on the whole grid, but the real
+    inverse along the rows only on the rows kept (the same numbers as ``irfft2`` then slicing,
+    for about three quarters of the work).
 
     Parameters
     ----------
@@ -100,7 +101,10 @@ def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
     grid_shape : (int, int)
         ``(PH, PW)``.
     crop_shape : (int, int), optional
-        ``(h, w)`` top-left block to keep.
+        ``(h, w)`` block to keep.
+    start : (int, int)
+        ``(row, column)`` of the block's first pixel, taken modulo the grid: the block wraps
+        around it (a kernel centred on the origin has ``start = (−Hk//2, −Wk//2)``).
 
     Returns
     -------
@@ -111,6 +115,15 @@ def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
         count.inverse += 1
     if crop_shape is None:
         return torch.fft.irfft2(spectrum, s=grid_shape)
-    columns = torch.fft.ifft(spectrum, dim=-2)
-    rows = torch.fft.irfft(columns[..., :crop_shape[0], :], n=grid_shape[1], dim=-1)
-    return rows[..., :crop_shape[1]]
+    columns = _wrapped(torch.fft.ifft(spectrum, dim=-2), start[0], crop_shape[0], -2)
+    rows = torch.fft.irfft(columns, n=grid_shape[1], dim=-1)
+    return _wrapped(rows, start[1], crop_shape[1], -1)
+
+
+def _wrapped(z: Tensor, first: int, size: int, dim: int) -> Tensor:
+    """``size`` entries of ``z`` along ``dim`` from index ``first``, wrapping around the end."""
+    first %= z.shape[dim]
+    if first + size <= z.shape[dim]:
+        return z.narrow(dim, first, size)
+    return torch.cat([z.narrow(dim, first, z.shape[dim] - first),
+                      z.narrow(dim, 0, first + size - z.shape[dim])], dim=dim)

@@ -26,13 +26,13 @@ from torch import Tensor
 
 from psfkit.forward.base import LinearOperator
 from psfkit.forward.convolution import (
-    extract_kernel,
     fan_in,
     fan_out,
     kernel_spectra,
+    kernels_from_spectra,
     records_graph,
 )
-from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.fft import rfft2
 from psfkit.forward.geometry import padded_shape
 from psfkit.forward.weights import get_basis
 
@@ -130,9 +130,9 @@ class KernelSpaceOperator(LinearOperator):
         if self.weights is None or self.convention == "sensor":
             return fan_out(self.scene_spectra[:, 0], spectra, self.weights, self.grid,
                             self.sensor, graph, overwrite=False)
-        # only the first term must be a fresh array (the sum is accumulated into it)
-        return fan_in(lambda k: self.scene_spectra[:, k].clone() if k == 0 or graph
-                      else self.scene_spectra[:, k], spectra, self.grid, self.sensor, graph)
+        # the cached scene spectra are read, never overwritten (the sum is a new array)
+        return fan_in(lambda k: self.scene_spectra[:, k], spectra, self.grid, self.sensor,
+                      graph, fresh=False)
 
     def adjoint(self, residuals: Tensor) -> Tensor:
         """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each (weighted) residual with its
@@ -155,7 +155,7 @@ class KernelSpaceOperator(LinearOperator):
     def kernels_of(self, spectra: Tensor) -> Tensor:
         """The kernels ``(K, C, Hk, Wk)`` of spectra on the grid (the inverse of
         :meth:`spectra_of` on the kernel window)."""
-        return extract_kernel(irfft2(spectra, self.grid), self.kernel_shape)
+        return kernels_from_spectra(spectra, self.grid, self.kernel_shape)
 
     A = forward
     A_adjoint = adjoint

@@ -257,3 +257,42 @@ def test_a_subset_of_the_kernel_space_operator_measures_its_own_norm():
     part = whole.subset(slice(0, 1))
     alone = KernelSpaceOperator(x[:1], "paper", "sensor", (3, 4))
     assert whole.norm() > part.norm() == pytest.approx(alone.norm(), rel=1e-12)
+
+
+@pytest.mark.parametrize("start", [(0, 0), (-2, -3), (4, 5), (-7, 1)])
+def test_a_cropped_inverse_fft_is_the_wrapped_block_of_the_whole_one(start):
+    """``irfft2`` computing only a block (wrapping around the grid from ``start``) gives the
+    block of the whole inverse, for an odd and an even width; and the kernel window computed
+    that way is ``extract_kernel`` of the whole inverse (the kernel fits' inverse)."""
+    from psfkit.forward.convolution import extract_kernel, kernels_from_spectra
+    from psfkit.forward.fft import irfft2
+
+    for grid in ((9, 12), (10, 11)):
+        z = torch.rand((2, 3, *grid), generator=torch.Generator().manual_seed(0),
+                       dtype=torch.float64)
+        spectrum = rfft2(z)
+        whole = torch.fft.irfft2(spectrum, s=grid)
+        rolled = torch.roll(whole, shifts=(-start[0], -start[1]), dims=(-2, -1))
+        block = irfft2(spectrum, grid, (6, 8), start=start)
+        assert torch.allclose(block, rolled[..., :6, :8], atol=1e-13), (grid, start)
+        assert torch.allclose(block, z.roll((-start[0], -start[1]), (-2, -1))[..., :6, :8],
+                              atol=1e-13)
+        for kernel_shape in ((5, 7), (6, 8)):
+            expected = extract_kernel(whole, kernel_shape)
+            got = kernels_from_spectra(spectrum, grid, kernel_shape)
+            assert got.shape == expected.shape
+            assert torch.allclose(got, expected, atol=1e-13), (grid, kernel_shape)
+
+
+def test_the_kernel_space_forward_leaves_its_cached_scene_spectra_as_they_were():
+    """The source side sums the kernels' products into a new array: the cached (weighted)
+    scene spectra are read, never overwritten (a second pass gives the same predictions)."""
+    x = torch.rand((2, 3, *SENSOR), generator=torch.Generator().manual_seed(5),
+                   dtype=torch.float64)
+    op = KernelSpaceOperator(x, "paper", "source", (3, 4))
+    cached = op.scene_spectra.clone()
+    kernels = torch.rand(op.domain_shape(), generator=torch.Generator().manual_seed(6),
+                         dtype=torch.float64)
+    first = op.A(kernels)
+    assert torch.equal(op.scene_spectra, cached)
+    assert torch.equal(op.A(kernels), first)

@@ -12,6 +12,7 @@ from psfkit.compare.statistics import normalized_correlation as ncc
 from psfkit.fitting.pairs.batches import BATCH_BYTES, DEFAULT_BATCH, PairBatches, auto_batch_size
 from psfkit.fitting.pairs.constraints import (
     STALL_STEPS,
+    _armijo_step,
     _cheap_products_too_coarse,
     projected_newton,
 )
@@ -240,6 +241,37 @@ def test_projected_newton_is_scipys_nnls(hessian_dtype: torch.dtype) -> None:
         assert np.abs(got - expected).max() < 1e-5 * np.abs(expected).max()
         assert (expected == 0).sum() > 5              # the constraint binds
     assert float(kkt_residual(normal, rhs, x).max()) < 1e-11
+
+
+def test_the_line_search_backtracks_on_cheap_products_and_ends_on_exact_ones() -> None:
+    """A step 30× too long backtracks: with float32 trial products it takes the same step
+    sizes as with exact ones and returns the exact ``N x⁺``; with the wrong products (``−N``)
+    it never takes a step that does not decrease the objective exactly."""
+    _mats, _ys, normal, rhs = _dense_nnls_problem(2)
+    x = torch.rand(rhs.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    nx = normal(x)
+    g = nx - rhs
+    d = -30 * g / float(g.abs().max())
+
+    def project(v: torch.Tensor) -> torch.Tensor:
+        return v.clamp_min(0)
+
+    def objective(k: torch.Tensor) -> torch.Tensor:
+        return (0.5 * k * normal(k) - rhs * k).sum(dim=(0, 2, 3))
+
+    exact = _armijo_step(normal, normal, project, x, nx, g, d)
+    cheap = _armijo_step(normal, lambda v: normal(v.float()).to(v.dtype), project, x, nx, g, d)
+    assert bool(exact[2].all()) and bool(cheap[2].all())
+    assert not torch.equal(exact[0], x + d)                  # it did backtrack
+    assert torch.allclose(cheap[0], exact[0], rtol=0, atol=1e-12)
+    assert torch.equal(cheap[1], normal(cheap[0]))           # the exact product at x⁺
+    assert bool((objective(exact[0]) < objective(x)).all())
+    wrong = _armijo_step(normal, lambda v: -normal(v), project, x, nx, g, d)
+    moved = wrong[2]
+    assert not bool(moved.all())                 # the exact check turned a trial down
+    assert torch.equal(wrong[0][:, ~moved], x[:, ~moved])
+    assert bool((objective(wrong[0]) <= objective(x)).all())
+    assert torch.equal(wrong[1], normal(wrong[0]))
 
 
 def test_kkt_residual_does_not_depend_on_units() -> None:

@@ -13,8 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psfkit.forward.convolution import extract_kernel, kernel_spectra
-from psfkit.forward.fft import irfft2
+from psfkit.forward.convolution import kernel_spectra, kernels_from_spectra
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.weights import get_basis
 
@@ -140,7 +139,7 @@ class FrequencyGram:
                                       for k in range(len(inv))])
             else:
                 solved = torch.stack([inv[k, k] * spectra[k] for k in range(len(inv))])
-            return extract_kernel(irfft2(solved, self.grid), self.kernel_shape).to(r.dtype)
+            return kernels_from_spectra(solved, self.grid, self.kernel_shape).to(r.dtype)
 
         return apply
 
