@@ -135,7 +135,7 @@ def _print_warnings(result: GridCharacterization) -> None:
         print(f"warning: {message}")
 
 
-#: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report`` (issue 44): hidden
+#: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report``: hidden
 #: from ``psfkit --help``, they run as before for one release and then print where ``report``
 #: puts what they printed (docs/migration.md).
 REPLACED_BY_REPORT = {
