@@ -251,8 +251,8 @@ class GridAligner:
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
         """Refuse a reference whose saturated pixels (masked with ``allow_saturated``) leave
         less than :data:`MIN_OVERLAP` of the sensor: no position, the reference included,
-        could be compared with it (issue 43: every position was then excluded and the fits
-        received no measurement)."""
+        could be compared with it (every position would be excluded and the fits would receive
+        no measurement)."""
         saturated = self.reference_prepared.saturated
         if float(np.mean(~saturated)) >= MIN_OVERLAP:
             return

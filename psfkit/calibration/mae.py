@@ -2,7 +2,7 @@
 
 With every PSF aligned to the reference by its measured shift (and, optionally, divided by its
 gain), what remains is the error a shift-invariant model makes at that field position. The
-MAE is **energy-normalised over the PSF's support** (issue 43):
+MAE is **energy-normalised over the PSF's support**:
 
 ``MAE = Σ_{c, x ∈ S ∩ Ω} |p(x) − p0(x)| / Σ_{c, x ∈ S ∩ Ω} p0(x)``,
 

@@ -57,8 +57,8 @@ class CharacterizeOptions:
     min_quality : float
         Positions whose registration quality (NCC) is below this are excluded ("low NCC").
     strict : bool
-        All or nothing: a position that fails a quality check ends the run (as before
-        issue 26) instead of being excluded with its reason.
+        All or nothing: a position that fails a quality check ends the run instead of being
+        excluded with its reason.
     """
 
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
@@ -279,7 +279,8 @@ class GridCharacterization:
 
     def coverage(self) -> dict[str, Any]:
         """The layout, the cells never captured and the excluded positions with their
-        reasons; empty for a complete full lattice (its documents stay as before issue 26)."""
+        reasons; empty for a complete full lattice (whose documents then carry no coverage
+        fields)."""
         if self.is_complete and self.options.min_quality == MIN_QUALITY:
             return {}
         return {"layout": self.layout,

@@ -40,10 +40,10 @@ BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (c
 SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 #: Default ridge ``λ`` (relative to the mean diagonal of each pixel's normalised Gram matrix).
 #: Where the data do not constrain a pixel (the edges, seen by one or two PSFs) the ridge alone
-#: sets its correction kernels; at 1e-9 it sat below the rounding of the sums, so a one-ulp
-#: change of the PSFs moved the demo's kernels there by 15 % of their peak (issue 21,
-#: ``research/golden_spread.py``). At 1e-4 that spread is 1.5e-6 of the peak, and the in-sample
-#: error of the demo's fit changes by 3e-5 of itself.
+#: sets its correction kernels, so it must lie well above the rounding of the sums (at 1e-9 a
+#: one-ulp change of the PSFs moved the demo's kernels there by 15 % of their peak; at 1e-4 by
+#: 1.5e-6, at a cost of 3e-5 in the fit's in-sample error;
+#: research/notes/changelog-measurements.md).
 DEFAULT_RIDGE = 1e-4
 
 
