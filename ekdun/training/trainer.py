@@ -103,8 +103,8 @@ class TrainOptions:
 
 
 def check_training_config(cfg: TrainingConfig) -> None:
-    """Refuse out-of-range settings before anything is built or written (a bad batch size
-    used to fail in the first epoch, after ``kernels_initial.npz`` had been written)."""
+    """Refuse out-of-range settings before anything is built or written (so that a bad batch
+    size does not fail in the first epoch, after ``kernels_initial.npz`` was written)."""
     for name in ("epochs", "batch_size"):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
