@@ -245,7 +245,7 @@ class GridAligner:
         PSF's) is summed over: ``aligned.compared`` for a compact PSF, where the frame's empty
         pixels would add only noise; the whole overlap ``aligned.valid`` for a PSF that fills
         the sensor (:data:`FILLING_SUPPORT`), whose light below the support's threshold is
-        part of it (leaving it out biased the bench caustic's gains by up to 0.27 % towards
+        part of it (leaving it out biases the bench caustic's gains by up to 0.27 % towards
         the edge, its cos-law exponent by 6σ)."""
         return aligned.valid if self.fills_sensor else aligned.compared
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:

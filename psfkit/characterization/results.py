@@ -226,7 +226,7 @@ class GridCharacterization:
 
     @property
     def is_complete(self) -> bool:
-        """A full lattice with every position measured (the pre-issue-26 case)."""
+        """A full lattice with every position measured."""
         return self.layout == FULL_LATTICE and not self.excluded
 
     def to_dict(self) -> dict[str, Any]:

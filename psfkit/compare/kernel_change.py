@@ -17,7 +17,7 @@ kernel, or the measured one) is split, one part after the other, into
 "Energy" is light: each part's *fraction* is its L1 norm ``Σ|part|`` over the sum of the four
 (they sum to 1; a part that removes light from the caustic and one that adds it elsewhere both
 count). ``G + P + D + O = Δ`` exactly.
-``pedestal_fraction`` is the issue's "energy outside the support"; ``outside_mass_fraction``
+``pedestal_fraction`` is the change's energy outside the support; ``outside_mass_fraction``
 is the share of the learned kernel's absolute mass ``Σ|L|`` outside ``S`` (how much of the
 kernel itself is pedestal, not of its change).
 """

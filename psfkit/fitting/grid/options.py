@@ -58,8 +58,8 @@ class EigenFitOptions:
         affine field-to-shift map fitted to the reliably registered positions
         (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the forward
         model ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
-        the kernels. ``"registered"``: at each PSF's own registered shift (before 2026-11-25;
-        it removes that part, and is biased where a PSF is mostly off the sensor).
+        the kernels. ``"registered"``: at each PSF's own registered shift (which removes that
+        part, and is biased where a PSF is mostly off the sensor).
     """
 
     basis: str = "paper"

@@ -160,7 +160,7 @@ class PairBatches:
                     ) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor, Tensor]]:
         """``(start, stop, operator, scales, B_i K)`` per batch (one pass; the prediction
         unscaled). The kernels' FFTs are taken once per pass, not once per batch (at full
-        DLMD resolution a float32 pass has 4 batches: they were most of its cost)."""
+        DLMD resolution a float32 pass has 4 batches: they would be most of its cost)."""
         spectra = None
         for start, stop, op, s in self.batches():
             if spectra is None:
