@@ -2,7 +2,7 @@
 reconstruction, which is now ``ekdun reconstruct`` with a kernel file or a PSF image
 (:mod:`ekdun.cli.reconstruct_cmd`; docs/migration.md).
 
-Hidden from ``ekdun --help``, they run exactly as before for one release and then print one
+Hidden from ``ekdun --help``, they still run unchanged for one release and then print one
 note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 * ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment

@@ -10,15 +10,15 @@
     (the batch order depends only on ``(seed, epoch)``).
 ``log.csv``
     one row per epoch (loss, learning rate, time).
+``kernels_initial.npz`` / ``kernels_learned.npz``
+    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
+    convention and sensor size as the seed), for ``psfkit compare``.
 
 Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
 with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
 device and read once per epoch (and at the progress bar's log points), so the host never
 waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
 ``channels_last`` and ``compile`` are described in :mod:`ekdun.device`.
-``kernels_initial.npz`` / ``kernels_learned.npz``
-    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
-    convention and sensor size as the seed), for ``psfkit compare``.
 """
 
 from __future__ import annotations
