@@ -83,8 +83,8 @@ RETIRED_FLAGS = {
 MAKE_DATASET_ADVANCED = ("--half-fov", "--aperture", "--photons", "--grid-frames", "--threads")
 #: ... for train: what the pairs and kernel file decide (binning, channel order), the preset's
 #: schedule overrides, research knobs (kernel parameterisation, kernel learning rate, physics
-#: loss), speed settings and --quiet (a
-#: training run is watched; its log.csv records every epoch either way).
+#: loss), speed settings and --quiet (a training run is watched; its log.csv records every
+#: epoch either way).
 TRAIN_ADVANCED = ("--downsample", "--channel-order", "--schedule", "--iterations",
                   "--kernel-param", "--batch-size", "--lr", "--kernel-lr-scale",
                   "--physics-weight", "--seed", "--threads", "--amp", "--no-amp",

@@ -157,8 +157,8 @@ class Preset:
 
     ``recipes`` holds a network's own training settings, which replace those of
     ``training`` for it (no network is trained with another network's learning rate): its
-    authors' where published, else the best of a learning-rate sweep at equal
-    budget (docs/baselines.md).
+    authors' where published, else the best of a learning-rate sweep at equal budget
+    (docs/baselines.md).
     """
 
     name: str

@@ -24,8 +24,8 @@ Following ``oliland/lensless-primal-dual`` (``ImageOptimizerMixColors``): 5 tile
 primal-dual blocks of this form, a U-Net on the primal channels with a residual on the first
 copy. The primal-dual blocks run in float32 under autocast (only the U-Net in half
 precision). Differences (docs/baselines.md): the primal on the sensor by default (same PSNR
-on the bench, less time), the groups aligned with the PSF copies, and no
-output sigmoid (as for the other models, the loss sees linear values). The PSF copies are
+on the bench, less time), the groups aligned with the PSF copies, and no output sigmoid (as
+for the other models, the loss sees linear values). The PSF copies are
 identical at initialisation; they diverge in training because each copy's group of the
 convolutions has its own random weights.
 """

@@ -295,8 +295,8 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
 
 #: Relative residual of the float32 solves that start the non-negative solve (the
 #: unconstrained kernels and the per-pair scales, which Newton keeps): 1e-5 is what float32
-#: reaches and keeps the scales of noise-free pairs exact, where 1e-4 leaves them 8e-4 off
-#: (tests/psfkit/test_pairs_solver.py); float32 takes half the time of float64 to 1e-6.
+#: reaches, and it gives the scales of noise-free pairs as float64 solves do, where 1e-4 leaves
+#: them 8e-4 off (tests/psfkit/test_pairs_solver.py); in less than half the time of float64.
 START_TOLERANCE = 1e-5
 
 
