@@ -149,8 +149,7 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
 
     What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
     :func:`psfkit.calibration.psf_image.load_psf_image`), so that the PSF form and ``--kernels``
-    run one
-    solver.
+    run one solver.
 
     Parameters
     ----------

@@ -1,8 +1,7 @@
 """Bring every PSF of a grid into the centre PSF's frame: preprocess, register, align.
 
 Shared by the characterization (:mod:`psfkit.characterization.characterize`) and the eigen-kernel
-fit
-(:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
+fit (:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
 """What a characterization of a PSF grid holds: its options, the numbers measured at each
 position, and the grid's summary (fits, verdict, coverage) with the small images the figures
 need. Produced by :func:`psfkit.characterization.characterize.characterize_grid`; read by the
-report and the
-figures, which need none of the measurement code.
+report and the figures, which need none of the measurement code.
 """
 
 from __future__ import annotations
@@ -115,8 +114,7 @@ class PositionResult:
 @dataclass
 class GridCharacterization:
     """Everything :func:`psfkit.characterization.characterize.characterize_grid` measured, plus
-    images for the
-    figures.
+    images for the figures.
 
     ``positions`` holds the measured positions; ``excluded`` the captured ones left out, with
     their reasons; ``missing`` the cells of the declared lattice that were never captured.

@@ -9,8 +9,7 @@ kernel, or the measured one) is split, one part after the other, into
    caustic of the measured kernels), e.g. the smooth floor that Adam grows on near-zero pixels;
 3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``: the part a dense optical flow ``F``
    from ``I`` to ``L`` explains (``psfkit.calibration.warp.dense_flow``, the flow ``psfkit
-   compare``'s
-   displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
+   compare``'s displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
 4. **other** ``O = S·(Δ − G) − D``: the change inside the support a displacement does not
    explain (new spots, changed shapes).
 

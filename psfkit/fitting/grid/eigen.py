@@ -10,8 +10,7 @@ relative to the centre PSF, is written with the weight basis of :mod:`psfkit.for
 
 In the frame of the centre PSF (``v = u − s_p``, where the aligned PSFs of
 :mod:`psfkit.calibration.alignment` live) both become, at every kernel pixel ``v`` separately, a
-linear
-model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
+linear model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
 :math:`W(s_p)` (source). The least-squares kernels therefore solve a K × K system per pixel,
 :math:`\big(\sum_p m_p w_p w_p^\top + \lambda R\big) K(v) = \sum_p m_p w_p a_p(v)` (``m_p`` the
 valid-pixel mask), accumulated one PSF at a time and solved for all pixels at once. The small

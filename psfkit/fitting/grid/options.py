@@ -47,8 +47,7 @@ class EigenFitOptions:
     ridge : float
         Relative weight of the prior pulling correction kernels towards the base kernel
         (:data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that
-        the
-        pixels the data do not constrain are well-conditioned).
+        the pixels the data do not constrain are well-conditioned).
     min_quality : float
         Positions whose registration quality (NCC) is below this are excluded.
     strict : bool

@@ -87,8 +87,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     The least squares is solved to ``options.tolerance`` (relative residual of the normal
     equations) by conjugate gradients preconditioned with the per-frequency Gram blocks of
     the scenes (:mod:`psfkit.fitting.pairs.solver`), streaming the pairs in batches: memory is that
-    of
-    the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
+    of the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
 
     Parameters
     ----------
@@ -240,15 +239,14 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
                     weights: dict[str, float], kernels: Tensor | None,
                     history: list[dict[str, Any]], choices: list[RegularisationChoice],
                     bar: Any) -> tuple[Tensor | None, list[float]]:
-    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
-    records into ``choices``): on the pairs binned to at most
+    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their records
+    into ``choices``): on the pairs binned to at most
     :data:`~psfkit.fitting.pairs.regularisation.SELECTION_PIXELS` pixels, the scales first, at the
-    path's
-    strongest weights (the best-conditioned solves), then the folds with those scales; both in
-    float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at the
-    chosen weights (when the choice was made on binned pairs, the binned fit there on the
-    unbinned grid: :func:`upsampled_kernels`), and the held-out errors at the weights used
-    (given weights are scored on the same folds)."""
+    path's strongest weights (the best-conditioned solves), then the folds with those scales; both
+    in float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at
+    the chosen weights (when the choice was made on binned pairs, the binned fit there on the
+    unbinned grid: :func:`upsampled_kernels`), and the held-out errors at the weights used (given
+    weights are scored on the same folds)."""
     factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
     if factor > 1:

@@ -119,8 +119,7 @@ class PairFitOptions:
     @property
     def automatic(self) -> tuple[str, ...]:
         """The weights chosen by held-out error (:mod:`psfkit.fitting.pairs.regularisation`): the
-        difference
-        prior of eigen-kernels, the ridge of one PSF, each unless given."""
+        difference prior of eigen-kernels, the ridge of one PSF, each unless given."""
         if get_basis(self.basis).n_kernels > 1:
             return ("difference",) if self.difference is None else ()
         return ("tikhonov",) if self.tikhonov is None else ()
