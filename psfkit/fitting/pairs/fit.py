@@ -104,8 +104,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
         "mask"``; nonzero = inside).
     batch_size, cache_bytes
-        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and bytes
-        of scene spectra kept between passes
+        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and
+        bytes of scene spectra kept between passes
         (:class:`~psfkit.fitting.pairs.batches.PairBatches`).
 
     Raises

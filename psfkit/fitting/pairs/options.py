@@ -86,12 +86,12 @@ class PairFitOptions:
     projected_iterations : int, optional
         Most Newton steps of the non-negative solve (default ``NEWTON_ITERATIONS``).
 
-    One solver per problem (:attr:`solver`): conjugate gradients on the normal equations for
-    the unconstrained kernels (restricted to the support, an exact solve, when there is one
-    without non-negativity), and projected Newton-CG
+    One solver per problem (:attr:`solver`): conjugate gradients on the normal equations for the
+    unconstrained kernels (restricted to the support, an exact solve, when there is one without
+    non-negativity), and projected Newton-CG
     (:func:`psfkit.fitting.pairs.constraints.projected_newton`) to a KKT residual of
-    ``tolerance`` for non-negativity (with or without a support): the non-negative least
-    squares itself.
+    ``tolerance`` for non-negativity (with or without a support): the non-negative least squares
+    itself.
     """
 
     basis: str = "si"
