@@ -2,7 +2,7 @@
 
 Mixed precision (``amp``)
     ``"bf16"`` or ``"fp16"`` runs the network under :func:`torch.autocast`; ``"off"`` runs it in
-    float32; ``"auto"`` is fp16 on CUDA and off elsewhere (the behaviour before the option).
+    float32; ``"auto"`` is fp16 on CUDA and off elsewhere.
     bf16 is available on CPU and on CUDA devices that support it, fp16 on CUDA only (with a
     gradient scaler in training). The physics stays in float32 under autocast: the FFTs and
     elementwise products of :mod:`ekdun.physics` are not on autocast's lists, and the
@@ -67,7 +67,7 @@ def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.dev
 
 def resolve_amp(amp: str | bool, device: torch.device) -> str:
     """``"off"``, ``"bf16"`` or ``"fp16"`` for ``device``; ``True`` means ``"auto"`` and
-    ``False`` ``"off"`` (the former boolean option).
+    ``False`` ``"off"`` (``amp`` may be given as a boolean).
 
     Raises
     ------

@@ -23,8 +23,7 @@ class GridFormatError(InvalidInputError):
 class PositionRejected(InvalidInputError):
     """One PSF of a grid fails a quality check (``reason``: one of
     :data:`psfkit.calibration.alignment.REJECTION_REASONS`). The grid analyses exclude that
-    position and
-    carry on (unless ``strict``, or it is the reference PSF)."""
+    position and carry on (unless ``strict``, or it is the reference PSF)."""
 
     def __init__(self, message: str, reason: str) -> None:
         super().__init__(message)

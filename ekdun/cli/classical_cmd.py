@@ -1,14 +1,13 @@
 """``ekdun admm`` (alias ``ekdun reconstruct-classical``): deprecated spellings of classical
 reconstruction, which is now ``ekdun reconstruct`` with a kernel file or a PSF image
-(:mod:`ekdun.cli.reconstruct_cmd`; issue 44, docs/migration.md).
+(:mod:`ekdun.cli.reconstruct_cmd`; docs/migration.md).
 
-Hidden from ``ekdun --help``, they run exactly as before for one release and then print one
+Hidden from ``ekdun --help``, they still run unchanged for one release and then print one
 note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
 
 * ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment
-  (:func:`psfkit.calibration.psf_image.psf_kernel`: background, binning, clipped to ``>= 0``, unit
-  sum
-  per channel), becomes a shift-invariant kernel model
+  (:func:`psfkit.calibration.psf_image.psf_kernel`: background, binning, clipped to ``>= 0``,
+  unit sum per channel), becomes a shift-invariant kernel model
   (:func:`~ekdun.reconstruction.classical.psf_model`);
 * ``ekdun admm --kernels MODEL.npz MEASUREMENT... --out X.npy|FOLDER``: a kernel file (SI or
   eigen-kernel, from fit-eigen or fit-pairs) used as fitted.
@@ -34,8 +33,8 @@ from ekdun.flag_ranges import flag
 from psfkit.cli.vocabulary import NOTICES, deprecation_notices
 from psfkit.io.validation import require_finite
 
-# One TV default for both forms (the same solver and units since issue 22; 3e-4 was the best of
-# 1e-4/3e-4/1e-3/3e-3 for the PSF form on DLMD pair im394 at 67x120: 18.90 dB vs 18.54 at 1e-3).
+# One TV default for both forms (the same solver and units): 3e-4, the best of four weights for
+# the PSF form on a DLMD pair (research/notes/reconstruction-studies.md).
 _DEFAULTS = {"psf": {"iterations": 100, "tv": 3e-4, "background": "corner"},
              "kernels": {"iterations": 100, "tv": 3e-4, "background": "none"}}
 # ClassicalOptions' defaults and solvers, spelled out so that ``ekdun --help`` needs no torch

@@ -36,8 +36,8 @@ def resolve_split(data: str, split: str) -> Path:
     return resolve(data, split)
 
 
-#: Commands that left the user CLI for the source repository's research/ folder (issue 44,
-#: docs/migration.md): the replacement of each. The old spelling is kept, hidden, for one
+#: Commands that left the user CLI for the source repository's research/ folder
+#: (docs/migration.md): the replacement of each. The old spelling is kept, hidden, for one
 #: release: it cannot run the study (research/ is not installed), so it says where it went.
 MOVED = {"oracle": "python -m research.oracle",
          "benchmark-tiny": "python -m research.benchmark_tiny"}
@@ -65,9 +65,9 @@ EXPORT_KERNELS_NOTE = (
     "checkpoints of older runs (docs/migration.md)")
 
 
-#: Flags that no longer do anything, kept hidden for one release (issue 44, docs/migration.md):
+#: Flags that no longer do anything, kept hidden for one release (docs/migration.md):
 #: ``(command, flag) -> (nargs, note, choices)`` (the shape of psfkit's ``RETIRED``). Each
-#: prints its note after the work and is otherwise ignored (a value is still checked as before).
+#: prints its note after the work and is otherwise ignored (a value is still checked).
 RETIRED_FLAGS = {
     ("make-dataset", "--no-oracle"): (
         0, "note: --no-oracle is deprecated and ignored: make-dataset no longer writes the "
@@ -79,12 +79,12 @@ RETIRED_FLAGS = {
 }
 
 
-#: Flags that only ``--help-all`` lists (issue 44): the bench's optics and noise, threads.
+#: Flags that only ``--help-all`` lists: the bench's optics and noise, threads.
 MAKE_DATASET_ADVANCED = ("--half-fov", "--aperture", "--photons", "--grid-frames", "--threads")
 #: ... for train: what the pairs and kernel file decide (binning, channel order), the preset's
 #: schedule overrides, research knobs (kernel parameterisation, kernel learning rate, physics
-#: loss; kept until the baselines issue measures them), speed settings and --quiet (a
-#: training run is watched; its log.csv records every epoch either way).
+#: loss), speed settings and --quiet (a training run is watched; its log.csv records every
+#: epoch either way).
 TRAIN_ADVANCED = ("--downsample", "--channel-order", "--schedule", "--iterations",
                   "--kernel-param", "--batch-size", "--lr", "--kernel-lr-scale",
                   "--physics-weight", "--seed", "--threads", "--amp", "--no-amp",

@@ -30,8 +30,8 @@ TRAIN_IMAGES = ("astronaut", "coffee", "chelsea", "immunohistochemistry", "camer
                 "brick", "grass", "moon")
 TEST_IMAGES = ("rocket", "gravel", "clock", "hubble_deep_field")
 FULL_PIXEL_UM = 3.45
-#: Fields of manifests written before issue 44 that no longer change a dataset's bytes
-#: (``make-dataset`` wrote the eigen-kernel oracles; ``research/oracles.py`` does now): ignored
+#: Fields of older manifests that no longer change a dataset's bytes (the eigen-kernel
+#: oracles, which ``research/oracles.py`` writes, not ``make-dataset``): ignored
 #: when read, so that those datasets stay readable and are still reused.
 RETIRED_FIELDS = ("oracle", "oracle_scenes")
 
@@ -71,7 +71,7 @@ class VirtualBenchSpec:
     grid_frames : int
         Frames averaged at each position of the PSF grid (the grid's own noise falls as
         ``1 / sqrt(grid_frames)``; the pairs are unchanged). 1: one raw 12-bit frame per
-        position, as before.
+        position.
     convention : {"source", "sensor"}
         Where the dense model's interpolation weights act.
     seed : int
@@ -194,7 +194,7 @@ def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
 def _natural_image(name: str) -> np.ndarray:
     """``skimage.data.<name>()`` as ``(H, W, 3)`` float64 in [0, 1], decoded once per process.
 
-    Decoding it for every scene cost about 7 ms a scene, and every decode builds an imageio
+    Decoding it for every scene would cost about 7 ms a scene, and every decode builds an imageio
     plugin: a signal landing inside that constructor leaves a half-built object whose
     destructor fails noisily. Read-only, as the cache hands the same array to every caller.
     """

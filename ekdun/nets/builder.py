@@ -22,8 +22,7 @@ from psfkit.forward.weights import get_basis
 def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> KernelModel:
     """A kernel model from a kernel file, a loaded model, a measured PSF image file (read by
     the one PSF loader, :func:`psfkit.calibration.psf_image.load_psf_image`: corner background,
-    clipped,
-    unit sum per channel) or a PSF array ``(C, H, W)`` (used as given)."""
+    clipped, unit sum per channel) or a PSF array ``(C, H, W)`` (used as given)."""
     if isinstance(source, KernelModel):
         return source
     if isinstance(source, (str, os.PathLike)):

@@ -19,8 +19,8 @@ a foreign or malicious file is refused with :class:`CheckpointError`. Keys:
     their ``state_dict`` (absent in exported inference checkpoints).
 ``rng``
     (training checkpoints, :mod:`ekdun.training.rng`) torch CPU RNG state (uint8 tensor), numpy
-    MT19937 state (key array + position),
-    Python ``random`` state (int64 tensor) and the CUDA RNG states when present.
+    MT19937 state (key array + position), Python ``random`` state (int64 tensor) and the CUDA
+    RNG states when present.
 """
 
 from __future__ import annotations

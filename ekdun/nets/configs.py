@@ -9,12 +9,12 @@ learning rate 1e-4, ExponentialLR 0.95 per epoch, MSE loss.
 "three models + ablation" benchmark (``python -m research.benchmark_tiny``) trains and
 evaluates on two CPU cores in about 20 minutes: EK-DUN with the paper's 10 iterations
 (eigen-kernel model in the last 2) and U-Nets of widths (8, 16, 32); Le-ADMM-U with 5
-iterations and a (8, 16, 32, 64) U-Net; UPDN with 5 iterations, 5 PSFs per colour and a (15,
-30, 60) U-Net; a larger learning rate (2e-3) for the few epochs. The sensor size of a built
-model comes from its kernel file or PSF; the preset's ``sensor_shape`` is what benchmarks and
-synthetic examples use.
+iterations and a (8, 16, 32, 64) U-Net; UPDN with its authors' 10 iterations, 5 PSFs per
+colour and a (15, 30, 60) U-Net; a larger learning rate (2e-3) for the few epochs. The sensor
+size of a built model comes from its kernel file or PSF; the preset's ``sensor_shape`` is what
+benchmarks and synthetic examples use.
 
-Baseline denoisers (documented choices, see ``NOTES-issue5.md``):
+Baseline denoisers (each choice against the authors' code: docs/baselines.md):
 
 * Le-ADMM-U: a 5-level U-Net of widths ``(24, 64, 128, 256, 512)``, the encoder widths of
   Monakhova et al.'s U-Net, built from the shared block (two Conv-ReLU per level, transposed
@@ -156,9 +156,9 @@ class Preset:
     """Configurations of the three models and the sensor size they are meant for.
 
     ``recipes`` holds a network's own training settings, which replace those of
-    ``training`` for it (issue 45: no network is trained with another network's learning
-    rate): its authors' where published, else the best of a learning-rate sweep at equal
-    budget (docs/baselines.md).
+    ``training`` for it (no network is trained with another network's learning rate): its
+    authors' where published, else the best of a learning-rate sweep at equal budget
+    (docs/baselines.md).
     """
 
     name: str
@@ -182,14 +182,12 @@ PRESETS: dict[str, Preset] = {
         "tiny", (64, 64),
         ekdun=EKDUNConfig(iterations=10, prior=UNetConfig(widths=(8, 16, 32))),
         le_admm_u=LeADMMUConfig(denoiser=UNetConfig(widths=(8, 16, 32, 64))),
-        # UPDN: its authors' 10 iterations (5 before: 0.44 ± 0.53 dB lower at 128², Table 1)
+        # UPDN: its authors' 10 iterations
         updn=UPDNConfig(denoiser=UNetConfig(widths=(15, 30, 60))),
         training=TrainingConfig(epochs=15, batch_size=4, lr=2e-3, gamma=0.95),
-        # UPDN: the best of a learning-rate sweep on the 64² bench at this batch, 8 epochs,
-        # 3 seeds (python -m research.baseline_checks sweep; docs/baselines.md); EK-DUN's 2e-3
-        # is 0.03 dB from its best there (4e-3), a tie. Le-ADMM-U: the shared 2e-3, the best
-        # of the sweep at Table 1's 128² and 15 epochs (1e-3 18.22, 2e-3 18.75, 4e-3 18.38,
-        # 8e-3 16.88 dB: two seeds of three collapsed)
+        # UPDN: the best of a learning-rate sweep on the 64² bench at this batch (8 epochs,
+        # 3 seeds); EK-DUN's and Le-ADMM-U's best are the shared 2e-3 or tie with it
+        # (research/notes/baselines-measurements.md)
         recipes={"updn": {"lr": 4e-3}}),
     # UPDN: its authors' Adam at 5e-4, constant (oliland/lensless-primal-dual)
     "paper": Preset("paper", (1080, 1440), recipes={"updn": {"lr": 5e-4, "gamma": 1.0}}),

@@ -24,8 +24,7 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
     Same basis, weight convention, sensor size, optical centre and scene padding as the seed
     model the network was trained from; ``provenance`` says where the kernels came from.
     The result can be written with :func:`psfkit.forward.kernelfile.save_kernels` and compared with
-    a
-    measured grid (``psfkit compare``).
+    a measured grid (``psfkit compare``).
 
     Parameters
     ----------

@@ -23,9 +23,9 @@ grid: light from outside the field of view has somewhere to be), and the U-Net s
 Following ``oliland/lensless-primal-dual`` (``ImageOptimizerMixColors``): 5 tiled PSFs, 10
 primal-dual blocks of this form, a U-Net on the primal channels with a residual on the first
 copy. The primal-dual blocks run in float32 under autocast (only the U-Net in half
-precision). Differences, and what they cost, are in docs/baselines.md: the primal on the sensor by
-default (same PSNR on the bench, less time), the groups aligned with the PSF copies, and no
-output sigmoid (as for the other models, the loss sees linear values). The PSF copies are
+precision). Differences (docs/baselines.md): the primal on the sensor by default (same PSNR
+on the bench, less time), the groups aligned with the PSF copies, and no output sigmoid (as
+for the other models, the loss sees linear values). The PSF copies are
 identical at initialisation; they diverge in training because each copy's group of the
 convolutions has its own random weights.
 """
@@ -115,7 +115,7 @@ class UPDN(UnrolledNetwork):
         n = self.physics.copies
         primal, dual = state["primal"], state["dual"]
         # Float32 whatever the autocast: the blocks add an increment to p and q ten times, and
-        # A, Aᵀ sum a whole PSF's support, so half precision compounds (issue 45: −8.6 dB
+        # A, Aᵀ sum a whole PSF's support, so half precision compounds (−8.6 dB
         # untrained at paper size on an H100). Only the U-Net runs under AMP, as in the other
         # networks. The convolutions run channels-last; the FFTs want contiguous planes.
         with torch.autocast(primal.device.type, enabled=False):

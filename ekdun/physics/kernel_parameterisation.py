@@ -1,6 +1,6 @@
 r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel_param``).
 
-* ``"free"``: every kernel pixel is a parameter (the paper's, and today's, behaviour). The
+* ``"free"``: every kernel pixel is a parameter (the paper's, and the default). The
   kernels live in :class:`~ekdun.physics.operators.EigenKernelOperator` as an
   ``nn.Parameter``; nothing here is used.
 * ``"physical"`` (:class:`PhysicalKernels`): each kernel and channel is
@@ -17,15 +17,11 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
   bilinear resampling written out (not ``grid_sample``) so that ``D = 0`` gives ``Kbase``
   bit for bit. From a measured seed the fields and gains are fitted to the seed's ``Kv, Kh``
   first (:meth:`FlowKernels.fit_to`), the rest of the seed going into ``R`` if enabled.
-* ``"spectral"`` (the free pixels as their orthonormal Fourier coefficients) was measured
-  against ``"free"`` from the measured seed (issue 45: −0.21 ± 0.09 dB at 64², −0.11 ± 0.11
-  at 128², 3 training seeds each) and left the product
-  (research/notes/baselines-measurements.md).
 
 Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
 log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
-multiple of the network's learning rate (:data:`LR_MULTIPLIER`, measured in
-``research/kernel_parameterisations.py --measure-lr``; see research/notes/compare-studies.md).
+multiple of the network's learning rate (:data:`LR_MULTIPLIER`; the measurement is in
+research/notes/compare-studies.md).
 """
 
 from __future__ import annotations

@@ -58,10 +58,8 @@ The update rules differ in how the data term is split (scaled duals throughout):
     inverse of ``K + 2`` an iteration.
 
 The penalties change the speed, not the minimiser (tested against an independent dense
-solve); each rule's defaults were the fastest on two DLMD pairs at 67x120 (sensor side at 100
-iterations among 0.003-0.3 for ``μ1``, ``μ3`` and 0.003-0.03 for ``μ2``; source side: PSNR at
-60 iterations within 0.05 dB of 1000, among ``μ1`` 0.02-1, ``μ2`` 0.003-0.03, ``μ3``
-0.0003-0.01 and ``μ4`` 0.005-0.15).
+solve); each rule's defaults are the fastest of a search on two DLMD pairs at 67x120
+(research/notes/reconstruction-studies.md).
 """
 
 from __future__ import annotations

@@ -5,16 +5,14 @@ A shift-invariant or eigen-kernel model from ``psfkit fit-eigen`` or ``psfkit fi
 and no per-channel renormalisation (both change the model; fit-pairs kernels carry the
 camera's channel gains and may have negative lobes). The solver is the one ADMM-TV,
 :func:`~ekdun.reconstruction.admm.solve_tv`, with the update rule of the model's form
-(shift-invariant, sensor side, source side). PDHG, the former ``--solver pdhg``, was removed in
-issue 44: on the DLMD models it needed 5-15x ADMM's iterations to a 1e-3 objective gap and gave a
-worse image (source side, 5-100 iterations: research/notes/reconstruction-studies.md);
+(shift-invariant, sensor side, source side); ADMM reaches a given objective gap in fewer
+iterations than PDHG (research/notes/reconstruction-studies.md), and the retired
 ``solver="pdhg"`` runs ADMM with a DeprecationWarning.
 
 The scene is solved for on the padded grid (light from outside the view); a
 source-side model's weights continue their edge values outside the view
 (:meth:`psfkit.forward.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the
-model's
-channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
+model's channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
 """
 
 from __future__ import annotations
@@ -151,8 +149,7 @@ def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | No
 
     What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
     :func:`psfkit.calibration.psf_image.load_psf_image`), so that the PSF form and ``--kernels``
-    run one
-    solver.
+    run one solver.
 
     Parameters
     ----------

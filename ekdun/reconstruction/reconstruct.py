@@ -79,8 +79,8 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     scaled by the recorded white level. A flag that contradicts the record is applied, and
     ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"auto"`` = fp16
     on CUDA and off on CPU, ``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under
-    autocast; the physics FFTs stay
-    float32 (:mod:`ekdun.device`) and the outputs are float32 either way.
+    autocast; the physics FFTs stay float32 (:mod:`ekdun.device`) and the outputs are float32
+    either way.
     """
     device = acc.resolve_device(device)
     precision = acc.resolve_amp(amp, device)

@@ -1,4 +1,4 @@
-r"""Measurement consistency: the fit-pairs objective as a training loss (issue 24).
+r"""Measurement consistency: the fit-pairs objective as a training loss.
 
 EK-DUN's kernels get a gradient only through the reconstruction loss, which at the bench's
 scale is 24× weaker for ``Kv``/``Kh`` than for ``Kbase``

@@ -10,15 +10,15 @@
     (the batch order depends only on ``(seed, epoch)``).
 ``log.csv``
     one row per epoch (loss, learning rate, time).
+``kernels_initial.npz`` / ``kernels_learned.npz``
+    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
+    convention and sensor size as the seed), for ``psfkit compare``.
 
 Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
 with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
 device and read once per epoch (and at the progress bar's log points), so the host never
 waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
 ``channels_last`` and ``compile`` are described in :mod:`ekdun.device`.
-``kernels_initial.npz`` / ``kernels_learned.npz``
-    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
-    convention and sensor size as the seed), for ``psfkit compare``.
 """
 
 from __future__ import annotations
@@ -103,8 +103,8 @@ class TrainOptions:
 
 
 def check_training_config(cfg: TrainingConfig) -> None:
-    """Refuse out-of-range settings before anything is built or written (a bad batch size
-    used to fail in the first epoch, after ``kernels_initial.npz`` had been written)."""
+    """Refuse out-of-range settings before anything is built or written (so that a bad batch
+    size does not fail in the first epoch, after ``kernels_initial.npz`` was written)."""
     for name in ("epochs", "batch_size"):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -1,8 +1,7 @@
 """Bring every PSF of a grid into the centre PSF's frame: preprocess, register, align.
 
 Shared by the characterization (:mod:`psfkit.characterization.characterize`) and the eigen-kernel
-fit
-(:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
+fit (:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
 """
 
 from __future__ import annotations
@@ -245,14 +244,14 @@ class GridAligner:
         PSF's) is summed over: ``aligned.compared`` for a compact PSF, where the frame's empty
         pixels would add only noise; the whole overlap ``aligned.valid`` for a PSF that fills
         the sensor (:data:`FILLING_SUPPORT`), whose light below the support's threshold is
-        part of it (leaving it out biased the bench caustic's gains by up to 0.27 % towards
+        part of it (leaving it out biases the bench caustic's gains by up to 0.27 % towards
         the edge, its cos-law exponent by 6σ)."""
         return aligned.valid if self.fills_sensor else aligned.compared
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
         """Refuse a reference whose saturated pixels (masked with ``allow_saturated``) leave
         less than :data:`MIN_OVERLAP` of the sensor: no position, the reference included,
-        could be compared with it (issue 43: every position was then excluded and the fits
-        received no measurement)."""
+        could be compared with it (every position would be excluded and the fits would receive
+        no measurement)."""
         saturated = self.reference_prepared.saturated
         if float(np.mean(~saturated)) >= MIN_OVERLAP:
             return

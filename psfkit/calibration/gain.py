@@ -11,13 +11,12 @@ the camera's vignetting.
 Two fits summarise the map: the cosⁿ law :math:`g = A\cos^n\theta` (n = 4 for natural
 vignetting; microlenses and a thick aperture steepen it) and a quadratic polynomial in the
 field coordinates, whose residual shows what the radial law misses (e.g. a tilted sensor).
-The scale ``A`` is fitted (issue 43): every gain is a ratio to the one reference capture, so
-the reference's own brightness error is common to all of them; a law forced through 1 at the
-centre turned it into an absurd exponent (thousands) on sources of different brightness.
+The scale ``A`` is fitted: every gain is a ratio to the one reference capture, so the
+reference's own brightness error is common to all of them; a law forced through 1 at the
+centre would turn it into an absurd exponent (thousands) on sources of different brightness.
 The exponent carries its 1σ uncertainty (residual-scaled covariance of the log-linear fit)
-and the significance of :mod:`psfkit.numerics.significance` (null: n = 0, no vignetting; the t-test
-of
-the slope).
+and the significance of :mod:`psfkit.numerics.significance` (null: n = 0, no vignetting; the
+t-test of the slope).
 """
 
 from __future__ import annotations

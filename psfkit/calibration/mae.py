@@ -2,18 +2,18 @@
 
 With every PSF aligned to the reference by its measured shift (and, optionally, divided by its
 gain), what remains is the error a shift-invariant model makes at that field position. The
-MAE is **energy-normalised over the PSF's support** (issue 43):
+MAE is **energy-normalised over the PSF's support**:
 
 ``MAE = Σ_{c, x ∈ S ∩ Ω} |p(x) − p0(x)| / Σ_{c, x ∈ S ∩ Ω} p0(x)``,
 
 ``Ω`` the registered overlap (saturated pixels excluded), ``S`` the support of either PSF
 (:func:`psfkit.calibration.alignment.psf_support`): the mean absolute error divided by the
-reference's
-mean over the same pixels, i.e. the fraction of the centre PSF's light that a shift-invariant
-model puts in the wrong place (0: the same PSF; 2: no light in common). It does not depend on
-the frame's size (a star gives the same MAE on a 1024² frame and on a 63² cut-out; a mean over
-the overlap falls with the frame's area and rises with the field as the overlap shrinks), nor
-on the grid's normalization (``max`` or ``sum``), and compares compact PSFs with caustics.
+reference's mean over the same pixels, i.e. the fraction of the centre PSF's light that a
+shift-invariant model puts in the wrong place (0: the same PSF; 2: no light in common). It does
+not depend on the frame's size (a star gives the same MAE on a 1024² frame and on a 63² cut-out; a
+mean over the overlap falls with the frame's area and rises with the field as the overlap
+shrinks), nor on the grid's normalization (``max`` or ``sum``), and compares compact PSFs with
+caustics.
 """
 
 from __future__ import annotations

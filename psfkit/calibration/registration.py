@@ -326,7 +326,7 @@ def shift_image(image: np.ndarray, shift: tuple[float, float], margin: int = 8
     spec *= ramp_v[:, None]
     spec *= ramp_u[None, :]
     # the inverse as its two 1-D passes: the same transform, 25 % faster here than scipy's
-    # irfft2 (measured at full resolution, 3 channels)
+    # irfft2 (full resolution, 3 channels)
     spec = sfft.ifft(spec, axis=-2, workers=-1, overwrite_x=True)
     moved = sfft.irfft(spec, n=size_u, axis=-1, workers=-1,
                        overwrite_x=True)[:, margin:margin + h, margin:margin + w]

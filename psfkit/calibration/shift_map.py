@@ -31,7 +31,7 @@ class ShiftMapFit:
     magnification ``m``. ``residuals`` (``(N, M, 2)``, px) are the distortion the affine map
     does not explain, plus the registration error.
 
-    ``estimates`` (issue 43) holds, as :class:`~psfkit.numerics.significance.Estimate` with a 1σ
+    ``estimates`` holds, as :class:`~psfkit.numerics.significance.Estimate` with a 1σ
     uncertainty from the residual-scaled covariance of the fit and a significance test:
     ``"magnification"`` (null 0: the PSF does not move with the field), ``"rotation_deg"``
     (null: the nearer of 0° and 180°, the sensor's axes along the field's) and

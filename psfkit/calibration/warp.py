@@ -316,8 +316,8 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     design = np.column_stack([c2**2, s2**2, 2 * c2 * s2])
     coef, _ = optimize.nnls(design[counts > 0], profile[counts > 0])
     if coef[1] <= 0:
-        # no sagittal transport above the noise: the ratio is not determined (it was +inf,
-        # an axis limit no report could draw, and no number to print)
+        # no sagittal transport above the noise: the ratio is not determined (NaN, not +inf,
+        # which no report could draw as an axis limit or print as a number)
         return float("nan")
     return float(np.sqrt(coef[0] / coef[1]))
 

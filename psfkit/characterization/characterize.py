@@ -3,8 +3,7 @@
 ``characterize_grid`` reads one PSF at a time (a full-resolution 9 × 9 RGB grid never sits in
 memory), preprocesses it (:mod:`psfkit.calibration.preprocess`), registers it to the centre PSF
 (:mod:`psfkit.calibration.registration`), aligns it, and measures what each requested step needs.
-The
-result (:class:`~psfkit.characterization.results.GridCharacterization`) keeps the per-position
+The result (:class:`~psfkit.characterization.results.GridCharacterization`) keeps the per-position
 numbers plus small images for the figures.
 """
 
@@ -317,11 +316,9 @@ class _WorkingCopy:
 def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
                progress: bool = False) -> Verdict:
     """The verdict of a characterized grid (:mod:`psfkit.fitting.grid.heldout`) from the working
-    copy of
-    its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
+    copy of its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
     fit-eigen`` places them (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`: the forward
-    model's
-    affine map of the field), so that both commands judge the same data."""
+    model's affine map of the field), so that both commands judge the same data."""
     positions = [grid.position(p.row, p.col) for p in result.positions]
     placement = nominal_shifts(positions, np.array([p.shift for p in result.positions]),
                                np.array([p.support_overlap if math.isfinite(p.support_overlap)

@@ -1,8 +1,7 @@
 """What a characterization of a PSF grid holds: its options, the numbers measured at each
 position, and the grid's summary (fits, verdict, coverage) with the small images the figures
 need. Produced by :func:`psfkit.characterization.characterize.characterize_grid`; read by the
-report and the
-figures, which need none of the measurement code.
+report and the figures, which need none of the measurement code.
 """
 
 from __future__ import annotations
@@ -57,8 +56,8 @@ class CharacterizeOptions:
     min_quality : float
         Positions whose registration quality (NCC) is below this are excluded ("low NCC").
     strict : bool
-        All or nothing: a position that fails a quality check ends the run (as before
-        issue 26) instead of being excluded with its reason.
+        All or nothing: a position that fails a quality check ends the run instead of being
+        excluded with its reason.
     """
 
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
@@ -115,8 +114,7 @@ class PositionResult:
 @dataclass
 class GridCharacterization:
     """Everything :func:`psfkit.characterization.characterize.characterize_grid` measured, plus
-    images for the
-    figures.
+    images for the figures.
 
     ``positions`` holds the measured positions; ``excluded`` the captured ones left out, with
     their reasons; ``missing`` the cells of the declared lattice that were never captured.
@@ -226,7 +224,7 @@ class GridCharacterization:
 
     @property
     def is_complete(self) -> bool:
-        """A full lattice with every position measured (the pre-issue-26 case)."""
+        """A full lattice with every position measured."""
         return self.layout == FULL_LATTICE and not self.excluded
 
     def to_dict(self) -> dict[str, Any]:
@@ -279,7 +277,8 @@ class GridCharacterization:
 
     def coverage(self) -> dict[str, Any]:
         """The layout, the cells never captured and the excluded positions with their
-        reasons; empty for a complete full lattice (its documents stay as before issue 26)."""
+        reasons; empty for a complete full lattice (whose documents then carry no coverage
+        fields)."""
         if self.is_complete and self.options.min_quality == MIN_QUALITY:
             return {}
         return {"layout": self.layout,

@@ -135,8 +135,8 @@ def _print_warnings(result: GridCharacterization) -> None:
         print(f"warning: {message}")
 
 
-#: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report`` (issue 44): hidden
-#: from ``psfkit --help``, they run as before for one release and then print where ``report``
+#: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report``: hidden
+#: from ``psfkit --help``, they still run for one release and then print where ``report``
 #: puts what they printed (docs/migration.md).
 REPLACED_BY_REPORT = {
     "register": "the shifts are in DIR/positions.csv (shift_du_px, shift_dv_px) and "

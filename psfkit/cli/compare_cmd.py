@@ -15,7 +15,7 @@ from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
 from psfkit.io.flag_ranges import flag
 
-#: Flags that only ``--help-all`` lists (issue 44): how the displacement maps are measured
+#: Flags that only ``--help-all`` lists: how the displacement maps are measured
 #: and how a grid given as the measured side is preprocessed.
 COMPARE_ADVANCED = ("--method", "--smooth", "--warp-positions", "--no-align",
                     "--normalization", "--saturation-level", "--allow-saturated",

@@ -36,8 +36,8 @@ if TYPE_CHECKING:
     from psfkit.fitting.grid.result import GridEigenResult
 
 
-#: Flags that only ``--help-all`` lists (issue 44): the preprocessing and registration
-#: settings (``psfkit report`` shows the ones a grid needs first), the position placement and
+#: Flags that only ``--help-all`` lists: the preprocessing and registration settings
+#: (``psfkit report`` shows the ones a grid needs first), the position placement and
 #: the cross-validation, whose defaults the fit's own verdict checks.
 FIT_EIGEN_ADVANCED = ("--normalization", "--saturation-level", "--allow-saturated",
                       "--hot-pixel-sigma", "--upsample", "--min-ncc", "--gain-compensate",

@@ -1,10 +1,11 @@
-"""``--help`` shows what a command needs first; ``--help-all`` shows every flag (issue 44).
+"""``--help`` shows what a command needs first; ``--help-all`` shows every flag.
 
-A command marks its rarely-used flags advanced (:func:`mark_advanced`): they keep working
-exactly as before, but ``--help`` (and the usage line) leave them out, so that the first
-screen stays short. ``--help-all`` (:func:`add_help_all`) prints the full help, the advanced
-flags included, each under its group. The help text of an advanced flag is kept on its action
-(:data:`ADVANCED_HELP`), so that the flag tables of the docs (``docs/cli-flags.md``) still list it.
+A command marks its rarely-used flags advanced (:func:`mark_advanced`): they keep working, but
+``--help`` (and the usage line) leave them out, so that the first screen stays short.
+``--help-all`` (:func:`add_help_all`) prints the full help, the advanced flags included, each
+under its group. The help text of an advanced flag is kept on its action
+(:data:`ADVANCED_HELP`), so that the flag tables of the docs (``docs/cli-flags.md``) still list
+it.
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan 
 
 
 def add_coverage_options(p: argparse.ArgumentParser) -> None:
-    """How positions that fail a quality check, and the reference, are handled (issue 26)."""
+    """How positions that fail a quality check, and the reference, are handled."""
     g = p.add_argument_group("bad positions and the reference")
     g.add_argument("--strict", action="store_true",
                    help=STRICT_HELP)

@@ -25,7 +25,7 @@ from psfkit.io.jsonable import jsonable
 from psfkit.io.pairs import parse_names
 from psfkit.io.validation import require_finite
 
-#: Flags that only ``--help-all`` lists (issue 44): the solver and the constraints, whose
+#: Flags that only ``--help-all`` lists: the solver and the constraints, whose
 #: defaults are chosen by held-out error or are a measured PSF's; the channel order, which the
 #: pairs folder declares.
 FIT_PAIRS_ADVANCED = ("--channel-order", "--tikhonov", "--difference", "--iterations",

@@ -1,4 +1,4 @@
-"""``--config RUN.toml``: a command's settings from a TOML run file (issue 44, item 4).
+"""``--config RUN.toml``: a command's settings from a TOML run file.
 
 A run file holds flat ``key = value`` settings whose keys are the command's long flag names
 without the dashes (``tikhonov = 1e-3``; ``no-scale`` or ``no_scale``), typed as the flag

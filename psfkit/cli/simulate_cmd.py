@@ -24,11 +24,9 @@ if TYPE_CHECKING:
     from psfkit.simulate import BenchConfig
 
 
-#: The demo's sensor binning, chosen by measurement (``psfkit demo --downsample N``, seed 0):
-#: at 4x every field effect of the bench is significant (distortion, vignetting, warp growth
-#: p = 2.06 ± 0.14, astigmatism 4.2 ± 0.4) and the demo writes about 25 MB; at 6x (the size
-#: fit-eigen's working copy reaches on its own) the astigmatism is no longer detected; at 2x
-#: (the default before issue 44) the grid alone is 189 MB of TIFFs.
+#: The demo's sensor binning: the coarsest at which every field effect of the bench is still
+#: significant (at 6x the astigmatism is not), about 25 MB written; 2x writes a 189 MB grid
+#: (research/notes/characterization-studies.md).
 DEMO_DOWNSAMPLE = 4
 
 
@@ -79,7 +77,7 @@ def bench_config_from_args(args: argparse.Namespace) -> BenchConfig:
         raise ConfigurationError(str(exc)) from None
 
 
-#: Flags that only ``--help-all`` lists (issue 44): the capture and the optics of the virtual
+#: Flags that only ``--help-all`` lists: the capture and the optics of the virtual
 #: camera beyond its size, binning and seed (their defaults are the embedded bench's).
 SIMULATE_ADVANCED = ("--extent", "--format", "--no-dark", "--frames", "--backend")
 BENCH_ADVANCED = ("--bench-config", "--diffusion-angle", "--gap-mm", "--peak-fraction",

@@ -1,4 +1,4 @@
-"""Terminal lines of fitted field quantities and of the verdict (issue 43).
+"""Terminal lines of fitted field quantities and of the verdict.
 
 Every fitted field quantity is printed with its 1σ uncertainty and what the significance rule
 (:mod:`psfkit.numerics.significance`) says of it: ``4.00 ± 0.05``, ``not detected (0.3 ± 1.2)`` or

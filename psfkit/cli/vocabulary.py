@@ -94,7 +94,7 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                                           "sensor (the paper's Eq. 7), source, or auto (the "
                                           "lower cross-validated error)"}}),
     SharedFlag("--threads", "threads", "CPU threads", "2", kind="number", metavar="N",
-               # one meaning per command, each help line describes only its own (issue 44)
+               # one meaning per command, each help line describes only its own
                per_command={
                    **{cmd: {"meaning": "PSF positions processed at the same time",
                             "default_text": "2"} for cmd in ("report", "register", "mae",

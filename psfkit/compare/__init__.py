@@ -30,10 +30,9 @@ registered to the measured ``Kbase`` by one global sub-pixel shift.
 
 Displacement maps (:func:`displacement_map`): dense optical flow (OpenCV DIS by default,
 :func:`psfkit.calibration.warp.dense_flow`) from ``Kbase`` to ``Kv`` (``Kh``), on luminance, after
-scaling
-both to the same sum on the caustic mask (gain differences are not displacements), smoothed by
-a masked Gaussian (normalised convolution) and kept on the caustic mask of the measured
-``Kbase`` (:func:`psfkit.calibration.caustic.caustic_mask`).
+scaling both to the same sum on the caustic mask (gain differences are not displacements),
+smoothed by a masked Gaussian (normalised convolution) and kept on the caustic mask of the
+measured ``Kbase`` (:func:`psfkit.calibration.caustic.caustic_mask`).
 
 Conventions. A displacement field ``D = (D_u, D_v)`` is ``(2, H, W)`` in pixels of the
 comparison grid (the learned file's sensor grid), ``u`` = column (right), ``v`` = row (down);
@@ -58,8 +57,7 @@ Modules: :mod:`~psfkit.compare.options` (:class:`CompareOptions`),
 :mod:`~psfkit.compare.measured` (the measured side), :mod:`~psfkit.compare.results` (result
 classes) and :mod:`~psfkit.compare.comparison` (:func:`compare_kernels`). Writing figures, JSON
 and HTML is :mod:`psfkit.report.comparison` (it draws with :mod:`psfkit.report.figures`, which
-reads these
-results, so it sits above this package).
+reads these results, so it sits above this package).
 """
 
 from psfkit.compare.comparison import check_learned, compare_kernels, compare_model

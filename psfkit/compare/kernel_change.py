@@ -9,15 +9,14 @@ kernel, or the measured one) is split, one part after the other, into
    caustic of the measured kernels), e.g. the smooth floor that Adam grows on near-zero pixels;
 3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``: the part a dense optical flow ``F``
    from ``I`` to ``L`` explains (``psfkit.calibration.warp.dense_flow``, the flow ``psfkit
-   compare``'s
-   displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
+   compare``'s displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
 4. **other** ``O = S·(Δ − G) − D``: the change inside the support a displacement does not
    explain (new spots, changed shapes).
 
 "Energy" is light: each part's *fraction* is its L1 norm ``Σ|part|`` over the sum of the four
 (they sum to 1; a part that removes light from the caustic and one that adds it elsewhere both
 count). ``G + P + D + O = Δ`` exactly.
-``pedestal_fraction`` is the issue's "energy outside the support"; ``outside_mass_fraction``
+``pedestal_fraction`` is the change's energy outside the support; ``outside_mass_fraction``
 is the share of the learned kernel's absolute mass ``Σ|L|`` outside ``S`` (how much of the
 kernel itself is pedestal, not of its change).
 """

@@ -1,4 +1,4 @@
-r"""The verdict: does the PSF shape change over the field, and which model to use (issue 43).
+r"""The verdict: does the PSF shape change over the field, and which model to use.
 
 A plain function of measured numbers (:func:`decide`), testable without images. Its inputs
 are per-position *held-out* squared errors from cross-validation over positions (each

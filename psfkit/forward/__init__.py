@@ -4,8 +4,7 @@
 conventions with its exact adjoint, and its kernel-space form ``K ↦ A_K x`` used to fit kernels
 from (scene, measurement) pairs. Everything above it calls these functions: psfkit's
 ``fit-pairs`` (:mod:`psfkit.fitting.pairs.fit`), ekdun's operator classes, the dense virtual-bench
-model,
-ADMM-TV and Le-ADMM-U.
+model, ADMM-TV and Le-ADMM-U.
 
 Modules
 -------

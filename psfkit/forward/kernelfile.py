@@ -86,8 +86,8 @@ class KernelModel:
     provenance : dict
         Where the model came from (input files, fit residuals, ...).
     read_options : ReadOptions or None
-        How the data it was fitted on was read (``None``: not recorded, as in files written
-        before issue 21; see :meth:`data_read_options`).
+        How the data it was fitted on was read (``None``: not recorded, as in older files; see
+        :meth:`data_read_options`).
     """
 
     kernels: np.ndarray

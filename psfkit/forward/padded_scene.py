@@ -50,9 +50,8 @@ def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     with ``W_k`` ``(K, H', W')`` the sensor weights and ``V_k`` ``(K, PH, PW)`` the scene
     weights on the whole grid (edge-continued outside the view:
     :meth:`psfkit.forward.kernelfile.KernelModel.weight_maps` with ``extent``). For a scene zero
-    outside
-    the view, ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``. Sensor side: 1 FFT
-    and K inverse FFTs; source side: K FFTs and 1 inverse FFT.
+    outside the view, ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``. Sensor side:
+    1 FFT and K inverse FFTs; source side: K FFTs and 1 inverse FFT.
 
     Parameters
     ----------

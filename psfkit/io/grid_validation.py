@@ -153,7 +153,7 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
         Show a progress bar while checking images.
     strict : bool
         Refuse an incomplete lattice (every index of ``grid_shape`` must be listed) and an
-        irregular scan, and PSF frames with NaN/Inf values or all zeros, as before issue 26.
+        irregular scan, and PSF frames with NaN/Inf values or all zeros.
 
     Returns
     -------

@@ -106,8 +106,8 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
     if suffix == ".png":
         channel_order = "RGB"              # decoded to RGB whatever the manifest says
     if suffix == ".npy":
-        # As before issue 44: a .npy image keeps its stored dtype (the requested ``dtype`` was
-        # shadowed by the header's); kept so that no number changes in this refactor.
+        # a .npy image keeps its stored dtype (the header's wins over the requested
+        # ``dtype``), so that the numbers computed from existing .npy data stay the same
         dtype = None
     try:
         if suffix not in _DECODERS:

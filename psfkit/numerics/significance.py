@@ -1,4 +1,4 @@
-r"""Uncertainty and significance of fitted field quantities (issue 43).
+r"""Uncertainty and significance of fitted field quantities.
 
 Every quantity fitted over the field (the shift map's magnification, rotation and non-linear
 part, the vignetting exponent, the warp growth, the astigmatism, the eigen-kernel

@@ -61,7 +61,7 @@ class BenchConfig:
     vignetting_exponent : float
         Relative illumination ``cos(θ)**exponent``.
     field_free : bool
-        A camera without field variation, for tests of the analysis (issue 43): every
+        A camera without field variation, for tests of the analysis: every
         position's PSF is the on-axis PSF *as sampled by the pixels* translated by the
         chief-ray shift (exactly linear in tan θ; the sub-pixel part as a band-limited
         translation), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and

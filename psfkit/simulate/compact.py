@@ -1,5 +1,5 @@
 r"""A compact-PSF bench: a lens-like camera imaging point sources (stars, beads) at irregular,
-known field positions, with its ground truth (issue 43).
+known field positions, with its ground truth.
 
 The diffuser bench (:mod:`psfkit.simulate.camera`) makes a caustic that fills the sensor. Most
 instruments have a *compact* PSF instead: a few pixels wide on a large frame. This module

@@ -1,5 +1,5 @@
 """Real-capture problems on a simulated grid: positions never captured, saturated or empty
-captures (issue 26). ``degrade_grid`` copies a grid folder with some positions dropped from
+captures. ``degrade_grid`` copies a grid folder with some positions dropped from
 the manifest and the folder, some over-exposed until they clip, and some replaced by an empty
 capture (the dark frame's noise: the point source was off). The ground truth is copied as is,
 so that the analyses of the degraded grid can be checked against the full grid's truth."""

@@ -70,7 +70,7 @@ def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
 
     The FFTs, the bulk of the work, run in scipy on all cores; torch's elementwise operators
     on a second OpenMP thread cost far more than they gain when the writer thread (and other
-    processes) share the cores: measured 10x slower per PSF on a loaded 2-core machine.
+    processes) share the cores (10x slower per PSF on a loaded 2-core machine).
     """
     if camera.backend == "torch" and camera.device_type == "cpu":
         from psfkit.simulate.propagation_torch import cpu_threads
@@ -119,14 +119,14 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     backend : {"numpy", "torch", "auto"}
         Optics backend of the :class:`~psfkit.simulate.camera.VirtualCamera`. ``"numpy"`` (the
         default here, kept by ``psfkit demo`` and the training-data generator) reproduces
-        earlier grids file for file; ``"torch"`` (the ``simulate-grid`` CLI's default) gives
+        existing grids file for file; ``"torch"`` (the ``simulate-grid`` CLI's default) gives
         the same clean PSFs to ~5e-7 relative at under half the time, but another noise
         realization: the Poisson sampler draws a different number of random numbers as soon
         as one expected value changes in its last bits, and the stream diverges from there.
     frames : int
         Frames averaged per position (and for the dark frame), as a lab averages repeated
         captures: the noise falls as ``1 / sqrt(frames)``. 1 (default) writes each raw
-        16-bit frame as before; more writes the float32 mean in the same file units (TIFF or
+        16-bit frame; more writes the float32 mean in the same file units (TIFF or
         ``.npy``; PNG holds integers only) and records ``frames_averaged`` in the manifest.
     clean_psfs : bool
         Write ``ground_truth/psfs_clean.npy`` (``(N, M, C, H, W)`` float32). Without it the

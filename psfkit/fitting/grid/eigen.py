@@ -10,8 +10,7 @@ relative to the centre PSF, is written with the weight basis of :mod:`psfkit.for
 
 In the frame of the centre PSF (``v = u − s_p``, where the aligned PSFs of
 :mod:`psfkit.calibration.alignment` live) both become, at every kernel pixel ``v`` separately, a
-linear
-model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
+linear model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
 :math:`W(s_p)` (source). The least-squares kernels therefore solve a K × K system per pixel,
 :math:`\big(\sum_p m_p w_p w_p^\top + \lambda R\big) K(v) = \sum_p m_p w_p a_p(v)` (``m_p`` the
 valid-pixel mask), accumulated one PSF at a time and solved for all pixels at once. The small
@@ -40,10 +39,10 @@ BLOCK_ELEMENTS = 16384      # pixels per block of rows in NormalEquations.add (c
 SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 #: Default ridge ``λ`` (relative to the mean diagonal of each pixel's normalised Gram matrix).
 #: Where the data do not constrain a pixel (the edges, seen by one or two PSFs) the ridge alone
-#: sets its correction kernels; at 1e-9 it sat below the rounding of the sums, so a one-ulp
-#: change of the PSFs moved the demo's kernels there by 15 % of their peak (issue 21,
-#: ``research/golden_spread.py``). At 1e-4 that spread is 1.5e-6 of the peak, and the in-sample
-#: error of the demo's fit changes by 3e-5 of itself.
+#: sets its correction kernels, so it must lie well above the rounding of the sums (at 1e-9 a
+#: one-ulp change of the PSFs moved the demo's kernels there by 15 % of their peak; at 1e-4 by
+#: 1.5e-6, at a cost of 3e-5 in the fit's in-sample error;
+#: research/notes/changelog-measurements.md).
 DEFAULT_RIDGE = 1e-4
 
 

@@ -1,8 +1,7 @@
 """Fit eigen-kernel models to a measured PSF grid (``psfkit fit-eigen``).
 
 One pass over the grid (:class:`~psfkit.calibration.alignment.GridAligner`) accumulates the
-per-pixel
-normal equations of the chosen basis for both weight conventions at full resolution
+per-pixel normal equations of the chosen basis for both weight conventions at full resolution
 (:mod:`psfkit.fitting.grid.eigen`) and keeps a working copy of the aligned PSFs, on which the
 per-position residuals, the leave-positions-out cross-validation of candidate bases and the
 PCA (:mod:`psfkit.fitting.grid.pca`) are computed. The result becomes a kernel file for ekdun.
@@ -59,8 +58,7 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
 
     ``workers`` threads register and align PSFs (default 2 on two cores). With
     ``options.basis == "auto"`` the verdict (:mod:`psfkit.fitting.verdict`) chooses the basis and
-    the
-    convention before the one full-resolution fit (the aligned PSFs are read once more for
+    the convention before the one full-resolution fit (the aligned PSFs are read once more for
     it: the working copy decides, the full-resolution sums are of the chosen model only).
 
     Raises

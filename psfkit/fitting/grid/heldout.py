@@ -1,4 +1,4 @@
-r"""Held-out test of a field dependence of the PSF shape (issue 43, the verdict's evidence).
+r"""Held-out test of a field dependence of the PSF shape (the verdict's evidence).
 
 Every model here writes the aligned, gain-compensated PSF of position ``p`` as
 :math:`a_p(v) = \sum_k w_{pk} K_k(v)` with weights ``w_p`` that depend on the position only

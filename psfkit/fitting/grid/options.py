@@ -47,8 +47,7 @@ class EigenFitOptions:
     ridge : float
         Relative weight of the prior pulling correction kernels towards the base kernel
         (:data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that
-        the
-        pixels the data do not constrain are well-conditioned).
+        the pixels the data do not constrain are well-conditioned).
     min_quality : float
         Positions whose registration quality (NCC) is below this are excluded.
     strict : bool
@@ -58,8 +57,8 @@ class EigenFitOptions:
         affine field-to-shift map fitted to the reliably registered positions
         (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the forward
         model ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
-        the kernels. ``"registered"``: at each PSF's own registered shift (before 2026-11-25;
-        it removes that part, and is biased where a PSF is mostly off the sensor).
+        the kernels. ``"registered"``: at each PSF's own registered shift (which removes that
+        part, and is biased where a PSF is mostly off the sensor).
     """
 
     basis: str = "paper"

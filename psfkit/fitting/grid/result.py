@@ -130,7 +130,7 @@ class GridEigenResult:
             out["pca"] = self.pca.to_dict()
         if self.angles_deg is not None:
             out["principal_angles_deg_eigen_vs_pca"] = self.angles_deg.tolist()
-        if self.layout != FULL_LATTICE or self.excluded:    # (a full grid's record as before)
+        if self.layout != FULL_LATTICE or self.excluded:    # a complete grid's record omits them
             out["layout"] = self.layout
             out["positions_fitted"] = self.n_positions
             out["missing"] = [list(index) for index in self.missing]

@@ -27,7 +27,7 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
     room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
     a cut-out that holds it gives the same working copy as the full frame; when that is the
-    whole sensor (a caustic), the whole sensor as before issue 43. The binning is the smallest
+    whole sensor (a caustic), the whole sensor. The binning is the smallest
     that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
     full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
     centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
@@ -127,7 +127,7 @@ class WorkingStack:
     @property
     def frame(self) -> PixelFrame | None:
         """Where the working pixels lie on the sensor (``None``: the whole sensor binned,
-        whose own grid is the frame, as before issue 43)."""
+        whose own grid is the frame)."""
         if self.region is None or self.sensor_shape is None:
             return None
         return PixelFrame.crop(self.sensor_shape, (self.region[0].start, self.region[1].start),

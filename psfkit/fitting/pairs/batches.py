@@ -24,8 +24,8 @@ DEFAULT_CACHE_BYTES = 3 * 2**29
 DEFAULT_BATCH = 16
 #: On the CPU a batch's largest temporary (its scene spectra times a residual's) is kept under
 #: glibc's largest reuse threshold (:mod:`psfkit.cli.allocator`): a larger one is served with fresh
-#: ``mmap`` pages and page-faulted in on every pass (measured at 128², 96 pairs: 16 pairs per
-#: batch 0.21 s a pass, half of it system time; 8 pairs 0.105 s, none).
+#: ``mmap`` pages and page-faulted in on every pass (at 128² this halves a pass;
+#: research/notes/changelog-measurements.md).
 BATCH_BYTES = 24 * 2**20
 
 MeasurementSource = Callable[[int, int], np.ndarray | Tensor]
@@ -160,7 +160,7 @@ class PairBatches:
                     ) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor, Tensor]]:
         """``(start, stop, operator, scales, B_i K)`` per batch (one pass; the prediction
         unscaled). The kernels' FFTs are taken once per pass, not once per batch (at full
-        DLMD resolution a float32 pass has 4 batches: they were most of its cost)."""
+        DLMD resolution a float32 pass has 4 batches: they would be most of its cost)."""
         spectra = None
         for start, stop, op, s in self.batches():
             if spectra is None:

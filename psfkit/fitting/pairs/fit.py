@@ -14,12 +14,10 @@ which is linear in ``K``: with :math:`B_i: K \mapsto A_K x_i` the normal equatio
 :math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved **to
 convergence** (relative residual ``PairFitOptions.tolerance``, recorded in the history) by
 conjugate gradients preconditioned with the per-frequency ``K × K`` Gram blocks of the scenes,
-streaming the pairs in batches (:mod:`psfkit.fitting.pairs.solver`, which says what is exact and
-what
-only preconditions). Both weights default to 0 (issue 23): a ridge or a pull of the
-corrections towards the base kernel biases the kernels where the scenes carry little power,
-and early stopping did the same; with neither, noise-free pairs of an eigen-kernel model give
-back its kernels.
+streaming the pairs in batches (:mod:`psfkit.fitting.pairs.solver`, which says what is exact
+and what only preconditions). Both weights default to 0: a ridge or a pull of the corrections
+towards the base kernel biases the kernels where the scenes carry little power, as early
+stopping would; with neither, noise-free pairs of an eigen-kernel model give back its kernels.
 ``λ`` and ``μ`` are relative to the mean of :math:`\sum_i\sum_j|\hat s_{ij}|^2` (the spectra
 of the scenes as the kernels see them: the K weighted scenes of a source-side model), so they do
 not depend on the data's units. Datasets whose ground truth was normalised image by image (the
@@ -31,7 +29,7 @@ relative KKT residual of ``PairFitOptions.tolerance``, started from the unconstr
 and scales solved in float32 to ``START_TOLERANCE`` (:func:`_newton_start`), inside a support
 if one is given (``PairFitOptions.nonneg``, ``support``); a support without non-negativity is
 solved exactly by the same conjugate gradients restricted to it. One solver per problem: CG on
-the normal equations, projected Newton-CG for non-negativity (issue 44).
+the normal equations, projected Newton-CG for non-negativity.
 Unless given, the regularisation is chosen by held-out error first
 (:mod:`psfkit.fitting.pairs.regularisation`).
 :meth:`psfkit.fitting.pairs.result.PairFit.physics` is what the kernel file records about
@@ -89,8 +87,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     The least squares is solved to ``options.tolerance`` (relative residual of the normal
     equations) by conjugate gradients preconditioned with the per-frequency Gram blocks of
     the scenes (:mod:`psfkit.fitting.pairs.solver`), streaming the pairs in batches: memory is that
-    of
-    the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
+    of the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
 
     Parameters
     ----------
@@ -107,8 +104,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
         "mask"``; nonzero = inside).
     batch_size, cache_bytes
-        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and bytes
-        of scene spectra kept between passes
+        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and
+        bytes of scene spectra kept between passes
         (:class:`~psfkit.fitting.pairs.batches.PairBatches`).
 
     Raises
@@ -242,15 +239,14 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
                     weights: dict[str, float], kernels: Tensor | None,
                     history: list[dict[str, Any]], choices: list[RegularisationChoice],
                     bar: Any) -> tuple[Tensor | None, list[float]]:
-    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their
-    records into ``choices``): on the pairs binned to at most
+    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their records
+    into ``choices``): on the pairs binned to at most
     :data:`~psfkit.fitting.pairs.regularisation.SELECTION_PIXELS` pixels, the scales first, at the
-    path's
-    strongest weights (the best-conditioned solves), then the folds with those scales; both in
-    float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at the
-    chosen weights (when the choice was made on binned pairs, the binned fit there on the
-    unbinned grid: :func:`upsampled_kernels`), and the held-out errors at the weights used
-    (given weights are scored on the same folds)."""
+    path's strongest weights (the best-conditioned solves), then the folds with those scales; both
+    in float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at
+    the chosen weights (when the choice was made on binned pairs, the binned fit there on the
+    unbinned grid: :func:`upsampled_kernels`), and the held-out errors at the weights used (given
+    weights are scored on the same folds)."""
     factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
     if factor > 1:
@@ -287,8 +283,8 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
         bar.set_description(f"fit {options.basis}")
     if factor > 1:
         # the binned fit's corrections on the unbinned grid, added to the given start's
-        # detail: the first full-resolution solve from the SI seed took 400 CG iterations on
-        # the 7 DLMD pairs, 276 from this start
+        # detail: a closer start for the first full-resolution solve (DLMD: 276 CG iterations
+        # instead of 400)
         fine = upsampled_kernels(start, factor, batches.kernel_shape).to(
             dtype=batches.dtype, device=batches.device)
         return (fine if kernels is None else kernels + (fine - fine[:1])), held_out
@@ -296,11 +292,9 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
 
 
 #: Relative residual of the float32 solves that start the non-negative solve (the
-#: unconstrained kernels and the per-pair scales, which Newton keeps): 1e-4 left the scales of
-#: noise-free pairs 8e-4 from 1 (training error 1.0e-3 against < 1e-3 from float64 solves to
-#: 1e-6); 1e-5, which float32 reaches, does not (tests/psfkit/test_pairs_solver.py). On DLMD
-#: at 1/2 resolution (eigen-kernels, ``--difference 1``) the three rounds took 23 s against
-#: 52 s for float64 to 1e-6.
+#: unconstrained kernels and the per-pair scales, which Newton keeps): 1e-5 is what float32
+#: reaches, and it gives the scales of noise-free pairs as float64 solves do, where 1e-4 leaves
+#: them 8e-4 off (tests/psfkit/test_pairs_solver.py); in less than half the time of float64.
 START_TOLERANCE = 1e-5
 
 
@@ -332,7 +326,7 @@ def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptio
     re-estimated in ``options.rounds`` solves (each to the tolerance, warm-started), appending
     each solve's record to ``history``; returns the kernels and the last solve's system."""
     # Every round is solved to the tolerance (warm-started from the previous one): scales
-    # fitted to loosely solved kernels are biased by a percent (measured), and then stay so.
+    # fitted to loosely solved kernels are biased by a percent, and then stay so.
     scale_rounds = options.rounds - 1 if options.fit_scale else 0
     round_index = 0
     while True:

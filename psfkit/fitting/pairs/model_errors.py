@@ -3,8 +3,7 @@ r"""Where, and on which pairs, a forward model fails (``psfkit eval-model``).
 ``eval-model`` predicts each measurement ``y_i`` of a pairs folder from its scene, ``p_i = A
 x_i``, and reports the relative error ``‖y_i − s_i p_i‖/‖y_i‖`` with ``s_i = 1`` (raw) and with
 the best per-pair scale ``s_i`` (scaled; :func:`psfkit.fitting.pairs.fit.relative_errors`). This
-module
-resolves those errors over the sensor and sorts the pairs:
+module resolves those errors over the sensor and sorts the pairs:
 
 - :func:`zone_errors`: the same two errors restricted to each equal-area radial zone of
   :mod:`psfkit.forward.zones` (``centre``, ``middle``, ``edge``), ``‖(y_i − s_i

@@ -16,11 +16,9 @@ SUPPORTS = ("none", "auto", "mask")
 #: Projected Newton-CG (the non-negative solve): most steps, CG iterations per step, and the
 #: default tolerance of the relative KKT (natural) residual
 #: (:func:`psfkit.fitting.pairs.constraints.projected_newton`; ``PairFitOptions.tolerance``).
-#: 1e-6 (issue 43; 1e-10 before): on the 7 DLMD pairs at 1/4 resolution the predictions of
-#: the pairs then lie within 2.7e-5 (EK, ``--difference 1``) and 1.4e-6 (SI) of the
-#: measurement's norm from those at 1e-10, and the mean relative error within 1e-6, in 39
-#: steps instead of 100 (EK); the kernels themselves move by 5e-3 (EK) along directions the
-#: pairs barely see. The non-negative operator oracle (``research/oracles.py``) keeps 1e-10.
+#: 1e-6: the predictions of the pairs then lie within 3e-5 of the measurement's norm from
+#: those of a 1e-10 solve, in about 40 % of the steps; what still moves are kernel directions
+#: the pairs barely see (research/notes/forward-model-studies.md).
 NEWTON_ITERATIONS = 100
 NEWTON_CG_ITERATIONS = 20
 NEWTON_TOLERANCE = 1e-6
@@ -38,18 +36,14 @@ class PairFitOptions:
         Where the weights of an eigen-kernel model live. ``"auto"`` (default): the one that
         predicts held-out pairs better, each at its own chosen regularisation, on the folds
         that choose it (:func:`psfkit.fitting.pairs.regularisation.convention_record`; the
-        sensor side of Eq. 7 unless the source side is better by more than ``TIE``); on the
-        7 DLMD pairs the source side, whose passes also cost 0.37× the sensor side's at full
-        resolution.
+        sensor side of Eq. 7 unless the source side is better by more than ``TIE``).
     tikhonov : float or None
         ``λ`` relative to the mean scene power (the mean over frequencies of the summed power
         of the scene spectra the kernels see). ``None`` (default): chosen by held-out error
-        for a single PSF (``si``, :mod:`psfkit.fitting.pairs.regularisation`), 0 for eigen-kernels
-        (whose
-        difference prior is chosen instead). A ridge shrinks the kernels' spectra where the
-        scenes carry little power and biases them (issue 23: at 1e-2 the kernels of
-        noise-free eigen-kernel pairs came out 46 % wrong), so it is chosen only where the
-        held-out pairs ask for it.
+        for a single PSF (``si``, :mod:`psfkit.fitting.pairs.regularisation`), 0 for
+        eigen-kernels (whose difference prior is chosen instead). A ridge shrinks the kernels'
+        spectra where the scenes carry little power and so biases them (at 1e-2, 46 % kernel
+        error on noise-free pairs), so it is chosen only where the held-out pairs ask for it.
     difference : float or None
         ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
         ``None`` (default): chosen by held-out error for eigen-kernels (7 DLMD pairs do not
@@ -77,13 +71,12 @@ class PairFitOptions:
         Convolution grid as a multiple of the sensor size.
     seed_with_si : bool
         Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
-        scales). Only a warm start: the solve runs to ``tolerance`` from any start (default
-        off since issue 23; it was needed by the earlier early-stopped solver).
+        scales). Only a warm start: the solve runs to ``tolerance`` from any start, so it is
+        off by default.
     nonneg : bool
         Constrain the kernels to be non-negative (a measured PSF is): the final solve is then
         projected Newton-CG (:func:`psfkit.fitting.pairs.constraints.projected_newton`), warm
-        started from
-        the unconstrained conjugate-gradient solution.
+        started from the unconstrained conjugate-gradient solution.
     support : {"none", "auto", "mask"}
         Kernels are zero outside a footprint: ``"auto"`` derives it from the unconstrained base
         kernel (the SI fit for ``si``; :func:`~psfkit.fitting.pairs.constraints.auto_support`),
@@ -93,14 +86,12 @@ class PairFitOptions:
     projected_iterations : int, optional
         Most Newton steps of the non-negative solve (default ``NEWTON_ITERATIONS``).
 
-    One solver per problem (:attr:`solver`, issue 44): conjugate gradients on the normal
-    equations for the unconstrained kernels (restricted to the support, an exact solve, when
-    there is one without non-negativity), and projected Newton-CG
-    (:func:`psfkit.fitting.pairs.constraints.projected_newton`) to a KKT residual of ``tolerance``
-    for
-    non-negativity (with or without a support): the non-negative least squares itself. FISTA,
-    the solver of the removed ``energy`` constraint (and of ``nonneg_solver="fista"`` until
-    issue 43), left in issue 44.
+    One solver per problem (:attr:`solver`): conjugate gradients on the normal equations for the
+    unconstrained kernels (restricted to the support, an exact solve, when there is one without
+    non-negativity), and projected Newton-CG
+    (:func:`psfkit.fitting.pairs.constraints.projected_newton`) to a KKT residual of
+    ``tolerance`` for non-negativity (with or without a support): the non-negative least squares
+    itself.
     """
 
     basis: str = "si"
@@ -128,8 +119,7 @@ class PairFitOptions:
     @property
     def automatic(self) -> tuple[str, ...]:
         """The weights chosen by held-out error (:mod:`psfkit.fitting.pairs.regularisation`): the
-        difference
-        prior of eigen-kernels, the ridge of one PSF, each unless given."""
+        difference prior of eigen-kernels, the ridge of one PSF, each unless given."""
         if get_basis(self.basis).n_kernels > 1:
             return ("difference",) if self.difference is None else ()
         return ("tikhonov",) if self.tikhonov is None else ()

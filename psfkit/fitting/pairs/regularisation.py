@@ -1,8 +1,8 @@
 r"""The regularisation of a pairs fit, chosen by held-out error (``fit-pairs``' default).
 
-A few pairs do not determine every kernel pixel: on the 7 DiffuserCam pairs the unbiased
-eigen-kernel fit predicts unseen pairs worse than one PSF (issue 43), while hundreds of
-pairs determine the kernels and any prior only biases them (issue 23). So the weight of the
+A few pairs do not determine every kernel pixel (on the 7 DiffuserCam pairs the unbiased
+eigen-kernel fit predicts unseen pairs worse than one PSF), while hundreds of pairs determine
+the kernels and any prior only biases them. So the weight of the
 one regulariser that matters for the model — the ridge ``λ`` of a single PSF (``si``), the
 difference prior ``μ`` of eigen-kernels, both relative to the mean scene power
 (:func:`psfkit.fitting.pairs.solver.solve_kernels`) — is chosen by **cross-validation over pairs**:
@@ -61,7 +61,7 @@ PATHS: dict[str, tuple[float, ...]] = {
     "difference": tuple(round(10 ** (1 - j / 2), 6) for j in range(0, 9)),   # 10 … 1e-3
 }
 #: When the path's strongest weight scores best, up to this many stronger weights (half a
-#: decade apart) are tried until one scores worse (DLMD at full resolution: 10 won).
+#: decade apart) are tried until one scores worse (DLMD at full resolution chooses 10).
 STRONGER_STEPS = 4
 #: Most folds (leave-one-out up to this many pairs).
 MAX_FOLDS = 8
@@ -78,13 +78,9 @@ FOLD_ITERATIONS = 500
 TIE = 1e-3
 #: The weight is chosen on the pairs binned (block means) to at most this many pixels and
 #: used at full resolution (the weights are relative to the scenes' mean per-frequency power):
-#: the folds at full resolution cost minutes. What that costs, measured (leave-one-out,
-#: scaled held-out error): on a bench camera with white noise (48², 6 pairs, 20 %) the weight
-#: chosen binned 2x or 3x is the full-resolution one or half a decade below it; on the 7 DLMD
-#: pairs (eigen-kernels) the best ``--difference`` moves up with resolution, 1 at 1/4 and 1/3,
-#: 3.16 at 1/2, 10 at full resolution, along paths flat within their standard error (full
-#: resolution: 0.0588 at 10, 0.0593 at 3.16, ± 0.004). The 384 bench pairs of 128² are
-#: chosen unbinned.
+#: the folds at full resolution cost minutes. Binned 2x or 3x, the choice is the
+#: full-resolution one or half a decade below it, where the path is flat within its standard
+#: error (research/notes/forward-model-studies.md).
 SELECTION_PIXELS = 128 * 128
 
 

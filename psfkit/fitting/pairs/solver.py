@@ -43,11 +43,8 @@ preconditioner of conjugate gradients,
 
 symmetric positive definite (``E`` embeds the kernel window in the grid; ``E^\top`` extracts
 it), so preconditioned CG converges to the exact least-squares solution whatever the quality of
-``P``; ``P`` only sets how fast. (Scaling ``P`` by the fraction of outputs each offset sees, a
-diagonal correction for the crop, was tried and slowed convergence slightly.) On the 64 × 64
-virtual bench (96 pairs, paper basis) it reaches a relative residual of 1e-6 in 60 (source)
-and 92 (sensor) iterations, against 188 and 127 with the scalar per-kernel preconditioner of
-the earlier solver.
+``P``; ``P`` only sets how fast: on the 64 × 64 virtual bench about half the iterations of a
+scalar per-kernel preconditioner (research/notes/forward-model-studies.md).
 
 Non-negativity (and a support) is imposed afterwards by projected Newton-CG
 (:func:`psfkit.fitting.pairs.constraints.projected_newton`), the one

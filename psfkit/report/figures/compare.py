@@ -61,8 +61,7 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
         Show only the central ``zoom`` fraction of the caustic's bounding box.
     extra_rows : sequence of (str, numpy.ndarray)
         More ``(label, kernels)`` rows after the measured one, kernels ``(K, C, H, W)`` on the
-        comparison grid (e.g. an oracle's, registered by
-        :func:`psfkit.compare.compare_model`).
+        comparison grid (e.g. an oracle's, registered by :func:`psfkit.compare.compare_model`).
     """
     names = comparison.kernel_names
     rows = [(label, np.stack([luminance(k) for k in kernels]))

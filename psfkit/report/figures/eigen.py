@@ -68,8 +68,7 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
                  ) -> AxesImage | None:
     """The kernels' luminance ``lum`` ``(K, h, w)`` as fractions of their peak on a square-root
     scale (:func:`~psfkit.report.figures.style.psf_norm`), and ``K_k − K_base`` in the same unit on
-    a
-    symmetric linear scale (±``limit``, default :func:`difference_limit` of ``lum``: pass one
+    a symmetric linear scale (±``limit``, default :func:`difference_limit` of ``lum``: pass one
     limit to rows that are compared).
 
     ``sizes`` (one per difference, optional): the size of each difference with its uncertainty,
