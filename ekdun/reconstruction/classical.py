@@ -67,8 +67,8 @@ class ClassicalOptions:
 
     def __post_init__(self) -> None:
         if self.solver in RETIRED_SOLVERS:
-            warnings.warn(f"solver {self.solver!r} was removed (issue 44): the ADMM-TV solver "
-                          "runs instead", DeprecationWarning, stacklevel=3)
+            warnings.warn(f"solver {self.solver!r} was removed: the ADMM-TV solver runs "
+                          "instead", DeprecationWarning, stacklevel=3)
         elif self.solver not in SOLVERS:
             raise ConfigurationError(f"--solver must be one of {', '.join(SOLVERS)}, got "
                                      f"{self.solver!r}")
