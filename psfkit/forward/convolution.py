@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from psfkit.forward.fft import irfft2, rfft2
+from psfkit.forward.fft import irfft2, rfft2, wrapped_slice
 from psfkit.forward.geometry import centre_offset, kernel_origin
 
 
@@ -118,12 +118,10 @@ def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
 def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
     """Adjoint of :func:`embed_kernel`: the centred ``(Hk, Wk)`` kernel window of a
     ``(..., PH, PW)`` array whose origin is at index ``(0, 0)``, ``(..., Hk, Wk)``."""
-    hk, wk = kernel_shape
-    row, col = kernel_origin((hk, wk))
-    ph, pw = full.shape[-2:]
+    row, col = kernel_origin(kernel_shape)
     # the window's wrapped rows, then columns (a roll of the whole grid copied all of it)
-    rows = torch.cat([full[..., ph - row:, :], full[..., :hk - row, :]], dim=-2)
-    return torch.cat([rows[..., pw - col:], rows[..., :wk - col]], dim=-1)
+    rows = wrapped_slice(full, -row, kernel_shape[0], -2)
+    return wrapped_slice(rows, -col, kernel_shape[1], -1)
 
 
 def kernels_from_spectra(spectra: Tensor, grid_shape: tuple[int, int],

@@ -115,13 +115,15 @@ def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
         count.inverse += 1
     if crop_shape is None:
         return torch.fft.irfft2(spectrum, s=grid_shape)
-    columns = _wrapped(torch.fft.ifft(spectrum, dim=-2), start[0], crop_shape[0], -2)
+    columns = wrapped_slice(torch.fft.ifft(spectrum, dim=-2), start[0], crop_shape[0], -2)
     rows = torch.fft.irfft(columns, n=grid_shape[1], dim=-1)
-    return _wrapped(rows, start[1], crop_shape[1], -1)
+    return wrapped_slice(rows, start[1], crop_shape[1], -1)
 
 
-def _wrapped(z: Tensor, first: int, size: int, dim: int) -> Tensor:
-    """``size`` entries of ``z`` along ``dim`` from index ``first``, wrapping around the end."""
+def wrapped_slice(z: Tensor, first: int, size: int, dim: int) -> Tensor:
+    """``size`` entries of ``z`` along ``dim`` from index ``first`` (modulo the axis),
+    wrapping around the end: a view when they do not wrap, else one copy (the blocks of
+    :func:`irfft2` and the kernel window of :func:`psfkit.forward.convolution.extract_kernel`)."""
     first %= z.shape[dim]
     if first + size <= z.shape[dim]:
         return z.narrow(dim, first, size)

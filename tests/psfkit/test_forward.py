@@ -262,8 +262,9 @@ def test_a_subset_of_the_kernel_space_operator_measures_its_own_norm():
 @pytest.mark.parametrize("start", [(0, 0), (-2, -3), (4, 5), (-7, 1)])
 def test_a_cropped_inverse_fft_is_the_wrapped_block_of_the_whole_one(start):
     """``irfft2`` computing only a block (wrapping around the grid from ``start``) gives the
-    block of the whole inverse, for an odd and an even width; and the kernel window computed
-    that way is ``extract_kernel`` of the whole inverse (the kernel fits' inverse)."""
+    block of the whole inverse, for an odd and an even width; and the centred kernel window
+    computed that way (the kernel fits' inverse), and ``extract_kernel``'s of the whole inverse,
+    are the whole inverse rolled to the kernel's centre and cut."""
     from psfkit.forward.convolution import extract_kernel, kernels_from_spectra
     from psfkit.forward.fft import irfft2
 
@@ -277,11 +278,15 @@ def test_a_cropped_inverse_fft_is_the_wrapped_block_of_the_whole_one(start):
         assert torch.allclose(block, rolled[..., :6, :8], atol=1e-13), (grid, start)
         assert torch.allclose(block, z.roll((-start[0], -start[1]), (-2, -1))[..., :6, :8],
                               atol=1e-13)
-        for kernel_shape in ((5, 7), (6, 8)):
-            expected = extract_kernel(whole, kernel_shape)
+        for kernel_shape in ((5, 7), (6, 8), (1, 1)):
+            # the centred window, by rolling the origin to the kernel's centre pixel
+            origin = (kernel_shape[0] // 2, kernel_shape[1] // 2)
+            expected = torch.roll(whole, origin, dims=(-2, -1))[..., :kernel_shape[0],
+                                                                 :kernel_shape[1]]
             got = kernels_from_spectra(spectrum, grid, kernel_shape)
             assert got.shape == expected.shape
             assert torch.allclose(got, expected, atol=1e-13), (grid, kernel_shape)
+            assert torch.equal(extract_kernel(whole, kernel_shape), expected)
 
 
 def test_the_kernel_space_forward_leaves_its_cached_scene_spectra_as_they_were():
