@@ -1,26 +1,10 @@
-"""Atomic creation of output files and folders, and the toolkit's one output policy.
+"""Atomic output files and folders, and the one output policy (``docs/inputs-and-errors.md``).
 
-Outputs are first written under a temporary name in the destination's own directory and
-renamed into place only once complete, so an interrupted or failed run never leaves a
-half-written result behind (a rename within one file system is atomic).
-
-The policy every command follows (``docs/inputs-and-errors.md``):
-
-* **All or nothing.** A command declares its outputs in one :class:`OutputTransaction`
-  before it computes anything; each gets a temporary name next to its target, and all are
-  renamed into place together at the end. If the command fails or is interrupted, the
-  temporaries are removed and nothing appears at the final paths.
-* **No silent replacement.** An existing file, or a non-empty folder, is replaced only with
-  ``overwrite=True`` (``--overwrite``). This is checked when the output is declared and again
-  at commit time by a rename that cannot clobber: files use ``renameat2(RENAME_NOREPLACE)``
-  (falling back to ``link`` + ``unlink``, which fail with ``EEXIST`` too); folders use a plain
-  ``rename``, which on POSIX fails when the destination is a file or a non-empty folder and
-  only ever replaces an *empty* folder, which this policy treats as absent.
-* **Recognisable temporaries.** Temporary names are
-  ``.<name>.psfkit-tmp.<pid>@<host>.<random>[<suffix>]`` (``<host>``: 6 hex digits of the
-  machine's name); every run removes those of its kind, in the folders it writes to, whose
-  process on this machine has ended (or that are older than a day), and says so in one line
-  on stderr (:mod:`psfkit.io.temps`).
+All or nothing: a command declares its outputs in one :class:`OutputTransaction` before any
+work; each is written to a temporary twin in its own folder and all are renamed into place
+together, or removed on failure. An existing file or non-empty folder is replaced only with
+``--overwrite``, checked up front and again at commit by renames that cannot clobber.
+Temporary names and the cleaning of stale ones: :mod:`psfkit.io.temps`.
 """
 
 from __future__ import annotations
@@ -56,11 +40,8 @@ _INPUTS: ContextVar[tuple[tuple[str, Path], ...]] = ContextVar("psfkit_inputs", 
 
 @contextlib.contextmanager
 def protected_inputs(paths: Iterable[str | os.PathLike]) -> Iterator[None]:
-    """Within the block no output may be one of ``paths`` (those that exist), a folder
-    holding one, or an existing path inside one, even with ``overwrite``: ``psfkit report GRID
-    --out GRID --overwrite`` would replace the measured grid by its report, ``register --out
-    GRID/manifest.json --overwrite`` its manifest. The command runner declares every path
-    argument that is not an output (:func:`psfkit.cli.main.run_cli`)."""
+    """Within the block no output may be one of the existing ``paths``, a folder holding one,
+    or an existing path inside one, even with ``overwrite`` (``report GRID --out GRID``)."""
     given = [os.fspath(p) for p in paths]
     token = _INPUTS.set(tuple((p, Path(p).resolve()) for p in given if p and os.path.lexists(p)))
     try:
@@ -70,9 +51,8 @@ def protected_inputs(paths: Iterable[str | os.PathLike]) -> Iterator[None]:
 
 
 def _check_not_an_input(path: Path, overwrite: bool) -> None:
-    """Refuse an output that is an input, a folder holding one, or (with ``overwrite``, which
-    would replace it) an existing file or folder inside an input folder (a grid's
-    ``manifest.json``); a new name inside is allowed."""
+    """Refuse an output that is an input, holds one, or (with ``overwrite``) is an existing
+    path inside an input folder; a new name inside is allowed."""
     if any(TEMP_TAG in part for part in path.parts):   # inside an output being written
         return
     target = path.resolve()
@@ -115,11 +95,9 @@ _renameat2 = _load_renameat2()
 
 
 def rename_noreplace(src: Path, dst: Path) -> None:
-    """Rename the file ``src`` to ``dst``; raise :class:`FileExistsError` if ``dst`` exists.
+    """Rename the file ``src`` to ``dst``; :class:`FileExistsError` if ``dst`` exists.
 
-    Atomic with ``renameat2(RENAME_NOREPLACE)`` (Linux >= 3.15, glibc >= 2.28); otherwise a
-    hard link (fails if ``dst`` exists) then unlink of ``src``; on file systems without hard
-    links, a check then rename (a small race remains there, and only there).
+    ``renameat2(RENAME_NOREPLACE)``, else link + unlink, else (no hard links) check + rename.
     """
     if _renameat2 is not None:
         if _renameat2(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst),
@@ -147,12 +125,9 @@ def _exists_error(path: Path, what: str) -> OutputExistsError:
 
 
 def check_output(path: str | os.PathLike, kind: str = "file", overwrite: bool = False) -> Path:
-    """Refuse an output path before any work is done.
-
-    ``kind`` is ``"file"`` or ``"folder"``. Without ``overwrite`` an existing file, or a
-    non-empty folder, is an :class:`OutputExistsError`; a path of the other kind, or a parent
-    that is not a folder, is an :class:`~psfkit.errors.InvalidInputError` in any case.
-    """
+    """Refuse an output path (``kind``: ``"file"`` or ``"folder"``) before any work:
+    :class:`OutputExistsError` for an existing file or non-empty folder without ``overwrite``,
+    :class:`~psfkit.errors.InvalidInputError` for a path of the other kind or a bad parent."""
     path = Path(path)
     parent = path.parent
     if parent.exists() and not parent.is_dir():
@@ -171,8 +146,7 @@ def check_output(path: str | os.PathLike, kind: str = "file", overwrite: bool = 
 
 
 def _prepare_parent(path: Path) -> list[Path]:
-    """Create the missing folders above ``path``; returns them, outermost first (a failed
-    run removes them again)."""
+    """Create the missing folders above ``path``; returns them, outermost first."""
     missing = [p for p in reversed(path.parents) if not p.exists()]
     try:
         for folder in missing:
@@ -195,8 +169,7 @@ def _remove_empty(folders: list[Path]) -> None:
 
 
 def _temp_for(path: Path, kind: str, created: list[Path]) -> Path:
-    """Create the temporary twin of ``path`` (empty file or folder) next to it; the folders
-    this had to create are appended to ``created``."""
+    """Create the empty temporary twin of ``path`` next to it; new folders go to ``created``."""
     created += _prepare_parent(path)
     clean_once(path.parent)
     try:
@@ -231,10 +204,9 @@ class _Output:
                 self._commit_file()
             else:
                 self._commit_folder()
-        except (FileExistsError, IsADirectoryError, NotADirectoryError) as exc:
-            raise _exists_error(path, "output was created meanwhile by another run") from exc
         except OSError as exc:
-            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
+            clobber = (FileExistsError, IsADirectoryError, NotADirectoryError)
+            if isinstance(exc, clobber) or exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
                 raise _exists_error(path, "output was created meanwhile by another run") from exc
             raise InvalidInputError(f"{path}: cannot write here ({exc.strerror or exc})"
                                     ) from None
@@ -302,8 +274,7 @@ class OutputTransaction:
     Parameters
     ----------
     overwrite : bool
-        Replace existing outputs (``--overwrite``); default: refuse them, up front and again
-        at commit time.
+        Replace existing outputs (``--overwrite``); default: refuse them.
     """
 
     def __init__(self, overwrite: bool = False) -> None:
@@ -325,9 +296,8 @@ class OutputTransaction:
         return output.temp
 
     def file(self, path: str | os.PathLike, suffixes: tuple[str, ...] = ()) -> Path:
-        """Declare an output file; returns the temporary path to write (same suffix).
-
-        ``suffixes`` (e.g. ``(".json", ".csv")``) restricts the accepted extensions."""
+        """Declare an output file (extension one of ``suffixes``, if given); returns the
+        temporary path to write (same suffix)."""
         return self._declare(path, "file", suffixes)
 
     def folder(self, path: str | os.PathLike) -> Path:
@@ -392,12 +362,9 @@ class OutputTransaction:
 
 @contextlib.contextmanager
 def atomic_file(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
-    """Yield a temporary path; on success rename it to ``path``, on error delete it.
+    """Yield a temporary path (``path``'s suffix) that becomes ``path`` on success.
 
-    The temporary file keeps the suffix of ``path`` so that writers choosing their
-    format from the extension (numpy, matplotlib, tifffile) behave as for ``path``.
-    ``overwrite`` defaults to True here because library code rewrites its own files (a
-    checkpoint every epoch); commands pass the user's ``--overwrite``.
+    ``overwrite`` defaults to True: library code rewrites its own files (checkpoints).
     """
     with OutputTransaction(overwrite=overwrite) as outputs:
         yield outputs.file(path)
@@ -405,15 +372,7 @@ def atomic_file(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Pat
 
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
-    """Yield an empty temporary folder that becomes ``path`` when the block succeeds.
-
-    Parameters
-    ----------
-    path : path-like
-        Final folder.
-    overwrite : bool
-        Replace an existing ``path``. Without it an existing non-empty ``path`` is an error,
-        raised before any work is done (and again before the rename).
-    """
+    """Yield an empty temporary folder that becomes ``path`` when the block succeeds; an
+    existing non-empty ``path`` is refused up front unless ``overwrite``."""
     with OutputTransaction(overwrite=overwrite) as outputs:
         yield outputs.folder(path)

@@ -1,30 +1,17 @@
-"""The PSF-grid folder format: a folder of point-source images plus a manifest.
+"""The PSF-grid format (``docs/grid-format.md``): a folder of point-source images (16-bit
+TIFF/PNG or ``.npy``, one per field position) plus ``manifest.json``/``.csv`` and an optional
+dark frame.
 
-A grid is what a lab hands over after displaying a point at N × M field positions and
-capturing the camera's response at each. The format is documented in ``docs/grid-format.md``;
-in short::
-
-    grid/
-      manifest.json            (or manifest.csv)
-      psf_r00_c00.tiff ...     one image per grid position: 16-bit TIFF/PNG or .npy, mono or RGB
-      dark.tiff                optional dark / black frame, same shape and type
-
-Three layouts are read (``docs/grid-format.md``): a **full lattice** (every index of the declared
-``grid_shape`` captured), an **incomplete lattice** (the manifest lists the captured indices of
-the declared lattice; the others are gaps) and an **irregular scan** (positions given by their
-field or monitor coordinates only: a line scan, scattered beads, a jittered lattice), held as a
-``1 × P`` row in manifest order.
-
-This module holds the grid's data classes (:class:`GridPosition`, :class:`PsfGrid`).
-:func:`psfkit.io.grid_validation.read_grid` validates the whole folder before anything is
-computed and raises :class:`~psfkit.errors.GridFormatError` naming the file and the problem
-(the manifest is parsed by :mod:`psfkit.io.manifest`); :class:`psfkit.io.grid_writer.GridWriter`
-writes a grid atomically (into a temporary folder renamed into place when complete). All three
-are importable from :mod:`psfkit.io`.
+Layouts: a full lattice, an incomplete lattice (gaps in the declared ``grid_shape``) and an
+irregular scan (positions by field or monitor coordinates only), held as a ``1 × P`` row.
+This module holds the data classes; :func:`psfkit.io.grid_validation.read_grid` validates a
+folder and :class:`psfkit.io.grid_writer.GridWriter` writes one atomically.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -55,8 +42,7 @@ class GridPosition:
         Image file name, relative to the grid folder.
     row, col : int
         Grid index; ``row`` grows with the field's ``y`` (down), ``col`` with its ``x`` (right).
-        An irregular scan has none in its manifest; it is held as row 0, column = the
-        position's place in the manifest.
+        An irregular scan: row 0, column = place in the manifest.
     monitor_px : (float, float) or None
         Source position ``(x, y)`` on the monitor in monitor pixels, relative to the point on
         the camera's optical axis, in the displayed image's frame (x right, y down).
@@ -77,15 +63,12 @@ class GridPosition:
 
 @dataclass(frozen=True)
 class PsfGrid:
-    """A validated PSF grid on disk; images are read on demand (one at a time).
+    """A validated PSF grid on disk (from :func:`read_grid`); images are read on demand as
+    ``(C, H, W)`` float32 in stored units (no dark subtraction).
 
-    Use :func:`read_grid` to create one. Images are returned as ``(C, H, W)`` float32 in the
-    stored units (no dark subtraction; see :mod:`psfkit.calibration.preprocess` for that).
-
-    ``positions`` are the captured positions (sorted by index); ``grid_shape`` is the declared
-    lattice (``(1, P)`` for an irregular scan), so an incomplete lattice has fewer positions
-    than cells. Per-position arrays (:meth:`field_deg`, ...) are ``(N, M, ...)`` with NaN in
-    the cells that were not captured.
+    ``positions``: the captured ones, sorted by index; ``grid_shape``: the declared lattice
+    (``(1, P)`` for an irregular scan). Per-position arrays are ``(N, M, ...)``, NaN where not
+    captured.
     """
 
     root: Path
@@ -240,9 +223,16 @@ class PsfGrid:
         return self.center_index
 
 
-def checked_dark(path: Path, image: np.ndarray) -> np.ndarray:
-    """The dark frame, refused when it holds NaN/Inf (one check for every command)."""
+@contextlib.contextmanager
+def grid_errors() -> Iterator[None]:
+    """Within the block, an :class:`InvalidInputError` becomes a :class:`GridFormatError`."""
     try:
-        return require_finite(image, f"{path}: dark frame")
+        yield
     except InvalidInputError as exc:
         raise GridFormatError(str(exc)) from None
+
+
+def checked_dark(path: Path, image: np.ndarray) -> np.ndarray:
+    """The dark frame, refused when it holds NaN/Inf (one check for every command)."""
+    with grid_errors():
+        return require_finite(image, f"{path}: dark frame")

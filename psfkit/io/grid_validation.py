@@ -17,6 +17,7 @@ from psfkit.io.grid import (
     IRREGULAR,
     PsfGrid,
     checked_dark,
+    grid_errors,
 )
 from psfkit.io.images import IMAGE_SUFFIXES, read_image
 from psfkit.io.manifest import (
@@ -35,14 +36,12 @@ from psfkit.io.validation import (
     machine_memory_bytes,
 )
 
-#: Longest side (px) of the eigen fit's working copy of one PSF (``EigenFitOptions.
-#: working_size``) and of the characterization's thumbnail (``psfkit.characterization.characterize.
-#: THUMBNAIL_SIZE``): what the analyses keep of every position (a test checks they agree).
+#: Longest side (px) of the eigen fit's working copy of a PSF and of the characterization's
+#: thumbnail (a test checks they agree with ``EigenFitOptions`` and ``THUMBNAIL_SIZE``).
 WORKING_SIDE = 256
 THUMBNAIL_SIDE = 160
-#: Full-resolution float64 row and column vectors the eigen fit keeps per position and
-#: convention (the weight factors of ``psfkit.fitting.grid.eigen.NormalEquations``, basis "paper":
-# 4).
+#: Full-resolution float64 row and column weight-factor vectors the eigen fit keeps per
+#: position and convention (basis "paper": 4).
 FACTOR_VECTORS = 4
 #: Bytes of the per-position records (numbers, coarse flow, excluded-position details).
 RECORD_BYTES = 16 * 2**10
@@ -52,16 +51,10 @@ CELL_BYTES = 512
 
 def analysis_memory_bytes(grid_shape: tuple[int, int], n_positions: int,
                           image_shape: tuple[int, int, int]) -> int:
-    """What the analyses of a grid (``report``, ``fit-eigen``) hold in memory, in bytes,
-    estimated from its size before any image is read.
-
-    Every command reads one PSF at a time; what grows with the grid is what they keep of each
-    position: per **cell** of the lattice (``(1, P)`` for an irregular scan) the per-position
-    tables and the montage thumbnail (``THUMBNAIL_SIDE``); per **captured position** the eigen
-    fit's working copy (at most ``WORKING_SIDE``² pixels per channel, float32, and its mask),
-    its weight factors (``FACTOR_VECTORS`` full-resolution rows and columns per convention,
-    both conventions) and the records; and **once** the full-resolution normal equations of
-    both conventions (float64) and about 16 images in flight.
+    """Bytes the analyses of a grid (``report``, ``fit-eigen``) hold, estimated before any
+    image is read: per cell, the tables and the thumbnail; per captured position, the eigen
+    fit's working copy (float32 + mask), its weight factors (both conventions) and records;
+    once, the full-resolution normal equations of both conventions and ~16 images in flight.
 
     Parameters
     ----------
@@ -87,14 +80,8 @@ def analysis_memory_bytes(grid_shape: tuple[int, int], n_positions: int,
 def check_fits_in_memory(manifest: Path, grid_shape: tuple[int, int], n_positions: int,
                          image_shape: tuple[int, int, int], declared: bool,
                          irregular: bool) -> None:
-    """Refuse a grid whose analyses cannot fit in this machine's memory, in one line.
-
-    Raises
-    ------
-    GridFormatError
-        ``"manifest.json: an irregular scan of 1 x 300000 positions of 1024 x 1024 x 1
-        images needs about 95 GiB of memory to analyse, more than this machine's 16 GiB; ..."``.
-    """
+    """Refuse, with a :class:`GridFormatError`, a grid whose analyses cannot fit in this
+    machine's memory."""
     need = analysis_memory_bytes(grid_shape, n_positions, image_shape)
     have = machine_memory_bytes()
     if need <= have:
@@ -107,7 +94,6 @@ def check_fits_in_memory(manifest: Path, grid_shape: tuple[int, int], n_position
         f"({n_positions} captured) of {h} x {w} x {c} images needs about {format_bytes(need)} "
         f"of memory to analyse, more than this machine's {format_bytes(have)}; analyse the "
         "positions in parts (one manifest each) or bin the images")
-
 
 
 def pixel_problem(path: Path, image: np.ndarray) -> str | None:
@@ -127,8 +113,7 @@ def _describe(shape: tuple[int, ...], dtype: np.dtype) -> str:
 
 
 def _check_frame_size(path: Path, shape: tuple[int, ...]) -> None:
-    """Refuse a frame too small to hold a PSF with background around it (every frame of a
-    grid has the first one's shape, so the first is checked; see ``MIN_PSF_SIDE``)."""
+    """Refuse a frame smaller than ``MIN_PSF_SIDE`` (the first frame: all share its shape)."""
     h, w = shape[-2:]
     if min(h, w) < MIN_PSF_SIDE:
         raise GridFormatError(f"{path}: image of {h}×{w} px is too small to hold a PSF; "
@@ -145,27 +130,17 @@ def read_grid(root: str | os.PathLike, check_pixels: bool = True,
     root : path-like
         The grid folder (holding ``manifest.json`` or ``manifest.csv``).
     check_pixels : bool
-        Also read every image to find NaN/Inf values and all-zero frames (one image in
-        memory at a time): refused with ``strict``, else listed in
-        :attr:`PsfGrid.frame_problems` (the analyses exclude those positions). Without it only
-        headers, shapes and dtypes are checked.
+        Also read every image for NaN/Inf and all-zero frames: refused with ``strict``, else
+        listed in :attr:`PsfGrid.frame_problems`. Without it only headers are checked.
     progress : bool
         Show a progress bar while checking images.
     strict : bool
-        Refuse an incomplete lattice (every index of ``grid_shape`` must be listed) and an
-        irregular scan, and PSF frames with NaN/Inf values or all zeros.
-
-    Returns
-    -------
-    PsfGrid
+        Refuse an incomplete lattice, an irregular scan and unusable frames.
 
     Raises
     ------
     GridFormatError
-        Missing or malformed manifest, duplicate grid index or file (missing index with
-        ``strict``), positions with and without grid indices, missing image,
-        files in the folder that the manifest does not list, non-image files, mixed shapes or
-        dtypes, NaN/Inf values, all-zero frames.
+        Anything in the folder that breaks the format (the message names the file).
     """
     root = Path(root)
     _check_root(root)
@@ -234,7 +209,7 @@ def _check_root(root: Path) -> None:
 def _indexed_positions(positions: list[Any], header: dict[str, Any], manifest: Path,
                        strict: bool) -> tuple[list[Any], bool]:
     """The positions with their grid indices, and whether the scan is irregular (no position
-    has a grid index: each gets row 0 and its place in the manifest). Mixed is refused."""
+    has one); a mix is refused."""
     indexed = [p.row != NO_INDEX for p in positions]
     if any(indexed) and not all(indexed):
         bare = positions[indexed.index(False)].file
@@ -249,8 +224,7 @@ def _indexed_positions(positions: list[Any], header: dict[str, Any], manifest: P
 
 def _refuse_duplicates(positions: list[Any], manifest: Path
                        ) -> tuple[dict[tuple[int, int], str], set[str]]:
-    """The file of every grid index, and the set of files; a repeated index or file is
-    refused."""
+    """The file of every grid index, and the set of files; repeats are refused."""
     seen_index: dict[tuple[int, int], str] = {}
     seen_file: set[str] = set()
     for p in positions:
@@ -266,8 +240,8 @@ def _refuse_duplicates(positions: list[Any], manifest: Path
 
 def _grid_shape(positions: list[Any], header: dict[str, Any], manifest: Path
                 ) -> tuple[int, int, bool]:
-    """``(rows, cols, declared)``: the manifest's ``grid_shape`` if it declares one (it must
-    hold every position), else the extent of the positions; at most ``MAX_GRID_CELLS``."""
+    """``(rows, cols, declared)``: the manifest's ``grid_shape`` (holding every position), else
+    the positions' extent; at most ``MAX_GRID_CELLS``."""
     n_rows = max(p.row for p in positions) + 1
     n_cols = max(p.col for p in positions) + 1
     declared_shape = header.get("grid_shape") is not None
@@ -315,9 +289,8 @@ def _check_folder_matches(root: Path, manifest: Path, listed: set[str]) -> None:
 def _check_images(root: Path, files: list[str], channel_order: str, dark_file: str | None, *,
                   check_pixels: bool, strict: bool, progress: bool
                   ) -> tuple[tuple[int, int, int], np.dtype, dict[str, str]]:
-    """Shape and pixel type of every image (all as the first's), and with ``check_pixels``
-    its pixels: ``(shape, dtype, problems)``, ``problems`` the PSF frames with NaN/Inf or all
-    zeros (refused with ``strict``); the dark frame is checked as a dark frame."""
+    """``(shape, dtype, problems)``: every image has the first's shape and dtype; with
+    ``check_pixels``, ``problems`` lists unusable PSF frames (refused with ``strict``)."""
     ref_shape: tuple[int, int, int] | None = None
     ref_dtype: np.dtype | None = None
     ref_file = ""
@@ -355,27 +328,23 @@ def _check_images(root: Path, files: list[str], channel_order: str, dark_file: s
 
 
 def _read_checked(path: Path, channel_order: str) -> np.ndarray:
-    try:
+    with grid_errors():
         return read_image(path, channel_order)
-    except InvalidInputError as exc:
-        raise GridFormatError(str(exc)) from None
 
 
 def _header_fields(header: dict[str, Any], manifest: Path
                    ) -> tuple[int | None, float | None, float | None]:
-    """The optional ``bit_depth`` (1..32), ``black_level`` (finite, in [0, 2³²]) and
-    ``pixel_pitch_um`` (> 0) of the manifest, checked."""
+    """The optional ``bit_depth`` (1..32), ``black_level`` ([0, 2³²]) and ``pixel_pitch_um``
+    (> 0) of the manifest, checked."""
     bit_depth = header.get("bit_depth")
     if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)
                                   or not 1 <= bit_depth <= 32):
         raise GridFormatError(f"{manifest}: 'bit_depth' must be an integer in 1..32")
     black_level = header.get("black_level")
     if black_level is not None:
-        try:  # a black level is at most the largest stored value (2^32 for any container)
+        with grid_errors():  # at most the largest stored value (2^32 for any container)
             black_level = float(finite_number(black_level, f"{manifest}: 'black_level'", 0.0,
                                               2.0**32))
-        except InvalidInputError as exc:
-            raise GridFormatError(str(exc)) from None
     pitch = header.get("pixel_pitch_um")
     if pitch is not None:
         pitch = parse_positive(pitch, str(manifest), "pixel_pitch_um")
@@ -384,8 +353,8 @@ def _header_fields(header: dict[str, Any], manifest: Path
 
 def _irregular_positions(positions: list[Any], header: dict[str, Any], manifest: Path,
                          strict: bool) -> list[Any]:
-    """The positions of an irregular scan as row 0, column = place in the manifest; each must
-    be located in the field (all by ``monitor_px`` or all by ``field_deg``)."""
+    """An irregular scan's positions as row 0, column = place in the manifest; all located by
+    ``monitor_px`` or all by ``field_deg``."""
     from dataclasses import replace
 
     if strict:
@@ -420,8 +389,5 @@ def _peek(path: Path, channel_order: str) -> tuple[tuple[int, int, int], np.dtyp
         raise GridFormatError(str(exc)) from None
     except Exception as exc:
         raise GridFormatError(f"{path}: not a readable image ({exc})") from None
-    try:
-        image = read_image(path, channel_order)
-    except InvalidInputError as exc:
-        raise GridFormatError(str(exc)) from None
+    image = _read_checked(path, channel_order)
     return image.shape, image.dtype  # type: ignore[return-value]

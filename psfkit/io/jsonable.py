@@ -1,5 +1,4 @@
-"""Plain-JSON conversion of nested results (numbers, arrays, NaN), and JSON outputs written
-atomically."""
+"""Plain-JSON conversion of nested results, and JSON outputs written atomically."""
 
 from __future__ import annotations
 
@@ -32,22 +31,8 @@ def jsonable(value: Any) -> Any:
 
 
 def write_json(path: str | os.PathLike, doc: Any, indent: int = 1) -> Path:
-    """Write ``jsonable(doc)`` to ``path`` atomically (a reader never sees half a file).
-
-    Parameters
-    ----------
-    path : path-like
-        The JSON file; replaced if it exists.
-    doc : nested dicts / lists of numbers, strings, numpy values
-        NaN and Inf are written as ``null`` (see :func:`jsonable`).
-    indent : int
-        Passed to :func:`json.dumps`.
-
-    Returns
-    -------
-    Path
-        ``path``.
-    """
+    """Write ``jsonable(doc)`` (NaN/Inf as ``null``) to ``path`` atomically, replacing it;
+    returns ``path``."""
     path = Path(path)
     with atomic_file(path) as tmp:
         tmp.write_text(json.dumps(jsonable(doc), indent=indent) + "\n", encoding="utf-8")

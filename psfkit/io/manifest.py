@@ -1,7 +1,5 @@
-"""Parsing a PSF grid's manifest (``manifest.json`` or ``manifest.csv``, see
-``docs/grid-format.md``) into header fields and :class:`~psfkit.io.grid.GridPosition` entries,
-and locating the grid's centre position. Checks of the folder itself are in
-:mod:`psfkit.io.grid_validation`."""
+"""Parsing a PSF grid's ``manifest.json`` or ``manifest.csv`` (``docs/grid-format.md``) into
+header fields and :class:`~psfkit.io.grid.GridPosition` entries; locating the centre."""
 
 from __future__ import annotations
 
@@ -10,13 +8,14 @@ import math
 from pathlib import Path
 from typing import Any
 
-from psfkit.errors import GridFormatError, InvalidInputError
+from psfkit.errors import GridFormatError
 from psfkit.io.grid import (
     FORMAT_NAME,
     FORMAT_VERSION,
     MANIFEST_CSV,
     MANIFEST_JSON,
     GridPosition,
+    grid_errors,
 )
 from psfkit.io.json_documents import read_json_file
 from psfkit.io.validation import MAX_GRID_CELLS
@@ -101,12 +100,8 @@ def position_from_dict(entry: Any, where: str) -> GridPosition:
 
 
 def _parse_json(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
-    try:
+    with grid_errors():
         doc = read_json_file(path)
-    except GridFormatError:
-        raise
-    except InvalidInputError as exc:
-        raise GridFormatError(str(exc)) from None
     if not isinstance(doc, dict):
         raise GridFormatError(f"{path}: top level must be an object with a 'positions' list")
     fmt = doc.get("format", FORMAT_NAME)
@@ -155,7 +150,7 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
 
 
 def _csv_columns(path: Path, first_row: dict[str | None, Any]) -> set[str]:
-    """The header's columns: ``file`` and both or neither of ``row``/``col``, nothing outside
+    """The header's columns: ``file``, both or neither of ``row``/``col``, all in
     :data:`CSV_COLUMNS`."""
     columns = {c for c in first_row if c is not None}
     missing = {"file"} - columns
