@@ -1,10 +1,6 @@
-"""The type and range of every numeric flag of ``psfkit``, declared once.
-
-:data:`FLAGS` maps a flag to its :class:`FlagRange`; :func:`flag` gives the ``argparse`` type,
-:meth:`FlagRange.check` the same range for the same value read from a file (a run file, a bench
-configuration). Another command-line interface (``ekdun``) passes its own table, built on this
-one, to :func:`flag` and :func:`flag_range`.
-"""
+"""The type and range of every numeric flag, declared once (:data:`FLAGS`): :func:`flag`
+gives the ``argparse`` type, :meth:`FlagRange.check` checks a value read from a file; ``ekdun``
+passes its own table."""
 
 from __future__ import annotations
 
@@ -29,12 +25,8 @@ from psfkit.io.validation import (
 
 @dataclass(frozen=True)
 class FlagRange:
-    """The type and range of one numeric flag.
-
-    ``kind`` is ``int`` or ``float``; ``low``/``high`` are inclusive bounds (``None``: none),
-    except that ``low`` is excluded when ``low_open`` (``> 0`` rather than ``>= 0``), and
-    ``high`` when ``high_open``.
-    """
+    """The type (``int`` or ``float``) and range of one numeric flag: ``low``/``high`` are
+    inclusive bounds (``None``: none), exclusive with ``low_open``/``high_open``."""
 
     kind: type
     low: float | None = None
@@ -129,12 +121,8 @@ def flag_range(name: str, command: str | None = None,
 
 def flag(name: str, command: str | None = None,
          table: Mapping[str, FlagRange] = FLAGS) -> Callable[[str], int | float]:
-    """``argparse`` type of the numeric flag ``name`` (its range from ``table``, default
-    :data:`FLAGS`).
-
-    The returned function carries ``flag_range`` so that the parsers can be checked against
-    the table.
-    """
+    """``argparse`` type of the numeric flag ``name`` (range from ``table``); it carries
+    ``flag_range`` so that tests can check the parsers against the table."""
     spec = flag_range(name, command, table)
 
     def parse(text: str) -> int | float:

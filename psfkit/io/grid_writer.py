@@ -18,10 +18,8 @@ from psfkit.io.images import write_image
 
 
 class GridWriter:
-    """Write a PSF grid atomically, one image at a time.
-
-    Use as a context manager; the folder appears at ``root`` only when the block ends without
-    error and every grid index has been written::
+    """Write a PSF grid atomically, one image at a time; the folder appears at ``root`` only
+    when the block ends without error and every grid index was written::
 
         with GridWriter(out, grid_shape=(9, 9), bit_depth=12) as writer:
             for ...:
@@ -32,18 +30,15 @@ class GridWriter:
     Parameters
     ----------
     root : path-like
-        Destination folder (must not exist or be empty, unless ``overwrite``).
+        Destination folder (absent or empty, unless ``overwrite``).
     grid_shape : (int, int) or None
-        Number of rows and columns of the lattice; ``None`` writes an irregular scan
-        (positions added with :meth:`add_scan`, no grid indices in the manifest).
+        Rows and columns of the lattice; ``None``: an irregular scan (:meth:`add_scan`).
     suffix : {".tiff", ".png", ".npy"}
-        Image file type (TIFFs deflate-compressed: lossless, about a third of the raw size of
-        a 12-bit sensor frame).
+        Image file type (TIFFs deflate-compressed, lossless).
     overwrite : bool
         Replace an existing folder.
     **header
-        Extra manifest fields (``bit_depth``, ``black_level``, ``pixel_pitch_um``, ``center``,
-        ``monitor``, free-form metadata such as ``simulation``).
+        Extra manifest fields (``bit_depth``, ``black_level``, ``center``, metadata...).
     """
 
     def __init__(self, root: str | os.PathLike, grid_shape: tuple[int, int] | None,
@@ -68,25 +63,23 @@ class GridWriter:
 
     def add(self, row: int, col: int, image: np.ndarray, **fields: Any) -> GridPosition:
         """Write the ``(C, H, W)`` image for grid index ``(row, col)``."""
-        name = f"psf_r{row:02d}_c{col:02d}{self.suffix}"
-        write_image(self.folder / name, image, compress=True)
-        position = replace(GridPosition(file=name, row=row, col=col), **{
-            k: (tuple(float(x) for x in v) if k in ("monitor_px", "field_deg") and v is not None
-                else v) for k, v in fields.items()})
-        self._positions[(row, col)] = position
-        return position
+        return self._write(f"psf_r{row:02d}_c{col:02d}", row, col, image, fields)
 
     def add_scan(self, index: int, image: np.ndarray, **fields: Any) -> GridPosition:
         """Write the ``(C, H, W)`` image of position ``index`` of an irregular scan (give
         ``monitor_px`` or ``field_deg``)."""
         if self.grid_shape is not None:
             raise InvalidInputError(f"{self.root}: add_scan needs GridWriter(grid_shape=None)")
-        name = f"psf_{index:03d}{self.suffix}"
+        return self._write(f"psf_{index:03d}", 0, index, image, fields)
+
+    def _write(self, stem: str, row: int, col: int, image: np.ndarray,
+               fields: dict[str, Any]) -> GridPosition:
+        name = stem + self.suffix
         write_image(self.folder / name, image, compress=True)
-        position = replace(GridPosition(file=name, row=0, col=index), **{
+        position = replace(GridPosition(file=name, row=row, col=col), **{
             k: (tuple(float(x) for x in v) if k in ("monitor_px", "field_deg") and v is not None
                 else v) for k, v in fields.items()})
-        self._positions[(0, index)] = position
+        self._positions[(row, col)] = position
         return position
 
     def add_dark(self, image: np.ndarray) -> None:

@@ -1,9 +1,5 @@
-"""Reading and writing single images (TIFF, PNG, NumPy) at the I/O boundary.
-
-On disk images are ``(H, W)`` or ``(H, W, C)`` (``C`` = 1 or 3, RGB order; planar TIFFs
-``(C, H, W)`` are recognised from their metadata). In memory the toolkit uses ``(C, H, W)``.
-Only this module converts between the two.
-"""
+"""Reading and writing single images (TIFF, PNG, NumPy): ``(H, W[, C])`` on disk (planar
+TIFFs recognised), ``(C, H, W)`` in memory; only this module converts between the two."""
 
 from __future__ import annotations
 
@@ -37,8 +33,7 @@ def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.nda
 
 @contextlib.contextmanager
 def _tifffile_messages() -> Iterator[list[str]]:
-    """Collect what tifffile logs about a damaged file (it would print it on stderr) so
-    that the one error line can say it instead."""
+    """Collect what tifffile logs about a damaged file, for the one error line."""
     messages: list[str] = []
 
     class Collect(logging.Handler):
@@ -57,8 +52,8 @@ def _tifffile_messages() -> Iterator[list[str]]:
 
 
 def _check_declared_size(shape: tuple[int, ...], path: Path, dtype: object = None) -> None:
-    """Refuse an image whose header declares an absurd size, before decoding it: every axis
-    (a TIFF page stack or a huge third ``.npy`` axis included) and the element count."""
+    """Refuse an image whose header declares an absurd size (any axis, or in all), before
+    decoding it."""
     shape = tuple(int(s) for s in shape)
     if len(shape) not in (2, 3):
         raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {shape}")
@@ -80,12 +75,9 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
     path : path-like
         ``.tif``/``.tiff`` (tifffile), ``.png`` (OpenCV, 8 or 16 bit) or ``.npy``.
     channel_order : {"RGB", "BGR"}
-        Order of the channels as stored in ``.npy`` and TIFF files; ``"BGR"`` files (e.g.
-        written with OpenCV, like the DiffuserCam Mirflickr data) are converted to RGB.
-        PNG files are always decoded to RGB.
+        Channel order of ``.npy``/TIFF files (converted to RGB); PNG is always RGB.
     dtype : numpy dtype, optional
-        Convert to this type in the same pass as the reordering to ``(C, H, W)`` (one copy
-        of the image instead of two); default: as stored.
+        Convert in the same pass as the reordering (one copy); default: as stored.
 
     Returns
     -------
@@ -170,12 +162,8 @@ _DECODERS: dict[str, Callable[[Path], np.ndarray]] = {
 
 
 def unit_range(image: np.ndarray, where: str, white_level: float | None = None) -> np.ndarray:
-    """An image as float32 in the toolkit's units: ``[0, 1]`` for integer files.
-
-    The one conversion from stored pixel values to numbers (the data contract of
-    ``docs/inputs-and-errors.md``): integer data is divided by ``white_level`` (the value a
-    saturated pixel stores; default the dtype's maximum, 255 for 8-bit and 65535 for 16-bit
-    files); floating-point data is kept as it is (it already carries its units).
+    """An image as float32 in the toolkit's units (``docs/inputs-and-errors.md``): integer
+    data divided by ``white_level`` (default the dtype's maximum), float data kept.
 
     Parameters
     ----------
@@ -189,12 +177,7 @@ def unit_range(image: np.ndarray, where: str, white_level: float | None = None) 
     Returns
     -------
     numpy.ndarray
-        float32, same shape, finite.
-
-    Raises
-    ------
-    InvalidInputError
-        NaN/Inf values, or a white level that is not a positive number.
+        float32, same shape, finite (NaN/Inf or a bad white level: InvalidInputError).
     """
     if np.issubdtype(image.dtype, np.integer):
         level = float(np.iinfo(image.dtype).max) if white_level is None else float(white_level)
@@ -215,37 +198,14 @@ def unit_range(image: np.ndarray, where: str, white_level: float | None = None) 
 
 def read_image_float(path: str | os.PathLike, channel_order: str = "RGB",
                      white_level: float | None = None) -> np.ndarray:
-    """Read one image as ``(C, H, W)`` float32 RGB in the toolkit's units.
-
-    :func:`read_image` followed by :func:`unit_range`: integer files are divided by
-    ``white_level`` (default: the dtype's maximum), float files are kept. Every command that
-    reads a scene, a measurement or a PSF image reads it through this function, so a file gives
-    the same numbers whichever command reads it, whatever its format (``.npy``, 8-bit PNG,
-    16-bit TIFF).
-
-    Parameters
-    ----------
-    path : path-like
-    channel_order : {"RGB", "BGR"}
-        Order of the channels as stored in ``.npy``/TIFF files (PNG is always RGB).
-    white_level : float, optional
-        Full-scale stored value of integer files.
-
-    Raises
-    ------
-    InvalidInputError
-        Unreadable file, NaN/Inf values, bad white level.
-    """
+    """:func:`read_image` then :func:`unit_range`: ``(C, H, W)`` float32 RGB in the toolkit's
+    units, the same numbers for a file in any format, whichever command reads it."""
     return unit_range(read_image(path, channel_order), str(path), white_level)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray, compress: bool = False) -> Path:
-    """Write a ``(C, H, W)`` array atomically as TIFF, PNG or ``.npy`` (stored ``(H, W[, C])``).
-
-    PNG accepts uint8/uint16 only; TIFF and ``.npy`` keep the dtype. ``compress``: a TIFF is
-    stored deflate-compressed (lossless; a 12-bit sensor frame takes about a third of the
-    space); PNG is always compressed, ``.npy`` never.
-    """
+    """Write a ``(C, H, W)`` array atomically as TIFF, PNG (uint8/uint16 only) or ``.npy``;
+    ``compress``: deflate-compress a TIFF (lossless)."""
     path = Path(path)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[0] not in (1, 3):

@@ -1,10 +1,4 @@
-"""JSON documents from outside, read strictly, and JSON outputs that are always finite.
-
-- :func:`load_json_document`: strict JSON (duplicate keys, NaN/Infinity literals and absurd
-  nesting refused) that names the file;
-- :func:`read_json_file`: :func:`load_json_document` of a file whose size is checked first;
-- :func:`dumps_finite`: JSON for outputs, refusing NaN/Inf instead of writing bare ``NaN``.
-"""
+"""JSON documents from outside, read strictly, and JSON outputs that are always finite."""
 
 from __future__ import annotations
 
@@ -67,16 +61,9 @@ def _refuse_overflow(where: str):
 
 
 def load_json_document(text: str | bytes, where: str) -> Any:
-    """Parse JSON from a file we were given, strictly.
-
-    Duplicate keys, ``NaN``/``Infinity`` literals, numbers that overflow to infinity
-    (``1e400``) and nesting deeper than ``MAX_JSON_DEPTH``
-    (which would exhaust the parser's recursion) are refused; errors name ``where``.
-
-    Raises
-    ------
-    InvalidInputError
-    """
+    """Parse JSON from outside strictly: duplicate keys, ``NaN``/``Infinity``, numbers that
+    overflow (``1e400``) and nesting deeper than ``MAX_JSON_DEPTH`` raise
+    :class:`InvalidInputError` naming ``where``."""
     if isinstance(text, bytes):
         try:
             text = text.decode("utf-8")
@@ -97,15 +84,8 @@ def load_json_document(text: str | bytes, where: str) -> Any:
 
 def read_json_file(path: str | os.PathLike, where: str | None = None,
                    max_bytes: int = MAX_JSON_BYTES) -> Any:
-    """:func:`load_json_document` of a file, its size checked before it is read (a sparse
-    1 GB ``manifest.json`` is refused from its size, not read).
-
-    Raises
-    ------
-    InvalidInputError
-        Missing, larger than ``max_bytes``, or not valid JSON; ``where`` (default: the path)
-        names it.
-    """
+    """:func:`load_json_document` of a file, refused first when missing or larger than
+    ``max_bytes``; ``where`` (default: the path) names it."""
     path = Path(path)
     where = where or str(path)
     try:
@@ -120,21 +100,8 @@ def read_json_file(path: str | os.PathLike, where: str | None = None,
 
 
 def dumps_finite(doc: Any, what: str, **kwargs: Any) -> str:
-    """``json.dumps(doc, allow_nan=False)``: a NaN/Inf in an output is an error naming it.
-
-    Parameters
-    ----------
-    doc : JSON-able object
-    what : str
-        The output (file name) for the message.
-    **kwargs
-        Passed to :func:`json.dumps` (``indent``, ``default``...).
-
-    Raises
-    ------
-    InvalidInputError
-        ``"{what}: refusing to write a non-finite number (NaN/Inf) at KEY"``.
-    """
+    """``json.dumps(doc, allow_nan=False, **kwargs)``; a NaN/Inf raises
+    :class:`InvalidInputError` naming the output ``what`` and the key."""
     try:
         return json.dumps(doc, allow_nan=False, **kwargs)
     except ValueError:

@@ -1,24 +1,8 @@
-"""Folders of (scene, measurement) image pairs.
-
-A pairs folder holds two sub-folders whose files pair up by name (stem)::
-
-    pairs/
-      pairs.json            optional: which sub-folders, channel order, flips
-      scene/ im1.png ...    ground truth (what was displayed / seen through a lens)
-      measurement/ im1.png  what the lensless camera recorded
-
-Sub-folder names are recognised without a manifest: ``scene|scenes|gt|ground_truth|lensed``
-and ``measurement|measurements|meas|raw|diffuser``. The DiffuserCam Lensless Mirflickr layout
-(``lensed/`` + ``diffuser/``, ``.npy`` in OpenCV's BGR order) is recognised and read as RGB.
-``pairs.json`` may set ``scene_dir``, ``measurement_dir``, ``channel_order`` (``"RGB"`` or
-``"BGR"``), ``flip`` of the scene (``"none"``, ``"ud"``, ``"lr"``, ``"both"``) when a dataset
-stores it mirrored relative to the forward model ``y = crop(K * pad(x))``, which needs scenes
-and measurements of the same size, and ``white_level`` (a number: the stored value of full
-scale of integer files, e.g. 4095 for 12-bit data in 16-bit PNG/TIFF files).
-
-Units: every image is read as float32 by :func:`psfkit.io.images.unit_range`: integer files
-(8-bit PNG, 16-bit TIFF...) are divided by the white level (default the dtype's maximum), float
-files are kept, so the same pairs stored as ``.npy``, PNG or TIFF give the same numbers.
+"""Folders of (scene, measurement) image pairs: two sub-folders (:data:`SCENE_DIRS`,
+:data:`MEASUREMENT_DIRS`; the DiffuserCam Mirflickr layout ``lensed/`` + ``diffuser/`` is read as
+BGR) whose files pair up by stem, and an optional ``pairs.json`` (``scene_dir``,
+``measurement_dir``, ``channel_order``, ``flip`` of the scene, ``white_level``). Images are
+float32 in the toolkit's units (:func:`psfkit.io.images.unit_range`).
 """
 
 from __future__ import annotations
@@ -64,14 +48,8 @@ class PairSet:
         return len(self.names)
 
     def load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(scene, measurement)`` of pair ``index``, ``(C, H, W)`` float32 each.
-
-        Raises
-        ------
-        InvalidInputError
-            NaN/Inf values, a scene whose size differs from its measurement's, or a pair whose
-            size differs from the set's.
-        """
+        """``(scene, measurement)`` of pair ``index``, ``(C, H, W)`` float32 each; NaN/Inf or
+        sizes that differ raise :class:`InvalidInputError`."""
         scene_path = self.root / self.scene_dir / self.scene_files[index]
         measurement_path = self.root / self.measurement_dir / self.measurement_files[index]
         raw_scene = read_image(scene_path, self.channel_order)
@@ -107,15 +85,9 @@ class PairSet:
 
     def select(self, holdout: Iterable[str] = (), only: Iterable[str] = ()
                ) -> tuple[int, ...]:
-        """Indices of the pairs left after holding ``holdout`` out (``--holdout`` of
-        ``fit-pairs``, ``eval-model`` and ``ekdun train``) and, if ``only`` is given, keeping
-        only those names; both as :func:`parse_names` reads them.
-
-        Raises
-        ------
-        InvalidInputError
-            A name that is not a pair of this folder, or no pair left.
-        """
+        """Indices of the pairs left after holding ``holdout`` out and, if ``only`` is given,
+        keeping only those names (both as :func:`parse_names` reads them); an unknown name or
+        no pair left raises :class:`InvalidInputError`."""
         held, selected = parse_names(holdout), parse_names(only)
         for names, what in ((held, "to hold out"), (selected, "to evaluate")):
             unknown = [n for n in names if n not in self.names]
@@ -146,8 +118,7 @@ class PairSet:
 
 def parse_names(values: Iterable[str] | None) -> tuple[str, ...]:
     """Pair names from repeated and/or comma-separated options (``--holdout a,b --holdout c``);
-    a file name's suffix is dropped (``im65.npy`` → ``im65``). One parser for ``psfkit
-    fit-pairs``/``eval-model`` and ``ekdun train``."""
+    a file name's suffix is dropped (``im65.npy`` → ``im65``)."""
     names: list[str] = []
     for value in values or ():
         for part in str(value).split(","):
@@ -218,19 +189,15 @@ def read_pairs(root: str | os.PathLike, channel_order: str | None = None,
     channel_order : {"RGB", "BGR"}, optional
         Overrides ``pairs.json`` and the layout's default.
     recorded : ReadOptions, optional
-        The read options recorded with the model these pairs are read for (kernel file,
-        checkpoint): they give the channel order, flip and white level that neither
-        ``channel_order``, ``pairs.json`` nor the layout (DLMD: BGR) declares. Defaults
-        otherwise: RGB, no flip, the dtype's maximum.
+        Read options recorded with the model (kernel file, checkpoint): used where neither
+        ``channel_order``, ``pairs.json`` nor the layout declares them (else RGB, no flip).
     check_pixels : bool
-        Read every image now to refuse NaN/Inf values and mismatched shapes (otherwise only
-        the first pair is read here; :meth:`PairSet.load` checks each pair as it is read).
+        Read every pair now (otherwise only the first; :meth:`PairSet.load` checks the rest).
 
     Raises
     ------
     InvalidInputError
-        Missing or ambiguous sub-folders, no pairs, files without a partner, images of
-        different sizes (scene and measurement must have the sensor's size), NaN/Inf values.
+        Missing or ambiguous sub-folders, no or unpaired files, mismatched sizes, NaN/Inf.
     """
     root = Path(root)
     if not root.is_dir():

@@ -1,11 +1,6 @@
-"""How image files become arrays: the read options recorded with every model.
-
-A kernel file (``psfkit fit-pairs``, ``fit-eigen``, ``ekdun train``) and a checkpoint
-(``ekdun train``) record the :class:`ReadOptions` their data was read with. Every command that
-consumes one applies them by default, so that a measurement file is read the way the model's
-own data was: a model fitted on the DiffuserCam Mirflickr pairs (BGR ``.npy``, binned 4×) reads
-a bare DLMD measurement as BGR and bins it 4×, without flags. A flag that contradicts the record
-is applied, with a one-line notice (:func:`choose`).
+"""The read options (channel order, flip, binning, white level) recorded with every kernel
+file and checkpoint; commands that consume one read files the same way by default, and a flag
+that contradicts the record wins with a one-line notice (:func:`choose`).
 """
 
 from __future__ import annotations
@@ -29,16 +24,13 @@ class ReadOptions:
     Attributes
     ----------
     channel_order : {"RGB", "BGR"} or None
-        Order of the channels in the ``.npy``/TIFF files on disk (PNG is always RGB); inside
-        the toolkit channels are RGB. ``None``: not recorded.
+        Channel order of the ``.npy``/TIFF files on disk; ``None``: not recorded.
     flip : {"none", "ud", "lr", "both"}
         Flip applied to the scenes so that they match the measurements.
     downsample : int or None
-        Block-mean binning factor applied to scenes and measurements (and PSFs); ``None``:
-        not recorded (the consumer's default, 1).
+        Block-mean binning factor; ``None``: not recorded (the consumer's default, 1).
     white_level : float or None
-        Stored value of full scale of integer files (``None``: the dtype's maximum); images
-        are float32 in ``[0, 1]`` inside the toolkit (:func:`psfkit.io.images.unit_range`).
+        Stored value of full scale of integer files (``None``: the dtype's maximum).
     """
 
     channel_order: str | None = None
@@ -71,13 +63,8 @@ class ReadOptions:
 
     @classmethod
     def from_json(cls, doc: Any, where: str) -> ReadOptions:
-        """Parse a recorded ``read_options`` object; unknown keys are ignored (newer files).
-
-        Raises
-        ------
-        InvalidInputError
-            Not an object, or a field out of range (the message names ``where``).
-        """
+        """Parse a recorded ``read_options`` object (unknown keys ignored); a bad one raises
+        :class:`InvalidInputError` naming ``where``."""
         if not isinstance(doc, dict):
             raise InvalidInputError(f"{where}: 'read_options' must be an object, got {doc!r}")
         known = {k: doc[k] for k in ("channel_order", "flip", "downsample", "white_level")
@@ -92,11 +79,8 @@ def choose(flag: Any, recorded: Any, default: Any, flag_name: str,
            source: str) -> tuple[Any, str | None]:
     """One read option: the user's flag, else the recorded value, else the default.
 
-    Returns
-    -------
-    value, notice
-        ``notice`` is a one-line message when the flag contradicts the record (the flag wins:
-        the user may know that these files are stored differently), else ``None``.
+    Returns ``(value, notice)``; ``notice`` is a one-line message when the flag (which wins)
+    contradicts the record, else ``None``.
     """
     if flag is None:
         return (default if recorded is None else recorded), None

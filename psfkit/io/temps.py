@@ -1,10 +1,5 @@
-"""The toolkit's temporary outputs: how they are named, and removing those of killed runs.
-
-A temporary output is named ``.<name>.psfkit-tmp.<pid>@<host>.<random>[<suffix>]``: the tag
-says it is ours, ``<pid>@<host>`` which process made it (``<host>``: 6 hex digits of the
-machine's name, since process ids are per machine), so that a later run can tell a temporary
-of a run still in progress from one left by a run that was killed.
-"""
+"""The toolkit's temporary outputs, ``.<name>.psfkit-tmp.<pid>@<host>.<random>[<suffix>]``
+(``<host>``: 6 hex digits of the machine's name), and removing those of killed runs."""
 
 from __future__ import annotations
 
@@ -63,13 +58,9 @@ def remove_path(path: Path) -> None:
 
 
 def remove_stale_temps(folder: str | os.PathLike, quiet: bool = False) -> list[Path]:
-    """Remove the toolkit's temporary outputs in ``folder`` left by runs that were killed.
-
-    A temporary output (name containing :data:`TEMP_TAG`) is stale when the process that
-    made it, on this machine, has ended, or when it is older than :data:`STALE_AGE_S` (the
-    only test for one made on another machine sharing the folder). Says what it removed in
-    one line on stderr unless ``quiet``. Returns the removed paths.
-    """
+    """Remove the temporary outputs in ``folder`` whose process on this machine has ended or
+    that are older than :data:`STALE_AGE_S`; says so on stderr unless ``quiet``. Returns the
+    removed paths."""
     folder = Path(folder)
     removed = []
     try:

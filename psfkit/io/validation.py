@@ -1,19 +1,7 @@
-"""Validation at the boundaries: the limits, and the numbers and arrays that come from outside.
-
-Every value read from a file or the command line passes one of these functions where it enters,
-so a bad value is refused with one line that names its file (or flag) and field before any
-work is done, and a non-finite result can never be written:
-
-- :func:`require_finite` / :func:`finite_number` / :func:`bounded_size` / :func:`exact_int`:
-  arrays and scalars from files, checked finite and in range;
-- :func:`npy_header` / :func:`check_array_shape`: the shape an ``.npy`` file (or an ``.npz``
-  member) declares, read and checked before a byte of its data is read or decompressed;
-- :func:`escape_line`: control characters (a newline in a file name) made visible, so that
-  an error stays one line.
-
-JSON documents are checked by :mod:`psfkit.io.json_documents`, numeric flags by
-:mod:`psfkit.io.flag_ranges`. The limits (``MAX_*``) are generous for real hardware and small
-enough that a 20-byte edit of a manifest cannot make a command allocate gigabytes.
+"""Validation at the boundaries: the limits (``MAX_*``: generous for real hardware, small
+enough that a 20-byte edit of a manifest cannot allocate gigabytes), and checks of the numbers,
+arrays and declared shapes that come from outside, each refusing a bad value in one line that
+names its file (or flag) and field before any work is done.
 """
 
 from __future__ import annotations
@@ -79,20 +67,8 @@ def format_bytes(size: float) -> str:
 
 
 def require_finite(array: Any, what: str) -> np.ndarray:
-    """Return ``array`` as a NumPy array; raise when it holds NaN or ±Inf.
-
-    Parameters
-    ----------
-    array : array-like
-        Any numeric array (integer arrays are always finite).
-    what : str
-        Names the input in the message (a file, a flag, ``"FILE: field"``).
-
-    Raises
-    ------
-    InvalidInputError
-        ``"{what}: contains N NaN/Inf value(s)"``.
-    """
+    """``array`` as a NumPy array; :class:`InvalidInputError` naming ``what`` (a file, a
+    flag, ``"FILE: field"``) when it is not numeric or holds NaN/Inf."""
     values = np.asarray(array)
     if values.dtype.kind not in "fcbiu":
         raise InvalidInputError(f"{what}: expected numbers, got {values.dtype} data")
@@ -103,13 +79,7 @@ def require_finite(array: Any, what: str) -> np.ndarray:
 
 
 def require_finite_output(array: Any, what: str) -> np.ndarray:
-    """Refuse to write an array holding NaN/Inf (``what`` names the output file).
-
-    Raises
-    ------
-    InvalidInputError
-        ``"{what}: refusing to write N non-finite value(s) (NaN/Inf); ..."``.
-    """
+    """Refuse to write an array holding NaN/Inf (``what`` names the output file)."""
     values = np.asarray(array)
     bad = _count_nonfinite(values)
     if bad:
@@ -154,13 +124,8 @@ def exact_int(value: Any, what: str, minimum: int = 0, maximum: int | None = Non
 
 def bounded_size(shape: Any, what: str, max_side: int = MAX_IMAGE_SIDE,
                  max_total: int | None = MAX_IMAGE_PIXELS, unit: str = "pixels") -> tuple[int, ...]:
-    """A size (tuple of positive integers) from a file, refused before anything is allocated.
-
-    Raises
-    ------
-    InvalidInputError
-        ``"{what} [100000, 100000] exceeds the limit of 64 x 64 positions"`` and the like.
-    """
+    """A size (tuple of positive integers) from a file, checked against ``max_side`` per
+    axis and ``max_total`` in all before anything is allocated."""
     try:
         sides = tuple(shape)
     except TypeError:
@@ -179,24 +144,9 @@ def bounded_size(shape: Any, what: str, max_side: int = MAX_IMAGE_SIDE,
 
 def check_array_shape(shape: Any, dtype: Any, what: str,
                       max_elements: int = MAX_ARRAY_ELEMENTS) -> tuple[int, ...]:
-    """Every axis of a declared array shape and its total size, before anything is allocated.
-
-    Parameters
-    ----------
-    shape : sequence of int
-        As declared by a file header (``.npy``, ``.npz`` member, TIFF series).
-    dtype : numpy dtype or None
-        Its element type (the message gives the bytes it would take).
-    what : str
-        Names the file (or ``"FILE: member"``) in the message.
-    max_elements : int
-        At most this many elements in all (every axis also at most ``MAX_IMAGE_SIDE``).
-
-    Raises
-    ------
-    InvalidInputError
-        ``"{what} declares shape [...] (N elements, X GB); the limit is ..."``.
-    """
+    """A shape declared by a file header (``.npy``, ``.npz`` member, TIFF series), refused
+    before anything is allocated when an axis exceeds ``MAX_IMAGE_SIDE`` or it holds more than
+    ``max_elements`` (the message gives the bytes of ``dtype``)."""
     sides = tuple(int(s) for s in shape)
     total = math.prod(sides)
     if any(s > MAX_IMAGE_SIDE for s in sides) or total > max_elements:
@@ -208,14 +158,8 @@ def check_array_shape(shape: Any, dtype: Any, what: str,
 
 
 def npy_header(stream: IO[bytes], what: str) -> tuple[tuple[int, ...], bool, np.dtype]:
-    """``(shape, fortran_order, dtype)`` from the header of an ``.npy`` stream (a file, or an
-    ``.npz`` member opened with :mod:`zipfile`: only the header bytes are decompressed).
-
-    Raises
-    ------
-    InvalidInputError
-        Not an ``.npy`` header (``what`` names the file).
-    """
+    """``(shape, fortran_order, dtype)`` from the header of an ``.npy`` stream (a file or an
+    ``.npz`` member: only the header is decompressed); refused when it is not one."""
     try:
         version = np.lib.format.read_magic(stream)
         if version == (1, 0):
