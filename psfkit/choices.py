@@ -1,10 +1,5 @@
-"""Names of the methods and weight bases that options choose from, without the modules that
-implement them.
-
-The command-line parsers list these as choices and defaults; keeping them here (no scipy, no
-OpenCV, no torch) lets ``psfkit --help`` start in a fraction of a second. The implementing
-modules import them from here, so each list is written once.
-"""
+"""Names that options choose from (methods, weight bases), kept apart from the modules that
+implement them so that ``psfkit --help`` starts fast; each list is written once."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""Exceptions raised by the toolkit.
-
-Every library function that rejects its input raises a subclass of :class:`PsfkitError`
-whose message names the offending input (file, argument) and the problem, in one line.
-The command-line interfaces print that line and exit with a non-zero status.
-"""
+"""Exceptions raised by the toolkit: a one-line message naming the input (file, argument)
+and the problem, which the command-line interfaces print before exiting non-zero."""
 
 from __future__ import annotations
 
@@ -22,8 +18,7 @@ class GridFormatError(InvalidInputError):
 
 class PositionRejected(InvalidInputError):
     """One PSF of a grid fails a quality check (``reason``: one of
-    :data:`psfkit.calibration.alignment.REJECTION_REASONS`). The grid analyses exclude that
-    position and carry on (unless ``strict``, or it is the reference PSF)."""
+    :data:`psfkit.calibration.alignment.REJECTION_REASONS`); the analyses exclude it."""
 
     def __init__(self, message: str, reason: str) -> None:
         super().__init__(message)

@@ -19,14 +19,9 @@ def default_workers() -> int:
 
 def bounded_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None
                 ) -> Iterator[tuple[int, R]]:
-    """Yield ``(index, fn(item))`` in the order of ``items``, with at most ``workers + 1``
-    items in flight, so that a full-resolution image per item never piles up in memory. With
-    one worker everything runs in the calling thread. An exception cancels what is pending and
-    propagates.
-
-    Results come in input order (not completion order) so that sums accumulated over them are
-    bit-identical from run to run, whatever the thread timing.
-    """
+    """Yield ``(index, fn(item))`` in input order (sums over them are bit-identical whatever
+    the thread timing), with at most ``workers + 1`` items in flight (one worker: the calling
+    thread). An exception cancels what is pending and propagates."""
     workers = default_workers() if workers is None else max(1, workers)
     if workers == 1:
         for index, item in enumerate(items):

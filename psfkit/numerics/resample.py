@@ -1,12 +1,6 @@
-"""Block binning: the one place where images, kernels, flows and pairs are brought to a coarser
-pixel grid by ``factor × factor`` blocks.
-
-Two reductions, because callers need both: :func:`bin_image` *sums* each block (photons of
-sensor pixels, weights of masks; keeps the input's dtype), :func:`bin_mean` *averages* it in
-float64 (intensities at a coarser pitch: the forward model keeps its form). A block average in
-the input's precision is ``bin_image(x, f) / f**2``. Trailing rows/columns that do not fill a
-block are dropped unless ``exact=True``, which refuses them.
-"""
+"""Block binning by ``factor × factor`` blocks: :func:`bin_image` sums (photons, mask
+weights), :func:`bin_mean` averages in float64 (intensities). Trailing rows/columns that do not
+fill a block are dropped, or refused with ``exact=True``."""
 
 from __future__ import annotations
 
@@ -40,21 +34,14 @@ def bin_image(image: np.ndarray, factor: int, exact: bool = False,
     factor : int
         Block size (px); 1 returns ``image`` itself.
     exact : bool
-        Refuse ``H`` or ``W`` not a multiple of ``factor`` (instead of dropping the trailing
-        rows/columns).
+        Refuse ``H`` or ``W`` not a multiple of ``factor``.
     dtype : numpy dtype, optional
-        Floating-point precision of the sums (default: the input's), e.g. float64 sums of a
-        float32 image without a float64 copy of it.
+        Floating-point precision of the sums (default: the input's).
 
     Returns
     -------
     numpy.ndarray
-        ``(..., H // factor, W // factor)``, summed in ``dtype`` (default the input's).
-
-    Raises
-    ------
-    InvalidInputError
-        ``factor`` is not a positive integer, or ``exact`` and the shape is not a multiple.
+        ``(..., H // factor, W // factor)``.
     """
     if factor == 1:
         return image if dtype is None else image.astype(dtype, copy=False)
@@ -74,18 +61,8 @@ def bin_image(image: np.ndarray, factor: int, exact: bool = False,
 
 
 def bin_mean(image: np.ndarray, factor: int, exact: bool = False) -> np.ndarray:
-    """Average ``factor × factor`` blocks of the last two axes, accumulated in float64.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(..., H // factor, W // factor)`` float64 (``image`` itself when ``factor`` is 1).
-
-    Raises
-    ------
-    InvalidInputError
-        As :func:`bin_image`.
-    """
+    """Average ``factor × factor`` blocks of the last two axes in float64: ``(..., H // factor,
+    W // factor)`` (``image`` itself when ``factor`` is 1)."""
     if factor == 1:
         return image
     return _blocks(image, factor, exact).mean(axis=(-3, -1), dtype=np.float64)

@@ -1,25 +1,14 @@
 r"""Uncertainty and significance of fitted field quantities.
 
-Every quantity fitted over the field (the shift map's magnification, rotation and non-linear
-part, the vignetting exponent, the warp growth, the astigmatism, the eigen-kernel
-differences) is an :class:`Estimate`: its value, its 1σ uncertainty, the value it would have
-without the effect (its *null*), and the p-value of a test of the model with the effect
-against the model without it. One rule decides whether the effect is there:
+Every quantity fitted over the field is an :class:`Estimate`: value, 1σ, the value without the
+effect (*null*) and the p-value of a test of the model with the effect against the one without:
 
     **significant** ⇔ the estimate is determined, ``|value − null| > Z·σ``, and the test's
     p-value is below ``α(Z) = 2·(1 − Φ(Z))`` (the two-sided normal tail of ``Z``).
 
-For a single linear coefficient the two halves coincide (the F-test is the t-test); where
-they differ (a non-linear fit, a norm, a median) both must agree. ``Z`` =
-:data:`Z_SIGNIFICANT` was chosen by measuring how often the rule calls an effect on the
-virtual bench's field-free camera, where there is none (``BenchConfig(field_free=True)``;
-``research/significance.py``, numbers in ``research/notes/characterization-studies.md``).
-
-An estimate is *not determined* when the data cannot give it at all: too few positions, a
-singular design, a fit that did not converge, a non-finite or absurd value or uncertainty.
-It is then never shown as a number on its own: :meth:`Estimate.text` says "not determined"
-(or, for a determined but non-significant effect, "not detected", with the number and its ±
-in brackets).
+``Z`` = :data:`Z_SIGNIFICANT` was calibrated on the virtual bench's field-free camera
+(``research/significance.py``). An estimate the data cannot give (too few positions, singular
+design, non-finite or absurd value) is *not determined* and never shown as a bare number.
 """
 
 from __future__ import annotations
@@ -50,10 +39,9 @@ class Estimate:
     value, sigma : float
         The estimate and its 1σ uncertainty (same unit).
     null : float
-        The value without the effect (0 for most; 180 or 0 for a rotation).
+        The value without the effect.
     p_value : float
-        Of the test of the model with the effect against the model without it (NaN: none was
-        possible).
+        Of the test with vs without the effect (NaN: none was possible).
     reason : str
         Why the estimate is not determined ("" when it is).
     """
@@ -123,8 +111,7 @@ def undetermined(reason: str, null: float = 0.0) -> Estimate:
 def checked(value: float, sigma: float, null: float = 0.0, p_value: float = math.nan,
             limit: float = math.inf) -> Estimate:
     """An :class:`Estimate`, not determined when ``value`` or ``sigma`` is not finite, σ is
-    not positive, or ``|value|`` exceeds ``limit`` (an absurd fit, e.g. a cosⁿ exponent of
-    thousands)."""
+    not positive, or ``|value|`` exceeds ``limit``."""
     value, sigma = float(value), float(sigma)
     if not (math.isfinite(value) and math.isfinite(sigma)) or sigma <= 0:
         return undetermined("the fit leaves it undetermined (infinite or zero uncertainty)",
@@ -170,17 +157,15 @@ def weighted_lstsq(design: np.ndarray, values: np.ndarray, weights: np.ndarray
     values : numpy.ndarray
         ``(N,)`` or ``(N, D)`` (``D`` outputs sharing the design and the noise level).
     weights : numpy.ndarray
-        ``(N,)`` relative weights (their scale does not matter: the noise level is the
-        residual's).
+        ``(N,)`` relative weights (scale-free).
 
     Returns
     -------
     coef : numpy.ndarray
         ``(P,)`` or ``(P, D)``.
     covariance : numpy.ndarray
-        ``(P, P)``, the same for every output: ``s² (Xᵀ W X)⁻¹`` with ``s²`` the weighted
-        residual variance pooled over the outputs (``inf`` on the diagonal without residual
-        degrees of freedom).
+        ``(P, P)``: ``s² (Xᵀ W X)⁻¹``, ``s²`` the weighted residual variance pooled over the
+        outputs (``inf`` without residual degrees of freedom).
     rss : float
         Weighted residual sum of squares, all outputs.
     dof : int

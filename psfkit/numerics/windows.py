@@ -1,10 +1,5 @@
-"""Tapering windows for correlations (the Tukey, or tapered-cosine, window).
-
-Written out here rather than imported from :mod:`scipy.signal.windows`: importing
-``scipy.signal`` costs about 0.4 s (it pulls in ``scipy.stats`` and ``scipy.interpolate``),
-a third of a ``psfkit`` command's start-up, for one line of maths. A test checks that the
-values equal SciPy's.
-"""
+"""The Tukey (tapered-cosine) window, written out: importing ``scipy.signal`` costs about
+0.4 s of a command's start-up (a test checks the values equal SciPy's)."""
 
 from __future__ import annotations
 
@@ -18,10 +13,7 @@ def tukey_window(length: int, alpha: float = 0.5) -> np.ndarray:
     raised cosine :math:`\tfrac12\big(1 + \cos(\pi(2n/(\alpha(N-1)) - 1))\big)` falls to 0 at
     the ends. ``alpha = 0`` is the rectangular window, ``alpha = 1`` the Hann window.
 
-    Returns
-    -------
-    numpy.ndarray
-        ``(length,)`` float64, the same values as ``scipy.signal.windows.tukey(length, alpha)``.
+    Returns ``(length,)`` float64, as ``scipy.signal.windows.tukey(length, alpha)``.
     """
     if length <= 1:
         return np.ones(max(length, 0))
