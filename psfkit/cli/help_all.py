@@ -1,12 +1,5 @@
-"""``--help`` shows what a command needs first; ``--help-all`` shows every flag.
-
-A command marks its rarely-used flags advanced (:func:`mark_advanced`): they keep working, but
-``--help`` (and the usage line) leave them out, so that the first screen stays short.
-``--help-all`` (:func:`add_help_all`) prints the full help, the advanced flags included, each
-under its group. The help text of an advanced flag is kept on its action
-(:data:`ADVANCED_HELP`), so that the flag tables of the docs (``docs/cli-flags.md``) still list
-it.
-"""
+"""``--help`` shows what a command needs first; ``--help-all`` also the flags marked advanced
+(:func:`mark_advanced`), whose help text is kept on the action (:data:`ADVANCED_HELP`)."""
 
 from __future__ import annotations
 
@@ -37,9 +30,7 @@ class _HelpAll(argparse.Action):
 def add_command(sub: argparse._SubParsersAction, name: str, summary: str, description: str,
                 advanced: bool = True) -> argparse.ArgumentParser:
     """The parser of command ``name``: ``summary`` in the list of commands, ``description`` atop
-    its ``--help`` (argparse folds its white space, so it can be written as an indented block)
-    and, where the command has ``advanced`` flags, ``--help-all`` listed first and named in
-    the description."""
+    its ``--help`` and, with ``advanced`` flags, ``--help-all`` listed first."""
     if advanced:
         description += " --help-all lists the advanced flags."
     parser = sub.add_parser(name, help=summary, description=description)
@@ -55,10 +46,8 @@ def add_help_all(parser: argparse.ArgumentParser) -> None:
 
 
 def mark_advanced(parser: argparse.ArgumentParser, names: Sequence[str]) -> None:
-    """Hide the flags ``names`` of ``parser`` from ``--help``; ``--help-all`` shows them.
-
-    Raises ``KeyError`` for a name the parser does not have (a programming error).
-    """
+    """Hide the flags ``names`` of ``parser`` from ``--help`` (``KeyError`` for an unknown one);
+    ``--help-all`` shows them."""
     actions = {option: action for action in parser._actions
                for option in action.option_strings}
     for name in names:

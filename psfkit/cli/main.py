@@ -26,13 +26,8 @@ from psfkit.io.validation import escape_line
 
 
 def split_debug(prog: str, argv: Sequence[str] | None) -> tuple[bool, list[str]]:
-    """Whether ``--debug`` was asked for, and the arguments without it.
-
-    ``--debug`` is taken anywhere before a ``--`` separator, before or after the
-    sub-command (``psfkit report GRID --debug``), as the error lines' hint "run with --debug"
-    promises; also ``PSFKIT_DEBUG=1`` (``EKDUN_DEBUG=1``). One mechanism for both CLIs: the
-    runner, not each sub-parser, owns the flag.
-    """
+    """Whether ``--debug`` (anywhere before ``--``) or ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``
+    asks for tracebacks, and the arguments without it."""
     args = sys.argv[1:] if argv is None else list(argv)
     end = args.index("--") if "--" in args else len(args)
     kept = [a for a in args[:end] if a != "--debug"] + args[end:]
@@ -41,13 +36,8 @@ def split_debug(prog: str, argv: Sequence[str] | None) -> tuple[bool, list[str]]
 
 
 def close_progress_bars() -> None:
-    """Close every progress bar still open (tqdm keeps them in class-level sets).
-
-    A command that fails or is interrupted unwinds past its bars; left open, each is drawn a
-    last time when the garbage collector or tqdm's monitor thread gets to it, after the
-    command's final line (``interrupted (SIGTERM)``, the error), which then is not the last
-    line on stderr. Closed here, before that line is printed, for every command.
-    """
+    """Close every progress bar still open (tqdm keeps them in class-level sets), so that
+    none is redrawn after a failed command's final line on stderr."""
     std = sys.modules.get("tqdm.std")
     if std is None:   # no bar was ever made
         return
@@ -76,13 +66,9 @@ def _is_allocation_error(exc: BaseException) -> bool:
 
 
 def error_line(prog: str, exc: BaseException) -> tuple[str, int]:
-    """The one line (without newline) and the exit status for an exception of a command.
-
-    Bad input (project errors, unreadable files, absurd sizes, malformed JSON or archives)
-    gives status 2; anything else is an internal error (status 1) with a request to report it.
-    Control characters (a newline in a file name) are escaped: the line stays one line; a
-    temporary output is named as the output it would have become.
-    """
+    """The one line and the exit status for a command's exception: bad input gives status 2,
+    anything else is an internal error (status 1); control characters are escaped and a
+    temporary output is named as the output it would have become."""
     line, status = _error_line(prog, exc)
     return escape_line(public_name(line)), status
 
@@ -115,8 +101,8 @@ OUTPUT_ARGUMENTS = frozenset({"out", "figures", "report", "run_dir"})
 
 
 def input_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[str]:
-    """The values of ``args`` given to free-text arguments (no ``type=``, no choices: paths
-    and names) other than :data:`OUTPUT_ARGUMENTS`, of ``parser`` and its sub-commands."""
+    """The values of ``args`` for free-text arguments (paths and names) of ``parser`` and its
+    sub-commands, other than :data:`OUTPUT_ARGUMENTS`."""
     dests: set[str] = set()
     parsers = [parser]
     while parsers:
@@ -135,8 +121,7 @@ def input_paths(parser: argparse.ArgumentParser, args: argparse.Namespace) -> li
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, SIGHUP or SIGINT (Ctrl-C), raised in the main thread so that it unwinds like
-    Ctrl-C: every ``with`` block of an output transaction removes its temporaries."""
+    """SIGTERM, SIGHUP or SIGINT, raised in the main thread to unwind like Ctrl-C."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
@@ -146,12 +131,8 @@ class Terminated(KeyboardInterrupt):
 @contextlib.contextmanager
 def terminate_like_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM, SIGHUP and SIGINT raise :class:`Terminated` (main thread
-    only).
-
-    A signal that lands inside C code may surface as another exception (an extension module
-    being imported turns it into ``ImportError``); once a signal was received, whatever
-    propagates becomes :class:`Terminated`, so the exit status still says why.
-    """
+    only); once a signal was received, whatever propagates (a signal inside C code may surface
+    as another exception) becomes :class:`Terminated`."""
     received: list[int] = []
 
     def handler(signum: int, frame: object) -> None:
@@ -177,15 +158,8 @@ def terminate_like_interrupt() -> Iterator[None]:
 
 @contextlib.contextmanager
 def quiet_libraries() -> Iterator[list[str]]:
-    """Within the block, Python warnings (numpy ``RuntimeWarning``, torch ``UserWarning``...)
-    and library logging (tifffile, OpenCV's Python-side messages) are collected instead of
-    printed, so that a command's stderr holds its own lines only: its progress, its messages
-    and, on failure, the one error line. Yields the collected messages (``--debug`` shows
-    them as they happen instead).
-
-    What OpenCV and libpng print from C is captured where PNG files are decoded
-    (:func:`psfkit.io.images.read_image`).
-    """
+    """Within the block, Python warnings and library logging are collected (yielded) instead
+    of printed, so that a command's stderr holds its own lines only."""
     collected: list[str] = []
 
     class Collect(logging.Handler):
@@ -207,15 +181,8 @@ def quiet_libraries() -> Iterator[list[str]]:
 @contextlib.contextmanager
 def destructor_errors_of_an_interruption() -> Iterator[list[bool]]:
     """Within the block, errors raised by destructors (``Exception ignored in ...``) are held
-    back; the caller sets ``flag[0]`` once the command was interrupted, and then they are
-    dropped, else printed as usual when the block ends.
-
-    A signal that lands inside a library's constructor leaves a half-built object whose
-    destructor may fail (imageio's Pillow plugin before its ``images_to_write`` exists).
-    Python reports that whenever the object is collected, often after the command's
-    interruption line, which then is not the last line on stderr. The garbage is collected
-    before the block ends, so that no report escapes it.
-    """
+    back (garbage is collected before it ends); dropped if the caller set ``flag[0]`` (the
+    command was interrupted: half-built objects), else printed as usual."""
     interrupted = [False]
     held: list[object] = []
     previous = sys.unraisablehook
@@ -230,18 +197,11 @@ def destructor_errors_of_an_interruption() -> Iterator[list[bool]]:
 
 
 def run_cli(prog: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
-    """Parse ``argv`` and run the chosen sub-command.
+    """Parse ``argv`` and run the chosen sub-command; returns the exit status.
 
-    Every failure is one line on stderr: bad input (:class:`~psfkit.errors.PsfkitError`,
-    file-system errors, malformed files, sizes that do not fit in memory) exits with status 2,
-    an unexpected internal error with status 1 and a request to report it. Warnings and
-    library logging are collected, not printed (:func:`quiet_libraries`). Ctrl-C gives
-    status 130, SIGTERM 143 (128 + signal number), after the temporaries of unfinished outputs
-    have been removed; open progress bars are closed first, so that the line saying so is the
-    last on stderr. A closed stdout (``| head``) ends the command quietly with status 141
-    (128 + SIGPIPE). ``--debug`` anywhere on the command line (or ``PSFKIT_DEBUG=1`` /
-    ``EKDUN_DEBUG=1``) shows the full traceback instead. Outputs are written through
-    :class:`~psfkit.io.atomic.OutputTransaction`, so a failed command leaves no partial files.
+    Every failure is one line on stderr (:func:`error_line`: status 2 for bad input, 1 for an
+    internal error); Ctrl-C / SIGTERM give 128 + the signal number after unfinished outputs
+    are removed; a closed stdout gives 141 quietly. ``--debug`` shows tracebacks instead.
     """
     debug, argv = split_debug(prog, argv)
     try:
@@ -288,9 +248,8 @@ def _failure(prog: str, exc: Exception) -> int:
 
 
 def _stdout_closed() -> bool:
-    """Whether stdout is a pipe whose reader has gone (the broken pipe was stdout's, not a
-    worker's); then stdout is pointed at /dev/null, so that Python's last flush does not
-    complain on stderr."""
+    """Whether stdout is a pipe whose reader has gone; then stdout is pointed at /dev/null,
+    so that Python's last flush does not complain on stderr."""
     import select
 
     try:
@@ -306,8 +265,7 @@ def _stdout_closed() -> bool:
 
 
 def add_debug_option(parser: argparse.ArgumentParser) -> None:
-    """``--debug``: full tracebacks (also ``PSFKIT_DEBUG=1`` / ``EKDUN_DEBUG=1``). Listed in
-    the top-level help; :func:`run_cli` takes it anywhere on the command line."""
+    """``--debug`` in the top-level help (:func:`run_cli` takes it anywhere)."""
     parser.add_argument("--debug", action="store_true",
                         help="show the full traceback of an error (before or after the "
                              "command)")

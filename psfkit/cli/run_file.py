@@ -1,18 +1,10 @@
 """``--config RUN.toml``: a command's settings from a TOML run file.
 
-A run file holds flat ``key = value`` settings whose keys are the command's long flag names
-without the dashes (``tikhonov = 1e-3``; ``no-scale`` or ``no_scale``), typed as the flag
-expects: a string, a number, ``true``/``false`` for a switch (``nonneg = false`` is
-``--no-nonneg``), an array for a repeatable flag (``holdout = ["im65", "im66"]``). Every value
-goes through the command's own parser, so a bad value is refused with the parser's one-line
-error, prefixed by the file and the key; an unknown key, a key naming a positional argument,
-or a file that cannot be read or is not TOML is one line too (exit status 2), before any work.
-Flags given on the command line override the file.
-
-The function is generic (:func:`parse_args` takes any ``argparse`` parser, sub-commands
-included): a command opts in with :func:`add_config_option`. The settings used are left on the
-namespace (:data:`RUN_FILE`, :func:`run_file_record`) for the command to record with its
-outputs (the kernel file's provenance, the grid's manifest).
+Flat ``key = value`` settings keyed by the command's long flag names without dashes
+(``tikhonov = 1e-3``, ``nonneg = false``, ``holdout = ["im65"]``); every value goes through
+the command's own parser, so bad ones are its one-line errors, prefixed by file and key.
+The command line overrides the file. A command opts in with :func:`add_config_option` and
+records what was used (:func:`run_file_record`) with its outputs.
 """
 
 from __future__ import annotations
@@ -52,21 +44,15 @@ def add_config_option(parser: argparse.ArgumentParser, example: str, where: str
 
 
 def run_file_record(args: argparse.Namespace) -> dict[str, Any] | None:
-    """What the run file of ``args`` set: ``{"path", "settings", "overridden"}`` (the file's
-    resolved path, ``{flag: value}`` as parsed, the flags of the file that the command line
-    overrode), or ``None`` without ``--config``."""
+    """``{"path", "settings", "overridden"}`` of the run file of ``args`` (resolved path,
+    ``{flag: value}`` as parsed, flags the command line overrode), or ``None``."""
     return getattr(args, RUN_FILE, None)
 
 
 def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
-    """``parser.parse_args(argv)``, with the settings of the command's ``--config`` file.
-
-    A flag of the file that the command line also gives is left out: the command line wins
-    (a repeatable flag is not merged). The file's settings are appended to the command's
-    arguments (before a ``--``), each value joined to its flag (``--tikhonov=0.001``), so that
-    none can be taken for the value of another or for a positional argument. Errors are
-    ``parser.error`` lines (exit status 2).
-    """
+    """``parser.parse_args(argv)``, with the settings of the command's ``--config`` file
+    appended before any ``--``, each joined to its flag (``--tikhonov=0.001``); a flag the
+    command line also gives is left out (not merged)."""
     argv = list(argv)
     found = _command(parser, argv)
     if found is None:

@@ -1,20 +1,7 @@
-"""One flag vocabulary: a flag means one thing in every command that has it.
-
-Every flag that more than one command uses is declared here once: its meaning, its
-destination, its default and its choices (:data:`VOCABULARY`). Commands add these flags with
-:func:`add_flag`, so that ``--threads`` means CPU threads and ``--seed`` defaults to 0
-wherever they appear. Another command-line interface built on psfkit extends the
-table with its own flags and passes its table to :func:`add_flag`. A command may
-differ from the declaration only where the declaration itself says so (``per_command``: e.g.
-``fit-eigen --convention`` also offers ``auto``).
-
-Deprecated spellings (:data:`DEPRECATED`) keep their old meaning for their command, are
-hidden from ``--help`` and, once the command has done its work, print one line
-(``note: --model is deprecated here, use --basis``) on stderr (:func:`deprecation_notices`,
-printed by :func:`psfkit.cli.main.run_cli`), so that an error stays the one line on stderr.
-
-Numeric ranges stay in :data:`psfkit.io.flag_ranges.FLAGS`. ``tests/e2e/test_cli_vocabulary.py``
-walks the parsers and checks them against this table and ``docs/cli-flags.md``.
+"""One flag vocabulary: every flag used by more than one command is declared once
+(:data:`VOCABULARY`: meaning, destination, default, choices, and where a command deliberately
+differs) and added with :func:`add_flag`. Deprecated spellings (:data:`DEPRECATED`) and
+retired flags (:data:`RETIRED`) are hidden and print one note after the command's work.
 """
 
 from __future__ import annotations
@@ -36,12 +23,8 @@ BASIS_ALIASES = {"ek": "paper"}
 
 @dataclass(frozen=True)
 class SharedFlag:
-    """One flag of the vocabulary.
-
-    ``default`` is the parser's default (``None``: not given; the command decides, as
-    ``default_text`` says); ``per_command`` maps a command to the keys (``default``,
-    ``choices``, ``meaning``, ``default_text``) in which that command deliberately differs.
-    """
+    """One flag of the vocabulary; ``per_command`` maps a command to the keys (``default``,
+    ``choices``, ``meaning``, ``default_text``) in which it deliberately differs."""
 
     name: str
     dest: str
@@ -56,7 +39,7 @@ class SharedFlag:
 
     def spec(self, command: str) -> dict[str, Any]:
         """``default``, ``choices``, ``meaning`` and ``default_text`` of this flag in
-        ``command`` (the help of each command describes the flag for that command alone)."""
+        ``command``."""
         spec = {"default": self.default, "choices": self.choices, "meaning": self.meaning,
                 "default_text": self.default_text}
         spec.update(self.per_command.get(command, {}))
@@ -143,14 +126,9 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
              number_type: Callable[[str, str], Callable[[str], Any]] = flag,
              **extra: Any) -> argparse.Action:
     """Add the vocabulary's flag ``name`` to ``parser`` for ``command``, and its deprecated
-    spellings for that command.
-
-    ``note`` is appended to the help (what the default means for this command); ``extra``
-    passes other ``add_argument`` keywords (``type`` for a per-command range, ``required``).
-    ``vocabulary``, ``deprecated`` and ``number_type`` (the type of a numeric flag from its
-    range) default to psfkit's (:data:`VOCABULARY`, :data:`DEPRECATED`,
-    :func:`psfkit.io.flag_ranges.flag`); another CLI passes its own.
-    """
+    spellings; ``note`` replaces the default's text in the help, ``extra`` passes other
+    ``add_argument`` keywords. Another CLI passes its own tables (``vocabulary``,
+    ``deprecated``, ``number_type``)."""
     entry = vocabulary[name]
     spec = entry.spec(command)
     kwargs: dict[str, Any] = {"dest": entry.dest, "default": spec["default"]}
@@ -236,9 +214,8 @@ def add_retired(parser: argparse.ArgumentParser, command: str,
                 table: Mapping[tuple[str, str], tuple[int, str, tuple[str, ...] | None]]
                 = RETIRED, value_type: Callable[[str], Callable[[str], Any]] | None = None
                 ) -> None:
-    """Add ``command``'s retired flags of ``table`` (psfkit's :data:`RETIRED`, or a CLI's
-    own, same shape) to ``parser``, hidden; ``value_type(flag)``, where given, still checks a
-    retired flag's value as before (e.g. :func:`psfkit.io.flag_ranges.flag`)."""
+    """Add ``command``'s retired flags of ``table`` to ``parser``, hidden; ``value_type(flag)``,
+    where given, still checks a retired flag's value."""
     for (cmd, name), (nargs, note, choices) in table.items():
         if cmd == command:
             parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
