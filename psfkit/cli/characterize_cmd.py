@@ -1,5 +1,5 @@
-"""``psfkit report``: characterize a measured PSF grid (and its parts ``register``, ``mae``,
-``warp``, replaced by it: hidden, kept for one release)."""
+"""``psfkit report``: characterize a measured PSF grid (and the hidden ``register``, ``mae``,
+``warp`` it replaced, kept for one release)."""
 
 from __future__ import annotations
 
@@ -67,8 +67,7 @@ def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterizati
 
 def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
                            ) -> GridCharacterization:
-    """:func:`_run`, then the numbers to ``--out`` (JSON/CSV) when given; a bad output name is
-    refused before the work, as is an existing one without ``--overwrite``."""
+    """:func:`_run`, then the numbers to ``--out`` (JSON/CSV, checked first) when given."""
     from psfkit.report.grid import check_numbers_path, write_numbers
 
     with OutputTransaction(overwrite=args.overwrite) as outputs:
@@ -126,13 +125,6 @@ def _grid_print(values: np.ndarray, fmt: str,
 
     for row, states in zip(values, status, strict=True):
         print("  " + " ".join(cell(v, st) for v, st in zip(row, states, strict=True)))
-
-
-def _print_warnings(result: GridCharacterization) -> None:
-    from psfkit.report.grid import warnings_for
-
-    for message in warnings_for(result):
-        print(f"warning: {message}")
 
 
 #: ``psfkit register``, ``mae`` and ``warp`` are parts of ``psfkit report``: hidden
@@ -235,15 +227,14 @@ def print_channel_shifts(result: GridCharacterization) -> None:
             _grid_print(shifts[:, :, c, axis], "8.2f", result)
 
 
-def _print_per_channel(args: argparse.Namespace, result: GridCharacterization) -> None:
-    if args.per_channel:
-        print_channel_shifts(result)
-
-
 def _print_closing(args: argparse.Namespace, result: GridCharacterization) -> int:
     """The lines every characterization command ends with: per-channel shifts, warnings."""
-    _print_per_channel(args, result)
-    _print_warnings(result)
+    from psfkit.report.grid import warnings_for
+
+    if args.per_channel:
+        print_channel_shifts(result)
+    for message in warnings_for(result):
+        print(f"warning: {message}")
     return 0
 
 
@@ -296,7 +287,6 @@ def run_report(args: argparse.Namespace) -> int:
         print(gain_line(result.gain_fit))
     print(growth_line(result.warp_growth))
     print(astigmatism_line(result))
-    _print_per_channel(args, result)
-    _print_warnings(result)
+    _print_closing(args, result)
     print(f"report: {out / 'report.html'}")
     return 0

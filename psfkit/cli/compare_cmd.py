@@ -10,7 +10,7 @@ from typing import Any
 
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.help_all import add_command, mark_advanced
-from psfkit.cli.options import preprocess_options
+from psfkit.cli.options import add_preprocess_options, preprocess_options
 from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
 from psfkit.io.flag_ranges import flag
@@ -51,17 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-align", action="store_true",
                    help="do not register the learned Kbase to the measured one first")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
-    g = p.add_argument_group("preprocessing of the grid")
-    g.add_argument("--normalization", choices=("max", "sum"), default="max",
-                   help="scale the grid's PSFs by the centre PSF's peak (max) or total (sum) "
-                        "(default max)")
-    g.add_argument("--saturation-level", type=flag("--saturation-level"), default=None,
-                   metavar="VALUE", help="raw value at which the grid's sensor clips "
-                                         "(default: from dtype/bit_depth)")
-    g.add_argument("--allow-saturated", action="store_true",
-                   help="mask the grid's heavily saturated PSFs instead of refusing them")
-    g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0,
-                   help="dark-frame outlier threshold of the grid in robust std (default 8)")
+    add_preprocess_options(p, "preprocessing of the grid")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     mark_advanced(p, COMPARE_ADVANCED)
     p.set_defaults(func=run_compare)

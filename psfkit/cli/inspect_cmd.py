@@ -18,8 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         holds.""", advanced=False)
     p.add_argument("grid", help="PSF-grid folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--strict", action="store_true",
-                   help=STRICT_HELP)
+    p.add_argument("--strict", action="store_true", help=STRICT_HELP)
     p.set_defaults(func=run)
 
 

@@ -15,7 +15,15 @@ if TYPE_CHECKING:
 def add_grid_options(p: argparse.ArgumentParser) -> None:
     """The grid argument and the preprocessing / registration options."""
     p.add_argument("grid", help="PSF-grid folder (manifest.json or manifest.csv + images)")
-    g = p.add_argument_group("preprocessing")
+    g = add_preprocess_options(p, "preprocessing")
+    g.add_argument("--upsample", type=flag("--upsample"), default=100,
+                   help="registration precision is 1/UPSAMPLE px (default 100)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def add_preprocess_options(p: argparse.ArgumentParser, title: str) -> argparse._ArgumentGroup:
+    """The options of :func:`preprocess_options`, in a group of that ``title`` (returned)."""
+    g = p.add_argument_group(title)
     g.add_argument("--normalization", choices=("max", "sum"), default="max",
                    help="scale PSFs by the centre PSF's peak (max) or total (sum); "
                         "default max")
@@ -26,9 +34,7 @@ def add_grid_options(p: argparse.ArgumentParser) -> None:
                    help="mask heavily saturated PSFs instead of refusing them")
     g.add_argument("--hot-pixel-sigma", type=flag("--hot-pixel-sigma"), default=8.0,
                    help="dark-frame outlier threshold in robust std (default 8)")
-    g.add_argument("--upsample", type=flag("--upsample"), default=100,
-                   help="registration precision is 1/UPSAMPLE px (default 100)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return g
 
 
 def preprocess_options(args: argparse.Namespace) -> PreprocessOptions:
@@ -47,8 +53,7 @@ STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan 
 def add_coverage_options(p: argparse.ArgumentParser) -> None:
     """How positions that fail a quality check, and the reference, are handled."""
     g = p.add_argument_group("bad positions and the reference")
-    g.add_argument("--strict", action="store_true",
-                   help=STRICT_HELP)
+    g.add_argument("--strict", action="store_true", help=STRICT_HELP)
     g.add_argument("--reference", metavar="R,C",
                    help="compare every PSF with this position instead of the centre one: "
                         "grid row and column R,C, the I-th position of an irregular scan, or a "
@@ -71,8 +76,7 @@ def open_grid(args: argparse.Namespace) -> PsfGrid:
 
 
 def print_coverage(result: Any) -> None:
-    """The terminal summary of what was left out: cells never captured and positions
-    excluded, each with its reason."""
+    """What was left out: cells never captured and positions excluded, with their reasons."""
     if result.missing:
         cells = ", ".join(f"({r}, {c})" for r, c in result.missing[:12])
         more = f" and {len(result.missing) - 12} more" if len(result.missing) > 12 else ""
