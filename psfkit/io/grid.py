@@ -116,7 +116,12 @@ class PsfGrid:
             return f"#{index[1]}" + (f" ({pos.file})" if pos is not None else "")
         return f"({index[0]}, {index[1]})"
 
-    def _lattice(self, values: list[Any], extra: tuple[int, ...]) -> np.ndarray:
+    def _lattice(self, attr: str, extra: tuple[int, ...]) -> np.ndarray | None:
+        """The positions' ``attr`` as an ``(N, M, *extra)`` array (NaN where not captured), or
+        ``None`` when any position lacks it."""
+        values = [getattr(p, attr) for p in self.positions]
+        if any(v is None for v in values):
+            return None
         out = np.full((*self.grid_shape, *extra), np.nan)
         for p, v in zip(self.positions, values, strict=True):
             out[p.row, p.col] = v
@@ -153,25 +158,16 @@ class PsfGrid:
         return checked_dark(path, read_image(path, self.channel_order)).astype(np.float32)
 
     def field_deg(self) -> np.ndarray | None:
-        """Field angles as an ``(N, M, 2)`` array of ``(θx, θy)`` degrees (NaN where not
-        captured), or ``None``."""
-        if any(p.field_deg is None for p in self.positions):
-            return None
-        return self._lattice([p.field_deg for p in self.positions], (2,))
+        """Field angles ``(θx, θy)`` in degrees, ``(N, M, 2)`` (:meth:`_lattice`)."""
+        return self._lattice("field_deg", (2,))
 
     def monitor_px(self) -> np.ndarray | None:
-        """Monitor positions as an ``(N, M, 2)`` array of ``(x, y)`` (NaN where not
-        captured), or ``None``."""
-        if any(p.monitor_px is None for p in self.positions):
-            return None
-        return self._lattice([p.monitor_px for p in self.positions], (2,))
+        """Monitor positions ``(x, y)``, ``(N, M, 2)`` (:meth:`_lattice`)."""
+        return self._lattice("monitor_px", (2,))
 
     def exposures(self) -> np.ndarray | None:
-        """Exposure times as an ``(N, M)`` array (NaN where not captured), or ``None`` when
-        any is missing."""
-        if any(p.exposure_s is None for p in self.positions):
-            return None
-        return self._lattice([p.exposure_s for p in self.positions], ())
+        """Exposure times (s), ``(N, M)`` (:meth:`_lattice`)."""
+        return self._lattice("exposure_s", ())
 
     def with_reference(self, index: tuple[int, int]) -> PsfGrid:
         """This grid with another reference ("centre") position; refused when it was not
