@@ -44,13 +44,10 @@ def parse_pair(value: Any, where: str, name: str) -> tuple[float, float] | None:
 
 def parse_index(value: Any, where: str, name: str) -> int:
     """Manifest field ``name`` as a non-negative integer (``3`` or ``"3"``, not ``3.5``)."""
-    if isinstance(value, bool) or value is None:
-        raise GridFormatError(f"{where}: '{name}' must be a non-negative integer, got {value!r}")
-    try:
-        as_float = float(value)
+    try:   # NaN (no number) fails the test below
+        as_float = math.nan if isinstance(value, bool) or value is None else float(value)
     except (TypeError, ValueError):
-        raise GridFormatError(
-            f"{where}: '{name}' must be a non-negative integer, got {value!r}") from None
+        as_float = math.nan
     if not as_float.is_integer() or as_float < 0:
         raise GridFormatError(f"{where}: '{name}' must be a non-negative integer, got {value!r}")
     if as_float > MAX_GRID_CELLS:

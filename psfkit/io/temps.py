@@ -40,11 +40,9 @@ def _pid_alive(pid: int) -> bool:
         return True
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
     except PermissionError:  # alive, another user's
         return True
-    except OSError:
+    except OSError:          # ProcessLookupError: gone
         return False
     return True
 
