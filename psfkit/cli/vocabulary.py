@@ -46,6 +46,9 @@ class SharedFlag:
         return spec
 
 
+_PAIR_NAMES = "pairs (file stems, e.g. im65; comma-separated, repeatable)"
+_CONVENTION = "where the weights of {} eigen-kernel model live: sensor (the paper's Eq. 7), source"
+
 VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
     SharedFlag("--basis", "basis",
                # the general meaning (docs/cli-flags.md); each command's help says its own
@@ -67,21 +70,16 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                "sensor (fit-pairs: auto)", default="sensor", choices=("sensor", "source"),
                # fit-eigen: unset = sensor, or with --basis auto the verdict's convention
                per_command={"fit-pairs": {"choices": ("sensor", "source", "auto"),
-                                          "default": "auto", "meaning":
-                                          "where the weights of an eigen-kernel model live: "
-                                          "sensor (the paper's Eq. 7), source, or auto (the "
-                                          "lower held-out error)"},
+                                          "default": "auto", "meaning": _CONVENTION.format("an")
+                                          + ", or auto (the lower held-out error)"},
                             "fit-eigen": {"choices": ("sensor", "source", "auto"),
-                                          "default": None, "meaning":
-                                          "where the weights of the eigen-kernel model live: "
-                                          "sensor (the paper's Eq. 7), source, or auto (the "
-                                          "lower cross-validated error)"}}),
+                                          "default": None, "meaning": _CONVENTION.format("the")
+                                          + ", or auto (the lower cross-validated error)"}}),
     SharedFlag("--threads", "threads", "CPU threads", "2", kind="number", metavar="N",
                # one meaning per command, each help line describes only its own
-               per_command={
-                   **{cmd: {"meaning": "PSF positions processed at the same time",
-                            "default_text": "2"} for cmd in ("report", "register", "mae",
-                                                             "warp")}}),
+               per_command={cmd: {"meaning": "PSF positions processed at the same time",
+                                  "default_text": "2"} for cmd in ("report", "register", "mae",
+                                                                   "warp")}),
     SharedFlag("--channel-order", "channel_order",
                "channel order of the .npy/TIFF files on disk (RGB or BGR)",
                "the data's declaration (pairs.json, the DLMD layout: BGR) or the model's "
@@ -90,14 +88,11 @@ VOCABULARY: dict[str, SharedFlag] = {f.name: f for f in (
                "file's, else 0)", default=0, kind="number",
                per_command={"simulate-grid": {"default": None}, "demo": {"default": None}}),
     SharedFlag("--holdout", "holdout",
-               "pairs (file stems, e.g. im65; comma-separated, repeatable) left out of the fit; "
-               "eval-model: the pairs the model was not fitted on, where its "
-               "file does not record them", "-", metavar="NAME[,NAME]",
+               f"{_PAIR_NAMES} left out of the fit; eval-model: the pairs the model was not "
+               "fitted on, where its file does not record them", "-", metavar="NAME[,NAME]",
                per_command={
-                   "fit-pairs": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
-                                            "repeatable) left out of the fit"},
-                   "eval-model": {"meaning": "pairs (file stems, e.g. im65; comma-separated, "
-                                             "repeatable) the model was not fitted on, where "
+                   "fit-pairs": {"meaning": f"{_PAIR_NAMES} left out of the fit"},
+                   "eval-model": {"meaning": f"{_PAIR_NAMES} the model was not fitted on, where "
                                              "its file does not record them"}}),
     SharedFlag("--out", "out", "where the outputs go (a file or folder, per command)",
                "required, or none (demo: psfkit-demo)",
