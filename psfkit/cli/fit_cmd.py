@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,7 +26,7 @@ from psfkit.forward.kernelfile import save_kernels
 from psfkit.forward.weights import BASIS_NAMES
 from psfkit.io import OutputTransaction, atomic_directory
 from psfkit.io.flag_ranges import flag
-from psfkit.io.jsonable import jsonable
+from psfkit.io.jsonable import write_json
 
 # The fit (scipy) and the figures (matplotlib) are imported by the command that runs them,
 # not when the parser is built (``psfkit --help`` stays fast).
@@ -116,8 +115,7 @@ def write_fit_figures(result: GridEigenResult, folder: Path, overwrite: bool = F
                                    zoom=0.3, sizes=sizes), tmp / "fig7_kernels_zoom")
         save_figure(figure_weight_maps(model.basis, model.sensor_shape), tmp / "fig3_weights")
         save_figure(figure_eigen_diagnostics(result), tmp / "diagnostics")
-        (tmp / "fit.json").write_text(json.dumps(jsonable(result.summary()), indent=1) + "\n",
-                                      encoding="utf-8")
+        write_json(tmp / "fit.json", result.summary())
 
 
 def run_fit_eigen(args: argparse.Namespace) -> int:
