@@ -43,24 +43,16 @@ def build_model(name: str, source: Source, preset: str | Preset = "tiny", *,
     name : str
         Model name (:data:`MODEL_NAMES`).
     source : KernelModel, array, tensor or path
-        A psfkit kernel file (path or loaded :class:`~psfkit.forward.kernelfile.KernelModel`) or a
-        measured PSF ``(C, H', W')`` / ``(H', W')`` with its origin at the centre. EK-DUN takes
-        all kernels of an eigen-kernel file as trainable initial values; from a PSF (or a
-        shift-invariant file) it starts from ``Kv = Kh = Kbase = PSF``. The baselines use the
-        base kernel as the measured PSF (fixed for Le-ADMM-U, 5 trainable copies per colour
-        for UPDN). The sensor size is the kernel file's (or the PSF's).
+        A kernel file (path or loaded) or a centred PSF ``(C, H', W')`` / ``(H', W')``, which
+        also sets the sensor size. EK-DUN starts from all its kernels (from a PSF:
+        ``Kv = Kh = Kbase = PSF``); the baselines use the base kernel as the measured PSF.
     preset : str or Preset
-        ``"tiny"`` or ``"paper"`` (:data:`~ekdun.nets.configs.PRESETS`): the architecture.
+        ``"tiny"`` or ``"paper"``.
     config : optional
         The model's configuration, replacing the preset's.
     dtype : torch.dtype
-        float32 or float64.
     **overrides
         Fields of the model's configuration to change, e.g. ``schedule="base"``.
-
-    Returns
-    -------
-    UnrolledNetwork
     """
     chosen = get_preset(preset)
     if isinstance(source, (str, os.PathLike)):
