@@ -13,12 +13,8 @@ from ekdun.physics.operators import FFTConvolutionOperator, psf_tensor
 
 
 class MultiPSFOperator(FFTConvolutionOperator):
-    r"""``N`` PSFs per colour, each convolving its own channel (UPDN's learned PSF stack).
-
-    Channel ``n·C + c`` of the ``(B, N·C, H', W')`` input is convolved with ``psfs[n, c]``:
-    ``y_{n,c} = crop(K_{n,c} * pad(x_{n,c}))`` and ``Aᵀ`` correlates channel-wise. It is the
-    shift-invariant model on ``N·C`` channels; :meth:`tile` makes the ``N``-fold copy of an
-    RGB measurement that UPDN compares with.
+    r"""``N`` PSFs per colour, each convolving its own channel (UPDN's learned PSF stack):
+    channel ``n·C + c`` of the ``(B, N·C, H', W')`` input with ``psfs[n, c]``.
 
     Parameters
     ----------
