@@ -1,5 +1,4 @@
-r"""The forward model with the scene on the whole padded grid, as the ADMM-TV solver uses it.
-"""
+r"""The forward model with the scene on the whole padded grid, as the ADMM-TV solver uses it."""
 
 from __future__ import annotations
 
