@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ekdun.cli.vocabulary import add_flag
+from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.vocabulary import NOTICES, deprecation_notices
@@ -106,14 +106,11 @@ def fill_defaults(args: argparse.Namespace, form: str) -> None:
 
 
 def run_admm(args: argparse.Namespace) -> int:
-    import torch
-
     # the note joins the deprecated flags' notes, printed by run_cli after the work
     # (``command``: the spelling used, set by ekdun's sub-parser action)
     setattr(args, NOTICES, [*deprecation_notices(args),
                             deprecated_note(getattr(args, "command", None) or "admm")])
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args)
     fill_defaults(args, "kernels" if args.kernels else "psf")
     return run_with_kernels(args) if args.kernels else run_with_psf(args)
 

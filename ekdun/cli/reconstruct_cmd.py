@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ekdun.cli.vocabulary import add_flag
+from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_command, mark_advanced
@@ -96,14 +96,11 @@ def _given(args: argparse.Namespace, option: str) -> bool:
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
-    import torch
-
     kind = model_kind(args.model)
     if Path(args.out).suffix.lower() in (".npy", ".png"):
         raise InvalidInputError(f"{args.out}: --out is a folder (NAME.npy and NAME.png are "
                                 "written in it)")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args)
     if kind == "checkpoint":
         for option in CLASSICAL_ONLY:
             if _given(args, option):

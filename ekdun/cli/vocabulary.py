@@ -64,3 +64,11 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
     and numeric ranges."""
     return shared.add_flag(parser, name, command, note, vocabulary=VOCABULARY,
                            deprecated=DEPRECATED, number_type=flag, **extra)
+
+
+def set_threads(args: argparse.Namespace) -> None:
+    """``--threads``: torch's intra-op threads (left alone when not given)."""
+    import torch
+
+    if getattr(args, "threads", None):
+        torch.set_num_threads(args.threads)

@@ -32,24 +32,19 @@ class EKDUNConfig:
     iterations : int
         Unrolled iterations ``I`` (paper: 10).
     schedule : {"base", "last-k", "all"}
-        Forward model per iteration: base kernel only; eigen-kernel model in the last
-        ``eigen_last`` iterations; eigen-kernel model everywhere (also for ``f⁰ = Aᵀy``).
-        ``"last-2"`` etc. are accepted as shorthand for ``"last-k"`` with that ``k``.
+        Where the eigen-kernel model is used (:func:`parse_schedule`; ``"last-2"`` etc. too).
     eigen_last : int
         ``k`` of ``"last-k"`` (paper: 2).
     prior : UNetConfig
         Prior network ``P⁽ⁱ⁾`` of every iteration.
     basis : str
-        Weight basis when the model is built from a single PSF (``Kv = Kh = Kbase = PSF``).
-    step_scale : float
-        Initial ``ε⁽ⁱ⁾ = step_scale / L`` with ``L = max |K̂|² ≈ ‖AᵀA‖``.
-    penalty_scale : float
-        Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
+        Weight basis when the model is built from a single PSF.
+    step_scale, penalty_scale : float
+        Initial ``ε⁽ⁱ⁾ = step_scale / L`` and ``η⁽ⁱ⁾ = penalty_scale · L``, ``L = max |K̂|²``.
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
     kernel_param : {"free", "physical", "flow"}
-        Parameterisation of the trainable kernels
-        (:mod:`ekdun.physics.kernel_parameterisation`).
+        See :mod:`ekdun.physics.kernel_parameterisation`.
     kernel_support_dilate : int
         Dilation (px) of the seed's caustic support (``physical``, ``flow``).
     flow_grid : int
@@ -77,12 +72,9 @@ class EKDUNConfig:
 
 @dataclass(frozen=True)
 class LeADMMUConfig:
-    """Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM, then a U-Net.
-
-    Initial values are relative to ``L = max |K̂|²``: ``μ1 = mu1_init`` (data units),
-    ``μ2 = mu2_scale·L`` (TV split), ``μ3 = mu3_scale·L`` (non-negativity split) and
-    ``τ = tau_scale·μ2`` (so the TV soft threshold ``τ/μ2`` is ``tau_scale`` in scene units).
-    """
+    """Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM, then a U-Net. Initial
+    ``μ1 = mu1_init``, ``μ2 = mu2_scale·L``, ``μ3 = mu3_scale·L``, ``τ = tau_scale·μ2``
+    (``L = max |K̂|²``)."""
 
     iterations: int = 5
     denoiser: UNetConfig = field(default_factory=lambda: UNetConfig(
@@ -179,7 +171,7 @@ def get_preset(preset: str | Preset) -> Preset:
 
 def parse_schedule(schedule: str, iterations: int,
                    eigen_last: int = 2) -> tuple[bool, tuple[bool, ...]]:
-    """Which forward model EK-DUN uses, as ``(eigen for f⁰, eigen for iteration i)``.
+    """Where EK-DUN uses the eigen-kernel model: ``(for f⁰, for each iteration)``.
 
     Examples
     --------

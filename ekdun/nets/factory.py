@@ -23,7 +23,7 @@ from ekdun.nets.le_admm_u import LeADMMU
 from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.nets.updn import UPDN
 from ekdun.physics.multi_psf import MultiPSFOperator
-from ekdun.physics.operators import EigenKernelOperator, ShiftInvariantOperator
+from ekdun.physics.operators import EigenKernelOperator, ShiftInvariantOperator, psf_tensor
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.forward.weights import get_basis
 
@@ -91,11 +91,8 @@ def _measured_psf(source: KernelModel | np.ndarray | torch.Tensor, preset: Prese
     if isinstance(source, KernelModel):
         return (torch.as_tensor(source.kernels[0], dtype=dtype), source.sensor_shape,
                 source.scene_padding, source.optical_center)
-    psf = (source.detach().to(dtype) if isinstance(source, torch.Tensor)
-           else torch.as_tensor(np.asarray(source), dtype=dtype))
-    if psf.ndim == 2:
-        psf = psf[None]
-    if psf.ndim != 3 or psf.shape[0] not in (1, 3):
+    psf = psf_tensor(source, dtype)
+    if psf.shape[0] not in (1, 3):
         raise KernelShapeError(f"a measured PSF must be (C, H, W) with C = 1 or 3, got shape "
                                f"{tuple(psf.shape)}")
     return psf, (int(psf.shape[-2]), int(psf.shape[-1])), preset.scene_padding, None

@@ -10,10 +10,5 @@ from ekdun.physics.operators import (
     ShiftInvariantOperator,
 )
 
-__all__ = [
-    "EigenKernelOperator",
-    "FFTConvolutionOperator",
-    "MultiPSFOperator",
-    "PreparedOperator",
-    "ShiftInvariantOperator",
-]
+__all__ = ["EigenKernelOperator", "FFTConvolutionOperator", "MultiPSFOperator", "PreparedOperator",
+           "ShiftInvariantOperator"]
