@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch.utils.data import Dataset
 
-from ekdun.device import resolve_device
+from ekdun.device import cuda_synchronize, resolve_device
 from ekdun.errors import InvalidInputError
 from ekdun.evaluation.metrics import SSIM_MARGIN, LPIPSMetric, psnr, ssim, ssim_map
 from ekdun.nets.unrolled import UnrolledNetwork
@@ -99,12 +99,10 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
     for i in range(n):
         x, y = dataset[i]
         x, y = x[None].to(device), y[None].to(device)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        cuda_synchronize(device)
         t0 = time.perf_counter()
         out = model(y)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        cuda_synchronize(device)
         times.append(time.perf_counter() - t0)
         out = out.clamp(0, 1)
         psnrs.append(float(psnr(out, x)[0]))

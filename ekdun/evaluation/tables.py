@@ -214,15 +214,11 @@ EXPECTED = {"table1": ("EK-DUN (last-2)", "Le-ADMM-U", "UPDN"),
             "table2": ("base only", "last-2", "all")}
 
 
-def _check_table(which: str) -> None:
-    if which not in TABLES:
-        raise ConfigurationError(f"unknown table {which!r} (use {', '.join(TABLES)})")
-
-
 def table_rows(results: list[dict[str, Any]], which: str) -> list[dict[str, Any]]:
     """The rows of table ``which`` (``"table1"``: Le-ADMM-U, UPDN and EK-DUN (last-2);
     ``"table2"``: the EK-DUN schedules) among evaluation ``results``, in the paper's order."""
-    _check_table(which)
+    if which not in TABLES:
+        raise ConfigurationError(f"unknown table {which!r} (use {', '.join(TABLES)})")
     table1, table2 = split_tables(results)
     return table1 if which == "table1" else table2
 

@@ -81,7 +81,9 @@ def build_model(name: str, source: Source, preset: str | Preset = "tiny", *,
         assert isinstance(cfg, LeADMMUConfig)
         return LeADMMU(ShiftInvariantOperator(psf, sensor, padding, trainable=False), cfg)
     assert isinstance(cfg, UPDNConfig)
-    return UPDN(MultiPSFOperator.from_psf(psf, cfg.copies, sensor, padding, trainable=True), cfg)
+    if cfg.copies < 1:
+        raise ConfigurationError(f"copies must be >= 1, got {cfg.copies}")
+    return UPDN(MultiPSFOperator(psf[None].repeat(cfg.copies, 1, 1, 1), sensor, padding), cfg)
 
 
 def _measured_psf(source: KernelModel | np.ndarray | torch.Tensor, preset: Preset,
