@@ -1,8 +1,4 @@
-"""The names that ekdun's options choose from (networks, autocast precisions), in one place.
-
-A module of its own, free of torch, so that the ``ekdun`` command-line parser can offer them
-without importing torch (:mod:`ekdun.nets` and :mod:`ekdun.device` import it).
-"""
+"""The names that ekdun's options choose from, in a module free of torch (for the parser)."""
 
 from __future__ import annotations
 

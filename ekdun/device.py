@@ -1,22 +1,9 @@
 """Speed options of training and inference: autocast precision, channels_last, torch.compile.
 
-Mixed precision (``amp``)
-    ``"bf16"`` or ``"fp16"`` runs the network under :func:`torch.autocast`; ``"off"`` runs it in
-    float32; ``"auto"`` is fp16 on CUDA and off elsewhere.
-    bf16 is available on CPU and on CUDA devices that support it, fp16 on CUDA only (with a
-    gradient scaler in training). The physics stays in float32 under autocast: the FFTs and
-    elementwise products of :mod:`ekdun.physics` are not on autocast's lists, and the
-    networks' iterates stay float32 (``f - ε Aᵀ(A f - y) - …`` promotes the half-precision
-    prior outputs to float32), so every FFT runs on float32/complex64 data
-    (``tests/ekdun/test_training_speed.py`` checks it).
-channels_last
-    The U-Nets already run their activations channels-last (:mod:`ekdun.nets.unet`); this
-    option also stores the convolution weights channels-last, so that no layout conversion of
-    the weights happens in each call (what cuDNN on tensor cores prefers): default on CUDA
-    only. Data batches stay contiguous: the physics FFTs want contiguous planes.
-compile
-    ``torch.compile`` of the network; the first steps pay the compilation (reported as the
-    warm-up time).
+``amp``: ``"bf16"`` or ``"fp16"`` run the network under :func:`torch.autocast`, ``"auto"`` is
+fp16 on CUDA and off elsewhere; the physics FFTs stay float32 either way
+(``tests/ekdun/test_training_speed.py``). ``channels_last`` also stores the convolution
+weights channels-last (default on CUDA only); ``compile`` is ``torch.compile`` of the network.
 """
 
 from __future__ import annotations
@@ -33,14 +20,8 @@ _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.device:
-    """The torch device named by ``--device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``, ``mps``),
-    refused in one line when this machine does not have it.
-
-    Raises
-    ------
-    ConfigurationError
-        ``"--device cuda:3: ..."``: unknown name, no CUDA, no such GPU, no MPS.
-    """
+    """The torch device named by ``--device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``, ``mps``);
+    :class:`ConfigurationError` when this machine does not have it."""
     if isinstance(device, torch.device):
         return device
     if device == "auto":
@@ -66,14 +47,8 @@ def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.dev
 
 
 def resolve_amp(amp: str | bool, device: torch.device) -> str:
-    """``"off"``, ``"bf16"`` or ``"fp16"`` for ``device``; ``True`` means ``"auto"`` and
-    ``False`` ``"off"`` (``amp`` may be given as a boolean).
-
-    Raises
-    ------
-    ConfigurationError
-        Unknown value, or a precision the device does not have.
-    """
+    """``"off"``, ``"bf16"`` or ``"fp16"`` for ``device`` (``True``: ``"auto"``, ``False``:
+    ``"off"``); :class:`ConfigurationError` for an unknown value or one the device lacks."""
     if amp is True:
         amp = "auto"
     elif amp is False or amp is None:
@@ -105,8 +80,7 @@ def use_channels_last(option: bool | None, device: torch.device) -> bool:
 
 
 def convolutions_channels_last(model: nn.Module) -> int:
-    """Put every 2-D convolution's weights in channels_last format (the physics kernels,
-    which are FFT'd, keep theirs); returns how many convolutions were converted."""
+    """Put every 2-D convolution's weights in channels_last format; how many were converted."""
     count = 0
     for module in model.modules():
         if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):

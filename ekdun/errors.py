@@ -1,7 +1,5 @@
-"""Exceptions raised by ekdun.
-
-They subclass the toolkit's :mod:`psfkit.errors` classes, so the command-line interfaces (which
-catch :class:`~psfkit.errors.PsfkitError`) print them as one line without a traceback.
+"""Exceptions raised by ekdun: subclasses of :mod:`psfkit.errors`, so the CLIs print them as
+one line.
 """
 
 from __future__ import annotations

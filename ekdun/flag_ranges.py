@@ -1,10 +1,8 @@
 """The type and range of every numeric flag of ``ekdun``, declared once, and ``--device``.
 
-:data:`FLAGS` extends psfkit's table (:data:`psfkit.io.flag_ranges.FLAGS`: the flags both
-command-line interfaces share, such as ``--seed`` and ``--threads``) with ekdun's own; a key
-``"COMMAND --flag"`` overrides ``"--flag"`` for that command. :func:`flag` gives the
-``argparse`` type, :func:`flag_range` the range for the same value read from a file.
-``tests/e2e/test_bad_inputs.py`` checks that no numeric flag of the parser escapes this table.
+:data:`FLAGS` extends :data:`psfkit.io.flag_ranges.FLAGS` with ekdun's own (a key
+``"COMMAND --flag"`` overrides ``"--flag"`` for that command); ``tests/e2e/test_bad_inputs.py``
+checks that no numeric flag escapes it.
 """
 
 from __future__ import annotations

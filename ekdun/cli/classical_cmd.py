@@ -1,33 +1,19 @@
-"""``ekdun admm`` (alias ``ekdun reconstruct-classical``): deprecated spellings of classical
-reconstruction, which is now ``ekdun reconstruct`` with a kernel file or a PSF image
-(:mod:`ekdun.cli.reconstruct_cmd`; docs/migration.md).
-
-Hidden from ``ekdun --help``, they still run unchanged for one release and then print one
-note naming ``ekdun reconstruct``. Two forms, a thin layer over :mod:`ekdun.reconstruction`:
-
-* ``ekdun admm PSF MEASUREMENT --out X.npy``: a PSF image, read by the one PSF treatment
-  (:func:`psfkit.calibration.psf_image.psf_kernel`: background, binning, clipped to ``>= 0``,
-  unit sum per channel), becomes a shift-invariant kernel model
-  (:func:`~ekdun.reconstruction.classical.psf_model`);
-* ``ekdun admm --kernels MODEL.npz MEASUREMENT... --out X.npy|FOLDER``: a kernel file (SI or
-  eigen-kernel, from fit-eigen or fit-pairs) used as fitted.
-
-Both run the one solver, :class:`~ekdun.reconstruction.classical.ModelReconstructor`, with the
-same options (``--solver``, ``--tv``, ``--nonneg``, ``--tol``, ``--dtype``): a PSF and the SI
-kernel file of that PSF give the same reconstruction (tested). The model builders
-(:func:`kernel_file_model`, :func:`psf_image_model`) and the solver flags
-(:func:`add_solver_flags`) are shared with ``ekdun reconstruct``, so that both spellings give
-the same numbers.
+"""``ekdun admm`` (alias ``ekdun reconstruct-classical``): deprecated, hidden spellings of
+``ekdun reconstruct`` with a PSF image (``admm PSF MEASUREMENT --out X.npy``) or a kernel file
+(``admm --kernels MODEL.npz MEASUREMENT... --out X.npy|FOLDER``); they run unchanged for one
+release, then print one note (docs/migration.md). The model builders and solver flags are
+shared with ``ekdun reconstruct``, so both spellings give the same numbers.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ekdun.cli.vocabulary import add_flag
+from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.vocabulary import NOTICES, deprecation_notices
@@ -120,14 +106,11 @@ def fill_defaults(args: argparse.Namespace, form: str) -> None:
 
 
 def run_admm(args: argparse.Namespace) -> int:
-    import torch
-
     # the note joins the deprecated flags' notes, printed by run_cli after the work
     # (``command``: the spelling used, set by ekdun's sub-parser action)
     setattr(args, NOTICES, [*deprecation_notices(args),
                             deprecated_note(getattr(args, "command", None) or "admm")])
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args)
     fill_defaults(args, "kernels" if args.kernels else "psf")
     return run_with_kernels(args) if args.kernels else run_with_psf(args)
 
@@ -142,8 +125,8 @@ def classical_options(args: argparse.Namespace) -> Any:
 
 def kernel_file_model(path: str, channel_order: str | None, downsample: int | None
                       ) -> tuple[Any, str, int, float | None, list[str]]:
-    """A kernel file as fitted, and how to read its measurements: ``(model, channel order,
-    binning factor, white level, notices)``, the flags overriding the file's record."""
+    """A kernel file as fitted, and how to read its measurements (the flags overriding its
+    record): ``(model, channel order, binning factor, white level, notices)``."""
     from psfkit.forward.kernelfile import load_kernels
     from psfkit.io.read_options import choose
 
@@ -158,44 +141,50 @@ def kernel_file_model(path: str, channel_order: str | None, downsample: int | No
 
 
 def run_with_kernels(args: argparse.Namespace) -> int:
-    from ekdun.reconstruction.classical import (
-        ModelReconstructor,
-        read_classical_measurement,
-        reconstruct_folder,
-        write_reconstruction,
-    )
+    from ekdun.reconstruction.classical import read_classical_measurement, reconstruct_folder
 
     model, order, factor, white_level, notices = kernel_file_model(
         args.kernels, args.channel_order, args.downsample)
-    options = classical_options(args)
     out = Path(args.out)
     single = len(args.inputs) == 1 and Path(args.inputs[0]).is_file()
     if single and out.suffix == ".npy":
-        from psfkit.io import OutputTransaction
-
-        # the image and its preview are checked first and appear together
-        with OutputTransaction(overwrite=args.overwrite) as outputs:
-            staged, preview = outputs.file(out), outputs.file(out.with_suffix(".png"))
+        def measurement() -> tuple[Any, Any]:
             y = read_classical_measurement(args.inputs[0], order, factor, args.background,
                                            white_level)
             require_finite(y, args.inputs[0])
-            recon = ModelReconstructor(model, options)
-            recon.check(y, args.inputs[0])
-            result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
-            write_reconstruction(staged, result.image, preview)
-        print(f"{recon.solver} reconstruction {y.shape[1]}x{y.shape[2]} "
-              f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
+            return model, y
+
+        _reconstruct_one(args, out, measurement)
         say_all(notices)
         return 0
     if out.suffix:
         raise InvalidInputError(f"{out}: several measurements need an output folder, not a file")
-    written = reconstruct_folder(model, args.inputs, out, options, order,
+    written = reconstruct_folder(model, args.inputs, out, classical_options(args), order,
                                  args.overwrite, progress=not args.quiet,
                                  downsample=factor, background=args.background,
                                  white_level=white_level)
     print(f"{len(written)} reconstruction(s) in {out}", file=sys.stderr)
     say_all(notices)
     return 0
+
+
+def _reconstruct_one(args: argparse.Namespace, out: Path,
+                     build: Callable[[], tuple[Any, Any]]) -> None:
+    """Reconstruct the measurement of ``build() -> (model, y)`` into ``out`` (``.npy``) and its
+    preview: both checked first, written together."""
+    from ekdun.reconstruction.classical import ModelReconstructor, write_reconstruction
+    from psfkit.io import OutputTransaction
+
+    options = classical_options(args)
+    with OutputTransaction(overwrite=args.overwrite) as outputs:
+        staged, preview = outputs.file(out), outputs.file(out.with_suffix(".png"))
+        model, y = build()
+        recon = ModelReconstructor(model, options)
+        recon.check(y, args.inputs[-1])
+        result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
+        write_reconstruction(staged, result.image, preview)
+    print(f"{recon.solver} reconstruction {y.shape[1]}x{y.shape[2]} "
+          f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
 
 
 def say_all(notices: list[str]) -> None:
@@ -219,27 +208,23 @@ def _iteration_bar(total: int):  # a tqdm-driven callback
 
 
 def run_with_psf(args: argparse.Namespace) -> int:
-    from psfkit.io import OutputTransaction
-
     if len(args.inputs) != 2:
         raise InvalidInputError("give a PSF image and one measurement (or use --kernels "
                                 "MODEL.npz with measurement files and folders)")
     out = Path(args.out)
     if out.suffix != ".npy":
         raise InvalidInputError(f"{out}: the output must be a .npy file")
-    # the image and its preview are checked first and appear together
-    with OutputTransaction(overwrite=args.overwrite) as outputs:
-        staged = outputs.file(out), outputs.file(out.with_suffix(".png"))
-        result, solver = _admm_with_psf(args, *staged)
-    print(f"{solver} reconstruction {result.image.shape[1]}x{result.image.shape[2]} "
-          f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
+    psf_path, measurement_path = args.inputs
+    _reconstruct_one(args, out, lambda: psf_image_model(
+        psf_path, measurement_path, args.channel_order or "RGB", args.downsample or 1,
+        args.background))
     return 0
 
 
 def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, factor: int,
                     background: str) -> tuple[Any, Any]:
-    """The PSF form: the shift-invariant kernel model of a PSF image, for measurements of the
-    size (and channels) of ``measurement_path``, and that measurement ``(C, H, W)``."""
+    """The shift-invariant kernel model of a PSF image for measurements like
+    ``measurement_path``, and that measurement ``(C, H, W)``."""
     from ekdun.reconstruction.classical import psf_model, read_classical_measurement
     from psfkit.calibration.psf_image import psf_kernel
     from psfkit.io.images import read_image_float
@@ -260,16 +245,3 @@ def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, fa
         raise InvalidInputError(f"{psf_path}: PSF has {psf.shape[0]} channels, the "
                                 f"measurement {y.shape[0]}")
     return psf_model(psf, y.shape[-2:], y.shape[0]), y
-
-
-def _admm_with_psf(args: argparse.Namespace, out: Path, preview_path: Path):
-    """The PSF form: the PSF's shift-invariant kernel model, then the solver of --kernels."""
-    from ekdun.reconstruction.classical import ModelReconstructor, write_reconstruction
-
-    psf_path, measurement_path = args.inputs
-    model, y = psf_image_model(psf_path, measurement_path, args.channel_order or "RGB",
-                               args.downsample or 1, args.background)
-    recon = ModelReconstructor(model, classical_options(args))
-    result = recon(y, callback=None if args.quiet else _iteration_bar(args.iterations))
-    write_reconstruction(out, result.image, preview_path)
-    return result, recon.solver

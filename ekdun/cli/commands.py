@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ekdun.cli.vocabulary import add_flag
+from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_help_all, mark_advanced
@@ -20,20 +20,6 @@ from psfkit.io.validation import MAX_GRID_SIDE, bounded_size
 def _say(args: argparse.Namespace, text: str) -> None:
     if not getattr(args, "quiet", False):
         print(text, file=sys.stderr)
-
-
-def _threads(args: argparse.Namespace) -> None:
-    import torch
-
-    if getattr(args, "threads", None):
-        torch.set_num_threads(args.threads)
-
-
-def resolve_split(data: str, split: str) -> Path:
-    """See :func:`ekdun.data.virtual_bench.resolve_split`."""
-    from ekdun.data.virtual_bench import resolve_split as resolve
-
-    return resolve(data, split)
 
 
 #: Commands that left the user CLI for the source repository's research/ folder
@@ -268,27 +254,21 @@ def run_make_dataset(args: argparse.Namespace) -> int:
 
 
 def run_train(args: argparse.Namespace) -> int:
-
     from ekdun.data.pairs import PairsDataset, match_downsample
+    from ekdun.data.virtual_bench import resolve_split
     from ekdun.nets.builder import seed_kernel_model
     from ekdun.training import TrainOptions, train
     from psfkit.io.pairs import read_pairs
     from psfkit.io.read_options import choose
 
-    # flags are checked before any data is read
-    overrides: dict[str, Any] = {}
-    if args.schedule:
-        if args.network != "ekdun":
-            raise InvalidInputError("--schedule applies to --network ekdun only")
-        overrides["schedule"] = args.schedule
-    if args.iterations:
-        overrides["iterations"] = args.iterations
-    if args.kernel_lr_scale is not None and args.network != "ekdun":
-        raise InvalidInputError("--kernel-lr-scale applies to --network ekdun only")
-    if args.kernel_param:
-        if args.network != "ekdun":
-            raise InvalidInputError("--kernel-param applies to --network ekdun only")
-        overrides["kernel_param"] = args.kernel_param
+    # flags are checked before any data is read (kernel-lr-scale 0 is given, not unset)
+    for option, value in (("--schedule", args.schedule), ("--kernel-lr-scale",
+                          args.kernel_lr_scale), ("--kernel-param", args.kernel_param)):
+        if value not in (None, "") and args.network != "ekdun":
+            raise InvalidInputError(f"{option} applies to --network ekdun only")
+    overrides: dict[str, Any] = {key: value for key, value in (
+        ("schedule", args.schedule), ("iterations", args.iterations),
+        ("kernel_param", args.kernel_param)) if value}
     root = resolve_split(args.data, "train")
     source = args.kernels or args.psf
     notices: list[str] = []
@@ -334,17 +314,11 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _checkpoint_path(item: str) -> Path:
-    from ekdun.evaluation.evaluate import checkpoint_path
-
-    return checkpoint_path(item)
-
-
 def run_eval(args: argparse.Namespace) -> int:
     from ekdun.evaluation import LPIPSMetric, evaluate_checkpoints, write_tables
     from psfkit.io import OutputTransaction
 
-    _threads(args)
+    set_threads(args)
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         folder = outputs.folder(args.out)   # checked before the evaluation
         lpips = LPIPSMetric(args.lpips_weights)
@@ -359,6 +333,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
 
 def run_export_kernels(args: argparse.Namespace) -> int:
+    from ekdun.evaluation.evaluate import checkpoint_path
     from ekdun.training import export_kernels
     from psfkit.forward.kernelfile import save_kernels
 
@@ -369,6 +344,6 @@ def run_export_kernels(args: argparse.Namespace) -> int:
 
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         staged = outputs.file(out)
-        save_kernels(staged, export_kernels(_checkpoint_path(args.checkpoint)))
+        save_kernels(staged, export_kernels(checkpoint_path(args.checkpoint)))
     print(f"learned kernels: {out}", file=sys.stderr)
     return 0

@@ -1,17 +1,9 @@
 """``ekdun reconstruct MODEL MEASUREMENT... --out DIR``: one command for every model.
 
-What MODEL is, is read from the file (:func:`model_kind`):
-
-* a checkpoint (``.pt``, or a run folder holding ``checkpoint.pt``): the trained network
-  (:func:`ekdun.reconstruction.reconstruct_files`);
-* a kernel file (``.npz``, from ``psfkit fit-eigen`` / ``fit-pairs`` or ``ekdun train``):
-  classical ADMM-TV with the model exactly as fitted (what ``ekdun admm --kernels`` did);
-* a PSF image (``.npy``, ``.png``, ``.tif``, ``.tiff``): classical ADMM-TV with the PSF's
-  shift-invariant model (what ``ekdun admm PSF MEASUREMENT`` did).
-
-The classical forms run the builders, defaults and solver of the deprecated ``ekdun admm``
-(:mod:`ekdun.cli.classical_cmd`), so the two spellings give the same numbers. A flag that only
-acts on the other kind of model is refused in one line rather than silently ignored.
+MODEL (:func:`model_kind`) is a checkpoint (``.pt`` or a run folder: the trained network), a
+kernel file (``.npz``: classical ADMM-TV with the model as fitted) or a PSF image (classical
+ADMM-TV with its shift-invariant model). A flag that only acts on the other kind of model is
+refused in one line.
 """
 
 from __future__ import annotations
@@ -20,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ekdun.cli.vocabulary import add_flag
+from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_command, mark_advanced
@@ -36,13 +28,8 @@ CLASSICAL_ONLY = ("--iterations", "--tv", "--background", "--solver", "--nonneg"
 
 
 def model_kind(path: str | Path) -> str:
-    """``"checkpoint"``, ``"kernels"`` or ``"psf"``: what the MODEL file is, by its name.
-
-    Raises
-    ------
-    InvalidInputError
-        No such file, or a file that is none of the three (the message names it).
-    """
+    """``"checkpoint"``, ``"kernels"`` or ``"psf"``: what the MODEL file is, by its name
+    (:class:`InvalidInputError` for none of them)."""
     p = Path(path)
     if p.is_dir():
         if (p / "checkpoint.pt").is_file():
@@ -109,14 +96,11 @@ def _given(args: argparse.Namespace, option: str) -> bool:
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
-    import torch
-
     kind = model_kind(args.model)
     if Path(args.out).suffix.lower() in (".npy", ".png"):
         raise InvalidInputError(f"{args.out}: --out is a folder (NAME.npy and NAME.png are "
                                 "written in it)")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args)
     if kind == "checkpoint":
         for option in CLASSICAL_ONLY:
             if _given(args, option):
@@ -149,8 +133,7 @@ def _run_network(args: argparse.Namespace) -> int:
 
 
 def _run_classical(args: argparse.Namespace, kind: str) -> int:
-    """A kernel file or PSF image: the model, then the solver of ``ekdun admm`` on every
-    measurement (:func:`~ekdun.reconstruction.classical.reconstruct_folder`)."""
+    """A kernel file or PSF image: the model, then the classical solver on every measurement."""
     from ekdun.cli import classical_cmd as cc
     from ekdun.reconstruction.classical import reconstruct_folder
     from ekdun.reconstruction.reconstruct import measurement_files

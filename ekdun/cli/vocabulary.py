@@ -1,10 +1,6 @@
-"""ekdun's flag vocabulary: psfkit's (:data:`psfkit.cli.vocabulary.VOCABULARY`) and ekdun's own.
-
-A flag both command-line interfaces have (``--threads``, ``--seed``, ``--channel-order``,
-``--holdout``) keeps psfkit's destination, default and choices, and adds what it means in
-ekdun's commands; the flags only ekdun has (``--network``, ``--device``, ``--amp``,
-``--loader-workers``, ``--tv``) are declared here. :func:`add_flag` adds them with ekdun's
-numeric ranges (:data:`ekdun.flag_ranges.FLAGS`).
+"""ekdun's flag vocabulary: psfkit's (:data:`psfkit.cli.vocabulary.VOCABULARY`), with what the
+shared flags mean in ekdun's commands, and ekdun's own flags; :func:`add_flag` adds them with
+ekdun's numeric ranges.
 """
 
 from __future__ import annotations
@@ -68,3 +64,11 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
     and numeric ranges."""
     return shared.add_flag(parser, name, command, note, vocabulary=VOCABULARY,
                            deprecated=DEPRECATED, number_type=flag, **extra)
+
+
+def set_threads(args: argparse.Namespace) -> None:
+    """``--threads``: torch's intra-op threads (left alone when not given)."""
+    import torch
+
+    if getattr(args, "threads", None):
+        torch.set_num_threads(args.threads)

@@ -1,10 +1,5 @@
-"""The virtual bench's camera, scenes and dense forward model (what a dataset is made of).
-
-:class:`VirtualBenchSpec` (what a dataset contains), :func:`node_psfs` (the noise-free PSF of
-every grid node and its true chief-ray position), :func:`dense_model_for` (the dense
-shift-variant operator that makes the measurements) and :func:`make_scenes` (the scene
-distribution). :mod:`ekdun.data.virtual_bench` builds datasets from them (and the research
-studies, ``research/oracles.py``, the best eigen-kernel models).
+"""The virtual bench's camera, scenes and dense forward model (what a dataset is made of):
+:class:`VirtualBenchSpec`, :func:`node_psfs`, :func:`dense_model_for` and :func:`make_scenes`.
 """
 
 from __future__ import annotations
@@ -45,23 +40,15 @@ class VirtualBenchSpec:
     sensor_shape : (int, int)
         ``(H', W')`` of scenes and measurements.
     n_train, n_test : int
-        Numbers of pairs.
     grid_shape : (int, int)
-        Field points of the simulated PSF grid (and nodes of the dense model), ≥ 9 × 9.
+        Field points of the simulated PSF grid (and nodes of the dense model).
     half_fov_deg : float
-        Field angle at the sensor's horizontal edge: the bench geometry (diffuser–sensor gap)
-        is chosen so that the grid's outermost points land on the sensor edges. Wide fields of
-        view make the PSF vary strongly (vignetting ``cos⁴θ``, oblique-incidence
-        astigmatism, shrinking projected aperture).
+        Field angle at the sensor's horizontal edge (sets the diffuser–sensor gap).
     monitor_distance_mm : float
-        Distance of the (virtual) display.
     aperture_mm : float
-        Side of the square aperture in front of the diffuser (sets the PSF's extent on the
-        sensor: 1.3 mm covers about 37 % of the width of the default 3.5 mm sensor, a
-        better-conditioned camera than 2.6 mm, which covers 3/4 of it).
+        Side of the square aperture in front of the diffuser (the PSF's extent).
     binning : int
-        Sensor binning of the bench (full-resolution sensor = ``binning × sensor_shape`` of
-        3.45 µm pixels).
+        Sensor binning (full-resolution sensor: ``binning × sensor_shape`` of 3.45 µm pixels).
     natural_fraction : float
         Fraction of scenes cropped from scikit-image's natural images (rest: dead leaves).
     photons : float
@@ -69,9 +56,7 @@ class VirtualBenchSpec:
     read_noise_e : float
         Gaussian read noise (electrons) of the pairs.
     grid_frames : int
-        Frames averaged at each position of the PSF grid (the grid's own noise falls as
-        ``1 / sqrt(grid_frames)``; the pairs are unchanged). 1: one raw 12-bit frame per
-        position.
+        Frames averaged at each position of the PSF grid (the pairs are unchanged).
     convention : {"source", "sensor"}
         Where the dense model's interpolation weights act.
     seed : int
@@ -116,8 +101,7 @@ class VirtualBenchSpec:
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> VirtualBenchSpec:
-        """The spec of :meth:`to_dict` (e.g. a dataset manifest's ``spec``): JSON lists back
-        to tuples."""
+        """The spec of :meth:`to_dict` (JSON lists back to tuples)."""
         values = {k: v for k, v in doc.items() if k not in RETIRED_FIELDS}
         for key in ("sensor_shape", "grid_shape"):
             if key in values:
@@ -141,19 +125,17 @@ class VirtualBenchSpec:
 
 
 def node_psfs(spec: VirtualBenchSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The bench's noise-free node PSFs and where they land (what the dense model is built of).
+    """The bench's noise-free node PSFs and where they land.
 
     Returns
     -------
     kernels : numpy.ndarray
-        ``(N, M, C, H', W')`` float64: each node's PSF re-centred on its chief ray (origin at
-        the array centre), in measurement units per unit scene radiance (QE colour balance).
+        ``(N, M, C, H', W')`` float64: each node's PSF centred on its chief ray, in measurement
+        units per unit scene radiance (QE colour balance).
     shifts : numpy.ndarray
-        ``(N, M, 2)``: the true chief-ray shift ``(du, dv)`` of each node from the sensor
-        centre, in sensor pixels (same node order as ``kernels``).
+        ``(N, M, 2)``: the chief-ray shift ``(du, dv)`` of each node from the sensor centre, px.
     rows, cols : numpy.ndarray
-        Sensor row coordinates of the node rows and column coordinates of the node columns,
-        increasing (the node order is reversed where the optics flip the image).
+        Increasing sensor coordinates of the node rows and columns.
     """
     config = spec.bench_config()
     camera = VirtualCamera(config)
@@ -192,12 +174,8 @@ def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
 
 @functools.cache
 def _natural_image(name: str) -> np.ndarray:
-    """``skimage.data.<name>()`` as ``(H, W, 3)`` float64 in [0, 1], decoded once per process.
-
-    Decoding it for every scene would cost about 7 ms a scene, and every decode builds an imageio
-    plugin: a signal landing inside that constructor leaves a half-built object whose
-    destructor fails noisily. Read-only, as the cache hands the same array to every caller.
-    """
+    """``skimage.data.<name>()`` as read-only ``(H, W, 3)`` float64 in [0, 1], decoded once
+    per process."""
     import skimage.data
 
     image = np.asarray(getattr(skimage.data, name)(), dtype=np.float64)
@@ -245,11 +223,9 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
                 progress: bool = False) -> np.ndarray:
     """``(N, 3, H', W')`` float32 scenes of ``split`` (``"train"`` or ``"test"``).
 
-    ``count`` scenes (default the split's size) from random stream ``stream`` (default the
-    split's own: 0 train, 1 test); another stream draws new scenes of the same distribution
-    (e.g. the oracles' of ``research/oracles.py``). ``workers`` processes draw them (dead leaves
-    are a Python loop over disks: ~0.1 s per 256² scene); every scene has its own seed, so
-    the result does not depend on ``workers``. ``progress`` shows a bar over the scenes.
+    ``count`` scenes (default the split's size) from random stream ``stream`` (default 0 for
+    train, 1 for test); ``workers`` processes draw them, each scene from its own seed, so the
+    result does not depend on ``workers``.
     """
     n = (spec.n_train if split == "train" else spec.n_test) if count is None else count
     names = TRAIN_IMAGES if split == "train" else TEST_IMAGES

@@ -1,9 +1,5 @@
-"""Dead-leaves scenes: a synthetic image prior with natural-image statistics.
-
-The dead-leaves model (Matheron; Lee, Mumford & Huang 2001) drops opaque disks of random
-colour on top of each other; with radii drawn from ``p(r) ∝ r⁻³`` between ``r_min`` and
-``r_max`` the images are scale invariant, with a power spectrum close to ``1/f²`` and sharp
-occlusion edges, which is why it is a standard test prior for image restoration.
+"""Dead-leaves scenes (Matheron; Lee, Mumford & Huang 2001): opaque disks of random colour
+with radii ``p(r) ∝ r⁻³``, scale invariant with sharp occlusion edges, a standard test prior.
 """
 
 from __future__ import annotations
@@ -25,18 +21,19 @@ def dead_leaves(shape: tuple[int, int], rng: np.random.Generator | int = 0, *,
                 max_disks: int = 20_000, coverage: float = 0.999) -> np.ndarray:
     """One dead-leaves image.
 
+    Disks are laid front to back (so generation stops once ``coverage`` is reached), in
+    colours mixing a common grey level with per-channel noise.
+
     Parameters
     ----------
     shape : (int, int)
         ``(H, W)``.
     rng : numpy.random.Generator or int
-        Random source (or seed).
     channels : int
         1 (grey) or 3 (RGB).
     r_min, r_max : float
         Disk radii range in pixels (``r_max`` defaults to half the longest side).
     max_disks : int
-        Upper bound on the number of disks.
     coverage : float
         Stop once this fraction of pixels is covered.
 
@@ -44,13 +41,6 @@ def dead_leaves(shape: tuple[int, int], rng: np.random.Generator | int = 0, *,
     -------
     numpy.ndarray
         ``(C, H, W)`` float32 in ``[0, 1]``.
-
-    Notes
-    -----
-    Disks are laid front to back: a pixel takes the colour of the first disk that covers it,
-    which is the same as painting back to front and lets generation stop once the image is
-    covered. Colours are uniform in ``[0, 1]`` per channel, mixed with a common grey level so
-    that channels are correlated as in natural images.
     """
     if channels not in (1, 3):
         raise ConfigurationError(f"channels must be 1 or 3, got {channels}")

@@ -1,21 +1,17 @@
 r"""Dense shift-variant forward model: PSFs interpolated bilinearly over the field.
 
-A grid of ``N × M`` field points ("nodes") has PSFs ``K_n`` (each re-centred on its chief ray,
-origin at the array centre) at sensor positions ``(v_n, u_n)`` (where the chief ray lands).
-The PSF of a scene point at pixel ``p`` is the piecewise-bilinear interpolation
-``h_p = Σ_n w_n(p) K_n`` with hat functions ``w_n`` on the node grid (a partition of unity,
-constant beyond the outermost nodes). Summing over scene points:
+Node PSFs ``K_n`` (centred on their chief rays) at sensor positions ``(v_n, u_n)`` are
+interpolated with hat functions ``w_n`` on the node grid (a partition of unity, constant beyond
+the outermost nodes):
 
 .. math::
 
     y = \sum_n \mathrm{crop}\big(K_n * \mathrm{pad}(w_n \odot x)\big)
     \quad\text{("source" convention, exact per-point interpolation)}
 
-or ``y = Σ_n w_n ⊙ crop(K_n * pad(x))`` (``"sensor"``: the weights act on the sensor pixels).
-Each term is one FFT convolution, so the cost is ``N·M`` convolutions per image (81 for a
-9 × 9 grid) — a far richer model than the 3-kernel eigen-kernel model, which is why the
-virtual bench uses it to simulate measurements. The convolutions are those of the one forward
-model, :func:`psfkit.forward.convolution.eigen_kernel_forward`, with ``N·M`` kernels.
+or ``y = Σ_n w_n ⊙ crop(K_n * pad(x))`` (``"sensor"``): ``N·M`` FFT convolutions of
+:func:`psfkit.forward.convolution.eigen_kernel_forward` per image, a far richer model than
+the eigen-kernel one, which is why the virtual bench simulates with it.
 """
 
 from __future__ import annotations
@@ -30,11 +26,8 @@ from psfkit.forward.geometry import CONVENTIONS, padded_shape
 
 
 def hat_weights(nodes: np.ndarray, size: int) -> np.ndarray:
-    """1-D piecewise-linear hat functions ``(len(nodes), size)`` at pixels ``0..size-1``.
-
-    ``nodes`` must be increasing; pixels beyond the first (last) node get weight 1 on it.
-    The rows sum to 1 at every pixel.
-    """
+    """1-D piecewise-linear hat functions ``(len(nodes), size)`` at pixels ``0..size-1`` of
+    increasing ``nodes`` (weight 1 on the end node beyond it; columns sum to 1)."""
     nodes = np.asarray(nodes, dtype=np.float64)
     if nodes.ndim != 1 or nodes.size < 1 or np.any(np.diff(nodes) <= 0):
         raise ConfigurationError("node coordinates must be a strictly increasing 1-D array")
@@ -57,17 +50,13 @@ class DenseShiftVariantModel:
     Parameters
     ----------
     kernels : array ``(N, M, C, Hk, Wk)``
-        Node PSFs re-centred on their chief ray (origin at ``(Hk//2, Wk//2)``), in measurement
-        units per unit scene radiance (gains kept).
+        Node PSFs centred on their chief ray (origin at ``(Hk//2, Wk//2)``), gains kept.
     node_rows, node_cols : array
-        Sensor row coordinates of the ``N`` node rows and column coordinates of the ``M`` node
-        columns (increasing).
+        Increasing sensor coordinates of the ``N`` node rows and ``M`` node columns.
     sensor_shape : (int, int)
-        ``(H', W')``.
     convention : {"source", "sensor"}
-        Where the interpolation weights act (see the module docstring).
+        Where the interpolation weights act.
     scene_padding : int
-        Convolution grid as a multiple of the sensor size.
     """
 
     def __init__(self, kernels: np.ndarray | Tensor, node_rows: np.ndarray,
@@ -102,8 +91,7 @@ class DenseShiftVariantModel:
         return self.spectra.device
 
     def to(self, device: str | torch.device) -> DenseShiftVariantModel:
-        """Move the model to ``device`` (in place; returns ``self``). Still float64: a GPU
-        gives the same measurements to rounding (~1e-16 relative), far below the noise."""
+        """Move the model to ``device`` (in place, still float64; returns ``self``)."""
         self.spectra = self.spectra.to(device)
         self.weights = self.weights.to(device)
         return self

@@ -1,13 +1,7 @@
 """A torch dataset over a pairs folder (:func:`psfkit.io.pairs.read_pairs`), and the match
-between a pairs folder's pixel grid and a kernel file's sensor.
-
-The DiffuserCam Lensless Mirflickr (DLMD) layout trains as it is: ``lensed/`` + ``diffuser/``,
-270×480 (non-square), BGR ``.npy`` on disk, read as RGB. Its lensed ground truth and its
-diffuser measurement share one orientation (the forward model ``y = crop(K * pad(x))`` fits them
-as stored: held-out relative error 0.056 at 4× binning, against 0.19 with the scene flipped
-upside down and 0.13 flipped left-right); the upstream repository's ``flipud`` is a display
-choice applied to both, so reconstructions come out in the orientation of the stored ground
-truth.
+between a pairs folder's pixel grid and a kernel file's sensor. The DiffuserCam Lensless
+Mirflickr layout (``lensed/`` + ``diffuser/``, BGR on disk) trains as stored: its ground truth
+and measurements share one orientation, and so do the reconstructions.
 """
 
 from __future__ import annotations
@@ -30,17 +24,9 @@ from psfkit.numerics.resample import bin_mean
 
 
 def recorded_read_options(data: dict[str, Any], where: str = "checkpoint") -> ReadOptions:
-    """The :class:`~psfkit.io.read_options.ReadOptions` with which a checkpoint's training
-    pairs were read, from its ``metadata["data"]`` (:meth:`PairsDataset.describe`).
-
-    Checkpoints written before the options were recorded as one object give what they have
-    (channel order, flip, downsample); what is missing is ``None``/default.
-
-    Raises
-    ------
-    InvalidInputError
-        A recorded option out of range (the message names ``where``).
-    """
+    """The :class:`~psfkit.io.read_options.ReadOptions` of a checkpoint's training pairs,
+    from its ``metadata["data"]`` (older checkpoints: what they record, the rest default);
+    :class:`InvalidInputError` naming ``where`` for an option out of range."""
     if isinstance(data.get("read_options"), dict):
         return ReadOptions.from_json(data["read_options"], where)
     order = data.get("channel_order") if data.get("channel_order") in ("RGB", "BGR") else None
@@ -53,37 +39,28 @@ def recorded_read_options(data: dict[str, Any], where: str = "checkpoint") -> Re
 class PairsDataset(Dataset):
     """``(scene, measurement)`` pairs as ``(C, H, W)`` float32 tensors (RGB).
 
-    Reads folders of ground-truth / measurement images (npy, png, tiff) including the
-    DiffuserCam Lensless Mirflickr layout (``lensed/`` + ``diffuser/``, BGR on disk, read as
-    RGB); see :mod:`psfkit.io.pairs` for the conventions (channel order, flip).
-
     Parameters
     ----------
     root : path-like or PairSet
-        Pairs folder, or the folder already listed by :func:`psfkit.io.pairs.read_pairs` (then
-        ``channel_order`` and ``recorded`` were given to that call and are not used here).
+        Pairs folder, or one already listed by :func:`psfkit.io.pairs.read_pairs` (then
+        ``channel_order`` and ``recorded`` are not used).
     channel_order : {"RGB", "BGR"}, optional
         Overrides the folder's channel order.
     recorded : ReadOptions, optional
-        Read options recorded with the model (kernel file, checkpoint): the channel order,
-        flip and white level that the folder itself does not declare
-        (:func:`psfkit.io.pairs.read_pairs`).
+        Read options recorded with the model, for what the folder does not declare.
     preload : bool
-        Read every pair once into memory (small datasets).
+        Read every pair once into memory.
     holdout : iterable of str
-        Names (file stems) of pairs to leave out, e.g. a held-out test image.
+        Names (file stems) of pairs to leave out.
     only : iterable of str
-        If given, keep only the pairs of these names (e.g. the pairs a checkpoint held out).
+        If given, keep only the pairs of these names.
     downsample : int
-        Average ``downsample × downsample`` blocks of scenes and measurements (trailing
-        rows/columns dropped), the binning of ``psfkit fit-pairs --downsample``: a model fitted
-        at that pitch trains on the same grid.
+        Average ``downsample × downsample`` blocks (as ``psfkit fit-pairs --downsample``).
 
     Raises
     ------
     InvalidInputError
-        An unknown held-out name, nothing left to train on, or a factor that leaves fewer than
-        4 pixels a side.
+        An unknown held-out name, nothing left to train on, or too few pixels left a side.
     """
 
     def __init__(self, root: str | os.PathLike | PairSet, channel_order: str | None = None,
@@ -128,8 +105,7 @@ class PairsDataset(Dataset):
         return tuple(self.pairs.names[i] for i in self.indices)
 
     def describe(self) -> dict[str, Any]:
-        """What the dataset is, JSON-able (recorded in checkpoints so that ``ekdun
-        reconstruct`` reads measurements the way training did)."""
+        """What the dataset is, JSON-able (recorded in checkpoints)."""
         options = self.read_options
         return {"root": str(Path(self.pairs.root).resolve()), "names": list(self.names),
                 "holdout": list(self.holdout), "channel_order": options.channel_order,
@@ -160,19 +136,17 @@ def match_downsample(image_shape: tuple[int, ...], model: KernelModel,
     Parameters
     ----------
     image_shape : (int, int) or (int, int, int)
-        ``(H, W)`` of the images as stored (px), or ``(C, H, W)``: then the channels are
-        checked against the model's too (before a run folder is made, not in the first batch).
+        ``(H, W)`` of the stored images, or ``(C, H, W)`` (channels checked too).
     model : KernelModel
-        The seed kernels; their ``sensor_shape`` is the grid the network runs on.
+        The seed kernels.
     requested : int, optional
-        The user's factor; ``None`` means: 1 if the sizes agree, else the factor the kernel
-        file was fitted with (``psfkit fit-pairs --downsample``, from its provenance).
+        The user's factor; ``None``: 1 if the sizes agree, else the kernel file's recorded one.
 
     Raises
     ------
     InvalidInputError
-        The images, binned by the factor, are not the model's sensor size (the message says
-        which factor would fit), or have another number of channels.
+        The binned images are not the model's sensor size (the message says which factor
+        would fit), or have another number of channels.
     """
     if len(image_shape) == 3 and int(image_shape[0]) != len(model.channels):
         raise InvalidInputError(f"{where} have {int(image_shape[0])} channel(s) but the model "

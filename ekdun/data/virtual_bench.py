@@ -1,30 +1,13 @@
 """The virtual-bench dataset: scenes, simulated measurements and the bench's PSF grid.
 
-``make_virtual_bench(root, spec)`` builds (once) a folder ::
-
-    root/
-      manifest.json        spec, seed, sizes, versions, file list, content hash
-      grid/                the bench's N × M PSF grid in psfkit's grid format (+ ground_truth/):
-                           ``psfkit fit-eigen root/grid`` gives the eigen-kernel seed model
-      train/scene/*.npy    ground-truth scenes (H', W', 3) float32 in [0, 1], RGB
-      train/measurement/*.npy   simulated measurements (H', W', 3) float32
-      test/...             held-out scenes (other natural images, other dead-leaves seeds)
-
-A research study may add files (``python -m research.oracle DATASET --write-dataset`` writes
-the eigen-kernel oracles into ``oracle/``); it lists them in the manifest, whose file list and
-content hash then cover them, so the dataset is still reused.
-
-Scenes: dead-leaves images (:mod:`ekdun.data.deadleaves`) and random crops of the natural
-images that ship inside scikit-image (different images for train and test). Measurements:
-the DENSE shift-variant model (:mod:`ekdun.data.dense_model`) built from the noise-free bench
-PSFs of every grid node (re-centred on their chief rays), with Poisson–Gaussian sensor noise
-— never the eigen-kernel model that the networks use, so that the comparison of forward models
-is meaningful. The folders ``train/`` and ``test/`` are ordinary pairs folders
-(:func:`psfkit.io.pairs.read_pairs`).
-
-Everything is deterministic given ``spec.seed``; a folder whose manifest matches the spec
-(and whose content hash checks) is reused, one whose manifest disagrees is rebuilt, and a
-non-empty folder that is not a virtual-bench dataset is refused.
+``make_virtual_bench(root, spec)`` builds (once) ``manifest.json`` (spec, versions, file list,
+content hash), ``grid/`` (the bench's PSF grid in psfkit's grid format, for ``psfkit
+fit-eigen``) and the pairs folders ``train/`` and ``test/`` (``scene/`` and ``measurement/``
+``.npy`` files, ``(H', W', 3)`` float32 RGB). Scenes are dead leaves and crops of
+scikit-image's natural images; measurements come from the dense shift-variant model with
+Poisson–Gaussian noise, never the eigen-kernel model the networks use. Everything is
+deterministic given ``spec.seed``; a folder whose manifest matches is reused, one that
+disagrees is rebuilt, any other non-empty folder is refused.
 """
 
 from __future__ import annotations
@@ -76,11 +59,8 @@ def _versions() -> dict[str, str]:
 def simulate_measurements(model: DenseShiftVariantModel, scenes: np.ndarray,
                           spec: VirtualBenchSpec, split_id: int, batch: int = 8,
                           progress: bool = False) -> np.ndarray:
-    """Noisy measurements of ``scenes`` (Poisson–Gaussian, deterministic by seed).
-
-    The noise is drawn on the CPU from per-image seeds, so the result does not depend on the
-    model's device beyond the rounding of the noise-free image.
-    """
+    """Noisy measurements of ``scenes`` (Poisson–Gaussian, drawn on the CPU from per-image
+    seeds)."""
     from tqdm.auto import tqdm
 
     out = np.empty_like(scenes)
@@ -126,14 +106,8 @@ def read_manifest(root: str | os.PathLike) -> dict[str, Any] | None:
 
 
 def resolve_split(data: str | os.PathLike, split: str) -> Path:
-    """The pairs folder of ``data``: a virtual-bench dataset root means its ``split``
-    folder (``"train"`` or ``"test"``), anything else is a pairs folder itself.
-
-    Raises
-    ------
-    InvalidInputError
-        ``data`` is not a folder.
-    """
+    """The pairs folder of ``data``: its ``split`` folder for a virtual-bench dataset, else
+    ``data`` itself (:class:`InvalidInputError` unless it is a folder)."""
     root = Path(data)
     if not root.is_dir():
         raise InvalidInputError(f"{root}: no such dataset folder")
@@ -173,18 +147,12 @@ def make_virtual_bench(root: str | os.PathLike, spec: VirtualBenchSpec | None = 
     spec : VirtualBenchSpec
         Contents (default: the ``tiny`` dataset).
     progress : bool
-        Progress bars.
     verify_hash : bool
         Re-hash the files of an existing dataset before reusing it.
     device : str or torch.device
-        Where the dense model computes the noise-free measurements (float64 on any device;
-        a GPU makes a 256² dataset of thousands of pairs take minutes, not hours).
+        Where the noise-free measurements are computed (float64 on any device).
     workers : int
-        Processes drawing the scenes (:func:`make_scenes`; the dataset does not depend on it).
-
-    Returns
-    -------
-    pathlib.Path
+        Processes drawing the scenes (:func:`make_scenes`).
 
     Raises
     ------

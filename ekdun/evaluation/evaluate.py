@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch.utils.data import Dataset
 
-from ekdun.device import resolve_device
+from ekdun.device import cuda_synchronize, resolve_device
 from ekdun.errors import InvalidInputError
 from ekdun.evaluation.metrics import SSIM_MARGIN, LPIPSMetric, psnr, ssim, ssim_map
 from ekdun.nets.unrolled import UnrolledNetwork
@@ -21,9 +21,8 @@ from psfkit.forward.zones import ZONE_NAMES, field_zones
 
 
 def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
-    """Peak of torch's CPU allocations (bytes) during one forward pass, from the profiler's
-    memory events (an estimate: allocations made and freed inside one operator count at the
-    operator's end)."""
+    """Peak of torch's CPU allocations (bytes) during one forward pass, estimated from the
+    profiler's memory events."""
     # Kineto logs a "USDT ... profiler_start/stop" notice on stderr for every profiled pass at
     # its highest level (5); 6 keeps eval's stderr for errors. Read when the profiler first
     # starts in a process, so a user's own setting wins.
@@ -43,14 +42,9 @@ def cpu_peak_memory(model: UnrolledNetwork, y: torch.Tensor) -> int:
 
 
 class ZoneScores:
-    """PSNR and SSIM of reconstructions in each field zone (:mod:`psfkit.forward.zones`).
-
-    A zone's PSNR is that of the mean squared error over its pixels (every channel); its SSIM
-    the mean of the SSIM map (:func:`~ekdun.evaluation.metrics.ssim_map`) over the zone's
-    pixels of the map's valid region (each map pixel belongs to the zone of the image pixel
-    its window is centred on); ``None`` for a zone with no pixel there (images so small that
-    the 11 × 11 window fits only in the centre zone).
-    """
+    """PSNR and SSIM of reconstructions in each field zone (:mod:`psfkit.forward.zones`): the
+    PSNR of the zone's MSE, and the mean of the SSIM map over the zone's pixels of the map's
+    valid region (``None`` where there are none)."""
 
     def __init__(self, shape: tuple[int, int],
                  optical_center: tuple[float, float] | None = None) -> None:
@@ -73,8 +67,7 @@ class ZoneScores:
                                              .mean()))
 
     def summary(self) -> dict[str, Any]:
-        """``{zone: {psnr, ssim, psnr_per_pair, ssim_per_pair}}`` (means over images; the
-        SSIM entries ``None`` where the zone has no pixel in the SSIM map's valid region)."""
+        """``{zone: {psnr, ssim, psnr_per_pair, ssim_per_pair}}`` (means over images)."""
         return {name: {"psnr": statistics.fmean(self.psnr[name]),
                        "ssim": statistics.fmean(self.ssim[name]) if self.ssim[name] else None,
                        "psnr_per_pair": self.psnr[name],
@@ -87,18 +80,12 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
                    lpips: LPIPSMetric | None = None, device: str | torch.device = "cpu",
                    warmup: int = 1, optical_center: tuple[float, float] | None = None
                    ) -> dict[str, Any]:
-    """PSNR, SSIM (LPIPS when available), by field zone too, parameters, runtime and peak
-    memory.
+    """PSNR, SSIM (LPIPS when available), also per image and by field zone, parameters,
+    runtime and peak memory.
 
-    Images are reconstructed one at a time (batch 1); outputs are clipped to ``[0, 1]``
-    before the metrics. Runtime is the median wall time per image after ``warmup`` images.
-    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and, on CPU, the peak of
-    torch's allocations during one profiled forward pass (:func:`cpu_peak_memory`).
-    ``psnr_per_pair`` / ``ssim_per_pair`` keep each image's value in dataset order, so that two
-    runs can be compared pair by pair and one failed image can be told from a uniform loss.
-    ``by_zone`` has the same in the three equal-area radial zones ``centre``, ``middle`` and
-    ``edge`` around ``optical_center`` (default the sensor centre; :class:`ZoneScores`), and
-    ``zones`` how they were drawn.
+    Batch 1, outputs clipped to ``[0, 1]``; runtime: the median per image after ``warmup``
+    images; peak memory: CUDA's max allocated, on CPU :func:`cpu_peak_memory`. ``by_zone``:
+    the three equal-area radial zones around ``optical_center`` (:class:`ZoneScores`).
     """
     device = resolve_device(device)
     model = model.to(device).eval()
@@ -112,12 +99,10 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
     for i in range(n):
         x, y = dataset[i]
         x, y = x[None].to(device), y[None].to(device)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        cuda_synchronize(device)
         t0 = time.perf_counter()
         out = model(y)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        cuda_synchronize(device)
         times.append(time.perf_counter() - t0)
         out = out.clamp(0, 1)
         psnrs.append(float(psnr(out, x)[0]))
@@ -145,9 +130,7 @@ def evaluate_model(model: UnrolledNetwork, dataset: Dataset, label: str = "",
 
 
 def recorded_optical_center(metadata: dict[str, Any]) -> tuple[float, float] | None:
-    """The optical centre ``(v_c, u_c)`` of a checkpoint's kernel model (its
-    ``metadata["kernel_metadata"]``), where the kernel file recorded one: the centre of the
-    field zones of :func:`evaluate_model`, as of the model's weight maps."""
+    """The optical centre ``(v_c, u_c)`` a checkpoint's kernel metadata records, if any."""
     centre = (metadata.get("kernel_metadata") or {}).get("optical_center")
     return (float(centre[0]), float(centre[1])) if centre else None
 
@@ -161,24 +144,19 @@ def checkpoint_path(item: str | os.PathLike) -> Path:
 def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
                      include_training: bool = False,
                      channel_order: str | None = None) -> tuple[Any, str]:
-    """The pairs of ``data`` on which a checkpoint may be scored, read as it was trained.
-
-    A checkpoint records how its training pairs were read (``metadata["data"]``: folder,
-    held-out names, channel order, binning). Pairs are read with that channel order and
-    binning. When ``data`` is the training folder itself, only the pairs training held out
-    are scored, so that a table never mixes training images into its figures.
+    """The pairs of ``data`` on which a checkpoint may be scored, read as it was trained; on
+    the training folder itself only the pairs training held out.
 
     Parameters
     ----------
     data : path-like
         Pairs folder, or a virtual-bench dataset (its ``test/`` split).
     trained : dict
-        The checkpoint's ``metadata["data"]`` (``{}`` for checkpoints that predate it).
+        The checkpoint's ``metadata["data"]`` (``{}`` for older checkpoints).
     include_training : bool
-        Score every pair of the training folder anyway (the training error).
+        Score every pair of the training folder anyway.
     channel_order : {"RGB", "BGR"}, optional
-        ``--channel-order``: the order of the pairs' ``.npy``/TIFF files (default: the
-        folder's declaration, else the checkpoint's record, else RGB).
+        ``--channel-order`` (default: the folder's, else the checkpoint's record, else RGB).
 
     Returns
     -------
@@ -213,13 +191,9 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
 
 
 def seed_kernels_identity(doc: dict[str, Any]) -> dict[str, Any]:
-    """Which seed kernels a checkpoint was trained from: ``seed_kernels_sha`` (the first 12 hex
-    digits of the SHA-256 of its initial kernels as float32) and ``seed_kernels_one_psf``
-    (``Kv = Kh = Kbase``: the one-PSF seed of Fig. 7); both None without initial kernels.
-
-    Two runs from different seeds are different experiments even where every training flag
-    agrees: a table must not pool them over "training seeds".
-    """
+    """Which seed kernels a checkpoint was trained from: ``seed_kernels_sha`` (12 hex digits
+    of the SHA-256 of its float32 initial kernels) and ``seed_kernels_one_psf``
+    (``Kv = Kh = Kbase``); both None without initial kernels."""
     kernels = doc.get("initial_kernels")
     if kernels is None:
         return {"seed_kernels_sha": None, "seed_kernels_one_psf": None}
@@ -239,35 +213,29 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     Parameters
     ----------
     checkpoints : sequence of path-like
-        ``checkpoint.pt`` files or run folders (``ekdun train`` outputs).
+        ``checkpoint.pt`` files or run folders.
     data : path-like
-        Pairs folder, or a virtual-bench dataset (its ``test/`` split is used). Pairs are read
-        as each run's training pairs were (channel order, binning); on the training folder
-        itself only the pairs that run held out are scored (:func:`evaluation_pairs`).
+        Pairs folder or virtual-bench dataset, read per run by :func:`evaluation_pairs`.
     lpips : LPIPSMetric, optional
-        LPIPS metric (rows get ``lpips: None`` when absent or unavailable).
+        Rows get ``lpips: None`` when absent or unavailable.
     device : str or torch.device
-        Where to run the networks.
     log : callable, optional
         Called with one line per evaluated run.
-    include_training : bool
-        On the training folder, score every pair (training pairs included).
-    channel_order : {"RGB", "BGR"}, optional
-        ``--channel-order`` of the pairs (:func:`evaluation_pairs`).
+    include_training, channel_order
+        As :func:`evaluation_pairs`.
 
     Returns
     -------
     list of dict
         :func:`evaluate_model` rows plus ``checkpoint``, ``model``, ``schedule``, ``epochs``,
-        ``seed`` (training seed), ``kernel_param``, ``physics_weight``, ``kernel_lr_scale``
-        (0: kernels frozen) and, for EK-DUN, the seed kernels it was trained from
-        (:func:`seed_kernels_identity`).
+        ``seed``, ``kernel_param``, ``physics_weight``, ``kernel_lr_scale`` and
+        :func:`seed_kernels_identity`.
 
     Raises
     ------
     InvalidInputError
-        A checkpoint cannot be read, the dataset is missing, or its images do not have the
-        sensor size of a model (checked for every run before any evaluation).
+        An unreadable checkpoint, missing dataset or images not of a model's sensor size
+        (all checked before any evaluation).
     """
     from ekdun.evaluation.tables import label_for
 

@@ -1,9 +1,8 @@
 """Image-quality metrics in torch: PSNR, SSIM (Wang et al. 2004) and optional LPIPS.
 
-SSIM uses the standard 11 × 11 Gaussian window (σ = 1.5), ``K1 = 0.01``, ``K2 = 0.03``,
-population covariances, the mean over the valid region and over channels: the same numbers as
-``skimage.metrics.structural_similarity(..., gaussian_weights=True, sigma=1.5,
-use_sample_covariance=False, data_range=1, channel_axis=...)`` (tested).
+SSIM: 11 × 11 Gaussian window (σ = 1.5), ``K1 = 0.01``, ``K2 = 0.03``, population covariances,
+mean over the valid region and channels: skimage's ``structural_similarity`` with
+``gaussian_weights=True, use_sample_covariance=False`` (tested).
 """
 
 from __future__ import annotations
@@ -44,26 +43,14 @@ SSIM_MARGIN = (_gaussian_window().numel() - 1) // 2
 
 
 def ssim(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
-    """Per-image SSIM of ``(B, C, H, W)`` tensors (images at least 11 × 11): the mean of
-    :func:`ssim_map` over its pixels and channels.
-
-    Raises
-    ------
-    TensorShapeError
-        Images smaller than the 11 × 11 Gaussian window.
-    """
+    """Per-image SSIM of ``(B, C, H, W)`` tensors: the mean of :func:`ssim_map`
+    (:class:`TensorShapeError` for images smaller than 11 × 11)."""
     return ssim_map(output, target, data_range).flatten(1).mean(dim=1)
 
 
 def ssim_map(output: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
     """Local SSIM of ``(B, C, H, W)`` tensors on the valid region, ``(B, C, H − 2m, W − 2m)``
-    float64 with ``m =`` :data:`SSIM_MARGIN` (the window never leaves the image).
-
-    Raises
-    ------
-    TensorShapeError
-        Images smaller than the 11 × 11 Gaussian window.
-    """
+    float64 with ``m =`` :data:`SSIM_MARGIN` (:class:`TensorShapeError` below 11 × 11)."""
     x, y = output.double(), target.double()
     _, c, h, w = x.shape
     g = _gaussian_window()
@@ -92,18 +79,9 @@ _ALEXNET_SHAPES = {0: (64, 3, 11, 11), 3: (192, 64, 5, 5), 6: (384, 192, 3, 3),
 
 
 def alexnet_backbone_state(state: dict[str, Tensor], where: str) -> dict[str, Tensor]:
-    """A torchvision AlexNet state dict as the state of the ``lpips`` package's backbone.
-
-    Strict: every convolution of ``features`` (weights and biases, with AlexNet's shapes) must
-    be there; the ``classifier`` layers, which LPIPS does not use, are dropped; any other key
-    is an error. A file that is not AlexNet's weights is refused, so LPIPS never runs on a
-    partly random backbone.
-
-    Raises
-    ------
-    ValueError
-        Names the missing, misshapen or unknown keys and ``where``.
-    """
+    """A torchvision AlexNet state dict as the state of the ``lpips`` package's backbone,
+    strictly: every ``features`` convolution with AlexNet's shapes, ``classifier`` dropped,
+    anything else a :class:`ValueError` naming the keys and ``where``."""
     out: dict[str, Tensor] = {}
     for index, sl in _ALEXNET_SLICES.items():
         for part, shape in (("weight", _ALEXNET_SHAPES[index]),
@@ -126,13 +104,9 @@ def alexnet_backbone_state(state: dict[str, Tensor], where: str) -> dict[str, Te
 class LPIPSMetric:
     """LPIPS (Zhang et al. 2018; AlexNet backbone, linear layers v0.1), or "n/a".
 
-    Computed only when it can be computed as published: the ``lpips`` package (its linear
-    layers, loaded strictly by the package itself) and the AlexNet backbone as a local
-    torchvision state dict (``weights`` or ``$EKDUN_LPIPS_WEIGHTS``; nothing is downloaded),
-    loaded strictly by :func:`alexnet_backbone_state`. Anything missing or mismatched leaves
-    ``available`` False and :attr:`reason` saying why, and the tables print "n/a"; a random
-    or partly loaded backbone is never used. (``lpips`` imports torchvision, which the CPU
-    build of torch used by CI cannot import: there LPIPS is always n/a.)
+    Needs the ``lpips`` package and a local torchvision AlexNet state dict (``weights`` or
+    ``$EKDUN_LPIPS_WEIGHTS``; nothing is downloaded), both loaded strictly; otherwise
+    ``available`` is False and :attr:`reason` says why.
     """
 
     def __init__(self, weights: str | os.PathLike | None = None,

@@ -24,10 +24,8 @@ def label_for(model: str, schedule: str | None) -> str:
 
 
 def variant_of(row: dict[str, Any]) -> str:
-    """What sets an EK-DUN run apart from the paper's training, e.g. ``flow kernels, λ = 1``
-    (``""`` for free kernels and the reconstruction loss alone); ``one-PSF seed`` where it
-    started from ``Kv = Kh = Kbase``, ``frozen kernels`` where its kernels did not learn
-    (``--kernel-lr-scale 0``)."""
+    """What sets an EK-DUN run apart from the paper's training, e.g. ``one-PSF seed, flow
+    kernels, λ = 1, frozen kernels`` (``""`` for none)."""
     parts = ["one-PSF seed"] if row.get("seed_kernels_one_psf") else []
     param = row.get("kernel_param")
     if param not in (None, "free"):
@@ -49,8 +47,8 @@ def _fmt(value: Any, digits: int) -> str:
 
 
 def zone_cells(row: dict[str, Any]) -> dict[str, str]:
-    """The Markdown cells of :data:`ZONE_COLUMNS` for one evaluation row: ``"21.30 / 20.12 /
-    18.95"`` (centre, middle, edge), ``"n/a"`` for rows evaluated before the zones."""
+    """The Markdown cells of :data:`ZONE_COLUMNS` for one row, e.g. ``"21.30 / 20.12 / 18.95"``
+    (centre / middle / edge), ``"n/a"`` for rows without zones."""
     by_zone = row.get("by_zone")
     cells = {}
     for key, metric, digits in (("psnr_by_zone", "psnr", 2), ("ssim_by_zone", "ssim", 4)):
@@ -97,9 +95,8 @@ def summary_columns(which: str) -> list[tuple[str, str, int]]:
 
 
 def _distinct_variants(results: list[dict[str, Any]]) -> list[str]:
-    """:func:`variant_of` of each row, with ``seed kernels <sha>`` added where rows of one
-    schedule and variant were trained from different seed kernels (they are not seeds of one
-    experiment)."""
+    """:func:`variant_of` of each row, plus ``seed kernels <sha>`` where rows of one schedule
+    and variant started from different seed kernels (different experiments)."""
     variants = [variant_of(r) for r in results]
     shas: dict[tuple[str, str], set[str]] = {}
     for r, v in zip(results, variants, strict=True):
@@ -155,18 +152,15 @@ def _pm(mean: float, sd: float | None, n: int, signed: bool = False) -> str:
 
 def seed_summary(rows: list[dict[str, Any]], reference: str = "base only"
                  ) -> list[dict[str, Any]]:
-    """A table over training seeds: for each row label, PSNR mean ± sample sd, mean SSIM,
-    median inference time, and the PSNR difference to the ``reference`` row paired by
-    training seed.
+    """A table over training seeds: per row label, PSNR mean ± sample sd, mean SSIM, median
+    inference time and the PSNR difference to the ``reference`` label paired by seed.
 
     Parameters
     ----------
     rows : list of dict
-        A table's rows (:func:`table_rows`), each with ``label``, ``psnr``, ``ssim``,
-        ``seed`` and ``runtime_ms_median``.
+        A table's rows (:func:`table_rows`).
     reference : str
-        The label the others are compared with (:data:`REFERENCE`: ``base only`` in
-        Table 2, ``EK-DUN (last-2)`` in Table 1).
+        The label the others are compared with (:data:`REFERENCE`).
 
     Returns
     -------
@@ -175,8 +169,6 @@ def seed_summary(rows: list[dict[str, Any]], reference: str = "base only"
         ``psnr_mean``, ``psnr_sd`` (None for one run), ``ssim_mean``, ``runtime_ms_median``,
         ``reference``, ``delta_mean`` / ``delta_sd`` / ``delta_seeds`` (None where no seed
         has exactly one run of both), and the Markdown cells ``psnr_text`` / ``delta_text``.
-        A paired difference cancels what the seeds share (weights and batch order), so it is
-        resolved where the unpaired means are not.
     """
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
@@ -222,40 +214,19 @@ EXPECTED = {"table1": ("EK-DUN (last-2)", "Le-ADMM-U", "UPDN"),
             "table2": ("base only", "last-2", "all")}
 
 
-def _check_table(which: str) -> None:
+def table_rows(results: list[dict[str, Any]], which: str) -> list[dict[str, Any]]:
+    """The rows of table ``which`` (``"table1"``: Le-ADMM-U, UPDN and EK-DUN (last-2);
+    ``"table2"``: the EK-DUN schedules) among evaluation ``results``, in the paper's order."""
     if which not in TABLES:
         raise ConfigurationError(f"unknown table {which!r} (use {', '.join(TABLES)})")
-
-
-def table_rows(results: list[dict[str, Any]], which: str) -> list[dict[str, Any]]:
-    """The rows of one table (``"table1"`` or ``"table2"``), in the paper's order.
-
-    Parameters
-    ----------
-    results : list of dict
-        Evaluation rows (:func:`ekdun.evaluation.evaluate_model` plus ``model`` and
-        ``schedule``), as in ``results.json``.
-    which : {"table1", "table2"}
-        Table 1: Le-ADMM-U, UPDN and EK-DUN (last-2); Table 2: the EK-DUN schedules.
-
-    Returns
-    -------
-    list of dict
-    """
-    _check_table(which)
     table1, table2 = split_tables(results)
     return table1 if which == "table1" else table2
 
 
 def render_table(results: list[dict[str, Any]], which: str,
                  notes: list[str] | None = None) -> str:
-    """Table ``which`` as Markdown (title, table, notes).
-
-    Raises
-    ------
-    InvalidInputError
-        ``results`` hold no row of that table.
-    """
+    """Table ``which`` as Markdown (title, table, notes); :class:`InvalidInputError` when
+    ``results`` hold no row of it."""
     rows = [{**r, **zone_cells(r)} for r in table_rows(results, which)]
     title, columns = TABLES[which]
     if not any(isinstance(r.get("seed"), int) for r in rows):   # runs of unknown seed
@@ -281,13 +252,8 @@ def _write_json(path: Path, doc: dict[str, Any]) -> Path:
 
 def write_table(out_dir: str | os.PathLike, results: list[dict[str, Any]], which: str,
                 notes: list[str] | None = None) -> dict[str, Path]:
-    """Write one table, ``{which}.md`` and ``{which}.json``, into ``out_dir``.
-
-    Raises
-    ------
-    InvalidInputError
-        ``results`` hold no row of that table (nothing is written).
-    """
+    """Write ``{which}.md`` and ``{which}.json`` into ``out_dir``
+    (:class:`InvalidInputError`, nothing written, when ``results`` hold no row of it)."""
     text = render_table(results, which, notes)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -311,14 +277,8 @@ def write_results(out_dir: str | os.PathLike, results: list[dict[str, Any]],
 
 
 def read_results(path: str | os.PathLike) -> tuple[list[dict[str, Any]], list[str]]:
-    """Rows and notes of a ``results.json`` written by ``ekdun eval``, ``python -m
-    research.benchmark_tiny`` or :func:`write_results` (a folder means its ``results.json``).
-
-    Raises
-    ------
-    InvalidInputError
-        Missing file, not JSON, or not a results file (rows need ``model`` and ``psnr``).
-    """
+    """Rows and notes of a ``results.json`` (:func:`write_results`; a folder means its
+    ``results.json``); :class:`InvalidInputError` unless it is one."""
     path = Path(path)
     if path.is_dir():
         path = path / "results.json"
@@ -336,10 +296,8 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict[str, Any]], list[st
 
 def write_tables(out_dir: str | os.PathLike, results: list[dict[str, Any]],
                  notes: list[str] | None = None) -> dict[str, Path]:
-    """Write ``results.json``, ``table1.md``/``.json`` and ``table2.md``/``.json``.
-
-    A table without rows gets its ``.json`` (empty ``rows``) but no ``.md``.
-    """
+    """Write ``results.json`` and ``table{1,2}.md``/``.json`` (a table without rows: only its
+    ``.json``)."""
     out_dir = Path(out_dir)
     written = {"results.json": write_results(out_dir, results, notes)}
     for which, (title, _) in TABLES.items():

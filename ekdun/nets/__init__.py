@@ -21,21 +21,6 @@ from ekdun.nets.unet import UNet
 from ekdun.nets.unrolled import UnrolledNetwork, count_parameters
 from ekdun.nets.updn import UPDN
 
-__all__ = [
-    "EKDUN",
-    "MODEL_NAMES",
-    "PRESETS",
-    "UPDN",
-    "EKDUNConfig",
-    "LeADMMU",
-    "LeADMMUConfig",
-    "Preset",
-    "UNet",
-    "UNetConfig",
-    "UPDNConfig",
-    "UnrolledNetwork",
-    "build_model",
-    "count_parameters",
-    "get_preset",
-    "parse_schedule",
-]
+__all__ = ["EKDUN", "MODEL_NAMES", "PRESETS", "UPDN", "EKDUNConfig", "LeADMMU", "LeADMMUConfig",
+           "Preset", "UNet", "UNetConfig", "UPDNConfig", "UnrolledNetwork", "build_model",
+           "count_parameters", "get_preset", "parse_schedule"]

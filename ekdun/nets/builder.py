@@ -20,9 +20,8 @@ from psfkit.forward.weights import get_basis
 
 
 def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> KernelModel:
-    """A kernel model from a kernel file, a loaded model, a measured PSF image file (read by
-    the one PSF loader, :func:`psfkit.calibration.psf_image.load_psf_image`: corner background,
-    clipped, unit sum per channel) or a PSF array ``(C, H, W)`` (used as given)."""
+    """A kernel model from a kernel file, a loaded model, a PSF image file
+    (:func:`psfkit.calibration.psf_image.load_psf_image`) or a PSF array ``(C, H, W)``."""
     if isinstance(source, KernelModel):
         return source
     if isinstance(source, (str, os.PathLike)):
@@ -81,8 +80,7 @@ def build_network(name: str, seed: KernelModel, preset: str,
 
 def _recorded_overrides(meta: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
     """The checkpoint's config overrides, with UPDN's iterations read from its weights when
-    not recorded: ``tiny`` gave UPDN 5 iterations before it took its authors' 10, and those
-    checkpoints record no override."""
+    not recorded (older ``tiny`` checkpoints had 5, without an override)."""
     overrides = dict(meta.get("overrides", {}))
     if meta.get("model") == "updn" and "iterations" not in overrides:
         blocks = {key.split(".")[1] for key in state if key.startswith("dual_updates.")}
@@ -93,11 +91,8 @@ def _recorded_overrides(meta: dict[str, Any], state: dict[str, Any]) -> dict[str
 
 def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any],
                             where: str | None = None) -> tuple[UnrolledNetwork, dict[str, Any]]:
-    """Rebuild the network of a checkpoint and load its weights.
-
-    Returns ``(model, checkpoint dict)``; raises :class:`CheckpointError` when the file is not
-    a usable ekdun checkpoint. ``where`` names a checkpoint given as a loaded dict.
-    """
+    """Rebuild a checkpoint's network with its weights: ``(model, checkpoint dict)``, or
+    :class:`CheckpointError`. ``where`` names a checkpoint given as a loaded dict."""
     doc = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     meta = doc["metadata"]
     where = where or ("checkpoint" if isinstance(checkpoint, dict) else str(checkpoint))

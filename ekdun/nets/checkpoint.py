@@ -2,25 +2,11 @@
 pickles.
 
 A checkpoint is a ``dict`` saved with :func:`torch.save` whose leaves are tensors, strings and
-numbers only, so it loads with ``torch.load(weights_only=True)`` — which never executes code:
-a foreign or malicious file is refused with :class:`CheckpointError`. Keys:
-
-``format``, ``version``
-    ``"ekdun-checkpoint"``, 1.
-``metadata``
-    JSON string: model name, preset, config overrides, sensor shape, kernel-file metadata,
-    epoch, training options, metrics history.
-``model``
-    the network's ``state_dict``.
-``initial_kernels``
-    ``(K, C, Hk, Wk)``: the seed kernel model the network was built from (with the
-    kernel-file metadata, enough to rebuild the network anywhere).
-``optimizer``, ``scheduler``, ``scaler``
-    their ``state_dict`` (absent in exported inference checkpoints).
-``rng``
-    (training checkpoints, :mod:`ekdun.training.rng`) torch CPU RNG state (uint8 tensor), numpy
-    MT19937 state (key array + position), Python ``random`` state (int64 tensor) and the CUDA
-    RNG states when present.
+numbers only, so it loads with ``torch.load(weights_only=True)`` (never runs code; anything
+else is refused with :class:`CheckpointError`). Keys: ``format``, ``version``; ``metadata``
+(JSON: model, preset, overrides, sensor shape, kernel-file metadata, epoch, options, history);
+``model`` (the ``state_dict``); ``initial_kernels`` ``(K, C, Hk, Wk)`` (the seed kernel model);
+``optimizer``, ``scheduler``, ``scaler`` (training only); ``rng`` (:mod:`ekdun.training.rng`).
 """
 
 from __future__ import annotations
@@ -62,9 +48,7 @@ def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> Path:
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu"
                     ) -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True`` (no code execution).
-
-    Returns the dict with ``metadata`` decoded from JSON.
+    """Read a checkpoint with ``weights_only=True``; ``metadata`` decoded from JSON.
 
     Raises
     ------
@@ -143,11 +127,9 @@ def _declared_widths(value: Any, key: str = "") -> list[tuple[str, Any]]:
 
 
 def _check_declared_network(meta: dict[str, Any], state: Any, path: Path) -> None:
-    """The network that the metadata describes, checked against the weights the file stores
-    before it is built: building it allocates what the metadata says (``widths [4, 6000]``
-    or a 4096 x 4096 sensor take gigabytes), while the stored weights are what the file
-    holds. Every layer the widths declare must fit in the largest stored tensor, and the
-    declared sensor must be that of the stored weight maps."""
+    """Check the metadata's network against the stored weights before it is built (building
+    allocates what the metadata says): every declared layer must fit in the largest stored
+    tensor, and the declared sensor must be that of the stored weight maps."""
     if not isinstance(state, dict):
         raise CheckpointError(f"{path}: checkpoint 'model' is not a dict of tensors")
     sizes = [t.numel() for t in state.values() if isinstance(t, torch.Tensor)]

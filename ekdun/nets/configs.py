@@ -1,26 +1,10 @@
 """Architecture configurations and the ``tiny`` / ``paper`` presets.
 
-``paper`` uses the paper's architectures and training settings (Sec. 5.2): EK-DUN with 10
-iterations and a 3-level U-Net prior (32 → 64 → 128 channels) per iteration, Le-ADMM-U with 5
-iterations, UPDN with 10 iterations and 5 PSFs per colour; sensor 1080 × 1440; Adam with
-learning rate 1e-4, ExponentialLR 0.95 per epoch, MSE loss.
-
-``tiny`` is the CPU preset: a 64 × 64 sensor and reduced widths/iterations so that the whole
-"three models + ablation" benchmark (``python -m research.benchmark_tiny``) trains and
-evaluates on two CPU cores in about 20 minutes: EK-DUN with the paper's 10 iterations
-(eigen-kernel model in the last 2) and U-Nets of widths (8, 16, 32); Le-ADMM-U with 5
-iterations and a (8, 16, 32, 64) U-Net; UPDN with its authors' 10 iterations, 5 PSFs per
-colour and a (15, 30, 60) U-Net; a larger learning rate (2e-3) for the few epochs. The sensor
-size of a built model comes from its kernel file or PSF; the preset's ``sensor_shape`` is what
-benchmarks and synthetic examples use.
-
-Baseline denoisers (each choice against the authors' code: docs/baselines.md):
-
-* Le-ADMM-U: a 5-level U-Net of widths ``(24, 64, 128, 256, 512)``, the encoder widths of
-  Monakhova et al.'s U-Net, built from the shared block (two Conv-ReLU per level, transposed
-  convolution up; their batch normalisation and bilinear upsampling are not reproduced).
-* UPDN: a 5-level U-Net of widths ``(15, 30, 60, 120, 240)``, the ``init_features = 3·5``
-  U-Net of Kingshott et al.'s colour model, input the 15 primal channels.
+``paper``: the paper's architectures and training (Sec. 5.2; sensor 1080 x 1440, Adam 1e-4,
+ExponentialLR 0.95 per epoch, MSE). ``tiny``: a 64 x 64 CPU preset with reduced widths, so that
+``python -m research.benchmark_tiny`` runs on two CPU cores in about 20 minutes. A built
+model's sensor size comes from its kernel file or PSF. The baseline U-Nets follow their
+authors' encoder widths (docs/baselines.md).
 """
 
 from __future__ import annotations
@@ -48,27 +32,19 @@ class EKDUNConfig:
     iterations : int
         Unrolled iterations ``I`` (paper: 10).
     schedule : {"base", "last-k", "all"}
-        Forward model per iteration: base kernel only; eigen-kernel model in the last
-        ``eigen_last`` iterations; eigen-kernel model everywhere (also for ``f⁰ = Aᵀy``).
-        ``"last-2"`` etc. are accepted as shorthand for ``"last-k"`` with that ``k``.
+        Where the eigen-kernel model is used (:func:`parse_schedule`; ``"last-2"`` etc. too).
     eigen_last : int
         ``k`` of ``"last-k"`` (paper: 2).
     prior : UNetConfig
         Prior network ``P⁽ⁱ⁾`` of every iteration.
     basis : str
-        Weight basis when the model is built from a single PSF (``Kv = Kh = Kbase = PSF``).
-    step_scale : float
-        Initial ``ε⁽ⁱ⁾ = step_scale / L`` with ``L = max |K̂|² ≈ ‖AᵀA‖``.
-    penalty_scale : float
-        Initial ``η⁽ⁱ⁾ = penalty_scale · L`` (so ``ε·η = step_scale·penalty_scale``).
+        Weight basis when the model is built from a single PSF.
+    step_scale, penalty_scale : float
+        Initial ``ε⁽ⁱ⁾ = step_scale / L`` and ``η⁽ⁱ⁾ = penalty_scale · L``, ``L = max |K̂|²``.
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
     kernel_param : {"free", "physical", "flow"}
-        How the trainable kernels are parameterised
-        (:mod:`ekdun.physics.kernel_parameterisation`): free pixels (the paper's), non-negative
-        on the seed's dilated caustic with its energy kept, ``Kbase`` warped by smooth
-        learned displacement fields times per-channel gains, or free kernels in Fourier
-        coordinates (the optimiser's steps per spatial frequency).
+        See :mod:`ekdun.physics.kernel_parameterisation`.
     kernel_support_dilate : int
         Dilation (px) of the seed's caustic support (``physical``, ``flow``).
     flow_grid : int
@@ -96,12 +72,9 @@ class EKDUNConfig:
 
 @dataclass(frozen=True)
 class LeADMMUConfig:
-    """Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM, then a U-Net.
-
-    Initial values are relative to ``L = max |K̂|²``: ``μ1 = mu1_init`` (data units),
-    ``μ2 = mu2_scale·L`` (TV split), ``μ3 = mu3_scale·L`` (non-negativity split) and
-    ``τ = tau_scale·μ2`` (so the TV soft threshold ``τ/μ2`` is ``tau_scale`` in scene units).
-    """
+    """Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM, then a U-Net. Initial
+    ``μ1 = mu1_init``, ``μ2 = mu2_scale·L``, ``μ3 = mu3_scale·L``, ``τ = tau_scale·μ2``
+    (``L = max |K̂|²``)."""
 
     iterations: int = 5
     denoiser: UNetConfig = field(default_factory=lambda: UNetConfig(
@@ -116,13 +89,10 @@ class LeADMMUConfig:
 class UPDNConfig:
     """UPDN (Kingshott et al. 2022): unrolled primal-dual with learned PSFs, then a U-Net.
 
-    ``copies`` PSFs per colour (paper: 5, i.e. 15 channels for RGB), each initialised from the
-    measured PSF; ``hidden_factor`` scales the width of the 3×3 grouped convolutions of the
-    primal and dual updates relative to their input (1 as in the reference code).
-    ``primal_grid`` is where the primal lives: ``"sensor"`` (default) or ``"padded"`` (the
-    reference's: the physics' scene grid, where light from outside the field of view has
-    somewhere to be). On the varying bench, whose scenes have the sensor's size, both reach
-    the same PSNR (docs/baselines.md) and the padded grid costs 1.15–1.5× the time.
+    ``copies`` PSFs per colour (paper: 5), each initialised from the measured PSF;
+    ``hidden_factor`` scales the width of the 3×3 grouped convolutions of the updates;
+    ``primal_grid`` is ``"sensor"`` or ``"padded"`` (the reference's scene grid; same PSNR on
+    the varying bench at 1.15–1.5× the time, docs/baselines.md).
     """
 
     iterations: int = 10
@@ -135,12 +105,10 @@ class UPDNConfig:
 
 @dataclass(frozen=True)
 class TrainingConfig:
-    """Optimisation settings (paper, Sec. 5.2: MSE, Adam 1e-4, ExponentialLR 0.95 per epoch,
-    200 epochs; the paper does not state the batch size, 4 is our choice).
+    """Optimisation settings (paper, Sec. 5.2; the batch size 4 is our choice).
 
-    ``kernel_lr_scale`` multiplies the learning rate of the physics kernels (``Kbase, Kv,
-    Kh``, UPDN's PSFs): their pixels are ~1e-4–1e-3 (each kernel sums to about 1), so a
-    step of the network's learning rate would wipe them out in a few iterations.
+    ``kernel_lr_scale`` multiplies the learning rate of the physics kernels, whose pixels are
+    ~1e-4–1e-3: the network's rate would wipe them out in a few steps.
     """
 
     epochs: int = 200
@@ -155,10 +123,8 @@ class TrainingConfig:
 class Preset:
     """Configurations of the three models and the sensor size they are meant for.
 
-    ``recipes`` holds a network's own training settings, which replace those of
-    ``training`` for it (no network is trained with another network's learning rate): its
-    authors' where published, else the best of a learning-rate sweep at equal budget
-    (docs/baselines.md).
+    ``recipes``: a network's own training settings, replacing ``training``'s for it (its
+    authors' where published, else the best of a sweep; docs/baselines.md).
     """
 
     name: str
@@ -205,7 +171,7 @@ def get_preset(preset: str | Preset) -> Preset:
 
 def parse_schedule(schedule: str, iterations: int,
                    eigen_last: int = 2) -> tuple[bool, tuple[bool, ...]]:
-    """Which forward model EK-DUN uses, as ``(eigen for f⁰, eigen for iteration i)``.
+    """Where EK-DUN uses the eigen-kernel model: ``(for f⁰, for each iteration)``.
 
     Examples
     --------

@@ -1,6 +1,7 @@
 r"""EK-DUN: the ADMM deep unrolled network with the eigen-kernel forward model (Secs. 3.2, 4.3).
 
-Iteration ``i`` (Eqs. 4–6), with ``A`` the forward model the schedule picks for it:
+Iteration ``i`` (Eqs. 4–6, the second rearranged to need one ``A`` and one ``Aᵀ``), with ``A``
+the forward model the schedule picks for it and ``𝑃⁽ⁱ⁾`` a U-Net per iteration:
 
 .. math::
 
@@ -9,29 +10,13 @@ Iteration ``i`` (Eqs. 4–6), with ``A`` the forward model the schedule picks fo
                  - \epsilon^{(i)}\eta^{(i)}\,(f^{(i)} - g^{(i+1)} - d^{(i)}) \\
     d^{(i+1)} &= d^{(i)} + \kappa^{(i)} (g^{(i+1)} - f^{(i+1)})
 
-(the second line is Eq. 5 rearranged so that one ``A`` and one ``Aᵀ`` suffice), starting from
-``f⁰ = Aᵀy``, ``d⁰ = 0``; the output is ``f^I``. ``𝑃⁽ⁱ⁾`` is a U-Net per iteration.
-
-Forward models (shared kernels ``K_base, K_v, K_h``, trainable):
-
-* base: ``y = crop(K_base * pad(x))`` (shift-invariant, weight 1);
-* eigen-kernel: Eq. 7 (sensor side, or whatever the kernel file says).
-
-Schedules (Table 2): ``"base"`` uses the base model everywhere; ``"last-k"`` the eigen-kernel
-model in the last ``k`` iterations (base model for ``f⁰``); ``"all"`` the eigen-kernel model
-everywhere including ``f⁰``. Kernel spectra are taken once per forward pass (only the base
-kernel's for ``"base"``).
-
-Kernels: free pixels in ``physics`` (``kernel_param="free"``), or made by a
-:mod:`~ekdun.physics.kernel_parameterisation` module (``self.kernel_param``) in training mode;
-``physics.kernels`` is then a fixed copy, brought up to date (with cached spectra) whenever
-the network is put in eval mode or loads a state dict.
-
-Parameters ``ε⁽ⁱ⁾ = exp(·)`` and ``η⁽ⁱ⁾ = exp(·)`` are kept positive by a log parametrisation;
-``κ⁽ⁱ⁾`` is free. Initial values: ``ε = step_scale / L``, ``η = penalty_scale · L`` with
-``L = max |K̂|² ≈ ‖AᵀA‖`` and ``κ = kappa_init``. With the default zero-initialised residual
-U-Nets the prior starts as the identity, ``g + d = f``, and the initial network is exactly
-``I`` steps of gradient descent on ``½‖Af − y‖²`` with step ``1/L``: stable.
+from ``f⁰ = Aᵀy``, ``d⁰ = 0``; the output is ``f^I``. Models: base
+``y = crop(K_base * pad(x))`` or eigen-kernel (Eq. 7); schedules (Table 2): ``"base"``,
+``"last-k"`` (eigen model in the last ``k`` iterations) and ``"all"`` (also for ``f⁰``).
+With a kernel parameterisation, ``physics.kernels`` is a fixed copy refreshed in eval mode
+and on loading a state dict. ``ε = exp(·)``, ``η = exp(·)`` start at ``step_scale / L`` and
+``penalty_scale · L`` (``L = max |K̂|²``); with zero-initialised residual U-Nets the initial
+network is ``I`` gradient steps of size ``1/L`` on ``½‖Af − y‖²``: stable.
 """
 
 from __future__ import annotations
@@ -56,10 +41,8 @@ class EKDUN(UnrolledNetwork):
     Parameters
     ----------
     physics : EigenKernelOperator
-        The eigen-kernel model; its first kernel is the base kernel. Its kernels are learned
-        with the network when they are an ``nn.Parameter`` (``trainable=True``).
+        The eigen-kernel model (first kernel: the base); learned when ``trainable=True``.
     config : EKDUNConfig
-        Iterations, schedule, prior U-Net and initial values.
     """
 
     def __init__(self, physics: EigenKernelOperator, config: EKDUNConfig | None = None) -> None:
@@ -120,9 +103,8 @@ class EKDUN(UnrolledNetwork):
         return self.eigen_initial or any(self.eigen_schedule)
 
     def forward_model(self) -> PreparedOperator:
-        """``A_θ``: the network's forward model with its current kernels (differentiable while
-        training): the eigen-kernel model, or ``Kbase`` alone when no step uses it (``base``).
-        """
+        """``A_θ`` with the current kernels: the eigen-kernel model, or ``Kbase`` alone when no
+        step uses it."""
         if self.uses_eigen_kernels:
             return self.physics.prepare(self._spectra())
         return self.physics.prepare_base(self._spectra(first=1))

@@ -19,18 +19,13 @@ from psfkit.forward.kernelfile import KernelModel
 
 def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str, Any]
                    ) -> KernelModel:
-    """The learned ``Kbase, Kv, Kh`` (or any basis) of an EK-DUN as a :class:`KernelModel`.
-
-    Same basis, weight convention, sensor size, optical centre and scene padding as the seed
-    model the network was trained from; ``provenance`` says where the kernels came from.
-    The result can be written with :func:`psfkit.forward.kernelfile.save_kernels` and compared with
-    a measured grid (``psfkit compare``).
+    """The learned kernels of an EK-DUN as a :class:`KernelModel` with the seed model's
+    basis and geometry, and a ``provenance`` saying where they came from.
 
     Parameters
     ----------
     model_or_checkpoint : EKDUN, checkpoint path or loaded checkpoint dict
-        A network built by :func:`ekdun.nets.builder.build_network` (it remembers its
-        seed) or a training checkpoint.
+        A network from :func:`ekdun.nets.builder.build_network`, or a training checkpoint.
 
     Raises
     ------
@@ -77,13 +72,8 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
 
 
 def initial_kernels(checkpoint: str | os.PathLike | dict[str, Any]) -> KernelModel:
-    """The seed kernels an EK-DUN checkpoint was trained from (what ``kernels_initial.npz``
-    holds), as a :class:`KernelModel`; the "before" of ``psfkit compare --initial``.
-
-    Parameters
-    ----------
-    checkpoint : checkpoint path or loaded checkpoint dict
-        An ``ekdun train`` checkpoint.
+    """The seed kernels an EK-DUN checkpoint (path or loaded dict) was trained from, as
+    ``kernels_initial.npz`` holds them.
 
     Raises
     ------

@@ -23,7 +23,7 @@ from ekdun.nets.le_admm_u import LeADMMU
 from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.nets.updn import UPDN
 from ekdun.physics.multi_psf import MultiPSFOperator
-from ekdun.physics.operators import EigenKernelOperator, ShiftInvariantOperator
+from ekdun.physics.operators import EigenKernelOperator, ShiftInvariantOperator, psf_tensor
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.forward.weights import get_basis
 
@@ -43,24 +43,16 @@ def build_model(name: str, source: Source, preset: str | Preset = "tiny", *,
     name : str
         Model name (:data:`MODEL_NAMES`).
     source : KernelModel, array, tensor or path
-        A psfkit kernel file (path or loaded :class:`~psfkit.forward.kernelfile.KernelModel`) or a
-        measured PSF ``(C, H', W')`` / ``(H', W')`` with its origin at the centre. EK-DUN takes
-        all kernels of an eigen-kernel file as trainable initial values; from a PSF (or a
-        shift-invariant file) it starts from ``Kv = Kh = Kbase = PSF``. The baselines use the
-        base kernel as the measured PSF (fixed for Le-ADMM-U, 5 trainable copies per colour
-        for UPDN). The sensor size is the kernel file's (or the PSF's).
+        A kernel file (path or loaded) or a centred PSF ``(C, H', W')`` / ``(H', W')``, which
+        also sets the sensor size. EK-DUN starts from all its kernels (from a PSF:
+        ``Kv = Kh = Kbase = PSF``); the baselines use the base kernel as the measured PSF.
     preset : str or Preset
-        ``"tiny"`` or ``"paper"`` (:data:`~ekdun.nets.configs.PRESETS`): the architecture.
+        ``"tiny"`` or ``"paper"``.
     config : optional
         The model's configuration, replacing the preset's.
     dtype : torch.dtype
-        float32 or float64.
     **overrides
         Fields of the model's configuration to change, e.g. ``schedule="base"``.
-
-    Returns
-    -------
-    UnrolledNetwork
     """
     chosen = get_preset(preset)
     if isinstance(source, (str, os.PathLike)):
@@ -89,7 +81,9 @@ def build_model(name: str, source: Source, preset: str | Preset = "tiny", *,
         assert isinstance(cfg, LeADMMUConfig)
         return LeADMMU(ShiftInvariantOperator(psf, sensor, padding, trainable=False), cfg)
     assert isinstance(cfg, UPDNConfig)
-    return UPDN(MultiPSFOperator.from_psf(psf, cfg.copies, sensor, padding, trainable=True), cfg)
+    if cfg.copies < 1:
+        raise ConfigurationError(f"copies must be >= 1, got {cfg.copies}")
+    return UPDN(MultiPSFOperator(psf[None].repeat(cfg.copies, 1, 1, 1), sensor, padding), cfg)
 
 
 def _measured_psf(source: KernelModel | np.ndarray | torch.Tensor, preset: Preset,
@@ -99,11 +93,8 @@ def _measured_psf(source: KernelModel | np.ndarray | torch.Tensor, preset: Prese
     if isinstance(source, KernelModel):
         return (torch.as_tensor(source.kernels[0], dtype=dtype), source.sensor_shape,
                 source.scene_padding, source.optical_center)
-    psf = (source.detach().to(dtype) if isinstance(source, torch.Tensor)
-           else torch.as_tensor(np.asarray(source), dtype=dtype))
-    if psf.ndim == 2:
-        psf = psf[None]
-    if psf.ndim != 3 or psf.shape[0] not in (1, 3):
+    psf = psf_tensor(source, dtype)
+    if psf.shape[0] not in (1, 3):
         raise KernelShapeError(f"a measured PSF must be (C, H, W) with C = 1 or 3, got shape "
                                f"{tuple(psf.shape)}")
     return psf, (int(psf.shape[-2]), int(psf.shape[-1])), preset.scene_padding, None

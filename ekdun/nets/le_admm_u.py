@@ -1,13 +1,8 @@
 r"""Le-ADMM-U (Monakhova et al. 2019): unrolled DiffuserCam ADMM followed by a U-Net.
 
-The ADMM-TV of DiffuserCam (Antipa et al. 2018) with learned ``μ1, μ2, μ3, τ`` per iteration
-(kept positive by a log parametrisation), unrolled for a few iterations: the updates are those
-of :mod:`ekdun.nets.tv_admm_steps` (shared with ``ekdun reconstruct``), for ``x`` on the
-padded grid with the splits ``v = Hx`` (crop), ``u = Ψx`` (TV) and ``w = x`` (non-negativity).
-All variables start at zero; each iteration takes two forward and two inverse FFTs. The
-estimate is the central ``H' × W'`` of ``x`` (our scenes have the sensor's size), which the
-U-Net then refines. Differences from the reference code: no per-image max normalisation
-before the U-Net, and the shared U-Net block (see :mod:`ekdun.nets.configs`).
+The ADMM-TV of :mod:`ekdun.nets.tv_admm_steps` with learned ``μ1, μ2, μ3, τ`` per iteration
+(log-parametrised), from zero; the central ``H' × W'`` of ``x`` is refined by the U-Net. Unlike
+the reference code: no per-image max normalisation before the U-Net, the shared U-Net block.
 """
 
 from __future__ import annotations
@@ -37,9 +32,8 @@ class LeADMMU(UnrolledNetwork):
     Parameters
     ----------
     physics : ShiftInvariantOperator
-        The measured PSF (kept fixed: build it with ``trainable=False``).
+        The measured PSF (fixed: ``trainable=False``).
     config : LeADMMUConfig
-        Iterations (5), U-Net and initial values.
     """
 
     def __init__(self, physics: ShiftInvariantOperator,

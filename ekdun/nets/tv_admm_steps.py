@@ -1,19 +1,16 @@
-r"""The steps of ADMM with total-variation regularisation, written once.
+r"""The steps of ADMM with total-variation regularisation, written once (differentiable, float
+or tensor ``μ``, ``τ``).
 
-Used by the unrolled Le-ADMM-U (:class:`ekdun.nets.le_admm_u.LeADMMU`, learned ``μ1, μ2, μ3, τ``
-per iteration). The classical solver, :mod:`ekdun.reconstruction.admm`,
-shares its finite differences; its ``ShiftInvariantRule`` is this iteration in normalised units
-(tested to 1e-9), written there with in-place, in-view-only updates, while these stay
-differentiable with tensor ``μ``, ``τ`` and keep the trained networks' arithmetic. The problem
-(DiffuserCam, Antipa et al. 2018) is
+Used by the unrolled Le-ADMM-U; :mod:`ekdun.reconstruction.admm` shares the finite
+differences, and its ``ShiftInvariantRule`` is this iteration in normalised units (tested).
+The problem (DiffuserCam, Antipa et al. 2018), for ``x`` on the padded grid, ``H`` a circular
+convolution, ``C`` the crop, ``Ψ`` circular forward differences:
 
 .. math::
 
     \min_{x \ge 0}\ \tfrac12 \| y - C H x \|_2^2 + \tau \|\Psi x\|_1
 
-for ``x`` on the padded grid ``(P·H', P·W')`` (``H`` the circular convolution with a PSF there,
-``C`` the crop to the sensor, ``Ψ`` circular forward differences), split as ``v = Hx`` (crop),
-``u = Ψx`` (TV) and ``w = x`` (non-negativity). One iteration (:func:`admm_tv_iteration`):
+split as ``v = Hx``, ``u = Ψx``, ``w = x``. One iteration (:func:`admm_tv_iteration`):
 
 .. math::
 
@@ -27,13 +24,8 @@ for ``x`` on the padded grid ``(P·H', P·W')`` (``H`` the circular convolution 
     \alpha_2 \mathrel{+}= \mu_2 (\Psi x - u), \quad
     \alpha_3 \mathrel{+}= \mu_3 (x - w)
 
-The ``x`` update is exact in the Fourier domain (``HᵀH`` and ``ΨᵀΨ`` are both diagonalised by
-the padded-grid FFT); ``𝒮`` is the anisotropic soft threshold. Each iteration takes two
-forward and two inverse FFTs, all through :mod:`psfkit.forward.fft`. Every function is
-differentiable (Le-ADMM-U trains through it) and works with float or tensor ``μ``, ``τ``.
-
-It lives with the models rather than in :mod:`ekdun.reconstruction` because the layers only
-go down: ``reconstruction`` (checkpoints) sits above ``training``, which sits above ``models``.
+The ``x`` update is exact in Fourier space. It lives in ``nets`` because the layers only go
+down (``reconstruction`` sits above ``training``, above ``nets``).
 """
 
 from __future__ import annotations
@@ -76,23 +68,9 @@ def soft_threshold(z: Tensor, threshold: Tensor | float) -> Tensor:
 
 def admm_tv_context(y: Tensor, spectrum: Tensor, conj_spectrum: Tensor,
                     grid_shape: tuple[int, int]) -> dict[str, Any]:
-    """What every iteration needs from the measurement and the PSF.
-
-    Parameters
-    ----------
-    y : Tensor
-        Measurement ``(..., C, H', W')``.
-    spectrum, conj_spectrum : Tensor
-        ``(C, PH, PW//2 + 1)`` PSF spectrum (:func:`psfkit.forward.convolution.kernel_spectra`)
-        and its materialised conjugate.
-    grid_shape : (int, int)
-        ``(PH, PW)``.
-
-    Returns
-    -------
-    dict
-        ``spectrum``, ``conj_spectrum``, ``hth`` (``|Ĥ|²``), ``cty`` (``Cᵀy`` on the grid),
-        ``ctc`` (``CᵀC``, a 0/1 mask ``(1, 1, PH, PW)`` or ``(1, PH, PW)``) and ``grid``.
+    """What every iteration needs from the measurement ``y`` ``(..., C, H', W')`` and the PSF
+    spectrum and its conjugate ``(C, PH, PW//2 + 1)`` on the grid ``(PH, PW)``: a dict of
+    those, ``hth`` (``|Ĥ|²``), ``cty`` (``Cᵀy``), ``ctc`` (``CᵀC``, a 0/1 mask) and ``grid``.
     """
     ones = torch.ones_like(y[:1, :1] if y.ndim == 4 else y[:1])
     return {"spectrum": spectrum, "conj_spectrum": conj_spectrum,

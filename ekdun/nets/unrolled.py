@@ -1,15 +1,6 @@
-"""Base class of unrolled reconstruction networks (the loop lives here).
-
-A subclass fills in four steps (the LenslessPiCam pattern)::
-
-    context = self.prepare(y)               # per forward pass: kernel spectra, tiled inputs
-    state = self.initial_state(y, context)  # dict of tensors (f⁰, d⁰, ...)
-    for i in range(self.iterations):
-        state = self.update(i, state, context)
-    return self.output(state, context)
-
-The loop is plain Python over a fixed number of iterations, so ``torch.export.export`` and
-``torch.jit.trace`` unroll it into a static graph for inference.
+"""Base class of unrolled reconstruction networks: ``prepare`` (per forward pass),
+``initial_state``, ``update`` per iteration and ``output`` (the LenslessPiCam pattern). The
+loop is plain Python over a fixed count, so ``torch.export`` unrolls it into a static graph.
 """
 
 from __future__ import annotations
@@ -33,19 +24,11 @@ def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
 class UnrolledNetwork(nn.Module):
     """An unrolled iterative reconstruction ``y (B, C, H', W') → x̂ (B, C, H', W')``.
 
-    Parameters
-    ----------
-    iterations : int
-        Number of unrolled iterations.
-
     Attributes
     ----------
     seed_kernels : KernelModel or None
-        The kernel model the network was built from (its physics' initial kernels, with the
-        kernel file's basis, convention and geometry), set by :meth:`set_seed_kernels`
-        (:func:`ekdun.nets.builder.build_network` does); ``None`` for a network built
-        directly. Training writes it as ``kernels_initial.npz`` and into the checkpoint, and
-        the learned kernels are exported with its metadata.
+        The kernel model the network was built from (:meth:`set_seed_kernels`); ``None`` for
+        a network built directly. Training writes it as ``kernels_initial.npz``.
     """
 
     seed_kernels: KernelModel | None
@@ -58,13 +41,8 @@ class UnrolledNetwork(nn.Module):
         self.seed_kernels = None
 
     def set_seed_kernels(self, seed: KernelModel) -> None:
-        """Remember the kernel model the network was built from (checked first).
-
-        Raises
-        ------
-        ModelFileError
-            ``seed`` fails :meth:`~psfkit.forward.kernelfile.KernelModel.validate`.
-        """
+        """Remember the kernel model the network was built from (validated first:
+        :class:`~psfkit.errors.ModelFileError`)."""
         seed.validate(where="seed kernels")
         self.seed_kernels = seed
 

@@ -1,33 +1,20 @@
 r"""UPDN (Kingshott et al. 2022): unrolled primal-dual network with learned PSFs, then a U-Net.
 
-Learned primal-dual (Adler & Öktem) with the multi-PSF operator ``A`` of ``N`` PSFs per colour
-(paper: 5, so 15 channels for RGB), every PSF initialised from the measured one. Primal ``p``
-and dual ``q`` both have ``N·C`` channels and the sensor's size; the measurement is tiled to
-``ỹ = (y, …, y)``. Iteration ``i``:
+Learned primal-dual (Adler & Öktem) with the multi-PSF operator ``A`` of ``N`` PSFs per colour.
+Primal ``p`` and dual ``q`` have ``N·C`` channels; ``ỹ`` is the measurement tiled ``N`` times.
+Iteration ``i``:
 
 .. math::
 
     q &\leftarrow q + \Gamma^{(i)}\big([A p,\ q,\ \tilde y]\big) \\
     p &\leftarrow p + \Lambda^{(i)}\big([A^\top q,\ p]\big)
 
-``Γ⁽ⁱ⁾`` is ``Conv3×3 (groups = N) → ReLU → Conv1×1`` from ``3·N·C`` to ``N·C`` channels and
-``Λ⁽ⁱ⁾`` the same from ``2·N·C``; the inputs are interleaved per PSF copy so that each 3×3 group
-sees one copy's ``(A p, q, ỹ)`` (resp. ``(Aᵀq, p)``), and the ``1×1`` convolution mixes the
-copies. ``p`` and ``q`` start at zero and live on the sensor; the output is
-``p[:, :C] + U-Net(p)``. With ``UPDNConfig.primal_grid = "padded"`` the primal lives on the
-padded scene grid ``(PH, PW)`` of the physics instead, as in the reference code, where
-``A p = crop(K ⊛ p)`` and ``Aᵀq = K ⋆ pad(q)`` (circular convolution and correlation on that
-grid: light from outside the field of view has somewhere to be), and the U-Net sees
-``crop(p)``.
-
-Following ``oliland/lensless-primal-dual`` (``ImageOptimizerMixColors``): 5 tiled PSFs, 10
-primal-dual blocks of this form, a U-Net on the primal channels with a residual on the first
-copy. The primal-dual blocks run in float32 under autocast (only the U-Net in half
-precision). Differences (docs/baselines.md): the primal on the sensor by default (same PSNR
-on the bench, less time), the groups aligned with the PSF copies, and no output sigmoid (as
-for the other models, the loss sees linear values). The PSF copies are
-identical at initialisation; they diverge in training because each copy's group of the
-convolutions has its own random weights.
+``Γ⁽ⁱ⁾``, ``Λ⁽ⁱ⁾``: ``Conv3×3 (groups = N) → ReLU → Conv1×1``, inputs interleaved per PSF copy.
+``p``, ``q`` start at zero on the sensor (or, ``primal_grid="padded"``, ``p`` on the padded
+scene grid with ``A p = crop(K ⊛ p)``, as the reference code); the output is
+``p[:, :C] + U-Net(crop(p))``. Differences from ``oliland/lensless-primal-dual``
+(docs/baselines.md): sensor primal by default, groups aligned with the copies, no output
+sigmoid.
 """
 
 from __future__ import annotations
@@ -72,7 +59,6 @@ class UPDN(UnrolledNetwork):
     physics : MultiPSFOperator
         ``N`` trainable PSFs per colour.
     config : UPDNConfig
-        Iterations (10), hidden width and the U-Net.
     """
 
     def __init__(self, physics: MultiPSFOperator, config: UPDNConfig | None = None) -> None:

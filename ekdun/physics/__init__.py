@@ -1,8 +1,5 @@
-"""Physics layer of ekdun: lensless forward operators with exact adjoints.
-
-The forward model itself (pad, crop, kernel embedding and spectra, FFT convolution and
-correlation, Eq. 7 in both conventions) lives in :mod:`psfkit.forward`;
-:mod:`ekdun.physics.operators` holds the :class:`torch.nn.Module` operator classes wrapping it.
+"""Physics layer of ekdun: :class:`torch.nn.Module` forward operators with exact adjoints,
+wrapping the one forward model, :mod:`psfkit.forward`.
 """
 
 from ekdun.physics.multi_psf import MultiPSFOperator
@@ -13,10 +10,5 @@ from ekdun.physics.operators import (
     ShiftInvariantOperator,
 )
 
-__all__ = [
-    "EigenKernelOperator",
-    "FFTConvolutionOperator",
-    "MultiPSFOperator",
-    "PreparedOperator",
-    "ShiftInvariantOperator",
-]
+__all__ = ["EigenKernelOperator", "FFTConvolutionOperator", "MultiPSFOperator", "PreparedOperator",
+           "ShiftInvariantOperator"]

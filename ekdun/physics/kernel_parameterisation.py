@@ -1,27 +1,16 @@
 r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel_param``).
 
-* ``"free"``: every kernel pixel is a parameter (the paper's, and the default). The
-  kernels live in :class:`~ekdun.physics.operators.EigenKernelOperator` as an
-  ``nn.Parameter``; nothing here is used.
-* ``"physical"`` (:class:`PhysicalKernels`): each kernel and channel is
-  ``K = E · softmax_S(θ)``: non-negative, zero outside the support ``S`` (the seed's caustic,
-  dilated), with the seed's energy ``E`` on ``S`` kept exactly. ``θ`` starts at
-  ``log(max(seed, 0) + floor)``, so the seed is reproduced (up to ``floor`` = 1e-6 of the
-  peak). A step of ``θ`` changes a pixel by a *factor*: a near-zero pixel stays near zero,
-  so no pedestal can grow. With ``kernel_gain`` the correction kernels also get a learned
-  per-channel gain (their energy is then the seed's × that gain).
-* ``"flow"`` (:class:`FlowKernels`): ``Kbase`` as in ``"physical"``; each correction kernel
-  ``K_j(x) = g_{j,c} · Kbase(x − D_j(x)) [+ S · R_j]``, ``D_j`` a smooth displacement field
-  (px) on a coarse ``n × n`` grid upsampled bicubically to the kernel, ``g`` a per-channel
-  gain (``exp`` of a parameter) and ``R_j`` an optional small residual on ``S``. The warp is a
-  bilinear resampling written out (not ``grid_sample``) so that ``D = 0`` gives ``Kbase``
-  bit for bit. From a measured seed the fields and gains are fitted to the seed's ``Kv, Kh``
-  first (:meth:`FlowKernels.fit_to`), the rest of the seed going into ``R`` if enabled.
+* ``"free"``: every kernel pixel is a parameter (the paper's; nothing here is used).
+* ``"physical"`` (:class:`PhysicalKernels`): ``K = E · softmax_S(θ)`` per kernel and channel:
+  non-negative, zero outside the seed's dilated caustic ``S``, with the seed's energy ``E``
+  kept; ``θ`` starts at ``log(max(seed, 0) + floor)``, so steps change pixels by factors.
+* ``"flow"`` (:class:`FlowKernels`): ``Kbase`` as ``"physical"``; correction kernels
+  ``K_j(x) = g_{j,c} · Kbase(x − D_j(x)) [+ S · R_j]`` with ``D_j`` a smooth displacement field
+  from a coarse grid (bicubic), ``g`` a per-channel gain and ``R_j`` an optional residual,
+  fitted to the seed first (:meth:`FlowKernels.fit_to`).
 
-Learning rates: parameters here are in natural units (log-intensity, pixels of displacement,
-log-gain), O(1) where a free pixel is O(1e-3), so their optimiser group uses a larger
-multiple of the network's learning rate (:data:`LR_MULTIPLIER`; the measurement is in
-research/notes/compare-studies.md).
+These parameters are O(1), so their optimiser group gets :data:`LR_MULTIPLIER`
+(research/notes/compare-studies.md).
 """
 
 from __future__ import annotations
@@ -63,9 +52,7 @@ class PhysicalKernels(nn.Module):
     floor : float
         Relative floor (of each kernel's peak) added to the seed before taking logs.
     gain : bool
-        Correction kernels (all but the first) get a learned per-channel gain ``exp(·)``
-        (starting at 1): their energy is then the seed's times that gain (the measured
-        ``Kv``, ``Kh`` carry less light than ``Kbase``; an energy-keeping kernel cannot).
+        Give the correction kernels a learned per-channel gain ``exp(·)`` (from 1).
     """
 
     def __init__(self, seed: Tensor, support: Tensor, floor: float = 1e-6,
@@ -101,20 +88,9 @@ class PhysicalKernels(nn.Module):
 
 
 def warp_bilinear(image: Tensor, displacement: Tensor) -> Tensor:
-    """``image(x − D(x))`` by bilinear interpolation, zero outside.
-
-    Parameters
-    ----------
-    image : Tensor
-        ``(C, H, W)``.
-    displacement : Tensor
-        ``(N, 2, H, W)`` = ``(D_u, D_v)`` px (u = column, v = row).
-
-    Returns
-    -------
-    Tensor
-        ``(N, C, H, W)``; exactly ``image`` where ``D = 0``.
-    """
+    """``image(x − D(x))`` ``(N, C, H, W)`` by bilinear interpolation, zero outside, exact
+    where ``D = 0``, for ``image`` ``(C, H, W)`` and ``displacement`` ``(N, 2, H, W)`` px
+    (``(D_u, D_v)``, u = column)."""
     c, h, w = image.shape
     yy, xx = torch.meshgrid(torch.arange(h, dtype=image.dtype, device=image.device),
                             torch.arange(w, dtype=image.dtype, device=image.device),
@@ -146,8 +122,7 @@ class FlowKernels(nn.Module):
     grid : int
         Size ``n`` of the coarse ``n × n`` displacement grid.
     residual : bool
-        Add a trainable residual on the support (starts at zero, or at what the fitted flow
-        leaves of a measured seed).
+        Add a trainable residual on the support.
     """
 
     def __init__(self, seed: Tensor, support: Tensor, grid: int = 8,
@@ -180,9 +155,8 @@ class FlowKernels(nn.Module):
         return torch.cat([base, corrections])
 
     def fit_to(self, seed: Tensor, steps: int = 300, lr: float = 0.05) -> float:
-        """Fit fields and gains (and residual) to a seed's correction kernels; returns the
-        relative L2 error of the flow model without the residual. Nothing is done when the
-        corrections equal ``Kbase`` (a one-PSF start: zero fields are exact)."""
+        """Fit fields and gains (and residual) to a seed's correction kernels (nothing when
+        they equal ``Kbase``); the relative L2 error of the flow without the residual."""
         target = seed[1:].detach()
         if torch.equal(target, seed[:1].expand_as(target)):
             return 0.0
@@ -209,13 +183,8 @@ class FlowKernels(nn.Module):
 def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: int = 8,
                            flow_residual: bool = False, gain: bool = False
                            ) -> nn.Module | None:
-    """The module that makes the kernels (``None`` for ``"free"``) from seed ``(K, C, H, W)``.
-
-    Raises
-    ------
-    ConfigurationError
-        Unknown name, or a seed the parameterisation cannot represent.
-    """
+    """The module that makes the kernels (``None`` for ``"free"``) from seed ``(K, C, H, W)``;
+    :class:`ConfigurationError` for an unknown name or a seed it cannot represent."""
     if name not in KERNEL_PARAMETERISATIONS:
         raise ConfigurationError(f"unknown kernel parameterisation {name!r} (use "
                                  f"{', '.join(KERNEL_PARAMETERISATIONS)})")

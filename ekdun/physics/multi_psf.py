@@ -4,21 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-import torch
 from torch import Tensor
 
-from ekdun.errors import ConfigurationError, KernelShapeError, TensorShapeError
-from ekdun.physics.operators import FFTConvolutionOperator, psf_tensor
+from ekdun.errors import KernelShapeError, TensorShapeError
+from ekdun.physics.operators import FFTConvolutionOperator
 
 
 class MultiPSFOperator(FFTConvolutionOperator):
-    r"""``N`` PSFs per colour, each convolving its own channel (UPDN's learned PSF stack).
-
-    Channel ``n·C + c`` of the ``(B, N·C, H', W')`` input is convolved with ``psfs[n, c]``:
-    ``y_{n,c} = crop(K_{n,c} * pad(x_{n,c}))`` and ``Aᵀ`` correlates channel-wise. It is the
-    shift-invariant model on ``N·C`` channels; :meth:`tile` makes the ``N``-fold copy of an
-    RGB measurement that UPDN compares with.
+    r"""``N`` PSFs per colour, each convolving its own channel (UPDN's learned PSF stack):
+    channel ``n·C + c`` of the ``(B, N·C, H', W')`` input with ``psfs[n, c]``.
 
     Parameters
     ----------
@@ -45,16 +39,6 @@ class MultiPSFOperator(FFTConvolutionOperator):
     def psfs(self) -> Tensor:
         """``(N, C, Hk, Wk)`` view of the PSF stack."""
         return self.kernels.reshape(self.copies, self.colours, *self.kernels.shape[-2:])
-
-    @classmethod
-    def from_psf(cls, psf: np.ndarray | Tensor, copies: int = 5,
-                 sensor_shape: Sequence[int] | None = None, scene_padding: int = 2,
-                 trainable: bool = True, dtype: torch.dtype | None = None) -> MultiPSFOperator:
-        """``copies`` identical copies of a measured PSF ``(C, H, W)``."""
-        if copies < 1:
-            raise ConfigurationError(f"copies must be >= 1, got {copies}")
-        t = psf_tensor(psf, dtype)
-        return cls(t[None].repeat(copies, 1, 1, 1), sensor_shape, scene_padding, trainable)
 
     def tile(self, y: Tensor) -> Tensor:
         """``(B, C, H', W') → (B, N·C, H', W')``: the measurement once per PSF copy."""

@@ -1,27 +1,12 @@
 r"""Forward operators of the lensless camera with exact adjoints (``A`` and ``A_adjoint``).
 
-Thin :class:`torch.nn.Module` wrappers over the one forward model, :mod:`psfkit.forward` (as
-deepinv's ``SpaceVaryingBlur`` wraps ``product_convolution2d``): the modules hold the kernels,
-weight maps and cached kernel spectra, check their inputs, and call
-:func:`~psfkit.forward.convolution.eigen_kernel_forward` /
-:func:`~psfkit.forward.convolution.eigen_kernel_adjoint`. ``A`` maps a scene ``(B, C, H', W')``
-to a measurement of the same size, ``A_adjoint`` back (``<A x, y> = <x, Aᵀ y>`` to rounding).
-
-:class:`ShiftInvariantOperator` is ``y = crop(K * pad(x))`` with one PSF ``(C, Hk, Wk)``;
-:class:`EigenKernelOperator` Eq. 7 with kernels ``(K, C, Hk, Wk)`` and weight maps
-``(K, H', W')`` from :mod:`psfkit.forward.weights`, sensor side (default) or source side;
-:class:`MultiPSFOperator` ``N`` PSFs per colour acting channel-wise (UPDN's learned PSFs).
-
-Kernel spectra are taken by :meth:`FFTConvolutionOperator.spectra`: cached for fixed kernels
-(recomputed after ``.to(device/dtype)`` and ``load_state_dict``), recomputed on each call for
-trainable ones, so a network calls it **once per forward pass** and binds the result with
-:meth:`~FFTConvolutionOperator.prepare`; the :class:`PreparedOperator` then applies ``A``/``Aᵀ``
-with no kernel FFT at all::
-
-    op = physics.prepare()          # kernel FFTs here, once
-    for i in range(iterations):
-        r = op.A(f) - y             # 1 + K (inverse) FFTs of the iterate only
-        f = f - eps * op.A_adjoint(r)
+Thin :class:`torch.nn.Module` wrappers over :mod:`psfkit.forward`: they hold the kernels,
+weight maps and cached spectra and check their inputs. ``A`` maps a scene ``(B, C, H', W')``
+to a measurement of the same size. :class:`ShiftInvariantOperator`: ``y = crop(K * pad(x))``;
+:class:`EigenKernelOperator`: Eq. 7 (sensor or source side). Spectra are cached for fixed
+kernels and recomputed per call for trainable ones, so a network takes them once per forward
+pass with :meth:`~FFTConvolutionOperator.prepare` and its :class:`PreparedOperator` applies
+``A``/``Aᵀ`` with no kernel FFT.
 """
 
 from __future__ import annotations
@@ -45,11 +30,8 @@ from psfkit.forward.weights import get_basis
 
 
 class PreparedOperator(SpectralOperator):
-    """An eigen-kernel operator bound to precomputed kernel spectra, with input checks.
-
-    :class:`psfkit.forward.operator.SpectralOperator` (same parameters) whose ``A`` and
-    ``A_adjoint`` first check their input (:meth:`check`).
-    """
+    """A :class:`psfkit.forward.operator.SpectralOperator` (precomputed kernel spectra) whose
+    ``A`` and ``A_adjoint`` check their input (:meth:`check`)."""
 
     def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
                  grid_shape: tuple[int, int], convention: str = "sensor",
@@ -103,21 +85,18 @@ def psf_tensor(psf: np.ndarray | Tensor, dtype: torch.dtype | None) -> Tensor:
 
 
 class FFTConvolutionOperator(nn.Module, LinearOperator):
-    """Common base of the FFT convolution operators: kernels, weights and spectra cache.
-
-    A :class:`~psfkit.forward.base.LinearOperator` (``norm()``, ``adjointness_error()``).
+    """Base of the FFT convolution operators (a :class:`~psfkit.forward.base.LinearOperator`):
+    kernels, weights and spectra cache.
 
     Parameters
     ----------
     kernels : Tensor
-        ``(K, C, Hk, Wk)`` real kernels, origins at ``(Hk//2, Wk//2)``, ``Hk <= H'``,
-        ``Wk <= W'``.
+        ``(K, C, Hk, Wk)`` real kernels, origins at ``(Hk//2, Wk//2)``, at most ``(H', W')``.
     weights : Tensor or None
-        ``(K, H', W')`` weight maps, or ``None`` (then ``K`` must be 1: weight 1 everywhere).
+        ``(K, H', W')`` weight maps, or ``None`` (then ``K`` must be 1).
     sensor_shape : (int, int)
         ``(H', W')``.
     convention : {"sensor", "source"}
-        Where the weights act (ignored without weights).
     scene_padding : int
         ``P >= 2``: the convolution grid is ``(P·H', P·W')``.
     trainable : bool
@@ -208,11 +187,8 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
         return module
 
     def spectra(self, first: int | None = None) -> Tensor:
-        """Kernel spectra ``(K, C, PH, PW//2 + 1)`` complex (the first ``first`` kernels).
-
-        Cached for fixed kernels; for trainable kernels this takes one FFT per kernel, so call
-        it once per network forward pass and bind the result with :meth:`prepare`.
-        """
+        """Kernel spectra ``(K, C, PH, PW//2 + 1)`` (the first ``first`` kernels); cached for
+        fixed kernels, one FFT per kernel per call for trainable ones."""
         n = self.n_kernels if first is None else first
         cache = self._spectra_cache
         if cache is not None and not self.kernels.requires_grad:
@@ -236,14 +212,8 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
                                 self.convention, conj_spectra)
 
     def lipschitz_bound(self) -> float:
-        r"""``max_{k,c,ω} |K̂_k(ω)|²``, an upper bound of ``‖AᵀA‖`` for one kernel: the
-        unrolled networks' initial step-size scale.
-
-        :func:`psfkit.forward.norm.spectral_bound` squared. Not an estimate of ``‖A‖`` (the
-        crop lowers the norm: :func:`psfkit.forward.norm.operator_norm` measures it); a
-        network's initial gradient step wants a bound from above, and one that does not
-        depend on an iteration.
-        """
+        r"""``max_{k,c,ω} |K̂_k(ω)|²``, an upper bound of ``‖AᵀA‖`` for one kernel (not an
+        estimate of ``‖A‖``): the unrolled networks' initial step-size scale."""
         with torch.no_grad():
             return spectral_bound(self.spectra()) ** 2
 
@@ -268,8 +238,6 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
 class ShiftInvariantOperator(FFTConvolutionOperator):
     r"""Shift-invariant lensless model ``y = crop(K * pad(x))``, ``Aᵀy = crop(K ⋆ pad(y))``.
 
-    The eigen-kernel model with one kernel and weight 1 (basis ``"si"``).
-
     Parameters
     ----------
     psf : Tensor
@@ -277,9 +245,7 @@ class ShiftInvariantOperator(FFTConvolutionOperator):
     sensor_shape : (int, int), optional
         ``(H', W')``; default the PSF's size.
     scene_padding : int
-        Padding factor ``P >= 2``.
     trainable : bool
-        Whether the PSF is learned.
     """
 
     def __init__(self, psf: Tensor, sensor_shape: Sequence[int] | None = None,
@@ -315,20 +281,16 @@ class EigenKernelOperator(FFTConvolutionOperator):
         A x  = crop(Σ_k K_k * pad(W_k ⊙ x))          K FFTs + 1 inverse FFT
         Aᵀ y = Σ_k W_k ⊙ crop(K_k ⋆ pad(y))          1 FFT + K inverse FFTs
 
-    For the paper's basis ``K = 3``: ``(K_base, K_v, K_h)`` with weights
-    ``(1 − W_h − W_v, W_v, W_h)``.
-
     Parameters
     ----------
     kernels : Tensor
         ``(K, C, Hk, Wk)``.
     weights : Tensor
-        ``(K, H', W')`` weight maps (of the sensor pixels or of the scene pixels).
+        ``(K, H', W')`` weight maps.
     convention : {"sensor", "source"}
     scene_padding : int
     trainable : bool
     kernel_names : sequence of str, optional
-        Names of the kernels (from the weight basis), for reports.
     """
 
     def __init__(self, kernels: Tensor, weights: Tensor, convention: str = "sensor",
@@ -367,25 +329,10 @@ class EigenKernelOperator(FFTConvolutionOperator):
         return cls(kernels, maps, model.convention, model.scene_padding, trainable,
                    model.kernel_names)
 
-    @classmethod
-    def from_psf(cls, psf: np.ndarray | Tensor, basis: str = "paper",
-                 sensor_shape: Sequence[int] | None = None, convention: str = "sensor",
-                 scene_padding: int = 2, trainable: bool = False,
-                 dtype: torch.dtype | None = None) -> EigenKernelOperator:
-        """Every kernel a copy of one measured PSF ``(C, H, W)`` (equals the SI model)."""
-        t = psf_tensor(psf, dtype)
-        n = get_basis(basis).n_kernels
-        return cls.from_basis(t[None].repeat(n, 1, 1, 1), basis, sensor_shape,
-                              convention=convention, scene_padding=scene_padding,
-                              trainable=trainable)
-
     def prepare_base(self, spectra: Tensor | None = None,
                      conj_spectra: Tensor | None = None) -> PreparedOperator:
-        """The shift-invariant model of the first (base) kernel alone, weight 1 everywhere.
-
-        ``spectra`` (and ``conj_spectra``) may hold all kernels' spectra (only the first is
-        used) or just the first.
-        """
+        """The shift-invariant model of the base kernel alone; ``spectra`` (and
+        ``conj_spectra``) may hold all kernels' (only the first is used)."""
         if spectra is None:
             return PreparedOperator(self.spectra(first=1), None, self.sensor_shape,
                                     self.grid_shape, conj_spectra=self._cached_conj(first=1))

@@ -1,51 +1,32 @@
 r"""ADMM-TV for every kernel model: one solver, one update rule per form of the model.
 
-The problem, for a measurement ``y`` ``(C, H', W')`` and a model ``A`` whose scene ``x`` lives
-on the padded grid ``(C, PH, PW)`` (light from outside the view:
-:class:`~ekdun.reconstruction.extended_scene.ExtendedSceneOperator`), is
+For a measurement ``y`` ``(C, H', W')`` and a model ``A`` whose scene ``x`` lives on the padded
+grid ``(C, PH, PW)`` (:class:`~ekdun.reconstruction.extended_scene.ExtendedSceneOperator`):
 
 .. math::
 
     \min_{x}\ \tfrac12 \lVert A x - y\rVert_2^2 + \lambda \lVert \Psi x\rVert_1
               \;[+\ \iota_{x \ge 0}(x)]
 
-with ``Ψ`` circular forward differences (anisotropic TV). What every form shares lives in
-:func:`solve_tv`:
-
-* **units**: ``y`` is divided by its peak and the operator by ``‖A‖``
-  (:func:`psfkit.forward.norm.operator_norm`, the one estimate, cached on the operator), so the
-  relative weight ``tv`` and the penalties ``μ`` are scale-free; the objective's weight is
-  ``λ = tv · peak(|y|) · ‖A‖``, and the result is scaled back by
-  ``peak/‖A‖`` into the units of ``y = A x``;
-* **splitting**: ``s = Ψx`` (TV, soft threshold ``𝒮_{tv/μ2}``), a copy of ``x`` for
-  non-negativity (``max(·, 0)``), the data term split so that each step is closed-form:
-  diagonal in Fourier space (convolutions on the padded grid, ``ΨᵀΨ``) or per pixel (weights,
-  crop);
-* **stopping**: ``‖x_k − x_{k−1}‖/‖x_k‖ < tol`` (:func:`record_change`), or ``iterations``.
-
-The update rules differ in how the data term is split (scaled duals throughout):
+with ``Ψ`` circular forward differences. :func:`solve_tv` divides ``y`` by its peak and ``A``
+by ``‖A‖`` (:func:`psfkit.forward.norm.operator_norm`), so ``tv`` and the penalties ``μ`` are
+scale-free (``λ = tv · peak(|y|) · ‖A‖``) and scales the result back; it splits ``s = Ψx``
+(soft threshold) and a copy of ``x`` (non-negativity) and stops when
+``‖x_k − x_{k−1}‖/‖x_k‖ < tol``. The data term's split differs per rule (scaled duals):
 
 :class:`ShiftInvariantRule`, ``A x = C H x``
-    the DiffuserCam ADMM (Antipa et al. 2018; the differentiable version the unrolled
-    Le-ADMM-U learns its ``μ`` in is :mod:`ekdun.nets.tv_admm_steps`), split ``u = Hx``: in
-    the view ``u = b + (y − b)/(1 + μ1)``, ``b = Hx + α/μ1``, outside it ``u = b``; the ``x``
-    step ``(μ1 HᵀH + μ2 ΨᵀΨ + μ3) x = …`` is diagonal in Fourier space. 4 FFTs an iteration.
+    the DiffuserCam ADMM (Antipa et al. 2018; cf. :mod:`ekdun.nets.tv_admm_steps`), split
+    ``u = Hx``: in the view ``u = b + (y − b)/(1 + μ1)``, ``b = Hx + α/μ1``, outside ``u = b``;
+    the ``x`` step ``(μ1 HᵀH + μ2 ΨᵀΨ + μ3) x = …`` is diagonal in Fourier space.
 :class:`SensorSideRule`, ``A x = Σ_k W_k ⊙ C H_k x``
-    one split per kernel, ``u_k = H_k x``; in the view each pixel solves
-    ``(w wᵀ + μ1 I) u = w y + μ1 b`` (``w`` its ``K`` weights) by Sherman–Morrison,
-    ``u = b + w (y − wᵀb)/(μ1 + wᵀw)``; the ``x`` step has ``μ1 Σ_k H_kᵀH_k``. Since
-    ``μ1 u_k − α_k = μ1 (H_k x + pad(W_k r))``, the duals cancel from the ``x`` step, whose
-    data part is ``F(Aᵀr)``. ``2K + 2`` FFTs.
+    ``u_k = H_k x``; in the view each pixel solves ``(w wᵀ + μ1 I) u = w y + μ1 b`` by
+    Sherman–Morrison, ``u = b + w (y − wᵀb)/(μ1 + wᵀw)``; since
+    ``μ1 u_k − α_k = μ1 (H_k x + pad(W_k r))`` the ``x`` step's data part is ``F(Aᵀr)``.
 :class:`SourceSideRule`, ``A x = C Σ_k H_k (V_k ⊙ x)``
-    the pixel weights sit between the convolutions and the crop, so the weighted scenes
-    ``r_k = V_k z`` and a copy ``z = x`` are split off as well
-    (``v = Σ_k H_k r_k, r_k = V_k z, s = Ψx, z = x``) and the variables fall into two
-    separable blocks, ``(v, z, s)`` and ``(r, x)`` (classical two-block ADMM, duals
-    ``a, b_k, c, d``):
+    two-block ADMM over ``v = Σ_k H_k r_k, r_k = V_k z, s = Ψx, z = x`` (duals ``a, b_k, c, d``):
 
     * ``v = (Cᵀy + μ1 (Σ_k H_k r_k + a)) / (CᵀC + μ1)``, per pixel;
-    * ``z = max(0, (μ4 Σ_k V_k (r_k + b_k) + μ3 (x − d)) / (μ4 Σ_k V_k² + μ3))``, per pixel
-      (a separable quadratic: clipping its minimiser is the exact constrained step);
+    * ``z = max(0, (μ4 Σ_k V_k (r_k + b_k) + μ3 (x − d)) / (μ4 Σ_k V_k² + μ3))``, per pixel;
     * ``s = 𝒮_{λ/μ2}(Ψx + c)``;
     * ``r``: per frequency ``(μ1 ĥĥᴴ + μ4 I) r̂ = μ1 ĥ̄ p̂ + μ4 t̂`` with ``ĥ = (K̂_k)_k``,
       ``p = v − a``, ``t_k = V_k z − b_k``; by Sherman–Morrison ``r̂_k = t̂_k + K̂_k^* ĝ``,
@@ -53,12 +34,9 @@ The update rules differ in how the data term is split (scaled duals throughout):
     * ``x = (μ2 ΨᵀΨ + μ3)⁻¹ (μ2 Ψᵀ(s − c) + μ3 (z + d))``, diagonal in Fourier space;
     * ``a += Σ_k H_k r_k − v``, ``b_k += r_k − V_k z``, ``c += Ψx − s``, ``d += z − x``.
 
-    After its update ``b_k = H_kᵀ g`` exactly, so only ``q = Σ_k V_k H_kᵀ g`` is kept in pixel
-    space; ``a`` is 0 outside the view. One batched forward FFT of ``K + 2`` planes and one
-    inverse of ``K + 2`` an iteration.
+    As ``b_k = H_kᵀ g`` after its update, only ``q = Σ_k V_k H_kᵀ g`` is kept.
 
-The penalties change the speed, not the minimiser (tested against an independent dense
-solve); each rule's defaults are the fastest of a search on two DLMD pairs at 67x120
+The penalties change the speed, not the minimiser; the defaults are the fastest of a search
 (research/notes/reconstruction-studies.md).
 """
 
@@ -86,22 +64,9 @@ from psfkit.forward.padded_scene import kernel_images, padded_scene_adjoint_spec
 
 @dataclass
 class TVResult:
-    """Result of :func:`solve_tv`.
-
-    Attributes
-    ----------
-    image : Tensor
-        ``(C, PH, PW)`` padded-grid reconstruction in the units of ``x`` in ``y = A x``
-        (``op.crop`` gives the sensor-sized block).
-    iterations : int
-        Iterations run.
-    converged : bool
-        Whether the relative-change rule stopped it (``tol > 0``).
-    relative_change : list of float
-        ``‖x_k − x_{k−1}‖ / ‖x_k‖`` per iteration (recorded with a ``tol`` or a callback).
-    operator_norm : float
-        The ``‖A‖`` used.
-    """
+    """Result of :func:`solve_tv`: ``image`` ``(C, PH, PW)`` on the padded grid in the units
+    of ``x`` in ``y = A x``, the iterations run, whether the ``tol`` rule stopped it, the
+    relative change per iteration (with a ``tol`` or a callback) and the ``‖A‖`` used."""
 
     image: Tensor
     iterations: int
@@ -112,8 +77,7 @@ class TVResult:
 
 @dataclass
 class NormalisedProblem:
-    """A measurement and a model in the scale-free units of the solver: ``y`` divided by its
-    ``peak``, the kernel spectra (and their conjugates) by the gain ``norm``."""
+    """``y`` divided by its ``peak`` and the kernel spectra (and conjugates) by ``norm``."""
 
     y: Tensor
     peak: float
@@ -140,9 +104,8 @@ def normalised_problem(measurement: Tensor, op: ExtendedSceneOperator, tv: float
 
 def record_change(result: TVResult, iteration: int, x_new: Tensor, x: Tensor, tol: float,
                   callback: Callable[[int, float], None] | None) -> bool:
-    """Log ``‖x_new − x‖/‖x_new‖`` in ``result`` (and to ``callback``); whether the stopping
-    rule ``change < tol`` holds (``result.converged`` is set then). An iterate of zero counts as
-    no convergence (the source-side rule's first ``x`` is 0)."""
+    """Log ``‖x_new − x‖/‖x_new‖`` in ``result`` (and to ``callback``); whether
+    ``change < tol`` (sets ``result.converged``). A zero iterate never converges."""
     size = float(x_new.norm())
     change = float((x_new - x).norm()) / size if size > 0 else 1.0
     result.relative_change.append(change)
@@ -153,8 +116,8 @@ def record_change(result: TVResult, iteration: int, x_new: Tensor, x: Tensor, to
 
 
 class ADMMRule:
-    """One form's ADMM-TV update: its state, built from the normalised problem, and
-    :meth:`step`. Subclasses set :attr:`penalties` (their default ``μ``, in order)."""
+    """One form's ADMM-TV update: its state and :meth:`step`; :attr:`penalties` holds its
+    default ``μ``, in order."""
 
     penalties: ClassVar[dict[str, float]] = {}
 
@@ -174,8 +137,8 @@ class ADMMRule:
 
 
 class SensorSideRule(ADMMRule):
-    """Sensor-side eigen-kernel models: one split ``u_k = H_k x`` per kernel (module
-    docstring). Only the in-view blocks of ``H_k x`` and of the ``u`` duals are stored."""
+    """Sensor-side eigen-kernel models: ``u_k = H_k x`` per kernel (only in-view blocks
+    stored)."""
 
     penalties: ClassVar[dict[str, float]] = {"mu1": 0.05, "mu2": 0.01, "mu3": 0.003}
 
@@ -236,8 +199,7 @@ class SensorSideRule(ADMMRule):
 
 
 class ShiftInvariantRule(SensorSideRule):
-    """One kernel, no weights: the sensor-side rule with ``W = 1`` (the same iterates), its
-    per-pixel step without the weight products."""
+    """One kernel, no weights: the sensor-side rule with ``W = 1``, without the products."""
 
     def data_residual(self, b: Tensor) -> tuple[Tensor, Tensor]:
         residual = (self.problem.y - b[0]) * self.gain                # (C, H', W')
@@ -253,8 +215,8 @@ def _scale_complex(real: Tensor, spectrum: Tensor, out: Tensor | None = None) ->
 
 
 class SourceSideRule(ADMMRule):
-    """Source-side eigen-kernel models: the two-block ADMM of the module docstring, with one
-    batched forward and one batched inverse FFT an iteration."""
+    """Source-side eigen-kernel models: the two-block ADMM, one batched forward and inverse
+    FFT an iteration."""
 
     penalties: ClassVar[dict[str, float]] = {"mu1": 0.15, "mu2": 0.003, "mu3": 0.001,
                                              "mu4": 0.005}
@@ -332,8 +294,7 @@ class SourceSideRule(ADMMRule):
 
 
 def update_rule(op: ExtendedSceneOperator) -> type[ADMMRule]:
-    """The update rule of ``op``'s form: shift-invariant (no weights), sensor side or source
-    side."""
+    """The update rule of ``op``'s form."""
     if op.convention == "source":
         return SourceSideRule
     return ShiftInvariantRule if op.weights is None else SensorSideRule
@@ -350,23 +311,20 @@ def solve_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     measurement : Tensor
         ``(C, H', W')`` in the operator's dtype.
     op : ExtendedSceneOperator
-        The model: its form (shift-invariant, sensor side, source side) picks the update rule
-        (:func:`update_rule`).
+        The model; its form picks the update rule (:func:`update_rule`).
     tv : float
-        Relative TV weight: the objective's ``λ`` is ``tv · peak(|y|) · ‖A‖``.
+        Relative TV weight: ``λ = tv · peak(|y|) · ‖A‖``.
     iterations : int
         Maximum iterations.
     nonneg : bool
-        Constrain the scene to ``>= 0``.
     tol : float
         Stop once ``‖x_k − x_{k−1}‖/‖x_k‖ < tol`` (0: off).
     mu : mapping, optional
-        Penalties overriding the rule's defaults (``mu1..mu3``; source side also ``mu4``), in
-        the normalised units: they change the speed, not the minimiser.
+        Penalties overriding the rule's defaults (``mu1..mu3``; source side also ``mu4``).
     norm : float, optional
-        ``‖A‖``, which sets the units (default :func:`psfkit.forward.norm.operator_norm`).
+        ``‖A‖`` (default :func:`psfkit.forward.norm.operator_norm`).
     callback : callable, optional
-        ``callback(iteration, relative_change)`` after each iteration (progress bars).
+        ``callback(iteration, relative_change)`` after each iteration.
 
     Returns
     -------
@@ -376,8 +334,7 @@ def solve_tv(measurement: Tensor, op: ExtendedSceneOperator, tv: float = 1e-3,
     Raises
     ------
     ConfigurationError
-        Negative ``tv`` or ``tol``, ``iterations < 1``, a penalty that is not positive or not
-        the rule's.
+        Negative ``tv`` or ``tol``, ``iterations < 1``, a bad or unknown penalty.
     TensorShapeError
         A measurement that does not fit the operator.
     """

@@ -1,18 +1,10 @@
 """Classical reconstruction with a kernel file, as fitted (``ekdun reconstruct K.npz``).
 
-A shift-invariant or eigen-kernel model from ``psfkit fit-eigen`` or ``psfkit fit-pairs``
-(either weight convention) is used exactly as stored: no clipping of negative kernel values
-and no per-channel renormalisation (both change the model; fit-pairs kernels carry the
-camera's channel gains and may have negative lobes). The solver is the one ADMM-TV,
-:func:`~ekdun.reconstruction.admm.solve_tv`, with the update rule of the model's form
-(shift-invariant, sensor side, source side); ADMM reaches a given objective gap in fewer
-iterations than PDHG (research/notes/reconstruction-studies.md), and the retired
-``solver="pdhg"`` runs ADMM with a DeprecationWarning.
-
-The scene is solved for on the padded grid (light from outside the view); a
-source-side model's weights continue their edge values outside the view
-(:meth:`psfkit.forward.kernelfile.KernelModel.weight_maps`). Images are ``(C, H', W')`` in the
-model's channel order (RGB); files are converted at the boundary (:func:`reconstruct_folder`).
+A shift-invariant or eigen-kernel model (either convention) is used exactly as stored: no
+clipping of negative values, no per-channel renormalisation (both would change the model).
+The solver is the one ADMM-TV, :func:`~ekdun.reconstruction.admm.solve_tv` (the retired
+``solver="pdhg"`` runs it with a DeprecationWarning), with the scene on the padded grid.
+Images are ``(C, H', W')`` in the model's channel order; files are converted at the boundary.
 """
 
 from __future__ import annotations
@@ -46,13 +38,11 @@ class ClassicalOptions:
     Attributes
     ----------
     solver : {"auto", "admm"}
-        Both are the one ADMM-TV (``"pdhg"``, removed, runs it with a DeprecationWarning).
+        Both are the one ADMM-TV.
     tv : float
-        Relative TV weight (scale-free: see :mod:`ekdun.reconstruction.admm`).
+        Relative TV weight (:mod:`ekdun.reconstruction.admm`).
     iterations : int
-        Maximum iterations.
     nonneg : bool
-        Constrain the image to be non-negative.
     tol : float
         Relative-change stopping rule (0 = off).
     dtype : {"float32", "float64"}
@@ -95,15 +85,8 @@ class ClassicalResult:
 
 
 class ModelReconstructor:
-    """A kernel model ready to reconstruct many measurements (operator, spectra and ``‖A‖``
-    computed once).
-
-    Parameters
-    ----------
-    model : KernelModel
-        From :func:`psfkit.forward.kernelfile.load_kernels`, used as fitted.
-    options : ClassicalOptions
-    """
+    """A kernel model (used as fitted) ready to reconstruct many measurements: operator,
+    spectra and ``‖A‖`` computed once."""
 
     def __init__(self, model: KernelModel, options: ClassicalOptions | None = None) -> None:
         self.model = model
@@ -145,28 +128,9 @@ class ModelReconstructor:
 
 def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | None = None,
               scene_padding: int = 2) -> KernelModel:
-    """The shift-invariant kernel model of a PSF kernel, for measurements of ``sensor_shape``.
-
-    What ``ekdun reconstruct PSF RAW`` reconstructs with (the PSF from
-    :func:`psfkit.calibration.psf_image.load_psf_image`), so that the PSF form and ``--kernels``
-    run one solver.
-
-    Parameters
-    ----------
-    psf : numpy.ndarray
-        ``(C, Hk, Wk)`` or ``(Hk, Wk)`` kernel, origin at its centre, used as given.
-    sensor_shape : (int, int)
-        ``(H', W')`` of the measurements (at least the PSF's size).
-    channels : int, optional
-        Channels of the measurements: a mono PSF is used for each of them.
-    scene_padding : int
-        Padded-grid factor.
-
-    Raises
-    ------
-    TensorShapeError
-        A PSF larger than the measurement or with a channel count that does not fit.
-    """
+    """The shift-invariant kernel model of a PSF ``(C, Hk, Wk)`` or ``(Hk, Wk)`` (centred,
+    used as given) for measurements of ``sensor_shape`` with ``channels`` (a mono PSF serves
+    each); :class:`TensorShapeError` when it does not fit them."""
     kernel = np.asarray(psf, dtype=np.float32)
     kernel = kernel[None] if kernel.ndim == 2 else kernel
     if kernel.ndim != 3:
@@ -189,27 +153,21 @@ _DTYPE_NAMES = {torch.float32: "float32", torch.float64: "float64"}
 def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iterations: int = 100,
             tau: float = 1e-3, scene_padding: int = 2, normalize_psf: bool = True,
             dtype: torch.dtype = torch.float64) -> Tensor:
-    """Reconstruct a scene from one measurement with ADMM-TV and a shift-invariant PSF.
-
-    Kept for callers of the DiffuserCam tutorial's function: the PSF's shift-invariant model
-    (:func:`psf_model`) through :class:`ModelReconstructor`, the solver of ``ekdun reconstruct``
-    (the scene on the padded grid, ``tau`` relative to the measurement's peak and ``‖A‖``).
+    """ADMM-TV with a shift-invariant PSF (the DiffuserCam tutorial's function, now the
+    solver of ``ekdun reconstruct`` through :func:`psf_model`).
 
     Parameters
     ----------
     measurement : array ``(C, H', W')`` or ``(H', W')``
         Background-subtracted measurement.
     psf : array ``(C, Hk, Wk)`` or ``(Hk, Wk)``
-        PSF (origin at its centre), ``Hk <= H'``, ``Wk <= W'``; a mono PSF is used for every
-        channel.
+        Centred PSF, at most the measurement's size; a mono PSF serves every channel.
     iterations : int
-        ADMM iterations.
     tau : float
         TV weight relative to the measurement's peak and ``‖A‖`` (``--tv``).
     scene_padding : int
-        Padded-grid factor.
     normalize_psf : bool
-        Scale each PSF channel to unit sum first (reconstruction in measurement units).
+        Scale each PSF channel to unit sum first.
     dtype : torch.float32 or torch.float64
 
     Returns
@@ -231,29 +189,25 @@ def admm_tv(measurement: np.ndarray | Tensor, psf: np.ndarray | Tensor, iteratio
 
 def reconstruct_with_model(measurement: np.ndarray, model: KernelModel,
                            options: ClassicalOptions | None = None) -> np.ndarray:
-    """Reconstruct one measurement ``(C, H', W')`` (RGB, the model's size) with a kernel model.
-
-    Returns the ``(C, H', W')`` float32 scene in the units of ``y = A x``.
-    """
+    """The ``(C, H', W')`` float32 scene of one measurement (the model's size), in the units
+    of ``y = A x``."""
     return ModelReconstructor(model, options)(np.asarray(measurement)).image
 
 
 def read_classical_measurement(path: str | os.PathLike, channel_order: str = "RGB",
                                downsample: int = 1, background: str = "none",
                                white_level: float | None = None) -> np.ndarray:
-    """A measurement file as ``(C, H, W)`` float32 RGB in the toolkit's units (integer files
-    divided by ``white_level``, default the dtype's maximum), optionally box-downsampled by
-    ``downsample`` and with the mean of its ``[5:15, 5:15]`` corner subtracted
-    (``background="corner"``, before downsampling)."""
-    from ekdun.reconstruction.reconstruct import read_measurement
+    """A measurement file as ``(C, H, W)`` float32 RGB in the toolkit's units, with the mean of
+    its ``[5:15, 5:15]`` corner subtracted (``background="corner"``), then box-downsampled."""
     from psfkit.calibration.psf_image import BACKGROUNDS, subtract_background
+    from psfkit.io.images import read_image_float
     from psfkit.numerics.resample import bin_mean
 
     if background not in BACKGROUNDS:
         raise ConfigurationError(f"--background must be none or corner, got {background!r}")
     if downsample < 1:
         raise ConfigurationError(f"--downsample must be >= 1, got {downsample}")
-    y = subtract_background(read_measurement(path, channel_order, white_level), background,
+    y = subtract_background(read_image_float(path, channel_order, white_level), background,
                             str(path))
     if downsample > 1:
         if min(y.shape[-2:]) // downsample < 1:   # blame the flag, not an empty image
@@ -269,13 +223,9 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
                        progress: bool = False, downsample: int = 1,
                        background: str = "none", white_level: float | None = None
                        ) -> list[Path]:
-    """Reconstruct measurement files and folders into ``out_dir``, atomically.
-
-    Every input is read (:func:`read_classical_measurement`, ``channel_order`` being the
-    order of the input files on disk) and checked before anything is computed. Each ``NAME``
-    gives ``NAME.npy`` (``H × W × C`` float32, RGB: the toolkit's one output convention) and
-    an 8-bit RGB ``NAME.png`` preview scaled to its maximum.
-    """
+    """Reconstruct measurement files and folders into ``out_dir``, atomically, every input
+    read and checked first: ``NAME.npy`` (``H × W × C`` float32 RGB) and an 8-bit
+    ``NAME.png`` preview scaled to its maximum."""
     from ekdun.reconstruction.reconstruct import measurement_files
     from psfkit.io.atomic import atomic_directory
 
@@ -301,9 +251,8 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
 
 
 def write_reconstruction(path: Path, image: np.ndarray, preview: Path | None = None) -> None:
-    """``path`` (``.npy``, ``H × W × C`` float32 RGB, whatever order the input was stored in)
-    and its RGB ``.png`` preview (at ``preview``, default ``path`` with the suffix ``.png``),
-    each atomic."""
+    """``path`` (``.npy``, ``H × W × C`` float32 RGB) and its ``.png`` preview (default next to
+    it), each atomic."""
     from ekdun.reconstruction.reconstruct import to_preview
     from psfkit.io.images import write_image
 

@@ -16,16 +16,8 @@ from ekdun.nets.builder import network_from_checkpoint
 from ekdun.nets.checkpoint import checkpoint_sensor, load_checkpoint
 from psfkit.io.atomic import atomic_directory
 from psfkit.io.images import IMAGE_SUFFIXES, read_image_float, write_image
-from psfkit.io.read_options import ReadOptions, choose
+from psfkit.io.read_options import choose
 from psfkit.numerics.resample import bin_mean
-
-
-def read_measurement(path: str | os.PathLike, channel_order: str = "RGB",
-                     white_level: float | None = None) -> np.ndarray:
-    """A measurement as ``(C, H, W)`` float32 RGB in the toolkit's units
-    (:func:`psfkit.io.images.read_image_float`: integer files divided by ``white_level``,
-    default their dtype's maximum; float files kept)."""
-    return read_image_float(path, channel_order, white_level)
 
 
 def measurement_files(inputs: Sequence[str | os.PathLike]) -> list[Path]:
@@ -56,12 +48,6 @@ def to_preview(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def training_read_options(doc: dict, where: str = "checkpoint") -> ReadOptions:
-    """The read options of a checkpoint's training pairs (channel order ``None`` where the
-    checkpoint does not record it)."""
-    return recorded_read_options(doc.get("metadata", {}).get("data") or {}, where)
-
-
 @torch.no_grad()
 def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.PathLike],
                       out_dir: str | os.PathLike, channel_order: str | None = None,
@@ -69,23 +55,18 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
                       downsample: int | None = None,
                       notify: Callable[[str], None] | None = None) -> list[Path]:
     """Reconstruct every measurement into ``out_dir`` (``NAME.npy`` HWC float32 RGB and an
-    8-bit ``NAME.png`` preview), in the orientation of the training scenes. All inputs are
-    checked against the model before anything is written; the output folder appears
-    atomically.
+    8-bit ``NAME.png`` preview), atomically, all inputs checked first.
 
-    ``channel_order`` (of ``.npy``/TIFF inputs) and ``downsample`` (block mean, as in
-    training) default to how the checkpoint's training pairs were read, so a model trained on
-    DLMD pairs (BGR, binned) reads DLMD measurements as they are stored; integer files are
-    scaled by the recorded white level. A flag that contradicts the record is applied, and
-    ``notify`` gets a one-line notice once the outputs are written. ``amp`` (``"auto"`` = fp16
-    on CUDA and off on CPU, ``"off"``, ``"bf16"``, ``"fp16"`` on CUDA) runs the network under
-    autocast; the physics FFTs stay float32 (:mod:`ekdun.device`) and the outputs are float32
-    either way.
+    ``channel_order`` and ``downsample`` default to how the checkpoint's training pairs were
+    read (also the white level); a flag that contradicts the record is applied and ``notify``
+    gets a one-line notice after the work. ``amp`` (:func:`ekdun.device.resolve_amp`) runs the
+    network under autocast; the outputs are float32 either way.
     """
     device = acc.resolve_device(device)
     precision = acc.resolve_amp(amp, device)
     doc = load_checkpoint(checkpoint)
-    recorded = training_read_options(doc, str(checkpoint))
+    # how the training pairs were read (channel order None where not recorded)
+    recorded = recorded_read_options(doc.get("metadata", {}).get("data") or {}, str(checkpoint))
     channel_order, order_notice = choose(channel_order, recorded.channel_order, "RGB",
                                          "--channel-order", str(checkpoint))
     factor, factor_notice = choose(downsample, recorded.downsample, 1, "--downsample",
@@ -99,7 +80,7 @@ def reconstruct_files(checkpoint: str | os.PathLike, inputs: Sequence[str | os.P
     files = measurement_files(inputs)
     images = []
     for f in files:
-        y = read_measurement(f, channel_order, recorded.white_level)
+        y = read_image_float(f, channel_order, recorded.white_level)
         if factor > 1:
             y = bin_mean(y, factor).astype(np.float32)
         if tuple(y.shape[-2:]) != sensor or y.shape[0] != channels:

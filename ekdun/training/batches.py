@@ -1,15 +1,6 @@
-"""Training batches: the dataset kept on the device when it fits, else a DataLoader.
-
-The batch order is :func:`ekdun.training.distributed.global_batches` (a function of
-``(seed, epoch)`` only) in both paths, so resumed, resident and streamed runs see the same
-images in the same batches.
-
-Resident
-    Every pair is stacked once into two ``(N, C, H', W')`` tensors on the training device; a
-    batch is an ``index_select`` there: no host work, no host-to-device copy per step.
-Streamed
-    A :class:`~torch.utils.data.DataLoader` with worker processes, pinned host memory on CUDA
-    and non-blocking copies, for datasets larger than the budget.
+"""Training batches: the dataset kept on the device when it fits (a batch is an
+``index_select`` there), else a DataLoader with workers and pinned memory. Both follow
+:func:`ekdun.training.distributed.global_batches`, a function of ``(seed, epoch)`` only.
 """
 
 from __future__ import annotations
@@ -61,7 +52,7 @@ class _EpochBatches(Sampler[list[int]]):
 
 
 class BatchSource:
-    """The training batches of every epoch, on the training device.
+    """The contiguous ``(b, C, H', W')`` training batches of every epoch, on the device.
 
     Parameters
     ----------
@@ -70,16 +61,11 @@ class BatchSource:
     batch_size : int
         Global batch size (each rank gets its contiguous share).
     seed : int
-        Seed of the batch order.
     ctx : DistContext
-        Rank, world size and device.
     resident : bool or None
         Keep the dataset on the device; ``None``: when it fits (:func:`fits_on_device`).
     workers : int
         DataLoader worker processes of the streamed path.
-
-    Batches are contiguous ``(b, C, H', W')``: the physics FFTs want contiguous planes (the
-    U-Nets switch to channels-last themselves).
     """
 
     def __init__(self, dataset: Dataset, batch_size: int, seed: int, ctx: D.DistContext,

@@ -1,10 +1,5 @@
-"""Distributed data parallel helpers (``torchrun``): process group, device, batches.
-
-Launch ``ekdun train ...`` under ``torchrun --nproc_per_node N`` (or several nodes): every
-process trains on its share of each GLOBAL batch (``--batch-size`` is the global batch and
-must be divisible by the number of processes), gradients are averaged by
-:class:`~torch.nn.parallel.DistributedDataParallel`, and only rank 0 writes checkpoints and
-logs. The backend is NCCL on CUDA and gloo on CPU.
+"""Distributed data parallel helpers (``torchrun``): process group, device, batches. Every
+process trains on its share of each global batch (``--batch-size``); only rank 0 writes.
 """
 
 from __future__ import annotations
@@ -63,8 +58,7 @@ def setup(device: str = "auto") -> DistContext:
 
 def global_batches(n_items: int, global_batch: int, seed: int, epoch: int) -> list[list[int]]:
     """The epoch's global batches: a permutation seeded by ``(seed, epoch)`` cut into full
-    batches of ``global_batch`` (an incomplete last batch is dropped, so that every step
-    averages the same number of images on every rank)."""
+    batches of ``global_batch`` (an incomplete last batch is dropped)."""
     if global_batch < 1:
         raise ConfigurationError(f"--batch-size must be >= 1, got {global_batch}")
     if n_items < global_batch:
@@ -101,12 +95,8 @@ def barrier(ctx: DistContext) -> None:
 
 
 def teardown(ctx: DistContext) -> None:
-    """Leave the process group joined by :func:`setup` (torchrun runs).
-
-    Call it once the DistributedDataParallel wrapper is dropped: the wrapper sits in a reference
-    cycle and holds the group, so it is collected here first; then the group and its
-    communication threads end now, on every rank, instead of during interpreter shutdown.
-    """
+    """Leave the process group joined by :func:`setup`, once the DDP wrapper is dropped (it
+    holds the group in a reference cycle, collected here first)."""
     if ctx.distributed and dist.is_initialized():
         gc.collect()
         dist.destroy_process_group()

@@ -1,6 +1,5 @@
 """One epoch of training: Adam steps on the MSE (plus λ × the measurement consistency) under
-the run's AMP mode and gradient scaler, the loss summed on the device and read once per epoch
-(and at the progress bar's log points). :func:`ekdun.training.trainer.train` runs the epochs.
+the run's AMP mode, the loss summed on the device and read once per epoch.
 """
 
 from __future__ import annotations
@@ -20,9 +19,8 @@ from ekdun.training.batches import BatchSource
 
 @dataclass
 class Loop:
-    """What every training step uses: the network (``net``: wrapped for the physics term,
-    DDP and compile), its optimizer, scheduler and gradient scaler, the resolved AMP mode,
-    the process context and the physics weight λ."""
+    """What every training step uses (``net``: the network wrapped for the physics term, DDP
+    and compile)."""
 
     model: UnrolledNetwork
     net: nn.Module
@@ -37,12 +35,8 @@ class Loop:
 def train_epoch(loop: Loop, source: BatchSource, epoch: int, batch_size: int,
                 metadata: dict[str, Any], *, desc: str | None, log_every: int,
                 time_compile: bool) -> dict[str, Any]:
-    """One epoch of Adam steps on the MSE (plus λ × the consistency); its history row.
-
-    ``desc``: the progress bar's label (``None``: no bar); ``log_every``: steps between the
-    bar's loss updates; ``time_compile``: record the first step's time (the ``torch.compile``
-    warm-up) as ``metadata["compile_warmup_s"]``.
-    """
+    """One epoch; its history row. ``desc``: the progress bar's label (``None``: no bar);
+    ``time_compile``: record the first step's time as ``metadata["compile_warmup_s"]``."""
     ctx = loop.ctx
     t0 = time.perf_counter()
     loop.model.train()

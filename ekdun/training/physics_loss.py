@@ -1,9 +1,7 @@
-r"""Measurement consistency: the fit-pairs objective as a training loss.
+r"""Measurement consistency: the fit-pairs objective as a training loss (``--physics-weight``).
 
-EK-DUN's kernels get a gradient only through the reconstruction loss, which at the bench's
-scale is 24× weaker for ``Kv``/``Kh`` than for ``Kbase``
-(research/notes/compare-studies.md). The measurement-consistency term gives them one
-straight from the training pairs:
+It gives EK-DUN's kernels a gradient straight from the training pairs
+(research/notes/compare-studies.md):
 
 .. math::
 
@@ -11,14 +9,9 @@ straight from the training pairs:
         \frac{\lVert s_b A_\theta x_b - y_b \rVert^2}{\lVert y_b \rVert^2},
     \qquad s_b = \frac{\langle A_\theta x_b, y_b\rangle}{\lVert A_\theta x_b\rVert^2},
 
-with ``A_θ`` the network's own forward model (the eigen-kernel model of its last iteration,
-``Kbase`` alone for the ``base`` schedule) and ``s_b`` the per-pair scale of ``psfkit
-fit-pairs`` in closed form (by the envelope theorem its gradient needs no extra term).
-Training minimises ``MSE(x̂, x) + λ · L_phys`` (``--physics-weight λ``; 0 is the paper's loss).
-
-The term is computed in float32 outside autocast (the FFTs of the physics stay float32 under
-AMP) and inside the module's ``forward``, so that DistributedDataParallel sees every use of
-the kernels in the one forward pass it wraps.
+with ``A_θ`` the network's own forward model; training minimises ``MSE(x̂, x) + λ · L_phys``.
+It is computed in float32 outside autocast, inside ``forward`` so that DDP sees every use of
+the kernels.
 """
 
 from __future__ import annotations
@@ -30,18 +23,8 @@ from ekdun.errors import ConfigurationError
 
 
 def measurement_consistency(prediction: Tensor, y: Tensor) -> Tensor:
-    """Mean over the batch of ``‖s_b p_b − y_b‖² / ‖y_b‖²`` with the best scale ``s_b``.
-
-    Parameters
-    ----------
-    prediction, y : Tensor ``(B, C, H', W')``
-        ``A_θ x`` and the measurement.
-
-    Returns
-    -------
-    Tensor
-        Scalar, float32 (or the inputs' wider dtype); 0 for a perfect model up to scale.
-    """
+    """Mean over the batch of ``‖s_b p_b − y_b‖² / ‖y_b‖²`` with the best scale ``s_b``, for
+    ``prediction`` (``A_θ x``) and ``y`` ``(B, C, H', W')``: a scalar."""
     p = prediction.flatten(1)
     m = y.flatten(1).to(p.dtype)
     pp = (p * p).sum(1).clamp_min(torch.finfo(p.dtype).tiny)
@@ -53,14 +36,7 @@ def measurement_consistency(prediction: Tensor, y: Tensor) -> Tensor:
 
 
 class PhysicsObjective(nn.Module):
-    """``(x, y) → (x̂, L_phys)``: the network's reconstruction and its measurement consistency.
-
-    Parameters
-    ----------
-    network : nn.Module
-        An EK-DUN (:class:`ekdun.nets.ekdun_net.EKDUN`); its :meth:`forward_model` gives
-        ``A_θ`` with differentiable kernels.
-    """
+    """``(y, x) → (x̂, L_phys)`` for an EK-DUN (its :meth:`forward_model` gives ``A_θ``)."""
 
     def __init__(self, network: nn.Module) -> None:
         super().__init__()

@@ -29,11 +29,7 @@ def rng_state() -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Inverse of :func:`rng_state`.
-
-    The tensors may live on any device (a checkpoint loaded with ``map_location="cuda"``):
-    each is read through ``.cpu()``.
-    """
+    """Inverse of :func:`rng_state` (the tensors may live on any device)."""
     torch.set_rng_state(state["torch"].cpu())
     keys = state["numpy_keys"].cpu().numpy().astype(np.uint32)
     numpy_state = ("MT19937", keys, int(state["numpy_pos"]), int(state["numpy_has_gauss"]),

@@ -1,10 +1,5 @@
-"""Hold termination signals while a run folder's files are written together.
-
-An epoch ends with three writes (checkpoint, ``log.csv``, the learned kernel file), each
-atomic. A ``SIGTERM`` between two of them (a time budget's ``timeout``, a scheduler) left the
-log one epoch behind the checkpoint. :func:`deferred_termination` records a ``SIGTERM`` or
-``SIGINT`` that arrives during the writes and raises it again, to the handler that was there
-before, once they are done.
+"""Hold termination signals while a run folder's files are written together, so that a
+``SIGTERM`` between the epoch's atomic writes cannot leave them out of step.
 """
 
 from __future__ import annotations

@@ -1,24 +1,10 @@
 """Training loop: MSE, Adam, ExponentialLR per epoch, atomic checkpoints, resume, DDP, AMP.
 
-``train(run_dir, model_name, seed, dataset, preset)`` trains a network and writes into
-``run_dir``:
-
-``checkpoint.pt``
-    after every epoch, atomically (model, optimizer, scheduler, grad scaler, RNG states,
-    metadata; see :mod:`ekdun.nets.checkpoint`): a killed run loses at most the epoch in
-    progress, and ``resume=True`` continues exactly where the uninterrupted run would be
-    (the batch order depends only on ``(seed, epoch)``).
-``log.csv``
-    one row per epoch (loss, learning rate, time).
-``kernels_initial.npz`` / ``kernels_learned.npz``
-    EK-DUN only: the seed and the learned kernels as psfkit kernel files (same basis,
-    convention and sensor size as the seed), for ``psfkit compare``.
-
-Speed (``docs/training.md``): the dataset stays on the device when it fits (else a DataLoader
-with workers and pinned memory, :mod:`ekdun.training.batches`); the loss is accumulated on the
-device and read once per epoch (and at the progress bar's log points), so the host never
-waits for the device inside an epoch (:mod:`ekdun.training.epoch`); ``amp``,
-``channels_last`` and ``compile`` are described in :mod:`ekdun.device`.
+:func:`train` writes into ``run_dir``: ``checkpoint.pt`` after every epoch, atomically
+(:mod:`ekdun.nets.checkpoint`; ``resume=True`` continues exactly, as the batch order depends
+only on ``(seed, epoch)``), ``log.csv`` (one row per epoch) and, for EK-DUN,
+``kernels_initial.npz`` / ``kernels_learned.npz`` (psfkit kernel files). The dataset stays on
+the device when it fits and the loss is read once per epoch (docs/training.md).
 """
 
 from __future__ import annotations
@@ -64,14 +50,11 @@ KERNELS_LEARNED = "kernels_learned.npz"
 class TrainOptions:
     """Run options; ``None`` takes the preset's :class:`~ekdun.nets.configs.TrainingConfig`.
 
-    ``batch_size`` is the GLOBAL batch (split over ``torchrun`` processes). ``amp``:
-    ``"auto"`` (or ``True``: fp16 on CUDA, off elsewhere), ``"bf16"``, ``"fp16"``, ``"off"``
-    (or ``False``); ``channels_last`` ``None``: on CUDA only; ``compile``: ``torch.compile``
-    the network (its warm-up is reported as ``compile_warmup_s`` in the metadata);
-    ``resident`` ``None``: keep the dataset on the device when it fits, else stream it with
-    ``workers`` DataLoader processes; ``log_every``: steps between progress-bar loss updates
-    (each one waits for the device); ``on_epoch``: called with each epoch's history row after
-    its checkpoint is written (benchmarks time epochs with it).
+    ``batch_size`` is the global batch (split over ``torchrun`` processes); ``amp``: see
+    :func:`ekdun.device.resolve_amp`; ``channels_last`` ``None``: on CUDA only; ``resident``
+    ``None``: keep the dataset on the device when it fits, else stream it with ``workers``;
+    ``log_every``: steps between progress-bar loss updates; ``on_epoch``: called with each
+    epoch's history row after its checkpoint is written.
     """
 
     epochs: int | None = None
@@ -103,8 +86,7 @@ class TrainOptions:
 
 
 def check_training_config(cfg: TrainingConfig) -> None:
-    """Refuse out-of-range settings before anything is built or written (so that a bad batch
-    size does not fail in the first epoch, after ``kernels_initial.npz`` was written)."""
+    """Refuse out-of-range settings before anything is built or written."""
     for name in ("epochs", "batch_size"):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -141,11 +123,8 @@ def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[d
 
 def make_optimizer(model: nn.Module, cfg: TrainingConfig, device: torch.device
                    ) -> torch.optim.Adam:
-    """Adam over the network (lr) and its physics kernels (lr × ``kernel_lr_scale``).
-
-    Fused on CUDA: faster, and it takes the fp16 gradient scaler's inf check on the device
-    (a non-fused step makes ``GradScaler.step`` read it on the host, a wait every step).
-    """
+    """Adam over the network (lr) and its physics kernels (lr × ``kernel_lr_scale``); fused
+    on CUDA (the scaler's inf check then stays on the device)."""
     return torch.optim.Adam(_param_groups(model, cfg.lr, cfg.kernel_lr_scale), lr=cfg.lr,
                             fused=True if device.type == "cuda" else None)
 
@@ -177,15 +156,13 @@ def train(run_dir: str | os.PathLike, model_name: str,
     Parameters
     ----------
     run_dir : path-like
-        Output folder (checkpoint, logs, kernel files).
     model_name : str
         ``"ekdun"``, ``"le-admm-u"`` or ``"updn"``.
     seed : KernelModel, array or path
-        Initial kernels: a kernel file (``psfkit fit-eigen`` output) or a measured PSF.
+        Initial kernels: a kernel file or a measured PSF.
     dataset : torch Dataset
         ``(scene, measurement)`` pairs of ``(C, H', W')`` tensors.
     preset : str
-        Architecture and training settings.
     overrides : dict
         Model configuration fields to change (e.g. ``{"schedule": "base"}``); JSON-able.
     options : TrainOptions
@@ -330,10 +307,8 @@ def _run_metadata(model_name: str, preset: str, overrides: dict[str, Any],
 
 def _resume(doc: dict[str, Any], ckpt_path: Path, loop: Loop, metadata: dict[str, Any],
             initial_kernels: Tensor) -> tuple[Tensor, int]:
-    """Load the checkpoint ``doc`` (read from ``ckpt_path``) into the loop's model, optimizer,
-    scheduler, scaler and RNGs (it must come from the same model, preset, overrides, sensor
-    and seed); its history goes into ``metadata``. Returns the run's seed kernels and the
-    first epoch still to train."""
+    """Load the checkpoint ``doc`` (of the same run settings) into the loop and RNGs, its
+    history into ``metadata``; the run's seed kernels and the first epoch still to train."""
     old = doc["metadata"]
     for key in ("model", "preset", "overrides", "sensor_shape", "seed"):
         if old.get(key) != metadata[key]:
@@ -354,8 +329,8 @@ def _resume(doc: dict[str, Any], ckpt_path: Path, loop: Loop, metadata: dict[str
 
 def _training_module(model: UnrolledNetwork, physics_weight: float, ctx: D.DistContext,
                      compile_net: bool) -> nn.Module:
-    """The module the steps call: with λ > 0 the network and its measurement consistency in
-    one forward pass (one DDP graph); wrapped in DDP across processes; compiled on request."""
+    """The module the steps call: with λ > 0 network and consistency in one forward pass,
+    wrapped in DDP across processes, compiled on request."""
     net: nn.Module = PhysicsObjective(model) if physics_weight > 0 else model
     if ctx.distributed:
         net = nn.parallel.DistributedDataParallel(

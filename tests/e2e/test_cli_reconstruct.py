@@ -198,7 +198,7 @@ def test_every_advanced_solver_flag_acts(psf_and_measurements, tmp_path, flags):
 def test_checkpoint_is_the_library_reference(tiny_data, trained_run, tmp_path, capsys):
     from ekdun.nets.builder import network_from_checkpoint
     from ekdun.nets.checkpoint import load_checkpoint
-    from ekdun.reconstruction.reconstruct import read_measurement
+    from psfkit.io.images import read_image_float
 
     pairs, kernels = tiny_data
     run = trained_run
@@ -209,7 +209,7 @@ def test_checkpoint_is_the_library_reference(tiny_data, trained_run, tmp_path, c
     network, _ = network_from_checkpoint(load_checkpoint(run / "checkpoint.pt"))
     network.eval()
     for name, image in a.items():
-        y = read_measurement(pairs / "measurement" / f"{name}.npy")
+        y = read_image_float(pairs / "measurement" / f"{name}.npy")
         with torch.no_grad():
             expected = network(torch.from_numpy(y)[None])[0].numpy()
         np.testing.assert_array_equal(image, expected)

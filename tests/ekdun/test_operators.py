@@ -168,7 +168,8 @@ def test_pad_and_crop_are_adjoint_and_centred():
 def test_eigen_kernel_with_equal_kernels_equals_shift_invariant(convention):
     psf = torch.rand(3, 6, 7, dtype=torch.float64)
     si = ShiftInvariantOperator(psf, (8, 9))
-    ek = EigenKernelOperator.from_psf(psf, "paper", (8, 9), convention=convention)
+    ek = EigenKernelOperator.from_basis(psf.repeat(3, 1, 1, 1), "paper", (8, 9),
+                                       convention=convention)
     assert ek.n_kernels == 3
     x = torch.rand(2, 3, 8, 9, dtype=torch.float64)
     torch.testing.assert_close(ek.A(x), si.A(x), rtol=0, atol=1e-13)
@@ -342,7 +343,7 @@ def test_bad_inputs_raise_one_line_errors():
     with pytest.raises(ConfigurationError, match="scene_padding must be an integer >= 2"):
         ShiftInvariantOperator(torch.zeros(3, 4, 4), (8, 10), scene_padding=1)
     with pytest.raises(ConfigurationError, match="convention must be"):
-        EigenKernelOperator.from_psf(torch.zeros(3, 4, 4), convention="lens")
+        EigenKernelOperator.from_basis(torch.zeros(3, 3, 4, 4), convention="lens")
     with pytest.raises(KernelShapeError, match="NaN/Inf"):
         ShiftInvariantOperator(torch.full((1, 4, 4), float("nan")))
     # all are psfkit errors, so the CLIs print them as one line
