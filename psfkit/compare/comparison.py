@@ -1,10 +1,5 @@
 """Comparing kernel models with the measured modes (:func:`compare_kernels`,
-:func:`compare_model`).
-
-Learned side: the kernels of a kernel file (after training), padded to the sensor size and
-registered to the measured ``Kbase`` by one global sub-pixel shift; their displacement maps,
-difference kernels and span are compared with the measured ones.
-"""
+:func:`compare_model`): displacement maps, difference kernels and spans."""
 
 from __future__ import annotations
 
@@ -130,29 +125,23 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     Parameters
     ----------
     learned : KernelModel or path
-        The trained model's kernels (a kernel file with at least two kernels).
+        The trained kernels (at least two).
     measured : PsfGrid, path, KernelModel or MeasuredModes
-        The camera's PSF grid, or another kernel file (``.npz`` or a model: a grid fit, a pairs
-        fit, an oracle; its kernels are the measured ones, and there are no warps or PCA modes),
-        or modes already measured by :func:`measure_modes` on the learned file's sensor grid
-        (to compare several models without refitting).
+        The camera's PSF grid, another kernel file (``.npz`` or model: no warps or PCA modes),
+        or modes from :func:`measure_modes` on the learned sensor grid (reused across models).
     initial : KernelModel or path, optional
-        The kernels before training: the same numbers are reported for them.
+        The kernels before training, reported the same way.
     options : CompareOptions, optional
     progress : bool
         Progress bar for the grid fit.
 
-    Returns
-    -------
-    KernelComparison
-
     Raises
     ------
     ModelFileError
-        A kernel file is unreadable, of the wrong version, has one kernel, or its basis,
-        convention or sensor size differs from the other's.
+        A kernel file is unreadable, has one kernel, or its basis, convention or sensor size
+        differs from the other's.
     GridFormatError, InvalidInputError
-        Not a grid, or a grid whose PSFs cannot be brought to the kernel file's sensor size.
+        Not a grid, or PSFs that cannot be brought to the kernel file's sensor size.
     """
     options = options or CompareOptions()
     learned_model = _as_model(learned)
@@ -201,9 +190,8 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
 
 def kernel_change_report(learned: KernelSetComparison, initial: KernelSetComparison | None,
                          modes: MeasuredModes, options: CompareOptions) -> dict:
-    """Split of the learned kernels' change (vs the initial and vs the measured kernels) into
-    gain, pedestal, displacement and other, on the dilated caustic support of the measured
-    kernels (:mod:`psfkit.compare.kernel_change`)."""
+    """:func:`~psfkit.compare.kernel_change.split_kernel_changes` of the learned kernels vs the
+    measured (and initial) ones on the measured kernels' dilated caustic support."""
     names = modes.model.kernel_names
     support = caustic_support(modes.model.kernels, options.mask_level, options.mask_dilate)
     out: dict = {"support_pixels": int(support.sum()),
