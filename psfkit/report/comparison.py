@@ -138,11 +138,8 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
                      extra_figures: Sequence[tuple[str, Figure]] = (),
                      extra_files: Sequence[tuple[str, str]] = ()) -> Path:
     """Write figures (PNG + PDF), ``compare.json`` and ``compare.html`` into ``out_dir``
-    (atomically: nothing appears unless everything was written).
-
-    ``extra_figures`` are ``(stem, figure)`` pairs also saved under ``figures/`` (e.g. the
-    paper's Fig. 7 of the learned kernels alone); ``extra_files`` ``(name, text)`` pairs are
-    written into ``out_dir`` in the same transaction (a caption, more numbers)."""
+    atomically, with ``extra_figures`` ``(stem, figure)`` under ``figures/`` and
+    ``extra_files`` ``(name, text)`` in the same transaction."""
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         fig_dir = tmp / "figures"

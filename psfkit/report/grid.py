@@ -44,9 +44,8 @@ CSV_COLUMNS = (
 
 
 def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
-    """One dictionary per captured position with the :data:`CSV_COLUMNS` (excluded positions
-    too: ``status`` ``excluded`` with the ``reason``, their numbers empty; row and col empty
-    for an irregular scan, whose positions the file and field columns name)."""
+    """One dictionary of :data:`CSV_COLUMNS` per captured position (excluded ones with their
+    ``reason`` and no numbers; row and col empty for an irregular scan)."""
     residuals = result.shift_fit.residuals if result.shift_fit is not None else None
     irregular = result.layout == "irregular"
     rows = []
@@ -287,8 +286,7 @@ components mix the two directions on caustic lines.</p>{warp}
 
 
 def _excluded_html(result: GridCharacterization) -> str:
-    """The section listing excluded positions (reason and detail) and the cells never
-    captured; empty for a complete full lattice."""
+    """The section of excluded positions and never-captured cells (empty when none)."""
     from psfkit.calibration.alignment import REJECTION_REASONS
 
     if not result.excluded and not result.missing:
@@ -317,8 +315,8 @@ def _rule_text() -> str:
 
 
 def verdict_html(verdict: dict[str, Any] | None) -> str:
-    """The report's opening: the verdict in plain words, then its evidence (held-out errors
-    per model with their 1σ, the noise floor, the test) and the field effects."""
+    """The report's opening: the verdict, its evidence (held-out errors ±1σ, noise floor, test)
+    and the field effects."""
     if not verdict:
         return ""
     evidence = verdict.get("evidence", {})

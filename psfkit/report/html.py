@@ -56,10 +56,9 @@ def figures_html(figures: list[tuple[str, str, str]]) -> str:
 
 
 def estimate_html(estimate: dict[str, Any] | None, spec: str = ".4g", unit: str = "") -> Html:
-    """An estimate (``Estimate.to_dict()`` of :mod:`psfkit.numerics.significance`) for a table cell:
-    ``value ± sigma`` when significant; greyed ``not detected`` with the number and its ± in
-    small print and a tooltip (z, p) when not; greyed ``not determined`` with the reason as
-    tooltip when the data cannot give it."""
+    """An ``Estimate.to_dict()`` as a table cell: ``value ± sigma`` when significant, else greyed
+    ``not detected`` (number in small print, z and p as tooltip) or ``not determined`` (the
+    reason as tooltip)."""
     if not estimate:
         return Html("<span class='nd'>not measured</span>")
     unit = f" {html.escape(unit)}" if unit else ""
