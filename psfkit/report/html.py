@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html
 import math
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 REPORT_CSS = """
@@ -36,6 +37,21 @@ def format_value(value: Any, spec: str = ".4g") -> str:
     if isinstance(value, float):
         return format(value, spec)
     return html.escape(str(value))
+
+
+def html_page(title: str, body: str) -> str:
+    """A self-contained HTML page with the shared stylesheet."""
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
+            f"\n<style>{REPORT_CSS}</style></head><body>\n{body}</body></html>\n")
+
+
+def grid_table(head: Sequence[str], rows: Iterable[Sequence[Any]], spec: str = ".4g") -> str:
+    """A table of numbers: the header ``head``, then one row of :func:`format_value` cells per
+    item of ``rows``."""
+    header = "".join(f"<th>{html.escape(h)}</th>" for h in head)
+    body = "".join("<tr>" + "".join(f"<td>{format_value(v, spec)}</td>" for v in row) + "</tr>"
+                   for row in rows)
+    return f"<table class='grid'><tr>{header}</tr>{body}</table>"
 
 
 def html_table(rows: list[tuple[str, Any]]) -> str:
