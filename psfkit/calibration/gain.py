@@ -69,9 +69,17 @@ def fit_cos_law(gains: np.ndarray, field_deg: np.ndarray, weights: np.ndarray
                 ) -> tuple[Estimate, float, float]:
     """``log g = log A + n log cos θ`` by weighted least squares over the off-axis positions.
 
-    ``gains`` ``(P,)`` positive, ``field_deg`` ``(P, 2)`` angles ``(θx, θy)`` in degrees,
-    ``weights`` ``(P,)``. Returns ``n`` (residual-scaled 1σ, tested against 0), ``A`` and the
-    RMS of ``g − A cosⁿθ`` (both NaN when the fit is not possible).
+    Parameters
+    ----------
+    gains, field_deg, weights : numpy.ndarray
+        ``(P,)`` positive gains, ``(P, 2)`` field angles ``(θx, θy)`` in degrees, ``(P,)``.
+
+    Returns
+    -------
+    exponent : Estimate
+        ``n`` with its residual-scaled 1σ, tested against ``n = 0``.
+    scale, rms : float
+        ``A`` and the RMS of ``g − A cosⁿθ`` (NaN when the fit is not possible).
     """
     t = np.tan(np.deg2rad(field_deg))
     log_cos = -0.5 * np.log1p(np.sum(t**2, axis=1))      # cos θ = 1/sqrt(1 + tan²θx + tan²θy)
@@ -94,9 +102,16 @@ def fit_gain(gains: np.ndarray, field_deg: np.ndarray | None, positions: np.ndar
              weights: np.ndarray | None = None) -> GainFit:
     """Fit the gain map.
 
-    ``gains`` ``(N, M)``; ``field_deg`` ``(N, M, 2)`` angles (``None``: no cos law);
-    ``positions`` ``(N, M, 2)`` field coordinates of the polynomial (any unit); ``weights``
-    ``(N, M)``, e.g. the overlaps.
+    Parameters
+    ----------
+    gains : numpy.ndarray
+        ``(N, M)`` gains (1 at the reference).
+    field_deg : numpy.ndarray or None
+        ``(N, M, 2)`` field angles in degrees (``None``: no cos law).
+    positions : numpy.ndarray
+        ``(N, M, 2)`` field coordinates of the polynomial (any unit).
+    weights : numpy.ndarray, optional
+        ``(N, M)``, e.g. the overlaps.
     """
     g = gains.reshape(-1).astype(np.float64)
     w = np.ones_like(g) if weights is None else np.clip(weights.reshape(-1), 0, None)

@@ -67,10 +67,23 @@ def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 
 
 def load_psf_image(path: str, channel_order: str = "RGB", background: str = "corner",
                    downsample: int = 1, white_level: float | None = None) -> np.ndarray:
-    """A point-source image file (``.npy``, PNG or TIFF, the sensor's size) as a kernel:
-    :func:`psfkit.io.images.read_image_float` (``channel_order`` of ``.npy``/TIFF, integer
-    ``white_level``), then :func:`psf_kernel`. Raises :class:`InvalidInputError` for an
-    unreadable file, NaN/Inf, or a channel without signal."""
+    """A point-source image file as a kernel: :func:`psfkit.io.images.read_image_float`, then
+    :func:`psf_kernel`.
+
+    Parameters
+    ----------
+    path : str
+        ``.npy``, PNG or TIFF image of the point source, the sensor's size.
+    channel_order : {"RGB", "BGR"}
+        Of ``.npy``/TIFF files.
+    white_level : float, optional
+        Full-scale stored value of integer files.
+
+    Raises
+    ------
+    InvalidInputError
+        Unreadable file, NaN/Inf, or a channel without signal.
+    """
     from psfkit.io.images import read_image_float
 
     return psf_kernel(read_image_float(path, channel_order, white_level), background,

@@ -131,7 +131,6 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
         or modes from :func:`measure_modes` on the learned sensor grid (reused across models).
     initial : KernelModel or path, optional
         The kernels before training, reported the same way.
-    options : CompareOptions, optional
     progress : bool
         Progress bar for the grid fit.
 

@@ -1,17 +1,14 @@
 """Where did a kernel change go? Gain, pedestal, displacement and the rest (:func:`split_change`).
 
-The change ``Δ = L − I`` of a kernel (learned ``L`` against a reference ``I``: the initial
-kernel, or the measured one) is split, one part after the other, into
+The change ``Δ = L − I`` of a kernel (learned ``L`` against a reference ``I``, initial or
+measured) is split, in this order, into
 
-1. **gain** ``G = γ·I·S`` with ``γ = Σ_S L / Σ_S I − 1``: a change of the energy on the
-   caustic (vignetting-like; the change of *total* energy ``ΣL/ΣI − 1`` is reported too);
-2. **pedestal** ``P = (Δ − G)·(1 − S)``: what lies outside the support ``S`` (the dilated
-   caustic of the measured kernels), e.g. the smooth floor that Adam grows on near-zero pixels;
-3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``: the part a dense optical flow ``F``
-   from ``I`` to ``L`` explains (``psfkit.calibration.warp.dense_flow``, the flow ``psfkit
-   compare``'s displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
-4. **other** ``O = S·(Δ − G) − D``: the change inside the support a displacement does not
-   explain (new spots, changed shapes).
+1. **gain** ``G = γ·I·S``, ``γ = Σ_S L / Σ_S I − 1``: the energy change on the caustic;
+2. **pedestal** ``P = (Δ − G)·(1 − S)``: outside the support ``S`` (the measured kernels'
+   dilated caustic), e.g. the floor that Adam grows on near-zero pixels;
+3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``, ``F`` the dense flow from ``I`` to
+   ``L``, ``α ∈ [0, 1]`` its least-squares amount;
+4. **other** ``O = S·(Δ − G) − D`` (new spots, changed shapes).
 
 ``G + P + D + O = Δ`` exactly; each part's *fraction* is its L1 norm ``Σ|part|`` over the sum
 of the four. ``outside_mass_fraction``: the share of ``Σ|L|`` outside ``S``.

@@ -97,12 +97,10 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
 
     Parameters
     ----------
-    measured : PsfGrid or path
     basis, convention : str
         Those of the learned file.
     sensor_shape : (int, int)
-        The comparison grid ``(H, W)``; PSFs are resampled to it (same aspect ratio required).
-    options : CompareOptions, optional
+        The comparison grid ``(H, W)`` the PSFs are resampled to (same aspect ratio).
 
     Raises
     ------
@@ -165,9 +163,7 @@ def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, conven
     Parameters
     ----------
     measured : KernelModel
-        The reference model (a grid fit, a pairs fit, an oracle's kernels).
-    where : str
-        Names it in messages and in ``compare.json``.
+        A grid fit, a pairs fit, an oracle; named ``where`` in messages and ``compare.json``.
     basis, convention : str
         Those of the learned file (must agree).
     sensor_shape : (int, int)
@@ -176,7 +172,7 @@ def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, conven
     Raises
     ------
     ModelFileError
-        Basis or convention differ, or a single kernel (nothing to compare).
+        Basis or convention differ, or a single kernel.
     InvalidInputError
         Aspect ratios differ.
     """

@@ -35,7 +35,6 @@ class CompareOptions:
         Register the learned ``Kbase`` to the measured one by a global sub-pixel shift first.
     fit : EigenFitOptions or None
         The measured fit's options (``None``: the learned file's basis and convention, no CV).
-    preprocess : PreprocessOptions
     """
 
     flow_method: str = "dis"
