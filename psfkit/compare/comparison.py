@@ -101,10 +101,11 @@ def compare_model(model: KernelModel, measured: MeasuredModes, label: str = "lea
                                global_shift_px=shift)
 
 
-def _as_model(value: KernelModel | str | os.PathLike) -> KernelModel:
+def _as_model(value: KernelModel | str | os.PathLike, label: str) -> tuple[KernelModel, str]:
+    """A kernel model, and what messages call it (its file, or ``label``)."""
     if isinstance(value, KernelModel):
-        return value
-    return load_kernels(value)
+        return value, label
+    return load_kernels(value), str(value)
 
 
 def check_learned(model: KernelModel, where: str) -> None:
@@ -143,13 +144,11 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
         Not a grid, or PSFs that cannot be brought to the kernel file's sensor size.
     """
     options = options or CompareOptions()
-    learned_model = _as_model(learned)
-    where = str(learned) if not isinstance(learned, KernelModel) else "learned kernels"
+    learned_model, where = _as_model(learned, "learned kernels")
     check_learned(learned_model, where)
     initial_model = None
     if initial is not None:
-        initial_model = _as_model(initial)
-        iw = str(initial) if not isinstance(initial, KernelModel) else "initial kernels"
+        initial_model, iw = _as_model(initial, "initial kernels")
         check_learned(initial_model, iw)
         for attr in ("basis", "convention", "sensor_shape"):
             if getattr(initial_model, attr) != getattr(learned_model, attr):
@@ -160,11 +159,9 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     elif isinstance(measured, KernelModel) or (isinstance(measured, (str, os.PathLike))
                                                and Path(measured).suffix == ".npz"):
         # another kernel file as the measured side (a grid fit, a pairs fit, an oracle)
-        reference = _as_model(measured)
-        modes = modes_from_kernel_file(
-            reference, "measured kernels" if isinstance(measured, KernelModel)
-            else str(measured), learned_model.basis, learned_model.convention,
-            tuple(learned_model.sensor_shape))
+        modes = modes_from_kernel_file(*_as_model(measured, "measured kernels"),
+                                       learned_model.basis, learned_model.convention,
+                                       tuple(learned_model.sensor_shape))
     else:
         modes = measure_modes(measured, learned_model.basis, learned_model.convention,
                               tuple(learned_model.sensor_shape), options, progress)

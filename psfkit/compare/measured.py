@@ -80,6 +80,15 @@ class MeasuredModes:
                 "fit": self.fit.summary(), "notes": self.notes}
 
 
+def _on_grid(model: KernelModel, kernels: np.ndarray, sensor_shape: tuple[int, int]
+             ) -> KernelModel:
+    """``kernels`` on the comparison grid with ``model``'s basis, convention, channels,
+    normalization and provenance."""
+    return KernelModel(kernels=kernels, basis=model.basis, convention=model.convention,
+                       sensor_shape=tuple(sensor_shape), channels=model.channels,
+                       normalization=model.normalization, provenance=model.provenance)
+
+
 def load_grid(measured: PsfGrid | str | os.PathLike) -> PsfGrid:
     """A :class:`PsfGrid` from a grid or a grid folder (validated, pixels checked lazily)."""
     if isinstance(measured, PsfGrid):
@@ -122,10 +131,7 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
                                                  cv_bases=(), preprocess=options.preprocess)
     fit = fit_eigen_grid(grid, fit_options, progress=progress)
     fitted = fit.kernel_model()
-    model = KernelModel(kernels=resample(fitted.kernels, tuple(sensor_shape)),
-                        basis=fitted.basis, convention=fitted.convention,
-                        sensor_shape=tuple(sensor_shape), channels=fitted.channels,
-                        normalization=fitted.normalization, provenance=fitted.provenance)
+    model = _on_grid(fitted, resample(fitted.kernels, tuple(sensor_shape)), sensor_shape)
     base_lum = luminance(model.kernels[0])
     mask = comparison_mask(base_lum, options)
     aligner = GridAligner(grid, fit_options.preprocess, fit_options.upsample)
@@ -192,10 +198,7 @@ def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, conven
                      f"{sensor_shape[0]}x{sensor_shape[1]}; displacements are in learned-file "
                      "pixels")
     notes.append("the measured side is a kernel file: no warps and no PCA modes to compare with")
-    model = KernelModel(kernels=kernels.astype(np.float32), basis=measured.basis,
-                        convention=measured.convention, sensor_shape=tuple(sensor_shape),
-                        channels=measured.channels, normalization=measured.normalization,
-                        provenance=measured.provenance)
+    model = _on_grid(measured, kernels.astype(np.float32), sensor_shape)
     return MeasuredModes(model=model, sensor_shape=tuple(sensor_shape), warps={},
                          warp_positions={}, pca_components=None, pca_region=None, fit=None,
                          notes=notes, source=where)
