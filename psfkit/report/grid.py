@@ -178,9 +178,7 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
         fig_dir.mkdir()
         embedded = []
         for stem, caption, fn_name in FIGURES:
-            if fn_name == "figure_warp" and not result.flows:
-                continue
-            if fn_name == "figure_warp_summary" and not result.flows:
+            if fn_name in ("figure_warp", "figure_warp_summary") and not result.flows:
                 continue
             fig = getattr(fig_module, fn_name)(result)
             fig_module.save_figure(fig, fig_dir / stem)
