@@ -124,8 +124,8 @@ def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 
     The luminance smoothed by ``SUPPORT_SMOOTHING_PX`` above both ``SUPPORT_FRACTION`` of its
     peak and ``SUPPORT_NOISE`` × the noise, grown by ``SUPPORT_MARGIN_PX``; the brightest pixel
-    always belongs. The noise is 1.4826 × MAD of the pixels (inside ``valid``, if given) farther
-    than ``4 × SUPPORT_MARGIN_PX`` from the PSF (none: the fraction of the peak alone).
+    always belongs. The noise: 1.4826 × MAD of the pixels (inside ``valid``, if given) farther
+    than ``4 × SUPPORT_MARGIN_PX`` from those above the fraction (none: the fraction alone).
     """
     import cv2
 
