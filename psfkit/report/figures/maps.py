@@ -8,6 +8,7 @@ import numpy as np
 from matplotlib import colors
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from psfkit.characterization.results import GridCharacterization
 from psfkit.report.figures.grid_layout import EXCLUDED_STYLE, MISSING_STYLE, scatter_coordinates
@@ -20,8 +21,6 @@ ANNOTATE_MAX_CELLS = 5
 
 def _mark_gaps(ax: Axes, result: GridCharacterization) -> None:
     """Hatch the cells of a lattice map that were not captured or were excluded."""
-    from matplotlib.patches import Rectangle
-
     status = result.status()
     for (r, c), state in np.ndenumerate(status):
         if state == "ok":
@@ -78,15 +77,10 @@ def _heatmap(fig: Figure, ax: Axes, values: np.ndarray, title: str, label: str, 
                         color="white" if sum(shade[:3]) < 1.5 else "black")
     axis_labels(ax, "column", "row", (6, 6), integer=True)
     if center is not None:
-        ax.add_patch(_centre_box(center))
+        ax.add_patch(Rectangle((center[1] - 0.5, center[0] - 0.5), 1, 1, fill=False, ec="red",
+                               lw=1))
     ax.set_title(title)
     fig.colorbar(im, ax=ax, shrink=0.8, label=label)
-
-
-def _centre_box(center: tuple[int, int]):  # type: ignore[no-untyped-def]
-    from matplotlib.patches import Rectangle
-
-    return Rectangle((center[1] - 0.5, center[0] - 0.5), 1, 1, fill=False, ec="red", lw=1)
 
 
 def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str, str,
