@@ -1,8 +1,5 @@
-"""Bring every PSF of a grid into the centre PSF's frame: preprocess, register, align.
-
-Shared by the characterization (:mod:`psfkit.characterization.characterize`) and the eigen-kernel
-fit (:mod:`psfkit.fitting.grid.eigen`), so that both see exactly the same registered PSFs.
-"""
+"""Bring every PSF of a grid into the centre PSF's frame: preprocess, register, align (shared
+by the characterization and the eigen-kernel fit, so both see the same registered PSFs)."""
 
 from __future__ import annotations
 
@@ -91,12 +88,9 @@ FILLING_SUPPORT = 0.2
 
 @dataclass(frozen=True)
 class AlignedPsf:
-    """One grid PSF in the centre PSF's frame.
-
-    ``image`` is ``(C, H, W)`` float32 in the grid's normalization (centre PSF peak or total
-    = 1), displaced back by ``shift`` so that it overlays the centre PSF; ``valid`` marks the
-    pixels that hold data (inside the sensor and unsaturated in both PSFs).
-    """
+    """One grid PSF in the centre PSF's frame: ``image`` ``(C, H, W)`` float32 in the grid's
+    normalization, displaced back by ``shift``; ``valid`` the pixels holding data (on the sensor,
+    unsaturated in both PSFs)."""
 
     position: GridPosition
     image: np.ndarray
@@ -109,46 +103,29 @@ class AlignedPsf:
 
     @property
     def compared(self) -> np.ndarray:
-        """``(H, W)`` bool, the pixels every comparison with the reference uses (MAE, gain,
-        quality): the support of either PSF inside ``valid``."""
+        """``(H, W)`` bool, the pixels the comparisons use: either PSF's support inside
+        ``valid``."""
         return self.valid if self.support is None else self.valid & self.support
 
     @cached_property
     def luminance(self) -> np.ndarray:
-        """``(H, W)`` luminance of ``image`` (:meth:`GridAligner.align` fills it in: the
-        quality check needs it)."""
+        """``(H, W)`` luminance of ``image`` (filled in by :meth:`GridAligner.align`)."""
         return luminance(self.image)
 
     @property
     def overlap(self) -> float:
-        """Fraction of the sensor where both PSFs hold data (a geometric fact, not a measure
-        of reliability: see ``support_overlap``)."""
+        """Fraction of the sensor where both PSFs hold data (not reliability: see
+        ``support_overlap``)."""
         return float(self.valid.mean())
 
 
 def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """The support of a PSF: the pixels that hold its light, whatever its size or the frame's.
+    """``(H, W)`` bool support of a PSF ``lum`` ``(H, W)``, whatever its size or the frame's.
 
-    Smooth the background-subtracted luminance by a Gaussian of ``SUPPORT_SMOOTHING_PX``,
-    keep the pixels above both ``SUPPORT_FRACTION`` of its peak and ``SUPPORT_NOISE`` times
-    the smoothed image's noise, and grow them by ``SUPPORT_MARGIN_PX``. The noise is the
-    robust spread (1.4826 × MAD) of the pixels away from the PSF (farther than
-    ``4 × SUPPORT_MARGIN_PX`` from where it exceeds ``SUPPORT_FRACTION`` of its peak): a
-    frame's empty pixels for a compact PSF, the dark border for a caustic (none: the
-    fraction of the peak alone). The brightest pixel always belongs to the support.
-
-    Parameters
-    ----------
-    lum : numpy.ndarray
-        ``(H, W)`` luminance, any units.
-    valid : numpy.ndarray, optional
-        ``(H, W)`` bool, the pixels that hold data (an aligned PSF's overlap); the noise is
-        measured on these only.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(H, W)`` bool.
+    The luminance smoothed by ``SUPPORT_SMOOTHING_PX`` above both ``SUPPORT_FRACTION`` of its
+    peak and ``SUPPORT_NOISE`` × the noise, grown by ``SUPPORT_MARGIN_PX``; the brightest pixel
+    always belongs. The noise: 1.4826 × MAD of the pixels (inside ``valid``, if given) farther
+    than ``4 × SUPPORT_MARGIN_PX`` from those above the fraction (none: the fraction alone).
     """
     import cv2
 
@@ -171,12 +148,8 @@ def psf_support(lum: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 
 
 def support_overlap(reference_light: np.ndarray, valid: np.ndarray) -> float:
-    """Fraction of the reference PSF's light that lies in ``valid`` (the registered overlap):
-    how much of a PSF of that shape at the moving position falls on the sensor.
-
-    ``reference_light`` is the reference's non-negative luminance on its support, zero
-    elsewhere (:attr:`GridAligner.reference_light`).
-    """
+    """Fraction of the reference PSF's light (:attr:`GridAligner.reference_light`) inside
+    ``valid``, the registered overlap."""
     total = float(np.sum(reference_light, dtype=np.float64))
     if total <= 0:
         return float(valid.mean())
@@ -186,22 +159,13 @@ def support_overlap(reference_light: np.ndarray, valid: np.ndarray) -> float:
 class GridAligner:
     """Registers and aligns the PSFs of one grid to its centre PSF.
 
-    Parameters
-    ----------
-    grid : PsfGrid
-    options : PreprocessOptions
-    upsample : int
-        Registration precision ``1/upsample`` px.
-    min_quality : float
-        Lowest registration quality (NCC) of a usable position (0: no check).
-    strict : bool
-        :meth:`try_align` raises for a bad position instead of excluding it.
+    ``upsample``: precision ``1/upsample`` px; ``min_quality``: lowest NCC of a usable position
+    (0: no check); ``strict``: :meth:`try_align` raises instead of excluding.
 
     Raises
     ------
     InvalidInputError
-        The reference (centre) PSF is unusable: one line naming it, its problem, and
-        ``--reference``.
+        The reference (centre) PSF is unusable (names it, its problem, and ``--reference``).
     """
 
     def __init__(self, grid: PsfGrid, options: PreprocessOptions | None = None,
@@ -240,18 +204,14 @@ class GridAligner:
                                          region=psf_region(self.reference_support))
 
     def gain_region(self, aligned: AlignedPsf) -> np.ndarray:
-        """``(H, W)`` bool, the pixels a position's gain (its light relative to the centre
-        PSF's) is summed over: ``aligned.compared`` for a compact PSF, where the frame's empty
-        pixels would add only noise; the whole overlap ``aligned.valid`` for a PSF that fills
-        the sensor (:data:`FILLING_SUPPORT`), whose light below the support's threshold is
-        part of it (leaving it out biases the bench caustic's gains by up to 0.27 % towards
-        the edge, its cos-law exponent by 6σ)."""
+        """``(H, W)`` bool, the pixels a position's gain is summed over: ``aligned.compared``
+        for a compact PSF; the whole overlap for one that fills the sensor
+        (:data:`FILLING_SUPPORT`), whose faint light is part of it (leaving it out biases the
+        bench caustic's cos-law exponent by 6σ)."""
         return aligned.valid if self.fills_sensor else aligned.compared
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
-        """Refuse a reference whose saturated pixels (masked with ``allow_saturated``) leave
-        less than :data:`MIN_OVERLAP` of the sensor: no position, the reference included,
-        could be compared with it (every position would be excluded and the fits would receive
-        no measurement)."""
+        """Refuse a reference whose masked saturated pixels leave less than
+        :data:`MIN_OVERLAP` of the sensor (nothing could be compared with it)."""
         saturated = self.reference_prepared.saturated
         if float(np.mean(~saturated)) >= MIN_OVERLAP:
             return
@@ -271,15 +231,13 @@ class GridAligner:
               check_quality: bool = True) -> AlignedPsf:
         """Preprocess, register (unless ``shift`` is given) and align one PSF.
 
-        ``check_quality=False`` skips the registration-quality check (the quality is still
-        measured): for a position already accepted at its registered shift and now aligned
-        at another one (:func:`~psfkit.calibration.nominal_shifts.nominal_shifts`).
+        ``check_quality=False`` skips the NCC check (still measured): for a position already
+        accepted and now aligned at another shift.
 
         Raises
         ------
         PositionRejected
-            The PSF fails a quality check (:data:`REJECTION_REASONS`): the message names the
-            file, ``reason`` the check.
+            A failed quality check (:data:`REJECTION_REASONS`), naming the file.
         """
         name = str(self.grid.root / pos.file)
         here = (pos.row, pos.col)

@@ -1,10 +1,5 @@
-"""The caustic of a PSF or kernel: where its light is, as a mask.
-
-A diffuser PSF is a network of thin bright lines (the caustic) on a dark floor. Displacements,
-kernel changes and kernel parameterisations are only meaningful on or beside it:
-:func:`caustic_mask` marks one image's caustic, :func:`caustic_support` the union over a set of
-kernels.
-"""
+"""The caustic (thin bright lines) of a PSF or kernel as a mask: where displacements and
+kernel changes are meaningful."""
 
 from __future__ import annotations
 
@@ -39,16 +34,8 @@ def erode(mask: np.ndarray, pixels: int) -> np.ndarray:
 
 
 def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -> np.ndarray:
-    """Union of the caustic masks of ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance).
-
-    A pixel is in the support when it is within ``dilate`` px of a pixel brighter than
-    ``level`` of its kernel's peak (``psfkit.calibration.warp.caustic_mask`` without a border).
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(H, W)`` bool.
-    """
+    """``(H, W)`` bool union of the caustic masks (:func:`caustic_mask` without a border) of
+    ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance)."""
     k = np.asarray(kernels, np.float32)
     if k.ndim == 4:
         k = np.stack([luminance(x) for x in k])

@@ -1,22 +1,11 @@
-r"""Relative illumination (gain, vignetting) of each PSF and low-order fits of it.
+r"""Relative illumination (gain) of each PSF and low-order fits of it.
 
-The gain of a PSF is its energy relative to the reference (centre) PSF, measured on the
-region both PSFs cover after registration (so that a PSF partly off the sensor is not taken
-for a dim one): :math:`g = \sum_\Omega p / \sum_\Omega p_0`.
-
-A measured gain is the ratio of two captures' energies: it includes any difference in the
-brightness of the sources (a monitor's uniformity, stars of different magnitudes), not only
-the camera's vignetting.
-
-Two fits summarise the map: the cosⁿ law :math:`g = A\cos^n\theta` (n = 4 for natural
-vignetting; microlenses and a thick aperture steepen it) and a quadratic polynomial in the
-field coordinates, whose residual shows what the radial law misses (e.g. a tilted sensor).
-The scale ``A`` is fitted: every gain is a ratio to the one reference capture, so the
-reference's own brightness error is common to all of them; a law forced through 1 at the
-centre would turn it into an absurd exponent (thousands) on sources of different brightness.
-The exponent carries its 1σ uncertainty (residual-scaled covariance of the log-linear fit)
-and the significance of :mod:`psfkit.numerics.significance` (null: n = 0, no vignetting; the
-t-test of the slope).
+The gain of a PSF is its energy relative to the centre PSF over the region both cover after
+registration, :math:`g = \sum_\Omega p / \sum_\Omega p_0` (so a PSF partly off the sensor is not
+taken for a dim one); it includes any difference in source brightness, not only vignetting.
+Fits: the cosⁿ law :math:`g = A\cos^n\theta` (``A`` fitted: a law forced through 1 would turn
+the reference's own brightness error into an absurd exponent), with the exponent's 1σ and
+t-test against n = 0, and a quadratic in the field coordinates (what the radial law misses).
 """
 
 from __future__ import annotations
@@ -31,16 +20,9 @@ from psfkit.numerics.significance import Estimate, checked, f_test, undetermined
 
 
 def overlap_gain(reference: np.ndarray, aligned: np.ndarray, valid: np.ndarray) -> float:
-    """Energy ratio of an aligned PSF to the reference over the pixels ``valid`` in both.
-
-    Parameters
-    ----------
-    reference, aligned : numpy.ndarray
-        ``(H, W)`` (e.g. the channel sum or luminance) or ``(C, H, W)``, background-subtracted,
-        same exposure scale.
-    valid : numpy.ndarray
-        ``(H, W)`` bool.
-    """
+    """Energy ratio of an aligned PSF to the reference over the ``(H, W)`` bool ``valid``;
+    ``reference``, ``aligned``: ``(H, W)`` or ``(C, H, W)``, background-subtracted, same
+    exposure scale."""
     if reference.ndim == 3:
         reference, aligned = reference.sum(axis=0), aligned.sum(axis=0)
     ref = float(np.sum(reference, where=valid, dtype=np.float64))
@@ -56,9 +38,8 @@ EXPONENT_LIMIT = 50.0
 
 @dataclass(frozen=True)
 class GainFit:
-    """Fits of the gain map: ``scale · cos^exponent(θ)`` and a quadratic polynomial in
-    ``(x, y)``; ``estimate`` is the exponent with its uncertainty and significance
-    (:class:`~psfkit.numerics.significance.Estimate`)."""
+    """Fits of the gain map: ``scale · cos^exponent(θ)`` (``estimate``: the exponent's
+    :class:`~psfkit.numerics.significance.Estimate`) and a quadratic in ``(x, y)``."""
 
     exponent: float
     cos_rms_residual: float
@@ -90,21 +71,15 @@ def fit_cos_law(gains: np.ndarray, field_deg: np.ndarray, weights: np.ndarray
 
     Parameters
     ----------
-    gains : numpy.ndarray
-        ``(P,)`` gains (positive, finite).
-    field_deg : numpy.ndarray
-        ``(P, 2)`` field angles ``(θx, θy)`` in degrees.
-    weights : numpy.ndarray
-        ``(P,)`` positive weights.
+    gains, field_deg, weights : numpy.ndarray
+        ``(P,)`` positive gains, ``(P, 2)`` field angles ``(θx, θy)`` in degrees, ``(P,)``.
 
     Returns
     -------
     exponent : Estimate
-        ``n`` with its residual-scaled 1σ, tested against ``n = 0`` (t-test of the slope).
-    scale : float
-        ``A`` (NaN when the fit is not possible).
-    rms : float
-        RMS of ``g − A cosⁿθ`` over the positions (NaN when not possible).
+        ``n`` with its residual-scaled 1σ, tested against ``n = 0``.
+    scale, rms : float
+        ``A`` and the RMS of ``g − A cosⁿθ`` (NaN when the fit is not possible).
     """
     t = np.tan(np.deg2rad(field_deg))
     log_cos = -0.5 * np.log1p(np.sum(t**2, axis=1))      # cos θ = 1/sqrt(1 + tan²θx + tan²θy)
@@ -132,11 +107,11 @@ def fit_gain(gains: np.ndarray, field_deg: np.ndarray | None, positions: np.ndar
     gains : numpy.ndarray
         ``(N, M)`` gains (1 at the reference).
     field_deg : numpy.ndarray or None
-        ``(N, M, 2)`` field angles; without them the cos-law fit is skipped (not determined).
+        ``(N, M, 2)`` field angles in degrees (``None``: no cos law).
     positions : numpy.ndarray
-        ``(N, M, 2)`` field coordinates for the polynomial (any unit; normalized internally).
+        ``(N, M, 2)`` field coordinates of the polynomial (any unit).
     weights : numpy.ndarray, optional
-        ``(N, M)`` weights, e.g. the overlap fraction of each position.
+        ``(N, M)``, e.g. the overlaps.
     """
     g = gains.reshape(-1).astype(np.float64)
     w = np.ones_like(g) if weights is None else np.clip(weights.reshape(-1), 0, None)

@@ -1,7 +1,4 @@
-"""Where a shift-invariant forward model puts each PSF of a grid: the affine map of the field
-positions fitted to the registered shifts of the reliable positions (:func:`nominal_shifts`),
-with its fallbacks, re-based so that the centre PSF stays at the kernel origin.
-"""
+"""Where a shift-invariant forward model puts each PSF of a grid (:func:`nominal_shifts`)."""
 
 from __future__ import annotations
 
@@ -36,14 +33,10 @@ SHIFT_SOURCES = {
 
 @dataclass(frozen=True)
 class NominalShifts:
-    """Where the forward model puts each PSF of a grid (:func:`nominal_shifts`).
-
-    ``shifts`` maps ``(row, col)`` to ``(du, dv)`` in sensor pixels, ``(0, 0)`` at the centre
-    PSF; ``source`` is a key of :data:`SHIFT_SOURCES`; ``fit`` the affine map (``None`` for
-    ``"registered"``); ``deviation_px`` the largest ``|registered − nominal|`` (distortion
-    plus registration error: it stays in the kernels); ``positions_used`` how many positions
-    determined the map.
-    """
+    """Where the forward model puts each PSF: ``shifts`` ``(row, col)`` → ``(du, dv)`` px
+    (``(0, 0)`` at the centre), ``source`` a key of :data:`SHIFT_SOURCES`, ``fit`` the affine
+    map (or ``None``), ``deviation_px`` the largest ``|registered − nominal|`` (left in the
+    kernels), ``positions_used`` how many positions determined the map."""
 
     shifts: dict[tuple[int, int], tuple[float, float]]
     source: str
@@ -59,8 +52,7 @@ class NominalShifts:
 
 
 def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) -> float:
-    """Share of the weighted spread of the registered shifts that the affine map explains
-    (``1 − Σ w |residual|² / Σ w |shift − mean|²``; 1 when the shifts do not spread)."""
+    """``1 − Σ w |residual|² / Σ w |shift − mean|²`` (1 when the shifts do not spread)."""
     residuals = fit.residuals.reshape(-1, 2)
     ok = np.isfinite(residuals).all(axis=1) & (weights > 0)
     if not ok.any():
@@ -73,8 +65,8 @@ def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) ->
 
 def _field_coordinates(positions: list[GridPosition], center: GridPosition
                        ) -> tuple[np.ndarray, str]:
-    """``(P, 2)`` field coordinates of ``positions`` and their unit: monitor pixels, tan of
-    the field angles, or grid steps from ``center`` (as the characterization's shift map)."""
+    """``(P, 2)`` field coordinates and their unit: monitor px, tan of the field angles, or
+    grid steps from ``center``."""
     if all(p.monitor_px is not None for p in positions):
         return np.array([p.monitor_px for p in positions], dtype=np.float64), "monitor px"
     if all(p.field_deg is not None for p in positions):
@@ -86,40 +78,27 @@ def _field_coordinates(positions: list[GridPosition], center: GridPosition
 
 def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overlap: np.ndarray,
                    center: tuple[int, int]) -> NominalShifts:
-    """The shifts at which a shift-invariant forward model sees each PSF: an affine map of
-    the field positions, fitted to the registered shifts.
+    """The shifts at which a shift-invariant forward model sees each PSF.
 
-    The forward model ``y = crop(K * pad(x))`` places the PSF of a scene point at a position
-    that is linear in the point's field position (``docs/forward-models.md``); whatever a PSF
-    does beyond that (distortion, the deformation of its caustic) is what the eigen-kernels
-    must describe. Aligning every PSF by its *own* registered shift removes that part before
-    the fit. Worse, the registration of a PSF mostly off the sensor is biased by its
-    deformation (tenths of a pixel at full resolution, up to ~14 px at a 256² grid's
-    corners). So the map is fitted (:func:`psfkit.calibration.shift_map.fit_shift_map`,
-    weighted by overlap) to the reliable positions, those with at least
-    :data:`~psfkit.calibration.alignment.RELIABLE_OVERLAP` of the centre PSF's light in their
-    registered overlap (whatever the PSF's size: a compact PSF anywhere on the sensor is
-    reliable), and re-based so that the centre PSF stays at
-    ``(0, 0)`` (the kernel origin). Fallbacks, in order: every position (when the reliable
-    ones do not span two directions), then the registered shifts (a one-row grid, or a map
-    that explains less than :data:`MIN_EXPLAINED` of the shifts' spread: cut-outs).
+    The forward model places a PSF linearly in its field position (``docs/forward-models.md``);
+    what a PSF does beyond that is for the eigen-kernels to describe, and the registration of a
+    PSF mostly off the sensor is biased by its deformation. So an affine map
+    (:func:`~psfkit.calibration.shift_map.fit_shift_map`, weighted by overlap) is fitted to the
+    positions with at least :data:`~psfkit.calibration.alignment.RELIABLE_OVERLAP` of the centre
+    PSF's light in their overlap and re-based to ``(0, 0)`` at the centre. Fallbacks: every
+    position (the reliable ones do not span two directions), then the registered shifts (one
+    row, or a map explaining less than :data:`MIN_EXPLAINED` of their spread).
 
     Parameters
     ----------
     positions : list of GridPosition
         The accepted positions, centre included.
     registered : numpy.ndarray
-        ``(P, 2)`` their registered shifts ``(du, dv)`` in sensor pixels
-        (:meth:`~psfkit.calibration.alignment.GridAligner.align`).
+        ``(P, 2)`` registered shifts ``(du, dv)`` px.
     overlap : numpy.ndarray
-        ``(P,)`` fraction of the centre PSF's light in each one's registered overlap
-        (:attr:`~psfkit.calibration.alignment.AlignedPsf.support_overlap`).
+        ``(P,)`` their :attr:`~psfkit.calibration.alignment.AlignedPsf.support_overlap`.
     center : (int, int)
         Grid index of the centre PSF.
-
-    Returns
-    -------
-    NominalShifts
     """
     registered = np.asarray(registered, dtype=np.float64).reshape(-1, 2)
     overlap = np.asarray(overlap, dtype=np.float64).reshape(-1)

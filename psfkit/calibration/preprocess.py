@@ -1,18 +1,10 @@
-"""Preprocessing of raw PSF captures: background, hot pixels, saturation, exposure, scale.
-
-Plain functions on ``(C, H, W)`` arrays plus :func:`prepare_grid_psf`, which applies them to one
-grid position and checks that a usable point-source signal is there. Conventions:
-
-- background: a dark frame when the grid has one, else the manifest's black level;
-- hot pixels: outliers of the dark frame (> ``sigma`` robust standard deviations), replaced by
-  the median of their 3 × 3 neighbourhood;
-- saturation: raw values at the top of the sensor's range, per pixel (any channel); saturated
-  pixels are reported and masked from pixel-wise comparisons; a PSF whose bright region is
-  more than ``max_saturated_fraction`` saturated is refused (the lab should lower the
-  exposure), unless ``allow_saturated``;
-- exposure: images are scaled to the reference (centre) exposure when exposures are given;
-- normalization (stated in every output): ``"max"`` divides every PSF by the centre PSF's peak,
-  ``"sum"`` by the centre PSF's total, so relative gains are kept.
+"""Preprocessing of raw ``(C, H, W)`` PSF captures (:func:`prepare_psf`,
+:meth:`GridCalibration.prepare`): background (the dark frame, else the manifest's black level),
+hot pixels (dark-frame outliers, replaced by their 3 × 3 median), saturation (masked from
+comparisons; a PSF whose bright region is more than ``max_saturated_fraction`` saturated is
+refused unless ``allow_saturated``), exposure (scaled to the centre's) and a check that a
+point-source signal is there. Normalization: ``"max"`` divides every PSF by the centre PSF's
+peak, ``"sum"`` by its total, so relative gains are kept.
 """
 
 from __future__ import annotations
@@ -51,12 +43,9 @@ class PreprocessOptions:
 
 @dataclass(frozen=True)
 class PreparedPsf:
-    """One preprocessed PSF.
-
-    ``image`` is ``(C, H, W)`` float32 background-subtracted, hot pixels repaired, scaled to the
-    reference exposure (not yet normalized); ``luminance`` its ``(H, W)`` luminance;
-    ``saturated`` an ``(H, W)`` bool mask.
-    """
+    """One preprocessed PSF: ``image`` ``(C, H, W)`` float32 (background subtracted, hot pixels
+    repaired, at the reference exposure, not normalized), its ``(H, W)`` ``luminance`` and
+    ``saturated`` mask."""
 
     image: np.ndarray
     luminance: np.ndarray
@@ -83,12 +72,9 @@ def luminance(image: np.ndarray) -> np.ndarray:
 
 
 def saturation_level_for(grid: PsfGrid) -> float | None:
-    """Raw value at which the grid's sensor saturates, from its dtype and ``bit_depth``.
-
-    Integer data with ``bit_depth`` b in a wider container may be LSB-aligned (max 2^b − 1) or
-    MSB-aligned (max (2^b − 1)·2^(bits − b), e.g. 65520 for 12-bit data in 16 bits); the
-    stored maximum of the grid's centre image tells which. Float data has no known level.
-    """
+    """Raw value at which the grid's sensor saturates, from its dtype and ``bit_depth`` (``None``
+    for float data). ``b``-bit data in a wider container is LSB-aligned (max 2^b − 1) or
+    MSB-aligned (e.g. 65520 for 12 bits in 16): the centre image's maximum tells which."""
     if not np.issubdtype(grid.dtype, np.integer):
         return None
     container_bits = np.iinfo(grid.dtype).bits
@@ -111,18 +97,9 @@ def clip_hint(natural: float | None) -> str:
 
 def check_saturation_level(level: float | None, grid: PsfGrid,
                            dark: np.ndarray | None) -> None:
-    """Refuse a ``--saturation-level`` that the grid's sensor cannot clip at, naming the flag.
-
-    A level above the largest value the images' integer type holds is never reached
-    (saturation would go undetected); one at or below the background (the dark frame's
-    median, else the manifest's ``black_level``, else the darkest pixel of the reference
-    capture) would count every background pixel as saturated, and each PSF would then be
-    blamed for it.
-
-    Raises
-    ------
-    ConfigurationError
-        The level is out of the images' range.
+    """Refuse (:class:`ConfigurationError`) a ``--saturation-level`` above the images' integer
+    range (never reached) or at or below the background (the dark frame's median, else the
+    ``black_level``, else the reference's darkest pixel: every pixel would count as saturated).
     """
     if level is None:
         return
@@ -147,15 +124,9 @@ def check_saturation_level(level: float | None, grid: PsfGrid,
 
 
 def check_background(grid: PsfGrid, dark: np.ndarray | None) -> None:
-    """Refuse a background (the dark frame, else the manifest's ``black_level``) at or above
-    the brightest pixel of the reference capture (unless that capture is blank): nothing would
-    remain of any PSF once it is subtracted, and each PSF would be blamed for having no signal.
-
-    Raises
-    ------
-    InvalidInputError
-        Names the dark frame or the manifest's ``black_level``.
-    """
+    """Refuse (:class:`InvalidInputError`, naming it) a background (the dark frame, else the
+    ``black_level``) at or above the brightest pixel of a non-blank reference capture: nothing
+    of any PSF would remain once it is subtracted."""
     if dark is None and grid.black_level is None:
         return
     centre = grid.require_center()
@@ -211,14 +182,9 @@ def background_noise(lum: np.ndarray) -> float:
 
 
 def signal_peak(lum: np.ndarray) -> float:
-    """Robust peak of a background-subtracted ``(H, W)`` luminance, whatever the PSF's size.
-
-    The brighter of two estimates that both ignore a single hot pixel: the 99.99th percentile
-    of every other pixel (a PSF of many pixels, a caustic) and the faintest pixel of the
-    brightest 2 × 2 block (a compact PSF of a few pixels, which the percentile of a large
-    frame misses: it would call a star on a 1024² frame "no signal" and the same star on a
-    63² cut-out bright).
-    """
+    """Robust peak of a background-subtracted ``(H, W)`` luminance, whatever the PSF's size:
+    the brighter of the 99.99th percentile of every other pixel (a caustic) and the faintest
+    pixel of the brightest 2 × 2 block (a star of a few pixels); both ignore one hot pixel."""
     import cv2
 
     block = cv2.erode(np.ascontiguousarray(lum, dtype=np.float32), np.ones((2, 2), np.uint8),
@@ -235,32 +201,26 @@ def prepare_psf(raw: np.ndarray, *, dark: np.ndarray | None = None,
 
     Parameters
     ----------
-    raw : numpy.ndarray
-        Stored values (any dtype).
     dark, black_level : optional
-        Background to subtract: the dark frame wins over the scalar black level.
+        Background to subtract (the dark frame wins).
     hot_pixels : numpy.ndarray, optional
         ``(H, W)`` mask from :func:`hot_pixel_mask`.
     saturation_level : float, optional
         Raw value at which the sensor clips.
     exposure_scale : float
-        Factor bringing this capture to the reference exposure.
-    options : PreprocessOptions
+        Factor to the reference exposure.
     name : str
-        File name used in error messages.
+        File name for error messages.
     overwrite_raw : bool
-        ``raw`` (when float32) may become the returned image, modified in place: saves a
-        copy when the caller does not keep it.
+        A float32 ``raw`` may be modified in place and returned (saves a copy).
 
     Raises
     ------
     PositionRejected
-        NaN/Inf values, too much of the PSF saturated, or no point-source signal above the noise
-        (an all-zero frame included); its ``reason`` says which.
+        NaN/Inf, too much saturated, or no point-source signal (``reason`` says which).
     ConfigurationError
-        ``options.saturation_level`` (``--saturation-level``) marks more pixels saturated than
-        the PSF has bright pixels: a sensor clips only where the PSF is brightest, so the
-        level, not the PSF, is wrong.
+        ``--saturation-level`` marks more pixels than the PSF has bright ones (the level is
+        wrong, not the PSF).
     """
     options = options or PreprocessOptions()
     if np.issubdtype(raw.dtype, np.floating) and not np.all(np.isfinite(raw)):

@@ -1,8 +1,5 @@
-"""One measured point-source image as a shift-invariant kernel: its background
-(:func:`subtract_background`), the kernel it gives (:func:`psf_kernel`) and the one PSF loader
-(:func:`load_psf_image`) through which ``ekdun reconstruct`` and ``ekdun train --psf`` read PSF
-files.
-"""
+"""One measured point-source image as a shift-invariant kernel, and the one PSF loader
+(:func:`load_psf_image`) of ``ekdun reconstruct`` and ``ekdun train --psf``."""
 
 from __future__ import annotations
 
@@ -17,16 +14,14 @@ CORNER = (slice(5, 15), slice(5, 15))   # the DiffuserCam tutorial's dark patch,
 def subtract_background(image: np.ndarray, background: str = "corner",
                         where: str = "image") -> np.ndarray:
     """``image`` ``(C, H, W)`` minus its background: ``"corner"`` subtracts each channel's mean
-    over ``[5:15, 5:15]`` (as the DiffuserCam tutorial does for PSFs and raw captures),
-    ``"none"`` returns it unchanged.
+    over ``[5:15, 5:15]`` (as the DiffuserCam tutorial), ``"none"`` nothing.
 
     Raises
     ------
     ConfigurationError
         Unknown ``background``.
     InvalidInputError
-        ``"corner"`` on an image smaller than 15 × 15 px, which has no such corner
-        (``where`` names it): its mean would be NaN, and the image blamed for holding NaN.
+        ``"corner"`` on an image smaller than 15 × 15 px (``where`` names it).
     """
     if background not in BACKGROUNDS:
         raise ConfigurationError(f"background must be one of {BACKGROUNDS}, got {background!r}")
@@ -43,23 +38,14 @@ def subtract_background(image: np.ndarray, background: str = "corner",
 
 def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 1,
                where: str = "PSF") -> np.ndarray:
-    """A point-source image ``(C, H, W)`` (in the toolkit's units) as a shift-invariant kernel.
-
-    Subtract the background (:func:`subtract_background`), bin ``downsample × downsample``
-    blocks (block mean), clip to ``>= 0`` (negative values are noise after background
-    subtraction) and scale each channel to unit sum (a PSF conserves energy; reconstructions
-    come out in measurement units).
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(C, H // downsample, W // downsample)`` float32, non-negative, channels summing to 1.
+    """A point-source image ``(C, H, W)`` as a shift-invariant kernel: background subtracted,
+    ``downsample``-binned (block mean), clipped to ``>= 0`` and each channel scaled to unit sum;
+    ``(C, H // downsample, W // downsample)`` float32.
 
     Raises
     ------
     InvalidInputError
-        A binning that leaves no pixel, or a channel with no signal left after the background
-        (``where`` names the input).
+        A binning that leaves no pixel, or a channel without signal (``where`` names it).
     """
     from psfkit.numerics.resample import bin_mean
 
@@ -81,33 +67,22 @@ def psf_kernel(image: np.ndarray, background: str = "corner", downsample: int = 
 
 def load_psf_image(path: str, channel_order: str = "RGB", background: str = "corner",
                    downsample: int = 1, white_level: float | None = None) -> np.ndarray:
-    """A measured point-source image file as a shift-invariant kernel: the one PSF loader.
-
-    ``ekdun reconstruct PSF RAW`` and ``ekdun train --psf`` both read PSF images through it, so a
-    PSF file gives the same kernel in both: :func:`psfkit.io.images.read_image_float` (the
-    toolkit's units and channel order), then :func:`psf_kernel`.
+    """A point-source image file as a kernel: :func:`psfkit.io.images.read_image_float`, then
+    :func:`psf_kernel`.
 
     Parameters
     ----------
     path : str
         ``.npy``, PNG or TIFF image of the point source, the sensor's size.
     channel_order : {"RGB", "BGR"}
-        Order of the channels in ``.npy``/TIFF files.
-    background : {"corner", "none"}
-    downsample : int
-        Binning factor (as for the measurements).
+        Of ``.npy``/TIFF files.
     white_level : float, optional
         Full-scale stored value of integer files.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(C, H, W)`` float32, non-negative, each channel summing to 1.
 
     Raises
     ------
     InvalidInputError
-        Unreadable file, NaN/Inf, or a channel with no signal left after the background.
+        Unreadable file, NaN/Inf, or a channel without signal.
     """
     from psfkit.io.images import read_image_float
 

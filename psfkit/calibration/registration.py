@@ -1,18 +1,15 @@
-r"""Sub-pixel registration of PSFs, and the sub-pixel shift that undoes a displacement (the map
-from field position to PSF shift: :mod:`psfkit.calibration.shift_map`).
+r"""Sub-pixel registration of PSFs (:class:`ShiftRegistrar`) and the sub-pixel shift that undoes
+a displacement (:func:`shift_image`).
 
-Sign convention (``docs/architecture.md``): the *shift* ``s = (du, dv)`` of a PSF relative to the
-reference is its displacement on the sensor, ``psf(x) ≈ g · reference(x − s)``, in sensor
-pixels (``u`` = column, ``v`` = row). A source displaced by ``+x`` on the monitor gives
-``du < 0``.
+Sign convention (``docs/architecture.md``): the *shift* ``s = (du, dv)`` of a PSF is its
+displacement on the sensor relative to the reference, ``psf(x) ≈ g · reference(x − s)``, in
+sensor pixels (``u`` = column, ``v`` = row); a source displaced by ``+x`` gives ``du < 0``.
 
-:class:`ShiftRegistrar` (and :func:`register_shift`) is phase correlation without spectral
-whitening (the 'phase' normalization amplifies noise at frequencies where a smooth caustic has
-no energy), coarse to fine: an estimate from binned, zero-padded images (a linear correlation,
-so shifts up to the image size are unambiguous: no wrap-around), then a refinement on the
-windowed overlapping crops by evaluating the cross-correlation with a matrix DFT on finer and
-finer grids around its peak (the upsampled DFT of Guizar-Sicairos, Thurman & Fienup, Opt.
-Lett. 33, 156 (2008), in two stages of ×10 so that each stage costs O(31·N)).
+Registration is phase correlation without whitening (which amplifies noise where a smooth
+caustic has no energy), coarse to fine: a linear correlation of binned, zero-padded images (no
+wrap-around), then the cross-correlation of the windowed overlapping crops evaluated by matrix
+DFTs on ever finer grids around its peak (Guizar-Sicairos, Thurman & Fienup, Opt. Lett. 33, 156
+(2008), in ×10 stages).
 """
 
 from __future__ import annotations
@@ -37,14 +34,12 @@ def _cross_spectrum(moving: np.ndarray, reference: np.ndarray, shape: tuple[int,
 def _correlation_at(spectrum: np.ndarray, rows: np.ndarray, cols: np.ndarray,
                     width: int | None = None) -> np.ndarray:
     """Cross-correlation at the (sub-pixel) displacements ``rows × cols`` by a separable matrix
-    DFT of its ``spectrum`` (real part: the signals are real).
+    DFT of its ``spectrum`` (real part).
 
     ``width``: the full number of columns when ``spectrum`` holds only the non-negative column
-    frequencies of a real signal's spectrum (:func:`_cross_spectrum`). Each negative column
-    frequency is the complex conjugate of its positive partner at the negated row frequency,
-    which is the same row except for the Nyquist row of an even height (``fftfreq`` gives it
-    −½ for both): its term is corrected by a rank-one update, so that the values equal those
-    of the full spectrum up to rounding.
+    frequencies (:func:`_cross_spectrum`). Each negative column is the conjugate of its partner
+    at the negated row frequency, the same row except the Nyquist row of an even height, which
+    a rank-one update corrects: the values equal those of the full spectrum up to rounding.
     """
     h, w = spectrum.shape
     e_v = np.exp(2j * np.pi * np.outer(rows, np.fft.fftfreq(h)))
@@ -130,9 +125,7 @@ def _prepared(image: np.ndarray) -> np.ndarray:
 
 def _prepared_binned(image: np.ndarray, factor: int) -> np.ndarray:
     """``bin_image(_prepared(image), factor)`` up to rounding (~1e-16), without the
-    full-resolution float64 copy: the blocks are summed in float64 straight from the input,
-    and the median and scale of :func:`_prepared` (taken on the full-resolution image, as
-    there) applied to the sums."""
+    full-resolution float64 copy (the full-resolution median and scale applied to the sums)."""
     median = float(np.median(image[::4, ::4]))
     scale = max(float(image.max()) - median, median - float(image.min()), 1e-30)
     out = bin_image(image, factor, dtype=np.float64)
@@ -147,22 +140,19 @@ class ShiftRegistrar:
     Parameters
     ----------
     reference : numpy.ndarray
-        ``(H, W)`` reference image (e.g. the centre PSF's luminance).
+        ``(H, W)``, e.g. the centre PSF's luminance.
     upsample : int
         Precision ``1/upsample`` px.
     coarse_size : int
-        Images are binned to about this size for the coarse search.
-    fine_limit : int
-        Images whose smaller side is at least this may be refined at half resolution...
-    allow_binning : bool, optional
-        ...when they carry (almost) no power that 2× binning would alias: ``None`` checks the
-        reference (< 1% of its power above a quarter of the sampling frequency).
+        Size the images are binned to for the coarse search.
+    fine_limit, allow_binning : int, bool or None
+        Images of at least ``fine_limit`` px a side are refined at half resolution when they
+        carry (almost) no power that 2× binning would alias (``None``: < 1% in the reference).
     region : (slice, slice), optional
-        Where the reference's light is (rows, columns; :func:`psf_region`): the refinement
-        then correlates this region of the reference with the same region of the moving
-        image, displaced by the coarse estimate, at full resolution, instead of the whole
-        overlap. For a compact PSF on a large frame: the same numbers as on a cut-out around
-        it, at a fraction of the cost; ``None`` (a PSF that fills the frame): the overlap.
+        Where the reference's light is (:func:`psf_region`): the refinement correlates this
+        region with the same region of the moving image displaced by the coarse estimate, at
+        full resolution (a compact PSF: the numbers of a cut-out, cheaply); ``None``: the
+        whole overlap.
     """
 
     def __init__(self, reference: np.ndarray, upsample: int = 100, coarse_size: int = 256,
@@ -225,11 +215,9 @@ class ShiftRegistrar:
 
 
 def psf_region(support: np.ndarray) -> tuple[slice, slice] | None:
-    """The region a registration refines in (:class:`ShiftRegistrar`'s ``region``): the
-    bounding box of a PSF's ``(H, W)`` bool support grown by half its size and 8 px on every
-    side (the Tukey window's taper then leaves the PSF untouched), clipped to the frame; or
-    ``None`` when that is the whole frame (a caustic: the whole overlap is used). Defined by the
-    PSF alone, so a cut-out that holds the region registers as the full frame does."""
+    """:class:`ShiftRegistrar`'s ``region``: the bounding box of a PSF's ``(H, W)`` bool support
+    grown by half its size and 8 px a side (clear of the Tukey taper), clipped to the frame;
+    ``None`` when that is the whole frame (a caustic)."""
     rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
     if len(rows) == 0:
         return None
@@ -261,11 +249,8 @@ def _region_slices(region: tuple[slice, slice], shape: tuple[int, int],
 def register_shift(reference: np.ndarray, moving: np.ndarray, upsample: int = 100,
                    coarse_size: int = 256, fine_limit: int = 1024,
                    allow_binning: bool | None = None) -> tuple[float, float]:
-    """Sub-pixel shift ``(du, dv)`` of ``moving`` relative to ``reference`` (2-D images).
-
-    A one-off :class:`ShiftRegistrar`; to register many images to one reference, make one
-    registrar and call its :meth:`~ShiftRegistrar.register`.
-    """
+    """Sub-pixel shift ``(du, dv)`` of ``moving`` relative to ``reference`` (2-D images): a
+    one-off :class:`ShiftRegistrar` (make one to register many images to one reference)."""
     if reference.shape != moving.shape or reference.ndim != 2:
         raise InvalidInputError(f"register_shift needs two 2-D images of one shape, got "
                                 f"{reference.shape} and {moving.shape}")
@@ -285,15 +270,15 @@ def shift_image(image: np.ndarray, shift: tuple[float, float], margin: int = 8
     image : numpy.ndarray
         ``(H, W)`` or ``(C, H, W)``.
     shift : (float, float)
-        ``(du, dv)`` displacement of ``image`` relative to the frame to align to.
+        ``(du, dv)`` of ``image`` relative to the frame to align to.
 
     Returns
     -------
     aligned : numpy.ndarray
-        Same shape and dtype as ``image``; zero where ``x + s`` is outside the image.
+        Same shape and dtype; zero where ``x + s`` is outside the image.
     valid : numpy.ndarray
-        ``(H, W)`` bool, pixels whose source ``x + s`` lies inside the original image (and,
-        after a sub-pixel shift, 2 px away from the data's edges).
+        ``(H, W)`` bool: ``x + s`` inside the image (and 2 px from its edges after a
+        sub-pixel shift).
     """
     du, dv = shift
     nv, nu = int(np.round(dv)), int(np.round(du))

@@ -1,10 +1,7 @@
-"""The map from field position to PSF shift: an affine least-squares fit of the registered
-shifts against the field positions (:func:`fit_shift_map`), decomposed into magnification,
-rotation and shear, with the 1σ uncertainty and significance of its magnification, rotation
-and non-linear part (distortion).
-
-Shifts follow the sign convention of :mod:`psfkit.calibration.registration`
-(``docs/architecture.md``).
+"""The map from field position to PSF shift (:func:`fit_shift_map`): an affine least-squares
+fit decomposed into magnification, rotation and shear, with the 1σ and significance of its
+magnification, rotation and non-linear part (distortion). Shift signs: as in
+:mod:`psfkit.calibration.registration`.
 """
 
 from __future__ import annotations
@@ -26,18 +23,12 @@ DISTORTION_DEGREE = 3
 class ShiftMapFit:
     """Affine fit ``shift = A · p + t`` of PSF shifts against field positions ``p``.
 
-    ``A`` is decomposed as ``R(rotation) · P`` (polar decomposition, ``P`` symmetric): a
-    shift-invariant lensless camera has ``A ≈ −m·I`` (an inverted image, rotation ≈ 180°) with
-    magnification ``m``. ``residuals`` (``(N, M, 2)``, px) are the distortion the affine map
-    does not explain, plus the registration error.
-
-    ``estimates`` holds, as :class:`~psfkit.numerics.significance.Estimate` with a 1σ
-    uncertainty from the residual-scaled covariance of the fit and a significance test:
-    ``"magnification"`` (null 0: the PSF does not move with the field), ``"rotation_deg"``
-    (null: the nearer of 0° and 180°, the sensor's axes along the field's) and
-    ``"distortion_rms_px"``, the RMS over the positions of the non-linear part of the map (a
-    polynomial of degree ``distortion_degree`` minus the affine map, its noise bias removed;
-    null 0, tested by the F-test of the polynomial against the affine map).
+    ``A = R(rotation) · P`` (polar decomposition; a lensless camera has ``A ≈ −m·I``, rotation
+    ≈ 180°). ``residuals`` ``(N, M, 2)`` px: distortion plus registration error. ``estimates``
+    (:class:`~psfkit.numerics.significance.Estimate`): ``"magnification"`` (null 0),
+    ``"rotation_deg"`` (null: the nearer of 0° and 180°) and ``"distortion_rms_px"``, the
+    debiased RMS of a degree-``distortion_degree`` polynomial map minus the affine one (null 0,
+    F-test).
     """
 
     matrix: np.ndarray
@@ -82,27 +73,18 @@ class ShiftMapFit:
 def fit_shift_map(positions: np.ndarray, shifts: np.ndarray, field_units: str,
                   weights: np.ndarray | None = None, resolution_px: float = 0.0
                   ) -> ShiftMapFit:
-    """Least-squares affine map from field positions to PSF shifts, with the uncertainty and
-    significance of its magnification, rotation and non-linear part (:class:`ShiftMapFit`).
+    """Least-squares affine map from field positions to PSF shifts (:class:`ShiftMapFit`).
 
     Parameters
     ----------
-    positions : numpy.ndarray
-        ``(N, M, 2)`` field coordinates ``(x, y)`` (monitor px, tan θ, or grid steps).
-    shifts : numpy.ndarray
-        ``(N, M, 2)`` measured ``(du, dv)``.
-    field_units : str
-        Unit of ``positions`` (recorded with the result).
+    positions, shifts : numpy.ndarray
+        ``(N, M, 2)`` field coordinates ``(x, y)`` (in ``field_units``) and ``(du, dv)``; NaN
+        positions are left out (NaN residual).
     weights : numpy.ndarray, optional
-        ``(N, M)`` non-negative weights (e.g. registration quality).
+        ``(N, M)`` non-negative weights.
     resolution_px : float
-        Step of the registration (``1/upsample`` px). Its rounding error is a function of each
-        shift, not independent noise, and on a regular grid it changes smoothly over the
-        field: the uncertainty of the non-linear part includes it (``resolution/√12``), so
-        that no distortion finer than the registration is claimed.
-
-    Positions whose coordinates, shift or weight is NaN are left out of the fit (their
-    residual is NaN).
+        Registration step: its rounding error (``resolution/√12``) enters the non-linear
+        part's σ, so no distortion finer than the registration is claimed.
     """
     p = positions.reshape(-1, 2).astype(np.float64)
     s = shifts.reshape(-1, 2).astype(np.float64)
@@ -144,9 +126,8 @@ def _magnification_and_rotation(matrix: np.ndarray) -> np.ndarray:
 def _shift_map_estimates(p: np.ndarray, s: np.ndarray, w: np.ndarray, matrix: np.ndarray,
                          rotation: float, resolution_px: float = 0.0
                          ) -> tuple[dict[str, Estimate], int]:
-    """:class:`ShiftMapFit.estimates` from the positions used by the fit (``(n, 2)`` field
-    coordinates ``p``, shifts ``s`` and weights ``w``), and the degree of the polynomial map
-    the distortion was tested with (0: none)."""
+    """:class:`ShiftMapFit.estimates` from the ``(n, 2)`` positions ``p``, shifts ``s`` and
+    weights ``w`` the fit used, and the distortion test's polynomial degree (0: none)."""
     null_rotation = math.copysign(180.0, rotation) if abs(rotation) > 90.0 else 0.0
     design = np.column_stack([p, np.ones(len(p))])
     _, covariance, rss, dof = weighted_lstsq(design, s, w)
@@ -183,10 +164,9 @@ def _shift_map_estimates(p: np.ndarray, s: np.ndarray, w: np.ndarray, matrix: np
 
 
 def _sampling_terms(shifts: np.ndarray) -> np.ndarray:
-    """``(n, 4)`` first harmonics of each shift's sub-pixel phase ``φ = s − round(s)``:
-    ``sin 2πφ`` and ``cos 2πφ − 1`` per axis. Registering a PSF sampled by pixels is biased by
-    an amount that depends on φ (the pixels alias the PSF's finest detail); on a regular grid
-    φ changes steadily across the field, and that bias would pass for distortion."""
+    """``(n, 4)`` ``sin 2πφ``, ``cos 2πφ − 1`` per axis of the sub-pixel phase ``φ = s −
+    round(s)``: pixel sampling biases a registration by a function of φ, which on a regular
+    grid would pass for distortion."""
     phase = 2 * np.pi * (shifts - np.round(shifts))
     return np.column_stack([np.sin(phase), np.cos(phase) - 1.0])
 
@@ -203,10 +183,9 @@ def _monomials(p: np.ndarray, degree: int) -> np.ndarray:
 
 def _nonlinear_distortion(p: np.ndarray, s: np.ndarray, w: np.ndarray,
                           resolution_px: float = 0.0) -> tuple[Estimate, int]:
-    """RMS of the non-linear part of the shift map, debiased, with its delta-method σ and the
-    F-test of the highest-degree polynomial (≤ :data:`DISTORTION_DEGREE`) the positions
-    determine with as many residual degrees of freedom as parameters, against the affine map;
-    both with the terms of the sub-pixel registration bias (:func:`_sampling_terms`)."""
+    """Debiased RMS of the shift map's non-linear part with its delta-method σ, and the F-test
+    of the highest-degree polynomial (≤ :data:`DISTORTION_DEGREE`, as many residual dof as
+    parameters) against the affine map; both with :func:`_sampling_terms`."""
     n = len(p)
     phase = _sampling_terms(s)
     for degree in range(DISTORTION_DEGREE, 1, -1):

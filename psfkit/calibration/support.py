@@ -1,10 +1,5 @@
-"""Where a PSF is on its frame: the bounding box of its support, and windows cut around it.
-
-Figures show the PSF, not the frame: a lens camera's PSF of a few pixels on a 4000-px sensor
-is invisible in a picture of the whole frame, and a caustic leaves dark borders. The box is
-found once on the reference PSF and moved by each position's registered shift, so every
-window shows the same part of the PSF.
-"""
+"""Where a PSF is on its frame: the bounding box of its support, and windows cut around it
+(figures show the PSF, not the frame; the reference's box moved by each registered shift)."""
 
 from __future__ import annotations
 
@@ -24,31 +19,13 @@ SUPPORT_WORKING_PX = 1024
 
 def support_box(image: np.ndarray, level: float = SUPPORT_LEVEL, margin: float = 0.15,
                 min_margin: int = 3) -> tuple[slice, slice]:
-    """Bounding box of the support of a PSF, with a margin.
+    """``(rows, cols)`` bounding box of the support of an ``(H, W)`` PSF, with a margin.
 
-    The image is denoised (a 3 × 3 median removes hot pixels, a Gaussian of σ = 1 px averages
-    the read noise) and thresholded at the larger of ``level`` × its peak and
-    :data:`SUPPORT_NOISE_SIGMAS` robust noise deviations (MAD over the frame: a compact PSF
-    leaves the frame mostly background). Of the connected pieces above it, those that are
-    bright (a quarter of the peak) or large (a twentieth of the largest) are the PSF (noise
-    crossing the threshold makes small, faint pieces); their bounding box grows by
-    ``margin`` × its size on each side (at least ``min_margin`` px), clipped to the frame.
-
-    Parameters
-    ----------
-    image : numpy.ndarray
-        ``(H, W)`` PSF (luminance), dark level removed.
-    level : float
-        Threshold as a fraction of the denoised peak.
-    margin : float
-        Margin on each side as a fraction of the support's extent along that axis.
-    min_margin : int
-        Smallest margin, px.
-
-    Returns
-    -------
-    tuple of slice
-        ``(rows, cols)``; the whole frame when nothing rises above the threshold.
+    The image, denoised (3 × 3 median, Gaussian σ = 1 px), is thresholded at the larger of
+    ``level`` × its peak and :data:`SUPPORT_NOISE_SIGMAS` robust noise deviations; the
+    connected pieces that are bright (¼ of the peak) or large (1/20 of the largest) are the
+    PSF. Their box grows by ``margin`` × its extent a side (at least ``min_margin`` px),
+    clipped to the frame; the whole frame when nothing rises above the threshold.
     """
     image = np.nan_to_num(np.asarray(image, dtype=np.float32))
     height, width = image.shape
@@ -83,25 +60,9 @@ def support_box(image: np.ndarray, level: float = SUPPORT_LEVEL, margin: float =
 
 def crop_window(image: np.ndarray, box: tuple[slice, slice], offset: tuple[int, int] = (0, 0),
                 fill: float = np.nan) -> np.ndarray:
-    """The window ``box`` of ``image`` moved by ``offset`` px, ``fill`` outside the frame.
-
-    Parameters
-    ----------
-    image : numpy.ndarray
-        ``(..., H, W)``.
-    box : tuple of slice
-        ``(rows, cols)`` with explicit starts and stops (:func:`support_box`).
-    offset : (int, int)
-        ``(dv, du)``: rows, columns to move the window by (a PSF displaced by the registered
-        shift ``(du, dv)`` stays in view).
-    fill : float
-        Value of the window's pixels outside the frame (NaN: drawn as "off the sensor").
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(..., h, w)`` float32, the size of ``box``.
-    """
+    """The window ``box`` (explicit ``(rows, cols)`` slices) of ``image`` ``(..., H, W)``
+    moved by ``offset`` ``(dv, du)`` px, ``fill`` outside the frame (NaN: "off the sensor");
+    ``(..., h, w)`` float32."""
     *lead, height, width = image.shape
     r0, c0 = box[0].start + int(offset[0]), box[1].start + int(offset[1])
     h, w = box[0].stop - box[0].start, box[1].stop - box[1].start

@@ -1,34 +1,19 @@
 r"""Dense warp fields between registered PSFs, their affine part and their residual.
 
-Convention: the displacement field ``d(x) = (d_u, d_v)`` maps every point of the reference
-(centre) PSF to where it appears in the other PSF, ``moving(x + d(x)) ≈ reference(x)``, in
-pixels (``u`` = column, ``v`` = row).
+Convention: ``moving(x + d(x)) ≈ reference(x)``, ``d = (d_u, d_v)`` in pixels (``u`` = column,
+``v`` = row). :func:`warp_field`: the affine part (magnification, anamorphic scale, shear,
+rotation) by coarse-to-fine ECC (OpenCV ``findTransformECC``), reported about the image centre
+(:class:`AffineWarp`); the residual by dense optical flow on the affine-compensated pair (DIS by
+default: the most accurate and fastest in ``research/warp_methods.py``).
 
-Method (:func:`warp_field`):
-
-1. **Affine part** by ECC image alignment (OpenCV ``findTransformECC``, on a coarse-to-fine
-   pyramid so that the few-percent scale changes of a defocus stack converge). An affine map is
-   what magnification, anamorphic scaling, shear and rotation — distortion — produce.
-   :class:`AffineWarp` reports it about the image centre: scales along ``u``/``v`` and along
-   the tangential/sagittal directions, shear, rotation, translation.
-2. **Residual** by dense optical flow on the affine-compensated pair. The default, DIS
-   (OpenCV), was the most accurate and fastest of Farneback, DIS, ILK and TV-L1 on real
-   caustics with known warps (``research/warp_methods.py``).
-3. **Tangential / sagittal anisotropy** of the residual. A caustic is a network of bright
-   lines, and an intensity-based motion estimate only sees motion *normal* to a line (the
-   aperture problem): a line pushed along the tangential direction ``t`` appears to move along
-   its own normal, which mixes ``t`` and ``s``. In controlled tests (extra propagation along
-   ``t`` only) the dense flow's components come out in a ratio of only about 2 instead of
-   infinity. :func:`transport_anisotropy` avoids the mixing with the transport-of-intensity
-   equation instead: to first order an extra propagation ``(Δ_t, Δ_s)`` changes the intensity
-   by :math:`\delta I = -\Delta_t\,\partial_t(I a_t) - \Delta_s\,\partial_s(I a_s)` (``a`` the
-   ray angles, gradients of the phase), whose power at spatial-frequency angle φ from ``t``
-   goes as :math:`(\Delta_t\cos^2\varphi + \Delta_s\sin^2\varphi)^2` for an isotropic
-   diffuser. Fitting that angular profile (white noise floor removed) gives
-   :math:`\Delta_t/\Delta_s`, the ratio of the tangential to the sagittal displacement RMS of
-   the rays (geometric optics predicts :math:`(1/\cos^3\theta - 1)/(1/\cos\theta - 1)`). The
-   residual's RMS magnitude is split along ``t`` and ``s`` in that ratio
-   (:func:`split_rms`).
+Tangential/sagittal anisotropy (:func:`transport_anisotropy`): a flow sees only motion normal
+to a caustic line, which mixes ``t`` and ``s``. Instead, to first order an extra propagation
+``(Δ_t, Δ_s)`` changes the intensity by
+:math:`\delta I = -\Delta_t\,\partial_t(I a_t) - \Delta_s\,\partial_s(I a_s)` (``a`` the ray
+angles), whose power at spatial-frequency angle φ from ``t`` goes as
+:math:`(\Delta_t\cos^2\varphi + \Delta_s\sin^2\varphi)^2` for an isotropic diffuser; fitting
+that angular profile (noise floor removed) gives :math:`\Delta_t/\Delta_s`, and
+:func:`split_rms` splits the residual's RMS in that ratio.
 """
 
 from __future__ import annotations
@@ -100,13 +85,9 @@ class AffineWarp:
 
 @dataclass(frozen=True)
 class WarpResult:
-    """Dense warp between a reference PSF and another.
-
-    ``residual`` is the ``(2, H, W)`` part of the displacement the affine map does not
-    explain (:meth:`displacement` gives the total), ``compensated`` the moving PSF with its
-    affine part removed; ``mask`` marks the pixels where both are meaningful (inside both
-    images, on or beside the caustic).
-    """
+    """Dense warp between a reference PSF and another: ``residual`` ``(2, H, W)`` beyond the
+    affine map, ``compensated`` the moving PSF without its affine part, ``mask`` where both are
+    meaningful (inside both images, on or beside the caustic)."""
 
     affine: AffineWarp
     residual: np.ndarray
@@ -156,13 +137,9 @@ def affine_registration(reference: np.ndarray, moving: np.ndarray,
                         mask: np.ndarray | None = None, levels: int = 3,
                         iterations: int = 200, finest: int | None = None
                         ) -> tuple[AffineWarp, float]:
-    """Affine map between two 2-D images by ECC maximisation.
-
-    ``finest`` is the finest pyramid level used (default: half resolution for images of more
-    than 512 px on each side, where the global affine is as well determined as at full
-    resolution, else full resolution). Returns the :class:`AffineWarp`
-    (``moving(x + d(x)) ≈ reference(x)``) and the final enhanced correlation coefficient.
-    """
+    """Affine map between two 2-D images by ECC maximisation: the :class:`AffineWarp` and the
+    final correlation coefficient. ``finest``: the finest pyramid level (default: half
+    resolution above 512 px a side, where the affine is as well determined, else full)."""
     ref = np.ascontiguousarray(reference, dtype=np.float32)
     mov = np.ascontiguousarray(moving, dtype=np.float32)
     mask = np.ones(ref.shape, bool) if mask is None else mask
@@ -182,14 +159,9 @@ def _to_uint8(image: np.ndarray, scale: float) -> np.ndarray:
 
 
 def dense_flow(reference: np.ndarray, moving: np.ndarray, method: str = "dis") -> np.ndarray:
-    """Dense flow ``(2, H, W)`` = ``(d_u, d_v)`` with ``moving(x + d(x)) ≈ reference(x)``.
-
-    Parameters
-    ----------
-    method : {"dis", "farneback", "ilk", "tvl1"}
-        OpenCV DIS or Farneback (on square-root-encoded 8-bit images) or scikit-image's
-        iterative Lucas–Kanade or TV-L1 (on float images).
-    """
+    """Dense flow ``(2, H, W)`` = ``(d_u, d_v)`` with ``moving(x + d(x)) ≈ reference(x)``:
+    ``method`` OpenCV DIS or Farneback (on square-root-encoded 8-bit images) or scikit-image's
+    ILK or TV-L1 (on float images)."""
     if method not in FLOW_METHODS:
         raise ConfigurationError(f"unknown flow method {method!r} (use {', '.join(FLOW_METHODS)})")
     if method in ("dis", "farneback"):
@@ -219,20 +191,11 @@ def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
 
 def warp_field(reference: np.ndarray, moving: np.ndarray, valid: np.ndarray | None = None,
                method: str = "dis") -> WarpResult:
-    """Dense warp from ``reference`` to a registered, gain-compensated ``moving`` PSF.
+    """Dense warp from ``reference`` to a registered, gain-compensated ``moving`` PSF (both
+    ``(H, W)``; ``valid``: where both have data; ``method``: see :func:`dense_flow`).
 
-    The work is done on the bounding box of the caustic inside ``valid``; the affine map is
-    reported about the centre of the full image, and the returned arrays are full size (zero
-    outside the box).
-
-    Parameters
-    ----------
-    reference, moving : numpy.ndarray
-        ``(H, W)`` PSFs (e.g. luminance), already aligned by their global shift.
-    valid : numpy.ndarray, optional
-        ``(H, W)`` bool, where both images have data.
-    method : str
-        Dense-flow method for the residual (see :func:`dense_flow`).
+    Computed on the caustic's bounding box; the affine map is reported about the full image's
+    centre and the arrays are full size (zero outside the box).
     """
     if reference.shape != moving.shape or reference.ndim != 2:
         raise InvalidInputError("warp_field needs two 2-D images of one shape")
@@ -273,27 +236,22 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     Parameters
     ----------
     reference, compensated : numpy.ndarray
-        ``(H, W)``: the reference PSF and the other PSF after removing its shift, gain and
-        affine part.
+        ``(H, W)``: the reference and the other PSF without its shift, gain and affine part.
     mask : numpy.ndarray
-        ``(H, W)`` bool; the analysis uses the bounding box of these pixels.
+        ``(H, W)`` bool; its bounding box is analysed.
     azimuth_rad : float
-        Direction of ``t`` from ``+u`` towards ``+v`` (e.g. that of the field shift).
-    band : (float, float)
-        Spatial frequencies (cycles/px) whose angular power profile is fitted.
-    noise_band : (float, float)
-        Frequencies used to estimate the white noise floor that is subtracted.
+        Direction of ``t`` from ``+u`` towards ``+v``.
+    band, noise_band : (float, float)
+        Frequencies (cycles/px) of the fitted angular profile, and of the white noise floor.
 
     Returns
     -------
     float
-        The ratio (NaN when the region is too small, carries no signal, or shows no sagittal
-        transport above the noise floor).
+        NaN for a region too small, without signal, or without sagittal transport above noise.
     """
     if not mask.any():
         return float("nan")
-    rows, cols = np.nonzero(mask)
-    box = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    box = _bounding_box(mask, margin=0)
     ref, mov = reference[box].astype(np.float64), compensated[box].astype(np.float64)
     if min(ref.shape) < 32:
         return float("nan")
@@ -339,10 +297,8 @@ GROWTH_EXPONENT_BOUNDS = (0.1, 8.0)
 class GrowthFit:
     """``rms(θ)² = floor² + (scale_10deg · (θ/10°)^exponent)²`` fitted over the grid.
 
-    ``growth`` is ``scale_10deg`` as an :class:`~psfkit.numerics.significance.Estimate` (null 0: the
-    residual does not grow above its floor; tested by the F-test of the model against a
-    constant), ``exponent_estimate`` the exponent, determined only when the growth is
-    significant (an exponent of no growth means nothing).
+    ``growth``: ``scale_10deg`` as an :class:`~psfkit.numerics.significance.Estimate` (null 0,
+    F-test against a constant); ``exponent_estimate``: determined only for a significant growth.
     """
 
     floor: float
@@ -375,14 +331,9 @@ UNCONSTRAINED = 100.0
 
 def fit_growth(theta_deg: np.ndarray, rms: np.ndarray, weights: np.ndarray | None = None
                ) -> GrowthFit | None:
-    """Fit how a residual RMS grows with field angle, above a measurement floor.
-
-    Oblique-incidence astigmatism predicts an exponent of 2 (the extra propagation distance
-    ``d(1/cos³θ − 1) ≈ 1.5 d θ²``); the floor is the flow's own error. Returns ``None`` when
-    fewer than four finite points are given or the fit does not converge. Uncertainties are
-    the residual-scaled covariance of the fit; the growth is tested against a constant RMS
-    (F-test, 2 extra parameters).
-    """
+    """Fit how a residual RMS grows with field angle above the flow's error floor
+    (:class:`GrowthFit`; astigmatism predicts exponent 2). ``None`` with fewer than four finite
+    points or no convergence; σ from the residual-scaled covariance."""
     theta, values = np.ravel(theta_deg), np.ravel(rms)
     w = np.ones_like(values) if weights is None else np.ravel(weights)
     ok = np.isfinite(theta) & np.isfinite(values) & (theta > 0) & (w > 0)

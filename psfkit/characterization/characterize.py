@@ -1,10 +1,6 @@
-"""One pass over a PSF grid: registration, gain, MAE and warp against the centre PSF.
-
-``characterize_grid`` reads one PSF at a time (a full-resolution 9 × 9 RGB grid never sits in
-memory), preprocesses it (:mod:`psfkit.calibration.preprocess`), registers it to the centre PSF
-(:mod:`psfkit.calibration.registration`), aligns it, and measures what each requested step needs.
-The result (:class:`~psfkit.characterization.results.GridCharacterization`) keeps the per-position
-numbers plus small images for the figures.
+"""One pass over a PSF grid, one PSF at a time (a full-resolution grid never sits in memory):
+preprocess, register and align each PSF to the centre PSF and measure gain, MAE and warp; the
+result keeps the per-position numbers and small images for the figures.
 """
 
 from __future__ import annotations
@@ -109,23 +105,14 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                       ) -> GridCharacterization:
     """Register every PSF of ``grid`` to its centre PSF and measure gain, MAE and warp.
 
-    Parameters
-    ----------
-    grid : PsfGrid
-        From :func:`psfkit.io.read_grid`.
-    options : CharacterizeOptions
-    progress : bool
-        Show a progress bar.
-    workers : int, optional
-        Positions processed concurrently (default: 2, or 1 on a single core).
+    ``workers``: positions processed concurrently (default: 2, or 1 on a single core).
 
     Raises
     ------
     GridFormatError
         The grid has no centre position.
     InvalidInputError
-        A PSF is empty, too saturated, or does not overlap the centre PSF (message names the
-        file).
+        An unusable centre PSF (or, with ``strict``, any PSF), naming the file.
     """
     options = options or CharacterizeOptions()
     aligner = GridAligner(grid, options.preprocess, options.upsample,
@@ -191,10 +178,9 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
 
 
 class _PositionMeasurement:
-    """Align one position of the grid to its centre PSF and measure it: its
-    :class:`PositionResult` (or why it is excluded) and what the figures keep of it
-    (``thumbnail``; ``example`` at the Fig. 2 positions; ``flow`` where a warp was measured).
-    Called concurrently on the positions (:func:`~psfkit.numerics.parallel.bounded_map`)."""
+    """Align one position to the centre PSF and measure it (called concurrently): its
+    :class:`PositionResult` or exclusion, and what the figures keep (``thumbnail``,
+    ``example`` at the Fig. 2 positions, ``flow``)."""
 
     def __init__(self, grid: PsfGrid, options: CharacterizeOptions, aligner: GridAligner,
                  steps: set[str], working: _WorkingCopy, fig2: set[tuple[int, int]],
@@ -261,8 +247,7 @@ def _try_warp(ref_lum: np.ndarray, lum: np.ndarray, valid: np.ndarray,
               shift: tuple[float, float], method: str, where: str
               ) -> tuple[dict[str, Any], Any] | None:
     """One position's warp statistics and coarse flow (:func:`_warp_position`), or ``None``
-    when too few PSF pixels overlap for a dense flow (a compact PSF at the sensor's edge): no
-    warp at this position, not the end of the report."""
+    when too few PSF pixels overlap for a dense flow (no warp there, the report goes on)."""
     try:
         warp, (residual, mask) = _warp_position(ref_lum, lum, valid, shift, method, where)
     except InvalidInputError:
@@ -284,10 +269,8 @@ def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
 
 
 class _WorkingCopy:
-    """The working copy of the aligned PSFs the verdict is judged on (nothing when not
-    ``enabled``), chosen from the centre PSF's extent as ``psfkit fit-eigen`` chooses its own
-    (:func:`psfkit.fitting.grid.working_stack.working_region`); one row per position of the
-    grid, so that the worker threads never write the same one."""
+    """The working copy of the aligned PSFs the verdict is judged on (when ``enabled``), chosen
+    as ``psfkit fit-eigen`` chooses its own; one row per position, so threads never share one."""
 
     def __init__(self, grid: PsfGrid, aligner: GridAligner, enabled: bool) -> None:
         self.stack = None
@@ -315,10 +298,9 @@ class _WorkingCopy:
 
 def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
                progress: bool = False) -> Verdict:
-    """The verdict of a characterized grid (:mod:`psfkit.fitting.grid.heldout`) from the working
-    copy of its aligned PSFs and the field effects measured. The PSFs are placed as ``psfkit
-    fit-eigen`` places them (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`: the forward
-    model's affine map of the field), so that both commands judge the same data."""
+    """The verdict (:mod:`psfkit.fitting.grid.heldout`) of a characterized grid from the working
+    copy of its aligned PSFs, placed by
+    :func:`~psfkit.calibration.nominal_shifts.nominal_shifts` as ``psfkit fit-eigen`` does."""
     positions = [grid.position(p.row, p.col) for p in result.positions]
     placement = nominal_shifts(positions, np.array([p.shift for p in result.positions]),
                                np.array([p.support_overlap if math.isfinite(p.support_overlap)
@@ -331,8 +313,8 @@ def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
 
 
 def _summarise_warp(result: GridCharacterization) -> None:
-    """Grid-level warp summary over the positions mostly on the sensor: growth of the residual
-    with field angle, and the tangential/sagittal anisotropy against geometric optics."""
+    """Warp growth with field angle and tangential/sagittal anisotropy vs geometric optics,
+    over the reliable positions."""
     theta = result.field_angle_deg()
     if theta is None:
         return
@@ -358,11 +340,9 @@ def _summarise_warp(result: GridCharacterization) -> None:
 
 
 def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
-    """The tangential/sagittal ratio of the warp residual over the positions, as an
-    :class:`~psfkit.numerics.significance.Estimate`: the geometric mean of the per-position ratios
-    (finite, positive) with its 1σ from their scatter (delta method on the mean of their
-    logarithms), against the null 1 (no astigmatism: an isotropic change), tested by the
-    one-sample t-test of the logarithms."""
+    """Geometric mean of the per-position tangential/sagittal ratios as an
+    :class:`~psfkit.numerics.significance.Estimate` (σ by the delta method on the mean log;
+    null 1, one-sample t-test of the logs)."""
     ratios = np.asarray(anisotropy, dtype=np.float64).ravel()
     ratios = ratios[np.isfinite(ratios) & (ratios > 0)]
     if len(ratios) < 3:

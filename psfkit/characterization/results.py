@@ -1,8 +1,5 @@
-"""What a characterization of a PSF grid holds: its options, the numbers measured at each
-position, and the grid's summary (fits, verdict, coverage) with the small images the figures
-need. Produced by :func:`psfkit.characterization.characterize.characterize_grid`; read by the
-report and the figures, which need none of the measurement code.
-"""
+"""What a characterization of a PSF grid holds (options, per-position numbers, fits, verdict,
+coverage, small images): read by the report and figures without the measurement code."""
 
 from __future__ import annotations
 
@@ -38,26 +35,21 @@ class CharacterizeOptions:
 
     Attributes
     ----------
-    preprocess : PreprocessOptions
     steps : tuple of str
-        Subset of ``("register", "gain", "mae", "warp", "verdict")`` (registration always
-        runs; ``"verdict"``: the held-out cross-validation over positions and the verdict of
-        :mod:`psfkit.fitting.verdict`, on a binned working copy of the aligned PSFs).
+        Subset of :data:`STEPS` (registration always runs; ``"verdict"``: the held-out
+        cross-validation of :mod:`psfkit.fitting.verdict` on a binned working copy).
     upsample : int
-        Registration precision is ``1/upsample`` px.
+        Registration precision ``1/upsample`` px.
     flow_method : str
-        Dense-flow method of the warp residual (``"dis"``, ``"farneback"``, ``"ilk"``,
-        ``"tvl1"``).
+        Dense-flow method of the warp residual.
     per_channel : bool
         Also register every colour channel on its own (lateral colour).
     mae_smoothing_px : float
-        Gaussian σ (px) applied to both PSFs before the MAE, so that sensor noise does not
-        swamp the model error near the axis (0: raw pixels).
+        Gaussian σ (px) on both PSFs before the MAE (0: raw pixels).
     min_quality : float
-        Positions whose registration quality (NCC) is below this are excluded ("low NCC").
+        Lowest registration NCC of a kept position.
     strict : bool
-        All or nothing: a position that fails a quality check ends the run instead of being
-        excluded with its reason.
+        A failed quality check ends the run instead of excluding the position.
     """
 
     preprocess: PreprocessOptions = field(default_factory=PreprocessOptions)
@@ -113,13 +105,9 @@ class PositionResult:
 
 @dataclass
 class GridCharacterization:
-    """Everything :func:`psfkit.characterization.characterize.characterize_grid` measured, plus
-    images for the figures.
-
-    ``positions`` holds the measured positions; ``excluded`` the captured ones left out, with
-    their reasons; ``missing`` the cells of the declared lattice that were never captured.
-    Per-position tables (:meth:`table`) are ``(N, M)`` lattices (``(1, P)`` for an irregular
-    scan) with NaN in the cells of excluded and missing positions.
+    """Everything ``characterize_grid`` measured, plus images for the figures: ``positions``
+    measured, ``excluded`` (with reasons), ``missing`` lattice cells. Tables (:meth:`table`) are
+    ``(N, M)`` (``(1, P)`` for an irregular scan), NaN where not measured.
     """
 
     grid_root: str
@@ -149,9 +137,8 @@ class GridCharacterization:
     verdict: Verdict | None = None          # the verdict step
 
     def effects(self) -> dict[str, Estimate]:
-        """The field effects of the verdict (:data:`psfkit.fitting.verdict.EFFECTS`) that were
-        measured: shift = the shift map's non-linear part, gain = the cosⁿ exponent, warp =
-        the growth of the warp residual, astigmatism = the tangential/sagittal ratio."""
+        """The measured field effects of the verdict (:data:`psfkit.fitting.verdict.EFFECTS`):
+        shift distortion, cosⁿ exponent, warp growth, tangential/sagittal ratio."""
         out: dict[str, Estimate] = {}
         if self.shift_fit is not None:
             out["shift"] = self.shift_fit.distortion
@@ -167,9 +154,8 @@ class GridCharacterization:
 
     def _lattice(self, items: list[Any], values: list[Any], extra: tuple[int, ...] = ()
                  ) -> np.ndarray:
-        """``values`` of ``items`` on the ``(N, M, *extra)`` lattice (NaN elsewhere); the
-        trailing shape ``extra`` is that of the values, or the one given when there are none
-        (a vector quantity keeps its axis when no position was measured)."""
+        """``values`` of ``items`` on the ``(N, M, *extra)`` lattice (NaN elsewhere); ``extra``
+        is the values' shape, or the one given when there are none."""
         n, m = self.grid_shape
         extra = np.shape(values[0]) if values else extra
         out = np.full((n, m, *extra), np.nan)
@@ -178,8 +164,7 @@ class GridCharacterization:
         return out
 
     def table(self, key: str) -> np.ndarray:
-        """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity (NaN where not
-        measured)."""
+        """``(N, M)`` (or ``(N, M, k)``) array of a per-position quantity."""
         return self._lattice(self.positions, [getattr(p, key) for p in self.positions],
                              VECTOR_SHAPES.get(key, ()))
 
@@ -214,8 +199,7 @@ class GridCharacterization:
         return np.stack([cols - self.center[1], rows - self.center[0]], axis=-1).astype(float)
 
     def field_angle_deg(self) -> np.ndarray | None:
-        """``(N, M)`` total field angle θ (NaN where not captured), or ``None`` without field
-        angles."""
+        """``(N, M)`` total field angle θ, or ``None`` without field angles."""
         items = self.captured
         if any(p.field_deg is None for p in items):
             return None
@@ -276,9 +260,8 @@ class GridCharacterization:
         }
 
     def coverage(self) -> dict[str, Any]:
-        """The layout, the cells never captured and the excluded positions with their
-        reasons; empty for a complete full lattice (whose documents then carry no coverage
-        fields)."""
+        """Layout, missing cells and excluded positions with reasons (empty for a complete
+        full lattice at the default NCC threshold)."""
         if self.is_complete and self.options.min_quality == MIN_QUALITY:
             return {}
         return {"layout": self.layout,

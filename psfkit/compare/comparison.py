@@ -1,10 +1,5 @@
 """Comparing kernel models with the measured modes (:func:`compare_kernels`,
-:func:`compare_model`).
-
-Learned side: the kernels of a kernel file (after training), padded to the sensor size and
-registered to the measured ``Kbase`` by one global sub-pixel shift; their displacement maps,
-difference kernels and span are compared with the measured ones.
-"""
+:func:`compare_model`): displacement maps, difference kernels and spans."""
 
 from __future__ import annotations
 
@@ -106,10 +101,11 @@ def compare_model(model: KernelModel, measured: MeasuredModes, label: str = "lea
                                global_shift_px=shift)
 
 
-def _as_model(value: KernelModel | str | os.PathLike) -> KernelModel:
+def _as_model(value: KernelModel | str | os.PathLike, label: str) -> tuple[KernelModel, str]:
+    """A kernel model, and what messages call it (its file, or ``label``)."""
     if isinstance(value, KernelModel):
-        return value
-    return load_kernels(value)
+        return value, label
+    return load_kernels(value), str(value)
 
 
 def check_learned(model: KernelModel, where: str) -> None:
@@ -130,38 +126,29 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     Parameters
     ----------
     learned : KernelModel or path
-        The trained model's kernels (a kernel file with at least two kernels).
+        The trained kernels (at least two).
     measured : PsfGrid, path, KernelModel or MeasuredModes
-        The camera's PSF grid, or another kernel file (``.npz`` or a model: a grid fit, a pairs
-        fit, an oracle; its kernels are the measured ones, and there are no warps or PCA modes),
-        or modes already measured by :func:`measure_modes` on the learned file's sensor grid
-        (to compare several models without refitting).
+        The camera's PSF grid, another kernel file (``.npz`` or model: no warps or PCA modes),
+        or modes from :func:`measure_modes` on the learned sensor grid (reused across models).
     initial : KernelModel or path, optional
-        The kernels before training: the same numbers are reported for them.
-    options : CompareOptions, optional
+        The kernels before training, reported the same way.
     progress : bool
         Progress bar for the grid fit.
-
-    Returns
-    -------
-    KernelComparison
 
     Raises
     ------
     ModelFileError
-        A kernel file is unreadable, of the wrong version, has one kernel, or its basis,
-        convention or sensor size differs from the other's.
+        A kernel file is unreadable, has one kernel, or its basis, convention or sensor size
+        differs from the other's.
     GridFormatError, InvalidInputError
-        Not a grid, or a grid whose PSFs cannot be brought to the kernel file's sensor size.
+        Not a grid, or PSFs that cannot be brought to the kernel file's sensor size.
     """
     options = options or CompareOptions()
-    learned_model = _as_model(learned)
-    where = str(learned) if not isinstance(learned, KernelModel) else "learned kernels"
+    learned_model, where = _as_model(learned, "learned kernels")
     check_learned(learned_model, where)
     initial_model = None
     if initial is not None:
-        initial_model = _as_model(initial)
-        iw = str(initial) if not isinstance(initial, KernelModel) else "initial kernels"
+        initial_model, iw = _as_model(initial, "initial kernels")
         check_learned(initial_model, iw)
         for attr in ("basis", "convention", "sensor_shape"):
             if getattr(initial_model, attr) != getattr(learned_model, attr):
@@ -172,11 +159,9 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     elif isinstance(measured, KernelModel) or (isinstance(measured, (str, os.PathLike))
                                                and Path(measured).suffix == ".npz"):
         # another kernel file as the measured side (a grid fit, a pairs fit, an oracle)
-        reference = _as_model(measured)
-        modes = modes_from_kernel_file(
-            reference, "measured kernels" if isinstance(measured, KernelModel)
-            else str(measured), learned_model.basis, learned_model.convention,
-            tuple(learned_model.sensor_shape))
+        modes = modes_from_kernel_file(*_as_model(measured, "measured kernels"),
+                                       learned_model.basis, learned_model.convention,
+                                       tuple(learned_model.sensor_shape))
     else:
         modes = measure_modes(measured, learned_model.basis, learned_model.convention,
                               tuple(learned_model.sensor_shape), options, progress)
@@ -201,9 +186,8 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
 
 def kernel_change_report(learned: KernelSetComparison, initial: KernelSetComparison | None,
                          modes: MeasuredModes, options: CompareOptions) -> dict:
-    """Split of the learned kernels' change (vs the initial and vs the measured kernels) into
-    gain, pedestal, displacement and other, on the dilated caustic support of the measured
-    kernels (:mod:`psfkit.compare.kernel_change`)."""
+    """:func:`~psfkit.compare.kernel_change.split_kernel_changes` of the learned kernels vs the
+    measured (and initial) ones on the measured kernels' dilated caustic support."""
     names = modes.model.kernel_names
     support = caustic_support(modes.model.kernels, options.mask_level, options.mask_dilate)
     out: dict = {"support_pixels": int(support.sum()),

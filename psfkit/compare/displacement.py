@@ -21,16 +21,8 @@ from psfkit.errors import InvalidInputError
 
 @dataclass(frozen=True)
 class DisplacementMap:
-    """A displacement field and where it is meaningful.
-
-    Attributes
-    ----------
-    field : numpy.ndarray
-        ``(2, H, W)`` float32 ``(D_u, D_v)`` in px, ``other(x + D(x)) ≈ reference(x)``;
-        zero outside ``mask``.
-    mask : numpy.ndarray
-        ``(H, W)`` bool.
-    """
+    """A displacement ``field`` ``(2, H, W)`` float32 ``(D_u, D_v)`` px (zero outside
+    ``mask``) and the ``(H, W)`` bool ``mask`` where it is meaningful."""
 
     field: np.ndarray = dataclasses.field(repr=False)
     mask: np.ndarray = dataclasses.field(repr=False)
@@ -64,21 +56,9 @@ def displacement_map(reference: np.ndarray, other: np.ndarray, mask: np.ndarray,
                      method: str = "dis", smooth_px: float = 3.0) -> DisplacementMap:
     """Local sub-pixel displacement of ``other`` relative to ``reference`` on ``mask``.
 
-    Parameters
-    ----------
-    reference, other : numpy.ndarray
-        ``(H, W)`` non-negative images (e.g. kernel luminance), same frame.
-    mask : numpy.ndarray
-        ``(H, W)`` bool, where the displacement is meaningful (the caustic).
-    method : str
-        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`).
-    smooth_px : float
-        Sigma (px) of the masked Gaussian smoothing.
-
-    Returns
-    -------
-    DisplacementMap
-        ``other(x + D(x)) ≈ reference(x)``, in px.
+    ``reference``, ``other``: ``(H, W)`` non-negative images, gain-matched on the mask, then
+    :func:`psfkit.calibration.warp.dense_flow` by ``method``, smoothed by a masked Gaussian of
+    σ ``smooth_px``. Returns ``D`` with ``other(x + D(x)) ≈ reference(x)``, in px.
     """
     if reference.shape != other.shape or reference.ndim != 2 or mask.shape != reference.shape:
         raise InvalidInputError("displacement_map needs two 2-D images and a mask of one shape")

@@ -1,24 +1,17 @@
 """Where did a kernel change go? Gain, pedestal, displacement and the rest (:func:`split_change`).
 
-The change ``Δ = L − I`` of a kernel (learned ``L`` against a reference ``I``: the initial
-kernel, or the measured one) is split, one part after the other, into
+The change ``Δ = L − I`` of a kernel (learned ``L`` against a reference ``I``, initial or
+measured) is split, in this order, into
 
-1. **gain** ``G = γ·I·S`` with ``γ = Σ_S L / Σ_S I − 1``: a change of the energy on the
-   caustic (vignetting-like; the change of *total* energy ``ΣL/ΣI − 1`` is reported too);
-2. **pedestal** ``P = (Δ − G)·(1 − S)``: what lies outside the support ``S`` (the dilated
-   caustic of the measured kernels), e.g. the smooth floor that Adam grows on near-zero pixels;
-3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``: the part a dense optical flow ``F``
-   from ``I`` to ``L`` explains (``psfkit.calibration.warp.dense_flow``, the flow ``psfkit
-   compare``'s displacement maps are made of), ``α ∈ [0, 1]`` its least-squares amount;
-4. **other** ``O = S·(Δ − G) − D``: the change inside the support a displacement does not
-   explain (new spots, changed shapes).
+1. **gain** ``G = γ·I·S``, ``γ = Σ_S L / Σ_S I − 1``: the energy change on the caustic;
+2. **pedestal** ``P = (Δ − G)·(1 − S)``: outside the support ``S`` (the measured kernels'
+   dilated caustic), e.g. the floor that Adam grows on near-zero pixels;
+3. **displacement** ``D = α·S·(1 + γ)·(warp(I, F) − I)``, ``F`` the dense flow from ``I`` to
+   ``L``, ``α ∈ [0, 1]`` its least-squares amount;
+4. **other** ``O = S·(Δ − G) − D`` (new spots, changed shapes).
 
-"Energy" is light: each part's *fraction* is its L1 norm ``Σ|part|`` over the sum of the four
-(they sum to 1; a part that removes light from the caustic and one that adds it elsewhere both
-count). ``G + P + D + O = Δ`` exactly.
-``pedestal_fraction`` is the change's energy outside the support; ``outside_mass_fraction``
-is the share of the learned kernel's absolute mass ``Σ|L|`` outside ``S`` (how much of the
-kernel itself is pedestal, not of its change).
+``G + P + D + O = Δ`` exactly; each part's *fraction* is its L1 norm ``Σ|part|`` over the sum
+of the four. ``outside_mass_fraction``: the share of ``Σ|L|`` outside ``S``.
 """
 
 from __future__ import annotations
@@ -51,21 +44,20 @@ def split_change(learned: np.ndarray, reference: np.ndarray, support: np.ndarray
     Parameters
     ----------
     learned, reference : numpy.ndarray
-        ``(C, H, W)`` or ``(H, W)`` kernels on the same grid (the split works on luminance).
+        ``(C, H, W)`` or ``(H, W)`` kernels on one grid (split on luminance).
     support : numpy.ndarray
-        ``(H, W)`` bool: the caustic support (:func:`caustic_support` of the measured kernels).
+        ``(H, W)`` bool caustic support of the measured kernels.
     flow_method : str
         Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`).
     smooth_px : float
-        Gaussian sigma (px) applied to the flow before warping (0: none).
+        Gaussian σ (px) applied to the flow before warping (0: none).
 
     Returns
     -------
     dict
-        ``gain`` (γ, relative change of the energy on the support), ``total_gain``
-        (``ΣL/ΣI − 1``), ``fractions`` (part → fraction of the
-        change's energy), ``change_rel`` (``‖Δ‖ / ‖I‖``), ``pedestal_fraction``,
-        ``outside_mass_fraction``, ``flow_rms_px`` (RMS of the flow on the support).
+        ``gain`` (γ), ``total_gain`` (``ΣL/ΣI − 1``), ``fractions`` (part → share),
+        ``change_rel`` (``‖Δ‖₁ / ‖I‖₁``), ``pedestal_fraction``, ``outside_mass_fraction``,
+        ``flow_rms_px`` (on the support).
     """
     lum_l = luminance(learned) if np.ndim(learned) == 3 else np.asarray(learned, np.float32)
     lum_i = luminance(reference) if np.ndim(reference) == 3 else np.asarray(reference,

@@ -1,17 +1,8 @@
-"""The measured side of a comparison: what a PSF grid (:func:`measure_modes`) or another
-kernel file (:func:`modes_from_kernel_file`) says about the eigen-kernels, on the comparison
-grid.
-
-From a grid:
-
-- the eigen-kernels fitted to the grid (:func:`psfkit.fitting.grid.fit.fit_eigen_grid`) with the
-  learned file's basis and weight convention;
-- the top PCA modes of the registered grid (:mod:`psfkit.fitting.grid.pca`);
-- warp fields at the outermost reliable positions (:mod:`psfkit.compare.warps`).
-
-From a kernel file (a grid fit, a pairs fit, an oracle): its kernels only; a kernel file has
-no warps and no PCA modes, so those comparisons are absent (``null`` in ``compare.json``).
-"""
+"""The measured side of a comparison, on the comparison grid: from a PSF grid
+(:func:`measure_modes`: eigen-kernels fitted with the learned file's basis and convention, top
+PCA modes, warps of :mod:`psfkit.compare.warps`) or from another kernel file
+(:func:`modes_from_kernel_file`: its kernels only; no warps or PCA modes, ``null`` in
+``compare.json``)."""
 
 from __future__ import annotations
 
@@ -40,31 +31,26 @@ from psfkit.io.grid_validation import read_grid
 
 @dataclass
 class MeasuredModes:
-    """What a PSF grid says about the eigen-kernels, on the comparison grid.
+    """What a PSF grid (or kernel file) says about the eigen-kernels, on the comparison grid.
 
     Attributes
     ----------
     model : KernelModel
-        Eigen-kernels fitted to the grid, resampled to ``sensor_shape``.
-    sensor_shape : (int, int)
-        The comparison grid ``(H, W)`` (the learned file's sensor size).
+        Measured eigen-kernels resampled to ``sensor_shape`` ``(H, W)`` (the learned sensor).
     warps : dict
-        Kernel name (``"v"``, ``"h"``) → :class:`DisplacementMap`: the displacement of that
-        kernel relative to ``Kbase`` predicted by the measured warps (see the module
-        docstring).
+        Kernel name → warp-predicted :class:`DisplacementMap` relative to ``Kbase``.
     warp_positions : dict
-        Kernel name (or ``"all"``) → list of ``{"row", "col", "shift_px",
-        "mean_weight_change", "overlap", "warp_rms_px"}`` of the positions used.
-    pca_components : numpy.ndarray or None
-        ``(r, C, h, w)`` top uncentred PCA modes on the fit's binned working grid.
-    pca_region : numpy.ndarray or None
-        ``(h, w)`` bool, pixels the PCA used.
+        Kernel name (or ``"all"``) → the positions used (row, col, shift, weight change,
+        overlap, warp RMS).
+    pca_components, pca_region : numpy.ndarray or None
+        ``(r, C, h, w)`` top uncentred PCA modes on the fit's working grid; ``(h, w)`` bool
+        pixels they use.
     fit : GridEigenResult or None
-        The grid fit (``None`` when the measured side is a kernel file).
+        The grid fit (``None`` for a kernel file).
     notes : list of str
         What was resampled, skipped or approximated.
     source : str
-        The grid folder or kernel file the modes come from.
+        The grid folder or kernel file.
     """
 
     model: KernelModel
@@ -94,6 +80,15 @@ class MeasuredModes:
                 "fit": self.fit.summary(), "notes": self.notes}
 
 
+def _on_grid(model: KernelModel, kernels: np.ndarray, sensor_shape: tuple[int, int]
+             ) -> KernelModel:
+    """``kernels`` on the comparison grid with ``model``'s basis, convention, channels,
+    normalization and provenance."""
+    return KernelModel(kernels=kernels, basis=model.basis, convention=model.convention,
+                       sensor_shape=tuple(sensor_shape), channels=model.channels,
+                       normalization=model.normalization, provenance=model.provenance)
+
+
 def load_grid(measured: PsfGrid | str | os.PathLike) -> PsfGrid:
     """A :class:`PsfGrid` from a grid or a grid folder (validated, pixels checked lazily)."""
     if isinstance(measured, PsfGrid):
@@ -111,14 +106,10 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
 
     Parameters
     ----------
-    measured : PsfGrid or path
-        The PSF grid of the camera.
     basis, convention : str
-        Weight basis and convention of the fitted eigen-kernels (those of the learned file).
+        Those of the learned file.
     sensor_shape : (int, int)
-        The comparison grid ``(H, W)``; the grid's PSFs are resampled to it when their size
-        differs (same aspect ratio required).
-    options : CompareOptions, optional
+        The comparison grid ``(H, W)`` the PSFs are resampled to (same aspect ratio).
 
     Raises
     ------
@@ -140,10 +131,7 @@ def measure_modes(measured: PsfGrid | str | os.PathLike, basis: str, convention:
                                                  cv_bases=(), preprocess=options.preprocess)
     fit = fit_eigen_grid(grid, fit_options, progress=progress)
     fitted = fit.kernel_model()
-    model = KernelModel(kernels=resample(fitted.kernels, tuple(sensor_shape)),
-                        basis=fitted.basis, convention=fitted.convention,
-                        sensor_shape=tuple(sensor_shape), channels=fitted.channels,
-                        normalization=fitted.normalization, provenance=fitted.provenance)
+    model = _on_grid(fitted, resample(fitted.kernels, tuple(sensor_shape)), sensor_shape)
     base_lum = luminance(model.kernels[0])
     mask = comparison_mask(base_lum, options)
     aligner = GridAligner(grid, fit_options.preprocess, fit_options.upsample)
@@ -181,19 +169,16 @@ def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, conven
     Parameters
     ----------
     measured : KernelModel
-        The reference model (a grid fit, a pairs fit, an oracle's kernels).
-    where : str
-        Names it in messages and in ``compare.json``.
+        A grid fit, a pairs fit, an oracle; named ``where`` in messages and ``compare.json``.
     basis, convention : str
-        Those of the learned file: the two files must agree on both.
+        Those of the learned file (must agree).
     sensor_shape : (int, int)
-        The comparison grid (the learned file's sensor); ``measured``'s kernels are zero-padded
-        to its sensor and resampled to this grid when the sizes differ (same aspect ratio).
+        The comparison grid; the kernels are zero-padded to their sensor and resampled to it.
 
     Raises
     ------
     ModelFileError
-        Basis or convention differ, or a single kernel (nothing to compare).
+        Basis or convention differ, or a single kernel.
     InvalidInputError
         Aspect ratios differ.
     """
@@ -213,10 +198,7 @@ def modes_from_kernel_file(measured: KernelModel, where: str, basis: str, conven
                      f"{sensor_shape[0]}x{sensor_shape[1]}; displacements are in learned-file "
                      "pixels")
     notes.append("the measured side is a kernel file: no warps and no PCA modes to compare with")
-    model = KernelModel(kernels=kernels.astype(np.float32), basis=measured.basis,
-                        convention=measured.convention, sensor_shape=tuple(sensor_shape),
-                        channels=measured.channels, normalization=measured.normalization,
-                        provenance=measured.provenance)
+    model = _on_grid(measured, kernels.astype(np.float32), sensor_shape)
     return MeasuredModes(model=model, sensor_shape=tuple(sensor_shape), warps={},
                          warp_positions={}, pca_components=None, pca_region=None, fit=None,
                          notes=notes, source=where)

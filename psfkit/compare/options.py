@@ -17,34 +17,24 @@ class CompareOptions:
     Attributes
     ----------
     flow_method : str
-        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`): ``"dis"`` (default),
-        ``"farneback"``,
-        ``"ilk"`` or ``"tvl1"``.
+        Dense-flow method (:func:`psfkit.calibration.warp.dense_flow`).
     smooth_px : float
-        Standard deviation (px of the comparison grid) of the masked Gaussian applied to every
-        displacement map; flows on caustics are noisy off the bright lines.
+        σ (px) of the masked Gaussian applied to every displacement map (flows on caustics are
+        noisy off the bright lines).
     mask_level, mask_border, mask_dilate : float, int, int
-        Caustic mask (:func:`psfkit.calibration.caustic.caustic_mask`): pixels within
-        ``mask_dilate`` px of a pixel brighter than ``mask_level`` × the peak of the measured
-        ``Kbase``, and ``mask_border`` px inside the image.
+        Caustic mask of the measured ``Kbase`` (:func:`psfkit.calibration.caustic.caustic_mask`).
     min_displacement_px : float
-        A displacement map whose RMS over the mask is below this (px) counts as "no
-        displacement": its correlations are NaN.
+        A map whose RMS over the mask is below this counts as "no displacement" (NaN
+        correlations).
     n_pca : int
-        Number of measured PCA modes whose span the learned kernels are compared with (the
-        number of kernels by default, 0 = that number).
+        Measured PCA modes compared with (0: the number of kernels).
     warp_positions : {"axes", "all"}
-        Measured warps from the outermost reliable positions on each kernel's axis (``v``,
-        ``h`` only; default), or from every reliable position, solved jointly for all
-        correction kernels (covers more pixels with sensor-side weights, but diagonal
-        positions add changes the basis cannot describe; see docs/compare.md).
+        Warps from the outermost reliable positions on each kernel's axis, or from every
+        reliable position solved jointly (docs/compare.md).
     align : bool
         Register the learned ``Kbase`` to the measured one by a global sub-pixel shift first.
     fit : EigenFitOptions or None
-        Options of the measured eigen-kernel fit; ``None``: the learned file's basis and
-        convention, no cross-validation.
-    preprocess : PreprocessOptions
-        Preprocessing of the grid (dark, normalisation, saturation).
+        The measured fit's options (``None``: the learned file's basis and convention, no CV).
     """
 
     flow_method: str = "dis"

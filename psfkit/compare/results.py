@@ -16,26 +16,21 @@ from psfkit.io.jsonable import jsonable
 
 @dataclass
 class KernelSetComparison:
-    """One kernel model (learned, or its initial value) against the measured modes.
+    """One kernel model (``label`` "learned" or "initial") against the measured modes.
 
     Attributes
     ----------
-    label : str
-        ``"learned"`` or ``"initial"``.
     kernels : numpy.ndarray
-        ``(K, C, H, W)`` the model's kernels on the comparison grid, registered to the
-        measured ``Kbase``.
+        ``(K, C, H, W)`` on the comparison grid, registered to the measured ``Kbase``.
     displacements : dict
-        Kernel name → :class:`DisplacementMap` of that kernel relative to ``Kbase``.
+        Kernel name → :class:`DisplacementMap` relative to ``Kbase``.
     metrics : dict
-        Kernel name → ``{"vs_measured_kernels": map_agreement, "vs_measured_warp":
-        map_agreement or None, "difference_ncc": float}``.
+        Kernel name → ``{"vs_measured_kernels", "vs_measured_warp"`` (:func:`map_agreement`
+        or None), ``"difference_ncc"}``.
     angles_eigen_deg, angles_pca_deg : numpy.ndarray or None
-        Principal angles (degrees, ascending) between the span of the kernels and the span of
-        the measured eigen-kernels / top PCA modes.
+        Principal angles (degrees, ascending) to the measured eigen-kernels / top PCA modes.
     global_shift_px : (float, float)
-        ``(du, dv)`` by which the model's ``Kbase`` was displaced relative to the measured one
-        (undone before comparing).
+        ``(du, dv)`` of the model's ``Kbase`` relative to the measured one (undone).
     """
 
     label: str
@@ -47,17 +42,9 @@ class KernelSetComparison:
     global_shift_px: tuple[float, float]
 
     def numbers(self) -> dict[str, Any]:
-        """The numbers to quote against the reference (measured) kernels, flat.
-
-        Returns
-        -------
-        dict
-            Per correction kernel ``k`` (``v``, ``h`` for the paper basis):
-            ``{k}_diff_ncc`` (difference-kernel NCC), ``{k}_disp_corr`` (displacement-map
-            correlation, NaN when either map has no displacement) and ``{k}_epe_px`` (mean
-            end-point error of the displacement maps); ``angles_deg``: the principal angles
-            (degrees, ascending) to the reference's eigen-kernels, as a list.
-        """
+        """The numbers to quote, flat: per correction kernel ``k``, ``{k}_diff_ncc``,
+        ``{k}_disp_corr`` (NaN without displacement) and ``{k}_epe_px``; ``angles_deg``, the
+        principal angles to the reference's eigen-kernels (list)."""
         out: dict[str, Any] = {}
         for name, m in self.metrics.items():
             out[f"{name}_diff_ncc"] = float(m["difference_ncc"])
@@ -83,25 +70,18 @@ class KernelComparison:
 
     Attributes
     ----------
-    learned : KernelSetComparison
     initial : KernelSetComparison or None
-        The same numbers for the kernels before training (``--initial``).
-    measured : MeasuredModes
+        The kernels before training (``--initial``).
     measured_displacements : dict
-        Kernel name → :class:`DisplacementMap` of the measured eigen-kernel relative to the
-        measured ``Kbase``.
+        Kernel name → :class:`DisplacementMap` of the measured eigen-kernel.
     measured_kernels_vs_warp : dict
-        Kernel name → :func:`map_agreement` of the measured eigen-kernel displacement with the
-        measured warp (how far the fit itself follows the warp: a ceiling for the learned one).
+        Kernel name → :func:`map_agreement` of that map with the measured warp (a ceiling for
+        the learned one).
     mask : numpy.ndarray
         ``(H, W)`` bool caustic mask of the measured ``Kbase``.
-    options : CompareOptions
-    notes : list of str
     kernel_change : dict
-        ``{"learned_vs_initial": ..., "learned_vs_measured": ..., "support_pixels": int}``:
-        :func:`psfkit.compare.kernel_change.split_kernel_changes` of the learned kernels
-        against the initial (when given) and the measured ones, on the dilated caustic support
-        of the measured kernels (gain, pedestal, displacement, other).
+        :func:`kernel_change_report`: ``learned_vs_measured``, ``learned_vs_initial``,
+        ``support_pixels``.
     """
 
     learned: KernelSetComparison
@@ -119,8 +99,7 @@ class KernelComparison:
         return self.measured.model.kernel_names
 
     def headline(self) -> dict[str, dict[str, float]]:
-        """``{label: {"<name>_vs_warp": corr, "<name>_vs_kernels": corr, ...}}`` for the
-        learned (and initial) kernels: the numbers to quote."""
+        """``{label: {"<name>_vs_kernels"/"_vs_warp": corr, "<name>_difference_ncc": ...}}``."""
         out = {}
         for cmp in (self.learned, self.initial):
             if cmp is None:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from psfkit.calibration.alignment import RELIABLE_OVERLAP, GridAligner
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, AlignedPsf, GridAligner
 from psfkit.compare.displacement import DisplacementMap, displacement_map
 from psfkit.compare.options import CompareOptions
 from psfkit.compare.resampling import resample
@@ -30,7 +30,6 @@ from psfkit.io.grid import PsfGrid
 WARP_AXES = {"v": "v", "h": "u"}
 #: fraction of the largest Σ ΔW² below which a warp-predicted displacement is not defined
 MIN_WEIGHT_CHANGE = 0.25
-
 
 
 def _axis_positions(grid: PsfGrid, axis: str) -> list[list[tuple[int, int]]]:
@@ -55,20 +54,28 @@ def _weight_change(basis_name: str, convention: str, kernel: int,
     return resample(change, sensor_shape)
 
 
+def _flow(aligned: AlignedPsf, reference: np.ndarray, mask: np.ndarray,
+          sensor_shape: tuple[int, int], options: CompareOptions
+          ) -> tuple[np.ndarray, DisplacementMap]:
+    """The pixels of ``mask`` where ``aligned`` holds data, away from its edge, on the
+    comparison grid, and its displacement map there."""
+    # the flow is unreliable within a patch of the edge of the data
+    valid = ndimage.binary_erosion(
+        resample(aligned.valid.astype(np.float32), sensor_shape) > 0.999,
+        iterations=max(options.mask_border, 1), border_value=0)
+    here = mask & valid
+    return here, displacement_map(reference, resample(aligned.luminance, sensor_shape), here,
+                                  options.flow_method, options.smooth_px)
+
+
 def measured_warp(aligner: GridAligner, name: str, basis_name: str, convention: str,
                    image_shape: tuple[int, int], sensor_shape: tuple[int, int],
                    mask: np.ndarray, options: CompareOptions
                    ) -> tuple[DisplacementMap | None, list[dict[str, Any]], list[str]]:
     """Predicted displacement of kernel ``name`` (``"v"``/``"h"``) from the warps of the
-    outermost reliable PSFs on both sides of the centre along its axis.
-
-    With ``PSF_p − PSF_0 = Σ_k ΔW_k (K_k − Kbase)`` (exact for the model; ``ΔW_k`` the change
-    of kernel k's weight between the centre and position p, constant for source-side weights,
-    a map for sensor-side ones) and ``K_k(x + D(x)) ≈ Kbase(x)`` linearised, the warp of
-    position p is ``ΔW_k · D``. ``D`` is the least-squares solution over the two sides,
-    ``Σ ΔW·warp / Σ ΔW²`` (the average of ``warp / w`` for source-side weights), kept where
-    ``Σ ΔW²`` is at least :data:`MIN_WEIGHT_CHANGE` of its maximum (elsewhere the warp says
-    little about ``D`` and dividing by a small ``ΔW`` amplifies the flow's noise).
+    outermost reliable PSFs on both sides of the centre along its axis (module docstring):
+    ``D = Σ ΔW·warp / Σ ΔW²``, kept where ``Σ ΔW²`` is at least :data:`MIN_WEIGHT_CHANGE` of
+    its maximum (elsewhere a small ``ΔW`` would amplify the flow's noise).
     """
     grid = aligner.grid
     k = get_basis(basis_name).kernel_names.index(name)
@@ -83,13 +90,7 @@ def measured_warp(aligner: GridAligner, name: str, basis_name: str, convention: 
                 continue
             change = _weight_change(basis_name, convention, k, image_shape, aligned.shift,
                                     sensor_shape)
-            # the flow is unreliable within a patch of the edge of the data
-            valid = ndimage.binary_erosion(
-                resample(aligned.valid.astype(np.float32), sensor_shape) > 0.999,
-                iterations=max(options.mask_border, 1), border_value=0)
-            here = mask & valid
-            disp = displacement_map(reference, resample(aligned.luminance, sensor_shape), here,
-                                    options.flow_method, options.smooth_px)
+            here, disp = _flow(aligned, reference, mask, sensor_shape, options)
             num += disp.field * (change * here)
             den += change**2 * here
             used.append({"row": row, "col": col, "shift_px": list(aligned.shift),
@@ -114,15 +115,10 @@ def measured_warps_joint(aligner: GridAligner, basis_name: str, convention: str,
                           mask: np.ndarray, options: CompareOptions
                           ) -> tuple[dict[str, DisplacementMap], list[dict[str, Any]],
                                      list[str]]:
-    """Predicted displacements of every correction kernel from the warps of all reliable
-    positions at once.
-
-    At every pixel ``x``, ``warp_p(x) ≈ Σ_k ΔW_{k,p}(x) · D_k(x)`` over the positions p that
-    overlap the centre PSF on at least half the sensor; the ``D_k`` are the per-pixel
-    least-squares solution (kept where the smallest eigenvalue of the per-pixel normal matrix
-    is at least :data:`MIN_WEIGHT_CHANGE` of its largest value over the image). With the
-    paper's even weights, positions on opposite sides enter with the same ``ΔW``: the fit
-    averages them (the symmetrisation).
+    """Predicted displacements of every correction kernel from all reliable positions at once:
+    per pixel, the least-squares ``D_k`` of ``warp_p(x) ≈ Σ_k ΔW_{k,p}(x) · D_k(x)``, kept where
+    the normal matrix's smallest eigenvalue is at least :data:`MIN_WEIGHT_CHANGE` of its
+    largest over the image.
     """
     grid = aligner.grid
     basis = get_basis(basis_name)
@@ -142,15 +138,9 @@ def measured_warps_joint(aligner: GridAligner, basis_name: str, convention: str,
         changes = np.stack([_weight_change(basis_name, convention, k, image_shape,
                                            aligned.shift, sensor_shape)
                             for k in range(1, n + 1)])                       # (n, H, W)
-        # the flow is unreliable within a patch of the edge of the data
-        valid = ndimage.binary_erosion(
-            resample(aligned.valid.astype(np.float32), sensor_shape) > 0.999,
-            iterations=max(options.mask_border, 1), border_value=0)
-        here = mask & valid
+        here, disp = _flow(aligned, reference, mask, sensor_shape, options)
         if not here.any():
             continue
-        disp = displacement_map(reference, resample(aligned.luminance, sensor_shape), here,
-                                options.flow_method, options.smooth_px)
         weighted = changes * here                                            # (n, H, W)
         gram += np.einsum("ihw,jhw->hwij", weighted, changes)
         rhs += np.einsum("ihw,chw->hwic", weighted, disp.field)

@@ -24,7 +24,7 @@ from psfkit.compare import KernelComparison
 from psfkit.io.atomic import atomic_directory
 from psfkit.report.figures.compare import figure_displacements, figure_learned_vs_measured
 from psfkit.report.figures.style import png_base64, save_figure
-from psfkit.report.html import REPORT_CSS, figures_html, format_value, html_table
+from psfkit.report.html import figures_html, grid_table, html_page, html_table
 
 FIGURES = (
     ("fig7_learned_vs_measured", "Fig. 7 layout: learned kernels, their differences, and the "
@@ -49,13 +49,10 @@ def _metric_rows(comparison: KernelComparison) -> str:
                 a = m[key]
                 if a is None:
                     continue
-                cells = (cmp.label, f"K_{name}", vs, a["corr"], a["corr_u"], a["corr_v"],
-                         a["epe_px"], a["slope"], a["rms_a_px"], a["rms_b_px"],
-                         m["difference_ncc"] if key == "vs_measured_kernels" else None)
-                body.append("<tr>" + "".join(f"<td>{format_value(v, '.3f')}</td>" for v in cells)
-                            + "</tr>")
-    return (f"<table class='grid'><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}"
-            f"</tr>{''.join(body)}</table>")
+                body.append((cmp.label, f"K_{name}", vs, a["corr"], a["corr_u"], a["corr_v"],
+                             a["epe_px"], a["slope"], a["rms_a_px"], a["rms_b_px"],
+                             m["difference_ncc"] if key == "vs_measured_kernels" else None))
+    return grid_table(head, body, ".3f")
 
 
 def _change_rows(comparison: KernelComparison) -> str:
@@ -69,16 +66,14 @@ def _change_rows(comparison: KernelComparison) -> str:
             if name == "all":
                 continue
             f = part["fractions"]
-            cells = (vs.replace("_", " "), f"K_{name}", part["gain"], f["gain"], f["pedestal"],
-                     f["displacement"], f["other"], part["outside_mass_fraction"])
-            body.append("<tr>" + "".join(f"<td>{format_value(v, '.3f')}</td>" for v in cells)
-                        + "</tr>")
+            body.append((vs.replace("_", " "), f"K_{name}", part["gain"], f["gain"],
+                         f["pedestal"], f["displacement"], f["other"],
+                         part["outside_mass_fraction"]))
     if not body:
         return ""
     return ("<p>Kernel change split (light fractions, docs/compare.md): gain on the caustic, "
             "pedestal outside its dilated support, displacement (optical flow), other.</p>"
-            f"<table class='grid'><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}"
-            f"</tr>{''.join(body)}</table>")
+            + grid_table(head, body, ".3f"))
 
 
 def html_section(comparison: KernelComparison, figures: list[tuple[str, str, str]]) -> str:
@@ -114,13 +109,8 @@ divided by the change of the kernel's weight. Correlations are Pearson over the 
 
 
 def _page(section: str) -> str:
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>Learned vs measured kernels</title>
-<style>{REPORT_CSS}</style></head><body>
-<p>psfkit {html.escape(__version__)}. Numbers: <a href="compare.json">compare.json</a>.</p>
-{section}
-</body></html>
-"""
+    return html_page("Learned vs measured kernels", f"<p>psfkit {html.escape(__version__)}. "
+                     f'Numbers: <a href="compare.json">compare.json</a>.</p>\n{section}\n')
 
 
 def comparison_figures(comparison: KernelComparison) -> list[tuple[str, str, Any]]:
@@ -138,11 +128,8 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
                      extra_figures: Sequence[tuple[str, Figure]] = (),
                      extra_files: Sequence[tuple[str, str]] = ()) -> Path:
     """Write figures (PNG + PDF), ``compare.json`` and ``compare.html`` into ``out_dir``
-    (atomically: nothing appears unless everything was written).
-
-    ``extra_figures`` are ``(stem, figure)`` pairs also saved under ``figures/`` (e.g. the
-    paper's Fig. 7 of the learned kernels alone); ``extra_files`` ``(name, text)`` pairs are
-    written into ``out_dir`` in the same transaction (a caption, more numbers)."""
+    atomically, with ``extra_figures`` ``(stem, figure)`` under ``figures/`` and
+    ``extra_files`` ``(name, text)`` in the same transaction."""
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         fig_dir = tmp / "figures"

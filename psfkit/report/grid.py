@@ -20,17 +20,18 @@ from pathlib import Path
 from typing import Any
 
 from psfkit import __version__
-from psfkit.calibration.alignment import RELIABLE_OVERLAP
-from psfkit.characterization.results import GridCharacterization
+from psfkit.calibration.alignment import RELIABLE_OVERLAP, ExcludedPosition
+from psfkit.characterization.results import GridCharacterization, PositionResult
 from psfkit.errors import InvalidInputError
 from psfkit.io.atomic import atomic_directory, atomic_file
 from psfkit.io.json_documents import dumps_finite
 from psfkit.io.jsonable import jsonable
 from psfkit.report.html import (
-    REPORT_CSS,
     estimate_html,
     figures_html,
     format_value,
+    grid_table,
+    html_page,
     html_table,
 )
 
@@ -43,41 +44,39 @@ CSV_COLUMNS = (
     "affine_scale_sagittal", "status", "reason")
 
 
+_POSITION_COLUMNS = ("quality", "overlap", "gain", "mae", "mae_gain_compensated", "n_saturated")
+_WARP_COLUMNS = {"warp_residual_rms_px": "residual_rms", "warp_rms_tangential_px": "rms_tangential",
+                 "warp_rms_sagittal_px": "rms_sagittal", "warp_anisotropy": "anisotropy"}
+_AFFINE_KEYS = ("scale_u", "scale_v", "shear", "rotation_deg", "scale_tangential",
+                "scale_sagittal")
+
+
+def _where(p: PositionResult | ExcludedPosition) -> dict[str, Any]:
+    """The CSV columns that place a position: grid index, file, field angles, monitor px."""
+    fx, fy = p.field_deg if p.field_deg is not None else (None, None)
+    mx, my = p.monitor_px if p.monitor_px is not None else (None, None)
+    return {"row": p.row, "col": p.col, "file": p.file, "field_x_deg": fx, "field_y_deg": fy,
+            "monitor_x_px": mx, "monitor_y_px": my}
+
+
 def csv_rows(result: GridCharacterization) -> list[dict[str, Any]]:
-    """One dictionary per captured position with the :data:`CSV_COLUMNS` (excluded positions
-    too: ``status`` ``excluded`` with the ``reason``, their numbers empty; row and col empty
-    for an irregular scan, whose positions the file and field columns name)."""
+    """One dictionary of :data:`CSV_COLUMNS` per captured position (excluded ones with their
+    ``reason`` and no numbers; row and col empty for an irregular scan)."""
     residuals = result.shift_fit.residuals if result.shift_fit is not None else None
     irregular = result.layout == "irregular"
-    rows = []
-    for e in result.excluded:
-        fx, fy = e.field_deg if e.field_deg is not None else (None, None)
-        mx, my = e.monitor_px if e.monitor_px is not None else (None, None)
-        rows.append(jsonable({**dict.fromkeys(CSV_COLUMNS), "row": e.row, "col": e.col,
-                              "file": e.file, "field_x_deg": fx, "field_y_deg": fy,
-                              "monitor_x_px": mx, "monitor_y_px": my, "status": "excluded",
-                              "reason": e.reason}))
+    rows = [jsonable({**dict.fromkeys(CSV_COLUMNS), **_where(e), "status": "excluded",
+                      "reason": e.reason}) for e in result.excluded]
     for p in result.positions:
         warp = p.warp or {}
         affine = warp.get("affine", {})
-        fx, fy = p.field_deg if p.field_deg is not None else (None, None)
-        mx, my = p.monitor_px if p.monitor_px is not None else (None, None)
         res = residuals[p.row, p.col] if residuals is not None else (None, None)
         rows.append(jsonable({
-            "row": p.row, "col": p.col, "file": p.file, "field_x_deg": fx, "field_y_deg": fy,
-            "monitor_x_px": mx, "monitor_y_px": my, "shift_du_px": p.shift[0],
-            "shift_dv_px": p.shift[1], "shift_residual_du_px": res[0],
-            "shift_residual_dv_px": res[1], "quality": p.quality, "overlap": p.overlap,
-            "gain": p.gain, "mae": p.mae, "mae_gain_compensated": p.mae_gain_compensated,
-            "n_saturated": p.n_saturated, "warp_residual_rms_px": warp.get("residual_rms"),
-            "warp_rms_tangential_px": warp.get("rms_tangential"),
-            "warp_rms_sagittal_px": warp.get("rms_sagittal"),
-            "warp_anisotropy": warp.get("anisotropy"),
-            "affine_scale_u": affine.get("scale_u"), "affine_scale_v": affine.get("scale_v"),
-            "affine_shear": affine.get("shear"), "affine_rotation_deg": affine.get("rotation_deg"),
-            "affine_scale_tangential": affine.get("scale_tangential"),
-            "affine_scale_sagittal": affine.get("scale_sagittal"), "status": "ok",
-            "reason": None}))
+            **_where(p), "shift_du_px": p.shift[0], "shift_dv_px": p.shift[1],
+            "shift_residual_du_px": res[0], "shift_residual_dv_px": res[1],
+            **{k: getattr(p, k) for k in _POSITION_COLUMNS},
+            **{column: warp.get(k) for column, k in _WARP_COLUMNS.items()},
+            **{f"affine_{k}": affine.get(k) for k in _AFFINE_KEYS},
+            "status": "ok", "reason": None}))
     rows.sort(key=lambda r: (r["row"], r["col"]))
     if irregular:
         for r in rows:
@@ -179,9 +178,7 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
         fig_dir.mkdir()
         embedded = []
         for stem, caption, fn_name in FIGURES:
-            if fn_name == "figure_warp" and not result.flows:
-                continue
-            if fn_name == "figure_warp_summary" and not result.flows:
+            if fn_name in ("figure_warp", "figure_warp_summary") and not result.flows:
                 continue
             fig = getattr(fig_module, fn_name)(result)
             fig_module.save_figure(fig, fig_dir / stem)
@@ -252,15 +249,9 @@ def _html(result: GridCharacterization, doc: dict[str, Any],
     figs = figures_html(figures)
     head = ("file", "row", "col", "status", "shift_du_px", "shift_dv_px", "quality", "overlap",
             "gain", "mae", "warp_residual_rms_px", "warp_anisotropy")
-    body = "".join("<tr>" + "".join(f"<td>{format_value(r[k])}</td>" for k in head) + "</tr>"
-                   for r in csv_rows(result))
-    positions = (f"<table class='grid'><tr>{''.join(f'<th>{k}</th>' for k in head)}</tr>"
-                 f"{body}</table>")
+    positions = grid_table(head, ([r[k] for k in head] for r in csv_rows(result)))
     excluded = _excluded_html(result)
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>PSF grid report</title>
-<style>{REPORT_CSS}</style></head><body>
-<h1>PSF grid report</h1>
+    return html_page("PSF grid report", f"""<h1>PSF grid report</h1>
 {verdict_html(doc.get("verdict"))}
 <p>psfkit {html.escape(__version__)}. Numbers: <a href="results.json">results.json</a>,
 <a href="positions.csv">positions.csv</a>. Shifts are the displacement (du, dv) of each PSF
@@ -282,13 +273,11 @@ angular spectrum of the intensity change (transport of intensity), because per-p
 components mix the two directions on caustic lines.</p>{warp}
 {figs}
 <h2>Positions</h2>{positions}
-</body></html>
-"""
+""")
 
 
 def _excluded_html(result: GridCharacterization) -> str:
-    """The section listing excluded positions (reason and detail) and the cells never
-    captured; empty for a complete full lattice."""
+    """The section of excluded positions and never-captured cells (empty when none)."""
     from psfkit.calibration.alignment import REJECTION_REASONS
 
     if not result.excluded and not result.missing:
@@ -317,8 +306,8 @@ def _rule_text() -> str:
 
 
 def verdict_html(verdict: dict[str, Any] | None) -> str:
-    """The report's opening: the verdict in plain words, then its evidence (held-out errors
-    per model with their 1σ, the noise floor, the test) and the field effects."""
+    """The report's opening: the verdict, its evidence (held-out errors ±1σ, noise floor, test)
+    and the field effects."""
     if not verdict:
         return ""
     evidence = verdict.get("evidence", {})

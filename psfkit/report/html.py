@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html
 import math
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 REPORT_CSS = """
@@ -38,6 +39,21 @@ def format_value(value: Any, spec: str = ".4g") -> str:
     return html.escape(str(value))
 
 
+def html_page(title: str, body: str) -> str:
+    """A self-contained HTML page with the shared stylesheet."""
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
+            f"\n<style>{REPORT_CSS}</style></head><body>\n{body}</body></html>\n")
+
+
+def grid_table(head: Sequence[str], rows: Iterable[Sequence[Any]], spec: str = ".4g") -> str:
+    """A table of numbers: the header ``head``, then one row of :func:`format_value` cells per
+    item of ``rows``."""
+    header = "".join(f"<th>{html.escape(h)}</th>" for h in head)
+    body = "".join("<tr>" + "".join(f"<td>{format_value(v, spec)}</td>" for v in row) + "</tr>"
+                   for row in rows)
+    return f"<table class='grid'><tr>{header}</tr>{body}</table>"
+
+
 def html_table(rows: list[tuple[str, Any]]) -> str:
     """A two-column key/value HTML table."""
     cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{format_value(v)}</td></tr>"
@@ -56,10 +72,9 @@ def figures_html(figures: list[tuple[str, str, str]]) -> str:
 
 
 def estimate_html(estimate: dict[str, Any] | None, spec: str = ".4g", unit: str = "") -> Html:
-    """An estimate (``Estimate.to_dict()`` of :mod:`psfkit.numerics.significance`) for a table cell:
-    ``value ± sigma`` when significant; greyed ``not detected`` with the number and its ± in
-    small print and a tooltip (z, p) when not; greyed ``not determined`` with the reason as
-    tooltip when the data cannot give it."""
+    """An ``Estimate.to_dict()`` as a table cell: ``value ± sigma`` when significant, else greyed
+    ``not detected`` (number in small print, z and p as tooltip) or ``not determined`` (the
+    reason as tooltip)."""
     if not estimate:
         return Html("<span class='nd'>not measured</span>")
     unit = f" {html.escape(unit)}" if unit else ""

@@ -16,7 +16,7 @@ from psfkit.calibration.support import support_box
 from psfkit.compare.displacement import DisplacementMap
 from psfkit.compare.results import KernelComparison
 from psfkit.report.figures.eigen import _crop_box, _zoom, difference_limit, draw_kernels
-from psfkit.report.figures.style import PAGE_IN, new_figure, publication_style
+from psfkit.report.figures.style import PAGE_IN, new_figure, no_ticks, publication_style
 
 
 def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
@@ -28,8 +28,7 @@ def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:
 
 
 def reference_label(comparison: KernelComparison) -> str:
-    """The row label of the measured side: the grid fit, or the kernel file it was given as
-    (``psfkit compare A.npz B.npz``: B may be a pairs fit or an oracle, not a grid fit)."""
+    """The measured side's row label: the grid fit, or the kernel file it was given as."""
     measured = comparison.measured
     if measured.fit is not None:
         return "measured (grid fit)"
@@ -39,10 +38,8 @@ def reference_label(comparison: KernelComparison) -> str:
 def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | list[str],
                     label: str, titles: bool = True, label_size: float | None = None,
                     limit: float | None = None) -> AxesImage:
-    """One Fig. 7 row: the kernels' luminance ``lum`` ``(K, h, w)`` in ``axes[:K]`` and their
-    differences from ``K_base`` in ``axes[K:2K−1]`` (:func:`draw_kernels`, differences within
-    ±``limit`` of the row's peak), ``label`` on the row. Returns the last difference image
-    (for a colour bar; the kernels' is ``axes[0].images[0]``)."""
+    """One Fig. 7 row (:func:`draw_kernels`): ``lum`` ``(K, h, w)`` in ``axes[:K]``, the
+    differences in ``axes[K:2K−1]``, ``label`` on the row; returns the last difference image."""
     k = len(names)
     im = draw_kernels(axes[:k], axes[k:2 * k - 1], lum, names, titles, limit=limit)
     axes[0].set_ylabel(label, fontsize=label_size)
@@ -51,18 +48,9 @@ def draw_kernel_row(axes: np.ndarray, lum: np.ndarray, names: tuple[str, ...] | 
 
 def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None = None,
                                extra_rows: Sequence[tuple[str, np.ndarray]] = ()) -> Figure:
-    """Fig. 7 layout (``K_base``, ``K_k`` ..., ``K_k − K_base`` ...) for the learned kernels,
-    the initial ones (if given) and the kernels fitted to the grid, one row each, on one crop.
-
-    Parameters
-    ----------
-    comparison : KernelComparison
-    zoom : float, optional
-        Show only the central ``zoom`` fraction of the caustic's bounding box.
-    extra_rows : sequence of (str, numpy.ndarray)
-        More ``(label, kernels)`` rows after the measured one, kernels ``(K, C, H, W)`` on the
-        comparison grid (e.g. an oracle's, registered by :func:`psfkit.compare.compare_model`).
-    """
+    """Fig. 7 layout for the learned, initial (if given) and measured kernels, one row each, on
+    one crop. ``zoom``: the central fraction of the caustic's box; ``extra_rows``: more
+    ``(label, (K, C, H, W) kernels)`` rows on the comparison grid."""
     names = comparison.kernel_names
     rows = [(label, np.stack([luminance(k) for k in kernels]))
             for label, kernels in _rows(comparison)]
@@ -104,17 +92,13 @@ def quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax
                   scale=vmax / (1.5 * step), width=0.005,
                   headwidth=4)
     ax.set_title(title)
-    ax.set_xticks([])
-    ax.set_yticks([])
-    for spine in ax.spines.values():
-        spine.set_visible(False)
+    no_ticks(ax)
     return im
 
 
 def figure_displacements(comparison: KernelComparison, arrows: int = 14) -> Figure:
     """Displacement maps of ``K_k`` relative to ``K_base`` (colour: length in px; arrows:
-    direction, ``u`` right, ``v`` down), one row per correction kernel: learned, initial (if
-    given), measured eigen-kernels, and the displacement predicted by the measured warps."""
+    direction), one row per correction kernel: learned, initial, measured, warp-predicted."""
     names = list(comparison.kernel_names[1:])
     box = _crop_box(np.where(comparison.mask, 1.0, 0.0), level=0.5, margin=2)
     span = max(box[0].stop - box[0].start, box[1].stop - box[1].start)

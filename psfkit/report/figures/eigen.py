@@ -22,8 +22,10 @@ from psfkit.forward.weights import get_basis
 from psfkit.report.figures.style import (
     PAGE_IN,
     Fitted,
+    axis_labels,
     fitted,
     new_figure,
+    no_ticks,
     psf_cmap,
     psf_norm,
     publication_style,
@@ -36,8 +38,8 @@ WRAP = 6
 
 
 def _crop_box(image: np.ndarray, level: float = 0.02, margin: int = 4) -> tuple[slice, slice]:
-    """Bounding box of the pixels of a mask (or noiseless map) above ``level`` × its maximum,
-    with ``margin`` px (a PSF's support: :func:`psfkit.calibration.support.support_box`)."""
+    """Bounding box of the pixels above ``level`` × the maximum of a mask or noiseless map, with
+    ``margin`` px."""
     rows, cols = np.nonzero(image > level * image.max())
     if rows.size == 0:
         return slice(None), slice(None)
@@ -54,8 +56,8 @@ def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
 
 
 def difference_limit(lum: np.ndarray) -> float:
-    """Colour limit of ``K_k − K_base`` as a fraction of the kernels' peak (99.9th
-    percentile of ``|difference|``; 1 where there is none), for ``(K, h, w)`` kernels."""
+    """Colour limit of ``K_k − K_base`` of ``(K, h, w)`` kernels, as a fraction of their peak
+    (99.9th percentile of ``|difference|``; 1 where there is none)."""
     if len(lum) < 2:
         return 1.0
     diffs = (lum[1:] - lum[0]) / (float(np.nanmax(lum)) or 1.0)
@@ -66,14 +68,11 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
                  names: Sequence[str], titles: bool = True,
                  sizes: Sequence[Fitted] | None = None, limit: float | None = None
                  ) -> AxesImage | None:
-    """The kernels' luminance ``lum`` ``(K, h, w)`` as fractions of their peak on a square-root
-    scale (:func:`~psfkit.report.figures.style.psf_norm`), and ``K_k − K_base`` in the same unit on
-    a symmetric linear scale (±``limit``, default :func:`difference_limit` of ``lum``: pass one
-    limit to rows that are compared).
+    """The kernels' luminance ``lum`` ``(K, h, w)`` as fractions of their peak (√ scale), and
+    ``K_k − K_base`` in that unit within ±``limit`` (default :func:`difference_limit`).
 
-    ``sizes`` (one per difference, optional): the size of each difference with its uncertainty,
-    printed under its title; a difference that is not significant is faded and titled "not
-    detected". Returns the last difference image (``None`` for one kernel).
+    ``sizes`` (optional, one per difference) are printed under the titles; a non-significant
+    difference is faded. Returns the last difference image (``None`` for one kernel).
     """
     k = len(names)
     peak = float(np.nanmax(lum)) or 1.0
@@ -83,10 +82,7 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
         ax = kernel_axes[i]
         ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
         ax.set_title(f"K_{names[i]}" if titles else "")
-        ax.set_xticks([])
-        ax.set_yticks([])           # (the axis stays: a row label may be set on it)
-        for spine in ax.spines.values():
-            spine.set_visible(False)
+        no_ticks(ax)           # (the axis stays: a row label may be set on it)
     cmap = matplotlib.colormaps["RdBu_r"]
     im = None
     for i in range(1, k):
@@ -104,9 +100,8 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
 
 
 def _kernel_axes(fig: Figure, k: int) -> tuple[list[Axes], list[Axes]]:
-    """Axes for ``k`` kernels and their ``k − 1`` differences: one row (the paper's Fig. 7)
-    up to :data:`ONE_ROW_KERNELS` kernels, else a block of kernels above a block of
-    differences, :data:`WRAP` a row (no empty panels)."""
+    """Axes for ``k`` kernels and ``k − 1`` differences: one row up to
+    :data:`ONE_ROW_KERNELS` kernels, else kernels above differences, :data:`WRAP` a row."""
     if k <= ONE_ROW_KERNELS:
         axes = list(np.atleast_1d(fig.subplots(1, 2 * k - 1)))
         return axes[:k], axes[k:]
@@ -125,22 +120,11 @@ def _kernel_axes(fig: Figure, k: int) -> tuple[list[Axes], list[Axes]]:
 def figure_kernels(kernels: np.ndarray, names: Sequence[str], title: str = "",
                    zoom: float | None = None, sizes: Sequence[Fitted] | None = None
                    ) -> Figure:
-    """Fig. 7: every kernel and every kernel minus the base kernel, cropped to the base
-    kernel's support, with colour bars in one unit (the kernels' peak): the size of the
-    correction can be read against the kernel.
+    """Fig. 7: every kernel ``(K, C, H, W)`` (base first) and its difference from the base,
+    cropped to the base kernel's support, in one unit (the kernels' peak).
 
-    Parameters
-    ----------
-    kernels : numpy.ndarray
-        ``(K, C, H, W)``, base kernel first.
-    names : sequence of str
-        Kernel names (``base, v, h`` for the paper's basis).
-    zoom : float, optional
-        Show only the central ``zoom`` fraction of the support's bounding box (sub-pixel spot
-        displacements become visible).
-    sizes : sequence of Fitted, optional
-        ``K − 1`` sizes of the differences with their uncertainty and significance
-        (:func:`difference_sizes`); differences that are not significant are greyed.
+    ``zoom``: only the central fraction of the support's box; ``sizes``: the ``K − 1``
+    differences' sizes (:func:`difference_sizes`), non-significant ones greyed.
     """
     lum = np.stack([luminance(k.astype(np.float32)) for k in kernels])
     box = support_box(lum[0])
@@ -164,9 +148,8 @@ def figure_kernels(kernels: np.ndarray, names: Sequence[str], title: str = "",
 
 
 def difference_sizes(result: Any, names: Sequence[str]) -> list[Fitted] | None:
-    """The sizes of ``K_k − K_base`` with uncertainty and significance, where the fit result
-    provides them (``result.differences``: a dict by kernel name of entries with ``value``,
-    ``sigma`` and ``significant``); ``None`` otherwise."""
+    """Sizes of ``K_k − K_base`` from ``result.differences`` (by kernel name: ``value``,
+    ``sigma``, ``significant``); ``None`` where the result lacks them."""
     table = getattr(result, "differences", None)
     if not isinstance(table, dict) or not all(name in table for name in names[1:]):
         return None
@@ -174,8 +157,7 @@ def difference_sizes(result: Any, names: Sequence[str]) -> list[Fitted] | None:
 
 
 def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure:
-    """Fig. 3: the weight maps of a basis on the sensor (``1 − Wh − Wv``, ``Wv``, ``Wh`` for
-    the paper's), each colour bar spanning its own map's range."""
+    """Fig. 3: the weight maps of a basis on the sensor, each on its own colour range."""
     basis = get_basis(basis_name)
     maps = basis.maps(sensor_shape)
     labels = ["base (1 − Σ W)"] + [f"W_{name}" for name in basis.kernel_names[1:]]
@@ -192,10 +174,7 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
                 lo, hi = lo - 0.5, hi + 0.5
             im = ax.imshow(m, cmap="viridis", vmin=lo, vmax=hi)
             ax.set_title(label)
-            ax.set_xlabel("u (px)")
-            ax.set_ylabel("v (px)")
-            ax.xaxis.set_major_locator(MaxNLocator(4))
-            ax.yaxis.set_major_locator(MaxNLocator(4))
+            axis_labels(ax, "u (px)", "v (px)", (4, 4))
             fig.colorbar(im, ax=ax, shrink=0.8, pad=0.08, label="weight (dimensionless)")
         for ax in axes[n:]:
             ax.set_visible(False)
@@ -228,8 +207,8 @@ def _cv_panel(ax: Axes, cv: dict[str, Any]) -> None:
 
 
 def _residual_panels(fig: Figure, axes: Sequence[Axes], result: GridEigenResult) -> None:
-    """The in-sample residual of each position for both conventions on one scale: lattice
-    maps, or for an irregular scan points at the PSFs' positions on the sensor."""
+    """In-sample residual per position for both conventions on one scale (lattice maps, or
+    points at the PSFs' sensor positions for an irregular scan)."""
     residuals = [result.residuals[conv] for conv in ("sensor", "source")]
     values = np.concatenate([r.ravel() for r in residuals])
     norm = colors.Normalize(float(np.nanmin(values)), float(np.nanmax(values)))
@@ -242,25 +221,18 @@ def _residual_panels(fig: Figure, axes: Sequence[Axes], result: GridEigenResult)
                             norm=norm, s=18, ec="k", lw=0.3)
             ax.set_aspect("equal", adjustable="datalim")
             ax.invert_yaxis()
-            ax.set_xlabel("PSF shift u (px)")
-            ax.set_ylabel("PSF shift v (px)")
-            ax.xaxis.set_major_locator(MaxNLocator(3))
-            ax.yaxis.set_major_locator(MaxNLocator(4))
+            axis_labels(ax, "PSF shift u (px)", "PSF shift v (px)", (3, 4))
         else:
             im = ax.imshow(residual, cmap="magma", norm=norm)
-            ax.xaxis.set_major_locator(MaxNLocator(5, integer=True))
-            ax.yaxis.set_major_locator(MaxNLocator(5, integer=True))
-            ax.set_xlabel("column")
-            ax.set_ylabel("row")
+            axis_labels(ax, "column", "row", (5, 5), integer=True)
         ax.set_title(f"{conv}-side fit:\nresidual per position")
     fig.colorbar(im, ax=list(axes), location="bottom", shrink=0.8,
                  label="in-sample error (‖model − PSF‖ / ‖PSF‖)")
 
 
 def figure_eigen_diagnostics(result: GridEigenResult) -> Figure:
-    """Scree plot of the grid's PCA, cross-validated errors of the candidate models (±1σ
-    where known), and the in-sample residual of each position for both weight conventions
-    on one scale."""
+    """Scree plot of the grid's PCA, cross-validated errors of the candidates (±1σ where known)
+    and in-sample residuals per position."""
     panels = [result.pca is not None, result.cv is not None]
     ratios = [r for r, shown in zip((1.1, 1.6), panels, strict=True) if shown] + [1, 1]
     with publication_style():

@@ -1,6 +1,5 @@
-"""Where a forward model fails on the sensor: the residual maps of ``psfkit eval-model``, one
-panel per model (e.g. SI beside EK) on one shared, labelled colour scale, with the boundaries of
-the equal-area field zones (:mod:`psfkit.forward.zones`)."""
+"""The residual maps of ``psfkit eval-model``: one panel per model on one colour scale, with
+the field zones (:mod:`psfkit.forward.zones`)."""
 
 from __future__ import annotations
 
@@ -18,8 +17,7 @@ RESIDUAL_LABEL = "RMS residual / RMS measurement"
 
 
 def _zone_boundaries(ax, zones: FieldZones) -> None:  # type: ignore[no-untyped-def]
-    """Thin contours between the zones, and the zone names along the row of the optical
-    centre where they fit (inside the panel, so they cannot collide with other text)."""
+    """Contours between the zones, and their names along the optical centre's row."""
     ax.contour(zones.labels.astype(float), levels=[0.5, 1.5], colors="white",
                linewidths=0.6, linestyles=["-", "--"])
     v_c, u_c = zones.optical_center
@@ -34,24 +32,9 @@ def _zone_boundaries(ax, zones: FieldZones) -> None:  # type: ignore[no-untyped-
 
 def figure_residual_maps(maps: Sequence[np.ndarray], titles: Sequence[str],
                          zones: FieldZones | None = None) -> Figure:
-    """Residual maps side by side on one colour scale.
-
-    Parameters
-    ----------
-    maps : sequence of numpy.ndarray
-        ``(H, W)`` maps of the same sensor (:func:`psfkit.fitting.pairs.model_errors.residual_map`).
-    titles : sequence of str
-        One short title per map (e.g. ``"SI: si.npz"``).
-    zones : FieldZones, optional
-        Draw the zone boundaries and names.
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-        One row of panels and one colour bar, labelled :data:`RESIDUAL_LABEL`, shared by all
-        of them (from 0 to the largest 99.5th percentile of the maps; pixels above it are
-        drawn at its colour, and the bar's end is pointed).
-    """
+    """``(H, W)`` residual maps of one sensor side by side, one title each, optionally with
+    the ``zones``; one colour bar (:data:`RESIDUAL_LABEL`) from 0 to the largest 99.5th
+    percentile (pointed when pixels exceed it)."""
     if not maps or len(maps) != len(titles):
         raise ValueError("one title per map, and at least one map")
     h, w = maps[0].shape

@@ -1,20 +1,11 @@
-"""What every figure of a grid characterization shares: how a position is labelled and placed.
-
-The reference PSF's support box (PSFs are cropped to it, moved by each position's shift), a
-position's field label, the field coordinates of an irregular scan, bare image axes, and the
-hatching styles of the gaps: a cell of the lattice that was never captured is hatched grey, an
-excluded position (a failed quality check) is hatched red with a red ×. The figures themselves
-are in :mod:`~psfkit.report.figures.shift_variance`, :mod:`~psfkit.report.figures.maps`,
-:mod:`~psfkit.report.figures.montage` and :mod:`~psfkit.report.figures.warp`; each takes a
-:class:`~psfkit.characterization.characterize.GridCharacterization` and returns a matplotlib
-``Figure`` (nothing is shown or saved; see :func:`psfkit.report.figures.save_figure`), following
-the conventions of :mod:`psfkit.report.figures.style`.
+"""What the grid characterization's figures share: the reference's support box, a position's
+field label, an irregular scan's coordinates, bare image axes, and the gap hatching (never
+captured: grey; excluded: red with a red ×).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from matplotlib.axes import Axes
 
 from psfkit.characterization.results import GridCharacterization
 
@@ -48,11 +39,3 @@ def scatter_coordinates(result: GridCharacterization) -> tuple[np.ndarray, str]:
     if result.field_units == "tan(field angle)":
         return np.rad2deg(np.arctan(coords)), "°"
     return coords, result.field_units
-
-
-def no_ticks(ax: Axes) -> None:
-    """Bare image axes: no ticks, no frame."""
-    ax.set_xticks([])
-    ax.set_yticks([])
-    for spine in ax.spines.values():
-        spine.set_visible(False)

@@ -1,9 +1,5 @@
 """Heat maps of a grid characterization (MAE, gain, registration quality, overlap) and the
-shift map's residual as arrows.
-
-Gaps are visible on every map: a cell of the lattice that was never captured is hatched grey,
-an excluded position (a failed quality check) is hatched red with a red ×. An irregular scan
-is drawn as a scatter of its positions in the field, coloured by value (excluded: red ×).
+shift map's residual as arrows, gaps hatched; an irregular scan as a coloured scatter.
 """
 
 from __future__ import annotations
@@ -12,11 +8,11 @@ import numpy as np
 from matplotlib import colors
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
+from matplotlib.patches import Rectangle
 
 from psfkit.characterization.results import GridCharacterization
 from psfkit.report.figures.grid_layout import EXCLUDED_STYLE, MISSING_STYLE, scatter_coordinates
-from psfkit.report.figures.style import PAGE_IN, new_figure, publication_style
+from psfkit.report.figures.style import PAGE_IN, axis_labels, new_figure, publication_style
 
 GAP_NOTE = "hatched grey: not captured; red ×: excluded (see the table of excluded positions)"
 #: a lattice map prints its values in the cells up to this many cells a side (7-pt text fits)
@@ -25,8 +21,6 @@ ANNOTATE_MAX_CELLS = 5
 
 def _mark_gaps(ax: Axes, result: GridCharacterization) -> None:
     """Hatch the cells of a lattice map that were not captured or were excluded."""
-    from matplotlib.patches import Rectangle
-
     status = result.status()
     for (r, c), state in np.ndenumerate(status):
         if state == "ok":
@@ -47,17 +41,13 @@ def _field_axes(ax: Axes, coords: np.ndarray, unit: str, key_band: float = 0.0) 
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(hi[1] + pad, lo[1] - pad - key_band * extent)
     ax.set_aspect("equal", adjustable="box")
-    ax.set_xlabel(f"x ({unit})")
-    ax.set_ylabel(f"y ({unit})")
-    ax.xaxis.set_major_locator(MaxNLocator(3))
-    ax.yaxis.set_major_locator(MaxNLocator(4))
+    axis_labels(ax, f"x ({unit})", f"y ({unit})", (3, 4))
 
 
 def _scatter_map(fig: Figure, ax: Axes, result: GridCharacterization, values: np.ndarray,
                  title: str, label: str, cmap: str, norm: colors.Normalize | None = None
                  ) -> None:
-    """A per-position quantity of an irregular scan as coloured points in the field (the
-    colour bar gives the values: numbers beside the points would run into each other)."""
+    """A per-position quantity of an irregular scan as coloured points in the field."""
     coords, unit = scatter_coordinates(result)
     v = values.reshape(-1)
     ok = np.isfinite(v)
@@ -85,26 +75,18 @@ def _heatmap(fig: Figure, ax: Axes, values: np.ndarray, title: str, label: str, 
                 shade = im.cmap(im.norm(value))
                 ax.text(c, r, format(value, fmt), ha="center", va="center", fontsize=7,
                         color="white" if sum(shade[:3]) < 1.5 else "black")
-    ax.xaxis.set_major_locator(MaxNLocator(6, integer=True))
-    ax.yaxis.set_major_locator(MaxNLocator(6, integer=True))
+    axis_labels(ax, "column", "row", (6, 6), integer=True)
     if center is not None:
-        ax.add_patch(_centre_box(center))
+        ax.add_patch(Rectangle((center[1] - 0.5, center[0] - 0.5), 1, 1, fill=False, ec="red",
+                               lw=1))
     ax.set_title(title)
-    ax.set_xlabel("column")
-    ax.set_ylabel("row")
     fig.colorbar(im, ax=ax, shrink=0.8, label=label)
-
-
-def _centre_box(center: tuple[int, int]):  # type: ignore[no-untyped-def]
-    from matplotlib.patches import Rectangle
-
-    return Rectangle((center[1] - 0.5, center[0] - 0.5), 1, 1, fill=False, ec="red", lw=1)
 
 
 def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str, str,
                                                       colors.Normalize | None]]:
-    """``(values, title, colour-bar label, cell format, colour map, norm)`` of each map; the
-    two MAE maps share one scale (they are compared)."""
+    """``(values, title, colour-bar label, cell format, colour map, norm)`` of each map (the
+    two MAE maps share one scale)."""
     mae, mae_gain = result.table("mae"), result.table("mae_gain_compensated")
     scale = 100.0                   # percent of the centre PSF's light, as the report prints it
     top = float(np.nanmax(np.concatenate([mae.ravel(), mae_gain.ravel()]), initial=0.0)) * scale
@@ -121,9 +103,7 @@ def _maps(result: GridCharacterization) -> list[tuple[np.ndarray, str, str, str,
 
 
 def figure_maps(result: GridCharacterization) -> Figure:
-    """Heat maps: MAE, gain, registration quality and overlap, plus the residual distortion
-    of the shift map as arrows; gaps and excluded positions marked (module docstring). An
-    irregular scan gives scatter maps over the field."""
+    """The maps of the module docstring."""
     irregular = result.layout == "irregular"
     with publication_style():
         # panels of the map's own aspect: colour bars as tall as the maps
@@ -181,10 +161,7 @@ def _residual_quiver(ax: Axes, result: GridCharacterization) -> None:
         ax.set_xlim(-0.7, m - 0.3)
         ax.set_ylim(n - 0.3, -0.7 - max(1.0, 0.25 * n))     # the key's band on top
         ax.set_aspect("equal")
-        ax.xaxis.set_major_locator(MaxNLocator(6, integer=True))
-        ax.yaxis.set_major_locator(MaxNLocator(6, integer=True))
-        ax.set_xlabel("column")
-        ax.set_ylabel("row")
+        axis_labels(ax, "column", "row", (6, 6), integer=True)
         _mark_gaps(ax, result)
     ax.quiverkey(q, 0.08, 0.92, scale, f"{scale:.2f} px", labelpos="E", coordinates="axes")
     ax.set_title(f"shift-map residual (rms {result.shift_fit.rms_residual:.3f} px)")

@@ -1,6 +1,5 @@
-"""The montage of a grid characterization: every PSF's window on a common square-root scale,
-labelled with its field position; gaps hatched (an irregular scan: a subset spread over the
-field)."""
+"""The montage of a grid characterization: every PSF's window on one √ scale, labelled with
+its field position, gaps hatched."""
 
 from __future__ import annotations
 
@@ -13,19 +12,24 @@ from psfkit.report.figures.grid_layout import (
     EXCLUDED_STYLE,
     MISSING_STYLE,
     field_label,
-    no_ticks,
     scatter_coordinates,
 )
-from psfkit.report.figures.style import PAGE_IN, new_figure, psf_cmap, psf_norm, publication_style
+from psfkit.report.figures.style import (
+    PAGE_IN,
+    new_figure,
+    no_ticks,
+    psf_cmap,
+    psf_norm,
+    publication_style,
+)
 
 #: the montage of an irregular scan shows at most this many positions, spread over the field
 MONTAGE_MAX = 48
 
 
 def _montage_cells(result: GridCharacterization) -> tuple[list[tuple[int, int]], int, int]:
-    """The cells the montage shows and its ``(rows, cols)``: the lattice as it is; an irregular
-    scan's positions (at most :data:`MONTAGE_MAX`, spread over the field) in reading order
-    of their field positions."""
+    """The cells shown and ``(rows, cols)``: the lattice, or an irregular scan's positions (at
+    most :data:`MONTAGE_MAX`, spread over the field) in reading order."""
     n, m = result.grid_shape
     if result.layout != "irregular":
         return [(r, c) for r in range(n) for c in range(m)], n, m
@@ -49,8 +53,7 @@ def _montage_cells(result: GridCharacterization) -> tuple[list[tuple[int, int]],
 
 
 def _lattice_labels(result: GridCharacterization) -> tuple[list[str], list[str]]:
-    """Column and row headings of a lattice montage: the field angle (or monitor position)
-    of each column and row, or its index."""
+    """Column and row headings: field angle, monitor position or index."""
     n, m = result.grid_shape
     cols, rows = [f"col {c}" for c in range(m)], [f"row {r}" for r in range(n)]
     for p in result.captured:
@@ -64,9 +67,7 @@ def _lattice_labels(result: GridCharacterization) -> tuple[list[str], list[str]]
 
 
 def figure_montage(result: GridCharacterization) -> Figure:
-    """The grid of PSFs: each PSF's window (the centre PSF's support moved by the PSF's
-    shift), luminance on a common square-root scale, with the field position of every column
-    and row (of every PSF for an irregular scan)."""
+    """The grid of PSF windows (the centre PSF's support moved by each shift)."""
     thumbs = result.thumbnails
     peak = float(np.nanmax(thumbs[result.center])) or 1.0
     status = result.status()

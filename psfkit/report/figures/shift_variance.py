@@ -1,8 +1,4 @@
-"""Fig. 2 of the paper: the centre PSF, two off-axis PSFs, their differences and the MAE.
-
-PSFs are cropped to the reference's support box and drawn on the centre PSF's scale (see
-:mod:`psfkit.report.figures.grid_layout` for the conventions shared by the grid figures).
-"""
+"""Fig. 2 of the paper: the centre PSF, two off-axis PSFs, their differences and the MAE."""
 
 from __future__ import annotations
 
@@ -14,19 +10,20 @@ from matplotlib.figure import Figure
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import crop_window
 from psfkit.characterization.results import GridCharacterization
-from psfkit.report.figures.grid_layout import (
-    field_label,
+from psfkit.report.figures.grid_layout import field_label, scatter_coordinates, support_box
+from psfkit.report.figures.style import (
+    PAGE_IN,
+    new_figure,
     no_ticks,
-    scatter_coordinates,
-    support_box,
+    psf_cmap,
+    psf_norm,
+    publication_style,
 )
-from psfkit.report.figures.style import PAGE_IN, new_figure, psf_cmap, psf_norm, publication_style
 
 
 def figure_shift_variance(result: GridCharacterization) -> Figure:
-    """Fig. 2 of the paper: centre PSF (A), two off-axis PSFs along the vertical (B, C; one
-    on a 3-row grid), their differences from A after shift compensation, and the MAE against
-    position. PSFs cropped to A's support; all on A's scale."""
+    """Centre PSF (A), off-axis PSFs B and C, their differences from A after shift
+    compensation, and the MAE against position; cropped to A's support, on A's scale."""
     box = support_box(result)
     ref = crop_window(luminance(result.reference), box)
     peak = float(np.nanmax(ref)) or 1.0
@@ -69,8 +66,8 @@ def figure_shift_variance(result: GridCharacterization) -> Figure:
 
 
 def _mae_panel(ax: Axes, result: GridCharacterization) -> None:
-    """Fig. 2's last panel: MAE along the centre column (row of a one-row grid) against field
-    position, or against the distance from the centre for an irregular scan."""
+    """MAE along the centre column (row of a one-row grid), or against the distance from the
+    centre for an irregular scan."""
     if result.layout == "irregular":
         coords, unit = scatter_coordinates(result)
         x = np.hypot(*(coords - coords[result.center[1]]).T)

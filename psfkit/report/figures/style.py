@@ -1,12 +1,7 @@
-"""Publication style and saving for all psfkit figures (PNG at 300 dpi and vector PDF), and
-the conventions every figure follows (tests/psfkit/test_figures.py checks them):
-
-- text at least 7 pt at the saved size (a one- or two-column paper figure);
-- every colour bar labelled ``quantity (unit)``; panels that are compared share one scale;
-- PSFs cropped to their support (:mod:`psfkit.calibration.support`), on a square-root scale
-  (:func:`psf_norm`), off-sensor pixels in :data:`OFF_SENSOR`;
-- a fitted quantity with its 1σ uncertainty, greyed and "not detected" when not significant
-  (:func:`fitted`).
+"""Publication style and saving (PNG at 300 dpi, PDF) for all psfkit figures. Conventions
+(checked by tests/psfkit/test_figures.py): text ≥ 7 pt; colour bars labelled ``quantity
+(unit)``, compared panels on one scale; PSFs cropped to their support on a √ scale, off-sensor
+pixels in :data:`OFF_SENSOR`; fitted quantities with 1σ, greyed when not significant.
 """
 
 from __future__ import annotations
@@ -22,7 +17,9 @@ from typing import Any
 
 import matplotlib
 from matplotlib import colors
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from psfkit.io.atomic import atomic_file
 
@@ -73,8 +70,7 @@ class Fitted:
 
     @property
     def detected(self) -> bool:
-        """Drawn as a result: finite and flagged significant; without a flag, at least 2σ
-        from zero (and with a determined σ)."""
+        """Finite and significant (without a flag: at least 2σ from zero, σ determined)."""
         if not math.isfinite(self.value):
             return False
         if self.significant is not None:
@@ -111,9 +107,9 @@ def _field(source: Any, key: str) -> Any:
 
 
 def fitted(source: Any, name: str) -> Fitted:
-    """``source.name`` (an attribute or a dict key) with its uncertainty and significance when
-    the result provides them: ``name_sigma``, ``name_std`` or ``sigma``; ``name_significant``
-    or ``significant`` (a bool, or a dict by ``name``). Missing ones stay ``None``."""
+    """``source.name`` (attribute or dict key) with its σ (``name_sigma``, ``name_std`` or
+    ``sigma``) and flag (``name_significant`` or ``significant``; either may be a dict by
+    name) where given."""
     value = _field(source, name)
     value = float("nan") if value is None else float(value)
     sigma = next((s for s in (_field(source, f"{name}_sigma"), _field(source, f"{name}_std"),
@@ -136,8 +132,7 @@ def publication_style() -> Iterator[None]:
 
 
 def new_figure(width_in: float, height_in: float) -> Figure:
-    """A figure detached from pyplot's global state: no backend or display needed, safe in
-    threads and long sessions (Jupyter shows it with ``display(fig)``)."""
+    """A figure detached from pyplot's global state (no backend; thread-safe)."""
     fig = Figure(figsize=(width_in, height_in), layout="constrained")
     # 4.3 pt between rows (matplotlib's 3 pt lets a suptitle touch the panel titles)
     fig.get_layout_engine().set(h_pad=0.06)
@@ -156,9 +151,25 @@ def save_figure(fig: Figure, stem: str | Path, formats: tuple[str, ...] = ("png"
     return paths
 
 
+def no_ticks(ax: Axes) -> None:
+    """Bare image axes: no ticks, no frame."""
+    ax.set_xticks([])
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+
+
+def axis_labels(ax: Axes, xlabel: str, ylabel: str, ticks: tuple[int, int],
+                integer: bool = False) -> None:
+    """Label both axes, with at most ``ticks`` ``(x, y)`` major ticks."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.xaxis.set_major_locator(MaxNLocator(ticks[0], integer=integer))
+    ax.yaxis.set_major_locator(MaxNLocator(ticks[1], integer=integer))
+
+
 def png_base64(fig: Figure, dpi: int) -> str:
-    """``fig`` as a base64-encoded PNG at ``dpi`` in the publication style (for an ``<img>``
-    embedded in an HTML page)."""
+    """``fig`` as a base64 PNG at ``dpi`` in the publication style (for an HTML ``<img>``)."""
     buffer = io.BytesIO()
     with publication_style():
         fig.savefig(buffer, format="png", dpi=dpi)

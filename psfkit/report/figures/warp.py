@@ -14,12 +14,13 @@ from psfkit.calibration.support import crop_window
 from psfkit.calibration.warp import geometric_anisotropy
 from psfkit.characterization.results import QUIVER_CELLS, GridCharacterization
 from psfkit.numerics.resample import binning_factor
-from psfkit.report.figures.grid_layout import field_label, no_ticks, support_box
+from psfkit.report.figures.grid_layout import field_label, support_box
 from psfkit.report.figures.style import (
     COLUMN_IN,
     PAGE_IN,
     fitted,
     new_figure,
+    no_ticks,
     psf_cmap,
     psf_norm,
     publication_style,
@@ -98,10 +99,8 @@ def _warp_numbers(warp: dict | None) -> str:
 
 
 def figure_warp_summary(result: GridCharacterization) -> Figure:
-    """Residual displacement vs field angle with its growth fit (±1σ; grey and "not
-    detected" when not significant), and the tangential/sagittal anisotropy against the
-    geometric-optics prediction where it was measured. Without field angles, the residual
-    against the distance from the centre in field units."""
+    """Residual displacement vs field angle (or distance) with its growth fit, and the
+    measured tangential/sagittal anisotropy against geometric optics."""
     theta = result.field_angle_deg()
     reliable = result.table("support_overlap") >= RELIABLE_OVERLAP
     anis = result.warp_table("anisotropy")
