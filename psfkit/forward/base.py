@@ -1,15 +1,7 @@
-r"""The base class of every linear operator of the forward model (deepinv's ``LinearPhysics``).
+"""The base class of every linear operator of the forward model (deepinv's ``LinearPhysics``).
 
 A subclass defines ``A``, its exact adjoint ``A_adjoint`` and their shapes, and gets
-:meth:`~LinearOperator.norm` (``‖A‖`` by power iteration, cached) and
-:meth:`~LinearOperator.adjointness_error`, the dot-product test
-
-.. math::
-
-    \frac{|\langle A x, y\rangle - \langle x, A^\top y\rangle|}
-         {\max(\lVert A x\rVert\,\lVert y\rVert,\ \lVert x\rVert\,\lVert A^\top y\rVert)}
-
-on seeded random ``x``, ``y`` (float64 sums): about the working precision for an exact adjoint.
+:meth:`~LinearOperator.norm` (``‖A‖`` by power iteration on ``AᵀA`` as applied, cached).
 """
 
 from __future__ import annotations
@@ -21,7 +13,7 @@ from psfkit.forward.norm import NORM_MAX_ITERATIONS, NORM_TOLERANCE, operator_no
 
 
 class LinearOperator:
-    """``A`` and ``Aᵀ`` with their norm and adjointness test.
+    """``A`` and ``Aᵀ`` with their norm.
 
     Subclasses set ``dtype`` and ``device``, define :meth:`A` and :meth:`A_adjoint`, and
     :meth:`domain_shape` / :meth:`range_shape` unless they map a sensor-sized scene
@@ -51,19 +43,3 @@ class LinearOperator:
              seed: int = 0) -> float:
         """``‖A‖`` within about ``tol``, from below (:func:`psfkit.forward.norm.operator_norm`)."""
         return operator_norm(self, self.domain_shape(), self.dtype, tol, max_iterations, seed)
-
-    def adjointness_error(self, seed: int = 0) -> float:
-        """Relative error of ``⟨A x, y⟩ = ⟨x, Aᵀ y⟩`` on seeded random ``x``, ``y``."""
-        generator = torch.Generator().manual_seed(seed)
-
-        def draw(shape: tuple[int, ...]) -> Tensor:
-            t = torch.randn(shape, generator=generator, dtype=torch.float64)
-            return t.to(dtype=self.dtype, device=self.device)
-
-        x, y = draw(self.domain_shape()), draw(self.range_shape())
-        with torch.no_grad():
-            ax, aty = self.A(x).double(), self.A_adjoint(y).double()
-        x, y = x.double(), y.double()
-        gap = abs(float((ax * y).sum()) - float((x * aty).sum()))
-        scale = max(float(ax.norm() * y.norm()), float(x.norm() * aty.norm()))
-        return gap / scale if scale > 0 else gap
