@@ -19,7 +19,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psfkit.fitting.pairs.solver import regularised_normal, solve_normal_equations
+from psfkit.fitting.pairs.solver import (
+    _per_channel_dot,
+    regularised_normal,
+    solve_normal_equations,
+)
 from psfkit.forward.norm import largest_eigenvalue
 
 Normal = Callable[[Tensor], Tensor]
@@ -71,10 +75,6 @@ def kernel_summary(kernels: np.ndarray) -> dict[str, Any]:
             "support_fraction": float(np.any(k != 0, axis=(0, 1)).mean()),
             "negative_pixels": int((k < 0).sum()),
             "nonfinite_pixels": int((~np.isfinite(k)).sum())}
-
-
-def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(dim=(0, 2, 3))                                        # (C,)
 
 
 def _per_channel_norm(a: Tensor) -> Tensor:
