@@ -161,11 +161,6 @@ class PairBatches:
                 spectra = op.spectra_of(kernels)
             yield start, stop, op, s, op.forward_spectra(spectra)
 
-    def forward(self, kernels: Tensor) -> Iterator[tuple[int, int, Tensor]]:
-        """``(start, stop, s_i B_i K)`` per batch (one pass)."""
-        for start, stop, _op, s, p in self.predictions(kernels):
-            yield start, stop, p * s[:, None, None, None]
-
     def normal(self, kernels: Tensor) -> Tensor:
         r""":math:`\sum_i s_i^2 B_i^\top B_i K` (one exact pass over the pairs)."""
         total = op = None
