@@ -148,13 +148,9 @@ class SpectralOperator(LinearOperator):
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace.for_input(y, self.spectra))
 
-    def A(self, x: Tensor) -> Tensor:
-        """Same as :meth:`forward` (subclasses check their input first)."""
-        return self.forward(x)
-
-    def A_adjoint(self, y: Tensor) -> Tensor:
-        """Same as :meth:`adjoint`."""
-        return self.adjoint(y)
+    # subclasses (ekdun's PreparedOperator) override A and A_adjoint to check their input
+    A = forward
+    A_adjoint = adjoint
 
 
 class PaddedSceneOperator(LinearOperator):

@@ -10,6 +10,8 @@ optical centre ``(v_c, u_c)`` is the weight maps' one (a kernel file's ``optical
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from psfkit.errors import InvalidInputError
@@ -20,6 +22,7 @@ __all__ = ["ZONE_NAMES", "FieldZones", "field_zones"]
 ZONE_NAMES: tuple[str, ...] = ("centre", "middle", "edge")
 
 
+@dataclass(eq=False)
 class FieldZones:
     """The three equal-area radial zones of a sensor (:func:`field_zones`).
 
@@ -33,11 +36,9 @@ class FieldZones:
         ``(v_c, u_c)`` in pixels.
     """
 
-    def __init__(self, labels: np.ndarray, radii: tuple[float, float],
-                 optical_center: tuple[float, float]) -> None:
-        self.labels = labels
-        self.radii = radii
-        self.optical_center = optical_center
+    labels: np.ndarray
+    radii: tuple[float, float]
+    optical_center: tuple[float, float]
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -176,9 +176,6 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
                             "axis_ratio": float(ratio[p]),
                             "orientation_deg": float(np.degrees(orientation[p])),
                             "stamp_corner_px": [ix - stamp_half, iy - stamp_half]})
-        truth_dir = writer.folder / TRUTH_DIR
-        truth_dir.mkdir()
-        np.save(truth_dir / STAMPS_FILE, stamps)
         truth = {
             "description": "compact-PSF bench ground truth: position_px is the true image "
                            "position (x, y) of each source in its frame (pixel centres at "
@@ -195,9 +192,16 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
             "electrons_per_file_unit": sensor.electrons_per_dn / sensor.container_scale,
             "camera": camera.to_dict(), "seed": seed, "crop": None, "positions": records,
         }
-        (truth_dir / TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n",
-                                            encoding="utf-8")
+        _write_truth(writer.folder, stamps, truth)
     return Path(out_dir)
+
+
+def _write_truth(folder: Path, stamps: np.ndarray, truth: dict[str, Any]) -> None:
+    """``ground_truth/`` of a scan: the stamps and ``truth.json``."""
+    truth_dir = folder / TRUTH_DIR
+    truth_dir.mkdir()
+    np.save(truth_dir / STAMPS_FILE, stamps)
+    (truth_dir / TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n", encoding="utf-8")
 
 
 def _add_stamp(frame: np.ndarray, stamp: np.ndarray, left: int, top: int) -> None:
@@ -258,11 +262,7 @@ def cutout_scan(scan_dir: str | os.PathLike, out_dir: str | os.PathLike, size: i
         info["crop"] = {"size": size, "source_frame_shape": [h, w],
                         "meaning": "position_px relative to each crop; shift_px relative to "
                                    "the reference crop's source (the centring residual)"}
-        truth_dir = writer.folder / TRUTH_DIR
-        truth_dir.mkdir()
-        np.save(truth_dir / STAMPS_FILE, truth.stamps)
-        (truth_dir / TRUTH_FILE).write_text(json.dumps(info, indent=1) + "\n",
-                                            encoding="utf-8")
+        _write_truth(writer.folder, truth.stamps, info)
     return Path(out_dir)
 
 

@@ -5,6 +5,7 @@ leave-positions-out cross-validation and the jackknifed kernel differences.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,10 +32,8 @@ def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
     """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack, and
     the per-pixel conditioning of the design."""
     members = np.ones(len(stack.images), bool) if members is None else members
-    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
-    for p in np.flatnonzero(members):
-        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
-    kernels, conditioning = equations.solve(ridge)
+    kernels, conditioning = _equations(stack, basis, convention,
+                                       np.flatnonzero(members)).solve(ridge)
     assert conditioning is not None
     return kernels, conditioning
 
@@ -132,21 +131,13 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
     centre = stack.images[center_row]
     squared = {CENTRE_ONLY: np.array([_squared_error(stack, p, centre) for p in held])}
     differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    shape = stack.images.shape[1:]
     for name in bases:
         basis = get_basis(name)
         if training_size < basis.n_kernels:
             continue                       # too few training positions for this basis
         for convention in conventions:
-            per_group = []
-            for group in groups:
-                eq = NormalEquations(basis, convention, shape, frame=stack.frame)
-                for p in group:
-                    eq.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
-                per_group.append(eq)
-            total = NormalEquations(basis, convention, shape, frame=stack.frame)
-            total.add(stack.images[center_row], stack.valid[center_row],
-                      tuple(stack.shifts[center_row]))
+            per_group = [_equations(stack, basis, convention, group) for group in groups]
+            total = _equations(stack, basis, convention, [center_row])
             for eq in per_group:
                 total += eq
             errors = {}
@@ -163,6 +154,15 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
                 full = squared_relative_differences(total.solve(conditioning=False)[0])
                 differences[key] = (full, np.array(fold_differences))
     return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
+
+
+def _equations(stack: WorkingStack, basis: WeightBasis, convention: str,
+               rows: Iterable[int]) -> NormalEquations:
+    """The normal equations of the stack's ``rows``, added in order."""
+    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
+    for p in rows:
+        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+    return equations
 
 
 def _squared_norm(stack: WorkingStack, p: int) -> float:
