@@ -117,10 +117,8 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
         Positions, brightnesses and noise.
     suffix : {".tiff", ".png", ".npy"}
         Image file type (16-bit raw frames).
-    overwrite : bool
-        Replace an existing folder.
-    progress : bool
-        Show a progress bar.
+    overwrite, progress : bool
+        Replace an existing folder; show a progress bar.
 
     Returns
     -------

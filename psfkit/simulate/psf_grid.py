@@ -94,10 +94,8 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     dark_frame : bool
         Also capture a dark frame.
     suffix : {".tiff", ".png", ".npy"}
-    overwrite : bool
-        Replace an existing output folder.
-    progress : bool
-        Show a progress bar.
+    overwrite, progress : bool
+        Replace an existing output folder; show a progress bar.
     backend : {"numpy", "torch", "auto"}
         Optics backend. ``"numpy"`` reproduces existing grids file for file; ``"torch"`` gives the
         same clean PSFs to ~5e-7 relative, faster, but a different noise realization.
