@@ -16,8 +16,8 @@ class LinearOperator:
     """``A`` and ``Aᵀ`` with their norm.
 
     Subclasses set ``dtype`` and ``device``, define :meth:`A` and :meth:`A_adjoint`, and
-    :meth:`domain_shape` / :meth:`range_shape` unless they map a sensor-sized scene
-    (``channels``, ``sensor_shape``) to a measurement of the same size.
+    :meth:`domain_shape` unless their input is a sensor-sized scene (``channels``,
+    ``sensor_shape``).
     """
 
     dtype: torch.dtype
@@ -33,10 +33,6 @@ class LinearOperator:
 
     def domain_shape(self) -> tuple[int, ...]:
         """Shape of one input of :meth:`A`; default ``(1, C, H', W')``."""
-        return (1, int(self.channels), *self.sensor_shape)  # type: ignore[attr-defined]
-
-    def range_shape(self) -> tuple[int, ...]:
-        """Shape of ``A``'s output; default ``(1, C, H', W')``."""
         return (1, int(self.channels), *self.sensor_shape)  # type: ignore[attr-defined]
 
     def norm(self, tol: float = NORM_TOLERANCE, max_iterations: int = NORM_MAX_ITERATIONS,

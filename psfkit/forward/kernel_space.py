@@ -91,10 +91,6 @@ class KernelSpaceOperator(LinearOperator):
         """``(K, C, Hk, Wk)``: the kernels."""
         return (self.n_kernels, self.channels, *self.kernel_shape)
 
-    def range_shape(self) -> tuple[int, ...]:
-        """``(N, C, H', W')``: one measurement per pair."""
-        return (int(self.scene_spectra.shape[0]), self.channels, *self.sensor)
-
     def forward(self, kernels: Tensor) -> Tensor:
         """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 with the scenes' spectra taken once."""
         return self.forward_spectra(self.spectra_of(kernels))

@@ -148,9 +148,13 @@ class SpectralOperator(LinearOperator):
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace.for_input(y, self.spectra))
 
-    # subclasses (ekdun's PreparedOperator) override A and A_adjoint to check their input
-    A = forward
-    A_adjoint = adjoint
+    def A(self, x: Tensor) -> Tensor:
+        """Same as :meth:`forward` (subclasses check their input first)."""
+        return self.forward(x)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Same as :meth:`adjoint`."""
+        return self.adjoint(y)
 
 
 class PaddedSceneOperator(LinearOperator):
@@ -238,10 +242,6 @@ class PaddedSceneOperator(LinearOperator):
     def domain_shape(self) -> tuple[int, ...]:
         """``(1, C, PH, PW)``: a scene on the padded grid."""
         return (1, self.channels, *self.grid_shape)
-
-    def range_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a measurement."""
-        return (1, self.channels, *self.sensor_shape)
 
     def A(self, x: Tensor) -> Tensor:
         """Scene ``(B, C, PH, PW)`` → measurement ``(B, C, H', W')``."""
