@@ -180,9 +180,8 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
         \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
         \mathrm{pad}(W_k \odot x)\Big).
 
-    Sensor side: 1 FFT and K inverse FFTs; source side: K FFTs and 1 inverse. ``x`` is padded at
-    the end of the grid and the top-left block kept: the centring shift cancels between ``pad``
-    and ``crop``.
+    Sensor side: 1 FFT and K inverse FFTs; source side: K FFTs and 1 inverse (the centring
+    shift cancels between ``pad`` and ``crop``, so the top-left block is kept).
 
     Parameters
     ----------
@@ -195,7 +194,6 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     grid_shape : (int, int)
         ``(PH, PW)``.
     convention : {"sensor", "source"}
-        Whether the weights multiply each kernel's image or the scene.
     workspace : Tensor, optional
         ``(B, C, PH, PW)``, reused outside autograd (:func:`zero_workspace`).
 

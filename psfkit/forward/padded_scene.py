@@ -63,7 +63,7 @@ def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     Returns
     -------
     Tensor
-        Measurement ``(B, C, H', W')``.
+        ``(B, C, H', W')``.
     """
     grid = (x.shape[-2], x.shape[-1])
     graph = records_model_graph(x, spectra, weights)

@@ -54,10 +54,8 @@ class BenchConfig:
     vignetting_exponent : float
         Relative illumination ``cos(θ)**exponent``.
     field_free : bool
-        No field variation, for tests of the analysis: every PSF is the on-axis PSF *as sampled
-        by the pixels* translated by the chief-ray shift (sub-pixel part band-limited), with no
-        vignetting: exactly what a shift-invariant pixel-level model describes. Not a physical
-        camera.
+        No field variation (a test facility): every PSF is the pixel-sampled on-axis PSF
+        translated by the chief-ray shift, without vignetting.
     sensor : SensorModel
         Noise, black level, bit depth, saturation.
     peak_fraction : float

@@ -97,11 +97,10 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     overwrite, progress : bool
         Replace an existing output folder; show a progress bar.
     backend : {"numpy", "torch", "auto"}
-        Optics backend. ``"numpy"`` reproduces existing grids file for file; ``"torch"`` gives the
-        same clean PSFs to ~5e-7 relative, faster, but a different noise realization.
+        Optics backend: ``"numpy"`` reproduces existing grids file for file; ``"torch"`` is
+        faster, with clean PSFs equal to ~5e-7 relative but another noise realization.
     frames : int
-        Frames averaged per position and dark frame (noise ∝ ``1/sqrt(frames)``); above 1 the
-        float32 mean is written (TIFF or ``.npy``) and ``frames_averaged`` recorded.
+        Frames averaged per position and dark frame; above 1 the float32 mean is written.
     clean_psfs : bool
         Write ``ground_truth/psfs_clean.npy``; otherwise they are recomputed when read.
     run_file : dict, optional

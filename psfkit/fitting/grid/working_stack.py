@@ -21,9 +21,7 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     """Where and at what binning the working copy holds the aligned PSFs, from the centre PSF.
 
     The region is the centre PSF's support box grown by its own size (and 8 px) on every side,
-    clipped to the sensor (``None`` when that is the whole sensor), so a cut-out holding the PSF
-    gives the same working copy as the full frame. The binning is the smallest bringing it to
-    ``working_size`` px; the record reports the centre PSF's power above the binned Nyquist.
+    clipped to the sensor; the binning the smallest bringing it to ``working_size`` px.
 
     Parameters
     ----------
@@ -41,7 +39,7 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     factor : int
         Binning factor.
     record : dict
-        JSON-ready description.
+        JSON-ready description (with the power the binning aliases).
     """
     h, w = support.shape
     rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))

@@ -179,9 +179,8 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
     support : Tensor, optional
         Boolean, broadcastable to the kernels: pixels outside it are held at 0.
     hessian : callable, optional
-        Approximation of ``normal`` (default ``normal``). After ``STALL_STEPS`` steps without a
-        new low, if it is too coarse (or no step descends) the steps go on with ``normal``;
-        otherwise the CG iterations per step double, up to ``MAX_CG_GROWTH`` times.
+        Approximation of ``normal``; after ``STALL_STEPS`` steps without a new low the steps go
+        on with ``normal`` if it is too coarse, else with twice the CG iterations.
 
     Returns
     -------
