@@ -1,31 +1,13 @@
-r"""The verdict: does the PSF shape change over the field, and which model to use.
+"""The verdict: does the PSF shape change over the field, and which model to use.
 
-A plain function of measured numbers (:func:`decide`), testable without images. Its inputs
-are per-position *held-out* squared errors from cross-validation over positions (each
-position predicted by models fitted without it; :mod:`psfkit.fitting.grid.heldout`,
-:mod:`psfkit.fitting.grid.eigen`):
-
-- ``null``: the best model with no field dependence: one PSF, plus terms in each PSF's
-  sub-pixel phase (registration and pixel sampling change a sampled PSF with the phase, which
-  a regular grid changes steadily over the field). Its held-out error is the **noise floor**:
-  what noise, registration and pixel sampling leave;
-- ``field``: the same model plus field-dependent weights (several bases);
-- ``candidates``: the forward models a user can write (``"si"`` and ``basis/convention``).
-
-Decision (the rule of :mod:`psfkit.numerics.significance` on the paired held-out comparison):
-
-``shift_variant``
-    the field model with the lowest held-out error predicts the held-out positions better
-    than the null model: the per-position reduction of the relative squared error has a mean
-    ``> Z·σ`` (σ its standard error over the positions) and the one-sided Wilcoxon
-    signed-rank test gives ``p < α(Z)``.
-``recommended_model``
-    when shift-variant, the candidate eigen-kernel model (basis and convention) with the
-    lowest held-out error, provided it predicts better than the shift-invariant model;
-    otherwise ``"si"``.
-
-``effects`` reports which of the field effects (shift = distortion beyond the linear shift
-map, gain, warp, astigmatism) are significant, from their :class:`Estimate`\s.
+:func:`decide` works on per-position *held-out* squared errors from cross-validation over
+positions: ``null`` (one PSF plus sub-pixel sampling terms; its error is the **noise floor**),
+``field`` (the null plus field-dependent weights) and ``candidates`` (``"si"`` and
+``basis/convention``). It is ``shift_variant`` when the best field model beats the null
+(mean per-position reduction of the relative squared error ``> Z·σ`` and one-sided Wilcoxon
+``p < α(Z)``, :mod:`psfkit.numerics.significance`); the ``recommended_model`` is then the
+candidate with the lowest held-out error if it beats ``"si"``, else ``"si"``. ``effects``
+reports which field effects (shift, gain, warp, astigmatism) are significant.
 """
 
 from __future__ import annotations
@@ -50,11 +32,8 @@ EFFECT_WORDS = {"shift": "distortion beyond the linear shift map",
 
 @dataclass(frozen=True)
 class HeldOutErrors:
-    """Per-position held-out squared errors of several models on the same positions.
-
-    ``squared[name]`` is ``(P,)``: ``Σ‖prediction − data‖²`` of each held-out position;
-    ``norms`` ``(P,)``: ``Σ‖data‖²`` of each.
-    """
+    """Per-position held-out squared errors ``squared[name]`` ``(P,)`` of several models and the
+    data's ``norms`` ``(P,)``, on the same positions."""
 
     squared: dict[str, np.ndarray]
     norms: np.ndarray
@@ -69,7 +48,7 @@ class HeldOutErrors:
         return math.sqrt(float(np.sum(self.squared[name])) / total) if total > 0 else math.nan
 
     def sigma(self, name: str) -> float:
-        """1σ of :meth:`error` over the positions (delta method on the ratio of sums)."""
+        """1σ of :meth:`error` over the positions (delta method)."""
         squared, norms = self.squared[name], self.norms
         n = len(norms)
         total = float(np.sum(norms))
@@ -83,8 +62,8 @@ class HeldOutErrors:
         return {"error": self.error(name), "sigma": self.sigma(name)}
 
     def improvement(self, worse: str, better: str) -> Estimate:
-        """Mean per-position reduction of the relative squared error from model ``worse`` to
-        ``better``, with its standard error, tested one-sided (Wilcoxon signed-rank)."""
+        """Mean per-position reduction of the relative squared error from ``worse`` to ``better``,
+        with its standard error, tested one-sided (Wilcoxon signed-rank)."""
         diff = (self.squared[worse] - self.squared[better]) / self.norms
         n = len(diff)
         if n < 3:
@@ -100,8 +79,7 @@ class HeldOutErrors:
 
 @dataclass(frozen=True)
 class Verdict:
-    """The verdict of :func:`decide` (see the module docstring); ``to_dict`` is
-    ``results.json["verdict"]``."""
+    """The verdict of :func:`decide`; ``to_dict`` is ``results.json["verdict"]``."""
 
     shift_variant: bool
     recommended_model: str
@@ -118,7 +96,7 @@ class Verdict:
 
     @property
     def convention(self) -> str | None:
-        """The recommended convention (``None`` for ``"si"``, where both are the same)."""
+        """The recommended convention (``None`` for ``"si"``)."""
         parts = self.recommended_model.split("/")
         return parts[1] if len(parts) > 1 else None
 
@@ -164,8 +142,8 @@ class Verdict:
 
 
 def min_positions() -> int:
-    """Held-out positions the field test needs to reach significance at all: the one-sided
-    Wilcoxon signed-rank test of ``n`` positions cannot go below ``p = 2⁻ⁿ``."""
+    """Held-out positions needed to reach significance: a one-sided Wilcoxon test of ``n`` cannot
+    go below ``p = 2⁻ⁿ``."""
     return math.ceil(math.log2(1.0 / alpha()))
 
 
@@ -176,20 +154,17 @@ def decide(candidates: HeldOutErrors | None, field_models: HeldOutErrors | None,
     Parameters
     ----------
     candidates : HeldOutErrors or None
-        The usable forward models, ``"si"`` and ``"basis/convention"`` names.
+        The usable forward models, ``"si"`` and ``"basis/convention"``.
     field_models : HeldOutErrors or None
-        The null model ``null_name`` and the field models tested against it, on the same
-        positions (``None``: too few positions to fit them).
+        The null model ``null_name`` and the field models on the same positions.
     null_name : str
-        The field-independent model among ``field_models``.
     effects : dict of str to Estimate, optional
-        The field effects of :data:`EFFECTS` (missing ones are "not measured").
+        The field effects of :data:`EFFECTS` (missing: "not measured").
 
     Returns
     -------
     Verdict
-        Not shift-variant, ``"si"``, with a ``reason``, when the positions are too few for
-        the test (fewer than :func:`min_positions` held out, or too few to fit the models).
+        Undetermined (``"si"``, with a ``reason``) with too few positions for the test.
     """
     effect_table = {name: _effect(name, (effects or {}).get(name)) for name in EFFECTS}
     evidence: dict[str, Any] = {"rule": _rule()}

@@ -1,43 +1,19 @@
 r"""Pure FFT kernels of the lensless forward model and its exact adjoint.
 
-Conventions (``docs/architecture.md``)
-----------------------------------
-The scene ``x`` and the measurement ``y`` are both ``(B, C, H', W')`` (the sensor's size). The
-convolution runs on a padded grid ``(P·H', P·W')`` (``P = scene_padding >= 2``):
+Scene ``x`` and measurement ``y`` are both ``(B, C, H', W')``; the convolution runs on a padded
+grid ``(P·H', P·W')`` (``P = scene_padding >= 2``, ``docs/architecture.md``):
 
 .. math::
 
-    y = \mathrm{crop}\big(K \circledast \mathrm{pad}(x)\big),
-
-where :func:`pad` zero-fills ``x`` into the centre of the padded grid (rows
-``[(P·H'−H')//2, (P·H'−H')//2 + H')``, likewise for columns), ``⊛`` is the circular
-convolution computed with ``rfft2``/``irfft2`` on that grid, and :func:`crop` keeps the same
-central block. :func:`crop` and :func:`pad` are exact adjoints of each other, so
-
-.. math::
-
+    y = \mathrm{crop}\big(K \circledast \mathrm{pad}(x)\big), \qquad
     A^\top y = \mathrm{crop}\big(K \star \mathrm{pad}(y)\big),
 
-with ``⋆`` the circular cross-correlation (multiplication by the conjugate spectrum).
-
-A kernel is an array of at most ``H' × W'`` whose origin is its centre pixel
-``(Hk//2, Wk//2)``, the way a PSF image looks; :func:`embed_kernel` moves that origin to index
-``(0, 0)`` of the padded grid. A point source at the scene's centre pixel ``(H'//2, W'//2)``
-therefore images to the kernel itself (for an ``H' × W'`` kernel), and the linear convolution of
-an ``H'``-row scene with an ``Hk <= H'``-row kernel has ``H' + Hk − 1 < P·H'`` rows, so the
-circular convolution never wraps: the model is exactly the linear convolution
-``scipy.signal.convolve(x, K, mode="full")`` shifted by the kernel origin and cropped.
-
-Eigen-kernel models (Eq. 7 of the paper) sum ``K`` such convolutions with weight maps ``W_k``
-``(K, H', W')``; see :func:`eigen_kernel_forward`. Every 2-D FFT goes through :func:`rfft2`
-and every inverse through :func:`irfft2` (:mod:`psfkit.forward.fft`, wrappers of
-:mod:`torch.fft`), which keeps the FFT count of every operator easy to audit
-(:func:`~psfkit.forward.fft.count_ffts`). Every function here is differentiable and works for
-float32 and float64 on any device. ekdun's operator classes (:mod:`ekdun.physics.operators`) are
-thin :class:`torch.nn.Module` wrappers over :func:`eigen_kernel_forward` and
-:func:`eigen_kernel_adjoint`; the same model with the scene on the whole padded grid is
-:mod:`psfkit.forward.padded_scene`, the kernel-space form used to fit kernels from pairs
-:mod:`psfkit.forward.kernel_space`.
+with :func:`pad` / :func:`crop` (exact adjoints) the centred zero-fill and block, ``⊛`` the
+circular convolution and ``⋆`` the circular cross-correlation. A kernel (at most ``H' × W'``)
+has its origin at its centre pixel ``(Hk//2, Wk//2)``; since ``H' + Hk − 1 < P·H'`` the
+circular convolution never wraps, so the model is exactly the linear convolution. Eigen-kernel
+models (Eq. 7) sum ``K`` such convolutions with weight maps ``W_k`` (:func:`eigen_kernel_forward`).
+All FFTs go through :mod:`psfkit.forward.fft`; every function is differentiable.
 """
 
 from __future__ import annotations
@@ -53,22 +29,9 @@ from psfkit.forward.geometry import centre_offset, kernel_origin
 
 
 def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
-    """Zero-fill ``x`` ``(..., H', W')`` into the centre of a ``grid_shape`` array.
+    """Zero-fill ``x`` ``(..., H', W')`` into the centre of a ``grid_shape`` ``(PH, PW)`` array.
 
-    The adjoint of :func:`crop`.
-
-    Parameters
-    ----------
-    x : Tensor
-        ``(..., H', W')``.
-    grid_shape : (int, int)
-        ``(PH, PW)`` with ``PH >= H'`` and ``PW >= W'``.
-
-    Returns
-    -------
-    Tensor
-        ``(..., PH, PW)``, zero outside rows ``[top, top + H')`` and columns
-        ``[left, left + W')`` (:func:`centre_offset`).
+    The adjoint of :func:`crop`; returns ``(..., PH, PW)``.
     """
     h, w = x.shape[-2:]
     top, left = centre_offset((h, w), grid_shape)
@@ -76,28 +39,15 @@ def pad(x: Tensor, grid_shape: tuple[int, int]) -> Tensor:
 
 
 def crop(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
-    """The central ``sensor_shape`` block of ``z`` ``(..., PH, PW)`` (a view, no copy).
-
-    The adjoint of :func:`pad`.
-    """
+    """The central ``sensor_shape`` block of ``z`` ``(..., PH, PW)`` (a view), adjoint of pad."""
     top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
     return z[..., top:top + sensor_shape[0], left:left + sensor_shape[1]]
 
 
 def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
-    """Place centred kernels on the padded grid with their origin at index ``(0, 0)``.
+    """Place centred kernels ``(..., Hk, Wk)`` on the ``(PH, PW)`` grid, origin at ``(0, 0)``.
 
-    Parameters
-    ----------
-    kernels : Tensor
-        ``(..., Hk, Wk)`` with the origin at ``(Hk//2, Wk//2)``; ``Hk <= PH``, ``Wk <= PW``.
-    grid_shape : (int, int)
-        ``(PH, PW)``.
-
-    Returns
-    -------
-    Tensor
-        ``(..., PH, PW)``: ``out[(i − Hk//2) mod PH, (j − Wk//2) mod PW] = kernels[i, j]``.
+    Returns ``(..., PH, PW)``: ``out[(i − Hk//2) mod PH, (j − Wk//2) mod PW] = kernels[i, j]``.
     """
     hk, wk = kernels.shape[-2:]
     row, col = kernel_origin((hk, wk))
@@ -116,8 +66,7 @@ def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
 
 
 def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
-    """Adjoint of :func:`embed_kernel`: the centred ``(Hk, Wk)`` kernel window of a
-    ``(..., PH, PW)`` array whose origin is at index ``(0, 0)``, ``(..., Hk, Wk)``."""
+    """Adjoint of :func:`embed_kernel`: the centred ``(..., Hk, Wk)`` window of ``full``."""
     row, col = kernel_origin(kernel_shape)
     # the window's wrapped rows, then columns (a roll of the whole grid copied all of it)
     rows = wrapped_slice(full, -row, kernel_shape[0], -2)
@@ -126,19 +75,14 @@ def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
 
 def kernels_from_spectra(spectra: Tensor, grid_shape: tuple[int, int],
                          kernel_shape: tuple[int, int]) -> Tensor:
-    """``extract_kernel(irfft2(spectra), kernel_shape)``: the centred ``(Hk, Wk)`` kernels of
-    spectra on the grid, computing only the window's rows and columns (:func:`irfft2` with a
-    wrapped block; on the 7 DLMD pairs' grid 0.64× the time of the whole inverse)."""
+    """``extract_kernel(irfft2(spectra), kernel_shape)``, inverting only the window's rows and
+    columns (:func:`irfft2` with a wrapped block)."""
     row, col = kernel_origin(kernel_shape)
     return irfft2(spectra, grid_shape, kernel_shape, start=(-row, -col))
 
 
 def kernel_spectra(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
-    """Half spectra ``rfft2(embed_kernel(kernels))``, ``(..., PH, PW//2 + 1)`` complex.
-
-    Computed once per network forward pass (trainable kernels) or cached (fixed kernels) and
-    passed to :func:`eigen_kernel_forward` / :func:`eigen_kernel_adjoint`.
-    """
+    """Half spectra ``rfft2(embed_kernel(kernels))``, ``(..., PH, PW//2 + 1)`` complex."""
     return rfft2(embed_kernel(kernels, grid_shape))
 
 
@@ -146,9 +90,8 @@ def _spectrum_of_corner(z: Tensor, grid_shape: tuple[int, int], workspace: Tenso
                         weight: Tensor | None = None) -> Tensor:
     """``rfft2`` of ``z`` (times ``weight``) zero-padded at the end of the grid.
 
-    With a ``workspace`` (a ``(..., PH, PW)`` array that is zero outside its top-left block,
-    reused outside autograd) the input is written into that block and the whole array is
-    transformed: cheaper than letting ``rfft2`` allocate and zero a padded copy on each call.
+    A ``workspace`` (zero outside its top-left block) is filled in place and transformed whole,
+    cheaper than letting ``rfft2`` allocate a padded copy on each call.
     """
     if workspace is None:
         return rfft2(z if weight is None else z * weight, grid_shape)
@@ -168,13 +111,10 @@ def records_graph(*tensors: Tensor) -> bool:
 def fan_out(x_hat: Tensor, spectra: Tensor, weights: Tensor | None,
              grid_shape: tuple[int, int], block: tuple[int, int], graph: bool,
              overwrite: bool = True) -> Tensor:
-    r"""``Σ_k W_k ⊙ irfft2(X̂ · Ŝ_k)[:h, :w]``: K inverse FFTs of one input spectrum.
+    """``Σ_k W_k ⊙ irfft2(X̂ · Ŝ_k)[:h, :w]``: K inverse FFTs of one input spectrum.
 
-    The one place where a scene's spectrum meets the kernel spectra one kernel at a time
-    (sensor-side forward, source-side adjoint, shift-invariant both). Only the top-left
-    ``block`` ``(h, w)`` of each image is computed and weighted (``W_k`` ``(K, h, w)``).
-    Outside autograd the spectrum products reuse one buffer (allocating large arrays costs more
-    than multiplying them), and ``x_hat`` itself when ``overwrite`` allows.
+    Only the top-left ``block`` ``(h, w)`` is computed and weighted (``W_k`` ``(K, h, w)``).
+    Outside autograd the products reuse one buffer, and ``x_hat`` itself when ``overwrite``.
     """
     n_kernels = spectra.shape[0]
     product: Tensor | None = None
@@ -201,12 +141,10 @@ def fan_out(x_hat: Tensor, spectra: Tensor, weights: Tensor | None,
 
 def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
                            graph: bool, fresh: bool = True) -> Tensor:
-    """``Σ_k Ŝ_k · spectrum_of(k)``: the kernel-by-input products of Eq. 7 summed in the
-    Fourier domain (source-side forward, sensor-side adjoint, before the inverse FFT).
+    """``Σ_k Ŝ_k · spectrum_of(k)``: Eq. 7's kernel-by-input products summed in the Fourier domain.
 
-    ``spectrum_of(k)`` gives the spectrum of the ``k``-th (weighted) input ``(..., C, PH,
-    PW//2+1)``; outside autograd (``graph`` false) the first is overwritten with the sum,
-    unless it is not ``fresh`` (e.g. cached spectra): then the sum is a new array.
+    Outside autograd the first ``spectrum_of(0)`` is overwritten with the sum unless it is not
+    ``fresh`` (e.g. cached spectra).
     """
     acc: Tensor | None = None
     for k in range(spectra.shape[0]):
@@ -225,12 +163,7 @@ def sum_of_kernel_products(spectrum_of: Callable[[int], Tensor], spectra: Tensor
 def fan_in(spectrum_of: Callable[[int], Tensor], spectra: Tensor,
             grid_shape: tuple[int, int], block: tuple[int, int], graph: bool,
             fresh: bool = True) -> Tensor:
-    r"""``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT.
-
-    The sum over kernels is taken in the Fourier domain so that one inverse FFT suffices
-    (source-side forward, sensor-side adjoint); ``spectrum_of(k)`` is the spectrum of the
-    ``k``-th weighted input (overwritten outside autograd if ``fresh``).
-    """
+    """``irfft2(Σ_k Ŝ_k · spectrum_of(k))[:h, :w]``: K input spectra, 1 inverse FFT."""
     return irfft2(sum_of_kernel_products(spectrum_of, spectra, graph, fresh), grid_shape,
                   block)
 
@@ -247,39 +180,27 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
         \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
         \mathrm{pad}(W_k \odot x)\Big).
 
-    The sensor side takes 1 FFT and K inverse FFTs, the source side K FFTs and 1 inverse FFT
-    (each call transforms all ``B × C`` planes at once). Implementation: ``x`` is zero-padded
-    at the end of the grid (inside the FFT) and the top-left ``H' × W'`` block is kept. This is
-    the centred ``crop ∘ (K ⊛ ·) ∘ pad`` exactly: centring is a circular shift by
-    :func:`centre_offset`, which commutes with the circular convolution and cancels between
-    ``pad`` and ``crop``.
+    Sensor side: 1 FFT and K inverse FFTs; source side: K FFTs and 1 inverse (the centring
+    shift cancels between ``pad`` and ``crop``, so the top-left block is kept).
 
     Parameters
     ----------
     x : Tensor
         Scene ``(B, C, H', W')``, real.
     spectra : Tensor
-        ``(K, C, PH, PW//2 + 1)`` complex, from :func:`kernel_spectra`; its dtype matches ``x``.
+        ``(K, C, PH, PW//2 + 1)`` complex (:func:`kernel_spectra`), ``x``'s precision.
     weights : Tensor or None
-        ``(K, H', W')`` weight maps, or ``None`` for a single kernel with weight 1
-        (the shift-invariant model).
+        ``(K, H', W')`` weight maps; ``None``: one kernel of weight 1.
     grid_shape : (int, int)
         ``(PH, PW)``.
     convention : {"sensor", "source"}
-        Whether the weights multiply each kernel's image (sensor) or the scene (source).
     workspace : Tensor, optional
-        ``(B, C, PH, PW)`` array, zero outside its top-left ``H' × W'`` block, reused for the
-        zero-padded FFT inputs when autograd is not recording (see :func:`zero_workspace`).
+        ``(B, C, PH, PW)``, reused outside autograd (:func:`zero_workspace`).
 
     Returns
     -------
     Tensor
         Measurement ``(B, C, H', W')``.
-
-    See Also
-    --------
-    psfkit.forward.padded_scene.padded_scene_forward : the same model with the scene on the
-        whole padded grid.
     """
     sensor = (x.shape[-2], x.shape[-1])
     graph = records_model_graph(x, spectra, weights)
@@ -301,13 +222,10 @@ def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
         \text{sensor:}\quad A^\top y = \mathrm{crop}\Big(\sum_k K_k \star
         \mathrm{pad}(W_k \odot y)\Big), \qquad
         \text{source:}\quad A^\top y = \sum_k W_k \odot \mathrm{crop}\big(K_k \star
-        \mathrm{pad}(y)\big):
+        \mathrm{pad}(y)\big).
 
-    weight, correlate, sum. The sensor side takes K FFTs and 1 inverse FFT, the source side
-    1 FFT and K inverse FFTs. Shapes as in :func:`eigen_kernel_forward` (``y`` is the
-    measurement, the result a scene), except that ``conj_spectra`` are the **conjugated**
-    kernel spectra (``spectra.conj().resolve_conj()``: multiplying by a lazy conjugate view
-    costs an extra copy in every call, so callers conjugate once per forward pass).
+    Shapes as in :func:`eigen_kernel_forward`, but ``conj_spectra`` are the conjugated spectra,
+    materialised (``spectra.conj().resolve_conj()``, once per forward pass).
     """
     sensor = (y.shape[-2], y.shape[-1])
     graph = records_model_graph(y, conj_spectra, weights)
@@ -320,8 +238,7 @@ def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
 
 
 def records_model_graph(t: Tensor, spectra: Tensor, weights: Tensor | None) -> bool:
-    """Whether autograd records operations on a model's input ``t``, its kernel ``spectra`` or
-    its ``weights`` (``None``: no weights)."""
+    """Whether autograd records operations on ``t``, ``spectra`` or ``weights`` (or ``None``)."""
     return records_graph(t, spectra) or (weights is not None and weights.requires_grad)
 
 

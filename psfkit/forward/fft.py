@@ -1,9 +1,7 @@
 """The two FFT entry points of the forward model, and a counter of their calls.
 
-Every 2-D FFT of the forward model (operators, kernel fits, ADMM-TV, Le-ADMM-U, the dense
-virtual-bench model) goes through :func:`rfft2` and every inverse through :func:`irfft2`, so the
-FFT count of any algorithm can be audited with :func:`count_ffts` (tests and
-``benchmarks/bench_ekdun_operators.py`` do)::
+Every 2-D FFT goes through :func:`rfft2` and every inverse through :func:`irfft2`, so the FFT
+count of any algorithm can be audited::
 
     with count_ffts() as n:
         op.A(x)
@@ -22,10 +20,7 @@ from torch import Tensor
 
 @dataclass
 class FFTCount:
-    """Calls of :func:`rfft2` (``forward``) and :func:`irfft2` (``inverse``) seen so far.
-
-    Each call transforms every leading plane of its input at once and counts once.
-    """
+    """Calls of :func:`rfft2` (``forward``) and :func:`irfft2` (``inverse``)."""
 
     forward: int = 0
     inverse: int = 0
@@ -47,10 +42,9 @@ _ACTIVE: list[FFTCount] = []
 
 @contextmanager
 def count_ffts() -> Iterator[FFTCount]:
-    """Count the calls of :func:`rfft2` / :func:`irfft2` made inside the ``with`` block.
+    """Count the calls of :func:`rfft2` / :func:`irfft2` inside the ``with`` block.
 
-    Blocks may nest (each counts its own calls). Not thread-safe: counts from other threads
-    running at the same time are included.
+    Blocks may nest. Not thread-safe: other threads' calls are counted too.
     """
     count = FFTCount()
     _ACTIVE.append(count)
@@ -61,22 +55,10 @@ def count_ffts() -> Iterator[FFTCount]:
 
 
 def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
-    """Real 2-D FFT over the last two axes (the one place forward FFTs are taken).
+    """Real 2-D FFT over the last two axes of ``z`` ``(..., h, w)``.
 
-    With ``grid_shape``, ``z`` is zero-padded at the end of each axis to that size first (inside
-    the FFT call: no explicit padded copy).
-
-    Parameters
-    ----------
-    z : Tensor
-        ``(..., h, w)`` real.
-    grid_shape : (int, int), optional
-        ``(PH, PW)`` with ``PH >= h``, ``PW >= w``.
-
-    Returns
-    -------
-    Tensor
-        ``(..., PH, PW//2 + 1)`` complex half spectrum.
+    With ``grid_shape`` ``(PH, PW)`` the input is zero-padded at the end of each axis inside the
+    FFT call. Returns the ``(..., PH, PW//2 + 1)`` complex half spectrum.
     """
     for count in _ACTIVE:
         count.forward += 1
@@ -86,30 +68,11 @@ def rfft2(z: Tensor, grid_shape: tuple[int, int] | None = None) -> Tensor:
 def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
            crop_shape: tuple[int, int] | None = None,
            start: tuple[int, int] = (0, 0)) -> Tensor:
-    """Inverse of :func:`rfft2` on a ``grid_shape`` grid (the one place inverse FFTs are taken).
+    """Inverse of :func:`rfft2` on a ``grid_shape`` ``(PH, PW)`` grid (odd widths need it).
 
-    ``grid_shape`` is needed because the half spectrum does not tell odd from even widths.
-    With ``crop_shape`` only the ``crop_shape`` block at ``start`` is returned, and only
-    computed: the complex inverse along the columns runs on the whole grid, but the real
-    inverse along the rows only on the rows kept (the same numbers as ``irfft2`` then slicing,
-    for about three quarters of the work).
-
-    Parameters
-    ----------
-    spectrum : Tensor
-        ``(..., PH, PW//2 + 1)`` complex.
-    grid_shape : (int, int)
-        ``(PH, PW)``.
-    crop_shape : (int, int), optional
-        ``(h, w)`` block to keep.
-    start : (int, int)
-        ``(row, column)`` of the block's first pixel, taken modulo the grid: the block wraps
-        around it (a kernel centred on the origin has ``start = (−Hk//2, −Wk//2)``).
-
-    Returns
-    -------
-    Tensor
-        ``(..., PH, PW)`` real, or ``(..., h, w)`` with ``crop_shape``.
+    With ``crop_shape`` ``(h, w)`` only that block at ``start`` ``(row, column)`` (modulo the
+    grid, wrapping around it) is computed: the row inverse runs only on the rows kept (the same
+    numbers as slicing the full inverse). Returns ``(..., PH, PW)`` or ``(..., h, w)`` real.
     """
     for count in _ACTIVE:
         count.inverse += 1
@@ -121,9 +84,8 @@ def irfft2(spectrum: Tensor, grid_shape: tuple[int, int],
 
 
 def wrapped_slice(z: Tensor, first: int, size: int, dim: int) -> Tensor:
-    """``size`` entries of ``z`` along ``dim`` from index ``first`` (modulo the axis),
-    wrapping around the end: a view when they do not wrap, else one copy (the blocks of
-    :func:`irfft2` and the kernel window of :func:`psfkit.forward.convolution.extract_kernel`)."""
+    """``size`` entries of ``z`` along ``dim`` from ``first`` (modulo the axis), wrapping around the
+    end: a view when they do not wrap, else one copy."""
     first %= z.shape[dim]
     if first + size <= z.shape[dim]:
         return z.narrow(dim, first, size)

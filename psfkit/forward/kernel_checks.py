@@ -1,7 +1,6 @@
-"""The checks of a kernel file's contents (:mod:`psfkit.forward.kernelfile`): the kernel
-array against the sensor (:func:`check_kernels`, shared with ekdun's operators), each field of
-the metadata (:func:`checked_metadata`) and the sizes the archive's members declare
-(:func:`check_declared_members`), all before anything large is allocated.
+"""The checks of a kernel file's contents: kernel array against the sensor (shared with ekdun's
+operators), metadata fields and the archive members' declared sizes, before anything large is
+allocated.
 """
 
 from __future__ import annotations
@@ -27,8 +26,8 @@ KERNEL_ORIGIN = "array centre (H//2, W//2)"   # the one convention (docs/archite
 
 
 def checked_metadata(meta: dict[str, Any], where: str) -> dict[str, Any]:
-    """The model fields of kernel metadata, each checked for type and range (``where: field
-    ...`` in messages), before anything is allocated; ``KeyError`` for a missing field."""
+    """The model fields of kernel metadata, each checked for type and range, before anything is
+    allocated; ``KeyError`` for a missing field."""
     def text(key: str, value: Any) -> str:
         if not isinstance(value, str):
             raise ModelFileError(f"{where}: '{key}' must be a string, got {value!r}")
@@ -73,8 +72,8 @@ def _optical_center(center: Any, sensor: tuple[int, ...], where: str
 
 
 def _read_options(meta: dict[str, Any], where: str) -> ReadOptions | None:
-    """How the data were read, if the file records it (files written before ``read_options``
-    record only their binning, in the provenance: checked here)."""
+    """The recorded ``read_options``, or ``None`` (older files record only a checked
+    ``provenance['downsample']``)."""
     read_options = meta.get("read_options")
     if read_options is not None:
         return ReadOptions.from_json(read_options, where)
@@ -98,14 +97,10 @@ def check_kernels(kernels: Any, sensor_shape: tuple[int, int], where: str = "",
                   error: type[PsfkitError] = ModelFileError) -> None:
     """Check a kernel array ``(K, C, Hk, Wk)`` against the sensor ``(H', W')``.
 
-    The array part of :meth:`psfkit.forward.kernelfile.KernelModel.validate`, shared with
-    ekdun's operators.
-
     Parameters
     ----------
     kernels : numpy.ndarray or torch.Tensor
-        The kernels. A tensor is checked through its own ``is_floating_point`` and
-        ``isfinite`` methods (so on its device, without importing torch here).
+        A tensor is checked with its own methods (on its device, without importing torch).
     sensor_shape : (int, int)
         ``(H', W')``; a kernel may not be larger.
     where : str
@@ -141,8 +136,7 @@ def check_kernels(kernels: Any, sensor_shape: tuple[int, int], where: str = "",
 
 
 def check_declared_members(path: Path) -> None:
-    """Refuse a kernel file whose members declare absurd sizes, from their ``.npy`` headers
-    (only those bytes are decompressed) and the zip's declared sizes: a few kilobytes of
+    """Refuse a kernel file whose members declare absurd sizes (``.npy`` headers and zip sizes), so
     compressed zeros cannot make :func:`numpy.load` inflate gigabytes."""
     # bytes: kernels of MAX_IMAGE_PIXELS float64 values, metadata of MAX_JSON_BYTES characters
     limits = {"kernels": 8 * MAX_IMAGE_PIXELS, "metadata": 4 * MAX_JSON_BYTES}

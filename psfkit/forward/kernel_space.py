@@ -1,20 +1,9 @@
-r"""Kernel-space form of the forward model, for fitting kernels to (scene, measurement) pairs.
+"""Kernel-space form of the forward model, for fitting kernels to (scene, measurement) pairs.
 
-For fixed scenes ``x_i`` the model ``y_i = A_K x_i`` (:mod:`psfkit.forward.convolution`, Eq. 7
-in either convention) is linear in the kernels ``K``: :class:`KernelSpaceOperator` applies
-``B: K ↦ (A_K x_i)_i`` and its exact adjoint ``Bᵀ`` (correlate each residual with its scene),
-with the scene spectra taken once, on the smallest grid on which the circular convolution is
-still exactly the model's (:func:`linear_convolution_grid`). :mod:`psfkit.fitting.pairs.fit` solves
-the
-normal equations with it.
-
-It is a different operator from the kernel file's ``A`` (:mod:`psfkit.forward.operator`: the
-variable here is the kernels, not the scene) and shares with it what is the same model: the
-Eq. 7 fan-out/fan-in core, kernel embedding and FFTs (:mod:`psfkit.forward.convolution`; the
-crop is the top-left block read there), the weight maps of :mod:`psfkit.forward.weights`, and the
-base
-class :class:`~psfkit.forward.base.LinearOperator` (``A = forward``, ``A_adjoint = adjoint``,
-``norm()``, ``adjointness_error()``).
+For fixed scenes ``x_i`` the model ``y_i = A_K x_i`` (Eq. 7) is linear in the kernels:
+:class:`KernelSpaceOperator` applies ``B: K ↦ (A_K x_i)_i`` and its exact adjoint, with the scene
+spectra taken once on the smallest exact grid (:func:`linear_convolution_grid`); it shares the
+fan-out/fan-in core of :mod:`psfkit.forward.convolution`.
 """
 
 from __future__ import annotations
@@ -39,13 +28,11 @@ from psfkit.forward.weights import get_basis
 
 def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[int, int],
                             scene_padding: int = 2) -> tuple[int, int]:
-    """Smallest FFT-friendly grid on which circular convolution gives exactly the model's
-    ``crop(K * pad(x))``.
+    """Smallest FFT-friendly grid on which circular convolution is exactly ``crop(K * pad(x))``.
 
-    Scene and crop share the sensor-sized window, so the offsets that reach the crop lie in
-    ``(−H', H')``; with the kernel's support ``[−Hk//2, Hk − Hk//2)`` none of them wraps onto
-    the support once the grid has ``H' + Hk//2`` rows (likewise columns). For full-size
-    kernels that is 1.5× the sensor instead of the model's ``P·H'`` (2×): 0.56× the FFT work.
+    Offsets reaching the crop lie in ``(−H', H')``, so with the kernel's support
+    ``[−Hk//2, Hk − Hk//2)`` nothing wraps once the grid has ``H' + Hk//2`` rows (likewise columns):
+    1.5× the sensor for full-size kernels instead of the model's ``P·H'``.
     """
     from scipy.fft import next_fast_len
 
@@ -57,22 +44,17 @@ def linear_convolution_grid(sensor_shape: tuple[int, int], kernel_shape: tuple[i
 class KernelSpaceOperator(LinearOperator):
     """``B: K ↦ (A_K x_i)_i`` for fixed scenes, and its exact adjoint, on the padded grid.
 
-    The same model as :func:`~psfkit.forward.convolution.eigen_kernel_forward` (checked to
-    rounding by ``tests/psfkit/test_pairs_fit.py``), arranged so that the scenes' spectra are
-    taken once and the kernels are the variable.
-
     Parameters
     ----------
     scenes : Tensor
         ``(N, C, H', W')``.
     basis : str
-        Weight basis name (:mod:`psfkit.forward.weights`; ``"si"`` for one kernel with weight 1).
+        Weight basis name (``"si"``: one kernel of weight 1).
     convention : {"sensor", "source"}
-        Where the weight maps act.
     kernel_shape : (int, int)
         ``(Hk, Wk)``, at most the sensor size.
     scene_padding : int
-        Padding factor ``P`` of the model (the grid used is at most ``P × sensor``).
+        The model's padding factor ``P`` (the grid is at most ``P × sensor``).
     """
 
     def __init__(self, scenes: Tensor, basis: str, convention: str,
@@ -99,8 +81,7 @@ class KernelSpaceOperator(LinearOperator):
             self.scene_spectra = rfft2(scenes[:, None] * self.weights[None, :, None], self.grid)
 
     def subset(self, pairs: slice) -> KernelSpaceOperator:
-        """The operator of ``pairs`` only, sharing their scene spectra (a view: no FFT, no
-        copy): a cross-validation fold's training or held-out pairs."""
+        """The operator of ``pairs`` only, sharing their scene spectra (a view: no FFT, no copy)."""
         part = copy.copy(self)
         part.scene_spectra = self.scene_spectra[pairs]
         part.__dict__.pop("_operator_norm_cache", None)        # the whole operator's norm
@@ -110,18 +91,12 @@ class KernelSpaceOperator(LinearOperator):
         """``(K, C, Hk, Wk)``: the kernels."""
         return (self.n_kernels, self.channels, *self.kernel_shape)
 
-    def range_shape(self) -> tuple[int, ...]:
-        """``(N, C, H', W')``: one measurement per pair."""
-        return (int(self.scene_spectra.shape[0]), self.channels, *self.sensor)
-
     def forward(self, kernels: Tensor) -> Tensor:
-        """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 by the one implementation
-        (:mod:`psfkit.forward.convolution`), with the scenes' spectra taken once."""
+        """``(K, C, Hk, Wk) → (N, C, H', W')``: Eq. 7 with the scenes' spectra taken once."""
         return self.forward_spectra(self.spectra_of(kernels))
 
     def spectra_of(self, kernels: Tensor) -> Tensor:
-        """The kernels' spectra on the grid, ``(K, C, PH, PW//2 + 1)``: what
-        :meth:`forward_spectra` takes (a pass over many batches takes them once)."""
+        """The kernels' spectra on the grid, ``(K, C, PH, PW//2 + 1)``."""
         return kernel_spectra(kernels, self.grid)
 
     def forward_spectra(self, spectra: Tensor) -> Tensor:
@@ -135,17 +110,13 @@ class KernelSpaceOperator(LinearOperator):
                       graph, fresh=False)
 
     def adjoint(self, residuals: Tensor) -> Tensor:
-        """``(N, C, H', W') → (K, C, Hk, Wk)``: correlate each (weighted) residual with its
-        (weighted) scene and sum over the pairs.
-
-        This is the adjoint with respect to the kernels (a map into kernel space, summed over
-        the pairs), not Eq. 7's adjoint ``Aᵀ`` (a map into scene space).
+        """``(N, C, H', W') → (K, C, Hk, Wk)``: each (weighted) residual correlated with its
+        (weighted) scene, summed over the pairs (the adjoint in kernel space, not Eq. 7's ``Aᵀ``).
         """
         return self.kernels_of(self.adjoint_spectra(residuals))
 
     def adjoint_spectra(self, residuals: Tensor) -> Tensor:
-        """:meth:`adjoint` before the inverse FFT, ``(K, C, PH, PW//2 + 1)``: linear, so a
-        pass over many batches sums these and takes one :meth:`kernels_of`."""
+        """:meth:`adjoint` before the inverse FFT, ``(K, C, PH, PW//2 + 1)`` (linear)."""
         if self.weights is not None and self.convention == "sensor":
             return torch.stack([
                 _correlate(rfft2(residuals * self.weights[k], self.grid)[:, None],
@@ -153,8 +124,7 @@ class KernelSpaceOperator(LinearOperator):
         return _correlate(rfft2(residuals, self.grid)[:, None], self.scene_spectra)
 
     def kernels_of(self, spectra: Tensor) -> Tensor:
-        """The kernels ``(K, C, Hk, Wk)`` of spectra on the grid (the inverse of
-        :meth:`spectra_of` on the kernel window)."""
+        """The kernels ``(K, C, Hk, Wk)`` of spectra on the grid (inverse of :meth:`spectra_of`)."""
         return kernels_from_spectra(spectra, self.grid, self.kernel_shape)
 
     A = forward
@@ -162,12 +132,11 @@ class KernelSpaceOperator(LinearOperator):
 
 
 def _correlate(r_hat: Tensor, scene_spectra: Tensor) -> Tensor:
-    """``Σ_i R̂_i · conj(X̂_i)`` over the pairs ``i``: ``(N, 1, C, ...)`` residual spectra against
-    ``(N, K, C, ...)`` scene spectra, ``(K, C, ...)``.
+    """``Σ_i R̂_i · conj(X̂_i)``: ``(N, 1, C, ...)`` residual spectra against ``(N, K, C, ...)``
+    scene spectra, ``(K, C, ...)``.
 
-    Accumulated pair by pair as ``conj(Σ_i conj(R̂_i) · X̂_i)``: the one-line form materialised
-    the conjugated scene spectra and an ``(N, K, C, ...)`` product on every call, 2.3× the
-    time of this loop on the 7 DLMD pairs at full resolution (source side, one thread).
+    Accumulated pair by pair as ``conj(Σ_i conj(R̂_i) · X̂_i)``, which avoids materialising the
+    conjugated scene spectra and the ``(N, K, C, ...)`` product (2.3× faster on DLMD).
     """
     if records_graph(r_hat, scene_spectra):
         return (r_hat * scene_spectra.conj()).sum(dim=0)

@@ -3,27 +3,19 @@
 One ``.npz`` file (NumPy, no pickles) holds
 
 ``kernels``
-    float32 ``(K, C, Hk, Wk)``: the K kernels of the model in the order of the weight basis'
-    ``kernel_names`` (``base, v, h`` for the paper), C channels (RGB or L), each stored with
-    its origin at the array centre ``(Hk//2, Wk//2)``, the way a PSF image looks.
+    float32 ``(K, C, Hk, Wk)``: the model's kernels in the basis' ``kernel_names`` order, C
+    channels (RGB or L), origin at the array centre ``(Hk//2, Wk//2)``.
 ``metadata``
-    a JSON string: ``format`` (``"ekdun-kernels"``), ``version``, ``basis`` (weight basis name,
-    see :mod:`psfkit.forward.weights`), ``convention`` (``"sensor"``: weights multiply each kernel's
-    image on the sensor, Eq. 7; ``"source"``: weights multiply the scene before each
-    convolution), ``kernel_names``, ``channels``, ``sensor_shape`` ``[H', W']`` (measurement
-    size, and the grid on which the weights are defined), ``optical_center`` ``[v_c, u_c]``,
-    ``scene_padding`` (the convolution runs on a ``scene_padding × sensor_shape`` grid),
-    ``normalization`` (how the kernels were scaled), ``kernel_origin`` (checked on reading),
-    ``read_options`` (how the data the model was fitted on was read: channel order on disk,
-    flip, binning, white level; :class:`psfkit.io.read_options.ReadOptions`; every command
-    that consumes the file reads its inputs this way by default), and free-form
+    a JSON string: ``format`` (``"ekdun-kernels"``), ``version``, ``basis``
+    (:mod:`psfkit.forward.weights`), ``convention`` (``"sensor"``: weights multiply each
+    kernel's image, Eq. 7; ``"source"``: they multiply the scene), ``kernel_names``,
+    ``channels``, ``sensor_shape`` ``[H', W']``, ``optical_center`` ``[v_c, u_c]``,
+    ``scene_padding`` (the grid is ``scene_padding × sensor_shape``), ``normalization``,
+    ``kernel_origin`` (checked on reading), ``read_options`` (how the fitted data was read,
+    :class:`psfkit.io.read_options.ReadOptions`; the default for every consumer) and free-form
     ``provenance``.
 
-Forward model (``docs/architecture.md``), scene ``x`` and measurement ``y`` both ``H' × W'``:
-``y = Σ_k W_k ⊙ crop(K_k * pad(x))`` for the sensor-side convention and
-``y = crop(Σ_k K_k * pad(W_k ⊙ x))`` for the source-side one, where ``pad`` zero-fills ``x`` into
-the centre of the padded grid and ``crop`` keeps its central ``H' × W'``. A kernel is at most
-``H' × W'``, so with ``scene_padding = 2`` the circular FFT convolution is an exact linear one.
+The forward model is :mod:`psfkit.forward.convolution`'s (``docs/architecture.md``).
 """
 
 from __future__ import annotations
@@ -70,24 +62,22 @@ class KernelModel:
     kernels : numpy.ndarray
         ``(K, C, Hk, Wk)`` float32, origins at ``(Hk//2, Wk//2)``.
     basis : str
-        Weight basis name (``"si"`` for a single shift-invariant kernel).
+        Weight basis name (``"si"``: one shift-invariant kernel).
     convention : {"sensor", "source"}
-        Where the weights live.
     sensor_shape : (int, int)
         ``(H', W')``.
     channels : tuple of str
         ``("R", "G", "B")`` or ``("L",)``.
     optical_center : (float, float) or None
-        ``(v_c, u_c)``; ``None`` is the sensor centre.
+        ``(v_c, u_c)``; ``None``: the sensor centre.
     scene_padding : int
-        Size of the convolution grid as a multiple of the sensor size (>= 2; 2 by default).
+        Convolution grid as a multiple of the sensor size (>= 2).
     normalization : str
-        Description of the kernels' scale (e.g. ``"base kernel sums to 1 per channel"``).
+        How the kernels are scaled.
     provenance : dict
-        Where the model came from (input files, fit residuals, ...).
+        Where the model came from.
     read_options : ReadOptions or None
-        How the data it was fitted on was read (``None``: not recorded, as in older files; see
-        :meth:`data_read_options`).
+        How the fitted data was read (``None``: not recorded; :meth:`data_read_options`).
     """
 
     kernels: np.ndarray
@@ -121,24 +111,21 @@ class KernelModel:
         self.validate(_DEFAULT_WHERE)
 
     def validate(self, where: str = _DEFAULT_WHERE) -> None:
-        """Check that the pieces of the model agree; the one check of the kernel-file contract.
+        """Check that the pieces of the model agree: the one check of the kernel-file contract.
 
-        Run on construction, by :func:`save_kernels` (the kernels array can be changed in
-        place after construction), by :func:`load_kernels` and by ekdun before training.
+        Run on construction, saving, loading and by ekdun before training.
 
         Parameters
         ----------
         where : str
-            What the model is (a file path, ``"seed kernels"``); starts the error message.
+            What the model is (a path, ``"seed kernels"``); starts the error message.
 
         Raises
         ------
         ModelFileError
-            Unknown basis, kernel count not the basis', kernels not ``(K, C, Hk, Wk)`` or larger
-            than the sensor, NaN/Inf kernels, channels not 1 or 3 or not the kernels', unknown
-            convention, bad ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels
-            that are all zero, so large (``MAX_KERNEL_GAIN``) that a forward model
-            overflows, or so small (``MIN_KERNEL_GAIN``) that it cannot be inverted.
+            Unknown basis or wrong kernel count, bad kernel array (:func:`check_kernels`), channels,
+            convention, ``sensor_shape``, ``scene_padding`` or ``optical_center``; kernels all zero
+            or with a gain outside ``MIN_KERNEL_GAIN..MAX_KERNEL_GAIN``.
         """
         try:
             basis = get_basis(self.basis)
@@ -192,11 +179,8 @@ class KernelModel:
                                  f"(v_c, u_c), got {centre!r}")
 
     def to_metadata(self) -> dict[str, Any]:
-        """The model without its kernels as JSON-able values: the ``metadata`` of a kernel file
-        (see the module docstring) and of an ekdun checkpoint's seed kernels.
-
-        :meth:`from_metadata` is its inverse.
-        """
+        """The model without its kernels as JSON-able values (a kernel file's or checkpoint's
+        ``metadata``); inverse of :meth:`from_metadata`."""
         return {
             "format": KERNEL_FORMAT, "version": KERNEL_VERSION,
             "basis": self.basis, "convention": self.convention,
@@ -212,9 +196,8 @@ class KernelModel:
         }
 
     def data_read_options(self) -> ReadOptions:
-        """How inputs for this model are read by default: the recorded :attr:`read_options`,
-        or for older files the binning recorded in ``provenance['downsample']`` (channel order
-        not recorded)."""
+        """How inputs for this model are read by default: :attr:`read_options`, or for older files
+        the binning in ``provenance['downsample']``."""
         if self.read_options is not None:
             return self.read_options
         factor = self.provenance.get("downsample")
@@ -226,16 +209,15 @@ class KernelModel:
                       where: str = _DEFAULT_WHERE) -> KernelModel:
         """The model of ``kernels`` ``(K, C, Hk, Wk)`` and ``meta`` (:meth:`to_metadata`'s).
 
-        ``format`` and ``version`` are the file's business (:func:`load_kernels` checks them);
-        they may be absent, as in checkpoints written before they were recorded there.
+        ``format`` and ``version`` may be absent (checked by :func:`load_kernels`), as may
         ``scene_padding``, ``normalization``, ``optical_center``, ``kernel_names`` and
-        ``provenance`` are optional.
+        ``provenance``.
 
         Raises
         ------
         ModelFileError
-            ``meta`` lacks or mangles a field, or the model fails :meth:`validate`; the message
-            starts with ``where``.
+            A missing or mangled field, or a model failing :meth:`validate` (message starts with
+            ``where``).
         """
         if not isinstance(meta, dict):
             raise ModelFileError(f"{where}: metadata is not a JSON object")
@@ -269,14 +251,13 @@ class KernelModel:
 
     @property
     def padded_shape(self) -> tuple[int, int]:
-        """Size of the grid on which the convolutions run (:func:`psfkit.forward.padded_shape`)."""
+        """Size of the convolution grid (:func:`psfkit.forward.geometry.padded_shape`)."""
         return padded_shape(self.sensor_shape, self.scene_padding)
 
     def weight_maps(self, extent: tuple[int, int] | None = None) -> np.ndarray:
-        """``(K, H', W')`` float64 weights (of the sensor pixels or of the scene pixels,
-        depending on ``convention``; both arrays have the sensor's size), or ``(K, H, W)`` on a
-        larger centred grid ``extent`` with the edge weights continued outside the sensor
-        (:meth:`psfkit.forward.weights.WeightBasis.maps`)."""
+        """``(K, H', W')`` float64 weights (of sensor or scene pixels, per ``convention``), or on a
+        larger centred grid ``extent`` with the edge weights continued (:meth:`WeightBasis.maps`).
+        """
         return self.weight_basis.maps(self.sensor_shape, self.optical_center, extent)
 
     @classmethod

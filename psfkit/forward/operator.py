@@ -1,29 +1,11 @@
-r"""The eigen-kernel operator of a kernel file, built in one place.
+"""The eigen-kernel operator of a kernel file, built in one place.
 
-Every command that turns a kernel file into ``A`` goes through here (``docs/architecture.md``):
-``fit-pairs``' predictions (:func:`psfkit.fitting.pairs.fit.predict`), classical reconstruction and
-the networks (:meth:`ekdun.physics.operators.EigenKernelOperator.from_kernel_model`, which
-takes its kernels and weight maps from :func:`kernel_model_tensors`), so the same file gives
-the same numbers in every command.
-
-.. math::
-
-    \text{sensor:}\quad A x = \sum_k W_k \odot \mathrm{crop}\big(K_k \circledast
-    \mathrm{pad}(x)\big), \qquad
-    \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
-    \mathrm{pad}(W_k \odot x)\Big)
-
-(Eq. 7; ``K_k`` the file's kernels, ``W_k`` its weight maps, the convolution on the padded
-grid of the file's ``scene_padding``; the shift-invariant model is one kernel of weight 1).
-
-:class:`SpectralOperator` applies ``A`` and ``Aᵀ`` of
-:func:`~psfkit.forward.convolution.eigen_kernel_forward` /
-:func:`~psfkit.forward.convolution.eigen_kernel_adjoint` to a sensor-sized scene, with the
-kernel spectra taken once (no kernel FFT per call) and the zero-padded FFT input reused outside
-autograd (:class:`PaddingWorkspace`); ekdun's :class:`~ekdun.physics.operators.PreparedOperator`
-adds its input checks on top. :class:`PaddedSceneOperator` is the same model with the scene on
-the whole padded grid (light from outside the view: the classical solvers). Both are
-:class:`~psfkit.forward.base.LinearOperator` s: ``norm()`` and ``adjointness_error()``.
+Every command that turns a kernel file into ``A`` (``fit-pairs``' predictions, classical
+reconstruction, ekdun's networks via :func:`kernel_model_tensors`) goes through here, so the
+same file gives the same numbers everywhere (Eq. 7, ``docs/architecture.md``).
+:class:`SpectralOperator` applies ``A``/``Aᵀ`` to a sensor-sized scene with the kernel spectra
+taken once; :class:`PaddedSceneOperator` is the same model with the scene on the whole padded
+grid (the classical solvers).
 """
 
 from __future__ import annotations
@@ -50,9 +32,7 @@ from psfkit.forward.padded_scene import padded_scene_adjoint, padded_scene_forwa
 
 
 class KernelFileModel(Protocol):
-    """What the operators read of a kernel file's model
-    (:class:`psfkit.forward.kernelfile.KernelModel`,
-    a layer above this one)."""
+    """What the operators read of a kernel file's model (``KernelModel``)."""
 
     kernels: np.ndarray
     convention: str
@@ -64,11 +44,7 @@ class KernelFileModel(Protocol):
 
 def kernel_model_tensors(model: KernelFileModel, dtype: torch.dtype = torch.float32,
                          device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
-    """A kernel file's kernels ``(K, C, Hk, Wk)`` and weight maps ``(K, H', W')`` as tensors.
-
-    The one conversion of a kernel file into the operator's arrays (the file's float32 kernels
-    and float64 weights, both cast to ``dtype``).
-    """
+    """A kernel file's kernels ``(K, C, Hk, Wk)`` and weights ``(K, H', W')`` as tensors."""
     kernels = torch.as_tensor(model.kernels, dtype=dtype, device=device)
     weights = torch.as_tensor(model.weight_maps(), dtype=dtype, device=device)
     return kernels, weights
@@ -78,17 +54,10 @@ _REAL_DTYPE = {torch.complex64: torch.float32, torch.complex128: torch.float64}
 
 
 class PaddingWorkspace:
-    """A zero-padded FFT input array reused across calls made outside autograd.
+    """A zero-padded FFT input array ``(..., PH, PW)`` reused across calls outside autograd.
 
-    :func:`eigen_kernel_forward` / :func:`eigen_kernel_adjoint` write each input into the
-    top-left block of this ``(..., PH, PW)`` array (which stays zero elsewhere) instead of
-    letting every FFT allocate a padded copy. Under autograd a fresh input is needed, so
-    :meth:`for_input` then returns ``None``.
-
-    Parameters
-    ----------
-    grid_shape : (int, int)
-        ``(PH, PW)``.
+    Inputs are written into its top-left block (zero elsewhere) instead of every FFT allocating a
+    padded copy; :meth:`for_input` returns ``None`` under autograd.
     """
 
     def __init__(self, grid_shape: tuple[int, int]) -> None:
@@ -96,9 +65,8 @@ class PaddingWorkspace:
         self._array: Tensor | None = None
 
     def for_input(self, t: Tensor, spectra: Tensor) -> Tensor | None:
-        """The workspace for inputs shaped like ``t`` ``(..., H', W')`` (reallocated when
-        the leading shape, dtype or device changes), or ``None`` when autograd records
-        ``t`` or ``spectra``."""
+        """The workspace for inputs shaped like ``t`` (reallocated on a new leading shape, dtype or
+        device), or ``None`` when autograd records ``t`` or ``spectra``."""
         if records_graph(t, spectra):
             return None
         ws = self._array
@@ -111,26 +79,21 @@ class PaddingWorkspace:
 class SpectralOperator(LinearOperator):
     """An eigen-kernel operator (Eq. 7, either convention) bound to kernel spectra.
 
-    Cheap to build (no copies), so unrolled networks build one per forward pass, or several
-    sharing spectra (EK-DUN's base-kernel model uses the first kernel's spectrum of its
-    eigen-kernel model).
+    Cheap to build (no copies): unrolled networks build one per forward pass.
 
     Parameters
     ----------
     spectra : Tensor
-        ``(K, C, PH, PW//2 + 1)`` complex kernel spectra
-        (:func:`~psfkit.forward.convolution.kernel_spectra`).
+        ``(K, C, PH, PW//2 + 1)`` complex (:func:`~psfkit.forward.convolution.kernel_spectra`).
     weights : Tensor or None
-        ``(K, H', W')`` weight maps (real, same precision as ``spectra``), or ``None`` for one
-        kernel with weight 1.
+        ``(K, H', W')`` real weight maps; ``None``: one kernel of weight 1.
     sensor_shape : (int, int)
         ``(H', W')``.
     grid_shape : (int, int)
-        ``(PH, PW)``, the padded grid of the spectra.
+        ``(PH, PW)``, the spectra's grid.
     convention : {"sensor", "source"}
-        Where the weights act.
     conj_spectra : Tensor, optional
-        ``spectra.conj()`` materialised (taken lazily, once, when not given).
+        ``spectra.conj()`` materialised (taken once, lazily, when not given).
     """
 
     def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
@@ -148,7 +111,7 @@ class SpectralOperator(LinearOperator):
 
     @property
     def device(self) -> torch.device:
-        """Where the spectra (and so the inputs) live."""
+        """Where the spectra (and the inputs) live."""
         return self.spectra.device
 
     @property
@@ -158,8 +121,7 @@ class SpectralOperator(LinearOperator):
 
     @property
     def conj_spectra(self) -> Tensor:
-        """Conjugate spectra for the adjoint, materialised once (a lazy ``conj()`` view would
-        cost a copy in every product)."""
+        """Conjugate spectra for the adjoint, materialised once (a lazy view copies each time)."""
         if self._conj_spectra is None:
             self._conj_spectra = self.spectra.conj().resolve_conj()
         return self._conj_spectra
@@ -167,10 +129,7 @@ class SpectralOperator(LinearOperator):
     @classmethod
     def from_kernel_model(cls, model: KernelFileModel, dtype: torch.dtype = torch.float32,
                           device: torch.device | str | None = None) -> SpectralOperator:
-        """The operator of a kernel file's model (either convention), scene ``(B, C, H', W')``.
-
-        ``dtype`` is the working precision (the kernels are stored as float32).
-        """
+        """The operator of a kernel file's model in working precision ``dtype``."""
         kernels, weights = kernel_model_tensors(model, dtype, device)
         sensor = (int(model.sensor_shape[0]), int(model.sensor_shape[1]))
         grid = padded_shape(sensor, model.scene_padding)
@@ -180,12 +139,12 @@ class SpectralOperator(LinearOperator):
                    spectra.conj().resolve_conj())
 
     def forward(self, x: Tensor) -> Tensor:
-        """``y = A x``, scene ``(B, C, H', W')`` → measurement ``(B, C, H', W')``."""
+        """``y = A x``, ``(B, C, H', W')`` → ``(B, C, H', W')``."""
         return eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace.for_input(x, self.spectra))
 
     def adjoint(self, y: Tensor) -> Tensor:
-        """``x = Aᵀ y``, measurement ``(B, C, H', W')`` → scene ``(B, C, H', W')``."""
+        """``x = Aᵀ y``, ``(B, C, H', W')`` → ``(B, C, H', W')``."""
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace.for_input(y, self.spectra))
 
@@ -201,10 +160,8 @@ class SpectralOperator(LinearOperator):
 class PaddedSceneOperator(LinearOperator):
     r"""``A`` and ``Aᵀ`` of an eigen-kernel model with the scene on the whole padded grid.
 
-    A real measurement also records scene points outside the ``H' × W'`` view that
-    :class:`SpectralOperator` assumes; a reconstruction restricted to the view has to explain
-    their light with in-view pixels (artefacts at the borders), so the classical solvers solve
-    on the padded grid:
+    A measurement also records light from outside the ``H' × W'`` view, so the classical solvers
+    solve on the padded grid:
 
     .. math::
 
@@ -213,25 +170,21 @@ class PaddedSceneOperator(LinearOperator):
         \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
         (V_k \odot x)\Big)
 
-    (:func:`~psfkit.forward.padded_scene.padded_scene_forward` and its adjoint), with ``V_k``
-    the source-side weights on the whole grid, continuing the edge weights outside the view
-    (the model is fitted on the view only; ``KernelModel.weight_maps(extent=...)``). For a
+    with ``V_k`` the source-side weights on the whole grid, edge-continued outside the view. For a
     scene zero outside the view ``A pad(x)`` equals :class:`SpectralOperator`'s ``A x``.
 
     Parameters
     ----------
     base : SpectralOperator
-        A prepared eigen-kernel or shift-invariant operator (its spectra, weights and grid).
+        Its spectra, weights and grid.
     scene_weights : Tensor, optional
-        ``(K, PH, PW)`` weights of a source-side model on the padded grid, whose central
-        ``H' × W'`` block is ``base.weights`` (:meth:`from_kernel_model` builds them); not
-        used by sensor-side and shift-invariant models.
+        ``(K, PH, PW)`` source-side weights whose central block is ``base.weights``
+        (:meth:`from_kernel_model` builds them); unused otherwise.
 
     Raises
     ------
     ConfigurationError
-        A source-side eigen-kernel model without ``scene_weights``, or weights that do not
-        match the model's in the view.
+        Source-side model without ``scene_weights``, or ones not matching the view's weights.
     """
 
     #: What :meth:`check` raises (ekdun's subclass raises its ``TensorShapeError``).
@@ -279,8 +232,7 @@ class PaddedSceneOperator(LinearOperator):
         return cls(base, scene_weights)
 
     def check(self, y: Tensor, what: str) -> None:
-        """Raise :attr:`shape_error` unless ``y`` is a ``(B, C, H', W')`` measurement of this
-        model."""
+        """Raise :attr:`shape_error` unless ``y`` is a ``(B, C, H', W')`` measurement here."""
         if y.ndim != 4 or tuple(y.shape[-2:]) != self.sensor_shape \
                 or int(y.shape[1]) != self.channels or y.dtype != self.dtype:
             raise self.shape_error(f"{what} must be (B, {self.channels}, "
@@ -290,10 +242,6 @@ class PaddedSceneOperator(LinearOperator):
     def domain_shape(self) -> tuple[int, ...]:
         """``(1, C, PH, PW)``: a scene on the padded grid."""
         return (1, self.channels, *self.grid_shape)
-
-    def range_shape(self) -> tuple[int, ...]:
-        """``(1, C, H', W')``: a measurement."""
-        return (1, self.channels, *self.sensor_shape)
 
     def A(self, x: Tensor) -> Tensor:
         """Scene ``(B, C, PH, PW)`` → measurement ``(B, C, H', W')``."""

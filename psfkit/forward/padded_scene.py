@@ -1,10 +1,8 @@
-r"""Eq. 7 with the scene on the whole padded grid: light from outside the sensor's view.
+"""Eq. 7 with the scene on the whole padded grid: light from outside the sensor's view.
 
-:func:`padded_scene_forward` and its exact adjoint :func:`padded_scene_adjoint` (the operator
-of the classical solvers, :class:`psfkit.forward.operator.PaddedSceneOperator`), and the pieces
-of them that ADMM keeps apart: each kernel's image :func:`kernel_images` and the spectrum of
-the sensor-side adjoint :func:`padded_scene_adjoint_spectrum`. Conventions and the fan-out /
-fan-in core are those of :mod:`psfkit.forward.convolution` (the sensor-sized scene).
+:func:`padded_scene_forward` and its exact adjoint (the classical solvers' operator), and the
+pieces ADMM keeps apart (:func:`kernel_images`, :func:`padded_scene_adjoint_spectrum`).
+Conventions as in :mod:`psfkit.forward.convolution`.
 """
 
 from __future__ import annotations
@@ -31,7 +29,7 @@ def _to_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
 
 
 def _from_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
-    """Inverse of :func:`_to_corner` (its adjoint too: a circular shift is orthogonal)."""
+    """Inverse (and adjoint) of :func:`_to_corner`."""
     top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
     return torch.roll(z, shifts=(top, left), dims=(-2, -1))
 
@@ -47,21 +45,17 @@ def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
         \text{source:}\quad y = \mathrm{crop}\Big(\sum_k K_k \circledast
         (V_k \odot x)\Big),
 
-    with ``W_k`` ``(K, H', W')`` the sensor weights and ``V_k`` ``(K, PH, PW)`` the scene
-    weights on the whole grid (edge-continued outside the view:
-    :meth:`psfkit.forward.kernelfile.KernelModel.weight_maps` with ``extent``). For a scene zero
-    outside the view, ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``. Sensor side:
-    1 FFT and K inverse FFTs; source side: K FFTs and 1 inverse FFT.
+    with ``V_k`` the scene weights, edge-continued outside the view (``KernelModel.weight_maps``
+    with ``extent``). ``padded_scene_forward(pad(x)) == eigen_kernel_forward(x)``.
 
     Parameters
     ----------
     x : Tensor
         Scene ``(B, C, PH, PW)``.
     spectra : Tensor
-        ``(K, C, PH, PW//2 + 1)`` kernel spectra (:func:`kernel_spectra`).
+        ``(K, C, PH, PW//2 + 1)`` kernel spectra.
     weights : Tensor or None
-        Sensor side ``(K, H', W')``, source side ``(K, PH, PW)``; ``None`` for one kernel with
-        weight 1.
+        Sensor side ``(K, H', W')``, source side ``(K, PH, PW)``; ``None``: one kernel, weight 1.
     sensor_shape : (int, int)
         ``(H', W')``.
     convention : {"sensor", "source"}
@@ -69,7 +63,7 @@ def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     Returns
     -------
     Tensor
-        Measurement ``(B, C, H', W')``.
+        ``(B, C, H', W')``.
     """
     grid = (x.shape[-2], x.shape[-1])
     graph = records_model_graph(x, spectra, weights)
@@ -93,9 +87,7 @@ def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
         \text{source:}\quad A^\top y = \sum_k V_k \odot \big(K_k \star
         \mathrm{pad}(y)\big).
 
-    ``y`` is ``(B, C, H', W')``, ``conj_spectra`` the conjugated kernel spectra, ``weights``
-    as in :func:`padded_scene_forward`; returns the ``(B, C, PH, PW)`` scene. Sensor side:
-    K FFTs and 1 inverse FFT; source side: 1 FFT and K inverse FFTs.
+    ``y`` ``(B, C, H', W')``, ``conj_spectra`` the conjugated spectra; returns ``(B, C, PH, PW)``.
     """
     sensor = (y.shape[-2], y.shape[-1])
     graph = records_model_graph(y, conj_spectra, weights)
@@ -111,22 +103,19 @@ def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
 
 def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int, int],
                   sensor_shape: tuple[int, int] | None = None) -> Tensor:
-    r"""``crop(K_k ⊛ x)`` for every kernel, from the spectrum of a padded-grid scene.
-
-    The images that sensor-side weights multiply in Eq. 7 (:func:`padded_scene_forward` sums
-    them weighted), for solvers that keep them apart (ADMM's split ``u_k = H_k x``) and that
-    already hold ``x̂`` (after a Fourier-diagonal update).
+    """``crop(K_k ⊛ x)`` for every kernel, from the spectrum of a padded-grid scene (ADMM's split
+    ``u_k = H_k x``).
 
     Parameters
     ----------
     scene_spectrum : Tensor
-        ``(..., C, PH, PW//2 + 1)``, ``rfft2`` of the ``(..., C, PH, PW)`` scene.
+        ``(..., C, PH, PW//2 + 1)``, ``rfft2`` of the scene.
     spectra : Tensor
         Kernel spectra broadcastable against it, e.g. ``(K, C, PH, PW//2 + 1)``.
     grid_shape : (int, int)
         ``(PH, PW)``.
     sensor_shape : (int, int), optional
-        Keep the centred ``(H', W')`` view (the crop); ``None``: the whole grid (``H_k x``).
+        Keep the centred ``(H', W')`` view; ``None``: the whole grid.
 
     Returns
     -------
@@ -139,26 +128,11 @@ def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int
 
 def padded_scene_adjoint_spectrum(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
                                   grid_shape: tuple[int, int]) -> Tensor:
-    r"""``rfft2`` of the sensor-side :func:`padded_scene_adjoint`:
-    ``Σ_k K̂_k^* · F(pad(W_k ⊙ y))`` (K FFTs, no inverse).
+    """``rfft2`` of the sensor-side :func:`padded_scene_adjoint`, ``Σ_k K̂_k^* · F(pad(W_k ⊙ y))``.
 
-    For solvers that apply a Fourier-diagonal inverse to ``Aᵀy`` before transforming back
-    (ADMM's ``x`` update), which saves the inverse FFT.
-
-    Parameters
-    ----------
-    y : Tensor
-        ``(..., C, H', W')``.
-    conj_spectra : Tensor
-        ``(K, C, PH, PW//2 + 1)`` conjugated kernel spectra.
-    weights : Tensor or None
-        ``(K, H', W')`` sensor weights, or ``None`` (one kernel, weight 1).
-    grid_shape : (int, int)
-
-    Returns
-    -------
-    Tensor
-        ``(..., C, PH, PW//2 + 1)`` complex.
+    For a Fourier-diagonal inverse applied before transforming back (ADMM's ``x`` update).
+    ``y`` ``(..., C, H', W')``, ``conj_spectra`` ``(K, C, PH, PW//2 + 1)``, ``weights``
+    ``(K, H', W')`` or ``None``; returns ``(..., C, PH, PW//2 + 1)`` complex.
     """
     graph = records_model_graph(y, conj_spectra, weights)
     return sum_of_kernel_products(

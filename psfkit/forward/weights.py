@@ -4,30 +4,19 @@ An eigen-kernel model writes the shift-variant PSF as a weighted sum of a few ke
 
 .. math::
 
-    h(u) = \Big(1 - \sum_{j\ge1}\varphi_j\Big) K_0 + \sum_{j\ge1} \varphi_j K_j
-         = K_0 + \sum_{j\ge1}\varphi_j\,(K_j - K_0),
+    h(u) = \Big(1 - \sum_{j\ge1}\varphi_j\Big) K_0 + \sum_{j\ge1} \varphi_j K_j,
 
-with fixed weight functions :math:`\varphi_j` of normalized coordinates. The paper's model
-(EK-DUN, Eq. 7) is the basis ``"paper"``: :math:`\varphi_v = W_v = \tfrac12\sin^2(\tfrac\pi2
-v_\mathrm{norm})`, :math:`\varphi_h = W_h = \tfrac12\sin^2(\tfrac\pi2 u_\mathrm{norm})`, kernels
-``(base, v, h)``. The weights of all kernels sum to 1 at every pixel.
+with fixed weight functions :math:`\varphi_j` of normalized coordinates; all weights sum to 1.
+The paper's basis (Eq. 7) is ``"paper"``: :math:`\varphi_v = \tfrac12\sin^2(\tfrac\pi2 v_n)`,
+:math:`\varphi_h = \tfrac12\sin^2(\tfrac\pi2 u_n)`, kernels ``(base, v, h)``. Richer bases add
+``odd`` (:math:`\tfrac12\sin(\tfrac\pi2 v_n)`, :math:`\tfrac12\sin(\tfrac\pi2 u_n)`: asymmetric
+variation), ``cross`` (:math:`\tfrac12\sin(\tfrac\pi2 u_n)\sin(\tfrac\pi2 v_n)`:
+diagonal astigmatism), or are ``poly:N`` (monomials :math:`u_n^a v_n^b`,
+:math:`1 \le a+b \le N`); ``si`` has no terms (one kernel, weight 1).
 
-Richer bases add terms (``get_basis`` parses ``"paper+odd+cross"``, ``"poly:3"``, ...):
-
-``odd``
-    :math:`\tfrac12\sin(\tfrac\pi2 v_n)`, :math:`\tfrac12\sin(\tfrac\pi2 u_n)`: variation that
-    differs between the two sides of the axis (sin² is even and cannot see it).
-``cross``
-    :math:`\tfrac12\sin(\tfrac\pi2 u_n)\sin(\tfrac\pi2 v_n)`: the diagonal component of
-    tangential astigmatism, whose stretch tensor at azimuth φ has a ``sin φ cos φ`` part.
-``poly:N``
-    all monomials :math:`u_n^a v_n^b`, :math:`1 \le a+b \le N` (a generic Taylor basis).
-``si``
-    no terms: the shift-invariant model (one kernel, weight 1).
-
-Coordinates (``docs/architecture.md``): ``u`` = column, ``v`` = row of the sensor grid
-``(H', W')``; :math:`u_n = (u-u_c)/(W'/2)`, :math:`v_n = (v-v_c)/(H'/2)`, optical centre
-``(v_c, u_c)`` defaulting to ``((H'-1)/2, (W'-1)/2)``.
+Coordinates: ``u`` = column, ``v`` = row; :math:`u_n = (u-u_c)/(W'/2)`,
+:math:`v_n = (v-v_c)/(H'/2)`, optical centre ``(v_c, u_c)`` defaulting to
+``((H'-1)/2, (W'-1)/2)``.
 """
 
 from __future__ import annotations
@@ -53,11 +42,9 @@ def _half_sin(x: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class WeightTerm:
-    """One correction weight, a product of a function of ``u_n`` and one of ``v_n``:
-    ``φ(u, v) = s · f(u) · g(v)`` (``None`` stands for 1).
+    """One correction weight ``φ(u, v) = s · f(u_n) · g(v_n)`` (``None`` stands for 1).
 
-    Every weight of the bases here is such a product; the eigen-kernel fit uses the factors
-    to sum the weights' products over a grid as matrix products (:mod:`psfkit.fitting.grid.eigen`).
+    The eigen-kernel fit uses the factors to sum the weights' products as matrix products.
     """
 
     name: str
@@ -73,8 +60,7 @@ class WeightTerm:
 
     def factors(self, u_norm: np.ndarray, v_norm: np.ndarray
                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(s·f(u), g(v))`` (``None`` where the factor is 1); on 1-D coordinate arrays for
-        the factors themselves, or on broadcasting ones for their product (``__call__``)."""
+        """``(s·f(u), g(v))`` (``None`` where 1), on 1-D coordinates or broadcasting ones."""
         fu = self.of_u(u_norm) if self.of_u is not None else None
         fv = self.of_v(v_norm) if self.of_v is not None else None
         if self.scale != 1.0:
@@ -112,7 +98,7 @@ class WeightBasis:
     name : str
         Canonical name, e.g. ``"paper"`` or ``"paper+odd"``.
     terms : tuple of WeightTerm
-        The correction terms (kernel name and separable weight ``φ``).
+        The correction terms.
     """
 
     name: str
@@ -130,9 +116,8 @@ class WeightBasis:
     def evaluate(self, u_norm: np.ndarray, v_norm: np.ndarray) -> np.ndarray:
         """Weights of all kernels at normalized coordinates, ``(K, *broadcast shape)``.
 
-        The first entry is the base weight ``1 − Σ φ_j``; all entries sum to 1. Pass
-        separable coordinates (``u`` of shape ``(1, W)``, ``v`` of shape ``(H, 1)``) to evaluate
-        the one-dimensional terms on a row and a column only.
+        The first is the base weight ``1 − Σ φ_j``. Separable coordinates (``u`` ``(1, W)``, ``v``
+        ``(H, 1)``) evaluate the 1-D terms on a row and a column only.
         """
         u_norm = np.asarray(u_norm, dtype=np.float64)
         v_norm = np.asarray(v_norm, dtype=np.float64)
@@ -150,17 +135,10 @@ class WeightBasis:
              extent: tuple[int, int] | None = None) -> np.ndarray:
         """Weight maps on the ``(H', W')`` grid, ``(K, H', W')`` float64.
 
-        With the sensor-side convention they multiply each kernel's image on the sensor; with
-        the source-side one they multiply the scene, whose array has the sensor's size and
-        coordinates (``y = crop(K * pad(x))``).
-
-        With ``extent`` ``(H, W)`` (at least the sensor's size) the maps cover that larger grid
-        centred on the sensor, as the padded scene grid is (:func:`psfkit.forward.convolution.pad`),
-        and outside the sensor each pixel takes the weights of the nearest sensor pixel: the
-        model is fitted on the sensor-sized field only, so the edge kernels continue beyond it
-        rather than the periodic ``sin²`` terms turning back towards the base kernel. A
-        source-side model of a scene on the whole padded grid (light from outside the view)
-        needs them.
+        Sensor side they multiply each kernel's image; source side the sensor-sized scene. With
+        ``extent`` ``(H, W)`` the maps cover that larger centred grid (the padded scene's), each
+        pixel outside the sensor taking the nearest sensor pixel's weights (the model is fitted on
+        the sensor only, so the edge kernels continue rather than the periodic terms turning back).
         """
         u_norm, v_norm = separable_coordinates(sensor_shape, optical_center)
         maps = self.evaluate(u_norm, v_norm)                  # (K, H', W')
@@ -177,10 +155,8 @@ class WeightBasis:
 def separable_coordinates(sensor_shape: tuple[int, int],
                           optical_center: tuple[float, float] | None = None
                           ) -> tuple[np.ndarray, np.ndarray]:
-    """Normalized coordinates ``(u_n, v_n)``, reaching ±1 at the sensor edges, as a ``(1, W)``
-    row and a ``(H, 1)`` column, for cheap evaluation of separable weights.
-
-    ``optical_center`` is ``(v_c, u_c)`` in sensor pixels; default the sensor centre."""
+    """Normalized coordinates ``(u_n, v_n)`` (±1 at the sensor edges) as a ``(1, W)`` row and an
+    ``(H, 1)`` column; ``optical_center`` ``(v_c, u_c)`` defaults to the sensor centre."""
     h, w = sensor_shape
     v_c, u_c = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
     return ((np.arange(w) - u_c) / (w / 2))[None, :], ((np.arange(h) - v_c) / (h / 2))[:, None]
@@ -190,11 +166,8 @@ _BASIS_RE = re.compile(r"^(si|poly:[1-9]|paper(\+odd)?(\+cross)?)$")
 
 
 def get_basis(name: str) -> WeightBasis:
-    """The :class:`WeightBasis` called ``name``.
-
-    Accepted names: ``si``, ``paper``, ``paper+odd``, ``paper+cross``, ``paper+odd+cross``,
-    ``poly:N`` (N = 1..9).
-    """
+    """The :class:`WeightBasis` called ``name``: ``si``, ``paper``, ``paper+odd``, ``paper+cross``,
+    ``paper+odd+cross`` or ``poly:N`` (N = 1..9)."""
     if not isinstance(name, str) or not _BASIS_RE.match(name):
         raise ConfigurationError(
             f"unknown weight basis {name!r} (use si, paper, paper+odd, paper+cross, "

@@ -1,33 +1,16 @@
-r"""Field zones: where on the sensor a model or a reconstruction is scored.
+"""Field zones: where on the sensor a model or a reconstruction is scored.
 
-One definition, used by ``psfkit eval-model`` (prediction errors by zone) and ``ekdun eval``
-(PSNR and SSIM by zone): three **equal-area radial zones** around the optical centre,
-
-``"centre"``
-    the pixels nearest the optical axis (a disc, when it fits on the sensor),
-``"middle"``
-    the ring around it,
-``"edge"``
-    the rest: the pixels farthest from the axis (for a wide sensor, its short ends and
-    corners),
-
-each covering a third of the sensor's pixels (exactly: the counts differ by at most one). The
-pixels are ranked by the distance of their centre from the optical centre, in pixels (square
-pixels: the distance is the field radius up to the lens's scale); the nearest third is the
-centre, the next third the middle, the rest the edge. A zone is therefore a disc or a ring
-between two radii ``r1 <= r2`` (:attr:`FieldZones.radii`); pixels at exactly a boundary radius
-(a ring of equal distance) are split between the two zones in raster order, so that the areas
-are equal.
-
-The optical centre ``(v_c, u_c)`` (row, column, in sensor pixels) is the one of the eigen-kernel
-model's weight maps (:func:`psfkit.forward.weights.separable_coordinates`): a kernel file's
-``optical_center`` where it records one, else the sensor centre ``((H-1)/2, (W-1)/2)``.
-
-NumPy only (and :mod:`psfkit.errors`), at the bottom of psfkit's layers, so that both
-packages can use it.
+One definition for ``psfkit eval-model`` and ``ekdun eval``: three **equal-area radial zones**
+around the optical centre, ``"centre"`` (nearest the axis), ``"middle"`` and ``"edge"``, each a
+third of the pixels (counts differ by at most one). Pixels are ranked by the distance of their
+centre from the optical centre; ties at a boundary radius are split in raster order. The
+optical centre ``(v_c, u_c)`` is the weight maps' one (a kernel file's ``optical_center``, else
+``((H-1)/2, (W-1)/2)``). NumPy only, so both packages can use it.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,6 +22,7 @@ __all__ = ["ZONE_NAMES", "FieldZones", "field_zones"]
 ZONE_NAMES: tuple[str, ...] = ("centre", "middle", "edge")
 
 
+@dataclass(eq=False)
 class FieldZones:
     """The three equal-area radial zones of a sensor (:func:`field_zones`).
 
@@ -47,18 +31,14 @@ class FieldZones:
     labels : numpy.ndarray
         ``(H, W)`` int8: 0 = centre, 1 = middle, 2 = edge (indices into :data:`ZONE_NAMES`).
     radii : tuple of float
-        ``(r1, r2)`` in pixels: the largest distance from the optical centre in the centre
-        zone and in the middle zone (a pixel nearer than ``r1`` is in the centre zone, one
-        farther than ``r2`` at the edge).
+        ``(r1, r2)`` in pixels: the largest distance in the centre and in the middle zone.
     optical_center : tuple of float
         ``(v_c, u_c)`` in pixels.
     """
 
-    def __init__(self, labels: np.ndarray, radii: tuple[float, float],
-                 optical_center: tuple[float, float]) -> None:
-        self.labels = labels
-        self.radii = radii
-        self.optical_center = optical_center
+    labels: np.ndarray
+    radii: tuple[float, float]
+    optical_center: tuple[float, float]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -69,8 +49,7 @@ class FieldZones:
         return {name: self.labels == i for i, name in enumerate(ZONE_NAMES)}
 
     def cropped(self, margin: int) -> FieldZones:
-        """The zones of the pixels ``margin`` or more from the border (e.g. the valid region
-        of an SSIM map, whose pixel ``(i, j)`` is the window centred on ``(i + m, j + m)``)."""
+        """The zones of pixels ``margin`` or more from the border (SSIM valid region)."""
         if margin == 0:
             return self
         return FieldZones(self.labels[margin:-margin, margin:-margin], self.radii,
@@ -93,10 +72,9 @@ def field_zones(shape: tuple[int, int],
     Parameters
     ----------
     shape : (int, int)
-        ``(H, W)`` sensor grid, in the pixels the zones are used on (binned ones included).
+        ``(H, W)``, in the pixels the zones are used on (binned ones included).
     optical_center : (float, float), optional
-        ``(v_c, u_c)`` in pixels of that grid; default the sensor centre
-        ``((H-1)/2, (W-1)/2)``, as the weight maps of :mod:`psfkit.forward.weights`.
+        ``(v_c, u_c)`` in pixels; default the sensor centre.
 
     Returns
     -------
@@ -105,7 +83,7 @@ def field_zones(shape: tuple[int, int],
     Raises
     ------
     InvalidInputError
-        A sensor with fewer than 3 pixels or a non-finite centre.
+        Fewer than 3 pixels or a non-finite centre.
     """
     h, w = int(shape[0]), int(shape[1])
     if h < 1 or w < 1 or h * w < len(ZONE_NAMES):

@@ -9,7 +9,6 @@ from psfkit.simulate.compact import (
     simulate_compact_scan,
 )
 from psfkit.simulate.compact_camera import CompactCamera
-from psfkit.simulate.degrade import degrade_grid
 from psfkit.simulate.psf_grid import (
     GroundTruth,
     grid_monitor_positions,
@@ -21,6 +20,6 @@ from psfkit.simulate.psf_patch import PsfPatch, place_patch
 from psfkit.simulate.sensor import SensorModel
 
 __all__ = ["BenchConfig", "CompactCamera", "CompactTruth", "GroundTruth", "PsfPatch",
-           "SensorModel", "VirtualCamera", "cutout_scan", "degrade_grid",
-           "grid_monitor_positions", "place_patch", "read_compact_truth", "read_ground_truth",
-           "simulate_compact_scan", "simulate_grid", "simulate_scan"]
+           "SensorModel", "VirtualCamera", "cutout_scan", "grid_monitor_positions",
+           "place_patch", "read_compact_truth", "read_ground_truth", "simulate_compact_scan",
+           "simulate_grid", "simulate_scan"]

@@ -1,6 +1,6 @@
-"""The compact bench's PSF: a pixel-integrated Airy pattern (an ideal circular pupil,
-``I(r) ∝ (2 J₁(kr)/kr)²``) of a given FWHM, optionally stretched along one axis, on a
-square stamp (:func:`airy_stamp`; used by :mod:`psfkit.simulate.compact`)."""
+"""The compact bench's PSF: a pixel-integrated Airy pattern ``I(r) ∝ (2 J₁(kr)/kr)²`` of a given
+FWHM, optionally stretched along one axis, on a square stamp.
+"""
 
 from __future__ import annotations
 
@@ -24,18 +24,18 @@ def airy_stamp(size: int, centre: tuple[float, float], fwhm_px: float, axis_rati
     size : int
         Stamp side, px.
     centre : (float, float)
-        ``(x, y)`` of the PSF centre in stamp pixel coordinates (pixel centres at integers).
+        ``(x, y)`` of the PSF centre (pixel centres at integers).
     fwhm_px : float
         FWHM along the minor axis, px.
     axis_ratio : float
         Major / minor FWHM (≥ 1).
     orientation_rad : float
-        Direction of the major axis, radians from ``+x`` towards ``+y``.
+        Major axis direction, radians from ``+x`` towards ``+y``.
 
     Returns
     -------
     numpy.ndarray
-        ``(size, size)`` float64, sums to 1 (the energy within the stamp).
+        ``(size, size)`` float64, sums to 1.
     """
     offsets = (np.arange(OVERSAMPLE) + 0.5) / OVERSAMPLE - 0.5
     grid = (np.arange(size)[:, None] + offsets[None, :]).ravel()       # sub-sample centres

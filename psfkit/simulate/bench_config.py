@@ -1,8 +1,5 @@
-"""The virtual bench's configuration: :class:`BenchConfig`, its checks and its JSON form.
-
-Every physical parameter of the simulated diffuser camera (:mod:`psfkit.simulate.camera`),
-checked when it is made (the command-line flags' ranges apply to the fields they set, wherever
-the value comes from) and written to / read from the run files as a dictionary.
+"""The virtual bench's configuration: :class:`BenchConfig`, its checks (the command-line flags'
+ranges apply wherever a value comes from) and its dictionary form for run files.
 """
 
 from __future__ import annotations
@@ -28,54 +25,41 @@ class BenchConfig:
     Attributes
     ----------
     diffusion_angle_deg : float
-        Full width at half maximum of the diffuser's scattering profile (1° engineered
-        diffuser).
+        FWHM of the diffuser's scattering profile.
     refractive_index : float
         Of the diffuser material.
     correlation_length_um : float or None
-        Correlation length of the surface; ``None`` chooses the one whose caustics focus at
-        the sensor (:func:`~psfkit.simulate.diffuser.caustic_correlation_length`).
+        Of the surface; ``None``: caustics focused at the sensor
+        (:func:`~psfkit.simulate.diffuser.caustic_correlation_length`).
     aperture_mm : (float, float)
-        ``(height, width)`` of the rectangular aperture in front of the diffuser.
+        ``(height, width)`` of the rectangular aperture.
     gap_mm : float
-        Diffuser–sensor distance ``d``. The default maps the 442×614-pixel monitor field of
-        view onto the 1080×1440 sensor (PSF shift of half the sensor width at the FoV edge).
+        Diffuser–sensor distance ``d`` (the default maps the monitor FoV onto the sensor).
     wavelengths_nm : tuple of float
-        One wavelength per channel (R, G, B); a single value simulates a mono camera.
+        One per channel (R, G, B); a single value simulates a mono camera.
     monitor_distance_mm, monitor_pixel_pitch_mm : float
-        Monitor geometry (50 cm, a 0.2768 mm pixel pitch of a 24" full-HD panel).
+        Monitor geometry (a 24" full-HD panel at 50 cm).
     fov_monitor_px : (int, int)
-        ``(height, width)`` of the field of view on the monitor, in monitor pixels.
+        ``(height, width)`` of the field of view on the monitor, monitor pixels.
     source_size_px : float
-        Side of the displayed square point source, monitor pixels (0 for an ideal point).
+        Side of the displayed square source, monitor pixels (0: an ideal point).
     spherical_source : bool
-        Spherical wave from the monitor distance (True) or a plane wave (False).
+        Spherical wave from the monitor distance (True) or a plane wave.
     sensor_shape : (int, int)
         ``(H, W)`` at full resolution; ``pixel_pitch_um`` at full resolution.
     downsample : int
-        Integer binning factor for fast runs (sensor ``H/downsample × W/downsample`` with
-        ``downsample`` times larger pixels; the optics are unchanged).
+        Binning factor for fast runs (larger pixels; the optics are unchanged).
     oversample : int or None
-        Optical samples per pixel and axis; ``None`` picks the smallest that samples the
-        scattered light at Nyquist (and at least 2, so pixels integrate the caustic).
+        Optical samples per pixel and axis; ``None``: the smallest Nyquist one (at least 2).
     vignetting_exponent : float
         Relative illumination ``cos(θ)**exponent``.
     field_free : bool
-        A camera without field variation, for tests of the analysis: every
-        position's PSF is the on-axis PSF *as sampled by the pixels* translated by the
-        chief-ray shift (exactly linear in tan θ; the sub-pixel part as a band-limited
-        translation), with no vignetting (``vignetting_exponent`` ignored), no astigmatism and
-        no other change of shape: the camera a shift-invariant pixel-level model describes
-        exactly. (Translating the optical PSF before the pixels integrate it instead, as a
-        physical isoplanatic camera would, changes the sampled PSF with each position's
-        sub-pixel phase wherever the pixels alias it, e.g. the default camera binned 8×: a
-        change no shift-invariant pixel-level model represents.) A bench facility, not a
-        model of a real camera.
+        No field variation (a test facility): every PSF is the pixel-sampled on-axis PSF
+        translated by the chief-ray shift, without vignetting.
     sensor : SensorModel
         Noise, black level, bit depth, saturation.
     peak_fraction : float
-        Exposure is set so that the brightest on-axis pixel reaches this fraction of full
-        well (above 1 saturates on purpose).
+        The brightest on-axis pixel reaches this fraction of full well (above 1 saturates).
     seed : int
         Seed of the diffuser surface and of the sensor noise.
     """

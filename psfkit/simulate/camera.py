@@ -1,22 +1,15 @@
 r"""The virtual bench: a simulated diffuser camera whose PSF really varies over the field.
 
 Optics (scalar, thin element): a point source on a monitor at distance :math:`z` sends a
-spherical (or, optionally, plane) wave onto a thin random phase diffuser behind a finite
-aperture; the field is propagated over the diffuser–sensor gap :math:`d` with the exact
-angular-spectrum transfer function evaluated on the frequency grid shifted by the source's
-carrier (:mod:`psfkit.simulate.propagation`). Nothing is warped by hand: the off-axis PSF's
-shift (:math:`d\tan\theta`), its oblique-incidence astigmatism (effective distances
-:math:`d/\cos^3\theta` tangential, :math:`d/\cos\theta` sagittal), and its small magnification
-changes all come out of the propagation.
+spherical (or plane) wave onto a thin random phase diffuser behind a finite aperture,
+propagated over the gap :math:`d` with the exact angular-spectrum transfer function on the
+frequency grid shifted by the source's carrier (:mod:`psfkit.simulate.propagation`). The
+off-axis shift (:math:`d\tan\theta`), oblique astigmatism (:math:`d/\cos^3\theta` tangential,
+:math:`d/\cos\theta` sagittal) and magnification changes all come out of the propagation.
 
-Coordinates follow ``docs/architecture.md``: sensor rows ``v`` (y, down) and columns ``u``
-(x, right), optical axis at the sensor centre. Field positions are given in the monitor
-image frame (x right, y down, as seen from the camera); a source at ``+x`` moves the PSF to
-``-u``. Lengths carry their unit in their name.
-
-Radiometry: the envelope has unit intensity over the aperture, so the noise-free PSF of a
-channel sums to ``gain(θ)`` (relative illumination, cos⁴ by default) when all of it falls on
-the sensor; on axis it sums to 1.
+Coordinates (``docs/architecture.md``): sensor rows ``v`` (down), columns ``u`` (right), axis
+at the sensor centre; a source at monitor ``+x`` moves the PSF to ``-u``. The on-axis
+noise-free PSF of a channel sums to 1, an off-axis one to ``gain(θ)`` (cos⁴ by default).
 """
 
 from __future__ import annotations
@@ -53,8 +46,7 @@ MAX_PROPAGATION_PIXELS = 2**26   # samples of one propagation grid (complex128: 
 
 
 def _fast_block(min_pixels: int, parity: int, q: int) -> int:
-    """Smallest block size (pixels) >= min_pixels with the given parity and an FFT-friendly
-    number of optical samples ``q·n``."""
+    """Smallest block size >= ``min_pixels``, given parity, FFT-friendly ``q·n``."""
     n = max(min_pixels, 2)
     while True:
         if (n - parity) % 2 == 0 and sfft.next_fast_len(q * n) == q * n:
@@ -78,16 +70,14 @@ class VirtualCamera:
     config : BenchConfig
         All physical parameters; the diffuser surface is drawn from ``config.seed``.
     surface : callable, optional
-        ``surface(y_um, x_um) -> height_um`` on the grid spanned by two increasing 1-D
-        coordinate arrays (relative to the optical axis); replaces the random diffuser, e.g.
-        with a measured surface profile.
+        ``surface(y_um, x_um) -> height_um`` on the grid of two increasing 1-D coordinate arrays
+        (relative to the axis); replaces the random diffuser.
     backend : {"auto", "torch", "numpy"}
-        ``"torch"`` runs the optics of :meth:`psf_patch` as batched float32 FFTs in PyTorch
-        (:mod:`psfkit.simulate.propagation_torch`, CUDA if present, else all CPU cores; PSFs
-        equal to the NumPy path's to ~1e-5 relative); ``"numpy"`` is the reference path
-        (scipy.fft, float64 phases); ``"auto"`` is torch where it can be imported.
+        ``"torch"``: batched float32 FFTs (:mod:`psfkit.simulate.propagation_torch`, CUDA if
+        present; ~1e-5 relative to numpy); ``"numpy"``: the reference path (scipy.fft, float64
+        phases); ``"auto"``: torch where importable.
     device : str, optional
-        torch device of the torch backend (default CUDA if available, else CPU).
+        torch device (default CUDA if available, else CPU).
 
     Examples
     --------
@@ -206,8 +196,7 @@ class VirtualCamera:
         return sx / self.pixel_um + 0.0, sy / self.pixel_um + 0.0  # + 0.0: no negative zeros
 
     def gain(self, field_deg: tuple[float, float]) -> float:
-        """Relative illumination (vignetting) of the source, 1 on axis (and everywhere for a
-        ``field_free`` camera)."""
+        """Relative illumination of the source, 1 on axis (always 1 if ``field_free``)."""
         if self.config.field_free:
             return 1.0
         return float(relative_illumination(self.direction_cosines(field_deg)[2],
@@ -221,11 +210,8 @@ class VirtualCamera:
     # ------------------------------------------------------------------ optics
 
     def optical_path_um(self, field_deg: tuple[float, float]) -> np.ndarray:
-        """Wavelength-independent optical path (µm) across the optical grid, carrier removed.
-
-        ``(n−1)·h(x, y) + (R − R0 − α x − β y)``: the diffuser's surface plus, for a spherical
-        source, the curvature of the incoming wavefront (``R`` the distance to the source).
-        """
+        """Wavelength-independent optical path (µm) on the optical grid, carrier removed:
+        ``(n−1)·h(x, y) + (R − R0 − α x − β y)`` (the second term for a spherical source only)."""
         opl = (self.config.refractive_index - 1.0) * self._height_um
         if not self.config.spherical_source:
             return opl
@@ -240,8 +226,8 @@ class VirtualCamera:
 
     def envelope(self, field_deg: tuple[float, float], channel: int,
                  optical_path_um: np.ndarray | None = None) -> np.ndarray:
-        """Complex envelope just behind the diffuser (carrier removed), on the optical grid:
-        ``aperture · exp(i 2π/λ · optical_path)`` (complex64)."""
+        """``aperture · exp(i 2π/λ · optical_path)`` (complex64) behind the diffuser, carrier
+        removed."""
         if optical_path_um is None:
             optical_path_um = self.optical_path_um(field_deg)
         k = 2.0 * np.pi / self.wavelengths_um[channel]
@@ -257,21 +243,11 @@ class VirtualCamera:
         return self._plane_spectra[channel]
 
     def psf_patch(self, field_deg: tuple[float, float], subpixel_shift: bool = True) -> PsfPatch:
-        """Noise-free PSF of a source at ``field_deg`` on the block around its chief ray.
+        """Noise-free PSF of a source at ``field_deg`` ``(θx, θy)`` degrees on the block around its
+        chief ray.
 
-        Parameters
-        ----------
-        field_deg : (float, float)
-            Field angles ``(θx, θy)`` in degrees.
-        subpixel_shift : bool
-            Apply the sub-pixel part of the chief-ray shift (True for a physical PSF). With
-            False the block is the PSF in the frame moving with the chief ray (used to study
-            its change of shape alone).
-
-        Returns
-        -------
-        PsfPatch
-            ``image`` in relative irradiance (the on-axis PSF sums to 1 per channel).
+        ``subpixel_shift=False`` omits the chief-ray shift's sub-pixel part (the PSF in the frame
+        moving with the chief ray). Returns a :class:`PsfPatch` in relative irradiance.
         """
         du, dv = self.true_shift_px(field_deg)
         nu, nv = int(np.round(du)), int(np.round(dv))
@@ -289,8 +265,8 @@ class VirtualCamera:
 
     def _optics_patch(self, field_deg: tuple[float, float],
                       residual_um: tuple[float, float]) -> np.ndarray:
-        """The block's ``(C, h, w)`` PSF of a source at ``field_deg`` whose chief ray lands
-        ``residual_um`` from the block's centre pixel."""
+        """The block's ``(C, h, w)`` PSF of a source whose chief ray lands ``residual_um`` from the
+        block's centre pixel."""
         alpha, beta, _ = self.direction_cosines(field_deg)
         scale = self.gain(field_deg) / self._aperture_power
         blur_px = self.source_blur_um() / self.pixel_um

@@ -1,40 +1,21 @@
-r"""A compact-PSF bench: a lens-like camera imaging point sources (stars, beads) at irregular,
+"""A compact-PSF bench: a lens-like camera imaging point sources (stars, beads) at irregular,
 known field positions, with its ground truth.
 
-The diffuser bench (:mod:`psfkit.simulate.camera`) makes a caustic that fills the sensor. Most
-instruments have a *compact* PSF instead: a few pixels wide on a large frame. This module
-simulates what such a lab hands over, in the grid format (``docs/grid-format.md``), as an
-**irregular scan**: one frame per source, each with the source's field angles, a ``1 × P``
-scan in manifest order, the first position on the optical axis (the reference).
+Written as an **irregular scan** in the grid format (``docs/grid-format.md``): one frame per
+source with its field angles, the first on the optical axis (the reference). A source at
+field angles ``θ`` images at ``x = c + A · tan θ`` (``c`` the axis on the sensor,
+``A = −m R(ρ)``: magnification ``m`` px per unit ``tan θ``, an inverted image rotated by
+``ρ``), plus an optional cubic radial distortion. Its PSF is a pixel-integrated Airy pattern
+(``I(r) ∝ (2 J₁(kr)/kr)²``) of the given FWHM, optionally wider (``width_growth``) and
+radially stretched (``1 + ellipticity``) at the field edge, both ∝ (field radius)², drawn
+within ``STAMP_RADIUS_FWHM`` FWHMs. Sensor: :class:`~psfkit.simulate.sensor.SensorModel`
+(mono); fluxes log-uniform over ``brightness_range``, the reference the brightest.
 
-Optics. Each source at field angles ``θ = (θx, θy)`` images at the sensor position
-``x = c + A · tan θ`` (``c`` the optical axis on the sensor, ``A = −m R(ρ)``: magnification
-``m`` in px per unit ``tan θ``, an inverted image rotated by ``ρ`` on the detector, the
-sign convention of ``docs/grid-format.md``: a source at ``+x`` moves its PSF to ``−u``), with
-an optional cubic radial distortion. Its PSF is an Airy pattern (an ideal circular pupil,
-``I(r) ∝ (2 J₁(kr)/kr)²``) of the given FWHM, integrated over the pixels (5 × 5 sub-samples),
-at the sub-pixel image position. A mild real field variation is optional: the FWHM grows by
-``width_growth`` and the PSF is stretched along the radial direction by ``1 + ellipticity``
-at the field edge, both ∝ (field radius)² (defocus- and astigmatism-like). The Airy wings
-are drawn within a stamp of ``STAMP_RADIUS_FWHM`` FWHMs (≈ 2 % of the energy lies beyond).
-
-Sensor. The virtual bench's :class:`~psfkit.simulate.sensor.SensorModel` (mono): shot noise,
-Gaussian read noise, black level, 12-bit ADC MSB-aligned in 16-bit files, clipping. Sources
-differ in brightness like stars (fluxes log-uniform over ``brightness_range``; the reference
-is the brightest, its peak at ``peak_fraction`` of full well).
-
-Ground truth, in ``ground_truth/truth.json`` next to the scan: per position the field angles,
-the true image position (sub-pixel, px), the true shift ``(du, dv)`` relative to the
-reference, the flux (electrons), FWHM, axis ratio and orientation; the camera's parameters
-(the true affine field → shift map). ``ground_truth/stamps.npy`` holds the noise-free PSF of
-every position (unit sum, ``(P, S, S)`` float32, centred on the stamp's middle pixel
-``truth["stamp_origin"]``). :func:`read_compact_truth` loads them.
-
-:func:`cutout_scan` writes the same scan as pre-centred cut-outs (e.g. 63 × 63 around each
-source, the same pixels, so the same noise), with the truth moved into the cut-outs' frames:
-a check that an analysis does not depend on the frame size.
-
-A test facility (``tests/``, benchmarks), not a command: nothing here is a user flag.
+``ground_truth/truth.json`` records per position the field angles, true image position, true
+shift ``(du, dv)`` relative to the reference, flux, FWHM, axis ratio and orientation, and the
+camera; ``ground_truth/stamps.npy`` the noise-free unit-sum PSFs ``(P, S, S)``.
+:func:`cutout_scan` writes the same scan as pre-centred cut-outs. A test facility, not a
+command.
 """
 
 from __future__ import annotations
@@ -66,10 +47,9 @@ STAMP_RADIUS_FWHM = 10.0
 class CompactTruth:
     """Ground truth of a compact-PSF scan (:func:`read_compact_truth`).
 
-    ``(P, 2)`` arrays ``field_deg`` (θx, θy), ``position_px`` (true image position ``(x, y)``
-    in the frame, px) and ``shift_px`` (``(du, dv)`` relative to the reference); ``(P,)``
-    ``flux_e``, ``fwhm_px``, ``axis_ratio``; ``stamps`` ``(P, S, S)`` noise-free unit-sum PSFs;
-    ``camera`` and the raw ``info``.
+    ``(P, 2)`` ``field_deg`` (θx, θy), ``position_px`` (true image ``(x, y)``, px) and
+    ``shift_px`` (``(du, dv)`` relative to the reference); ``(P,)`` ``flux_e``, ``fwhm_px``,
+    ``axis_ratio``; ``stamps`` ``(P, S, S)`` noise-free unit-sum PSFs; ``camera``; raw ``info``.
     """
 
     field_deg: np.ndarray
@@ -89,8 +69,8 @@ class CompactTruth:
 
 def _positions(n: int, frame_shape: tuple[int, int], camera: CompactCamera,
                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Optical axis ``(x, y)`` and ``(P, 2)`` image positions: the axis first, then sources
-    uniform over the frame inside the margin."""
+    """Optical axis ``(x, y)`` and ``(P, 2)`` image positions: the axis, then uniform sources inside
+    the margin."""
     h, w = frame_shape
     axis = np.array([(w - 1) / 2 + camera.axis_offset_px[0],
                      (h - 1) / 2 + camera.axis_offset_px[1]])
@@ -104,8 +84,8 @@ def _positions(n: int, frame_shape: tuple[int, int], camera: CompactCamera,
 
 def _field_of(positions: np.ndarray, axis: np.ndarray, camera: CompactCamera,
               edge_radius: float) -> np.ndarray:
-    """Field angles ``(P, 2)`` deg of the sources imaging at ``positions``: the inverse of the
-    affine map after removing the cubic distortion (solved by fixed-point iteration)."""
+    """Field angles ``(P, 2)`` deg of sources imaging at ``positions``: the inverse affine map after
+    removing the cubic distortion (fixed-point iteration)."""
     offset = positions - axis
     undistorted = offset.copy()
     k = camera.distortion_px / edge_radius**3
@@ -132,20 +112,18 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
     frame_shape : (int, int)
         ``(H, W)`` of each frame, px.
     camera : CompactCamera, optional
-        Optics, field variation and sensor (default: a field-independent 3 px Airy PSF).
+        Default: a field-independent 3 px Airy PSF.
     seed : int
         Positions, brightnesses and noise.
     suffix : {".tiff", ".png", ".npy"}
         Image file type (16-bit raw frames).
-    overwrite : bool
-        Replace an existing folder.
-    progress : bool
-        Show a progress bar.
+    overwrite, progress : bool
+        Replace an existing folder; show a progress bar.
 
     Returns
     -------
     pathlib.Path
-        The scan folder (``psfkit info`` reads it as an irregular scan of ``n_positions``).
+        The scan folder.
     """
     camera = camera or CompactCamera()
     if n_positions < 3:
@@ -196,9 +174,6 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
                             "axis_ratio": float(ratio[p]),
                             "orientation_deg": float(np.degrees(orientation[p])),
                             "stamp_corner_px": [ix - stamp_half, iy - stamp_half]})
-        truth_dir = writer.folder / TRUTH_DIR
-        truth_dir.mkdir()
-        np.save(truth_dir / STAMPS_FILE, stamps)
         truth = {
             "description": "compact-PSF bench ground truth: position_px is the true image "
                            "position (x, y) of each source in its frame (pixel centres at "
@@ -215,9 +190,16 @@ def simulate_compact_scan(out_dir: str | os.PathLike, n_positions: int = 117,
             "electrons_per_file_unit": sensor.electrons_per_dn / sensor.container_scale,
             "camera": camera.to_dict(), "seed": seed, "crop": None, "positions": records,
         }
-        (truth_dir / TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n",
-                                            encoding="utf-8")
+        _write_truth(writer.folder, stamps, truth)
     return Path(out_dir)
+
+
+def _write_truth(folder: Path, stamps: np.ndarray, truth: dict[str, Any]) -> None:
+    """``ground_truth/`` of a scan: the stamps and ``truth.json``."""
+    truth_dir = folder / TRUTH_DIR
+    truth_dir.mkdir()
+    np.save(truth_dir / STAMPS_FILE, stamps)
+    (truth_dir / TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n", encoding="utf-8")
 
 
 def _add_stamp(frame: np.ndarray, stamp: np.ndarray, left: int, top: int) -> None:
@@ -232,16 +214,14 @@ def _add_stamp(frame: np.ndarray, stamp: np.ndarray, left: int, top: int) -> Non
 
 def cutout_scan(scan_dir: str | os.PathLike, out_dir: str | os.PathLike, size: int = 63,
                 overwrite: bool = False) -> Path:
-    """Write a compact-PSF scan as pre-centred cut-outs: ``size × size`` crops around each
-    source (the integer pixel nearest its true position at the crop's middle, clamped to the
-    frame), the same pixels and manifest fields, and the truth in the crops' frames
-    (``position_px`` relative to each crop, ``shift_px`` = the residual of the centring,
-    ``crop_corner_px`` where each crop was taken).
+    """Write a compact-PSF scan as ``size × size`` cut-outs centred on each source's nearest pixel
+    (clamped to the frame), with the truth in the crops' frames (``position_px`` relative to the
+    crop, ``shift_px`` the centring residual, ``crop_corner_px``).
 
     Parameters
     ----------
     scan_dir : path-like
-        A scan written by :func:`simulate_compact_scan`.
+        A scan of :func:`simulate_compact_scan`.
     out_dir : path-like
         Destination folder (written atomically).
     size : int
@@ -280,17 +260,12 @@ def cutout_scan(scan_dir: str | os.PathLike, out_dir: str | os.PathLike, size: i
         info["crop"] = {"size": size, "source_frame_shape": [h, w],
                         "meaning": "position_px relative to each crop; shift_px relative to "
                                    "the reference crop's source (the centring residual)"}
-        truth_dir = writer.folder / TRUTH_DIR
-        truth_dir.mkdir()
-        np.save(truth_dir / STAMPS_FILE, truth.stamps)
-        (truth_dir / TRUTH_FILE).write_text(json.dumps(info, indent=1) + "\n",
-                                            encoding="utf-8")
+        _write_truth(writer.folder, truth.stamps, info)
     return Path(out_dir)
 
 
 def read_compact_truth(scan_dir: str | os.PathLike) -> CompactTruth:
-    """Load the ground truth of a scan written by :func:`simulate_compact_scan` or
-    :func:`cutout_scan`.
+    """Load the ground truth of a scan of :func:`simulate_compact_scan` or :func:`cutout_scan`.
 
     Raises
     ------

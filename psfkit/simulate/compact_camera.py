@@ -1,6 +1,6 @@
-"""The compact-PSF camera's parameters (:class:`CompactCamera`): their checks, the true
-affine field → shift map, and their JSON form (the scan's ground truth records them).
-The camera and its optics are described in :mod:`psfkit.simulate.compact`."""
+"""The compact-PSF camera's parameters (:class:`CompactCamera`): checks, the true affine
+field → shift map and the JSON form (see :mod:`psfkit.simulate.compact`).
+"""
 
 from __future__ import annotations
 
@@ -21,16 +21,15 @@ class CompactCamera:
     Attributes
     ----------
     fwhm_px : float
-        FWHM of the on-axis Airy PSF, sensor px.
+        FWHM of the on-axis Airy PSF, px.
     width_growth : float
-        Fractional FWHM increase at the field edge (∝ radius²); 0: a field-independent PSF.
+        Fractional FWHM increase at the field edge (∝ radius²).
     ellipticity : float
-        Radial stretch − 1 at the field edge (∝ radius²); 0: round everywhere.
+        Radial stretch − 1 at the field edge (∝ radius²).
     plate_scale_deg : float
-        Field angle per sensor pixel on axis, degrees (sets the magnification).
+        Field angle per pixel on axis, degrees.
     rotation_deg : float
-        Rotation of the image on the detector (the true shift map's rotation besides the
-        inversion).
+        Rotation of the image on the detector.
     distortion_px : float
         Radial displacement at the field edge from cubic distortion, px (+: pincushion).
     axis_offset_px : (float, float)
@@ -38,14 +37,13 @@ class CompactCamera:
     peak_fraction : float
         Peak of the brightest (reference) source as a fraction of full well.
     brightness_range : float
-        Brightest / faintest source flux (log-uniform in between).
+        Brightest / faintest flux (log-uniform in between).
     background_e : float
-        Uniform background (sky, stray light) per pixel, electrons.
+        Uniform background per pixel, electrons.
     edge_margin_px : int
         Sources image at least this far inside the frame.
     sensor : SensorModel
-        Noise, black level and bit depth (mono: the first quantum efficiency is unused, the
-        fluxes are detected electrons).
+        Noise, black level and bit depth (mono; fluxes are detected electrons).
     """
 
     fwhm_px: float = 3.0

@@ -1,9 +1,8 @@
 r"""Scalar angular-spectrum propagation of oblique waves (pure functions on arrays).
 
-A point source at field angle θ illuminates the diffuser with a tilted wave
-:math:`U(x) = e^{i 2\pi f_0\cdot x}\,u(x)` whose carrier :math:`f_0 = (\alpha, \beta)/\lambda`
-(direction cosines α, β) is far too steep to sample at large θ. The envelope :math:`u` is
-smooth, and propagating over a distance :math:`d` gives
+A source at field angle θ illuminates the diffuser with :math:`U(x) = e^{i 2\pi f_0\cdot x}\,u(x)`
+(:math:`f_0 = (\alpha, \beta)/\lambda`), whose carrier is too steep to sample. Propagating over
+:math:`d` gives
 
 .. math::
 
@@ -11,16 +10,10 @@ smooth, and propagating over a distance :math:`d` gives
              H(g + f_0)\right](x),\qquad
     H(f) = \exp\!\left(i 2\pi d \sqrt{\lambda^{-2} - |f|^2}\right),
 
-so the transfer function is evaluated on the frequency grid shifted by :math:`f_0` and the
-intensity :math:`|U_d|^2` needs only the envelope. The first-order term of
-:math:`H(g+f_0)` is a lateral shift of the whole pattern by the chief ray,
-:math:`s = d\,(\alpha, \beta)/\gamma = d\tan\theta`; :func:`oblique_transfer_function` removes it
-(the caller places the pattern at the shift) so that the simulated block stays small. The
-second-order term is the oblique-incidence astigmatism: the envelope evolves as if propagated
-over :math:`d/\cos^3\theta` along the tangential and :math:`d/\cos\theta` along the sagittal
-direction (the paraxial reference model the tests check the simulation against).
-
-All lengths are in micrometres; arrays are in NumPy FFT order (zero frequency first).
+so :math:`|U_d|^2` needs only the envelope. The first-order term of :math:`H(g+f_0)` is the
+chief-ray shift :math:`s = d\tan\theta`, removed by :func:`oblique_transfer_function` (the
+caller places the pattern); the second order is oblique astigmatism (:math:`d/\cos^3\theta`
+tangential, :math:`d/\cos\theta` sagittal). Lengths in µm; arrays in FFT order.
 """
 
 from __future__ import annotations
@@ -37,8 +30,8 @@ def frequency_grid(shape: tuple[int, int], pitch_um: float) -> tuple[np.ndarray,
 
 
 def chief_ray_shift(distance_um: float, alpha: float, beta: float) -> tuple[float, float]:
-    """Lateral shift ``(sx, sy)`` in µm of a wave with direction cosines ``(α, β)`` after
-    propagating ``distance_um``: ``d·α/γ`` and ``d·β/γ`` with ``γ = sqrt(1 − α² − β²)``."""
+    """Lateral shift ``(sx, sy)`` µm after ``distance_um`` of a wave with direction cosines
+    ``(α, β)``: ``d·α/γ``, ``d·β/γ``, ``γ = sqrt(1 − α² − β²)``."""
     gamma = np.sqrt(1.0 - alpha**2 - beta**2)
     return distance_um * alpha / gamma, distance_um * beta / gamma
 
@@ -47,36 +40,33 @@ def oblique_transfer_function(shape: tuple[int, int], pitch_um: float, wavelengt
                               distance_um: float, alpha: float = 0.0, beta: float = 0.0,
                               residual_shift_um: tuple[float, float] = (0.0, 0.0),
                               ) -> np.ndarray:
-    r"""Angular-spectrum transfer function of the envelope of an oblique wave.
-
-    Returns :math:`\exp(i\phi(g))` with
+    r"""Angular-spectrum transfer function of the envelope of an oblique wave,
+    :math:`\exp(i\phi(g))`:
 
     .. math::
 
         \phi(g) = 2\pi d\left[w(g+f_0) - w(f_0) + \frac{f_0\cdot g}{w(f_0)}\right]
                   - 2\pi\, g\cdot r,\qquad w(f) = \sqrt{\lambda^{-2}-|f|^2},
 
-    i.e. the exact non-paraxial propagator with its constant phase and its chief-ray shift
-    removed, and a residual shift ``r`` (the sub-pixel remainder of the chief-ray shift) put
-    back. Evanescent components (``|g + f0| ≥ 1/λ``) are set to zero.
+    the exact propagator without its constant phase and chief-ray shift, plus a residual shift
+    ``r``. Evanescent components (``|g + f0| ≥ 1/λ``) are zero.
 
     Parameters
     ----------
     shape : (int, int)
-        Grid size ``(ny, nx)``.
+        ``(ny, nx)``.
     pitch_um : float
-        Sample spacing (µm).
+        Sample spacing.
     wavelength_um, distance_um : float
-        Wavelength and propagation distance (µm).
     alpha, beta : float
         Direction cosines of the carrier along x (columns) and y (rows).
     residual_shift_um : (float, float)
-        ``(rx, ry)`` shift applied to the propagated envelope (µm).
+        ``(rx, ry)`` shift of the propagated envelope.
 
     Returns
     -------
     numpy.ndarray
-        Complex64 array of ``shape`` in FFT order (the phase is computed in float64).
+        Complex64, ``shape``, FFT order (phase computed in float64).
     """
     gy, gx = frequency_grid(shape, pitch_um)
     inv_l2 = 1.0 / wavelength_um**2
@@ -99,11 +89,8 @@ def oblique_transfer_function(shape: tuple[int, int], pitch_um: float, wavelengt
 
 
 def unit_phasor(phase: np.ndarray) -> np.ndarray:
-    """``exp(i·phase)`` as complex64, via float32 cos and sin (ten times faster than float64).
-
-    The phase is computed in float64 by the callers and only rounded here; for the
-    |phase| < 4096 rad met in this simulation the rounding error is below 3e-4 rad.
-    """
+    """``exp(i·phase)`` as complex64 via float32 cos and sin (10× faster; below 3e-4 rad error for
+    the |phase| < 4096 rad met here)."""
     phase32 = phase.astype(np.float32)
     out = np.empty(phase.shape, dtype=np.complex64)
     np.cos(phase32, out=out.real)
@@ -111,14 +98,9 @@ def unit_phasor(phase: np.ndarray) -> np.ndarray:
     return out
 
 
-def propagate(field: np.ndarray, transfer: np.ndarray, workers: int | None = None) -> np.ndarray:
-    """Apply a transfer function (FFT order) to a complex field: ``IFFT(FFT(field)·H)``."""
-    return sfft.ifft2(sfft.fft2(field, workers=workers) * transfer, workers=workers)
-
-
 def box_blur(image: np.ndarray, width_px: float) -> np.ndarray:
-    """Convolve the last two axes with a centred square box of side ``width_px`` (Fourier
-    domain, exact for band-limited data; used for the finite size of the displayed source)."""
+    """Convolve the last two axes with a centred square box of side ``width_px`` (in the Fourier
+    domain; the displayed source's finite size)."""
     gy = np.fft.fftfreq(image.shape[-2])[:, None]
     gx = np.fft.rfftfreq(image.shape[-1])[None, :]
     spec = sfft.rfft2(image, axes=(-2, -1))

@@ -1,20 +1,18 @@
 r"""The virtual camera's optics in PyTorch: all channels of one PSF in float32, in place.
 
-The same physics as the NumPy path of :meth:`psfkit.simulate.camera.VirtualCamera.psf_patch`
-(envelope behind the diffuser, oblique angular-spectrum propagation, pixel integration,
-source blur), run on whichever device is available: CUDA if present (cuFFT), else the CPU
-(elementwise work in torch, FFTs in scipy's pocketfft on the same memory, all cores).
-Everything is float32; the formulas that lose digits to cancellation in float32 are rewritten
-without it, so the phases stay within ~1e-5 rad of the float64 ones where the light is:
+The physics of the NumPy path of :meth:`psfkit.simulate.camera.VirtualCamera.psf_patch`, on
+CUDA if present, else the CPU (elementwise work in torch, FFTs in scipy's pocketfft on the same
+memory). Formulas that cancel in float32 are rewritten, keeping the phases within ~1e-5 rad of
+float64 where the light is:
 
-- wavefront of the spherical source, with :math:`L = x x_s + y y_s`, :math:`\rho^2 = x^2+y^2`:
+- spherical wavefront, with :math:`L = x x_s + y y_s`, :math:`\rho^2 = x^2+y^2`:
   :math:`R - R_0 - \alpha x - \beta y = \rho^2/(R+R_0) + L\,(R-R_0)/(R_0(R+R_0))`,
   :math:`R - R_0 = (\rho^2 - 2L)/(R+R_0)`;
-- transfer function (:func:`psfkit.simulate.propagation.oblique_transfer_function`), with
-  :math:`q = 2 f_0\cdot g + |g|^2` and :math:`W = w + w_0 = \sqrt{w_0^2 - q} + w_0`:
+- transfer function, with :math:`q = 2 f_0\cdot g + |g|^2` and
+  :math:`W = w + w_0 = \sqrt{w_0^2 - q} + w_0`:
   :math:`w - w_0 + f_0\cdot g/w_0 = -\big(f_0\cdot g\; q/(w_0 W) + |g|^2\big)/W`.
 
-torch is imported here only, so that importing :mod:`psfkit` (and its CLI) does not load it.
+torch is imported here only, so that importing :mod:`psfkit` does not load it.
 """
 
 from __future__ import annotations
@@ -52,10 +50,8 @@ def default_device() -> str:
 
 @contextmanager
 def cpu_threads(n: int) -> Iterator[None]:
-    """Run torch's CPU operators on ``n`` threads, then restore the previous count.
-
-    Set once for a whole run: changing the count re-creates torch's thread pool.
-    """
+    """Run torch's CPU operators on ``n`` threads, then restore the previous count (set once per
+    run: a change re-creates the thread pool)."""
     import torch
 
     previous = torch.get_num_threads()
@@ -76,7 +72,7 @@ class TorchOptics:
     surface_opl_um : numpy.ndarray
         ``(ny, nx)`` optical path of the diffuser, ``(n−1)·h`` (µm).
     aperture : numpy.ndarray
-        ``(ny, nx)`` aperture transmission (0 outside).
+        ``(ny, nx)`` aperture transmission.
     wavelengths_um : tuple of float
         One per channel.
     gap_um, z_um, pitch_um : float
@@ -86,7 +82,7 @@ class TorchOptics:
     spherical : bool
         Spherical (True) or plane (False) incident wave.
     device : str, optional
-        torch device; default :func:`default_device`.
+        Default :func:`default_device`.
     """
 
     def __init__(self, x_um: np.ndarray, y_um: np.ndarray, surface_opl_um: np.ndarray,
@@ -128,12 +124,8 @@ class TorchOptics:
     # ----------------------------------------------------------------- FFTs
 
     def _fft2_(self, x: torch.Tensor, inverse: bool = False) -> None:
-        """In-place 2-D FFT of a contiguous complex64 ``(ny, nx)`` tensor.
-
-        On the CPU the transform runs in scipy's pocketfft on the tensor's memory (in place,
-        all cores): on this data it is faster than torch's CPU FFT (which is slow along the
-        strided axis, 2-3x here); on CUDA, cuFFT.
-        """
+        """In-place 2-D FFT of a contiguous complex64 ``(ny, nx)`` tensor: scipy's pocketfft on the
+        tensor's memory on the CPU (2-3x faster than torch's here), cuFFT on CUDA."""
         if x.device.type == "cpu":
             import scipy.fft as sfft
 
@@ -162,8 +154,8 @@ class TorchOptics:
         return delta.add_(self.rho2).div_(r).add_(self.surface_opl)
 
     def spectra(self, source_um: tuple[float, float]) -> torch.Tensor:
-        """``(C, ny, nx)`` complex64 spectra of the envelopes just behind the diffuser (a
-        work buffer, overwritten by the next call)."""
+        """``(C, ny, nx)`` complex64 spectra of the envelopes behind the diffuser (a work buffer,
+        overwritten by the next call)."""
         if not self.spherical and self._plane_spectrum is not None:
             return self.field.copy_(self._plane_spectrum)
         torch = self.torch
@@ -201,8 +193,8 @@ class TorchOptics:
                        residual_shift_um: tuple[float, float]
                        ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Phase (rad) of :func:`~psfkit.simulate.propagation.oblique_transfer_function` for one
-        channel, ``(ny, nx)`` float32 (a work buffer), and the mask of the propagating
-        components (None when all propagate)."""
+        channel, ``(ny, nx)`` float32 (a work buffer), and the mask of propagating components (None:
+        all)."""
         torch = self.torch
         lam = self.wavelengths_um[channel]
         f0x, f0y = alpha / lam, beta / lam
@@ -225,8 +217,7 @@ class TorchOptics:
 
     def intensity(self, source_um: tuple[float, float], alpha: float, beta: float,
                   residual_shift_um: tuple[float, float]) -> torch.Tensor:
-        """``(C, ny/q, nx/q)`` float32 intensity on the sensor pixels of the block (summed
-        over the ``q × q`` optical samples of each pixel), unnormalized."""
+        """``(C, ny/q, nx/q)`` float32 intensity on the block's sensor pixels, unnormalized."""
         torch = self.torch
         field = self.spectra(source_um)
         q = self.oversample

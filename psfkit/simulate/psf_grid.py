@@ -1,24 +1,13 @@
 """Simulate a measured PSF grid with the virtual bench, with its ground truth.
 
-``simulate_grid`` does what a lab does: display a point at N × M positions spanning the
-monitor's field of view, capture each with one fixed exposure (so vignetting stays visible;
-optionally the mean of several frames, ``frames``), and hand over the images in the grid
-format (``psfkit.io.grid``) with a dark frame. Next to
-them it writes what a lab cannot know, in ``ground_truth/``:
-
-``truth.json``
-    per position: grid index, monitor position, field angles, true chief-ray shift
-    ``(du, dv)`` in sensor pixels relative to the on-axis PSF, true relative illumination
-    (gain), number of saturated pixels (in any frame); the bench parameters; the exposure
-    and the number of frames averaged.
-``psfs_clean.npy``
-    ``(N, M, C, H, W)`` float32: the noise-free expected signal above black level, in the
-    stored file units (what a perfect dark subtraction of an infinitely averaged capture
-    would give), written position by position (memory-mapped) so that a full-resolution
-    grid never sits in memory. Optional (``clean_psfs=False``, as ``psfkit demo`` writes
-    it: 378 MB at the demo's size): :func:`read_ground_truth` then computes the same values
-    again, a position at a time when asked, from the bench recorded in ``truth.json``
-    (:class:`CleanPsfs`; bit for bit with the numpy backend).
+:func:`simulate_grid` does what a lab does: a point displayed at N × M monitor positions, each
+captured with one fixed exposure (vignetting stays visible; optionally averaged over
+``frames``), written in the grid format with a dark frame. In ``ground_truth/`` it adds what a
+lab cannot know: ``truth.json`` (per position the field angles, true chief-ray shift
+``(du, dv)`` relative to the on-axis PSF, gain and saturated pixel count; the bench, exposure
+and frames) and, optionally, ``psfs_clean.npy`` (``(N, M, C, H, W)`` float32 noise-free signal
+above black level in file units, memory-mapped). Without it :func:`read_ground_truth`
+recomputes the clean PSFs on request (:class:`CleanPsfs`).
 """
 
 from __future__ import annotations
@@ -49,8 +38,7 @@ def grid_monitor_positions(config: BenchConfig, grid_shape: tuple[int, int],
                            extent: float = 1.0) -> np.ndarray:
     """Monitor positions ``(x, y)`` (pixels from the axis) of an N × M grid, ``(N, M, 2)``.
 
-    The grid spans ``extent`` times the field of view, edge to edge, evenly spaced; an odd
-    grid has its middle position on the optical axis.
+    Evenly spaced over ``extent`` times the field of view; an odd grid has its middle on the axis.
     """
     n_rows, n_cols = grid_shape
     if n_rows < 1 or n_cols < 1:
@@ -66,12 +54,8 @@ def grid_monitor_positions(config: BenchConfig, grid_shape: tuple[int, int],
 
 @contextmanager
 def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
-    """One torch thread for a torch-backend camera on the CPU during a grid.
-
-    The FFTs, the bulk of the work, run in scipy on all cores; torch's elementwise operators
-    on a second OpenMP thread cost far more than they gain when the writer thread (and other
-    processes) share the cores (10x slower per PSF on a loaded 2-core machine).
-    """
+    """One torch thread for a torch-backend CPU camera during a grid: the FFTs run in scipy on all
+    cores, and a second OpenMP thread costs far more than it gains next to the writer thread."""
     if camera.backend == "torch" and camera.device_type == "cpu":
         from psfkit.simulate.propagation_torch import cpu_threads
 
@@ -82,9 +66,8 @@ def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
 
 
 def exposure_scale(camera: VirtualCamera, on_axis_psf: np.ndarray) -> float:
-    """Photo-electrons per unit relative irradiance for the grid's one fixed exposure:
-    the brightest on-axis pixel (after quantum efficiency) reaches ``peak_fraction`` of
-    full well."""
+    """Photo-electrons per unit relative irradiance for the grid's one exposure: the brightest
+    on-axis pixel (after quantum efficiency) reaches ``peak_fraction`` of full well."""
     cfg = camera.config
     qe = cfg.sensor.qe(on_axis_psf.shape[0])
     peak = float(np.max(on_axis_psf.reshape(on_axis_psf.shape[0], -1).max(axis=1) * qe))
@@ -103,38 +86,25 @@ def simulate_grid(out_dir: str | os.PathLike, config: BenchConfig | None = None,
     out_dir : path-like
         Destination folder (created atomically).
     config : BenchConfig, optional
-        Virtual camera; default is the paper-like full-resolution camera.
+        Default: the paper-like full-resolution camera.
     grid_shape : (int, int)
-        Rows × columns of point-source positions.
+        Rows × columns of source positions.
     extent : float
-        Fraction of the field of view the grid spans.
+        Fraction of the field of view spanned.
     dark_frame : bool
         Also capture a dark frame.
     suffix : {".tiff", ".png", ".npy"}
-        Image file type.
-    overwrite : bool
-        Replace an existing output folder.
-    progress : bool
-        Show a progress bar.
+    overwrite, progress : bool
+        Replace an existing output folder; show a progress bar.
     backend : {"numpy", "torch", "auto"}
-        Optics backend of the :class:`~psfkit.simulate.camera.VirtualCamera`. ``"numpy"`` (the
-        default here, kept by ``psfkit demo`` and the training-data generator) reproduces
-        existing grids file for file; ``"torch"`` (the ``simulate-grid`` CLI's default) gives
-        the same clean PSFs to ~5e-7 relative at under half the time, but another noise
-        realization: the Poisson sampler draws a different number of random numbers as soon
-        as one expected value changes in its last bits, and the stream diverges from there.
+        Optics backend: ``"numpy"`` reproduces existing grids file for file; ``"torch"`` is
+        faster, with clean PSFs equal to ~5e-7 relative but another noise realization.
     frames : int
-        Frames averaged per position (and for the dark frame), as a lab averages repeated
-        captures: the noise falls as ``1 / sqrt(frames)``. 1 (default) writes each raw
-        16-bit frame; more writes the float32 mean in the same file units (TIFF or
-        ``.npy``; PNG holds integers only) and records ``frames_averaged`` in the manifest.
+        Frames averaged per position and dark frame; above 1 the float32 mean is written.
     clean_psfs : bool
-        Write ``ground_truth/psfs_clean.npy`` (``(N, M, C, H, W)`` float32). Without it the
-        ground truth stays a few kB and :func:`read_ground_truth` recomputes the clean PSFs
-        when they are read.
+        Write ``ground_truth/psfs_clean.npy``; otherwise they are recomputed when read.
     run_file : dict, optional
-        The settings of a ``--config`` run file (path and values), recorded in the manifest
-        under ``simulation.run_file``.
+        A ``--config`` run file's settings, recorded under ``simulation.run_file``.
 
     Returns
     -------
@@ -151,10 +121,9 @@ def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
                   config: BenchConfig | None = None, dark_frame: bool = True,
                   suffix: str = ".tiff", overwrite: bool = False, progress: bool = True,
                   backend: str = "numpy", frames: int = 1) -> Path:
-    """Simulate an irregular scan: the point source at the given monitor positions (a line
-    scan, scattered beads, a jittered lattice), written as a grid folder without grid indices
-    (``docs/grid-format.md``), with ground truth as :func:`simulate_grid` (a ``1 × P`` row in
-    the given order). Include ``(0, 0)`` for the reference PSF.
+    """Simulate an irregular scan: the point source at the given monitor positions, written as a
+    grid folder without grid indices (a ``1 × P`` row), ground truth as :func:`simulate_grid`.
+    Include ``(0, 0)`` for the reference PSF.
 
     Parameters
     ----------
@@ -182,8 +151,7 @@ class _NoCleanFile:
 
 def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
                  ) -> np.ndarray | _NoCleanFile:
-    """The memory-mapped ``psfs_clean.npy`` filled position by position, or, without
-    ``write``, a sink (:class:`CleanPsfs` computes the values again when they are read)."""
+    """The memory-mapped ``psfs_clean.npy``, or without ``write`` a sink."""
     if not write:
         return _NoCleanFile()
     return np.lib.format.open_memmap(truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
@@ -191,8 +159,7 @@ def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
 
 
 def _checked_frames(frames: int, suffix: str) -> int:
-    """The number of frames averaged per position: an integer >= 1, and 1 for PNG (an
-    average is float data)."""
+    """The frames averaged per position: an integer >= 1, and 1 for PNG (a mean is float data)."""
     if isinstance(frames, bool) or int(frames) != frames or frames < 1:
         raise ConfigurationError(f"frames must be an integer >= 1, got {frames!r}")
     if frames > 1 and suffix == ".png":
@@ -205,8 +172,7 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
               scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
               backend: str, frames: int, write_clean: bool = True,
               run_file: dict[str, Any] | None = None) -> Path:
-    """:func:`simulate_grid` and :func:`simulate_scan` at the ``(N, M, 2)`` monitor
-    positions (``scan``: an irregular scan, ``N = 1``)."""
+    """:func:`simulate_grid` and :func:`simulate_scan` at ``(N, M, 2)`` monitor positions."""
     frames = _checked_frames(frames, suffix)
     n_rows, n_cols = grid_shape = monitor.shape[:2]
     sensor = config.sensor
@@ -315,14 +281,11 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
 
 
 class CleanPsfs:
-    """The noise-free PSFs of a simulated grid whose ``psfs_clean.npy`` was not written,
-    computed again from the bench recorded in ``truth.json`` as :func:`simulate_grid`
-    computed them (the same camera, field angles, exposure and quantum efficiency; bit for bit
-    with the numpy backend).
+    """The noise-free PSFs of a grid without ``psfs_clean.npy``, recomputed from the bench in
+    ``truth.json`` exactly as :func:`simulate_grid` did (bit for bit with the numpy backend).
 
-    Reads like the ``(N, M, C, H, W)`` float32 array it stands for: ``clean[r, c]`` simulates
-    one position (a second or so at the demo's size); any other index, or ``np.asarray``,
-    builds the whole array first.
+    Reads like the ``(N, M, C, H, W)`` float32 array: ``clean[r, c]`` simulates one position; any
+    other index, or ``np.asarray``, builds the whole array.
     """
 
     dtype = np.dtype(np.float32)
@@ -364,12 +327,11 @@ class CleanPsfs:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """Ground truth of a simulated grid (see :func:`read_ground_truth`).
+    """Ground truth of a simulated grid (:func:`read_ground_truth`).
 
-    Arrays are indexed ``[row, col]``: ``field_deg`` and ``shift_px`` are ``(N, M, 2)``
-    (``(θx, θy)`` and ``(du, dv)``), ``gain`` is ``(N, M)``; ``clean_psfs`` is the
-    memory-mapped ``(N, M, C, H, W)`` noise-free signal above black level (file units), or,
-    where ``psfs_clean.npy`` was not written, a :class:`CleanPsfs` that computes it again.
+    Indexed ``[row, col]``: ``field_deg`` ``(θx, θy)`` and ``shift_px`` ``(du, dv)`` are
+    ``(N, M, 2)``, ``gain`` ``(N, M)``; ``clean_psfs`` the ``(N, M, C, H, W)`` noise-free signal
+    above black level (file units), memory-mapped or a :class:`CleanPsfs`.
     """
 
     field_deg: np.ndarray

@@ -11,12 +11,8 @@ import scipy.fft as sfft
 
 @dataclass(frozen=True)
 class PsfPatch:
-    """A noise-free PSF on a block of sensor pixels around the chief ray.
-
-    ``image`` is ``(C, h, w)``; its top-left pixel sits at sensor pixel ``offset = (v0, u0)``
-    (may be negative or run past the sensor:
-    :meth:`~psfkit.simulate.camera.VirtualCamera.psf` crops).
-    ``shift_px = (du, dv)`` is the exact chief-ray shift relative to the on-axis PSF.
+    """A noise-free PSF ``image`` ``(C, h, w)`` whose top-left pixel is at sensor pixel ``offset``
+    ``(v0, u0)`` (may lie outside the sensor); ``shift_px`` ``(du, dv)`` the exact chief-ray shift.
     """
 
     image: np.ndarray
@@ -25,8 +21,8 @@ class PsfPatch:
 
 
 def translate_pixels(image: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
-    """``(C, h, w)`` image moved by the sub-pixel ``shift = (du, dv)`` as a band-limited
-    signal (a Fourier phase ramp; the block's dark border keeps the wrap-around out)."""
+    """``(C, h, w)`` image moved by the sub-pixel ``shift`` ``(du, dv)`` with a Fourier phase
+    ramp."""
     du, dv = shift
     ramp = np.exp(-2j * np.pi * (np.fft.fftfreq(image.shape[-2])[:, None] * dv
                                  + np.fft.rfftfreq(image.shape[-1])[None, :] * du))

@@ -12,12 +12,8 @@ from psfkit.errors import ConfigurationError
 
 def relative_illumination(cos_theta: float | np.ndarray, exponent: float = 4.0
                           ) -> float | np.ndarray:
-    """Vignetting gain ``cos(θ)**exponent`` of a source at field angle θ (cos⁴ law by default).
-
-    The factor collects the foreshortening of the aperture, the longer path to an off-axis
-    source and the oblique incidence on the pixels; ``exponent`` lets a lab match a measured
-    fall-off (microlenses steepen it).
-    """
+    """Vignetting gain ``cos(θ)**exponent`` of a source at field angle θ (cos⁴ law by default;
+    ``exponent`` lets a lab match a measured fall-off)."""
     return np.asarray(cos_theta, dtype=np.float64) ** exponent
 
 
@@ -84,11 +80,8 @@ class SensorModel:
         return electrons * (self.container_scale / self.electrons_per_dn)
 
     def capture(self, electrons: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Simulate one raw frame from expected photo-electrons ``(C, H, W)``.
-
-        Shot noise (Poisson), read noise (Gaussian), black level, rounding to ADC units,
-        clipping at 0 and at full scale (saturation), MSB-aligned ``uint16`` output.
-        """
+        """Simulate one raw frame from expected photo-electrons ``(C, H, W)``: Poisson shot noise,
+        Gaussian read noise, black level, ADC rounding, clipping, MSB-aligned ``uint16``."""
         e = rng.poisson(np.maximum(electrons, 0.0)).astype(np.float64)
         if self.read_noise_e > 0:
             e += rng.normal(0.0, self.read_noise_e, size=e.shape)
@@ -97,18 +90,14 @@ class SensorModel:
 
     def capture_mean(self, electrons: np.ndarray, rng: np.random.Generator,
                      frames: int) -> tuple[np.ndarray, np.ndarray]:
-        """The mean of ``frames`` raw frames of the same exposure, as a lab averages repeated
-        captures of a dim point source.
-
-        The frames are drawn independently (:meth:`capture`), so the shot and read noise of the
-        mean fall as ``1 / sqrt(frames)`` and the noise dithers the ADC rounding below one unit.
+        """The mean of ``frames`` independent raw frames (:meth:`capture`) of the same exposure.
 
         Parameters
         ----------
         electrons : numpy.ndarray
             ``(C, H, W)`` expected photo-electrons of one frame.
         rng : numpy.random.Generator
-            Noise stream (``frames`` frames are drawn from it in order).
+            Noise stream (the frames are drawn in order).
         frames : int
             Frames averaged, ≥ 1.
 
@@ -117,8 +106,7 @@ class SensorModel:
         mean : numpy.ndarray
             ``(C, H, W)`` float32 mean in stored file units (black level included).
         saturated : numpy.ndarray
-            ``(C, H, W)`` bool, at full scale in at least one frame (the mean of such a
-            pixel is biased low, and below full scale when only some frames clip).
+            ``(C, H, W)`` bool, at full scale in at least one frame.
         """
         if int(frames) != frames or frames < 1:
             raise ConfigurationError(f"frames must be an integer >= 1, got {frames}")

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from psfkit.cli import main
-from psfkit.simulate import BenchConfig, degrade_grid, simulate_grid, simulate_scan
+from psfkit.simulate import BenchConfig, simulate_grid, simulate_scan
+from tests.helpers.degrade import degrade_grid
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft as sfft
 
 from psfkit.simulate.propagation import frequency_grid
 
@@ -24,3 +25,8 @@ def fresnel_transfer_anisotropic(shape: tuple[int, int], pitch_um: float,
     g_s = -s * gx + c * gy
     return np.exp(-1j * np.pi * wavelength_um * (distance_tangential_um * g_t**2
                                                  + distance_sagittal_um * g_s**2))
+
+
+def propagate(field: np.ndarray, transfer: np.ndarray, workers: int | None = None) -> np.ndarray:
+    """Apply a transfer function (FFT order) to a complex field: ``IFFT(FFT(field)·H)``."""
+    return sfft.ifft2(sfft.fft2(field, workers=workers) * transfer, workers=workers)

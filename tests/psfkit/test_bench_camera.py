@@ -9,9 +9,8 @@ from skimage.registration import phase_cross_correlation
 from psfkit.errors import ConfigurationError
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.propagation import propagate
 from psfkit.simulate.psf_patch import translate_pixels
-from tests.helpers.optics import fresnel_transfer_anisotropic
+from tests.helpers.optics import fresnel_transfer_anisotropic, propagate
 
 
 @pytest.fixture(scope="module")

@@ -3,12 +3,8 @@
 import numpy as np
 import pytest
 
-from psfkit.simulate.propagation import (
-    chief_ray_shift,
-    oblique_transfer_function,
-    propagate,
-)
-from tests.helpers.optics import fresnel_transfer_anisotropic
+from psfkit.simulate.propagation import chief_ray_shift, oblique_transfer_function
+from tests.helpers.optics import fresnel_transfer_anisotropic, propagate
 
 
 def _gaussian(shape, pitch, w0, x0=0.0, y0=0.0):

@@ -150,7 +150,8 @@ def test_streaming_normal_operator_is_the_whole_one(scenes: np.ndarray,
     expected_rhs = whole.adjoint(y)
     assert float((batches.rhs(y) - expected_rhs).abs().max()) <= \
         1e-10 * float(expected_rhs.abs().max())
-    predicted = torch.cat([p for _a, _b, p in batches.forward(k)])
+    predicted = torch.cat([p * s[:, None, None, None]
+                           for _a, _b, _op, s, p in batches.predictions(k)])
     expected_y = whole.forward(k)
     assert float((predicted - expected_y).abs().max()) <= 1e-10 * float(expected_y.abs().max())
 

@@ -18,13 +18,8 @@ from psfkit.errors import GridFormatError, InvalidInputError, PositionRejected
 from psfkit.fitting.grid.fit import fit_eigen_grid
 from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
-from psfkit.simulate import (
-    BenchConfig,
-    degrade_grid,
-    read_ground_truth,
-    simulate_grid,
-    simulate_scan,
-)
+from psfkit.simulate import BenchConfig, read_ground_truth, simulate_grid, simulate_scan
+from tests.helpers.degrade import degrade_grid
 
 CORNERS = [(0, 0), (0, 8), (8, 0), (8, 8)]
 SATURATED, EMPTY = (2, 6), (6, 3)

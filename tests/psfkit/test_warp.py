@@ -16,8 +16,8 @@ from psfkit.calibration.warp import (
 )
 from psfkit.numerics.resample import bin_image
 from psfkit.simulate import BenchConfig, VirtualCamera
-from psfkit.simulate.propagation import box_blur, propagate
-from tests.helpers.optics import fresnel_transfer_anisotropic
+from psfkit.simulate.propagation import box_blur
+from tests.helpers.optics import fresnel_transfer_anisotropic, propagate
 
 
 @pytest.fixture(scope="module")

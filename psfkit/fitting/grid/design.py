@@ -1,8 +1,6 @@
 """The design of an eigen-kernel model of a PSF grid: where a grid's pixels lie on the sensor
-(:class:`PixelFrame`), the K kernel weights of each grid position in its aligned frame, the
-model's PSF at a position, and the refusal of a basis that the positions cannot determine.
-
-The maths of the fit these weights enter: :mod:`psfkit.fitting.grid.eigen`.
+(:class:`PixelFrame`), each position's kernel weights in its aligned frame, the model's PSF at
+a position, and the refusal of a basis the positions cannot determine.
 """
 
 from __future__ import annotations
@@ -19,15 +17,12 @@ from psfkit.forward.weights import WeightBasis
 
 @dataclass(frozen=True)
 class PixelFrame:
-    """Where the pixels of an ``(h, w)`` grid lie in the sensor's normalized coordinates
-    (``psfkit.forward.weights``), for the weights of a fit on that grid.
+    """Where the pixels of an ``(h, w)`` grid lie in the sensor's normalized coordinates.
 
-    The whole sensor (:meth:`of`), or a working copy cropped and binned from it
-    (:meth:`crop`): a compact PSF is fitted on a crop around it instead of a whole frame
-    binned until the PSF is a pixel wide, and its weights must still be those of the pixels'
-    places on the sensor. All lengths are in the grid's own pixels: ``center`` ``(v_c, u_c)``
-    the optical centre, ``half`` ``(H/2, W/2)`` the sensor's half size, ``origin`` the
-    kernel origin (where the centre PSF's origin lies, :func:`kernel_origin` of the sensor).
+    The whole sensor (:meth:`of`) or a cropped, binned working copy (:meth:`crop`), whose weights
+    must stay those of the pixels' places on the sensor. In the grid's own pixels: ``center``
+    ``(v_c, u_c)`` the optical centre, ``half`` the sensor's half size, ``origin`` the kernel
+    origin.
     """
 
     shape: tuple[int, int]
@@ -48,8 +43,8 @@ class PixelFrame:
     @classmethod
     def crop(cls, sensor_shape: tuple[int, int], corner: tuple[int, int], factor: int,
              shape: tuple[int, int]) -> PixelFrame:
-        """An ``shape`` grid of ``factor × factor`` blocks whose first block's corner is at
-        sensor pixel ``corner`` ``(row, col)`` (sensor centre as the optical centre)."""
+        """A ``shape`` grid of ``factor × factor`` blocks, the first block's corner at sensor pixel
+        ``corner`` ``(row, col)``."""
         h, w = sensor_shape
         offset = (factor - 1) / 2.0          # a block's centre from its corner, sensor px
 
@@ -63,9 +58,8 @@ class PixelFrame:
                    (local(origin[0], 0), local(origin[1], 1)))
 
     def axes(self, shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-        """Normalized coordinates ``u_n`` ``(1, w)`` and ``v_n`` ``(h, 1)`` of the pixels
-        plus ``shift`` (grid px): where the sensor-side weights of a PSF displaced by
-        ``shift`` are read in its aligned frame."""
+        """Normalized ``u_n`` ``(1, w)`` and ``v_n`` ``(h, 1)`` of the pixels plus ``shift`` (grid
+        px): the sensor-side weights of a displaced PSF in its aligned frame."""
         h, w = self.shape
         (v_c, u_c), (hh, hw) = self.center, self.half
         du, dv = shift
@@ -73,8 +67,8 @@ class PixelFrame:
                 ((np.arange(h) - v_c) / hh)[:, None] + dv / hh)
 
     def source(self, shift: tuple[float, float]) -> tuple[float, float]:
-        """Normalized ``(u_n, v_n)`` of the source whose PSF origin lands at the kernel
-        origin displaced by ``shift`` (grid px)."""
+        """Normalized ``(u_n, v_n)`` of the source whose PSF origin lands at the kernel origin plus
+        ``shift`` (grid px)."""
         (v_c, u_c), (hh, hw), (o_v, o_u) = self.center, self.half, self.origin
         du, dv = shift
         return (o_u + du - u_c) / hw, (o_v + dv - v_c) / hh
@@ -87,8 +81,7 @@ def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
     """Weights of the K kernels for the PSF displaced by ``shift``, in its aligned frame.
 
     Returns ``(K, H, W)`` (sensor-side: :math:`W_k(v + s)`) or ``(K, 1, 1)`` (source-side:
-    :math:`W_k(s)`, the source at the sensor pixel where its PSF origin lands). ``frame``
-    places a cropped or binned grid on the sensor (default: ``sensor_shape`` is the sensor).
+    :math:`W_k(s)`); ``frame`` places a cropped or binned grid on the sensor.
     """
     frame = frame if frame is not None else PixelFrame.of(sensor_shape, optical_center)
     if convention == "sensor":
@@ -103,8 +96,7 @@ def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
 def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
                     convention: str, optical_center: tuple[float, float] | None = None,
                     frame: PixelFrame | None = None) -> np.ndarray:
-    """The model's PSF for a source displaced by ``shift``, in the aligned frame, ``(C,H,W)``
-    (``frame``: where the kernels' pixels lie on the sensor, as :func:`position_weights`)."""
+    """The model's ``(C, H, W)`` PSF for a source displaced by ``shift``, in the aligned frame."""
     weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center,
                                frame)
     return np.einsum("khw,kchw->chw", np.broadcast_to(weights, (len(kernels), *kernels.shape[-2:])),
@@ -115,14 +107,13 @@ def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int
                  where: str, left_out: str = "") -> None:
     """Refuse a basis that the grid positions cannot determine.
 
-    ``shifts`` may hold NaN rows (positions not measured); ``left_out`` is appended to the
-    count in the message (e.g. `` (2 excluded, 4 not captured)``).
+    ``shifts`` may hold NaN rows (not measured); ``left_out`` is appended to the count in the
+    message.
 
     Raises
     ------
     InvalidInputError
-        Fewer positions than kernels, or a weight term that does not vary independently over
-        the positions (e.g. all positions on one row).
+        Fewer positions than kernels, or a weight term not varying independently over them.
     """
     shifts = np.asarray(shifts, dtype=np.float64).reshape(-1, 2)
     shifts = shifts[np.isfinite(shifts).all(axis=1)]     # gaps and excluded positions

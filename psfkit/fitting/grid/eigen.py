@@ -1,26 +1,19 @@
 r"""Eigen-kernel fits of a registered PSF grid (paper, Eq. 7), in closed form.
 
-Model. The PSF of the point source at grid position ``p``, whose image is displaced by ``s_p``
-relative to the centre PSF, is written with the weight basis of :mod:`psfkit.forward.weights`
+The PSF at grid position ``p``, displaced by ``s_p`` from the centre PSF, is
+:math:`h_p(u) = \sum_k W_k(u)\,K_k(u - s_p)` (sensor-side weights) or
+:math:`\sum_k W_k(s_p)\,K_k(u - s_p)` (source-side). In the centre PSF's frame
+(``v = u − s_p``) both are, at every kernel pixel ``v``, linear in the K kernel values with
+design :math:`w_p(v) = W(v + s_p)` or :math:`W(s_p)`, so the least-squares kernels solve per
+pixel
 
-- *sensor-side* weights (Eq. 7 as written: the weights are functions of the sensor pixel)
-  :math:`h_p(u) = \sum_k W_k(u)\,K_k(u - s_p)`;
-- *source-side* weights (functions of the source position)
-  :math:`h_p(u) = \sum_k W_k(s_p)\,K_k(u - s_p)`.
+.. math::
 
-In the frame of the centre PSF (``v = u − s_p``, where the aligned PSFs of
-:mod:`psfkit.calibration.alignment` live) both become, at every kernel pixel ``v`` separately, a
-linear model in the K kernel values with design vector :math:`w_p(v) = W(v + s_p)` (sensor) or
-:math:`W(s_p)` (source). The least-squares kernels therefore solve a K × K system per pixel,
-:math:`\big(\sum_p m_p w_p w_p^\top + \lambda R\big) K(v) = \sum_p m_p w_p a_p(v)` (``m_p`` the
-valid-pixel mask), accumulated one PSF at a time and solved for all pixels at once. The small
-ridge ``λR`` pulls the correction kernels towards the base kernel
-(:math:`R = \sum_{k\ge1}(e_k - e_0)(e_k - e_0)^\top`) where the data do not constrain them.
-Both conventions are linear with exact adjoints in :mod:`ekdun.physics`.
+    \Big(\sum_p m_p w_p w_p^\top + \lambda R\Big) K(v) = \sum_p m_p w_p a_p(v),
+    \qquad R = \sum_{k\ge1}(e_k - e_0)(e_k - e_0)^\top,
 
-This module holds those per-pixel normal equations (:class:`NormalEquations`) and their
-solve; the weights ``w_p`` are those of :mod:`psfkit.fitting.grid.design`, and the fits and
-cross-validation of a working stack are in :mod:`psfkit.fitting.grid.stack_fit`.
+(``m_p`` the valid mask), accumulated one PSF at a time (:class:`NormalEquations`); the ridge
+pulls unconstrained correction kernels towards the base kernel.
 """
 
 from __future__ import annotations
@@ -58,28 +51,21 @@ def _difference_prior(n_kernels: int) -> np.ndarray:
 class NormalEquations:
     """Per-pixel normal equations of an eigen-kernel fit, accumulated one PSF at a time.
 
-    Two accumulation paths give the same sums (to rounding):
-
-    - a PSF whose valid mask is a rectangle (the common case: the sensor's overlap after the
-      shift, nothing saturated) adds to the right-hand sides only the weighted image inside
-      the rectangle. Every weight of :mod:`psfkit.forward.weights` is a sum of products
-      ``f(u)·g(v)``, so that PSF's Gram term ``m·w_i·w_j`` is a sum of outer products of
-      row and column vectors; these are kept (a few vectors per PSF) and summed for all PSFs
-      at once as one matrix product per Gram entry when the equations are read. Because the
-      weights sum to 1, the base kernel's right-hand side is the masked image minus the
-      correction terms' ones, and is formed then;
-    - any other mask goes through the per-pixel products (:meth:`_add_masked`).
+    Two paths give the same sums (to rounding): a PSF whose valid mask is a rectangle keeps only
+    its weighted image in the rectangle and, since every weight is a sum of ``f(u)·g(v)``
+    products, the row and column factors of its Gram terms, summed for all PSFs as matrix products
+    when read (the base kernel's right-hand side is formed then, the weights summing to 1); any
+    other mask goes through per-pixel products (:meth:`_add_masked`).
 
     Parameters
     ----------
     basis : WeightBasis
     convention : {"sensor", "source"}
     image_shape : (int, int, int)
-        ``(C, H, W)`` of the PSFs (H, W is also the sensor grid of the weights).
+        ``(C, H, W)`` of the PSFs.
     optical_center : (float, float), optional
     frame : PixelFrame, optional
-        Where the ``(H, W)`` pixels lie on the sensor (a cropped working copy); default: they
-        are the sensor (with ``optical_center``).
+        Where the ``(H, W)`` pixels lie on the sensor; default: they are the sensor.
     """
 
     def __init__(self, basis: WeightBasis, convention: str, image_shape: tuple[int, int, int],
@@ -121,10 +107,8 @@ class NormalEquations:
     def add(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float]) -> None:
         """Add one aligned ``(C, H, W)`` PSF with its ``(H, W)`` valid mask and shift.
 
-        Products are formed and accumulated in the image's own precision: float32 for grid
-        data (half the memory traffic of float64; its rounding, ~1e-7 per PSF, is far below
-        any sensor's noise), float64 for float64 input (the exact-recovery tests). The Gram
-        sums of the rectangle path are float64 matrix products.
+        Accumulated in the image's precision (float32 grid data: rounding far below any sensor's
+        noise; float64 input stays float64); the rectangle path's Gram sums are float64.
         """
         dtype = np.dtype(image.dtype if np.issubdtype(image.dtype, np.floating)
                          else np.float64)
@@ -137,8 +121,8 @@ class NormalEquations:
 
     def _axis_weights(self, shift: tuple[float, float]
                       ) -> list[list[tuple[np.ndarray | float | None, np.ndarray | None]]]:
-        """The weights of the PSF displaced by ``shift`` as sums of ``row(v) ⊗ col(u)``
-        products, per kernel (``None``: a factor of 1)."""
+        """The weights of the PSF displaced by ``shift`` as sums of ``row(v) ⊗ col(u)`` products,
+        per kernel (``None``: a factor of 1)."""
         if self.convention == "source":
             w = position_weights(self.basis, (self.h, self.w), shift, "source",
                                  frame=self.frame)[:, 0, 0]
@@ -208,9 +192,7 @@ class NormalEquations:
 
     def _add_masked(self, image: np.ndarray, valid: np.ndarray, shift: tuple[float, float],
                     dtype: np.dtype) -> None:
-        """Per-pixel products over blocks of rows small enough to stay in the CPU cache
-        (weights, masked products and accumulators of a block are touched once each per PSF
-        instead of once per product at full size)."""
+        """Per-pixel products over cache-sized blocks of rows."""
         if self._gram is None:
             k = self.basis.n_kernels
             self._gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
@@ -288,9 +270,8 @@ class NormalEquations:
 
     def solve(self, ridge: float = DEFAULT_RIDGE, conditioning: bool = True
               ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Kernels ``(K, C, H, W)`` and (if ``conditioning``) the per-pixel smallest
-        eigenvalue of the normalized Gram matrix ``(H, W)`` (0 where a kernel pixel is not
-        constrained by the data)."""
+        """Kernels ``(K, C, H, W)`` and (if ``conditioning``) the per-pixel smallest eigenvalue of
+        the normalized Gram matrix ``(H, W)`` (0 where the data do not constrain a pixel)."""
         k = self.basis.n_kernels
         n = self.h * self.w
         gram = self.gram.reshape(len(self._iu[0]), n)
@@ -334,9 +315,9 @@ def _solve_spd(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve ``system[:, :, n] x[:, :, n] = rhs[:, :, n]`` for every pixel ``n``.
 
     ``system`` ``(K, K, N)`` symmetric positive definite, ``rhs`` ``(K, C, N)``; returns
-    ``(K, C, N)``. A Cholesky factorization vectorized over the pixels (K is small, N is
-    millions: one LAPACK call per pixel costs ~1 µs, ten times the arithmetic); pixels where a
-    pivot loses more than 10 of its 16 digits are re-solved by LAPACK with partial pivoting.
+    ``(K, C, N)``. A Cholesky factorization vectorized over the pixels (per-pixel LAPACK calls
+    cost ten times the arithmetic); pixels whose pivot loses more than 10 digits are re-solved by
+    LAPACK with partial pivoting.
     """
     k = system.shape[0]
     chol = np.zeros_like(system)

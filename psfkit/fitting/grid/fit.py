@@ -1,18 +1,9 @@
 """Fit eigen-kernel models to a measured PSF grid (``psfkit fit-eigen``).
 
-One pass over the grid (:class:`~psfkit.calibration.alignment.GridAligner`) accumulates the
-per-pixel normal equations of the chosen basis for both weight conventions at full resolution
-(:mod:`psfkit.fitting.grid.eigen`) and keeps a working copy of the aligned PSFs, on which the
-per-position residuals, the leave-positions-out cross-validation of candidate bases and the
-PCA (:mod:`psfkit.fitting.grid.pca`) are computed. The result becomes a kernel file for ekdun.
-
-The working copy's resolution follows the PSF (:func:`working_region`): a compact PSF (a few
-pixels on a large frame) is kept on a crop around the centre PSF's support at full
-resolution; a PSF that fills the sensor (a caustic) is kept whole, binned to at most
-``working_size`` px. Either way at most ``working_size``² pixels per channel and position.
-
-The options are :class:`psfkit.fitting.grid.options.EigenFitOptions`, the result
-:class:`psfkit.fitting.grid.result.GridEigenResult`.
+One pass over the grid accumulates the per-pixel normal equations at full resolution
+(:mod:`psfkit.fitting.grid.eigen`) and keeps a working copy of the aligned PSFs
+(:func:`~psfkit.fitting.grid.working_stack.working_region`: a crop around a compact PSF, or the
+whole sensor binned to at most ``working_size`` px) for residuals, cross-validation and PCA.
 """
 
 from __future__ import annotations
@@ -56,10 +47,9 @@ def fit_eigen_grid(grid: PsfGrid, options: EigenFitOptions | None = None,
                    progress: bool = False, workers: int | None = None) -> GridEigenResult:
     """Fit the eigen-kernel model of ``options.basis`` to a PSF grid, both conventions.
 
-    ``workers`` threads register and align PSFs (default 2 on two cores). With
-    ``options.basis == "auto"`` the verdict (:mod:`psfkit.fitting.verdict`) chooses the basis and
-    the convention before the one full-resolution fit (the aligned PSFs are read once more for
-    it: the working copy decides, the full-resolution sums are of the chosen model only).
+    ``workers`` threads register and align PSFs. With ``options.basis == "auto"`` the verdict
+    chooses basis and convention on the working copy first, then the PSFs are read again for the
+    one full-resolution fit.
 
     Raises
     ------
@@ -168,10 +158,9 @@ def _accumulate(grid: PsfGrid, aligner: GridAligner,
                 progress: bool, workers: int | None, description: str,
                 working: tuple[tuple[slice, slice] | None, int], keep_stack: bool = True
                 ) -> tuple[WorkingStack, list[ExcludedPosition]]:
-    """One pass over the grid: every usable PSF aligned (``place``), added to the
-    full-resolution ``equations`` and (``keep_stack``) to the working copy (``working``: its
-    region and binning, :func:`working_region`). Returns
-    the working copy of the measured positions and the excluded ones."""
+    """One pass over the grid: every usable PSF aligned by ``place`` and added to ``equations`` and
+    (``keep_stack``) to the working copy (``working``: region and binning). Returns the working
+    copy of the measured positions and the excluded ones."""
     c, h, w = grid.image_shape
     region, factor = working
     stack = WorkingStack.empty(len(grid.positions) if keep_stack else 0, (c, h, w), factor,
@@ -225,8 +214,8 @@ def _choose(options: EigenFitOptions, validation: CrossValidation | None,
 
 
 def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
-    """The PCA of the reliable positions and the principal angles between its top subspace
-    and the fitted kernels (averaged over the working grid's blocks)."""
+    """The PCA of the reliable positions and the principal angles between its top subspace and the
+    fitted kernels (on the working grid)."""
     stack = result.stack
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() < 2:
@@ -242,9 +231,8 @@ def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
 def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
                         progress: bool, workers: int | None
                         ) -> tuple[NominalShifts, dict[tuple[int, int], ExcludedPosition]]:
-    """The registration pass of ``shifts="affine"``: every position registered (and checked)
-    as the characterization does, keeping only its shift and overlap; the affine map of
-    those shifts; and the positions it rejected."""
+    """The registration pass of ``shifts="affine"``: the registered shifts and overlaps, their
+    affine map, and the rejected positions."""
     rejected: dict[tuple[int, int], ExcludedPosition] = {}
     accepted: list[GridPosition] = []
     shifts: list[tuple[float, float]] = []
@@ -272,9 +260,8 @@ def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, 
 
 
 def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:
-    """Stand-ins for the shifts of the captured positions before any image is read: grid
-    indices spread over the sensor (a lattice), or field positions scaled likewise (an
-    irregular scan). ``(P, 2)``."""
+    """``(P, 2)`` stand-ins for the shifts before any image is read: grid indices (a lattice) or
+    field positions (an irregular scan) spread over the sensor."""
     _, h, w = grid.image_shape
     if grid.is_irregular:
         coords = grid.monitor_px() if grid.monitor_px() is not None else grid.field_deg()

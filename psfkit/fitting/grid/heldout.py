@@ -1,22 +1,13 @@
 r"""Held-out test of a field dependence of the PSF shape (the verdict's evidence).
 
-Every model here writes the aligned, gain-compensated PSF of position ``p`` as
-:math:`a_p(v) = \sum_k w_{pk} K_k(v)` with weights ``w_p`` that depend on the position only
-(source-side), fitted by least squares at every kernel pixel (the masked normal equations of
-:mod:`psfkit.fitting.grid.eigen`, with weights given per position). Models:
-
-``si+sampling`` (the null)
-    one PSF plus four kernels weighted by the first harmonics of the PSF's sub-pixel phase
-    ``φ = s − round(s)`` (``sin 2πφ``, ``cos 2πφ − 1`` per axis): aligning a PSF that the
-    pixels alias changes it with φ, and a regular grid changes φ steadily over the field;
-``si+sampling+<basis>``
-    the null plus the field weights of an eigen-kernel basis (:data:`FIELD_BASES`) at the
-    position.
-
-Positions are held out as in :func:`psfkit.fitting.grid.stack_fit.cross_validate_positions`
-(the same folds for the same seed); the result is a
-:class:`psfkit.fitting.verdict.HeldOutErrors`. :func:`judge` runs both cross-validations on a
-working stack and decides the verdict: ``psfkit report`` and ``psfkit fit-eigen`` call it.
+Every model writes the aligned, gain-compensated PSF of position ``p`` as
+:math:`a_p(v) = \sum_k w_{pk} K_k(v)` with position-only weights, fitted by least squares per
+kernel pixel. The null ``si+sampling`` is one PSF plus four kernels weighted by the first
+harmonics of the sub-pixel phase ``φ = s − round(s)`` (``sin 2πφ``, ``cos 2πφ − 1`` per axis:
+aligning an aliased PSF changes it with φ, which a regular grid changes steadily);
+``si+sampling+<basis>`` adds an eigen-kernel basis' field weights (:data:`FIELD_BASES`).
+Positions are held out as in :func:`~psfkit.fitting.grid.stack_fit.cross_validate_positions`;
+:func:`judge` runs both cross-validations and decides the verdict.
 """
 
 from __future__ import annotations
@@ -69,20 +60,16 @@ def field_weights(basis_name: str, shifts_px: np.ndarray, sensor_shape: tuple[in
 
 def _sums(mask: np.ndarray, images: np.ndarray, design: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel normal equations of the listed positions: Gram ``(K, K, N)`` and right-hand
-    sides ``(K, C, N)`` (``mask`` ``(P, N)``, ``images`` ``(P, C, N)``, ``design``
-    ``(P, K)``)."""
+    """Per-pixel Gram ``(K, K, N)`` and right-hand sides ``(K, C, N)`` of the listed positions
+    (``mask`` ``(P, N)``, ``images`` ``(P, C, N)``, ``design`` ``(P, K)``)."""
     gram = np.einsum("pn,pk,pl->kln", mask, design, design, optimize=True)
     rhs = np.einsum("pn,pk,pcn->kcn", mask, design, images, optimize=True)
     return gram, rhs
 
 
 def solve_position_weights(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Kernels ``(K, C, N)`` of the per-pixel systems. The first weight is 1 (the PSF), the
-    others add corrections: a ridge of :data:`RIDGE` (relative to each pixel's mean
-    diagonal) pulls the corrections towards 0 where few positions see a pixel, as the
-    difference prior of :mod:`psfkit.fitting.grid.eigen` pulls eigen-kernels towards the base
-    kernel."""
+    """Kernels ``(K, C, N)`` of the per-pixel systems; a ridge of :data:`RIDGE` (relative to each
+    pixel's mean diagonal) pulls the corrections (weights after the first) towards 0."""
     k = gram.shape[0]
     scale = np.einsum("kkn->n", gram) / k + 1e-300
     prior = np.diag([1e-12] + [RIDGE] * (k - 1))
@@ -93,13 +80,11 @@ def solve_position_weights(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 def held_out_models(stack: WorkingStack, center_row: int, sensor_shape: tuple[int, int],
                     folds: int = 9, seed: int = 0,
                     bases: tuple[str, ...] = FIELD_BASES) -> HeldOutErrors | None:
-    """Per-position held-out squared errors of the null model and of each field model
-    (module docstring) on the gain-compensated working stack; ``None`` when the positions
-    are too few to determine the null model in every fold.
+    """Per-position held-out squared errors of the null and each field model on the
+    gain-compensated working stack; ``None`` when too few positions determine the null model.
 
-    The normal equations of all models are blocks of those of one design holding every
-    model's weights: summed once over all positions and once per held-out group (a fold's
-    training sums are the difference), each model's fold is one vectorised solve.
+    All models' normal equations are blocks of one design's, summed once over all positions and
+    once per held-out group (training = total − group).
     """
     n = len(stack.images)
     groups = fold_groups(n, center_row, folds, seed)
@@ -140,12 +125,8 @@ def held_out_models(stack: WorkingStack, center_row: int, sensor_shape: tuple[in
 def judge(stack: WorkingStack, center_row: int, sensor_shape: tuple[int, int],
           bases: list[str], folds: int = 9, effects: dict[str, Estimate] | None = None,
           progress: bool = False) -> tuple[CrossValidation, Verdict]:
-    """Cross-validate the eigen-kernel ``bases`` (both conventions; ``"si"`` always among
-    them) and the field models on a working stack, and decide
-    (:func:`psfkit.fitting.verdict.decide`).
-
-    Returns the cross-validation (per-position errors, kernel differences) and the verdict.
-    """
+    """Cross-validate the eigen-kernel ``bases`` (both conventions, plus ``"si"``) and the field
+    models on a working stack, and decide (:func:`psfkit.fitting.verdict.decide`)."""
     bases = list(dict.fromkeys(["si", *bases]))
     bar: Any = None
     if progress:
@@ -181,8 +162,7 @@ def merge_validations(parts: list[CrossValidation]) -> CrossValidation:
 
 
 def candidate_models(validation: CrossValidation) -> HeldOutErrors:
-    """The forward models a user can write, named as the verdict names them: ``"si"`` (one
-    kernel: both conventions are the same model) and ``"basis/convention"``."""
+    """The forward models a user can write: ``"si"`` and ``"basis/convention"``."""
     held = validation.held_out.squared
     squared = {name: v for name, v in held.items()
                if name != CENTRE_ONLY and not name.startswith("si/")}
@@ -192,10 +172,8 @@ def candidate_models(validation: CrossValidation) -> HeldOutErrors:
 
 
 def moved_to(stack: WorkingStack, shifts_px: np.ndarray) -> WorkingStack:
-    """The working copy with every PSF aligned at ``shifts_px`` ``(P, 2)`` (full-resolution
-    ``(du, dv)``) instead of where it was: each binned image moved by the difference (a
-    Fourier shift, :func:`psfkit.calibration.registration.shift_image`), its valid blocks with
-    it."""
+    """The working copy with every PSF moved (Fourier shift) to be aligned at ``shifts_px``
+    ``(P, 2)`` (full-resolution ``(du, dv)``), its valid blocks with it."""
     images = np.empty_like(stack.images)
     valid = np.empty_like(stack.valid)
     for p in range(len(stack.images)):
@@ -209,8 +187,8 @@ def moved_to(stack: WorkingStack, shifts_px: np.ndarray) -> WorkingStack:
 
 
 def _moved_mask(mask: np.ndarray, step: tuple[float, float]) -> np.ndarray:
-    """Pixels ``x`` of a bool ``mask`` moved by ``step = (du, dv)`` (``new(x) = mask(x + s)``)
-    whose neighbours around ``x + s`` (floor and ceiling on each axis) are all in ``mask``."""
+    """``mask`` moved by ``step`` ``(du, dv)``, keeping pixels whose floor/ceiling neighbours around
+    ``x + s`` are all in ``mask``."""
     h, w = mask.shape
     out = np.ones_like(mask)
     for dv in {math.floor(step[1]), math.ceil(step[1])}:

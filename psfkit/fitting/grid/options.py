@@ -1,5 +1,5 @@
-"""The options of ``psfkit fit-eigen``'s fit (:class:`EigenFitOptions`), checked as they are
-made: every message names the command's flag.
+"""The options of ``psfkit fit-eigen`` (:class:`EigenFitOptions`), checked as they are made;
+every message names the command's flag.
 """
 
 from __future__ import annotations
@@ -25,40 +25,29 @@ class EigenFitOptions:
     Attributes
     ----------
     basis : str
-        Weight basis of the fitted model (:func:`psfkit.forward.weights.get_basis`), or ``"auto"``:
-        the basis *and* convention of the verdict (:mod:`psfkit.fitting.verdict`; ``"si"`` when the
-        PSF shape does not change over the field beyond noise), every basis of
-        :data:`psfkit.choices.CV_BASES_ALL` cross-validated, one full-resolution fit.
+        Weight basis of the fitted model, or ``"auto"``: basis *and* convention of the verdict,
+        after cross-validating every basis of :data:`psfkit.choices.CV_BASES_ALL`.
     convention : {"sensor", "source", "auto"}
-        Convention fitted at full resolution and written to the kernel file: ``"sensor"``
-        (Eq. 7 as written, the default), ``"source"``, or ``"auto"`` (both, and the one with
-        the lower cross-validated error is written). Both are always compared on the working
-        copy. With ``basis="auto"`` the verdict chooses it (``"sensor"`` for ``"si"``, where
-        both are the same model).
+        Convention fitted at full resolution and written (``"auto"``: both, the one with the lower
+        cross-validated error written); both are always compared on the working copy.
     gain_compensate : bool
-        Divide every PSF by its gain before fitting (kernels then describe shape only); by
-        default the gains stay in the kernels, as the forward model needs them.
+        Divide every PSF by its gain before fitting (kernels then describe shape only).
     cv_bases : tuple of str
         Bases compared by leave-positions-out cross-validation (empty: no CV).
     folds : int
         Cross-validation groups of positions.
     working_size : int
-        Longest side (px) of the binned working copy used for CV, residuals and PCA.
+        Longest side (px) of the working copy used for CV, residuals and PCA.
     ridge : float
-        Relative weight of the prior pulling correction kernels towards the base kernel
-        (:data:`psfkit.fitting.grid.eigen.DEFAULT_RIDGE`: above the rounding of the sums, so that
-        the pixels the data do not constrain are well-conditioned).
+        Weight of the prior pulling correction kernels towards the base kernel.
     min_quality : float
-        Positions whose registration quality (NCC) is below this are excluded.
+        Positions registering below this quality (NCC) are excluded.
     strict : bool
-        All or nothing: a position that fails a quality check ends the fit.
+        A position failing a quality check ends the fit.
     shifts : {"affine", "registered"}
-        Where each PSF is placed before the fit. ``"affine"`` (default): at the shift of the
-        affine field-to-shift map fitted to the reliably registered positions
-        (:func:`psfkit.calibration.nominal_shifts.nominal_shifts`), the geometry of the forward
-        model ``y = crop(K * pad(x))``, so that distortion and the caustic's deformation stay in
-        the kernels. ``"registered"``: at each PSF's own registered shift (which removes that
-        part, and is biased where a PSF is mostly off the sensor).
+        Where each PSF is placed: ``"affine"`` at the affine field-to-shift map of the reliable
+        positions (the forward model's geometry: distortion and deformation stay in the kernels),
+        ``"registered"`` at its own registered shift.
     """
 
     basis: str = "paper"

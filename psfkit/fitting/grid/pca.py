@@ -1,9 +1,7 @@
 """Unconstrained PCA of a registered PSF grid, and principal angles between subspaces.
 
-The stack of aligned PSFs (positions × pixels) is decomposed by SVD, uncentred (the first
-component is then close to the mean PSF, as ``Kbase`` is) and centred (variation about the mean
-only). Only pixels measured at every position used are kept: a PCA with missing values would
-mix the pattern of missing data into the components.
+SVD of the aligned PSFs (positions × pixels), uncentred (the first component is close to the
+mean PSF) and centred, on the pixels measured at every position used.
 """
 
 from __future__ import annotations
@@ -18,13 +16,8 @@ from psfkit.errors import InvalidInputError
 
 @dataclass
 class PcaResult:
-    """PCA of a grid.
-
-    ``explained``/``explained_centred`` are the cumulative fractions of the (uncentred /
-    centred) energy captured by the first r components, r = 1..P; ``components`` the first
-    few uncentred components ``(r, C, h, w)`` (zero outside ``region``); ``positions`` how many
-    PSFs were used.
-    """
+    """PCA of a grid: cumulative explained energy fractions (uncentred / centred) for r = 1..P, the
+    first uncentred ``components`` ``(r, C, h, w)`` (zero outside ``region``), PSFs used."""
 
     explained: np.ndarray
     explained_centred: np.ndarray
@@ -55,9 +48,9 @@ def stack_pca(images: np.ndarray, valid: np.ndarray, use: np.ndarray | None = No
     images, valid : numpy.ndarray
         Aligned PSFs and their ``(P, h, w)`` valid masks.
     use : numpy.ndarray, optional
-        ``(P,)`` bool, the PSFs to include (e.g. those mostly on the sensor).
+        ``(P,)`` bool, the PSFs to include.
     n_components : int
-        Number of components kept as images.
+        Components kept as images.
     """
     use = np.ones(len(images), bool) if use is None else use
     region = np.all(valid[use], axis=0)
@@ -79,8 +72,7 @@ def stack_pca(images: np.ndarray, valid: np.ndarray, use: np.ndarray | None = No
 
 
 def principal_angles_deg(basis_a: np.ndarray, basis_b: np.ndarray) -> np.ndarray:
-    """Principal angles (degrees, ascending) between the spans of two sets of images
-    ``(k, ...)`` (each image one basis vector)."""
+    """Principal angles (degrees, ascending) between the spans of two ``(k, ...)`` image sets."""
     a = basis_a.reshape(len(basis_a), -1).T.astype(np.float64)
     b = basis_b.reshape(len(basis_b), -1).T.astype(np.float64)
     return np.sort(np.degrees(linalg.subspace_angles(a, b)))

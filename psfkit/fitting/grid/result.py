@@ -1,6 +1,5 @@
-"""The result of ``psfkit fit-eigen``'s fit (:class:`GridEigenResult`): the fitted kernels of
-both conventions, what the working copy measured (residuals, cross-validation, verdict, PCA),
-the JSON summary and the kernel file it becomes.
+"""The result of ``psfkit fit-eigen`` (:class:`GridEigenResult`): both conventions' kernels,
+what the working copy measured, the JSON summary and the kernel file.
 """
 
 from __future__ import annotations
@@ -62,9 +61,8 @@ class GridEigenResult:
         return self.basis or self.options.basis
 
     def kernel_differences(self) -> dict[str, Estimate]:
-        """``"Kv − Kbase"``-style names to each correction kernel's relative difference
-        ``‖K_k − K_0‖/‖K_0‖`` on the working copy, with its jackknife 1σ and significance
-        (:func:`psfkit.fitting.grid.stack_fit.kernel_difference_estimates`); empty for ``"si"``."""
+        """Each correction kernel's ``‖K_k − K_0‖/‖K_0‖`` on the working copy with its jackknife 1σ
+        (``"Kv − Kbase"``-style names); empty for ``"si"``."""
         names = get_basis(self.basis_name).kernel_names
         if len(names) < 2:
             return {}

@@ -1,12 +1,11 @@
-"""Eigen-kernel models fitted and scored on a working stack
-(:mod:`psfkit.fitting.grid.working_stack`): the fit on chosen positions, its in-sample errors,
-the leave-positions-out cross-validation and the jackknifed differences of the eigen-kernels
-from the base kernel.
+"""Eigen-kernel models fitted and scored on a working stack: the fit, its in-sample errors, the
+leave-positions-out cross-validation and the jackknifed kernel differences.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,13 +29,11 @@ def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) 
 def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
               members: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE
               ) -> tuple[np.ndarray, np.ndarray]:
-    """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack,
-    and the per-pixel conditioning of the design."""
+    """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack, and
+    the per-pixel conditioning of the design."""
     members = np.ones(len(stack.images), bool) if members is None else members
-    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
-    for p in np.flatnonzero(members):
-        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
-    kernels, conditioning = equations.solve(ridge)
+    kernels, conditioning = _equations(stack, basis, convention,
+                                       np.flatnonzero(members)).solve(ridge)
     assert conditioning is not None
     return kernels, conditioning
 
@@ -51,8 +48,8 @@ def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis
 
 
 def fold_groups(n: int, center_row: int, folds: int = 9, seed: int = 0) -> list[np.ndarray]:
-    """The positions other than the centre (stack rows) in ``folds`` random groups (seeded:
-    every cross-validation of a stack holds out the same groups)."""
+    """The positions other than the centre in ``folds`` seeded random groups (the same groups for
+    every cross-validation of a stack)."""
     others = np.array([p for p in range(n) if p != center_row])
     if len(others) == 0:
         return []
@@ -64,10 +61,9 @@ def fold_groups(n: int, center_row: int, folds: int = 9, seed: int = 0) -> list[
 class CrossValidation:
     """Per-position held-out errors of cross-validated models (:func:`cross_validate_positions`).
 
-    ``held_out`` has one entry per model (``"basis/convention"`` and ``"centre PSF only"``);
-    ``kernel_differences[model]`` is ``(full, folds)``: the squared relative differences
-    ``‖K_k − K_0‖² / ‖K_0‖²`` (k ≥ 1) of the kernels fitted on all positions ``(K − 1,)``
-    and on each fold's training positions ``(G, K − 1)``, for a jackknife over the folds.
+    ``held_out``: one entry per model (``"basis/convention"``, ``"centre PSF only"``);
+    ``kernel_differences[model]``: ``(full, folds)``, the ``‖K_k − K_0‖² / ‖K_0‖²`` (k ≥ 1) of
+    the kernels fitted on all positions ``(K − 1,)`` and per fold ``(G, K − 1)``.
     """
 
     held_out: HeldOutErrors
@@ -75,7 +71,7 @@ class CrossValidation:
     kernel_differences: dict[str, tuple[np.ndarray, np.ndarray]]
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``cross_validation`` record of a fit: pooled errors, their 1σ, the best."""
+        """The ``cross_validation`` record: pooled errors, their 1σ, the best model."""
         names = list(self.held_out.squared)
         errors = {name: self.held_out.error(name) for name in names}
         best = min((k for k in errors if k != CENTRE_ONLY), key=errors.__getitem__,
@@ -94,14 +90,11 @@ def squared_relative_differences(kernels: np.ndarray) -> np.ndarray:
 
 def kernel_difference_estimates(full: np.ndarray, folds: np.ndarray, p_value: float
                                 ) -> list[Estimate]:
-    """Each eigen-kernel's relative difference from the base kernel, ``‖K_k − K_0‖/‖K_0‖``,
-    as an :class:`~psfkit.numerics.significance.Estimate` from the delete-a-fold jackknife of its
-    square: the jackknife removes the square's noise bias (of order 1/positions), its spread
-    over the folds gives the 1σ; ``p_value`` is that of the held-out test of a field
-    dependence (the differences matter only where the field model predicts better).
+    """Each eigen-kernel's ``‖K_k − K_0‖/‖K_0‖`` as an :class:`Estimate` from the delete-a-fold
+    jackknife of its square (removing its noise bias; the spread over folds gives the 1σ).
 
-    ``full`` ``(K − 1,)`` and ``folds`` ``(G, K − 1)`` as in
-    :attr:`CrossValidation.kernel_differences`.
+    ``full`` and ``folds`` as in :attr:`CrossValidation.kernel_differences`; ``p_value`` that of
+    the held-out field test.
     """
     g = len(folds)
     if g < 2:
@@ -126,11 +119,9 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
                              seed: int = 0) -> CrossValidation:
     """Leave-positions-out cross-validation of eigen-kernel models, per position.
 
-    Positions other than the centre are split into ``folds`` random groups
-    (:func:`fold_groups`); each model is fitted without one group (the centre is always kept:
-    it defines the frame) and predicts it. The normal equations are accumulated once per
-    group, so a fold's training system is the total minus its group. Also the centre PSF
-    alone (every position predicted by the centre PSF, shifted) is scored.
+    Each model is fitted without one group of :func:`fold_groups` (the centre, which defines the
+    frame, is always kept) and predicts it; a fold's normal equations are the total minus its
+    group's. The centre PSF alone is scored too.
     """
     n = len(stack.images)
     groups = fold_groups(n, center_row, folds, seed)
@@ -140,21 +131,13 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
     centre = stack.images[center_row]
     squared = {CENTRE_ONLY: np.array([_squared_error(stack, p, centre) for p in held])}
     differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    shape = stack.images.shape[1:]
     for name in bases:
         basis = get_basis(name)
         if training_size < basis.n_kernels:
             continue                       # too few training positions for this basis
         for convention in conventions:
-            per_group = []
-            for group in groups:
-                eq = NormalEquations(basis, convention, shape, frame=stack.frame)
-                for p in group:
-                    eq.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
-                per_group.append(eq)
-            total = NormalEquations(basis, convention, shape, frame=stack.frame)
-            total.add(stack.images[center_row], stack.valid[center_row],
-                      tuple(stack.shifts[center_row]))
+            per_group = [_equations(stack, basis, convention, group) for group in groups]
+            total = _equations(stack, basis, convention, [center_row])
             for eq in per_group:
                 total += eq
             errors = {}
@@ -171,6 +154,15 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
                 full = squared_relative_differences(total.solve(conditioning=False)[0])
                 differences[key] = (full, np.array(fold_differences))
     return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
+
+
+def _equations(stack: WorkingStack, basis: WeightBasis, convention: str,
+               rows: Iterable[int]) -> NormalEquations:
+    """The normal equations of the stack's ``rows``, added in order."""
+    equations = NormalEquations(basis, convention, stack.images.shape[1:], frame=stack.frame)
+    for p in rows:
+        equations.add(stack.images[p], stack.valid[p], tuple(stack.shifts[p]))
+    return equations
 
 
 def _squared_norm(stack: WorkingStack, p: int) -> float:

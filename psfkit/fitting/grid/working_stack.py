@@ -1,7 +1,5 @@
-"""The working copy of an aligned PSF grid: where and at what binning it is held
-(:func:`working_region`, from the centre PSF's extent), and the cropped, binned stack of the
-aligned PSFs with their masks, shifts and gains (:class:`WorkingStack`) that the fits, the
-cross-validation and the PCA run on.
+"""The working copy of an aligned PSF grid: its region and binning (:func:`working_region`) and
+the cropped, binned stack of aligned PSFs (:class:`WorkingStack`) the fits, CV and PCA use.
 """
 
 from __future__ import annotations
@@ -20,24 +18,15 @@ from psfkit.numerics.resample import bin_image, binning_factor
 
 def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
                    ) -> tuple[tuple[slice, slice] | None, int, dict[str, Any]]:
-    """Where and at what resolution the working copy holds the aligned PSFs, from the centre
-    PSF's extent.
+    """Where and at what binning the working copy holds the aligned PSFs, from the centre PSF.
 
-    The PSFs of the aligned grid all lie where the centre PSF lies. The working region is the
-    bounding box of the centre PSF's support grown by its own size (and 8 px) on every side,
-    room for PSFs that grow over the field, clipped to the sensor: defined by the PSF alone, so
-    a cut-out that holds it gives the same working copy as the full frame; when that is the
-    whole sensor (a caustic), the whole sensor. The binning is the smallest
-    that brings the region to ``working_size`` px (the memory bound): a compact PSF stays at
-    full resolution, several pixels wide. Its bandwidth is reported: the fraction of the
-    centre PSF's power (on its support's box) above the binned grid's Nyquist frequency, which
-    that binning folds.
+    The region is the centre PSF's support box grown by its own size (and 8 px) on every side,
+    clipped to the sensor; the binning the smallest bringing it to ``working_size`` px.
 
     Parameters
     ----------
     support : numpy.ndarray
-        ``(H, W)`` bool support of the centre PSF
-        (:func:`psfkit.calibration.alignment.psf_support`).
+        ``(H, W)`` bool support of the centre PSF.
     reference : numpy.ndarray
         ``(H, W)`` its luminance.
     working_size : int
@@ -50,7 +39,7 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     factor : int
         Binning factor.
     record : dict
-        JSON-ready description (``kernel file`` provenance, ``fit.json``).
+        JSON-ready description (with the power the binning aliases).
     """
     h, w = support.shape
     rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
@@ -73,8 +62,8 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
 
 
 def aliased_power(image: np.ndarray, factor: int) -> float:
-    """Fraction of an image's (non-DC) power above the Nyquist frequency of a grid binned by
-    ``factor`` (what that binning folds): 0 for ``factor`` 1."""
+    """Fraction of an image's non-DC power above the Nyquist frequency of a grid binned by
+    ``factor`` (0 for ``factor`` 1)."""
     import scipy.fft as sfft
 
     if factor <= 1 or min(image.shape) < 2:
@@ -89,15 +78,11 @@ def aliased_power(image: np.ndarray, factor: int) -> float:
 
 @dataclass
 class WorkingStack:
-    """The aligned grid, cropped to ``region`` and binned by ``factor`` (kept in memory for
-    residuals, CV and PCA).
+    """The aligned grid cropped to ``region`` (``None``: the whole sensor) and binned by ``factor``.
 
-    ``images`` ``(P, C, h, w)``, ``valid`` ``(P, h, w)``, ``shifts`` ``(P, 2)`` in binned
-    pixels, ``index`` ``(P, 2)`` grid rows/columns, ``overlap`` ``(P,)`` (the centre PSF's
-    light in each one's registered overlap), ``light_in_region`` ``(P,)`` (each PSF's light
-    inside ``region``): one entry per measured position (an excluded one is dropped by
-    :meth:`subset`). ``region`` ``(rows, cols)`` of the sensor ``sensor_shape``, or ``None``:
-    the whole sensor (a PSF that fills it).
+    Per measured position: ``images`` ``(P, C, h, w)``, ``valid`` ``(P, h, w)``, ``shifts``
+    ``(P, 2)`` binned px, ``index`` ``(P, 2)`` grid row/column, ``overlap`` ``(P,)`` (the centre
+    PSF's light in its registered overlap), ``gains``, ``light_in_region`` ``(P,)``.
     """
 
     factor: int
@@ -126,16 +111,14 @@ class WorkingStack:
 
     @property
     def frame(self) -> PixelFrame | None:
-        """Where the working pixels lie on the sensor (``None``: the whole sensor binned,
-        whose own grid is the frame)."""
+        """Where the working pixels lie on the sensor (``None``: the whole sensor binned)."""
         if self.region is None or self.sensor_shape is None:
             return None
         return PixelFrame.crop(self.sensor_shape, (self.region[0].start, self.region[1].start),
                                self.factor, self.images.shape[-2:])
 
     def reduce(self, image: np.ndarray) -> np.ndarray:
-        """A full-resolution ``(..., H, W)`` image (a kernel) as the working copy holds its
-        PSFs: cropped to ``region``, block-averaged by ``factor``."""
+        """A full-resolution ``(..., H, W)`` image cropped to ``region`` and block-averaged."""
         if self.region is not None:
             image = image[(..., *self.region)]
         return bin_image(image, self.factor) / self.factor**2
@@ -160,15 +143,13 @@ class WorkingStack:
         return int(hits[0])
 
     def lattice(self, values: np.ndarray, grid_shape: tuple[int, int]) -> np.ndarray:
-        """Per-entry ``values`` ``(P, ...)`` placed on the ``(N, M, ...)`` lattice (NaN
-        elsewhere)."""
+        """Per-entry ``values`` ``(P, ...)`` on the ``(N, M, ...)`` lattice (NaN elsewhere)."""
         out = np.full((*grid_shape, *np.shape(values)[1:]), np.nan)
         out[self.index[:, 0], self.index[:, 1]] = values
         return out
 
     def put(self, p: int, aligned: AlignedPsf, image: np.ndarray, gain: float) -> None:
-        """Store position ``p`` cropped and binned (``image`` may be the gain-compensated
-        version)."""
+        """Store position ``p`` cropped and binned (``image`` may be gain-compensated)."""
         f = self.factor
         valid = aligned.valid
         if self.region is not None:

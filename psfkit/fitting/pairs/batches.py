@@ -51,16 +51,14 @@ class PairBatches:
     kernel_shape : (int, int)
         ``(Hk, Wk)`` (at most the sensor size).
     scene_padding : int
-        Padding factor of the model (the grid is the linear-convolution grid, at most that).
+        Padding factor of the model.
     batch_size : int, optional
-        Pairs per batch (memory of one batch's spectra: ``batch × K × C × grid`` complex).
-        Default: :func:`auto_batch_size`.
+        Pairs per batch; default :func:`auto_batch_size`.
     cache_bytes : int
-        Keep the operators (scene spectra) of the first batches between passes, as many as
-        fit in this many bytes; every pass recomputes the others (``0``: never cache).
-        :meth:`astype`'s twin has a budget of its own.
+        Bytes of the first batches' operators (scene spectra) kept between passes (``0``:
+        never); :meth:`astype`'s twin has its own budget.
     dtype, device
-        Working precision and device of the operators (float64 for an oracle).
+        Working precision and device of the operators.
     """
 
     def __init__(self, scenes: np.ndarray | Tensor, basis: str, convention: str,
@@ -125,10 +123,8 @@ class PairBatches:
 
     @contextmanager
     def only(self, active: Tensor | np.ndarray) -> Iterator[PairBatches]:
-        """Within the ``with`` block every pass visits only the pairs where ``active``
-        (``(N,)`` bool) is true: the normal operator, right-hand side, Gram blocks and
-        residuals of a cross-validation fold's training (or held-out) pairs, from the same
-        cached scene spectra (no FFT of a scene is taken again)."""
+        """Within the ``with`` block every pass visits only the pairs where ``active`` (``(N,)``
+        bool) is true (a fold's training or held-out pairs), from the same cached scene spectra."""
         previous = self.active
         self.active = torch.as_tensor(np.asarray(active, dtype=bool), device=self.device)
         try:
@@ -137,9 +133,8 @@ class PairBatches:
             self.active = previous
 
     def batches(self) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor]]:
-        """One pass: ``(start, stop, operator, scales)`` per batch; with :attr:`active` set,
-        per run of consecutive active pairs within a batch (its operator a view of the
-        batch's scene spectra: nothing is copied)."""
+        """One pass: ``(start, stop, operator, scales)`` per batch, or with :attr:`active` per run
+        of consecutive active pairs (a view of the batch's spectra)."""
         self.passes += 1
         for start, stop in self.ranges():
             if self.active is None or bool(self.active[start:stop].all()):
@@ -158,23 +153,16 @@ class PairBatches:
     # -------------------------------------------------------------------- operators
     def predictions(self, kernels: Tensor
                     ) -> Iterator[tuple[int, int, KernelSpaceOperator, Tensor, Tensor]]:
-        """``(start, stop, operator, scales, B_i K)`` per batch (one pass; the prediction
-        unscaled). The kernels' FFTs are taken once per pass, not once per batch (at full
-        DLMD resolution a float32 pass has 4 batches: they would be most of its cost)."""
+        """``(start, stop, operator, scales, B_i K)`` per batch (one pass; unscaled), the kernels'
+        FFTs taken once per pass."""
         spectra = None
         for start, stop, op, s in self.batches():
             if spectra is None:
                 spectra = op.spectra_of(kernels)
             yield start, stop, op, s, op.forward_spectra(spectra)
 
-    def forward(self, kernels: Tensor) -> Iterator[tuple[int, int, Tensor]]:
-        """``(start, stop, s_i B_i K)`` per batch (one pass)."""
-        for start, stop, _op, s, p in self.predictions(kernels):
-            yield start, stop, p * s[:, None, None, None]
-
     def normal(self, kernels: Tensor) -> Tensor:
-        r""":math:`\sum_i s_i^2 B_i^\top B_i K` (one pass over the pairs, exact: crop and
-        weights included), the batches' adjoint spectra summed before one inverse FFT."""
+        r""":math:`\sum_i s_i^2 B_i^\top B_i K` (one exact pass over the pairs)."""
         total = op = None
         for _start, _stop, op, s, p in self.predictions(kernels):
             term = op.adjoint_spectra(p * (s * s)[:, None, None, None])
@@ -182,8 +170,8 @@ class PairBatches:
         return torch.zeros_like(kernels) if op is None else op.kernels_of(total)
 
     def rhs(self, measurements: np.ndarray | Tensor | MeasurementSource) -> Tensor:
-        r""":math:`\sum_i s_i B_i^\top y_i`; ``measurements`` is an ``(N, C, H', W')`` array or a
-        callable ``(start, stop) → (stop − start, C, H', W')`` (made on the fly)."""
+        r""":math:`\sum_i s_i B_i^\top y_i`; ``measurements`` an array or a callable
+        ``(start, stop) → (stop − start, C, H', W')``."""
         total = op = None
         for start, stop, op, s in self.batches():
             y = self.measurement(measurements, start, stop)

@@ -15,11 +15,10 @@ from psfkit.numerics.resample import bin_mean
 
 def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
                      where: str = "pairs") -> tuple[np.ndarray, np.ndarray]:
-    """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements
-    (trailing rows/columns dropped); the forward model keeps its form at the coarser pitch.
+    """Average ``factor × factor`` blocks of ``(N, C, H, W)`` scenes and measurements (trailing
+    rows/columns dropped).
 
-    Pairs smaller than ``MIN_PAIR_SIDE`` px a side once binned are refused (``where`` names
-    them; with ``factor > 1`` the message names ``--downsample`` too).
+    Pairs under ``MIN_PAIR_SIDE`` px a side once binned are refused (``where`` names them).
     """
     h, w = scenes.shape[-2:]
     if h // factor < MIN_PAIR_SIDE or w // factor < MIN_PAIR_SIDE:
@@ -35,9 +34,8 @@ def downsample_pairs(scenes: np.ndarray, measurements: np.ndarray, factor: int,
 
 
 def upsampled_kernels(coarse: Tensor, factor: int, shape: tuple[int, int]) -> Tensor:
-    """Kernels fitted to pairs binned ``factor`` times, on the unbinned pixel grid ``shape``
-    (a warm start): each binned pixel spread over its ``factor × factor`` pixels (a binned
-    kernel is the sum over its block), its origin at the centre as the binned one's."""
+    """Kernels fitted to pairs binned ``factor`` times on the unbinned grid ``shape`` (a warm
+    start): each binned pixel spread over its block, origin at the centre."""
     fine = coarse.repeat_interleave(factor, -2).repeat_interleave(factor, -1) / factor**2
     out = fine.new_zeros((*fine.shape[:-2], *shape))
     h, w = min(shape[0], fine.shape[-2]), min(shape[1], fine.shape[-1])

@@ -1,22 +1,13 @@
-r"""Physical constraints on kernels fitted from pairs, and the one solver that imposes them.
+"""Physical constraints on kernels fitted from pairs, and the one solver that imposes them.
 
 A measured PSF is non-negative and lives on the caustic's footprint. :func:`projected_newton`
-(projected Newton-CG, Bertsekas 1982: the Newton step on the free pixels by a few CG
-iterations with the Gram preconditioner restricted to them, then an Armijo search along the
-projection arc) minimises the objective of the conjugate-gradient fit
-(:mod:`psfkit.fitting.pairs.solver`) over ``K ≥ 0`` (and ``K = 0`` outside a support) to a relative
-KKT residual (``‖K − max(0, K − ∇/L)‖ / ‖K‖`` per channel, the record's ``kkt_residual``);
-:func:`newton_fit` runs it on a fit's normal equations. A
-support without non-negativity is a linear constraint: :func:`support_least_squares` solves it
-exactly by the same conjugate gradients restricted to the support. :func:`auto_support` gives
-the footprint, :func:`kernel_summary` what the kernel file records.
-
-Until issue 44 a second solver lived here: FISTA with adaptive restart, for a fixed per-kernel
-energy (``--energy fit|base``, the projection onto the scaled simplex) or a support without
-non-negativity. Projected Newton reaches the non-negative least squares to a KKT residual
-orders of magnitude smaller in less time, with a held-out error as low or lower (measured in
-docs/forward-models.md), and the energy constraint changed the held-out DLMD error by 3e-4
-(research/notes/forward-model-studies.md): both left.
+(projected Newton-CG, Bertsekas 1982: the Newton step on the free pixels by a few
+preconditioned CG iterations, then an Armijo search along the projection arc) minimises the CG
+fit's objective (:mod:`psfkit.fitting.pairs.solver`) over ``K ≥ 0`` (and ``K = 0`` outside a
+support) to a relative KKT residual ``‖K − max(0, K − ∇/L)‖ / ‖K‖`` per channel;
+:func:`newton_fit` runs it on a fit's normal equations. A support alone is a linear constraint,
+solved exactly by :func:`support_least_squares`. :func:`auto_support` gives the footprint,
+:func:`kernel_summary` what the kernel file records.
 """
 
 from __future__ import annotations
@@ -28,7 +19,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psfkit.fitting.pairs.solver import regularised_normal, solve_normal_equations
+from psfkit.fitting.pairs.solver import (
+    _per_channel_dot,
+    regularised_normal,
+    solve_normal_equations,
+)
 from psfkit.forward.norm import largest_eigenvalue
 
 Normal = Callable[[Tensor], Tensor]
@@ -44,17 +39,10 @@ MAX_CG_GROWTH = 4
 
 def auto_support(base: np.ndarray, threshold: float = 0.1, smoothing: float = 1.0,
                  dilation: int = 2) -> np.ndarray:
-    """The caustic footprint of a fitted (unconstrained) PSF ``(C, Hk, Wk)``.
+    """The caustic footprint ``(Hk, Wk)`` bool of a fitted (unconstrained) PSF ``(C, Hk, Wk)``.
 
-    ``|K|`` is averaged over channels, smoothed with a Gaussian of ``smoothing`` pixels (the
-    negative lobes of an unconstrained fit sit next to the caustic lines: their magnitude marks
-    the footprint too), thresholded at ``threshold`` × its maximum, and dilated by ``dilation``
-    pixels so that the edge of the caustic is not cut.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(Hk, Wk)`` bool.
+    ``|K|`` averaged over channels (negative lobes mark the footprint too), smoothed by a Gaussian
+    of ``smoothing`` px, thresholded at ``threshold`` × its maximum and dilated by ``dilation`` px.
     """
     from scipy.ndimage import binary_dilation, gaussian_filter
 
@@ -72,28 +60,21 @@ LIPSCHITZ_TOLERANCE = 1e-2
 
 
 def lipschitz_constant(normal: Normal, like: Tensor, seed: int = 0) -> Tensor:
-    """Largest eigenvalue of the (per-channel block-diagonal, positive semi-definite) normal
-    operator, per channel ``(C,)``, times 1.05: :func:`psfkit.forward.norm.largest_eigenvalue`
-    (the one estimator; to ``LIPSCHITZ_TOLERANCE``) approaches it from below, and a step of
-    ``1/L`` needs ``L`` at least the eigenvalue."""
+    """1.05 × the largest eigenvalue per channel ``(C,)`` of the block-diagonal normal operator
+    (the estimate approaches it from below; a ``1/L`` step needs ``L`` above it)."""
     value = largest_eigenvalue(normal, tuple(like.shape), like.dtype, like.device, block_dim=1,
                                tol=LIPSCHITZ_TOLERANCE, seed=seed)
     return 1.05 * value.to(dtype=like.dtype, device=like.device)
 
 
 def kernel_summary(kernels: np.ndarray) -> dict[str, Any]:
-    """What the kernel file records about a fitted model's physics: per-kernel, per-channel
-    energies (sums) ``[K][C]``, the support fraction (pixels non-zero in some kernel or
-    channel), and the count of negative and non-finite pixels."""
+    """What the kernel file records about a fitted model's physics: energies ``[K][C]``, support
+    fraction, counts of negative and non-finite pixels."""
     k = np.asarray(kernels, dtype=np.float64)
     return {"energy": [[float(e) for e in row] for row in k.sum(axis=(-2, -1))],
             "support_fraction": float(np.any(k != 0, axis=(0, 1)).mean()),
             "negative_pixels": int((k < 0).sum()),
             "nonfinite_pixels": int((~np.isfinite(k)).sum())}
-
-
-def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(dim=(0, 2, 3))                                        # (C,)
 
 
 def _per_channel_norm(a: Tensor) -> Tensor:
@@ -102,16 +83,13 @@ def _per_channel_norm(a: Tensor) -> Tensor:
 
 def _natural_residual(kernels: Tensor, gradient: Tensor, lipschitz: Tensor,
                       support: Tensor | None = None) -> Tensor:
-    r"""Per-channel relative natural residual of ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0`` (and
-    ``K = 0`` outside ``support``), ``(C,)``, from the ``gradient`` ``NK − rhs``:
+    r"""Per-channel relative natural residual ``(C,)`` of ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0`` (and
+    ``K = 0`` outside ``support``), from the ``gradient`` ``NK − rhs``:
 
     .. math:: \lVert K - \max(0, K - \nabla/L)\rVert \,/\, \lVert K\rVert ,
 
-    the projected-gradient step of length ``1/L`` (``L`` ≥ the largest eigenvalue of ``N`` per
-    channel, :func:`lipschitz_constant`) relative to the
-    kernels: 0 exactly at the minimiser, and independent of the units of the kernels and of
-    the data. (The kernels' distance to the minimiser is larger by up to the conditioning of
-    ``N`` on the free pixels: measured at 128², about 10⁵ times.)"""
+    0 exactly at the minimiser and independent of units.
+    """
     step = kernels - (kernels - gradient / lipschitz[None, :, None, None]).clamp_min(0)
     if support is not None:                  # pixels held at 0 have no optimality condition
         step = step * support
@@ -120,11 +98,9 @@ def _natural_residual(kernels: Tensor, gradient: Tensor, lipschitz: Tensor,
 
 def _cheap_products_too_coarse(normal: Normal, cheap: Normal, step: Tensor,
                                forcing: float) -> bool:
-    """Whether the cheap products are less precise on the last Newton step ``d`` than its CG
-    was asked to be, ``‖(Ñ − N) d‖ > forcing · ‖N d‖`` in some channel (or gave no step at
-    all). Otherwise a stalled residual is the active set's swing, not the products (DLMD at
-    full resolution: the float32 products' error stayed far below it), and the exact products
-    would only double the cost of every later step."""
+    """Whether the cheap products miss the last Newton step ``d`` by more than its CG's forcing,
+    ``‖(Ñ − N) d‖ > forcing · ‖N d‖`` in some channel (or gave no step); otherwise a stall is the
+    active set's swing and exact products would only double the cost."""
     exact = normal(step)
     size = _per_channel_norm(exact)
     error = _per_channel_norm(cheap(step) - exact)
@@ -133,12 +109,9 @@ def _cheap_products_too_coarse(normal: Normal, cheap: Normal, step: Tensor,
 
 def _armijo_step(normal: Normal, cheap: Normal, project: Normal, x: Tensor, nx: Tensor,
                  g: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``x⁺ = project(x + αd)`` with the largest ``α = 2⁻ʲ`` (``j < 30``) that decreases the
-    objective by at least ``10⁻⁴ gᵀ(x⁺ − x)``, per channel, and ``N x⁺``; channels where no
-    ``α`` does keep ``x`` (``accepted`` false). The first trial (``α = 1``, most often taken)
-    uses ``normal``, the backtracking trials ``N(x⁺ − x)`` by ``cheap``, and then one exact
-    product at ``x⁺`` checks the decrease (on DLMD at full resolution a step took 3.4 exact
-    passes, the steps that backtrack five or six times each)."""
+    """``x⁺ = project(x + αd)`` with the largest ``α = 2⁻ʲ`` (``j < 30``) decreasing the objective
+    by at least ``10⁻⁴ gᵀ(x⁺ − x)``, per channel, and ``N x⁺``; channels where none does keep ``x``
+    (``accepted`` false). Backtracking trials use ``cheap``; one exact product checks the result."""
     alpha = torch.ones(g.shape[1], dtype=x.dtype, device=x.device)
     accepted = torch.zeros_like(alpha, dtype=torch.bool)
     x_new, nx_new = x, nx
@@ -184,15 +157,10 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
                      ) -> tuple[Tensor, dict[str, Any]]:
     """Projected Newton-CG for ``min ½KᵀNK − rhsᵀK`` over ``K ≥ 0``, per channel.
 
-    Each step: the gradient ``g = NK − rhs``; the binding pixels ``B = {K = 0, g > 0}`` stay
-    at 0; on the others, ``cg_iterations`` of (preconditioned) CG for the Newton step
-    ``N_F d = −g_F``; then ``K⁺ = max(0, K + αd)``
-    with the largest ``α = 2⁻ʲ`` that decreases the objective by at least
-    ``10⁻⁴ gᵀ(K⁺ − K)`` (Armijo along the projection arc, per channel). The CG of the Newton
-    step and the line search's backtracking trials may use a cheaper ``hessian`` (e.g. the
-    same operator in float32): an inexact Newton step still descends, every accepted
-    decrease is checked with ``normal``, and the gradients, hence the stopping test, are
-    exact.
+    Each step: ``g = NK − rhs``; the binding pixels ``{K = 0, g > 0}`` stay at 0; on the others
+    CG for the Newton step ``N_F d = −g_F``; then ``K⁺ = max(0, K + αd)`` with an Armijo ``α``. The
+    Newton CG and the backtracking trials may use a cheaper ``hessian``; accepted decreases,
+    gradients and the stopping test are exact.
 
     Parameters
     ----------
@@ -201,34 +169,24 @@ def projected_newton(normal: Callable[[Tensor], Tensor], rhs: Tensor, start: Ten
     rhs : Tensor
         ``(K, C, Hk, Wk)``.
     start : Tensor
-        Warm start (clipped to ``≥ 0`` first), e.g. the unconstrained solution.
+        Warm start (clipped to ``≥ 0``).
     precondition : callable, optional
-        Symmetric positive definite approximation of ``N⁻¹`` (e.g.
-        :meth:`psfkit.fitting.pairs.gram.FrequencyGram.preconditioner`); applied as
-        ``P_F M P_F`` on the free pixels (positive definite there).
+        Symmetric positive definite approximation of ``N⁻¹``, applied as ``P_F M P_F``.
     iterations, cg_iterations
-        Most Newton steps, and CG iterations per step (20: at 128², 96 pairs, the solution
-        to 1e-4 took 689 operator applications with 20, 1 400 with 40, 770 with 10).
+        Most Newton steps, and CG iterations per step.
     tolerance : float
-        Stop when every channel's relative KKT residual (``kkt_residual``) is below this.
+        Stop when every channel's relative KKT residual is below this.
     support : Tensor, optional
-        Boolean, broadcastable to the kernels (e.g. ``(Hk, Wk)``): pixels outside it are held
-        at 0 (a footprint constraint), the others are ``≥ 0``.
+        Boolean, broadcastable to the kernels: pixels outside it are held at 0.
     hessian : callable, optional
-        Approximation of ``normal`` for the CG of the Newton step and the backtracking
-        trials of the line search (default ``normal``). If the residual stops falling with
-        it (``STALL_STEPS`` steps without a new low) and its error on the last step exceeds
-        the CG's tolerance, or no step size descends, the steps go on with ``normal``.
-        Any other stall (precise products, or ``normal`` itself) doubles the CG iterations
-        per Newton step, up to ``MAX_CG_GROWTH`` times ``cg_iterations``.
+        Approximation of ``normal``; after ``STALL_STEPS`` steps without a new low the steps go
+        on with ``normal`` if it is too coarse, else with twice the CG iterations.
 
     Returns
     -------
     (Tensor, dict)
         The kernels (``≥ 0``) and ``{"method", "iterations", "kkt_residual", "history",
-        "converged", "stalled"}``: the KKT residual after each step (max over channels);
-        ``stalled`` when in some channel no step size decreased the objective (with the
-        exact products: it can get no closer in its precision; that channel then stops).
+        "converged", "stalled", ...}``; ``stalled``: some channel found no descending step.
     """
     inside = None if support is None else support.to(start.dtype)
     cheap = normal if hessian is None else hessian
@@ -303,20 +261,13 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
                cg_iterations: int, tolerance: float, progress: bool = False
                ) -> tuple[Tensor, dict[str, Any]]:
     """Non-negative kernels (zero outside ``mask``) on the normal equations ``system`` of
-    :func:`psfkit.fitting.pairs.solver.solve_kernels`, by :func:`projected_newton` from ``start``
-    (the unconstrained kernels), its CG on float32 products (``system["twin"]``, else a
-    float32 copy of the batches: half the time of a float64 pass), and so are its line
-    search's backtracking trials; the gradients and the KKT test stay in the working
-    precision).
+    :func:`~psfkit.fitting.pairs.solver.solve_kernels`, by :func:`projected_newton` from
+    ``start``, its CG and backtracking on float32 products (``system["twin"]``).
 
-    The Newton steps are preconditioned with the fit's Gram blocks kernel by kernel
-    (:meth:`~psfkit.fitting.pairs.gram.FrequencyGram.preconditioner` with ``coupled=False``):
-    the free set differs between the kernels, and the coupled blocks restricted to it stop
-    approximating the reduced Hessian's inverse where the difference prior couples the
-    kernels. On the 7 DLMD pairs (research/notes/forward-model-studies.md) the coupled blocks
-    took 388 steps at 1/4 resolution with ``--difference 10`` (64 kernel by kernel) and
-    did not converge in 100 at 1/2 resolution with ``--difference 1``.
-    Returns the kernels and the record (the KKT history as ``kkt_history``)."""
+    Preconditioned kernel by kernel (``coupled=False``): the free set differs between kernels, and
+    the coupled blocks restricted to it stopped converging on DLMD. Returns the kernels and the
+    record (``kkt_history``).
+    """
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -345,9 +296,8 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
 def support_least_squares(system: dict[str, Any], start: Tensor, mask: Tensor,
                           tolerance: float, max_iterations: int
                           ) -> tuple[Tensor, dict[str, Any]]:
-    """Least squares with the kernels zero outside ``mask``: preconditioned CG on the normal
-    equations restricted to the support (``S N S``, ``S P S`` on the support's subspace, where
-    they are symmetric positive definite), from ``start`` cut to it."""
+    """Least squares with the kernels zero outside ``mask``: preconditioned CG restricted to the
+    support (``S N S``, ``S P S``), from ``start`` cut to it."""
     inside = mask.to(start.dtype)
     normal, precondition = system["normal"], system["precondition"]
     kernels, info = solve_normal_equations(

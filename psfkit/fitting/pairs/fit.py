@@ -1,39 +1,19 @@
 r"""Forward models fitted to (scene, measurement) pairs (``psfkit fit-pairs``, ``eval-model``).
 
-For users without a point-source grid: the kernels of a shift-invariant or eigen-kernel model
-``y = A_K x`` (the forward model of :mod:`psfkit.forward`, which ekdun's operators wrap, so
-the fitted model is exactly the one ekdun trains with) are estimated from pairs by regularised
-least squares (in the kernel-space form :class:`~psfkit.forward.kernel_space.KernelSpaceOperator`),
+The kernels of a shift-invariant or eigen-kernel model ``y = A_K x`` (:mod:`psfkit.forward`,
+the model ekdun trains with) are estimated by regularised least squares,
 
 .. math::
 
     \min_K \sum_i \lVert A_K x_i - y_i\rVert^2 + \lambda\lVert K\rVert^2
            + \mu \sum_{k\ge1}\lVert K_k - K_0\rVert^2 ,
 
-which is linear in ``K``: with :math:`B_i: K \mapsto A_K x_i` the normal equations
-:math:`(\sum_i B_i^\top B_i + \lambda I + \mu D)K = \sum_i B_i^\top y_i` are solved **to
-convergence** (relative residual ``PairFitOptions.tolerance``, recorded in the history) by
-conjugate gradients preconditioned with the per-frequency ``K × K`` Gram blocks of the scenes,
-streaming the pairs in batches (:mod:`psfkit.fitting.pairs.solver`, which says what is exact
-and what only preconditions). Both weights default to 0: a ridge or a pull of the corrections
-towards the base kernel biases the kernels where the scenes carry little power, as early
-stopping would; with neither, noise-free pairs of an eigen-kernel model give back its kernels.
-``λ`` and ``μ`` are relative to the mean of :math:`\sum_i\sum_j|\hat s_{ij}|^2` (the spectra
-of the scenes as the kernels see them: the K weighted scenes of a source-side model), so they do
-not depend on the data's units. Datasets whose ground truth was normalised image by image (the
-DiffuserCam Mirflickr set: each lensed image scaled to max 1) get one scale per pair, estimated
-in a few alternating rounds (``fit_scale``).
-
-By default the kernels are then made physical: non-negative, by projected Newton-CG to a
-relative KKT residual of ``PairFitOptions.tolerance``, started from the unconstrained solution
-and scales solved in float32 to ``START_TOLERANCE`` (:func:`_newton_start`), inside a support
-if one is given (``PairFitOptions.nonneg``, ``support``); a support without non-negativity is
-solved exactly by the same conjugate gradients restricted to it. One solver per problem: CG on
-the normal equations, projected Newton-CG for non-negativity.
-Unless given, the regularisation is chosen by held-out error first
-(:mod:`psfkit.fitting.pairs.regularisation`).
-:meth:`psfkit.fitting.pairs.result.PairFit.physics` is what the kernel file records about
-them.
+whose normal equations are solved **to convergence** by preconditioned CG streaming the pairs
+(:mod:`psfkit.fitting.pairs.solver`). ``λ`` and ``μ`` default to 0 or are chosen by held-out
+error (:mod:`psfkit.fitting.pairs.regularisation`), relative to the mean scene power; per-image
+normalised data get one scale per pair (``fit_scale``). By default the kernels are then made
+non-negative by projected Newton-CG from the unconstrained solution (:func:`_newton_start`),
+optionally inside a support; a support alone is solved exactly by CG restricted to it.
 """
 
 from __future__ import annotations
@@ -82,31 +62,24 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
               progress: bool = False, support_mask: np.ndarray | None = None,
               batch_size: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES
               ) -> PairFit:
-    """Fit a forward model to ``(N, C, H, W)`` scenes and measurements.
+    """Fit a forward model to ``(N, C, H, W)`` scenes and measurements (module docstring).
 
-    The least squares is solved to ``options.tolerance`` (relative residual of the normal
-    equations) by conjugate gradients preconditioned with the per-frequency Gram blocks of
-    the scenes (:mod:`psfkit.fitting.pairs.solver`), streaming the pairs in batches: memory is that
-    of the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
+    Memory is that of the pairs plus ``cache_bytes`` of scene spectra, whatever their number.
 
     Parameters
     ----------
     scenes, measurements : numpy.ndarray
-        ``(N, C, H', W')`` each (scene and measurement of a pair have the sensor's size).
+        ``(N, C, H', W')`` each.
     options : PairFitOptions
     initial : numpy.ndarray, optional
-        ``(K, C, Hk, Wk)`` starting kernels (only a warm start: the solution does not depend
-        on it).
+        ``(K, C, Hk, Wk)`` warm start (the solution does not depend on it).
     dtype : torch.dtype
-        Working precision (float64 by default: the solve is run to a relative residual that
-        float32 cannot reach on ill-conditioned data).
+        Working precision (float64: float32 cannot reach the tolerance on ill-conditioned data).
     support_mask : numpy.ndarray, optional
-        ``(H', W')`` footprint outside which the kernels are zero (``options.support ==
-        "mask"``; nonzero = inside).
+        ``(H', W')`` footprint (nonzero = inside) for ``options.support == "mask"``.
     batch_size, cache_bytes
-        Pairs per batch (default: :func:`~psfkit.fitting.pairs.batches.auto_batch_size`), and
-        bytes of scene spectra kept between passes
-        (:class:`~psfkit.fitting.pairs.batches.PairBatches`).
+        Pairs per batch (default :func:`~psfkit.fitting.pairs.batches.auto_batch_size`) and bytes
+        of scene spectra kept between passes.
 
     Raises
     ------
@@ -164,9 +137,8 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
 
 @dataclasses.dataclass
 class _Trial:
-    """One convention's set-up of a fit: its pairs, options, weights and warm start, the
-    records of the weights' choice, and the held-out errors at them (``None`` when nothing was
-    held out)."""
+    """One convention's set-up of a fit: pairs, options, weights, warm start, the weights' choice
+    records and held-out errors (``None``: nothing held out)."""
 
     batches: PairBatches
     options: PairFitOptions
@@ -181,11 +153,9 @@ class _Trial:
 def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
             initial: np.ndarray | None, batch_size: int | None, cache_bytes: int,
             dtype: torch.dtype, device: str, progress: bool, bar: Any) -> _Trial:
-    """The pairs, weights and warm start of the fit. With ``convention="auto"`` (eigen-kernels,
-    at least two pairs) both conventions are set up, each with its weights chosen by held-out
-    error on the same folds, and the one that predicts the held-out pairs better is kept
-    (:func:`~psfkit.fitting.pairs.regularisation.convention_record`); one kernel has no
-    weight maps, and one pair nothing to hold out: then the paper's sensor side."""
+    """The pairs, weights and warm start of the fit. With ``convention="auto"`` (eigen-kernels, at
+    least two pairs) both conventions are set up with weights chosen on the same folds, and the
+    one predicting held-out pairs better is kept; otherwise the given one (or sensor)."""
     n_kernels = get_basis(options.basis).n_kernels
     conventions = ((options.convention,) if options.convention != "auto" else
                    CONVENTIONS if n_kernels > 1 and len(scenes) >= 2 else ("sensor",))
@@ -239,14 +209,10 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
                     weights: dict[str, float], kernels: Tensor | None,
                     history: list[dict[str, Any]], choices: list[RegularisationChoice],
                     bar: Any) -> tuple[Tensor | None, list[float]]:
-    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; their records
-    into ``choices``): on the pairs binned to at most
-    :data:`~psfkit.fitting.pairs.regularisation.SELECTION_PIXELS` pixels, the scales first, at the
-    path's strongest weights (the best-conditioned solves), then the folds with those scales; both
-    in float32 (:mod:`psfkit.fitting.pairs.regularisation`). Returns the warm start of the fit at
-    the chosen weights (when the choice was made on binned pairs, the binned fit there on the
-    unbinned grid: :func:`upsampled_kernels`), and the held-out errors at the weights used (given
-    weights are scored on the same folds)."""
+    """Choose ``options.automatic``'s weights by held-out error (into ``weights``; records into
+    ``choices``), in float32 on pairs binned to at most ``SELECTION_PIXELS``: the scales first at
+    the strongest weights, then the folds. Returns the warm start at the chosen weights
+    (upsampled when binned) and the held-out errors at the weights used."""
     factor = selection_binning(batches.sensor, MIN_PAIR_SIDE)
     strongest = {**weights, **{p: PATHS[p][0] for p in options.automatic}}
     if factor > 1:
@@ -301,11 +267,9 @@ START_TOLERANCE = 1e-5
 def _newton_start(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
                   weights: dict[str, float], kernels: Tensor | None,
                   history: list[dict[str, Any]], bar: Any) -> tuple[Tensor, dict[str, Any]]:
-    """The start of the non-negative solve: the unconstrained kernels and the per-pair scales
-    solved in float32 to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system
-    (normal equations, Gram preconditioner) that projected Newton converges on: the
-    unconstrained solution only starts Newton, and float64 passes cost 2.6 times float32
-    ones at full DLMD resolution (eigen-kernels)."""
+    """The non-negative solve's start: unconstrained kernels and per-pair scales solved in float32
+    to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system projected Newton converges
+    on."""
     twin = batches.astype(torch.float32)
     start, _ = _solve(twin, measurements, options, weights,
                       None if kernels is None else kernels.to(torch.float32), history, bar,
@@ -322,9 +286,9 @@ def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptio
            weights: dict[str, float], kernels: Tensor | None, history: list[dict[str, Any]],
            bar: Any, stage: str = "fit", tolerance: float | None = None
            ) -> tuple[Tensor, dict[str, Any]]:
-    """The unconstrained kernels at the relative ``weights``, with the per-pair scales
-    re-estimated in ``options.rounds`` solves (each to the tolerance, warm-started), appending
-    each solve's record to ``history``; returns the kernels and the last solve's system."""
+    """The unconstrained kernels at the relative ``weights``, the per-pair scales re-estimated over
+    ``options.rounds`` warm-started solves (records appended to ``history``); returns the kernels
+    and the last solve's system."""
     # Every round is solved to the tolerance (warm-started from the previous one): scales
     # fitted to loosely solved kernels are biased by a percent, and then stay so.
     scale_rounds = options.rounds - 1 if options.fit_scale else 0
@@ -357,11 +321,9 @@ def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptio
 def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
                        options: PairFitOptions, support_mask: np.ndarray | None,
                        progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
-    """The final solve under ``options``' constraints on the normal equations ``system`` of
-    :func:`~psfkit.fitting.pairs.solver.solve_kernels`, warm-started from the unconstrained
-    (converged) kernels, whose base kernel also gives the automatic support: projected
-    Newton-CG for non-negativity; a support alone, conjugate gradients restricted to it
-    (:mod:`psfkit.fitting.pairs.constraints`)."""
+    """The final solve under ``options``' constraints on ``system``, warm-started from the
+    unconstrained kernels (whose base kernel gives the automatic support): projected Newton-CG
+    for non-negativity, else CG restricted to the support."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
@@ -382,13 +344,9 @@ def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
 
 def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.float32,
             *, model_name: str = "", scenes_name: str = "scenes") -> np.ndarray:
-    """Measurements ``(N, C, H', W')`` that a kernel-file model predicts for ``scenes``:
-    ``A x`` of :meth:`psfkit.forward.operator.SpectralOperator.from_kernel_model`, the operator
-    every command builds from a kernel file.
-
-    ``model_name`` (the kernel file) and ``scenes_name`` (where the scenes come from, e.g. the
-    pairs folder) name the two inputs when their sizes or channels disagree.
-    """
+    """Measurements ``(N, C, H', W')`` a kernel-file model predicts for ``scenes`` (``A x`` of
+    :meth:`~psfkit.forward.operator.SpectralOperator.from_kernel_model`); ``model_name`` and
+    ``scenes_name`` name the inputs when their sizes or channels disagree."""
     model_text = f"the model {model_name}" if model_name else "the model"
     if tuple(scenes.shape[-2:]) != tuple(model.sensor_shape):
         raise InvalidInputError(f"{scenes_name}: scenes are {scenes.shape[-2]}x"
@@ -405,7 +363,7 @@ def predict(model: KernelModel, scenes: np.ndarray, dtype: torch.dtype = torch.f
 
 def relative_errors(prediction: np.ndarray, measurements: np.ndarray) -> dict[str, np.ndarray]:
     """Per-pair ``‖y − A x‖/‖y‖`` as predicted (``raw``) and with the best scale per pair
-    (``scaled``: what remains once an unknown per-image normalisation is allowed for)."""
+    (``scaled``)."""
     p = prediction.reshape(len(prediction), -1).astype(np.float64)
     y = measurements.reshape(len(measurements), -1).astype(np.float64)
     norm = np.linalg.norm(y, axis=1)

@@ -1,7 +1,5 @@
-"""The per-frequency ``K × K`` Gram blocks of the scenes of a pairs fit
-(:class:`FrequencyGram`), the preconditioner of the streaming least-squares solver
-(:mod:`psfkit.fitting.pairs.solver`, whose docstring says what they are exact for), and the
-difference prior's matrix ``D`` they are regularised with.
+"""The per-frequency ``K × K`` Gram blocks of the scenes of a pairs fit (:class:`FrequencyGram`),
+the preconditioner of :mod:`psfkit.fitting.pairs.solver`, and the difference prior's ``D``.
 """
 
 from __future__ import annotations
@@ -19,16 +17,16 @@ from psfkit.forward.weights import get_basis
 
 
 def difference_matrix(n_kernels: int) -> np.ndarray:
-    """``D`` of :math:`\\tfrac12\\sum_{k\\ge1}\\lVert K_k - K_0\\rVert^2 = \\tfrac12 K^\\top D K`
-    (``(K, K)``; the one definition, shared with :mod:`psfkit.fitting.grid.eigen`)."""
+    r"""``D`` of :math:`\tfrac12\sum_{k\ge1}\lVert K_k - K_0\rVert^2 = \tfrac12 K^\top D K`,
+    ``(K, K)``."""
     from psfkit.fitting.grid.eigen import _difference_prior
 
     return _difference_prior(n_kernels)
 
 
 class PairLayout(Protocol):
-    """What the Gram blocks read of the pairs (a
-    :class:`psfkit.fitting.pairs.batches.PairBatches`): grids, model, channels, device."""
+    """What the Gram blocks read of the pairs
+    (:class:`~psfkit.fitting.pairs.batches.PairBatches`)."""
 
     grid: tuple[int, int]
     sensor: tuple[int, int]
@@ -43,11 +41,9 @@ class PairLayout(Protocol):
 class FrequencyGram:
     r"""Per-frequency ``K × K`` Gram blocks of the weighted scenes, accumulated batch by batch.
 
-    ``blocks`` is ``(C, PH, PW//2 + 1, K, K)`` complex128 (Hermitian per frequency). Source
-    side (and SI): :math:`\sum_i s_i^2\,\overline{\hat S_{ik}}\hat S_{il}` — exactly the normal
-    operator of the uncropped, whole-grid problem. Sensor side: :math:`m_{kl}\sum_i
-    s_i^2|\hat x_i|^2` with :math:`m_{kl}` the mean of :math:`W_kW_l` over the sensor (an
-    approximation; see :mod:`psfkit.fitting.pairs.solver`).
+    ``blocks`` is ``(C, PH, PW//2 + 1, K, K)`` complex128. Source side (and SI):
+    :math:`\sum_i s_i^2\,\overline{\hat S_{ik}}\hat S_{il}`; sensor side :math:`m_{kl}\sum_i
+    s_i^2|\hat x_i|^2`, :math:`m_{kl}` the mean of :math:`W_kW_l` (an approximation).
     """
 
     def __init__(self, batches: PairLayout) -> None:
@@ -87,20 +83,17 @@ class FrequencyGram:
         return self.blocks
 
     def reference_power(self) -> float:
-        """Mean over frequencies and channels of the summed power of the scene spectra the
-        kernels see (the scenes; source side: the K weighted scenes, summed): the unit of
-        ``--tikhonov`` and ``--difference``."""
+        """Mean over frequencies and channels of the summed power of the scene spectra the kernels
+        see: the unit of ``--tikhonov`` and ``--difference``."""
         if self._power is not None:
             return float(self._power.mean())
         return float(torch.diagonal(self.blocks, dim1=-2, dim2=-1).real.sum(-1).mean())
 
     def inverse(self, tikhonov: float, difference: float, floor: float = 1e-12,
                 coupled: bool = True) -> Tensor:
-        """``[G(ω) + λ I + μ D + ε]^{-1}`` per frequency and channel; ``ε`` (``floor`` times the
-        mean trace) keeps an unexcited frequency from dividing by zero (preconditioner only).
-        ``coupled=False`` inverts only the blocks' diagonal, kernel by kernel (block Jacobi
-        over the kernels: what a non-negative solve's free set, which differs between the
-        kernels, leaves of the blocks' meaning)."""
+        """``[G(ω) + λ I + μ D + ε]^{-1}`` per frequency and channel (``ε``: ``floor`` times the
+        mean trace); ``coupled=False`` inverts only the diagonal, kernel by kernel (block Jacobi).
+        """
         k = self.n_kernels
         if self._power is not None and k == 1:           # one kernel: a division
             eps = floor * max(float(self._power.mean()), 1e-300)
@@ -118,10 +111,9 @@ class FrequencyGram:
 
     def preconditioner(self, tikhonov: float, difference: float, coupled: bool = True,
                        dtype: torch.dtype | None = None) -> Callable[[Tensor], Tensor]:
-        """``P`` of :mod:`psfkit.fitting.pairs.solver`, a callable on ``(K, C, Hk, Wk)``
-        residuals, applied in ``dtype`` (default: the residual's precision; a preconditioner
-        needs no more than float32, whose FFTs cost 0.4× float64's at full DLMD resolution)
-        and returned in the residual's; ``coupled`` as in :meth:`inverse`."""
+        """``P`` of :mod:`psfkit.fitting.pairs.solver` on ``(K, C, Hk, Wk)`` residuals, applied in
+        ``dtype`` (default the residual's) and returned in the residual's; ``coupled`` as in
+        :meth:`inverse`."""
         # (K, K, C, PH, PW//2+1): one multiply-add per block entry beats a batched matmul of
         # 3 x 3 matrices over the frequencies
         inverses = {torch.float64: self.inverse(tikhonov, difference, coupled=coupled)

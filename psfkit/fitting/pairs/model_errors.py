@@ -1,23 +1,11 @@
-r"""Where, and on which pairs, a forward model fails (``psfkit eval-model``).
+"""Where, and on which pairs, a forward model fails (``psfkit eval-model``).
 
-``eval-model`` predicts each measurement ``y_i`` of a pairs folder from its scene, ``p_i = A
-x_i``, and reports the relative error ``‖y_i − s_i p_i‖/‖y_i‖`` with ``s_i = 1`` (raw) and with
-the best per-pair scale ``s_i`` (scaled; :func:`psfkit.fitting.pairs.fit.relative_errors`). This
-module resolves those errors over the sensor and sorts the pairs:
-
-- :func:`zone_errors`: the same two errors restricted to each equal-area radial zone of
-  :mod:`psfkit.forward.zones` (``centre``, ``middle``, ``edge``), ``‖(y_i − s_i
-  p_i)_z‖/‖(y_i)_z‖``: the
-  residual in a zone relative to the measurement in that zone (the scale is the pair's
-  whole-sensor one, so the zones split one prediction, not three fits);
-- :func:`residual_map`: the per-pixel RMS of the scaled residual over pairs and channels,
-  relative to the RMS of the measurements over the same pairs, pixels and channels (one number
-  for the whole map, so that the map compares places on the sensor): the mean of its square
-  over the sensor is the pooled squared relative error ``Σ‖r‖²/Σ‖y‖²``;
-- :func:`pair_roles`: whether the model was fitted on each pair or the pair was held out,
-  from the kernel file's record (``provenance["pairs"]``: the folder, ``["names"]``: the pairs
-  it was fitted on; ``fit-pairs`` and ``ekdun train`` write both) or, for a file that
-  does not record this folder, from ``--holdout``.
+``eval-model`` predicts ``p_i = A x_i`` and reports ``‖y_i − s_i p_i‖/‖y_i‖`` raw (``s_i = 1``)
+and scaled (the best per-pair ``s_i``). This module resolves those errors over the sensor:
+:func:`zone_errors` (per equal-area zone of :mod:`psfkit.forward.zones`, with the pair's
+whole-sensor scale), :func:`residual_map` (per-pixel RMS of the scaled residual relative to the
+measurements' overall RMS) and :func:`pair_roles` (fitted or held out, from the kernel file's
+``provenance["pairs"]``/``["names"]`` or ``--holdout``).
 """
 
 from __future__ import annotations
@@ -52,16 +40,15 @@ def zone_errors(prediction: np.ndarray, measurements: np.ndarray, zones: FieldZo
     prediction, measurements : numpy.ndarray
         ``(N, C, H, W)``: ``A x_i`` and ``y_i``.
     zones : FieldZones
-        Zones of the ``(H, W)`` sensor (:func:`psfkit.forward.zones.field_zones`).
+        Zones of the ``(H, W)`` sensor.
     scale : numpy.ndarray
-        ``(N,)`` best per-pair scales (``relative_errors(...)["scale"]``).
+        ``(N,)`` best per-pair scales.
 
     Returns
     -------
     dict
-        ``raw`` and ``scaled``, each ``(N, 3)`` in :data:`psfkit.forward.zones.ZONE_NAMES` order:
-        ``‖(y − s p)_z‖ / ‖y_z‖`` with ``s = 1`` and with ``s = scale``; not finite (inf or
-        NaN) for a zone where the measurement is zero (``eval-model`` reports ``null``).
+        ``raw`` and ``scaled``, each ``(N, 3)`` in ``ZONE_NAMES`` order: ``‖(y − s p)_z‖ / ‖y_z‖``;
+        not finite where the zone's measurement is zero.
     """
     if prediction.shape != measurements.shape or prediction.shape[-2:] != zones.shape:
         raise InvalidInputError(f"predictions {prediction.shape}, measurements "
@@ -83,20 +70,10 @@ def zone_errors(prediction: np.ndarray, measurements: np.ndarray, zones: FieldZo
 
 def residual_map(prediction: np.ndarray, measurements: np.ndarray,
                  scale: np.ndarray) -> np.ndarray:
-    """Per-pixel RMS of the scaled residual over pairs and channels, relative to the RMS of
-    the measurements (module docstring).
+    """Per-pixel RMS of the scaled residual over pairs and channels, relative to the measurements'
+    RMS over all of them; ``(H, W)`` float32 (its mean square is ``Σ‖r‖²/Σ‖y‖²``).
 
-    Parameters
-    ----------
-    prediction, measurements : numpy.ndarray
-        ``(N, C, H, W)``.
-    scale : numpy.ndarray
-        ``(N,)`` best per-pair scales.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(H, W)`` float32, dimensionless (fraction of the measurements' RMS).
+    ``prediction``, ``measurements`` ``(N, C, H, W)``, ``scale`` ``(N,)`` best per-pair scales.
     """
     s = np.asarray(scale, dtype=np.float64)[:, None, None, None]
     r = s * prediction.astype(np.float64) - measurements.astype(np.float64)
@@ -122,17 +99,13 @@ def pair_roles(provenance: Mapping[str, Any], root: str | os.PathLike,
                where: str = "kernel file") -> tuple[str, ...]:
     """:data:`FITTED` or :data:`HELD_OUT` for each pair ``names`` of the folder ``root``.
 
-    A kernel file that records a fit on this folder (``provenance["pairs"]``, resolved, is
-    ``root``) says which: the pairs in ``provenance["names"]`` were fitted, the others held
-    out, and ``holdout`` may only confirm it. A file fitted on another folder, or on no pairs
-    at all (a PSF grid, an oracle), has seen none of these pairs: all are held out, unless
-    ``holdout`` names the held-out ones (the meaning of ``--holdout`` in ``fit-pairs`` and
-    ``ekdun train``: the others were fitted).
+    A kernel file recording a fit on this folder says which (``holdout`` may only confirm it);
+    otherwise all are held out unless ``holdout`` names the held-out ones (the others fitted).
 
     Raises
     ------
     InvalidInputError
-        ``holdout`` names a pair that is not in ``names``, or one the file records as fitted.
+        ``holdout`` names a pair not in ``names``, or one the file records as fitted.
     """
     held = parse_names(holdout)
     unknown = [n for n in held if n not in names]

@@ -1,7 +1,5 @@
-"""Options of the pairs fit (:func:`psfkit.fitting.pairs.fit.fit_pairs`), without torch.
-
-Kept apart from the solver so that ``psfkit fit-pairs --help`` (whose defaults come from here)
-does not import torch.
+"""Options of the pairs fit (:func:`psfkit.fitting.pairs.fit.fit_pairs`), without torch (so
+``psfkit fit-pairs --help`` does not import it).
 """
 
 from __future__ import annotations
@@ -31,67 +29,41 @@ class PairFitOptions:
     Attributes
     ----------
     basis : str
-        ``"si"`` (one shift-invariant PSF) or an eigen-kernel basis (``"paper"``, ...).
+        ``"si"`` (one shift-invariant PSF) or an eigen-kernel basis.
     convention : {"auto", "sensor", "source"}
-        Where the weights of an eigen-kernel model live. ``"auto"`` (default): the one that
-        predicts held-out pairs better, each at its own chosen regularisation, on the folds
-        that choose it (:func:`psfkit.fitting.pairs.regularisation.convention_record`; the
-        sensor side of Eq. 7 unless the source side is better by more than ``TIE``).
+        Where the weights live; ``"auto"``: the one predicting held-out pairs better
+        (:func:`~psfkit.fitting.pairs.regularisation.convention_record`; sensor unless source wins
+        by more than ``TIE``).
     tikhonov : float or None
-        ``λ`` relative to the mean scene power (the mean over frequencies of the summed power
-        of the scene spectra the kernels see). ``None`` (default): chosen by held-out error
-        for a single PSF (``si``, :mod:`psfkit.fitting.pairs.regularisation`), 0 for
-        eigen-kernels (whose difference prior is chosen instead). A ridge shrinks the kernels'
-        spectra where the scenes carry little power and so biases them (at 1e-2, 46 % kernel
-        error on noise-free pairs), so it is chosen only where the held-out pairs ask for it.
+        ``λ`` relative to the mean scene power; ``None``: chosen by held-out error for ``si``, 0
+        for eigen-kernels (a ridge biases the kernels where the scenes carry little power).
     difference : float or None
-        ``μ`` (pull of the correction kernels towards the base kernel), relative likewise.
-        ``None`` (default): chosen by held-out error for eigen-kernels (7 DLMD pairs do not
-        determine ``Kv − Kbase`` and ``Kh − Kbase`` without it; hundreds of pairs do, and
-        then it only biases them); irrelevant for ``si``.
+        ``μ`` (pull of the corrections towards the base kernel), relative likewise; ``None``:
+        chosen by held-out error for eigen-kernels.
     iterations : int, optional
-        Most conjugate-gradient iterations of the final solve (scales fixed), which otherwise
-        stops at ``tolerance``; default 2000 (a cap, not an early stop: the fit records its
-        relative residual and whether it converged).
+        Most CG iterations of the final solve (a cap; default 2000).
     scale_iterations : int
-        Most conjugate-gradient iterations of each earlier round that re-estimates the scales
-        (each round is solved to ``tolerance`` too: scales fitted to loosely solved kernels
-        are off by a percent, and the next warm-started round then has nothing to do).
+        Most CG iterations of each scale-estimating round (each solved to ``tolerance`` too).
     tolerance : float
-        Stop when the relative residual of the normal equations falls below this (default
-        ``NEWTON_TOLERANCE``, 1e-6, in the float64 working precision); for non-negative
-        kernels (projected Newton), the relative KKT residual of the non-negative solve, whose
-        start (the unconstrained kernels and the scales) is then solved in float32 to
-        :data:`psfkit.fitting.pairs.regularisation.FOLD_TOLERANCE` only.
+        Relative residual of the normal equations to stop at; for non-negative kernels, the
+        relative KKT residual (its float32 start solved to ``START_TOLERANCE``).
     fit_scale : bool
         Estimate one scale per pair (per-image normalised ground truth).
     rounds : int
-        Kernel solves in all when scales are fitted (``rounds − 1`` scale updates).
+        Kernel solves in all when scales are fitted.
     scene_padding : int
         Convolution grid as a multiple of the sensor size.
     seed_with_si : bool
-        Start an eigen-kernel fit from a shift-invariant fit (every kernel = the PSF, and its
-        scales). Only a warm start: the solve runs to ``tolerance`` from any start, so it is
-        off by default.
+        Start an eigen-kernel fit from a shift-invariant fit (only a warm start).
     nonneg : bool
-        Constrain the kernels to be non-negative (a measured PSF is): the final solve is then
-        projected Newton-CG (:func:`psfkit.fitting.pairs.constraints.projected_newton`), warm
-        started from the unconstrained conjugate-gradient solution.
+        Non-negative kernels, by projected Newton-CG from the unconstrained solution.
     support : {"none", "auto", "mask"}
-        Kernels are zero outside a footprint: ``"auto"`` derives it from the unconstrained base
-        kernel (the SI fit for ``si``; :func:`~psfkit.fitting.pairs.constraints.auto_support`),
-        ``"mask"`` takes the mask passed to :func:`~psfkit.fitting.pairs.fit.fit_pairs`.
+        Kernels zero outside a footprint: ``"auto"`` from the unconstrained base kernel
+        (:func:`~psfkit.fitting.pairs.constraints.auto_support`), ``"mask"`` the given mask.
     support_threshold : float
         ``"auto"`` support: fraction of the smoothed ``|K|``'s maximum kept.
     projected_iterations : int, optional
-        Most Newton steps of the non-negative solve (default ``NEWTON_ITERATIONS``).
-
-    One solver per problem (:attr:`solver`): conjugate gradients on the normal equations for the
-    unconstrained kernels (restricted to the support, an exact solve, when there is one without
-    non-negativity), and projected Newton-CG
-    (:func:`psfkit.fitting.pairs.constraints.projected_newton`) to a KKT residual of
-    ``tolerance`` for non-negativity (with or without a support): the non-negative least squares
-    itself.
+        Most Newton steps of the non-negative solve.
     """
 
     basis: str = "si"
@@ -112,21 +84,20 @@ class PairFitOptions:
 
     @property
     def solver(self) -> str:
-        """The final solve: ``"newton"`` for non-negativity (with or without a support),
-        ``"cg"`` (conjugate gradients, restricted to the support if any) otherwise."""
+        """The final solve: ``"newton"`` for non-negativity, else ``"cg"`` (restricted to a support
+        if any)."""
         return "newton" if self.nonneg else "cg"
 
     @property
     def automatic(self) -> tuple[str, ...]:
-        """The weights chosen by held-out error (:mod:`psfkit.fitting.pairs.regularisation`): the
-        difference prior of eigen-kernels, the ridge of one PSF, each unless given."""
+        """The weights chosen by held-out error: eigen-kernels' difference prior, one PSF's ridge,
+        each unless given."""
         if get_basis(self.basis).n_kernels > 1:
             return ("difference",) if self.difference is None else ()
         return ("tikhonov",) if self.tikhonov is None else ()
 
     def weights(self) -> dict[str, float]:
-        """The relative weights as given, a weight not chosen automatically and not given
-        being 0 (:attr:`automatic` replaces the others)."""
+        """The relative weights as given (0 where neither given nor chosen automatically)."""
         return {"tikhonov": self.tikhonov or 0.0, "difference": self.difference or 0.0}
 
     @property

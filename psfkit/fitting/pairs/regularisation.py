@@ -1,41 +1,23 @@
-r"""The regularisation of a pairs fit, chosen by held-out error (``fit-pairs``' default).
+"""The regularisation of a pairs fit, chosen by held-out error (``fit-pairs``' default).
 
-A few pairs do not determine every kernel pixel (on the 7 DiffuserCam pairs the unbiased
-eigen-kernel fit predicts unseen pairs worse than one PSF), while hundreds of pairs determine
-the kernels and any prior only biases them. So the weight of the
-one regulariser that matters for the model — the ridge ``λ`` of a single PSF (``si``), the
-difference prior ``μ`` of eigen-kernels, both relative to the mean scene power
-(:func:`psfkit.fitting.pairs.solver.solve_kernels`) — is chosen by **cross-validation over pairs**:
+A few pairs do not determine every kernel pixel, while hundreds do and any prior only biases
+them; so the one weight that matters (the ridge ``λ`` of ``si``, the difference prior ``μ`` of
+eigen-kernels, relative to the mean scene power) is chosen by **cross-validation over pairs**:
 
-* the pairs are split into ``k = min(N, MAX_FOLDS)`` folds of consecutive pairs
-  (leave-one-out up to ``MAX_FOLDS`` pairs); folds are scored in turn until at least
-  ``MIN_HELD_OUT`` pairs and ``MIN_FOLDS`` folds have been held out;
-* along a path of weights from strong to none (:data:`PATHS`, half a decade apart, then 0),
-  each fold's kernels are the unconstrained least squares of its training pairs, solved by
-  preconditioned CG in float32 (the fold's own per-frequency Gram blocks; warm-started from
-  the fold's kernels at the previous weight), and its held-out pairs are predicted;
-* the score of a weight is the mean over held-out pairs of ``‖a p − y‖ / ‖y‖`` with the best
-  gain ``a`` per pair when the fit estimates per-pair scales (a held-out pair's normalisation
-  is unknowable), else of ``‖p − y‖ / ‖y‖``;
-* the path stops at the first weight that scores worse than the best so far by more than
-  ``TIE`` (the score is smooth and unimodal along the path in every case measured), or
-  after 0;
-* the chosen weight is the smallest whose score is within ``TIE`` (relative) of the lowest:
-  where the data determine the kernels, the unbiased end wins.
-* when the path's first (strongest) weight scores best, stronger weights half a decade apart
-  are tried until one scores worse (at most ``STRONGER_STEPS``);
-* pairs of more than :data:`SELECTION_PIXELS` pixels are binned for the choice (the folds at
-  full resolution would cost minutes), and the weight chosen there is used at full resolution
-  (what that costs is measured in :data:`SELECTION_PIXELS`' note).
+* ``k = min(N, MAX_FOLDS)`` folds of consecutive pairs, scored until ``MIN_HELD_OUT`` pairs and
+  ``MIN_FOLDS`` folds are held out;
+* along :data:`PATHS` (strong to none, half a decade apart, then 0) each fold's unconstrained
+  kernels are solved by preconditioned CG in float32 (warm-started along the path) and its
+  held-out pairs predicted;
+* a weight's score is the mean held-out ``‖a p − y‖ / ‖y‖`` (best gain ``a`` per pair when the
+  fit estimates scales, else ``a = 1``);
+* the path stops at the first weight worse than the best by more than ``TIE``; the chosen
+  weight is the smallest within ``TIE`` of the lowest; if the strongest scores best, up to
+  ``STRONGER_STEPS`` stronger ones are tried;
+* pairs above :data:`SELECTION_PIXELS` pixels are binned for the choice.
 
-The per-frequency Gram blocks (:class:`~psfkit.fitting.pairs.gram.FrequencyGram`) would make exact
-leave-one-out cheap for the *uncropped* problem (a rank-``K`` downdate per frequency), but
-every measurement is cropped and on DiffuserCam the kernels are as large as the sensor: the
-blocks are then only a preconditioner, and the held-out errors have to come from solves of the
-cropped problem, which is what the folds do (from the same cached scene spectra).
-
-The fold solves use fixed per-pair scales (estimated beforehand, :func:`psfkit.fitting.pairs.fit`)
-and no constraint: the non-negative solve follows once, at the chosen weight.
+The per-frequency Gram blocks would give exact leave-one-out only without the crop, so the
+held-out errors come from fold solves (fixed per-pair scales, no constraint).
 """
 
 from __future__ import annotations
@@ -86,11 +68,8 @@ SELECTION_PIXELS = 128 * 128
 
 @dataclass
 class RegularisationChoice:
-    """The weight chosen by :func:`choose_regularisation`, and the evidence.
-
-    ``weights[j]`` scored ``held_out[j]`` (mean over the held-out pairs, ``per_pair[j]``);
-    ``spread[j]`` is the standard error of that mean over the pairs.
-    """
+    """The weight chosen by :func:`choose_regularisation`, and the evidence: ``weights[j]`` scored
+    ``held_out[j]`` (mean over held-out pairs ``per_pair[j]``, standard error ``spread[j]``)."""
 
     parameter: str
     chosen: float
@@ -143,10 +122,9 @@ class RegularisationChoice:
 
 
 def folds_of(n: int) -> list[np.ndarray]:
-    """The held-out pairs of each fold scored: ``k = min(n, MAX_FOLDS)`` folds of
-    consecutive pairs (fold ``f``: pairs ``⌊f n/k⌋ … ⌊(f+1) n/k⌋ − 1``, so that a fold's
-    passes visit views of the cached spectra), as many as hold out ``MIN_HELD_OUT`` pairs
-    and ``MIN_FOLDS`` folds."""
+    """The held-out pairs of each fold scored: ``k = min(n, MAX_FOLDS)`` folds of consecutive pairs
+    (fold ``f``: ``⌊f n/k⌋ … ⌊(f+1) n/k⌋ − 1``), enough for ``MIN_HELD_OUT`` pairs and
+    ``MIN_FOLDS`` folds."""
     if n < 2:
         raise ValueError("cross-validation needs at least two pairs")
     k = min(n, MAX_FOLDS)
@@ -207,28 +185,24 @@ def choose_regularisation(batches: PairBatches,
     Parameters
     ----------
     batches : PairBatches
-        The pairs (their ``scales`` are used as fixed), in the fold solves' precision
-        (float32: :meth:`PairBatches.astype`).
+        The pairs (``scales`` fixed), in the fold solves' precision (float32).
     measurements : array or callable
         ``(N, C, H', W')``.
     parameter : str
-        The weight chosen; ``fixed`` gives the other one (relative), e.g.
-        ``{"tikhonov": 0.0}``.
+        The weight chosen; ``fixed`` gives the other one (relative).
     best_gain : bool
-        Score with the best gain per held-out pair (fits that estimate per-pair scales).
+        Score with the best gain per held-out pair.
     reference : float
-        The unit of the relative weights (:meth:`FrequencyGram.reference_power` of all pairs).
+        The unit of the relative weights (:meth:`FrequencyGram.reference_power`).
     start : Tensor, optional
-        Warm start of every fold at the path's first weight (e.g. all the pairs' kernels
-        there).
+        Warm start of every fold at the path's first weight.
     bar : tqdm, optional
         Advanced by one per CG iteration.
 
     Returns
     -------
     (RegularisationChoice, Tensor)
-        The choice, and a warm start for the final fit at the chosen weight (the mean of the
-        folds' kernels there).
+        The choice, and a warm start at the chosen weight (the folds' mean kernels).
     """
     t0, passes = time.perf_counter(), batches.passes
     folds = folds_of(batches.n)
@@ -275,9 +249,8 @@ def held_out_score(batches: PairBatches,
                    measurements: np.ndarray | Tensor | MeasurementSource,
                    weights: dict[str, float], best_gain: bool, reference: float,
                    start: Tensor | None = None, bar: Any = None) -> list[float]:
-    """Held-out errors of the folds of :func:`folds_of` at fixed relative ``weights``
-    (``{"tikhonov", "difference"}``), one per held-out pair: the score of a model whose
-    weights were given, on the same folds as :func:`choose_regularisation`."""
+    """Held-out errors, one per pair, of the folds of :func:`folds_of` at fixed relative
+    ``weights`` (a model whose weights were given, on :func:`choose_regularisation`'s folds)."""
     path = _FoldPath(batches, measurements, folds_of(batches.n), start, best_gain, bar,
                      lambda _w: (weights["tikhonov"] * reference,
                                  weights["difference"] * reference))
@@ -286,11 +259,9 @@ def held_out_score(batches: PairBatches,
 
 
 def convention_record(per_pair: dict[str, list[float]], metric: str) -> dict[str, Any]:
-    """Choose the convention of an eigen-kernel model by held-out error: ``per_pair`` maps
-    each convention to its held-out errors (the same pairs, each convention at its own chosen
-    regularisation). The source side is chosen only when its mean is lower by more than
-    ``TIE`` (relative); otherwise the paper's sensor side (Eq. 7). Returns the record the
-    kernel file keeps (``chosen``, each mean and standard error, the paired difference)."""
+    """Choose an eigen-kernel model's convention by held-out error (``per_pair``: each convention's
+    errors on the same pairs): source only when its mean is lower by more than ``TIE``, else
+    sensor. Returns the kernel file's record (choice, means, standard errors, paired difference)."""
     sensor, source = (np.asarray(per_pair[c]) for c in ("sensor", "source"))
     chosen = "source" if source.mean() < sensor.mean() * (1 - TIE) else "sensor"
     diff = source - sensor

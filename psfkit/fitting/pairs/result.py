@@ -40,9 +40,8 @@ class PairFit:
     convention_choice: dict[str, Any] | None = None
 
     def regularisation_record(self) -> dict[str, Any]:
-        """What the kernel file and the fit report record about the regularisation: the
-        weights used, and for each weight chosen automatically its held-out errors along the
-        path (:meth:`RegularisationChoice.as_dict`)."""
+        """The regularisation record (kernel file, fit report): the weights used and each automatic
+        choice's held-out path."""
         automatic = {c.parameter: c.as_dict() for c in self.regularisation}
         return {"weights": dict(self.weights),
                 "chosen_by": {p: ("held-out error" if p in automatic else "given")
@@ -50,16 +49,15 @@ class PairFit:
                 "automatic": automatic}
 
     def physics(self) -> dict[str, Any]:
-        """The constraints imposed and what the kernels are: energies ``[K][C]``, support
-        fraction, negative and non-finite pixel counts (recorded in the kernel file)."""
+        """The constraints imposed and the kernels' energies ``[K][C]``, support fraction, negative
+        and non-finite pixel counts."""
         o = self.options
         return {"constraints": {"nonneg": o.nonneg, "support": o.support},
                 **kernel_summary(self.kernels)}
 
     def kernel_model(self, provenance: dict[str, Any] | None = None,
                      read_options: ReadOptions | None = None) -> KernelModel:
-        """The kernel file content; ``read_options``: how the fitted pairs were read
-        (:meth:`psfkit.io.pairs.PairSet.read_options`), recorded for the model's users."""
+        """The kernel file content; ``read_options``: how the fitted pairs were read."""
         channels = ("L",) if self.kernels.shape[1] == 1 else ("R", "G", "B")
         provenance = {**(provenance or {}), "regularisation": self.regularisation_record(),
                       **({"convention_choice": self.convention_choice}

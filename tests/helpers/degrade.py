@@ -1,8 +1,7 @@
-"""Real-capture problems on a simulated grid: positions never captured, saturated or empty
-captures. ``degrade_grid`` copies a grid folder with some positions dropped from
-the manifest and the folder, some over-exposed until they clip, and some replaced by an empty
-capture (the dark frame's noise: the point source was off). The ground truth is copied as is,
-so that the analyses of the degraded grid can be checked against the full grid's truth."""
+"""Real-capture problems on a simulated grid: :func:`degrade_grid` copies a grid with some
+positions dropped, over-exposed until they clip, or replaced by an empty capture; the ground
+truth is copied as is, to check analyses of the degraded grid against it.
+"""
 
 from __future__ import annotations
 
@@ -35,18 +34,15 @@ def degrade_grid(source: str | os.PathLike, out_dir: str | os.PathLike, *,
     Parameters
     ----------
     source : path-like
-        A lattice grid folder in the grid format (e.g. from :func:`simulate_grid`).
+        A lattice grid folder.
     out_dir : path-like
         Destination (created atomically).
     drop : iterable of (row, col)
-        Indices removed from the manifest and the folder (``grid_shape`` keeps the full
-        lattice: an incomplete grid).
+        Removed from the manifest and the folder (``grid_shape`` keeps the full lattice).
     saturate : iterable of (row, col)
-        Captures multiplied (above black level) by :data:`OVEREXPOSURE` and clipped at the
-        sensor's saturation level.
+        Multiplied (above black level) by :data:`OVEREXPOSURE`, clipped at saturation.
     empty : iterable of (row, col)
-        Captures replaced by the dark frame's noise (shifted, so not the frame itself), or
-        the black level where the grid has no dark frame.
+        Replaced by the dark frame's noise (shifted), or the black level without a dark frame.
     """
     grid = read_grid(source, check_pixels=False)
     if grid.is_irregular:
