@@ -1,13 +1,13 @@
 """Benchmark: a compact PSF on full frames and on pre-centred cut-outs (issue 43, item 3).
 
-The compact bench (``psfkit.simulate.simulate_compact_scan``): a field of ``--positions`` stars
-(a 3 px Airy PSF, brightness over 10×, Poisson–Gaussian noise) at irregular known positions on
-``--frame``² frames, and the same scan cut into ``--cutout``² cut-outs around each star
-(``cutout_scan``: the same pixels, the same noise). Both are characterized and fitted
-(``fit-eigen`` with gain compensation); the registration error against the truth, the MAE,
-the gain error, the reliability, the working region and binning of the eigen fit, its held-out
-cross-validation and the times are printed, one column per frame size, and written to
-``--out`` (JSON). A frame-size-independent analysis gives the same numbers in both columns.
+The compact bench (``research.compact_bench.simulate_compact_scan``): a field of ``--positions``
+stars (a 3 px Airy PSF, brightness over 10×, Poisson–Gaussian noise) at irregular known
+positions on ``--frame``² frames, and the same scan cut into ``--cutout``² cut-outs around each
+star (``cutout_scan``: the same pixels, the same noise). Both are characterized and fitted
+(``fit-eigen`` with gain compensation); the registration error against the truth, the MAE, the
+gain error, the reliability, the working region and binning of the eigen fit, its held-out
+cross-validation and the times are printed, one column per frame size, and written to ``--out``
+(JSON). A frame-size-independent analysis gives the same numbers in both columns.
 
     python benchmarks/bench_compact_psf.py --out /tmp/compact.json
     python benchmarks/bench_compact_psf.py --frame 2048 --width-growth 1 --ellipticity 0.5
@@ -16,6 +16,7 @@ cross-validation and the times are printed, one column per frame size, and writt
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,7 +33,15 @@ from psfkit.fitting.grid.fit import fit_eigen_grid
 from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.io.jsonable import write_json
-from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
+
+# research/ (not installed) holds the compact bench: import it from this checkout
+sys.path.append(str(Path(__file__).resolve().parents[1]))
+from research.compact_bench import (
+    CompactCamera,
+    cutout_scan,
+    read_compact_truth,
+    simulate_compact_scan,
+)
 
 
 def measure(scan: Path) -> dict[str, Any]:

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from psfkit.cli import main
-from psfkit.simulate import CompactCamera, simulate_compact_scan
+from research.compact_bench import CompactCamera, simulate_compact_scan
 
 
 @pytest.fixture(scope="module")

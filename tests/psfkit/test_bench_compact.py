@@ -8,13 +8,13 @@ import pytest
 
 from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io import read_grid
-from psfkit.simulate import (
+from research.compact_bench import (
     CompactCamera,
     cutout_scan,
     read_compact_truth,
     simulate_compact_scan,
 )
-from psfkit.simulate.airy import AIRY_HALF_MAX_X, airy_stamp
+from research.compact_bench.airy import AIRY_HALF_MAX_X, airy_stamp
 
 
 @pytest.fixture(scope="module")

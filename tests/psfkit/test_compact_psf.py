@@ -16,7 +16,12 @@ from psfkit.fitting.grid.fit import fit_eigen_grid
 from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.fitting.grid.working_stack import working_region
 from psfkit.io import read_grid
-from psfkit.simulate import CompactCamera, cutout_scan, read_compact_truth, simulate_compact_scan
+from research.compact_bench import (
+    CompactCamera,
+    cutout_scan,
+    read_compact_truth,
+    simulate_compact_scan,
+)
 
 N_POSITIONS = 101
 FRAME = (320, 320)

@@ -15,7 +15,7 @@ from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.io import read_grid
 from psfkit.io.grid_validation import analysis_memory_bytes
 from psfkit.io.validation import MAX_GRID_CELLS, format_bytes, machine_memory_bytes
-from psfkit.simulate import CompactCamera, simulate_compact_scan
+from research.compact_bench import CompactCamera, simulate_compact_scan
 
 
 @pytest.fixture(scope="module")

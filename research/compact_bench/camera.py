@@ -1,5 +1,5 @@
 """The compact-PSF camera's parameters (:class:`CompactCamera`): checks, the true affine
-field → shift map and the JSON form (see :mod:`psfkit.simulate.compact`).
+field → shift map and the JSON form (see :mod:`research.compact_bench.scan`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from psfkit.simulate.sensor import SensorModel
 
 @dataclass(frozen=True)
 class CompactCamera:
-    """Parameters of the compact-PSF camera (see :mod:`psfkit.simulate.compact`).
+    """Parameters of the compact-PSF camera (see :mod:`research.compact_bench.scan`).
 
     Attributes
     ----------

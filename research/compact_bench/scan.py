@@ -33,8 +33,8 @@ from psfkit.errors import ConfigurationError, InvalidInputError
 from psfkit.io.grid_validation import read_grid
 from psfkit.io.grid_writer import GridWriter
 from psfkit.io.json_documents import read_json_file
-from psfkit.simulate.airy import airy_stamp
-from psfkit.simulate.compact_camera import CompactCamera
+from research.compact_bench.airy import airy_stamp
+from research.compact_bench.camera import CompactCamera
 
 TRUTH_DIR = "ground_truth"
 TRUTH_FILE = "truth.json"
