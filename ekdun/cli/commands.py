@@ -160,7 +160,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the preset's); 0 freezes them at --kernels (e.g. an oracle: how much "
                         "of the model mismatch the U-Net absorbs, docs/training.md)")
     for name in MOVED_TRAIN_FLAGS:     # hidden: given, run_train says where they went
-        p.add_argument(name, help=argparse.SUPPRESS, type=str)
+        p.add_argument(name, help=argparse.SUPPRESS)
     add_flag(p, "--seed", "train", help="seed of the initial weights and the batch order "
                                         "(default 0)")
     add_flag(p, "--device", "train")
