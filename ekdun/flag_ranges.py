@@ -40,7 +40,6 @@ FLAGS: dict[str, FlagRange] = {
     "--epochs": FlagRange(int, 1, 100_000),
     "--batch-size": FlagRange(int, 1, 65_536),
     "--lr": FlagRange(float, 0, 1, low_open=True),
-    "--physics-weight": _WEIGHT,
     "--kernel-lr-scale": FlagRange(float, 0, 1e6),
     # classical reconstruction
     "--tv": _WEIGHT,

@@ -233,13 +233,13 @@ show_split(comparison, "free pixels, seeded from the fit")
 
 # %% [markdown]
 # ## 6. Kernels that stay physical, and a start from one PSF
-# `--kernel-param flow` (`ekdun train`) makes `Kv`, `Kh` = `Kbase` warped by a smooth learned
-# displacement field × a per-channel gain (`Kbase` itself non-negative, on the seed's caustic,
-# energy kept): no pedestal can grow, and the change *is* a displacement by construction.
-# Started from one PSF (`Kv = Kh = Kbase`), it asks whether training *finds* the measured
-# displacements. Same 3 epochs; the full experiment (15 epochs, all parameterisations, both
-# starts) is `research/kernel_parameterisations.py`, its table is in
-# `research/notes/compare-studies.md`.
+# Flow kernels (`research/kernel_models.py`, a research option) make `Kv`, `Kh` = `Kbase`
+# warped by a smooth learned displacement field × a per-channel gain (`Kbase` itself
+# non-negative, on the seed's caustic, energy kept): no pedestal can grow, and the change
+# *is* a displacement by construction. Started from one PSF (`Kv = Kh = Kbase`), it asks
+# whether training *finds* the measured displacements. Same 3 epochs; the full experiment
+# (15 epochs, all parameterisations, both starts) is `research/kernel_parameterisations.py`,
+# its table is in `research/notes/compare-studies.md`.
 
 # %%
 from dataclasses import replace
@@ -248,14 +248,19 @@ seed = initial_kernels(run / "checkpoint.pt")
 one_psf = save_kernels(OUT / "one_psf.npz", replace(
     seed, kernels=np.repeat(seed.kernels[:1], len(seed.kernels), axis=0)))
 run_flow = OUT / "run_flow_one_psf"
-train(run_flow, "ekdun", one_psf, train_set, "tiny", {"kernel_param": "flow"},
-      TrainOptions(epochs=3, progress=False, threads=1), overwrite=True)
-flow_cmp = compare_kernels(export_kernels(run_flow / "checkpoint.pt"), comparison.measured,
-                           initial=initial_kernels(run_flow / "checkpoint.pt"))
-for label, row in flow_cmp.headline().items():
-    print(label, {k: (None if v != v else round(v, 3)) for k, v in row.items()})
-show_split(flow_cmp, "flow, from one PSF")
-display(figure_displacements(flow_cmp))
+if checkout is None:
+    print("no flow run: research/ (its kernel_models.py) is not in a source checkout here")
+else:
+    from research.kernel_models import train as train_study
+
+    train_study(run_flow, "ekdun", one_psf, train_set, "tiny", {"kernel_param": "flow"},
+                TrainOptions(epochs=3, progress=False, threads=1), overwrite=True)
+    flow_cmp = compare_kernels(export_kernels(run_flow / "checkpoint.pt"), comparison.measured,
+                               initial=initial_kernels(run_flow / "checkpoint.pt"))
+    for label, row in flow_cmp.headline().items():
+        print(label, {k: (None if v != v else round(v, 3)) for k, v in row.items()})
+    show_split(flow_cmp, "flow, from one PSF")
+    display(figure_displacements(flow_cmp))
 
 # %% [markdown]
 # How to read it, and what the 15-epoch experiment (`research/notes/compare-studies.md`)

@@ -1,6 +1,6 @@
 """How far does training's optimiser get on the measurement-consistency term alone? (issue 24)
 
-``ekdun train --physics-weight λ`` adds ``L_phys`` (:mod:`ekdun.training.physics_loss`: the
+Training with ``physics_weight`` λ adds ``L_phys`` (:mod:`research.physics_loss`: the
 pairs' relative residual with the best scale per pair) to the reconstruction loss. From one
 PSF, 15 epochs of that training leave the difference kernels far from the operator oracle
 whatever λ (research/notes/compare-studies.md), while the converged least-squares fit of the
@@ -46,16 +46,15 @@ from typing import Any
 import torch
 
 from ekdun.data.pairs import PairsDataset
-from ekdun.nets.builder import build_network
 from ekdun.nets.export import export_kernels
-from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
-from ekdun.training.physics_loss import measurement_consistency
 from ekdun.training.trainer import _param_groups
 from psfkit.errors import PsfkitError
 from psfkit.forward.kernelfile import load_kernels
 from psfkit.io.jsonable import jsonable, write_json
+from research.kernel_models import KERNEL_PARAMETERISATIONS, build_network
 from research.kernel_parameterisations import vs_oracle
 from research.oracles import oracle_file
+from research.physics_loss import measurement_consistency
 
 OPTIMISERS = ("adam", "lbfgs")
 

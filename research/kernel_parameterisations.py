@@ -5,10 +5,10 @@ Free / physical / flow kernels, two seeds, any λ, against the measured modes an
 The one entry point of the Fig. 7 experiment at any scale. On a virtual-bench dataset (made
 with ``--sensor``, ``--n-train``, ``--n-test``, ``--photons`` in ``OUT/dataset`` if absent, or an
 existing one given by ``--data``), EK-DUN (``--schedule``, default last-2; ``--preset``, default
-tiny) is trained with each kernel parameterisation (``--params``: ``--kernel-param``), each
-physics weight (``--physics-weights``: ``ekdun train --physics-weight λ``) and each training
-seed (``--train-seeds``), seeded from the measured fit (``psfkit fit-eigen`` of the dataset's
-grid) and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``); on request also from the
+tiny) is trained (:func:`research.kernel_models.train`) with each kernel parameterisation
+(``--params``), each physics weight (``--physics-weights``) and each training seed
+(``--train-seeds``), seeded from the measured fit (``psfkit fit-eigen`` of the dataset's grid)
+and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``); on request also from the
 pairs fits and from the operator oracle itself (``--seeds oracle``). For each run: test
 PSNR/SSIM, the kernel-change split (pedestal fraction, gain, displacement) against the initial
 kernels, the displacement-map correlation and difference NCC against the measured modes, the
@@ -72,14 +72,9 @@ from ekdun.device import (
     resolve_device,
 )
 from ekdun.evaluation.metrics import psnr, ssim
-from ekdun.nets.builder import (
-    build_network,
-    encode_overrides,
-    network_from_checkpoint,
-)
+from ekdun.nets.builder import encode_overrides
 from ekdun.nets.checkpoint import load_checkpoint
-from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER, seed_support
-from ekdun.training import TrainOptions, train
+from ekdun.training import TrainOptions
 from ekdun.training.trainer import CHECKPOINT, _param_groups
 from psfkit.cli.main import run_cli
 from psfkit.compare import compare_kernels, measure_modes
@@ -92,6 +87,14 @@ from psfkit.io import read_grid, read_pairs
 from psfkit.io.jsonable import write_json
 from research._kparam_table import as_document, format_number, markdown_table, run_key
 from research.benchmark_tiny import fit_seed_kernels
+from research.kernel_models import (
+    LR_MULTIPLIER,
+    build_network,
+    network_from_checkpoint,
+    recorded,
+    seed_support,
+    train,
+)
 from research.oracles import oracle_file, write_dataset_oracles
 
 PARAMS = ("free", "physical", "flow")
@@ -327,9 +330,10 @@ def check_reusable(ckpt: Path, expected: dict[str, Any]) -> dict[str, Any]:
     """The metadata of a run's checkpoint, refused when it was trained otherwise."""
     meta = load_checkpoint(ckpt)["metadata"]
     cfg = meta.get("training", {})
-    have = {"preset": meta.get("preset"), "overrides": meta.get("overrides"),
+    overrides, weight = recorded(meta)
+    have = {"preset": meta.get("preset"), "overrides": overrides,
             "seed": meta.get("seed"), "batch_size": cfg.get("batch_size"),
-            "lr": cfg.get("lr"), "physics_weight": float(cfg.get("physics_weight", 0.0))}
+            "lr": cfg.get("lr"), "physics_weight": weight}
     for key, value in expected.items():
         if have[key] != value:
             raise InvalidInputError(f"{ckpt.parent}: trained with {key} {have[key]!r}, not "
@@ -343,7 +347,7 @@ def run_setup(out: Path, seed: str, param: str, weight: float, train_seed: int,
     """``(run folder, model overrides, train options, what a reusable checkpoint holds)``."""
     overrides = {**OVERRIDES[param], "schedule": args.schedule}
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                           physics_weight=weight, seed=train_seed, amp=args.amp,
+                           seed=train_seed, amp=args.amp,
                            device=args.device, progress=False, threads=args.threads)
     cfg = options.resolve(args.preset)
     run = out / "runs" / run_name(seed, param, args.schedule, weight, train_seed)
@@ -362,7 +366,7 @@ def train_one(out: Path, data: Path, seed_file: Path, seed: str, param: str, wei
     if meta is None or meta["epoch"] < args.epochs:
         # the benchmark's own folder: a run killed before its first checkpoint restarts
         train(run, "ekdun", seed_file, PairsDataset(data / "train"), args.preset, overrides,
-              options, resume=meta is not None, overwrite=meta is None)
+              options, physics_weight=weight, resume=meta is not None, overwrite=meta is None)
         meta = load_checkpoint(ckpt)["metadata"]
     history = meta["history"]
     cfg = options.resolve(args.preset)
@@ -372,7 +376,9 @@ def train_one(out: Path, data: Path, seed_file: Path, seed: str, param: str, wei
             "precision": meta.get("precision"), "run": str(run),
             "train_s": round(sum(h["seconds"] for h in history), 1),
             "final_train_loss": history[-1]["train_loss"],
-            "final_physics_loss": history[-1].get("physics_loss")}
+            "final_physics_loss": (history[-1]["extra_loss"] / weight
+                                   if "extra_loss" in history[-1] else
+                                   history[-1].get("physics_loss"))}
 
 
 def measure_lr(data: Path, seeds: dict[str, Path], batches: int = 6) -> list[dict[str, Any]]:

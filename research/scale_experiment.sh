@@ -118,8 +118,11 @@ train_one() {   # name flags: one training run, its own log; stopped at STOP_AT
         (( left > 0 )) || { log "skip $name: the time budget is spent"; return 124; }
         budget=(timeout --signal=TERM "$left")
     fi
+    # the research knobs of the Fig. 7 runs: `ekdun train` with research/kernel_models.py
+    local cmd=($PY -m ekdun.cli train)
+    [[ $name == f7-* ]] && cmd=(env "PYTHONPATH=$REPO${PYTHONPATH:+:$PYTHONPATH}" $PY -m research.kernel_models)
     # shellcheck disable=SC2086
-    "${budget[@]}" $PY -m ekdun.cli train "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
+    "${budget[@]}" "${cmd[@]}" "$DATA" "$OUT/$name" $flags --preset "$PRESET" \
         --epochs "$EPOCHS" --batch-size "$BATCH" --lr "$LR" "${thread_flag[@]}" "${resume[@]}" \
         --quiet >>"$OUT/train-$name.log" 2>&1
     local rc=$?

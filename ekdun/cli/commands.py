@@ -51,6 +51,11 @@ EXPORT_KERNELS_NOTE = (
     "checkpoints of older runs (docs/migration.md)")
 
 
+#: ``ekdun train`` flags that moved to research/ (issue 44): given, train fails saying where.
+MOVED_TRAIN_FLAGS = {"--kernel-param": "research/kernel_models.py",
+                     "--physics-weight": "research/physics_loss.py"}
+
+
 #: Flags that no longer do anything, kept hidden for one release (docs/migration.md):
 #: ``(command, flag) -> (nargs, note, choices)`` (the shape of psfkit's ``RETIRED``). Each
 #: prints its note after the work and is otherwise ignored (a value is still checked).
@@ -68,13 +73,11 @@ RETIRED_FLAGS = {
 #: Flags that only ``--help-all`` lists: the bench's optics and noise, threads.
 MAKE_DATASET_ADVANCED = ("--half-fov", "--aperture", "--photons", "--grid-frames", "--threads")
 #: ... for train: what the pairs and kernel file decide (binning, channel order), the preset's
-#: schedule overrides, research knobs (kernel parameterisation, kernel learning rate, physics
-#: loss), speed settings and --quiet (a training run is watched; its log.csv records every
-#: epoch either way).
+#: schedule overrides, the kernel learning rate, speed settings and --quiet (a training run
+#: is watched; its log.csv records every epoch either way).
 TRAIN_ADVANCED = ("--downsample", "--channel-order", "--schedule", "--iterations",
-                  "--kernel-param", "--batch-size", "--lr", "--kernel-lr-scale",
-                  "--physics-weight", "--seed", "--threads", "--amp", "--no-amp",
-                  "--channels-last", "--compile", "--loader-workers", "--quiet")
+                  "--batch-size", "--lr", "--kernel-lr-scale", "--seed", "--threads", "--amp",
+                  "--no-amp", "--channels-last", "--compile", "--loader-workers", "--quiet")
 #: ... for eval: what each checkpoint records (channel order), threads.
 EVAL_ADVANCED = ("--channel-order", "--threads")
 
@@ -149,8 +152,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--schedule", help="EK-DUN schedule: base, last-2 (last-N) or all")
     p.add_argument("--iterations", type=flag("--iterations", "train"),
                    help="override the preset's iterations")
-    p.add_argument("--kernel-param", choices=("free", "physical", "flow"),
-                   help="EK-DUN kernel parameterisation (default free pixels; docs/compare.md)")
     p.add_argument("--epochs", type=flag("--epochs"), help="override the preset's epochs")
     p.add_argument("--batch-size", type=flag("--batch-size"), help="global batch size")
     p.add_argument("--lr", type=flag("--lr"), help="override the preset's learning rate")
@@ -158,10 +159,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="EK-DUN: learning rate of the physics kernels = SCALE x --lr (default "
                         "the preset's); 0 freezes them at --kernels (e.g. an oracle: how much "
                         "of the model mismatch the U-Net absorbs, docs/training.md)")
-    p.add_argument("--physics-weight", type=flag("--physics-weight"), metavar="LAMBDA",
-                   help="EK-DUN: add LAMBDA x the measurement consistency of the network's own "
-                        "forward model on the training pairs to the loss (the fit-pairs "
-                        "objective; docs/training.md); default 0, the paper's loss")
+    for name in MOVED_TRAIN_FLAGS:     # hidden: given, run_train says where they went
+        p.add_argument(name, help=argparse.SUPPRESS)
     add_flag(p, "--seed", "train", help="seed of the initial weights and the batch order "
                                         "(default 0)")
     add_flag(p, "--device", "train")
@@ -261,14 +260,17 @@ def run_train(args: argparse.Namespace) -> int:
     from psfkit.io.pairs import read_pairs
     from psfkit.io.read_options import choose
 
+    for name, module in MOVED_TRAIN_FLAGS.items():
+        if getattr(args, name[2:].replace("-", "_")) is not None:
+            raise InvalidInputError(f"{name} left `ekdun train`: it is a research option, "
+                                    f"now in {module} of a source checkout (CHANGELOG.md)")
     # flags are checked before any data is read (kernel-lr-scale 0 is given, not unset)
     for option, value in (("--schedule", args.schedule), ("--kernel-lr-scale",
-                          args.kernel_lr_scale), ("--kernel-param", args.kernel_param)):
+                          args.kernel_lr_scale)):
         if value not in (None, "") and args.network != "ekdun":
             raise InvalidInputError(f"{option} applies to --network ekdun only")
     overrides: dict[str, Any] = {key: value for key, value in (
-        ("schedule", args.schedule), ("iterations", args.iterations),
-        ("kernel_param", args.kernel_param)) if value}
+        ("schedule", args.schedule), ("iterations", args.iterations)) if value}
     root = resolve_split(args.data, "train")
     source = args.kernels or args.psf
     notices: list[str] = []
@@ -296,7 +298,6 @@ def run_train(args: argparse.Namespace) -> int:
                    + (f", binned {factor}x{factor} to {dataset.image_shape[1]}x"
                       f"{dataset.image_shape[2]}" if factor > 1 else ""))
     options = TrainOptions(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                           physics_weight=args.physics_weight,
                            kernel_lr_scale=args.kernel_lr_scale, seed=args.seed,
                            amp="off" if args.no_amp else args.amp,
                            device=args.device, progress=not args.quiet, threads=args.threads,

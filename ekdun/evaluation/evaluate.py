@@ -258,6 +258,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
     for (path, model, doc), (dataset, note) in zip(models, datasets, strict=True):
         meta = doc["metadata"]
         training = meta.get("training") or {}
+        # a study's settings (TrainOptions.study); older runs kept them in overrides, training
+        study = {**meta.get("overrides", {}), **training, **(meta.get("study") or {})}
         schedule = meta.get("overrides", {}).get("schedule") or (
             meta.get("schedule") if meta["model"] == "ekdun" else None)
         row = evaluate_model(model, dataset, label_for(meta["model"], schedule), lpips, device,
@@ -266,8 +268,8 @@ def evaluate_checkpoints(checkpoints: Sequence[str | os.PathLike], data: str | o
         row.update({"checkpoint": str(path), "model": meta["model"], "schedule": schedule,
                     "epochs": meta.get("epoch"), "seed": meta.get("seed"),
                     # what sets a run apart from the paper's: a table must not pool these
-                    "kernel_param": meta.get("overrides", {}).get("kernel_param", "free"),
-                    "physics_weight": float(training.get("physics_weight") or 0.0),
+                    "kernel_param": study.get("kernel_param", "free"),
+                    "physics_weight": float(study.get("physics_weight") or 0.0),
                     "kernel_lr_scale": training.get("kernel_lr_scale"),
                     **seed_kernels_identity(doc),
                     "pairs": list(dataset.names), "pairs_note": note})

@@ -18,6 +18,10 @@ from psfkit.errors import ModelFileError
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.forward.weights import get_basis
 
+#: EK-DUN settings that moved to research/kernel_models.py (issue 44)
+MOVED_OVERRIDES = ("kernel_param", "kernel_support_dilate", "flow_grid", "flow_residual",
+                   "kernel_gain")
+
 
 def seed_kernel_model(source: KernelModel | np.ndarray | str | os.PathLike) -> KernelModel:
     """A kernel model from a kernel file, a loaded model, a PSF image file
@@ -80,8 +84,9 @@ def build_network(name: str, seed: KernelModel, preset: str,
 
 def _recorded_overrides(meta: dict[str, Any], state: dict[str, Any]) -> dict[str, Any]:
     """The checkpoint's config overrides, with UPDN's iterations read from its weights when
-    not recorded (older ``tiny`` checkpoints had 5, without an override)."""
-    overrides = dict(meta.get("overrides", {}))
+    not recorded (older ``tiny`` checkpoints had 5, without an override), without the kernel
+    module's settings older EK-DUN runs recorded there (research/kernel_models.py)."""
+    overrides = {k: v for k, v in meta.get("overrides", {}).items() if k not in MOVED_OVERRIDES}
     if meta.get("model") == "updn" and "iterations" not in overrides:
         blocks = {key.split(".")[1] for key in state if key.startswith("dual_updates.")}
         if blocks:
@@ -102,7 +107,10 @@ def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any],
                                          where="initial kernels")
         model = build_network(meta["model"], seed, meta["preset"],
                               _recorded_overrides(meta, doc["model"]))
-        model.load_state_dict(doc["model"])
+        # a kernel module's weights (a study's: research/) are not rebuilt here; physics.kernels
+        # holds what it made
+        model.load_state_dict({k: v for k, v in doc["model"].items()
+                               if not k.startswith("kernel_param.")})
     except (KeyError, RuntimeError, TypeError, ValueError, AttributeError,
             ConfigurationError, ModelFileError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

@@ -43,16 +43,6 @@ class EKDUNConfig:
         Initial ``ε⁽ⁱ⁾ = step_scale / L`` and ``η⁽ⁱ⁾ = penalty_scale · L``, ``L = max |K̂|²``.
     kappa_init : float
         Initial dual step ``κ⁽ⁱ⁾``.
-    kernel_param : {"free", "physical", "flow"}
-        See :mod:`ekdun.physics.kernel_parameterisation`.
-    kernel_support_dilate : int
-        Dilation (px) of the seed's caustic support (``physical``, ``flow``).
-    flow_grid : int
-        Coarse displacement grid ``n × n`` of ``flow``.
-    flow_residual : bool
-        ``flow`` with a small trainable residual on the support.
-    kernel_gain : bool
-        ``physical`` with a learned per-channel gain of the correction kernels.
     """
 
     iterations: int = 10
@@ -63,11 +53,6 @@ class EKDUNConfig:
     step_scale: float = 1.0
     penalty_scale: float = 0.5
     kappa_init: float = 1.0
-    kernel_param: str = "free"
-    kernel_support_dilate: int = 3
-    flow_grid: int = 8
-    flow_residual: bool = False
-    kernel_gain: bool = False
 
 
 @dataclass(frozen=True)
@@ -116,7 +101,6 @@ class TrainingConfig:
     lr: float = 1e-4
     gamma: float = 0.95
     kernel_lr_scale: float = 1e-2
-    physics_weight: float = 0.0
 
 
 @dataclass(frozen=True)

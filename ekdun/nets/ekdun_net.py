@@ -13,10 +13,11 @@ the forward model the schedule picks for it and ``𝑃⁽ⁱ⁾`` a U-Net per it
 from ``f⁰ = Aᵀy``, ``d⁰ = 0``; the output is ``f^I``. Models: base
 ``y = crop(K_base * pad(x))`` or eigen-kernel (Eq. 7); schedules (Table 2): ``"base"``,
 ``"last-k"`` (eigen model in the last ``k`` iterations) and ``"all"`` (also for ``f⁰``).
-With a kernel parameterisation, ``physics.kernels`` is a fixed copy refreshed in eval mode
-and on loading a state dict. ``ε = exp(·)``, ``η = exp(·)`` start at ``step_scale / L`` and
-``penalty_scale · L`` (``L = max |K̂|²``); with zero-initialised residual U-Nets the initial
-network is ``I`` gradient steps of size ``1/L`` on ``½‖Af − y‖²``: stable.
+With a kernel module (:meth:`EKDUN.use_kernel_module`, e.g. research/kernel_models.py),
+``physics.kernels`` is a fixed copy refreshed in eval mode and on loading a state dict.
+``ε = exp(·)``, ``η = exp(·)`` start at ``step_scale / L`` and ``penalty_scale · L``
+(``L = max |K̂|²``); with zero-initialised residual U-Nets the initial network is ``I``
+gradient steps of size ``1/L`` on ``½‖Af − y‖²``: stable.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from torch import Tensor, nn
 from ekdun.nets.configs import EKDUNConfig, parse_schedule
 from ekdun.nets.unet import UNet
 from ekdun.nets.unrolled import State, UnrolledNetwork
-from ekdun.physics.kernel_parameterisation import build_parameterisation
 from ekdun.physics.operators import EigenKernelOperator, PreparedOperator
 from psfkit.forward.convolution import kernel_spectra
 
@@ -64,13 +64,15 @@ class EKDUN(UnrolledNetwork):
             (config.iterations,), math.log(config.penalty_scale * lipschitz), dtype=dtype))
         self.kappa = nn.Parameter(torch.full((config.iterations,), config.kappa_init,
                                              dtype=dtype))
-        self.kernel_param = build_parameterisation(
-            config.kernel_param, physics.kernels.detach(), config.kernel_support_dilate,
-            config.flow_grid, config.flow_residual, config.kernel_gain)
-        if self.kernel_param is not None:
-            physics.kernels.requires_grad_(False)
-            self.sync_kernels()
-            self.register_load_state_dict_post_hook(lambda module, _keys: module.sync_kernels())
+        self.kernel_param: nn.Module | None = None
+
+    def use_kernel_module(self, module: nn.Module) -> None:
+        """Make the kernels with ``module`` (``module() -> (K, C, Hk, Wk)``, trained under the
+        ``kernel_param.`` prefix) instead of free pixels; ``physics.kernels`` becomes its copy."""
+        self.kernel_param = module
+        self.physics.kernels.requires_grad_(False)
+        self.sync_kernels()
+        self.register_load_state_dict_post_hook(lambda module, _keys: module.sync_kernels())
 
     def current_kernels(self) -> Tensor:
         """The kernels ``(K, C, Hk, Wk)`` the network uses now (differentiable)."""

@@ -57,7 +57,7 @@ def export_kernels(model_or_checkpoint: nn.Module | str | os.PathLike | dict[str
                            channels=("R", "G", "B") if kernels.shape[1] == 3 else ("L",),
                            scene_padding=model.physics.scene_padding, normalization="unknown")
     provenance = {"source": "ekdun training (learned kernels)", "epoch": epoch,
-                  "kernel_param": model.config.kernel_param,
+                  "kernel_param": getattr(model.kernel_param, "name", "free"),
                   "seed_provenance": seed.provenance}
     if isinstance(data, dict) and isinstance(data.get("names"), list) and data.get("root"):
         # the pairs the kernels were trained on, as fit-pairs records its own: psfkit

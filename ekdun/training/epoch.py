@@ -1,5 +1,5 @@
-"""One epoch of training: Adam steps on the MSE (plus λ × the measurement consistency) under
-the run's AMP mode, the loss summed on the device and read once per epoch.
+"""One epoch of training: Adam steps on the MSE (plus a study's extra loss) under the run's
+AMP mode, the loss summed on the device and read once per epoch.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from ekdun.training.batches import BatchSource
 
 @dataclass
 class Loop:
-    """What every training step uses (``net``: the network wrapped for the physics term, DDP
-    and compile)."""
+    """What every training step uses (``net``: the network wrapped for an extra loss
+    (``extra_loss``: ``net(y, x) -> (x̂, extra)``), DDP and compile)."""
 
     model: UnrolledNetwork
     net: nn.Module
@@ -29,7 +29,7 @@ class Loop:
     scaler: torch.amp.GradScaler
     amp: str
     ctx: D.DistContext
-    physics_weight: float
+    extra_loss: bool = False
 
 
 def train_epoch(loop: Loop, source: BatchSource, epoch: int, batch_size: int,
@@ -48,13 +48,13 @@ def train_epoch(loop: Loop, source: BatchSource, epoch: int, batch_size: int,
     # The epoch's loss is summed on the device: reading it (.item()) makes the host wait
     # for the device, so that happens only at log points and at the end of the epoch.
     total = torch.zeros((), dtype=torch.float64, device=ctx.device)
-    total_physics = torch.zeros((), dtype=torch.float64, device=ctx.device)
+    total_extra = torch.zeros((), dtype=torch.float64, device=ctx.device)
     count = 0
     for x, y in source.epoch(epoch):
-        loss, consistency = _step(loop, x, y)
+        loss, extra = _step(loop, x, y)
         total += loss
-        if consistency is not None:
-            total_physics += consistency
+        if extra is not None:
+            total_extra += extra
         count += 1
         if time_compile and count == 1:
             acc.cuda_synchronize(ctx.device)
@@ -71,27 +71,27 @@ def train_epoch(loop: Loop, source: BatchSource, epoch: int, batch_size: int,
     seconds = time.perf_counter() - t0
     row = {"epoch": epoch, "train_loss": mean_loss, "lr": lr, "seconds": round(seconds, 3),
            "images_per_second": round(count * batch_size / max(seconds, 1e-9), 3)}
-    if loop.physics_weight > 0:
-        # the MSE stays train_loss (comparable across λ); the consistency term beside it
-        row["physics_loss"] = D.all_mean(total_physics.item() / max(count, 1), ctx)
+    if loop.extra_loss:
+        # the MSE stays train_loss (comparable across studies); the extra term beside it
+        row["extra_loss"] = D.all_mean(total_extra.item() / max(count, 1), ctx)
     return row
 
 
 def _step(loop: Loop, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor | None]:
-    """One optimizer step; the batch's MSE and consistency (λ > 0), detached."""
+    """One optimizer step; the batch's MSE and extra loss (if any), detached."""
     loop.optimizer.zero_grad(set_to_none=True)
-    consistency = None
+    extra = None
     with acc.autocast(loop.amp, loop.ctx.device):
-        if loop.physics_weight > 0:
-            out, consistency = loop.net(y, x)
+        if loop.extra_loss:
+            out, extra = loop.net(y, x)
         else:
             out = loop.net(y)
     loss = nn.functional.mse_loss(out.float(), x)
-    if consistency is not None:
-        loop.scaler.scale(loss + loop.physics_weight * consistency).backward()
-        consistency = consistency.detach()
+    if extra is not None:
+        loop.scaler.scale(loss + extra).backward()
+        extra = extra.detach()
     else:
         loop.scaler.scale(loss).backward()
     loop.scaler.step(loop.optimizer)
     loop.scaler.update()
-    return loss.detach(), consistency
+    return loss.detach(), extra

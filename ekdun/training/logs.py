@@ -11,8 +11,8 @@ from typing import Any
 from psfkit.io.atomic import atomic_file
 
 COLUMNS = ("epoch", "train_loss", "lr", "seconds", "images_per_second")
-#: written after :data:`COLUMNS` when a row has it (training with ``--physics-weight``)
-OPTIONAL_COLUMNS = ("physics_loss",)
+#: written after :data:`COLUMNS` when a row has it (training with an extra loss)
+OPTIONAL_COLUMNS = ("extra_loss",)
 
 
 def write_csv_log(path: str | os.PathLike, history: list[dict[str, Any]]) -> Path:

@@ -30,12 +30,10 @@ from ekdun.nets.configs import TrainingConfig, get_preset
 from ekdun.nets.export import export_kernels
 from ekdun.nets.export import initial_kernels as checkpoint_seed
 from ekdun.nets.unrolled import UnrolledNetwork
-from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
 from ekdun.training import distributed as D
 from ekdun.training.batches import BatchSource
 from ekdun.training.epoch import Loop, train_epoch
 from ekdun.training.logs import write_csv_log
-from ekdun.training.physics_loss import PhysicsObjective
 from ekdun.training.rng import rng_state, set_rng_state
 from ekdun.training.signals import deferred_termination
 from psfkit.forward.kernelfile import KernelModel, save_kernels
@@ -54,7 +52,10 @@ class TrainOptions:
     :func:`ekdun.device.resolve_amp`; ``channels_last`` ``None``: on CUDA only; ``resident``
     ``None``: keep the dataset on the device when it fits, else stream it with ``workers``;
     ``log_every``: steps between progress-bar loss updates; ``on_epoch``: called with each
-    epoch's history row after its checkpoint is written.
+    epoch's history row after its checkpoint is written. Hooks for studies (research/):
+    ``model_hook`` is called on the built network (e.g. ``EKDUN.use_kernel_module``),
+    ``objective`` wraps it into ``(y, x) -> (x̂, extra loss)`` (training minimises MSE + extra,
+    the log's ``extra_loss`` its mean) and ``study`` is kept as the metadata's ``study``.
     """
 
     epochs: int | None = None
@@ -62,7 +63,6 @@ class TrainOptions:
     lr: float | None = None
     gamma: float | None = None
     kernel_lr_scale: float | None = None
-    physics_weight: float | None = None
     seed: int = 0
     amp: bool | str = True
     device: str = "auto"
@@ -77,6 +77,9 @@ class TrainOptions:
     #: the ``--config`` run file's record (``psfkit.cli.run_file.run_file_record``), kept in
     #: the checkpoint's metadata
     run_file: dict[str, Any] | None = None
+    model_hook: Callable[[UnrolledNetwork], None] | None = None
+    objective: Callable[[UnrolledNetwork], nn.Module] | None = None
+    study: dict[str, Any] | None = None
 
     def resolve(self, preset: str, network: str = "ekdun") -> TrainingConfig:
         """The preset's settings for ``network`` (its recipe), replaced by those given."""
@@ -92,10 +95,6 @@ def check_training_config(cfg: TrainingConfig) -> None:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigurationError(f"--{name.replace('_', '-')} must be an integer >= 1, "
                                      f"got {value!r}")
-    weight = float(cfg.physics_weight)
-    if not np.isfinite(weight) or weight < 0:
-        raise ConfigurationError(f"--physics-weight must be a finite number >= 0, got "
-                                 f"{cfg.physics_weight!r}")
     for name in ("lr", "gamma", "kernel_lr_scale"):
         value = float(getattr(cfg, name))
         # kernel_lr_scale 0 freezes the physics kernels, a valid choice
@@ -105,9 +104,8 @@ def check_training_config(cfg: TrainingConfig) -> None:
 
 
 def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[dict[str, Any]]:
-    # Kernels (free pixels in physics., or a parameterisation's kernel_param.) get their own
-    # group; the parameterisation's multiplier is measured
-    # (research/notes/compare-studies.md).
+    # Kernels (free pixels in physics., or a kernel module's kernel_param.) get their own
+    # group, times the module's lr_multiplier if it has one.
     kernels, others = [], []
     for name, p in model.named_parameters():
         if not p.requires_grad:
@@ -115,8 +113,8 @@ def _param_groups(model: nn.Module, lr: float, kernel_lr_scale: float) -> list[d
         (kernels if name.startswith(("physics.", "kernel_param.")) else others).append(p)
     groups = [{"params": others, "lr": lr}]
     if kernels:
-        param = getattr(getattr(model, "config", None), "kernel_param", "free")
-        groups.append({"params": kernels, "lr": lr * kernel_lr_scale * LR_MULTIPLIER[param],
+        multiplier = getattr(getattr(model, "kernel_param", None), "lr_multiplier", 1.0)
+        groups.append({"params": kernels, "lr": lr * kernel_lr_scale * multiplier,
                        "name": "kernels"})
     return groups
 
@@ -196,9 +194,8 @@ def train(run_dir: str | os.PathLike, model_name: str,
 
     _seed_everything(options.seed)
     model = build_network(model_name, seed_kernel_model(seed), preset, overrides)
-    if cfg.physics_weight > 0 and not hasattr(model, "forward_model"):
-        raise ConfigurationError(f"--physics-weight needs EK-DUN's own eigen-kernel forward "
-                                 f"model; {model_name} has none (use --network ekdun)")
+    if options.model_hook is not None:
+        options.model_hook(model)
     seed_kernels = model.seed_kernels
     assert seed_kernels is not None       # build_network sets it: what the network starts from
     _check_dataset(dataset, model)
@@ -209,7 +206,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
                  scheduler=torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.gamma),
                  # Gradient scaling only for fp16 (bf16 has float32's exponent range).
                  scaler=torch.amp.GradScaler("cuda", enabled=amp == "fp16"), amp=amp, ctx=ctx,
-                 physics_weight=float(cfg.physics_weight))
+                 extra_loss=options.objective is not None)
     channels_last = acc.use_channels_last(options.channels_last, ctx.device)
     if channels_last:
         acc.convolutions_channels_last(model)
@@ -229,7 +226,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
         if model_name == "ekdun":
             save_kernels(run_dir / KERNELS_INITIAL, seed_kernels)
 
-    loop.net = _training_module(model, loop.physics_weight, ctx, options.compile)
+    loop.net = _training_module(model, options.objective, ctx, options.compile)
     source = BatchSource(dataset, cfg.batch_size, options.seed, ctx, options.resident,
                          options.workers)
     metadata["resident_dataset"] = source.resident
@@ -302,6 +299,7 @@ def _run_metadata(model_name: str, preset: str, overrides: dict[str, Any],
         "data": dataset.describe() if hasattr(dataset, "describe") else {},
         "epoch": 0, "history": [],
         **({"run_file": options.run_file} if options.run_file else {}),
+        **({"study": options.study} if options.study else {}),
     }
 
 
@@ -327,11 +325,12 @@ def _resume(doc: dict[str, Any], ckpt_path: Path, loop: Loop, metadata: dict[str
     return initial_kernels, int(old.get("epoch", 0)) + 1
 
 
-def _training_module(model: UnrolledNetwork, physics_weight: float, ctx: D.DistContext,
-                     compile_net: bool) -> nn.Module:
-    """The module the steps call: with λ > 0 network and consistency in one forward pass,
-    wrapped in DDP across processes, compiled on request."""
-    net: nn.Module = PhysicsObjective(model) if physics_weight > 0 else model
+def _training_module(model: UnrolledNetwork,
+                     objective: Callable[[UnrolledNetwork], nn.Module] | None,
+                     ctx: D.DistContext, compile_net: bool) -> nn.Module:
+    """The module the steps call: the network (with an objective: network and extra loss in
+    one forward pass), wrapped in DDP across processes, compiled on request."""
+    net: nn.Module = model if objective is None else objective(model)
     if ctx.distributed:
         net = nn.parallel.DistributedDataParallel(
             net, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None,
@@ -344,6 +343,8 @@ def _training_module(model: UnrolledNetwork, physics_weight: float, ctx: D.DistC
 def _save_epoch(run_dir: Path, model_name: str, loop: Loop, metadata: dict[str, Any],
                 initial_kernels: Tensor, options: TrainOptions) -> None:
     """The epoch's checkpoint (atomic), log and, for EK-DUN, learned kernel file."""
+    if getattr(loop.model, "kernel_param", None) is not None:
+        loop.model.sync_kernels()     # physics.kernels: what a kernel module makes now
     save_checkpoint(run_dir / CHECKPOINT, {
         "metadata": metadata, "model": loop.model.state_dict(),
         "initial_kernels": initial_kernels,

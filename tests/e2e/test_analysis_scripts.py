@@ -222,8 +222,10 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
     seed = load_kernels(kernels)
     one = save_kernels(tmp_path / "one.npz", replace(
         seed, kernels=np.repeat(seed.kernels[:1], len(seed.kernels), axis=0)))
-    train(tmp_path / "run1", "ekdun", one, PairsDataset(data / "train"), "tiny",
-          {**SMALL["ekdun"], "kernel_param": "flow"}, options)
+    from research.kernel_models import train as train_study
+
+    train_study(tmp_path / "run1", "ekdun", one, PairsDataset(data / "train"), "tiny",
+                {**SMALL["ekdun"], "kernel_param": "flow"}, options)
     out = tmp_path / "f7"
     done = _run("fig7_learned_kernels.py", str(tmp_path / "run"), str(data / "grid"),
                 "--out", str(out), "--quiet", "--one-psf", str(tmp_path / "run1"))

@@ -307,12 +307,13 @@ def test_eval_rows_carry_seed_parameterisation_and_physics_weight(tiny_data, tin
                                                                   tmp_path):
     pairs, kernels = tiny_data
     from ekdun.data.pairs import PairsDataset
+    from research.kernel_models import train as train_study
 
-    run = tmp_path / "flow-l05"
-    train(run, "ekdun", kernels, PairsDataset(pairs, holdout=("im6", "im7")), "tiny",
-          {**SMALL, "kernel_param": "flow"},
-          TrainOptions(epochs=1, batch_size=4, progress=False, threads=1, seed=5,
-                       physics_weight=0.5))
+    run = tmp_path / "flow-l05"        # a research run (its settings in metadata "study")
+    train_study(run, "ekdun", kernels, PairsDataset(pairs, holdout=("im6", "im7")), "tiny",
+                {**SMALL, "kernel_param": "flow"},
+                TrainOptions(epochs=1, batch_size=4, progress=False, threads=1, seed=5),
+                physics_weight=0.5)
     assert ekdun_main(["eval", str(tiny_checkpoint), str(run), "--data", str(pairs), "--out",
                        str(tmp_path / "t"), "--quiet"]) == 0
     paper, flow = json.loads((tmp_path / "t" / "results.json").read_text())["results"]

@@ -31,6 +31,22 @@ def test_removed_command_says_where_it_went(argv, replacement, tmp_path, capsys,
     assert captured.out == "" and list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(("flag", "value", "module"), [
+    ("--kernel-param", "flow", "research/kernel_models.py"),
+    ("--physics-weight", "1", "research/physics_loss.py"),
+])
+def test_removed_train_flags_say_where_they_went(flag, value, module, tmp_path, capsys):
+    argv = ["train", str(tmp_path / "data"), str(tmp_path / "run"), "--kernels",
+            str(tmp_path / "k.npz"), flag, value]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and flag in lines[0] and module in lines[0], captured.err
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+    assert main(["train", "--help"]) == 0
+    assert flag not in capsys.readouterr().out
+
+
 def test_removed_commands_are_not_listed(capsys):
     assert main(["--help"]) == 0
     listed = capsys.readouterr().out

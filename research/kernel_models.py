@@ -1,4 +1,10 @@
-r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel_param``).
+r"""EK-DUN kernel parameterisations (research; was ``ekdun train --kernel-param``, issue 44).
+
+The product trains free pixels; a study plugs a module in through the product's hooks
+(:meth:`ekdun.nets.ekdun_net.EKDUN.use_kernel_module`, ``TrainOptions.model_hook``):
+:func:`attach`, :func:`build_network`, :func:`train` and :func:`network_from_checkpoint` here
+take the old override names (:data:`SETTINGS`) and ``physics_weight``
+(:mod:`research.physics_loss`).
 
 * ``"free"``: every kernel pixel is a parameter (the paper's; nothing here is used).
 * ``"physical"`` (:class:`PhysicalKernels`): ``K = E · softmax_S(θ)`` per kernel and channel:
@@ -9,11 +15,18 @@ r"""How EK-DUN's trainable eigen-kernels are parameterised (``EKDUNConfig.kernel
   from a coarse grid (bicubic), ``g`` a per-channel gain and ``R_j`` an optional residual,
   fitted to the seed first (:meth:`FlowKernels.fit_to`).
 
-These parameters are O(1), so their optimiser group gets :data:`LR_MULTIPLIER`
-(research/notes/compare-studies.md).
+These parameters are O(1), so their optimiser group gets :data:`LR_MULTIPLIER` (the
+module's ``lr_multiplier``; research/notes/compare-studies.md).
 """
 
 from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,7 +34,14 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
+from ekdun.nets import builder
+from ekdun.nets.ekdun_net import EKDUN
+from ekdun.nets.unrolled import UnrolledNetwork
+from ekdun.training import TrainOptions
+from ekdun.training import train as product_train
 from psfkit.calibration.caustic import caustic_support
+from psfkit.forward.kernelfile import KernelModel
+from research.physics_loss import PhysicsObjective
 
 #: Parameterisations ``EKDUNConfig.kernel_param`` accepts.
 KERNEL_PARAMETERISATIONS = ("free", "physical", "flow")
@@ -54,6 +74,9 @@ class PhysicalKernels(nn.Module):
     gain : bool
         Give the correction kernels a learned per-channel gain ``exp(·)`` (from 1).
     """
+
+    name = "physical"
+    lr_multiplier = LR_MULTIPLIER["physical"]
 
     def __init__(self, seed: Tensor, support: Tensor, floor: float = 1e-6,
                  gain: bool = False) -> None:
@@ -124,6 +147,9 @@ class FlowKernels(nn.Module):
     residual : bool
         Add a trainable residual on the support.
     """
+
+    name = "flow"
+    lr_multiplier = LR_MULTIPLIER["flow"]
 
     def __init__(self, seed: Tensor, support: Tensor, grid: int = 8,
                  residual: bool = False) -> None:
@@ -196,3 +222,112 @@ def build_parameterisation(name: str, seed: Tensor, dilate: int = 3, flow_grid: 
     flow = FlowKernels(seed, support, flow_grid, flow_residual)
     flow.fit_to(seed)
     return flow
+
+
+#: The study's EK-DUN settings (once ``EKDUNConfig`` fields) and their defaults.
+SETTINGS = {"kernel_param": "free", "kernel_support_dilate": 3, "flow_grid": 8,
+            "flow_residual": False, "kernel_gain": False}
+
+
+def split_overrides(overrides: dict[str, Any] | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(product overrides, study settings)`` of overrides that may hold :data:`SETTINGS`."""
+    overrides = dict(overrides or {})
+    study = {k: overrides.pop(k) for k in SETTINGS if k in overrides}
+    return overrides, study
+
+
+def attach(model: UnrolledNetwork, kernel_param: str = "free", kernel_support_dilate: int = 3,
+           flow_grid: int = 8, flow_residual: bool = False, kernel_gain: bool = False) -> None:
+    """Give an EK-DUN the kernel module ``kernel_param`` (nothing for ``"free"``)."""
+    if kernel_param == "free":
+        return
+    if not isinstance(model, EKDUN):
+        raise ConfigurationError(f"kernel_param {kernel_param!r} applies to EK-DUN only")
+    module = build_parameterisation(kernel_param, model.physics.kernels.detach(),
+                                    kernel_support_dilate, flow_grid, flow_residual,
+                                    kernel_gain)
+    assert module is not None
+    model.use_kernel_module(module)
+
+
+def build_network(name: str, seed: KernelModel, preset: str,
+                  overrides: dict[str, Any] | None = None) -> UnrolledNetwork:
+    """:func:`ekdun.nets.builder.build_network` taking :data:`SETTINGS` among ``overrides``."""
+    product, study = split_overrides(overrides)
+    model = builder.build_network(name, seed, preset, product)
+    attach(model, **study)
+    return model
+
+
+def train(run_dir: str | os.PathLike, model_name: str, seed: Any, dataset: Any,
+          preset: str = "tiny", overrides: dict[str, Any] | None = None,
+          options: TrainOptions | None = None, physics_weight: float = 0.0,
+          **kwargs: Any) -> dict[str, Any]:
+    """:func:`ekdun.training.train` with :data:`SETTINGS` among ``overrides`` and the
+    measurement-consistency weight λ (was ``--physics-weight``); both are recorded as the
+    metadata's ``study``, λ's term in the history as ``physics_loss``."""
+    weight = float(physics_weight)
+    if not math.isfinite(weight) or weight < 0:
+        raise ConfigurationError(f"physics_weight must be a finite number >= 0, got "
+                                 f"{physics_weight!r}")
+    product, study = split_overrides(overrides)
+
+    def hook(model: UnrolledNetwork) -> None:
+        if weight > 0 and not hasattr(model, "forward_model"):
+            raise ConfigurationError(f"physics_weight needs EK-DUN's own eigen-kernel forward "
+                                     f"model; {model_name} has none")
+        attach(model, **study)
+
+    options = replace(options or TrainOptions(), model_hook=hook,
+                      objective=(lambda m: PhysicsObjective(m, weight)) if weight > 0 else None,
+                      study={**study, "physics_weight": weight})
+    result = product_train(run_dir, model_name, seed, dataset, preset, product, options,
+                           **kwargs)
+    for row in result["history"]:
+        if "extra_loss" in row:
+            row["physics_loss"] = row["extra_loss"] / weight
+    return result
+
+
+def recorded(meta: dict[str, Any]) -> tuple[dict[str, Any], float]:
+    """``(overrides with the study's settings, λ)`` a run's metadata records (both places:
+    ``study`` now, ``overrides`` and ``training`` before)."""
+    study = meta.get("study") or {}
+    overrides = {**meta.get("overrides", {}), **{k: v for k, v in study.items() if k in SETTINGS}}
+    weight = study.get("physics_weight", (meta.get("training") or {}).get("physics_weight"))
+    return overrides, float(weight or 0.0)
+
+
+def network_from_checkpoint(checkpoint: str | os.PathLike | dict[str, Any]
+                            ) -> tuple[UnrolledNetwork, dict[str, Any]]:
+    """:func:`ekdun.nets.builder.network_from_checkpoint` with the run's kernel module."""
+    model, doc = builder.network_from_checkpoint(checkpoint)
+    _, study = split_overrides(recorded(doc["metadata"])[0])
+    attach(model, **study)
+    model.load_state_dict(doc["model"])
+    return model, doc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m research.kernel_models ARGS``: ``ekdun train ARGS`` that also takes the
+    study's ``--kernel-param`` and ``--physics-weight`` (research/scale_experiment.sh)."""
+    import ekdun.training
+    from ekdun.cli import main as ekdun_main
+
+    parser = argparse.ArgumentParser(allow_abbrev=False, add_help=False)
+    parser.add_argument("--kernel-param", choices=KERNEL_PARAMETERISATIONS, default="free")
+    parser.add_argument("--physics-weight", type=float, default=0.0)
+    study, rest = parser.parse_known_args(argv)
+
+    def run(run_dir: Any, model_name: str, seed: Any, dataset: Any, preset: str,
+            overrides: dict[str, Any], options: TrainOptions, **kwargs: Any) -> dict[str, Any]:
+        return train(run_dir, model_name, seed, dataset, preset,
+                     {**overrides, "kernel_param": study.kernel_param}, options,
+                     physics_weight=study.physics_weight, **kwargs)
+
+    ekdun.training.train = run      # what ekdun train calls, in this process only
+    return ekdun_main(["train", *rest])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,5 +1,6 @@
-"""Kernel parameterisations (free / physical / flow): gradients, constraints, exact zero
-flow, checkpoint round trip and export; `spectral` is no longer accepted (issue 45)."""
+"""Kernel parameterisations (free / physical / flow; research/kernel_models.py, out of the
+product since issue 44): gradients, constraints, exact zero flow, checkpoint round trip and
+export; `spectral` is no longer accepted (issue 45)."""
 
 from __future__ import annotations
 
@@ -9,16 +10,20 @@ import torch
 
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import ConfigurationError
-from ekdun.nets.builder import network_from_checkpoint
-from ekdun.physics.kernel_parameterisation import (
+from ekdun.nets import builder
+from ekdun.training import TrainOptions, export_kernels
+from psfkit.forward.kernelfile import load_kernels
+from research.kernel_models import (
+    LR_MULTIPLIER,
     FlowKernels,
     PhysicalKernels,
+    build_network,
     build_parameterisation,
+    network_from_checkpoint,
     seed_support,
+    train,
     warp_bilinear,
 )
-from ekdun.training import TrainOptions, export_kernels, train
-from psfkit.forward.kernelfile import load_kernels
 from research.synthetic import caustic_psf
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
@@ -122,9 +127,14 @@ def test_training_checkpoint_round_trip_and_export(tiny_data, tmp_path, name):
     assert not np.array_equal(learned.kernels, load_kernels(kernels).kernels)
     assert learned.kernels.min() >= 0
     rebuilt, doc = network_from_checkpoint(run / "checkpoint.pt")
-    assert doc["metadata"]["overrides"]["kernel_param"] == name
-    assert rebuilt.config.kernel_param == name
+    assert doc["metadata"]["study"]["kernel_param"] == name
+    assert "kernel_param" not in doc["metadata"]["overrides"]
+    assert rebuilt.kernel_param.name == name
     np.testing.assert_array_equal(export_kernels(rebuilt).kernels, learned.kernels)
+    # the product rebuilds it without the module: the kernels it made, kept in physics
+    plain, _ = builder.network_from_checkpoint(run / "checkpoint.pt")
+    assert plain.kernel_param is None
+    np.testing.assert_array_equal(export_kernels(plain).kernels, learned.kernels)
     # eval mode uses the synced, cached kernels: same output as training mode
     y = torch.as_tensor(np.load(next((pairs / "measurement").iterdir())),
                         dtype=torch.float32).permute(2, 0, 1)[None]
@@ -138,8 +148,6 @@ def test_training_checkpoint_round_trip_and_export(tiny_data, tmp_path, name):
 
 @pytest.mark.parametrize("name", ["free", "physical", "flow"])
 def test_kernels_have_their_own_optimiser_group(tiny_data, name):
-    from ekdun.nets.builder import build_network
-    from ekdun.physics.kernel_parameterisation import LR_MULTIPLIER
     from ekdun.training.trainer import _param_groups
 
     _, kernels = tiny_data
@@ -166,28 +174,3 @@ def test_physical_gain_scales_only_the_correction_kernels():
                                                                        dtype=torch.float64),
                                rtol=1e-12, atol=0)
     assert float(k.min()) >= 0.0
-
-
-def test_cli_offers_exactly_the_library_parameterisations():
-    # the CLI lists them without importing torch: the two lists must not drift apart
-    from ekdun.cli import build_parser
-    from ekdun.physics.kernel_parameterisation import KERNEL_PARAMETERISATIONS
-
-    train_parser = build_parser()._subparsers._group_actions[0].choices["train"]
-    action = next(a for a in train_parser._actions if a.dest == "kernel_param")
-    assert tuple(action.choices) == KERNEL_PARAMETERISATIONS
-
-
-def test_cli_kernel_param(tiny_data, tmp_path, capsys):
-    from ekdun.cli import main as ekdun_main
-
-    pairs, kernels = tiny_data
-    args = ["train", str(pairs), str(tmp_path / "run"), "--kernels", str(kernels),
-            "--iterations", "2", "--epochs", "1", "--threads", "1", "--quiet",
-            "--device", "cpu", "--kernel-param", "flow"]
-    assert ekdun_main(args) == 0
-    learned = load_kernels(tmp_path / "run" / "kernels_learned.npz")
-    assert learned.provenance["kernel_param"] == "flow"
-    assert ekdun_main(["train", str(pairs), str(tmp_path / "r2"), "--network", "updn", "--psf",
-                       str(kernels), "--kernel-param", "flow"]) == 2
-    assert "--kernel-param applies to --network ekdun only" in capsys.readouterr().err

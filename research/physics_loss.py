@@ -1,4 +1,5 @@
-r"""Measurement consistency: the fit-pairs objective as a training loss (``--physics-weight``).
+r"""Measurement consistency: the fit-pairs objective as a training loss (research; was
+``ekdun train --physics-weight``, now ``research.kernel_models.train(physics_weight=λ)``).
 
 It gives EK-DUN's kernels a gradient straight from the training pairs
 (research/notes/compare-studies.md):
@@ -36,18 +37,20 @@ def measurement_consistency(prediction: Tensor, y: Tensor) -> Tensor:
 
 
 class PhysicsObjective(nn.Module):
-    """``(y, x) → (x̂, L_phys)`` for an EK-DUN (its :meth:`forward_model` gives ``A_θ``)."""
+    """``(y, x) → (x̂, weight · L_phys)`` for an EK-DUN (its :meth:`forward_model` gives
+    ``A_θ``): the ``objective`` of :class:`ekdun.training.TrainOptions`."""
 
-    def __init__(self, network: nn.Module) -> None:
+    def __init__(self, network: nn.Module, weight: float = 1.0) -> None:
         super().__init__()
         if not hasattr(network, "forward_model"):
-            raise ConfigurationError("--physics-weight needs a network with its own eigen-"
-                                     "kernel forward model (--network ekdun)")
+            raise ConfigurationError("physics_weight needs a network with its own eigen-"
+                                     "kernel forward model (EK-DUN)")
         self.network = network
+        self.weight = weight
 
     def forward(self, y: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
         out = self.network(y)
         with torch.autocast(y.device.type, enabled=False):
             op = self.network.forward_model()
             consistency = measurement_consistency(op.A(x.float()), y.float())
-        return out, consistency
+        return out, self.weight * consistency

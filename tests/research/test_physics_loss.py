@@ -1,4 +1,5 @@
-"""--physics-weight: the measurement-consistency term (issue 24 item 1).
+"""physics_weight (research/physics_loss.py, once --physics-weight): the measurement-
+consistency term (issue 24 item 1).
 
 Checked against truth: its closed-form scale against a brute-force 1-D minimisation, its
 gradient against finite differences, zero (with zero gradient) at the kernels that made the
@@ -7,22 +8,26 @@ pairs, and in training it pulls the kernels towards those that made the pairs.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from scipy.optimize import minimize_scalar
 
-from ekdun.cli import main as ekdun_main
 from ekdun.data.pairs import PairsDataset
 from ekdun.errors import ConfigurationError
 from ekdun.nets.builder import build_network
 from ekdun.physics.operators import EigenKernelOperator
-from ekdun.training import TrainOptions, load_checkpoint, train
-from ekdun.training.physics_loss import PhysicsObjective, measurement_consistency
+from ekdun.training import TrainOptions, load_checkpoint
 from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.kernelfile import load_kernels, save_kernels
+from research.kernel_models import train
+from research.physics_loss import PhysicsObjective, measurement_consistency
 
 SMALL = {"iterations": 2, "prior": {"widths": [4, 8]}}
 
@@ -93,9 +98,10 @@ def test_training_with_the_physics_term_moves_the_kernels_towards_truth(tiny_dat
     errors, runs = {}, {}
     for weight in (0.0, 10.0):
         options = TrainOptions(epochs=6, batch_size=4, lr=1e-3, kernel_lr_scale=0.3,
-                               physics_weight=weight, progress=False, threads=1)
+                               progress=False, threads=1)
         run = tmp_path / f"w{weight:g}"
-        runs[weight] = train(run, "ekdun", one, data, "tiny", SMALL, options)
+        runs[weight] = train(run, "ekdun", one, data, "tiny", SMALL, options,
+                             physics_weight=weight)
         errors[weight] = _difference_error(load_kernels(run / "kernels_learned.npz").kernels,
                                            truth.kernels)
     # From Kv = Kh = Kbase (error 1 exactly) the consistency term brings Kv - Kbase and
@@ -106,22 +112,54 @@ def test_training_with_the_physics_term_moves_the_kernels_towards_truth(tiny_dat
     history = runs[10.0]["history"]
     assert history[-1]["physics_loss"] < 0.5 * history[0]["physics_loss"]
     meta = load_checkpoint(tmp_path / "w10" / "checkpoint.pt")["metadata"]
-    assert meta["training"]["physics_weight"] == 10.0
+    assert meta["study"]["physics_weight"] == 10.0
+    assert history[-1]["extra_loss"] == pytest.approx(10.0 * history[-1]["physics_loss"])
     header = (tmp_path / "w10" / "log.csv").read_text().splitlines()[0]
-    assert header.endswith(",physics_loss")
-    assert "physics_loss" not in (tmp_path / "w0" / "log.csv").read_text()
+    assert header.endswith(",extra_loss")
+    assert "extra_loss" not in (tmp_path / "w0" / "log.csv").read_text()
 
 
-def test_physics_weight_is_refused_where_it_cannot_apply(tiny_data, tmp_path, capsys):
+def test_physics_weight_is_refused_where_it_cannot_apply(tiny_data, tmp_path):
     pairs, kernel_file = tiny_data
-    with pytest.raises(ConfigurationError, match="--network ekdun"):
+    with pytest.raises(ConfigurationError, match="EK-DUN's own eigen-kernel forward model"):
         train(tmp_path / "u", "updn", kernel_file, PairsDataset(pairs), "tiny", {},
-              TrainOptions(epochs=1, physics_weight=1.0, progress=False))
+              TrainOptions(epochs=1, progress=False), physics_weight=1.0)
     assert not (tmp_path / "u").exists()        # refused before anything was written
-    with pytest.raises(ConfigurationError, match="--physics-weight"):
+    with pytest.raises(ConfigurationError, match="physics_weight"):
         train(tmp_path / "n", "ekdun", kernel_file, PairsDataset(pairs), "tiny", SMALL,
-              TrainOptions(epochs=1, physics_weight=-1.0, progress=False))
-    code = ekdun_main(["train", str(pairs), str(tmp_path / "c"), "--kernels",
-                       str(kernel_file), "--physics-weight", "-1", "--quiet"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "--physics-weight" in err[0]
+              TrainOptions(epochs=1, progress=False), physics_weight=-1.0)
+
+
+_DDP_RUN = """
+import sys
+from ekdun.data.pairs import PairsDataset
+from ekdun.training import TrainOptions
+from research.kernel_models import train
+pairs, kernels, run = sys.argv[1:4]
+train(run, "ekdun", kernels, PairsDataset(pairs), "tiny", {"iterations": 2},
+      TrainOptions(epochs=2, batch_size=4, lr=1e-3, progress=False, threads=1, device="cpu"),
+      physics_weight=0.5)
+"""
+
+
+def test_ddp_two_processes_equal_one_process_with_the_physics_term(tiny_data, tmp_path):
+    # the consistency term is part of the one forward pass DDP wraps (TrainOptions.objective)
+    pairs, kernels = tiny_data
+    script = tmp_path / "run.py"
+    script.write_text(_DDP_RUN)
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1",
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    for name, launcher in (("one", []), ("two", ["-m", "torch.distributed.run", "--standalone",
+                                                 "--nproc_per_node", "2"])):
+        done = subprocess.run([sys.executable, *launcher, str(script), str(pairs), str(kernels),
+                               str(tmp_path / name)], env=env, capture_output=True, text=True,
+                              timeout=300, cwd=root)
+        assert done.returncode == 0, done.stderr[-2000:]
+    a = load_checkpoint(tmp_path / "one" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "two" / "checkpoint.pt")
+    assert b["metadata"]["world_size"] == 2 and a["metadata"]["study"]["physics_weight"] == 0.5
+    assert a["metadata"]["history"][-1]["extra_loss"] == pytest.approx(
+        b["metadata"]["history"][-1]["extra_loss"], rel=1e-4)
+    for name, p in a["model"].items():
+        torch.testing.assert_close(b["model"][name], p, rtol=1e-5, atol=1e-5, msg=name)
