@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.cli.help_all import add_command
-from psfkit.cli.pairs_folder import add_channel_order, load_pairs
+from psfkit.cli.pairs_folder import load_pairs
 from psfkit.cli.vocabulary import add_flag
 from psfkit.errors import InvalidInputError
 from psfkit.forward.kernelfile import load_kernels
@@ -37,8 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
-    add_channel_order(e, "the folder's (pairs.json, DLMD layout), else the one recorded "
-                         "in the kernel file, else RGB")
+    add_flag(e, "--channel-order", "eval-model",
+             note="the folder's (pairs.json, DLMD layout), else the one recorded in the "
+                  "kernel file, else RGB")
     add_flag(e, "--holdout", "eval-model", action="append",
              note="the kernel file's record of the pairs it was fitted on; without one, "
                   "every pair is held out")
@@ -59,8 +60,9 @@ def run_eval_model(args: argparse.Namespace) -> int:
             files = (outputs.file(out), outputs.file(f"{stem}_residual.npz"),
                      outputs.file(f"{stem}_residual.png"))
         results, maps, zones, notices = _evaluate_all(args)
-        document = _document(results)
-        if files is not None:
+        if files is not None:   # one model's result as it is, several as {"models": [...]}
+            document = results[0] if len(results) == 1 else {"pairs": results[0]["pairs"],
+                                                             "models": results}
             _write_eval(files, document, maps, zones, results, args.out)
     for result in results:
         _print_eval(result)
@@ -70,13 +72,6 @@ def run_eval_model(args: argparse.Namespace) -> int:
     for text in notices:   # after the work: an error stays the one line on stderr
         print(text, file=sys.stderr)
     return 0
-
-
-def _document(results: list[dict[str, Any]]) -> dict[str, Any]:
-    """The ``--out`` JSON: one model's result as it is, several as ``{"models": [...]}``."""
-    if len(results) == 1:
-        return results[0]
-    return {"pairs": results[0]["pairs"], "models": results}
 
 
 def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],

@@ -12,7 +12,6 @@ import numpy as np
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import (
-    add_coverage_options,
     add_grid_options,
     open_grid,
     preprocess_options,
@@ -49,7 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         registered grid, with sensor-side and source-side weights, cross-validated against
         richer bases and compared with a PCA. Writes the kernel file that ekdun trains from.""")
     add_grid_options(p)
-    add_coverage_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_flag(p, "--basis", "fit-eigen",
              note=f"paper; one of ek, {', '.join(BASIS_NAMES)}, or auto: the best "

@@ -288,13 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psfkit {__version__}")
     add_debug_option(parser)
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
-    simulate_cmd.register(sub)
-    inspect_cmd.register(sub)
-    characterize_cmd.register(sub)
-    fit_cmd.register(sub)
-    pairs_cmd.register(sub)
-    eval_cmd.register(sub)
-    compare_cmd.register(sub)
+    for module in (simulate_cmd, inspect_cmd, characterize_cmd, fit_cmd, pairs_cmd, eval_cmd,
+                   compare_cmd):   # the order of ``psfkit --help``
+        module.register(sub)
     return parser
 
 

@@ -68,13 +68,8 @@ def _check_not_an_input(path: Path, overwrite: bool) -> None:
                                 "path)")
 
 
-def _read_umask() -> int:
-    mask = os.umask(0)  # the only way to read it; done once, at import, before any threads
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _read_umask()
+_UMASK = os.umask(0)   # the only way to read it; done once, at import, before any threads
+os.umask(_UMASK)
 
 
 # ------------------------------------------------------------------------ no-clobber rename
