@@ -99,8 +99,7 @@ def _scan_summary(values: np.ndarray, fmt: str, files: list[str]) -> None:
 
 def _grid_print(title: str, values: np.ndarray, fmt: str, result: GridCharacterization
                 ) -> None:
-    """``title``, then a per-position table as the lattice (``·``: not captured, ``x``:
-    excluded; blank: not measured), or one line per position for an irregular scan."""
+    """``title``, then the values as the lattice, or one line per position of a scan."""
     print(title)
     width = len(format(0, fmt))
     if result.layout == "irregular":

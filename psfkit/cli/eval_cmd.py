@@ -52,29 +52,25 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_eval_model(args: argparse.Namespace) -> int:
-    out = Path(args.out) if args.out else None
+    stem = Path(args.out).with_suffix("") if args.out else None
+    names = [str(Path(args.out)), f"{stem}_residual.npz", f"{stem}_residual.png"] if stem else []
     with OutputTransaction(overwrite=args.overwrite) as outputs:
-        files = None
-        if out is not None:
-            stem = out.with_suffix("")
-            files = (outputs.file(out), outputs.file(f"{stem}_residual.npz"),
-                     outputs.file(f"{stem}_residual.png"))
+        files = [outputs.file(name) for name in names]
         results, maps, zones, notices = _evaluate_all(args)
-        if files is not None:   # one model's result as it is, several as {"models": [...]}
+        if files:   # one model's result as it is, several as {"models": [...]}
             document = results[0] if len(results) == 1 else {"pairs": results[0]["pairs"],
                                                              "models": results}
             _write_eval(files, document, maps, zones, results, args.out)
     for result in results:
         _print_eval(result)
-    if out is not None:
-        stem = out.with_suffix("")
-        print(f"wrote {out}, {stem}_residual.npz, {stem}_residual.png")
+    if names:
+        print(f"wrote {', '.join(names)}")
     for text in notices:   # after the work: an error stays the one line on stderr
         print(text, file=sys.stderr)
     return 0
 
 
-def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],
+def _write_eval(files: list[Path], document: dict[str, Any],
                 maps: list[np.ndarray], zones: Any, results: list[dict[str, Any]],
                 name: str) -> None:
     from psfkit.report.figures.field import figure_residual_maps
@@ -92,8 +88,7 @@ def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],
 
 
 def _print_eval(result: dict[str, Any]) -> None:
-    """One model's table: per pair, its role, raw and scaled errors and the scaled error by
-    zone; then the means of the held-out and the fitted pairs."""
+    """One model's table of errors: per pair, then the means of each role."""
     print(f"{result['model']} ({result['basis']}, {result['convention']} weights): "
           f"{result['fit_record']}")
     print(f"{'pair':>16s}  {'role':8s}  {'raw':>8s}  {'scaled':>8s}   scaled by zone: "
@@ -170,8 +165,7 @@ def _zone_summary(by_zone: dict[str, np.ndarray], rows: np.ndarray
 def _role_group(role: str, roles: tuple[str, ...], names: tuple[str, ...],
                 errors: dict[str, np.ndarray], by_zone: dict[str, np.ndarray]
                 ) -> dict[str, Any] | None:
-    """The pairs of one role (fitted or held out) and their mean errors, whole and by zone;
-    ``None`` when there is no such pair."""
+    """The pairs of one role and their mean errors (``None`` when there is no such pair)."""
     rows = np.array([r == role for r in roles])
     if not rows.any():
         return None

@@ -124,13 +124,12 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         figures = outputs.folder(args.figures) if args.figures else None
         kernels = outputs.file(out)
-        result, basis = _fit(args, figures, kernels)
-    _print_summary(result, basis, out)
+        result = _fit(args, figures, kernels)
+    _print_summary(result, result.basis_name, out)
     return 0
 
 
-def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
-         ) -> tuple[GridEigenResult, str]:
+def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path) -> GridEigenResult:
     """Fit, and write the kernel file (and figures) to the given temporary paths."""
     from psfkit.fitting.grid.fit import fit_eigen_grid
 
@@ -146,7 +145,7 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     if record is not None:   # the settings of --config, with the file's path
         model = dataclasses.replace(model, provenance={**model.provenance, "run_file": record})
     save_kernels(kernels, model)
-    return result, result.basis_name
+    return result
 
 
 #: Ratio of the brightest to the faintest PSF above which fit-eigen's errors carry a caveat

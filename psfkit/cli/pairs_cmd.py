@@ -174,8 +174,8 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
         "sensor_shape": list(scenes.shape[-2:]), "options": options.__dict__,
         "training_error": dict(zip(pairs.names, fit.training_error.tolist(), strict=True)),
         "scales": dict(zip(pairs.names, fit.scales.tolist(), strict=True)),
-        "solver": fit.history, "physics": physics}
-    summary["regularisation"] = fit.regularisation_record()
+        "solver": fit.history, "physics": physics,
+        "regularisation": fit.regularisation_record()}
     if fit.convention_choice:
         summary["convention_choice"] = fit.convention_choice
     if args.leave_one_out:

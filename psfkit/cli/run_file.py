@@ -113,8 +113,7 @@ def _resolve(command: argparse.ArgumentParser, token: str) -> argparse.Action | 
 
 def _scan(command: argparse.ArgumentParser, argv: list[str]
           ) -> tuple[set[argparse.Action], str | None]:
-    """The actions of the option tokens of ``argv`` (before a ``--``), and the value of the
-    command's (last) ``--config``, if any."""
+    """The actions ``argv`` gives (before a ``--``) and the value of its last ``--config``."""
     given: set[argparse.Action] = set()
     path = None
     end = argv.index("--") if "--" in argv else len(argv)
@@ -197,20 +196,17 @@ def _tokens(command: argparse.ArgumentParser, path: str, key: str, action: argpa
     values = value if isinstance(value, list) and repeatable else [value]
     if not values:
         command.error(f"{path}: key '{key}' is an empty list")
-    texts = [_text(command, path, key, v) for v in values]
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+            command.error(f"{path}: key '{key}' takes a value (a string or a number), got "
+                          f"{v!r}")
+    texts = [str(v) for v in values]
     parsed = [_parsed(command, path, key, action, t) for t in texts]
     if isinstance(action, argparse._AppendAction):
         return [f"{name}={t}" for t in texts], parsed
     if repeatable:
         return [name, *texts], parsed
     return [f"{name}={texts[0]}"], parsed[0]
-
-
-def _text(command: argparse.ArgumentParser, path: str, key: str, value: Any) -> str:
-    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
-        command.error(f"{path}: key '{key}' takes a value (a string or a number), got "
-                      f"{value!r}")
-    return str(value)
 
 
 def _parsed(command: argparse.ArgumentParser, path: str, key: str, action: argparse.Action,
