@@ -32,7 +32,7 @@ from psfkit.io.flag_ranges import flag
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.characterization.characterize import CharacterizeOptions, GridCharacterization
+    from psfkit.characterization.characterize import GridCharacterization
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -44,23 +44,17 @@ def _common(p: argparse.ArgumentParser) -> None:
     add_flag(p, "--threads", command_name(p))
 
 
-def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
-    from psfkit.characterization.characterize import CharacterizeOptions
-
-    return CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
-                               upsample=args.upsample,
-                               flow_method=getattr(args, "method", "dis"),
-                               per_channel=args.per_channel,
-                               mae_smoothing_px=getattr(args, "mae_smoothing", 1.0),
-                               min_quality=args.min_ncc, strict=args.strict)
-
-
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
-    from psfkit.characterization.characterize import characterize_grid
+    from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
 
     grid = open_grid(args)   # every image is checked as it is processed
-    return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
-                             workers=args.threads)
+    options = CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
+                                  upsample=args.upsample,
+                                  flow_method=getattr(args, "method", "dis"),
+                                  per_channel=args.per_channel,
+                                  mae_smoothing_px=getattr(args, "mae_smoothing", 1.0),
+                                  min_quality=args.min_ncc, strict=args.strict)
+    return characterize_grid(grid, options, progress=not args.quiet, workers=args.threads)
 
 
 def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
