@@ -15,7 +15,7 @@ class _HelpAll(argparse.Action):
     """Show the advanced flags' help again, print the full help and exit (status 0)."""
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
+                 values: Any, _option_string: str | None = None) -> None:
         for action in parser._actions:
             if hasattr(action, ADVANCED_HELP):
                 action.help = getattr(action, ADVANCED_HELP)

@@ -165,7 +165,7 @@ class _Notice(argparse.Action):
         self.note = note
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
+                 values: Any, _option_string: str | None = None) -> None:
         if self.dest != argparse.SUPPRESS:
             setattr(namespace, self.dest, values)
         record_notice(namespace, self.note)
