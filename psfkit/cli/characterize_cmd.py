@@ -13,7 +13,6 @@ import numpy as np
 from psfkit.choices import FLOW_METHODS
 from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import (
-    add_coverage_options,
     add_grid_options,
     open_grid,
     preprocess_options,
@@ -33,12 +32,11 @@ from psfkit.io.flag_ranges import flag
 # The characterization (scipy, OpenCV, matplotlib) is imported by the commands that run it,
 # not when the parser is built (``psfkit --help`` stays fast).
 if TYPE_CHECKING:
-    from psfkit.characterization.characterize import CharacterizeOptions, GridCharacterization
+    from psfkit.characterization.characterize import GridCharacterization
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     add_grid_options(p)
-    add_coverage_options(p)
     p.add_argument("--per-channel", action="store_true",
                    help="also register each colour channel separately (lateral colour): "
                         "printed as one shift grid per channel, and in the numbers "
@@ -46,23 +44,17 @@ def _common(p: argparse.ArgumentParser) -> None:
     add_flag(p, "--threads", command_name(p))
 
 
-def _options(args: argparse.Namespace, steps: tuple[str, ...]) -> CharacterizeOptions:
-    from psfkit.characterization.characterize import CharacterizeOptions
-
-    return CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
-                               upsample=args.upsample,
-                               flow_method=getattr(args, "method", "dis"),
-                               per_channel=args.per_channel,
-                               mae_smoothing_px=getattr(args, "mae_smoothing", 1.0),
-                               min_quality=args.min_ncc, strict=args.strict)
-
-
 def _run(args: argparse.Namespace, steps: tuple[str, ...]) -> GridCharacterization:
-    from psfkit.characterization.characterize import characterize_grid
+    from psfkit.characterization.characterize import CharacterizeOptions, characterize_grid
 
     grid = open_grid(args)   # every image is checked as it is processed
-    return characterize_grid(grid, _options(args, steps), progress=not args.quiet,
-                             workers=args.threads)
+    options = CharacterizeOptions(preprocess=preprocess_options(args), steps=steps,
+                                  upsample=args.upsample,
+                                  flow_method=getattr(args, "method", "dis"),
+                                  per_channel=args.per_channel,
+                                  mae_smoothing_px=getattr(args, "mae_smoothing", 1.0),
+                                  min_quality=args.min_ncc, strict=args.strict)
+    return characterize_grid(grid, options, progress=not args.quiet, workers=args.threads)
 
 
 def _run_and_write_numbers(args: argparse.Namespace, steps: tuple[str, ...]
@@ -99,13 +91,12 @@ def _scan_summary(values: np.ndarray, fmt: str, files: list[str]) -> None:
           + "; every position in --out FILE.csv or the report's positions.csv")
 
 
-def _grid_print(values: np.ndarray, fmt: str,
-                result: GridCharacterization | None = None) -> None:
-    """A per-position table as the lattice (``·``: not captured, ``x``: excluded; blank: not
-    measured), or one line per position for an irregular scan."""
+def _grid_print(title: str, values: np.ndarray, fmt: str, result: GridCharacterization
+                ) -> None:
+    """``title``, then the values as the lattice, or one line per position of a scan."""
+    print(title)
     width = len(format(0, fmt))
-    status = result.status() if result is not None else np.full(values.shape, "ok")
-    if result is not None and result.layout == "irregular":
+    if result.layout == "irregular":
         files = {(p.row, p.col): p.file for p in result.captured}
         if values.shape[1] > IRREGULAR_LINES:
             _scan_summary(values[0], fmt, [files.get((0, c), "?") for c in
@@ -116,14 +107,14 @@ def _grid_print(values: np.ndarray, fmt: str,
             print(f"  #{c:<3d} {files[(0, c)]:24s} {text}")
         return
 
+    marks = {"missing": "·", "excluded": "x"}
+
     def cell(v: float, state: str) -> str:
-        if state == "missing":
-            return "·".rjust(width)
-        if state == "excluded":
-            return "x".rjust(width)
+        if state in marks:
+            return marks[state].rjust(width)
         return format(v, fmt) if np.isfinite(v) else " " * width
 
-    for row, states in zip(values, status, strict=True):
+    for row, states in zip(values, result.status(), strict=True):
         print("  " + " ".join(cell(v, st) for v, st in zip(row, states, strict=True)))
 
 
@@ -204,10 +195,8 @@ def print_registration(result: GridCharacterization) -> None:
     if fit is not None:
         print(shift_map_line(fit))
     shifts = result.table("shift")
-    print("shift du (px):")
-    _grid_print(shifts[..., 0], "8.2f", result)
-    print("shift dv (px):")
-    _grid_print(shifts[..., 1], "8.2f", result)
+    _grid_print("shift du (px):", shifts[..., 0], "8.2f", result)
+    _grid_print("shift dv (px):", shifts[..., 1], "8.2f", result)
     print(f"registration quality (NCC): min {np.nanmin(result.table('quality')):.3f}")
     print_coverage(result)
 
@@ -223,8 +212,8 @@ def print_channel_shifts(result: GridCharacterization) -> None:
                                                 for r in records])
     for c in range(shifts.shape[2]):
         for axis, name in ((0, "du"), (1, "dv")):
-            print(f"channel {c} shift {name} (px):")
-            _grid_print(shifts[:, :, c, axis], "8.2f", result)
+            _grid_print(f"channel {c} shift {name} (px):", shifts[:, :, c, axis], "8.2f",
+                        result)
 
 
 def _print_closing(args: argparse.Namespace, result: GridCharacterization) -> int:
@@ -248,11 +237,11 @@ def run_mae(args: argparse.Namespace) -> int:
     result = _run_and_write_numbers(args, ("register", "gain", "mae"))
     if result.gain_fit is not None:
         print(gain_line(result.gain_fit))
-    print(f"MAE vs the centre PSF, % of its light (sum |PSF - centre| / sum centre over the "
-          f"PSFs' support; smoothing {args.mae_smoothing:g} px):")
-    _grid_print(result.table("mae") * 100, "7.2f", result)
-    print("after gain compensation, %:")
-    _grid_print(result.table("mae_gain_compensated") * 100, "7.2f", result)
+    _grid_print(f"MAE vs the centre PSF, % of its light (sum |PSF - centre| / sum centre over "
+                f"the PSFs' support; smoothing {args.mae_smoothing:g} px):",
+                result.table("mae") * 100, "7.2f", result)
+    _grid_print("after gain compensation, %:", result.table("mae_gain_compensated") * 100,
+                "7.2f", result)
     print_coverage(result)
     return _print_closing(args, result)
 
@@ -261,10 +250,10 @@ def run_warp(args: argparse.Namespace) -> int:
     from psfkit.characterization.characterize import RELIABLE_OVERLAP
 
     result = _run_and_write_numbers(args, ("register", "gain", "warp"))
-    print("residual displacement rms (px) after the affine part:")
-    _grid_print(result.warp_table("residual_rms"), "6.3f", result)
-    print("tangential / sagittal anisotropy:")
-    _grid_print(result.warp_table("anisotropy"), "6.2f", result)
+    _grid_print("residual displacement rms (px) after the affine part:",
+                result.warp_table("residual_rms"), "6.3f", result)
+    _grid_print("tangential / sagittal anisotropy:", result.warp_table("anisotropy"), "6.2f",
+                result)
     print_coverage(result)
     print(f"{growth_line(result.warp_growth)} (positions with >= {RELIABLE_OVERLAP:.0%} of "
           "the centre PSF's light in their overlap)")

@@ -120,4 +120,3 @@ def _print_comparison(args: argparse.Namespace, comparison: Any, learned: Any, o
                 f"{k} {f[k]:.3f}" for k in ("gain", "pedestal", "displacement", "other")))
     for note in comparison.notes:
         print(f"  note: {note}")
-    return 0

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.cli.help_all import add_command
-from psfkit.cli.pairs_folder import add_channel_order, load_pairs
+from psfkit.cli.pairs_folder import load_pairs
 from psfkit.cli.vocabulary import add_flag
 from psfkit.errors import InvalidInputError
 from psfkit.forward.kernelfile import load_kernels
@@ -37,8 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--downsample", type=flag("--downsample"), default=None, metavar="N",
                    help="bin the pairs N x N first (default: the factor the model was "
                         "fitted with, from its provenance, else 1)")
-    add_channel_order(e, "the folder's (pairs.json, DLMD layout), else the one recorded "
-                         "in the kernel file, else RGB")
+    add_flag(e, "--channel-order", "eval-model",
+             note="the folder's (pairs.json, DLMD layout), else the one recorded in the "
+                  "kernel file, else RGB")
     add_flag(e, "--holdout", "eval-model", action="append",
              note="the kernel file's record of the pairs it was fitted on; without one, "
                   "every pair is held out")
@@ -51,35 +52,25 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_eval_model(args: argparse.Namespace) -> int:
-    out = Path(args.out) if args.out else None
+    stem = Path(args.out).with_suffix("") if args.out else None
+    names = [str(Path(args.out)), f"{stem}_residual.npz", f"{stem}_residual.png"] if stem else []
     with OutputTransaction(overwrite=args.overwrite) as outputs:
-        files = None
-        if out is not None:
-            stem = out.with_suffix("")
-            files = (outputs.file(out), outputs.file(f"{stem}_residual.npz"),
-                     outputs.file(f"{stem}_residual.png"))
+        files = [outputs.file(name) for name in names]
         results, maps, zones, notices = _evaluate_all(args)
-        document = _document(results)
-        if files is not None:
+        if files:   # one model's result as it is, several as {"models": [...]}
+            document = results[0] if len(results) == 1 else {"pairs": results[0]["pairs"],
+                                                             "models": results}
             _write_eval(files, document, maps, zones, results, args.out)
     for result in results:
         _print_eval(result)
-    if out is not None:
-        stem = out.with_suffix("")
-        print(f"wrote {out}, {stem}_residual.npz, {stem}_residual.png")
+    if names:
+        print(f"wrote {', '.join(names)}")
     for text in notices:   # after the work: an error stays the one line on stderr
         print(text, file=sys.stderr)
     return 0
 
 
-def _document(results: list[dict[str, Any]]) -> dict[str, Any]:
-    """The ``--out`` JSON: one model's result as it is, several as ``{"models": [...]}``."""
-    if len(results) == 1:
-        return results[0]
-    return {"pairs": results[0]["pairs"], "models": results}
-
-
-def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],
+def _write_eval(files: list[Path], document: dict[str, Any],
                 maps: list[np.ndarray], zones: Any, results: list[dict[str, Any]],
                 name: str) -> None:
     from psfkit.report.figures.field import figure_residual_maps
@@ -97,8 +88,7 @@ def _write_eval(files: tuple[Path, Path, Path], document: dict[str, Any],
 
 
 def _print_eval(result: dict[str, Any]) -> None:
-    """One model's table: per pair, its role, raw and scaled errors and the scaled error by
-    zone; then the means of the held-out and the fitted pairs."""
+    """One model's table of errors: per pair, then the means of each role."""
     print(f"{result['model']} ({result['basis']}, {result['convention']} weights): "
           f"{result['fit_record']}")
     print(f"{'pair':>16s}  {'role':8s}  {'raw':>8s}  {'scaled':>8s}   scaled by zone: "
@@ -175,8 +165,7 @@ def _zone_summary(by_zone: dict[str, np.ndarray], rows: np.ndarray
 def _role_group(role: str, roles: tuple[str, ...], names: tuple[str, ...],
                 errors: dict[str, np.ndarray], by_zone: dict[str, np.ndarray]
                 ) -> dict[str, Any] | None:
-    """The pairs of one role (fitted or held out) and their mean errors, whole and by zone;
-    ``None`` when there is no such pair."""
+    """The pairs of one role and their mean errors (``None`` when there is no such pair)."""
     rows = np.array([r == role for r in roles])
     if not rows.any():
         return None

@@ -12,7 +12,6 @@ import numpy as np
 from psfkit.choices import CV_BASES, CV_BASES_ALL, SHIFT_MODES
 from psfkit.cli.help_all import add_command, mark_advanced
 from psfkit.cli.options import (
-    add_coverage_options,
     add_grid_options,
     open_grid,
     preprocess_options,
@@ -49,7 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         registered grid, with sensor-side and source-side weights, cross-validated against
         richer bases and compared with a PCA. Writes the kernel file that ekdun trains from.""")
     add_grid_options(p)
-    add_coverage_options(p)
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_flag(p, "--basis", "fit-eigen",
              note=f"paper; one of ek, {', '.join(BASIS_NAMES)}, or auto: the best "
@@ -126,13 +124,12 @@ def run_fit_eigen(args: argparse.Namespace) -> int:
     with OutputTransaction(overwrite=args.overwrite) as outputs:
         figures = outputs.folder(args.figures) if args.figures else None
         kernels = outputs.file(out)
-        result, basis = _fit(args, figures, kernels)
-    _print_summary(result, basis, out)
+        result = _fit(args, figures, kernels)
+    _print_summary(result, result.basis_name, out)
     return 0
 
 
-def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
-         ) -> tuple[GridEigenResult, str]:
+def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path) -> GridEigenResult:
     """Fit, and write the kernel file (and figures) to the given temporary paths."""
     from psfkit.fitting.grid.fit import fit_eigen_grid
 
@@ -148,7 +145,7 @@ def _fit(args: argparse.Namespace, figures: Path | None, kernels: Path
     if record is not None:   # the settings of --config, with the file's path
         model = dataclasses.replace(model, provenance={**model.provenance, "run_file": record})
     save_kernels(kernels, model)
-    return result, result.basis_name
+    return result
 
 
 #: Ratio of the brightest to the faintest PSF above which fit-eigen's errors carry a caveat

@@ -14,12 +14,8 @@ ADVANCED_HELP = "advanced_help"
 class _HelpAll(argparse.Action):
     """Show the advanced flags' help again, print the full help and exit (status 0)."""
 
-    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
-                 default: Any = argparse.SUPPRESS, help: str | None = None) -> None:
-        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
-
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
+                 values: Any, _option_string: str | None = None) -> None:
         for action in parser._actions:
             if hasattr(action, ADVANCED_HELP):
                 action.help = getattr(action, ADVANCED_HELP)
@@ -41,7 +37,8 @@ def add_command(sub: argparse._SubParsersAction, name: str, summary: str, descri
 
 def add_help_all(parser: argparse.ArgumentParser) -> None:
     """Add ``--help-all`` to ``parser`` (call it first, so that it is listed beside ``-h``)."""
-    parser.add_argument("--help-all", action=_HelpAll,
+    parser.add_argument("--help-all", action=_HelpAll, nargs=0, dest=argparse.SUPPRESS,
+                        default=argparse.SUPPRESS,
                         help="show this help with every flag, the advanced ones too")
 
 

@@ -21,6 +21,7 @@ from psfkit.cli.run_file import parse_args
 from psfkit.cli.vocabulary import deprecation_notices
 from psfkit.errors import PsfkitError
 from psfkit.io.atomic import protected_inputs
+from psfkit.io.images import collected_log
 from psfkit.io.temps import public_name
 from psfkit.io.validation import escape_line
 
@@ -157,25 +158,12 @@ def terminate_like_interrupt() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def quiet_libraries() -> Iterator[list[str]]:
-    """Within the block, Python warnings and library logging are collected (yielded) instead
-    of printed, so that a command's stderr holds its own lines only."""
-    collected: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            collected.append(f"{record.name}: {record.getMessage()}")
-
-    root = logging.getLogger()
-    handler = Collect(logging.WARNING)
-    root.addHandler(handler)
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            yield collected
-        collected.extend(f"{w.category.__name__}: {w.message}" for w in caught)
-    finally:
-        root.removeHandler(handler)
+def quiet_libraries() -> Iterator[None]:
+    """Within the block, Python warnings and library logging are collected instead of
+    printed, so that a command's stderr holds its own lines only."""
+    with collected_log(level=logging.WARNING), warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        yield
 
 
 @contextlib.contextmanager
@@ -288,13 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psfkit {__version__}")
     add_debug_option(parser)
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
-    simulate_cmd.register(sub)
-    inspect_cmd.register(sub)
-    characterize_cmd.register(sub)
-    fit_cmd.register(sub)
-    pairs_cmd.register(sub)
-    eval_cmd.register(sub)
-    compare_cmd.register(sub)
+    for module in (simulate_cmd, inspect_cmd, characterize_cmd, fit_cmd, pairs_cmd, eval_cmd,
+                   compare_cmd):   # the order of ``psfkit --help``
+        module.register(sub)
     return parser
 
 

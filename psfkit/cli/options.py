@@ -12,13 +12,30 @@ if TYPE_CHECKING:
     from psfkit.io.grid import PsfGrid
 
 
+#: ``--strict`` (``psfkit info`` and the commands that analyse a grid).
+STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan and any "
+               "unusable capture (saturated, no signal, NaN/Inf, failed registration) instead "
+               "of excluding it with its reason")
+
+
 def add_grid_options(p: argparse.ArgumentParser) -> None:
-    """The grid argument and the preprocessing / registration options."""
+    """The grid argument, the preprocessing / registration options and how positions that
+    fail a quality check, and the reference, are handled."""
     p.add_argument("grid", help="PSF-grid folder (manifest.json or manifest.csv + images)")
     g = add_preprocess_options(p, "preprocessing")
     g.add_argument("--upsample", type=flag("--upsample"), default=100,
                    help="registration precision is 1/UPSAMPLE px (default 100)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    g = p.add_argument_group("bad positions and the reference")
+    g.add_argument("--strict", action="store_true", help=STRICT_HELP)
+    g.add_argument("--reference", metavar="R,C",
+                   help="compare every PSF with this position instead of the centre one: "
+                        "grid row and column R,C, the I-th position of an irregular scan, or a "
+                        "file name of the manifest")
+    g.add_argument("--min-ncc", type=flag("--min-ncc"), default=0.5, metavar="NCC",
+                   help="exclude positions whose registration quality (normalized "
+                        "cross-correlation with the reference after alignment) is below NCC "
+                        "(default 0.5)")
 
 
 def add_preprocess_options(p: argparse.ArgumentParser, title: str) -> argparse._ArgumentGroup:
@@ -42,26 +59,6 @@ def preprocess_options(args: argparse.Namespace) -> PreprocessOptions:
                              hot_pixel_sigma=args.hot_pixel_sigma,
                              saturation_level=args.saturation_level,
                              allow_saturated=args.allow_saturated)
-
-
-#: ``--strict`` (``psfkit info`` and the commands that analyse a grid).
-STRICT_HELP = ("all or nothing: refuse an incomplete lattice, an irregular scan and any "
-               "unusable capture (saturated, no signal, NaN/Inf, failed registration) instead "
-               "of excluding it with its reason")
-
-
-def add_coverage_options(p: argparse.ArgumentParser) -> None:
-    """How positions that fail a quality check, and the reference, are handled."""
-    g = p.add_argument_group("bad positions and the reference")
-    g.add_argument("--strict", action="store_true", help=STRICT_HELP)
-    g.add_argument("--reference", metavar="R,C",
-                   help="compare every PSF with this position instead of the centre one: "
-                        "grid row and column R,C, the I-th position of an irregular scan, or a "
-                        "file name of the manifest")
-    g.add_argument("--min-ncc", type=flag("--min-ncc"), default=0.5, metavar="NCC",
-                   help="exclude positions whose registration quality (normalized "
-                        "cross-correlation with the reference after alignment) is below NCC "
-                        "(default 0.5)")
 
 
 def open_grid(args: argparse.Namespace) -> PsfGrid:

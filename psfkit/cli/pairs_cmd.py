@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.cli.help_all import add_command, mark_advanced
-from psfkit.cli.pairs_folder import add_channel_order, load_pairs
+from psfkit.cli.pairs_folder import load_pairs
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import BASIS_ALIASES, add_flag, add_retired
 from psfkit.errors import ConfigurationError, InvalidInputError
@@ -52,8 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                   "the sensor side unless the source side predicts the held-out pairs "
                   "better; the kernel file records the choice")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
-    add_channel_order(p, "the folder's (pairs.json; BGR for the DLMD layout lensed/ + "
-                         "diffuser/), else RGB; recorded in the kernel file")
+    add_flag(p, "--channel-order", "fit-pairs",
+             note="the folder's (pairs.json; BGR for the DLMD layout lensed/ + diffuser/), "
+                  "else RGB; recorded in the kernel file")
     _add_fit_options(p)
     add_flag(p, "--holdout", "fit-pairs", action="append",
              note="none; the kernel file records the fitted and the held-out names, and "
@@ -173,8 +174,8 @@ def _fit(args: argparse.Namespace, basis: str, options: PairFitOptions, kernels:
         "sensor_shape": list(scenes.shape[-2:]), "options": options.__dict__,
         "training_error": dict(zip(pairs.names, fit.training_error.tolist(), strict=True)),
         "scales": dict(zip(pairs.names, fit.scales.tolist(), strict=True)),
-        "solver": fit.history, "physics": physics}
-    summary["regularisation"] = fit.regularisation_record()
+        "solver": fit.history, "physics": physics,
+        "regularisation": fit.regularisation_record()}
     if fit.convention_choice:
         summary["convention_choice"] = fit.convention_choice
     if args.leave_one_out:

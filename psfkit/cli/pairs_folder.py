@@ -1,23 +1,15 @@
 """Reading a pairs folder for ``psfkit fit-pairs`` and ``psfkit eval-model``: the pairs
-(less the held-out ones), checked for blank images and implausible light, binned; and
-the ``--channel-order`` flag both commands take."""
+(less the held-out ones), checked for blank images and implausible light, binned."""
 
 from __future__ import annotations
 
-import argparse
 from typing import Any
 
 import numpy as np
 
-from psfkit.cli.vocabulary import add_flag, command_name
 from psfkit.errors import InvalidInputError
 from psfkit.io import read_pairs
 from psfkit.io.read_options import ReadOptions
-
-
-def add_channel_order(p: argparse.ArgumentParser, default: str) -> None:
-    """The ``--channel-order`` flag of a pairs command, with its ``default`` explained."""
-    add_flag(p, "--channel-order", command_name(p), note=default)
 
 
 def _refuse_blank(pairs: Any, scenes: np.ndarray, measurements: np.ndarray) -> None:

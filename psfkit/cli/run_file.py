@@ -58,15 +58,15 @@ def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse
     if found is None:
         return parser.parse_args(argv)
     command, start = found
-    path = _config_path(command, argv[start:])
+    given, path = _scan(command, argv[start:])
     if path is None:
         return parser.parse_args(argv)
-    given = _given(command, argv[start:])
     tokens: list[str] = []
     settings: dict[str, Any] = {}
     overridden: list[str] = []
     for key, action, value in _settings(command, path):
-        name = action.option_strings[0] if _is_switch_pair(action) else _long_name(key)
+        switch_pair = isinstance(action, argparse.BooleanOptionalAction)
+        name = action.option_strings[0] if switch_pair else _long_name(key)
         if action in given:
             overridden.append(name)
             continue
@@ -98,12 +98,6 @@ def _command(parser: argparse.ArgumentParser, argv: list[str]
     return None
 
 
-def _options(argv: list[str]) -> list[str]:
-    """The option tokens of ``argv`` (before a ``--``)."""
-    end = argv.index("--") if "--" in argv else len(argv)
-    return [t for t in argv[:end] if t.startswith("-") and len(t) > 1]
-
-
 def _resolve(command: argparse.ArgumentParser, token: str) -> argparse.Action | None:
     """The action of an option token as argparse resolves it (``--opt=v``, unique prefix)."""
     option = token.split("=", 1)[0]
@@ -117,31 +111,26 @@ def _resolve(command: argparse.ArgumentParser, token: str) -> argparse.Action | 
     return None
 
 
-def _given(command: argparse.ArgumentParser, argv: list[str]) -> set[argparse.Action]:
-    return {a for t in _options(argv) if (a := _resolve(command, t)) is not None}
-
-
-def _config_path(command: argparse.ArgumentParser, argv: list[str]) -> str | None:
-    """The value of the command's ``--config`` in ``argv`` (the last one), if any."""
+def _scan(command: argparse.ArgumentParser, argv: list[str]
+          ) -> tuple[set[argparse.Action], str | None]:
+    """The actions ``argv`` gives (before a ``--``) and the value of its last ``--config``."""
+    given: set[argparse.Action] = set()
     path = None
     end = argv.index("--") if "--" in argv else len(argv)
     for i, token in enumerate(argv[:end]):
-        action = _resolve(command, token) if token.startswith("--") else None
-        if action is None or not getattr(action, _MARK, False):
+        action = _resolve(command, token) if token.startswith("-") and len(token) > 1 else None
+        if action is None:
             continue
-        if "=" in token:
+        given.add(action)
+        if getattr(action, _MARK, False) and "=" in token:
             path = token.split("=", 1)[1]
-        elif i + 1 < end:
+        elif getattr(action, _MARK, False) and i + 1 < end:
             path = argv[i + 1]
-    return path or None
+    return given, path or None
 
 
 def _long_name(key: str) -> str:
     return "--" + key.replace("_", "-")
-
-
-def _is_switch_pair(action: argparse.Action) -> bool:
-    return isinstance(action, argparse.BooleanOptionalAction)
 
 
 def _read(command: argparse.ArgumentParser, path: str) -> dict[str, Any]:
@@ -199,7 +188,7 @@ def _tokens(command: argparse.ArgumentParser, path: str, key: str, action: argpa
     if action.nargs == 0:   # a switch: true / false
         if not isinstance(value, bool):
             command.error(f"{path}: key '{key}' is a switch: true or false, got {value!r}")
-        if _is_switch_pair(action):
+        if isinstance(action, argparse.BooleanOptionalAction):
             on = value == (name == action.option_strings[0])
             return [action.option_strings[0 if on else 1]], on
         return ([name] if value else []), value
@@ -207,20 +196,17 @@ def _tokens(command: argparse.ArgumentParser, path: str, key: str, action: argpa
     values = value if isinstance(value, list) and repeatable else [value]
     if not values:
         command.error(f"{path}: key '{key}' is an empty list")
-    texts = [_text(command, path, key, v) for v in values]
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+            command.error(f"{path}: key '{key}' takes a value (a string or a number), got "
+                          f"{v!r}")
+    texts = [str(v) for v in values]
     parsed = [_parsed(command, path, key, action, t) for t in texts]
     if isinstance(action, argparse._AppendAction):
         return [f"{name}={t}" for t in texts], parsed
     if repeatable:
         return [name, *texts], parsed
     return [f"{name}={texts[0]}"], parsed[0]
-
-
-def _text(command: argparse.ArgumentParser, path: str, key: str, value: Any) -> str:
-    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
-        command.error(f"{path}: key '{key}' takes a value (a string or a number), got "
-                      f"{value!r}")
-    return str(value)
 
 
 def _parsed(command: argparse.ArgumentParser, path: str, key: str, action: argparse.Action,

@@ -139,8 +139,11 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: st
     kwargs.update(extra)
     action = parser.add_argument(name, **kwargs)
     for (cmd, alias), canonical in deprecated.items():
-        if cmd == command and canonical == name:
-            add_deprecated(parser, alias, action)
+        if cmd == command and canonical == name:   # hidden, same destination, type, choices
+            parser.add_argument(alias, action=_Notice, dest=action.dest, type=action.type,
+                                note=f"note: {alias} is deprecated here, use {name}",
+                                choices=action.choices, metavar=action.metavar,
+                                default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     return action
 
 
@@ -152,29 +155,20 @@ def record_notice(namespace: argparse.Namespace, line: str) -> None:
     setattr(namespace, NOTICES, notices)
 
 
-class _DeprecatedAlias(argparse.Action):
-    """Stores like the canonical flag and records one notice in the namespace."""
+class _Notice(argparse.Action):
+    """A deprecated spelling (stores like its canonical flag) or a retired flag (``dest``
+    suppressed: stores nothing); either records its ``note``, printed after the work."""
 
-    def __init__(self, option_strings: Sequence[str], dest: str, canonical: str = "",
+    def __init__(self, option_strings: Sequence[str], dest: str, note: str = "",
                  **kwargs: Any) -> None:
         super().__init__(option_strings, dest, **kwargs)
-        self.canonical = canonical
+        self.note = note
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
-        setattr(namespace, self.dest, values)
-        record_notice(namespace, f"note: {option_string} is deprecated here, use "
-                                 f"{self.canonical}")
-
-
-def add_deprecated(parser: argparse.ArgumentParser | argparse._ArgumentGroup, alias: str,
-                   canonical: argparse.Action) -> argparse.Action:
-    """``alias``: a hidden spelling of ``canonical`` (same destination, type and choices) that
-    prints one notice after the work."""
-    return parser.add_argument(alias, action=_DeprecatedAlias, dest=canonical.dest,
-                               canonical=canonical.option_strings[0], type=canonical.type,
-                               choices=canonical.choices, metavar=canonical.metavar,
-                               default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+                 values: Any, _option_string: str | None = None) -> None:
+        if self.dest != argparse.SUPPRESS:
+            setattr(namespace, self.dest, values)
+        record_notice(namespace, self.note)
 
 
 #: Retired flags: ``(command, flag) -> (nargs, note, choices)``. Accepted (a value is still
@@ -192,19 +186,6 @@ RETIRED: dict[tuple[str, str], tuple[int, str, tuple[str, ...] | None]] = {
 }
 
 
-class _RetiredFlag(argparse.Action):
-    """A flag that no longer acts: records its note (printed after the work), stores nothing."""
-
-    def __init__(self, option_strings: Sequence[str], dest: str, note: str = "",
-                 **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.note = note
-
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
-                 values: Any, option_string: str | None = None) -> None:
-        record_notice(namespace, self.note)
-
-
 def add_retired(parser: argparse.ArgumentParser, command: str,
                 table: Mapping[tuple[str, str], tuple[int, str, tuple[str, ...] | None]]
                 = RETIRED, value_type: Callable[[str], Callable[[str], Any]] | None = None
@@ -213,7 +194,7 @@ def add_retired(parser: argparse.ArgumentParser, command: str,
     where given, still checks a retired flag's value."""
     for (cmd, name), (nargs, note, choices) in table.items():
         if cmd == command:
-            parser.add_argument(name, action=_RetiredFlag, note=note, nargs=nargs,
+            parser.add_argument(name, action=_Notice, note=note, nargs=nargs,
                                 choices=choices,
                                 type=value_type(name) if value_type and nargs else None,
                                 dest=argparse.SUPPRESS, default=argparse.SUPPRESS,

@@ -68,13 +68,8 @@ def _check_not_an_input(path: Path, overwrite: bool) -> None:
                                 "path)")
 
 
-def _read_umask() -> int:
-    mask = os.umask(0)  # the only way to read it; done once, at import, before any threads
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _read_umask()
+_UMASK = os.umask(0)   # the only way to read it; done once, at import, before any threads
+os.umask(_UMASK)
 
 
 # ------------------------------------------------------------------------ no-clobber rename
@@ -281,13 +276,11 @@ class OutputTransaction:
         self.overwrite = overwrite
         self._outputs: list[_Output] = []
 
-    def _declare(self, path: str | os.PathLike, kind: str, suffixes: tuple[str, ...]) -> Path:
+    def _declare(self, path: str | os.PathLike, kind: str) -> Path:
         if os.fspath(path) == "":   # Path("") is the current folder, never meant as an output
             raise InvalidInputError(f"an empty path was given for an output {kind}")
         path = Path(path)
         _check_not_an_input(path, self.overwrite)
-        if suffixes and path.suffix.lower() not in suffixes:
-            raise InvalidInputError(f"{path}: output must end in {' or '.join(suffixes)}")
         if any(o.path.resolve() == path.resolve() for o in self._outputs):
             raise InvalidInputError(f"{path}: given for two outputs of one command")
         check_output(path, kind, self.overwrite)
@@ -295,14 +288,13 @@ class OutputTransaction:
         self._outputs.append(output)
         return output.temp
 
-    def file(self, path: str | os.PathLike, suffixes: tuple[str, ...] = ()) -> Path:
-        """Declare an output file (extension one of ``suffixes``, if given); returns the
-        temporary path to write (same suffix)."""
-        return self._declare(path, "file", suffixes)
+    def file(self, path: str | os.PathLike) -> Path:
+        """Declare an output file; returns the temporary path to write (same suffix)."""
+        return self._declare(path, "file")
 
     def folder(self, path: str | os.PathLike) -> Path:
         """Declare an output folder; returns the (empty) temporary folder to fill."""
-        return self._declare(path, "folder", ())
+        return self._declare(path, "folder")
 
     def commit(self) -> None:
         """Rename every temporary into place; if one fails, undo those already done."""

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.errors import GridFormatError, InvalidInputError
+from psfkit.errors import GridFormatError
 from psfkit.io.grid import (
     FULL_LATTICE,
     INCOMPLETE_LATTICE,
@@ -208,8 +208,7 @@ def _check_root(root: Path) -> None:
 
 def _indexed_positions(positions: list[Any], header: dict[str, Any], manifest: Path,
                        strict: bool) -> tuple[list[Any], bool]:
-    """The positions with their grid indices, and whether the scan is irregular (no position
-    has one); a mix is refused."""
+    """The positions with their grid indices, and whether the scan is irregular."""
     indexed = [p.row != NO_INDEX for p in positions]
     if any(indexed) and not all(indexed):
         bare = positions[indexed.index(False)].file
@@ -289,8 +288,7 @@ def _check_folder_matches(root: Path, manifest: Path, listed: set[str]) -> None:
 def _check_images(root: Path, files: list[str], channel_order: str, dark_file: str | None, *,
                   check_pixels: bool, strict: bool, progress: bool
                   ) -> tuple[tuple[int, int, int], np.dtype, dict[str, str]]:
-    """``(shape, dtype, problems)``: every image has the first's shape and dtype; with
-    ``check_pixels``, ``problems`` lists unusable PSF frames (refused with ``strict``)."""
+    """``(shape, dtype, problems)`` of the images, all of the first's shape and dtype."""
     ref_shape: tuple[int, int, int] | None = None
     ref_dtype: np.dtype | None = None
     ref_file = ""
@@ -334,8 +332,7 @@ def _read_checked(path: Path, channel_order: str) -> np.ndarray:
 
 def _header_fields(header: dict[str, Any], manifest: Path
                    ) -> tuple[int | None, float | None, float | None]:
-    """The optional ``bit_depth`` (1..32), ``black_level`` ([0, 2³²]) and ``pixel_pitch_um``
-    (> 0) of the manifest, checked."""
+    """The manifest's optional ``bit_depth``, ``black_level`` and ``pixel_pitch_um``."""
     bit_depth = header.get("bit_depth")
     if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)
                                   or not 1 <= bit_depth <= 32):
@@ -374,20 +371,16 @@ def _irregular_positions(positions: list[Any], header: dict[str, Any], manifest:
 
 def _peek(path: Path, channel_order: str) -> tuple[tuple[int, int, int], np.dtype]:
     """Shape ``(C, H, W)`` and dtype of an image without decoding all pixels where possible."""
-    suffix = path.suffix.lower()
+    if path.suffix.lower() != ".npy":
+        image = _read_checked(path, channel_order)
+        return image.shape, image.dtype  # type: ignore[return-value]
     try:
-        if suffix == ".npy":
-            array = np.load(path, mmap_mode="r", allow_pickle=False)
-            shape = array.shape
-            if len(shape) == 2:
-                return (1, *shape), array.dtype
-            if len(shape) == 3 and shape[2] in (1, 3):
-                return (shape[2], shape[0], shape[1]), array.dtype
-            raise InvalidInputError(f"{path}: expected (H, W) or (H, W, C) with C in (1, 3), "
-                                    f"got {shape}")
-    except InvalidInputError as exc:
-        raise GridFormatError(str(exc)) from None
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
     except Exception as exc:
         raise GridFormatError(f"{path}: not a readable image ({exc})") from None
-    image = _read_checked(path, channel_order)
-    return image.shape, image.dtype  # type: ignore[return-value]
+    shape = array.shape
+    if len(shape) == 2:
+        return (1, *shape), array.dtype
+    if len(shape) == 3 and shape[2] in (1, 3):
+        return (shape[2], shape[0], shape[1]), array.dtype
+    raise GridFormatError(f"{path}: expected (H, W) or (H, W, C) with C in (1, 3), got {shape}")

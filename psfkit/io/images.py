@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import logging.handlers
 import os
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -32,28 +34,26 @@ def _to_chw(array: np.ndarray, path: Path, channels_last: bool = True) -> np.nda
 
 
 @contextlib.contextmanager
-def _tifffile_messages() -> Iterator[list[str]]:
-    """Collect what tifffile logs about a damaged file, for the one error line."""
-    messages: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            messages.append(record.getMessage().split("> ", 1)[-1])
-
-    logger = logging.getLogger("tifffile")
-    handler, propagate = Collect(), logger.propagate
+def collected_log(name: str | None = None, level: int = logging.NOTSET
+                  ) -> Iterator[list[logging.LogRecord]]:
+    """Within the block, the records of logger ``name`` (default: the root) at ``level`` or
+    above are collected (yielded) instead of printed; e.g. what tifffile says of a damaged file,
+    for the one error line."""
+    handler = logging.handlers.BufferingHandler(capacity=sys.maxsize)   # never flushed
+    handler.setLevel(level)
+    logger = logging.getLogger(name)
+    propagate = logger.propagate
     logger.addHandler(handler)
     logger.propagate = False
     try:
-        yield messages
+        yield handler.buffer
     finally:
         logger.removeHandler(handler)
         logger.propagate = propagate
 
 
 def _check_declared_size(shape: tuple[int, ...], path: Path, dtype: object = None) -> None:
-    """Refuse an image whose header declares an absurd size (any axis, or in all), before
-    decoding it."""
+    """Refuse an image whose header declares an absurd size, before decoding it."""
     shape = tuple(int(s) for s in shape)
     if len(shape) not in (2, 3):
         raise InvalidInputError(f"{path}: expected a 2-D or 3-D image, got shape {shape}")
@@ -127,10 +127,10 @@ def read_image(path: str | os.PathLike, channel_order: str = "RGB",
 def _decode_tiff(path: Path) -> np.ndarray:
     import tifffile
 
-    with _tifffile_messages() as messages, tifffile.TiffFile(path) as tif:
+    with collected_log("tifffile") as records, tifffile.TiffFile(path) as tif:
         if not tif.series:
-            raise InvalidInputError(f"{path}: not a readable image ("
-                                    f"{messages[0] if messages else 'no image data'})")
+            said = records[0].getMessage().split("> ", 1)[-1] if records else "no image data"
+            raise InvalidInputError(f"{path}: not a readable image ({said})")
         series = tif.series[0]
         _check_declared_size(series.shape, path, series.dtype)
         array = series.asarray()

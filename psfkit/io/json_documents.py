@@ -12,23 +12,6 @@ from psfkit.errors import InvalidInputError
 from psfkit.io.validation import MAX_JSON_BYTES, MAX_JSON_DEPTH
 
 
-def _refuse_duplicates(where: str):
-    def hook(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-        doc: dict[str, Any] = {}
-        for key, value in pairs:
-            if key in doc:
-                raise InvalidInputError(f"{where}: key {key!r} appears twice")
-            doc[key] = value
-        return doc
-    return hook
-
-
-def _refuse_constant(where: str):
-    def hook(name: str) -> float:
-        raise InvalidInputError(f"{where}: {name} is not a valid JSON number")
-    return hook
-
-
 def _nesting_depth(text: str) -> int:
     """Deepest bracket nesting outside strings (cheap, linear, no recursion)."""
     depth = deepest = 0
@@ -51,15 +34,6 @@ def _nesting_depth(text: str) -> int:
     return deepest
 
 
-def _refuse_overflow(where: str):
-    def hook(text: str) -> float:
-        value = float(text)
-        if not math.isfinite(value):
-            raise InvalidInputError(f"{where}: number {text} is out of range")
-        return value
-    return hook
-
-
 def load_json_document(text: str | bytes, where: str) -> Any:
     """Parse JSON from outside strictly: duplicate keys, ``NaN``/``Infinity``, numbers that
     overflow (``1e400``) and nesting deeper than ``MAX_JSON_DEPTH`` raise
@@ -71,10 +45,27 @@ def load_json_document(text: str | bytes, where: str) -> Any:
             raise InvalidInputError(f"{where}: not a UTF-8 text file") from None
     if _nesting_depth(text) > MAX_JSON_DEPTH:
         raise InvalidInputError(f"{where}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
+
+    def refuse_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        doc: dict[str, Any] = {}
+        for key, value in pairs:
+            if key in doc:
+                raise InvalidInputError(f"{where}: key {key!r} appears twice")
+            doc[key] = value
+        return doc
+
+    def refuse_constant(name: str) -> float:
+        raise InvalidInputError(f"{where}: {name} is not a valid JSON number")
+
+    def refuse_overflow(number: str) -> float:
+        value = float(number)
+        if not math.isfinite(value):
+            raise InvalidInputError(f"{where}: number {number} is out of range")
+        return value
+
     try:
-        return json.loads(text, object_pairs_hook=_refuse_duplicates(where),
-                          parse_constant=_refuse_constant(where),
-                          parse_float=_refuse_overflow(where))
+        return json.loads(text, object_pairs_hook=refuse_duplicates,
+                          parse_constant=refuse_constant, parse_float=refuse_overflow)
     except json.JSONDecodeError as exc:
         raise InvalidInputError(f"{where}: invalid JSON at line {exc.lineno}: {exc.msg}") \
             from None

@@ -147,8 +147,7 @@ def _parse_csv(path: Path) -> tuple[dict[str, Any], list[GridPosition]]:
 
 
 def _csv_columns(path: Path, first_row: dict[str | None, Any]) -> set[str]:
-    """The header's columns: ``file``, both or neither of ``row``/``col``, all in
-    :data:`CSV_COLUMNS`."""
+    """The header's columns, checked against :data:`CSV_COLUMNS`."""
     columns = {c for c in first_row if c is not None}
     missing = {"file"} - columns
     if ("row" in columns) != ("col" in columns):

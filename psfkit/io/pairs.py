@@ -18,8 +18,8 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.io.images import IMAGE_SUFFIXES, read_image, unit_range
 from psfkit.io.json_documents import read_json_file
-from psfkit.io.read_options import FLIPS, MAX_WHITE_LEVEL, ReadOptions
-from psfkit.io.validation import finite_number
+from psfkit.io.read_options import FLIPS, ReadOptions
+from psfkit.io.validation import MAX_WHITE_LEVEL, finite_number
 
 SCENE_DIRS = ("scene", "scenes", "gt", "ground_truth", "lensed")
 MEASUREMENT_DIRS = ("measurement", "measurements", "meas", "raw", "diffuser")

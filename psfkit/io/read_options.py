@@ -10,11 +10,10 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from psfkit.errors import InvalidInputError
+from psfkit.io.validation import MAX_DOWNSAMPLE, MAX_WHITE_LEVEL
 
 CHANNEL_ORDERS = ("RGB", "BGR")
 FLIPS = ("none", "ud", "lr", "both")
-MAX_DOWNSAMPLE = 64
-MAX_WHITE_LEVEL = 2.0**32   # the largest value a 32-bit integer file can store
 
 
 @dataclass(frozen=True)

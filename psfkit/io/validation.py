@@ -45,6 +45,7 @@ MAX_JSON_DEPTH = 64           # nesting of a JSON document we read
 MAX_JSON_BYTES = 16 * 2**20   # size of a JSON document we read (a 64 x 64 manifest: ~1 MB)
 MAX_ARRAY_ELEMENTS = 4 * MAX_IMAGE_PIXELS  # elements of one array read from a file
 MAX_DOWNSAMPLE = 64           # binning factor
+MAX_WHITE_LEVEL = 2.0**32     # the largest value a 32-bit integer file can store
 MAX_SEED = 2**32 - 1          # numpy's and torch's seeds agree on [0, 2**32)
 MAX_THREADS = 256             # CPU threads (libgomp aborts the process on absurd counts)
 
