@@ -98,7 +98,7 @@ class PositionResult:
     warp: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        out = {k: v for k, v in self.__dict__.items()}
+        out = dict(self.__dict__)
         out["shift_px"] = list(out.pop("shift"))
         return out
 
