@@ -208,8 +208,7 @@ class GridAligner:
         bench caustic's cos-law exponent by 6σ)."""
         return aligned.valid if self.fills_sensor else aligned.compared
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
-        """Refuse a reference whose masked saturated pixels leave less than
-        :data:`MIN_OVERLAP` of the sensor (nothing could be compared with it)."""
+        """Refuse a reference whose saturated pixels leave less than :data:`MIN_OVERLAP`."""
         saturated = self.reference_prepared.saturated
         if float(np.mean(~saturated)) >= MIN_OVERLAP:
             return

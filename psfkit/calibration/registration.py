@@ -24,9 +24,8 @@ from psfkit.numerics.windows import tukey_window
 
 def _cross_spectrum(moving: np.ndarray, reference: np.ndarray, shape: tuple[int, int]
                     ) -> np.ndarray:
-    """``FFT(moving) · conj(FFT(reference))`` of two real images zero-filled to ``shape``: the
-    spectrum of their cross-correlation, its non-negative column frequencies only (real FFTs:
-    half the work of complex ones)."""
+    """Cross-correlation spectrum ``FFT(moving) · conj(FFT(reference))`` of two real images
+    zero-filled to ``shape``, non-negative column frequencies only (real FFTs)."""
     return sfft.rfft2(moving, s=shape, workers=-1) * np.conj(
         sfft.rfft2(reference, s=shape, workers=-1))
 
@@ -76,8 +75,7 @@ def _refine_peak(spectrum: np.ndarray, start: np.ndarray, upsample: int,
 
 
 def _integer_peak(spectrum: np.ndarray, width: int | None = None) -> np.ndarray:
-    """Integer ``(dv, du)`` of the correlation maximum (wrapped to ±half the size);
-    ``width`` as in :func:`_correlation_at`."""
+    """Integer ``(dv, du)`` of the correlation maximum, wrapped to ±half the size."""
     if width is None or width == spectrum.shape[1]:
         correlation = sfft.ifft2(spectrum, workers=-1).real
     else:
@@ -239,9 +237,6 @@ def register_shift(reference: np.ndarray, moving: np.ndarray, upsample: int = 10
                    allow_binning: bool | None = None) -> tuple[float, float]:
     """Sub-pixel shift ``(du, dv)`` of ``moving`` relative to ``reference`` (2-D images): a
     one-off :class:`ShiftRegistrar` (make one to register many images to one reference)."""
-    if reference.shape != moving.shape or reference.ndim != 2:
-        raise InvalidInputError(f"register_shift needs two 2-D images of one shape, got "
-                                f"{reference.shape} and {moving.shape}")
     return ShiftRegistrar(reference, upsample, coarse_size, fine_limit,
                           allow_binning).register(moving)
 

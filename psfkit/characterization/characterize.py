@@ -83,8 +83,7 @@ def _thumbnail(image: np.ndarray) -> np.ndarray:
 
 
 def _coarse_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Block-average a ``(2, H, W)`` flow over the masked pixels to ``(3, h, w)``:
-    ``(d_u, d_v, fraction of masked pixels)`` for quiver plots."""
+    """``(3, h, w)`` ``(d_u, d_v, masked fraction)``: a ``(2, H, W)`` flow's block averages."""
     factor = binning_factor(flow.shape[1:], QUIVER_CELLS)
     weight = bin_image(mask.astype(np.float64), factor)
     mean = bin_image(np.where(mask, flow, 0.0), factor) / np.maximum(weight, 1)
@@ -243,8 +242,7 @@ class _PositionMeasurement:
 
 def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
                weights: np.ndarray, upsample: int) -> ShiftMapFit | None:
-    """The field → shift map over the measured positions; ``None`` for a one-row lattice or
-    positions that do not span two directions."""
+    """The field → shift map; ``None`` for positions that do not span two directions."""
     if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
         return None
     try:
@@ -271,8 +269,7 @@ def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
 
 
 def _summarise_warp(result: GridCharacterization) -> None:
-    """Warp growth with field angle and tangential/sagittal anisotropy vs geometric optics,
-    over the reliable positions."""
+    """Warp growth and tangential/sagittal anisotropy over the reliable positions."""
     theta = result.field_angle_deg()
     if theta is None:
         return
@@ -316,8 +313,7 @@ def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
                    shift: tuple[float, float], method: str, where: str = "PSF"
                    ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
-    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures
-    (``where`` names the position's file in an error)."""
+    """One position's warp statistics and ``(residual flow, mask)``; ``where``: its file."""
     try:
         warp = warp_field(ref_lum, al_lum, valid, method)
     except InvalidInputError as exc:

@@ -67,8 +67,7 @@ def _angles(kernels: np.ndarray, measured: MeasuredModes, n_pca: int
 
 def _measured_maps(modes: MeasuredModes, options: CompareOptions
                    ) -> tuple[np.ndarray, np.ndarray, dict[str, DisplacementMap]]:
-    """``(K, H, W)`` luminance of the measured kernels, their ``Kbase``'s caustic mask and the
-    correction kernels' displacement maps."""
+    """The measured kernels' ``(K, H, W)`` luminance, caustic mask and displacement maps."""
     lum = np.stack([luminance(k) for k in modes.model.kernels])
     mask = comparison_mask(lum[0], options)
     return lum, mask, _kernel_displacements(lum, modes.model.kernel_names, mask, options)

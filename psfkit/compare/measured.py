@@ -79,8 +79,7 @@ class MeasuredModes:
 
 def _on_grid(model: KernelModel, kernels: np.ndarray, sensor_shape: tuple[int, int]
              ) -> KernelModel:
-    """``kernels`` on the comparison grid with ``model``'s basis, convention, channels,
-    normalization and provenance."""
+    """``kernels`` on the comparison grid with ``model``'s basis, convention and metadata."""
     return KernelModel(kernels=kernels, basis=model.basis, convention=model.convention,
                        sensor_shape=tuple(sensor_shape), channels=model.channels,
                        normalization=model.normalization, provenance=model.provenance)
