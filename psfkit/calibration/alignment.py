@@ -3,7 +3,7 @@ by the characterization and the eigen-kernel fit, so both see the same registere
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
 
@@ -74,9 +74,7 @@ class ExcludedPosition:
                    detail=str(exc), field_deg=pos.field_deg, monitor_px=pos.monitor_px)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"row": self.row, "col": self.col, "file": self.file, "reason": self.reason,
-                "detail": self.detail, "field_deg": self.field_deg,
-                "monitor_px": self.monitor_px}
+        return asdict(self)
 
 
 #: Share of the sensor the centre PSF's support must cover for the PSF to count as filling it
@@ -210,8 +208,7 @@ class GridAligner:
         bench caustic's cos-law exponent by 6σ)."""
         return aligned.valid if self.fills_sensor else aligned.compared
     def _check_reference_unsaturated(self, grid: PsfGrid) -> None:
-        """Refuse a reference whose masked saturated pixels leave less than
-        :data:`MIN_OVERLAP` of the sensor (nothing could be compared with it)."""
+        """Refuse a reference whose saturated pixels leave less than :data:`MIN_OVERLAP`."""
         saturated = self.reference_prepared.saturated
         if float(np.mean(~saturated)) >= MIN_OVERLAP:
             return

@@ -21,10 +21,8 @@ from psfkit.numerics.significance import Estimate, checked, f_test, undetermined
 
 def overlap_gain(reference: np.ndarray, aligned: np.ndarray, valid: np.ndarray) -> float:
     """Energy ratio of an aligned PSF to the reference over the ``(H, W)`` bool ``valid``;
-    ``reference``, ``aligned``: ``(H, W)`` or ``(C, H, W)``, background-subtracted, same
+    ``reference``, ``aligned``: ``(H, W)`` (channels summed), background-subtracted, same
     exposure scale."""
-    if reference.ndim == 3:
-        reference, aligned = reference.sum(axis=0), aligned.sum(axis=0)
     ref = float(np.sum(reference, where=valid, dtype=np.float64))
     if ref <= 0:
         raise InvalidInputError("the reference PSF has no energy in the overlap region")

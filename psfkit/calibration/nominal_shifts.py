@@ -63,17 +63,27 @@ def _explained(fit: ShiftMapFit, registered: np.ndarray, weights: np.ndarray) ->
     return 1.0 - float(np.sum(w[:, None] * residuals[ok] ** 2)) / total if total > 0 else 1.0
 
 
+def field_units(positions: list[GridPosition]) -> str:
+    """The unit of the positions' field coordinates: monitor px, tan of the field angles, or
+    grid steps."""
+    if all(p.monitor_px is not None for p in positions):
+        return "monitor px"
+    if all(p.field_deg is not None for p in positions):
+        return "tan(field angle)"
+    return "grid steps"
+
+
 def _field_coordinates(positions: list[GridPosition], center: GridPosition
                        ) -> tuple[np.ndarray, str]:
-    """``(P, 2)`` field coordinates and their unit: monitor px, tan of the field angles, or
-    grid steps from ``center``."""
-    if all(p.monitor_px is not None for p in positions):
-        return np.array([p.monitor_px for p in positions], dtype=np.float64), "monitor px"
-    if all(p.field_deg is not None for p in positions):
+    """``(P, 2)`` field coordinates (grid steps from ``center`` without any) and their unit."""
+    units = field_units(positions)
+    if units == "monitor px":
+        return np.array([p.monitor_px for p in positions], dtype=np.float64), units
+    if units == "tan(field angle)":
         return (np.tan(np.deg2rad(np.array([p.field_deg for p in positions], dtype=np.float64))),
-                "tan(field angle)")
+                units)
     return (np.array([(p.col - center.col, p.row - center.row) for p in positions],
-                     dtype=np.float64), "grid steps")
+                     dtype=np.float64), units)
 
 
 def nominal_shifts(positions: list[GridPosition], registered: np.ndarray, overlap: np.ndarray,

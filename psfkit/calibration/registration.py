@@ -24,9 +24,8 @@ from psfkit.numerics.windows import tukey_window
 
 def _cross_spectrum(moving: np.ndarray, reference: np.ndarray, shape: tuple[int, int]
                     ) -> np.ndarray:
-    """``FFT(moving) · conj(FFT(reference))`` of two real images zero-filled to ``shape``: the
-    spectrum of their cross-correlation, its non-negative column frequencies only (real FFTs:
-    half the work of complex ones)."""
+    """Cross-correlation spectrum ``FFT(moving) · conj(FFT(reference))`` of two real images
+    zero-filled to ``shape``, non-negative column frequencies only (real FFTs)."""
     return sfft.rfft2(moving, s=shape, workers=-1) * np.conj(
         sfft.rfft2(reference, s=shape, workers=-1))
 
@@ -76,8 +75,7 @@ def _refine_peak(spectrum: np.ndarray, start: np.ndarray, upsample: int,
 
 
 def _integer_peak(spectrum: np.ndarray, width: int | None = None) -> np.ndarray:
-    """Integer ``(dv, du)`` of the correlation maximum (wrapped to ±half the size);
-    ``width`` as in :func:`_correlation_at`."""
+    """Integer ``(dv, du)`` of the correlation maximum, wrapped to ±half the size."""
     if width is None or width == spectrum.shape[1]:
         correlation = sfft.ifft2(spectrum, workers=-1).real
     else:
@@ -88,17 +86,25 @@ def _integer_peak(spectrum: np.ndarray, width: int | None = None) -> np.ndarray:
     return peak
 
 
-def overlap_slices(shape: tuple[int, int], shift_vu: tuple[int, int]
+def overlap_slices(shape: tuple[int, int], shift_vu: tuple[int, int],
+                   region: tuple[slice, slice] | None = None
                    ) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
-    """Slices ``(reference_part, moving_part)`` of the region both images see when ``moving``
-    is displaced by the integer ``shift_vu`` relative to ``reference``."""
+    """Slices ``(reference_part, moving_part)`` of what both images see when ``moving`` is
+    displaced by the integer ``shift_vu`` relative to ``reference``: of that, only ``region``
+    of the reference and the same region of the moving image when given (the whole overlap
+    where less than 4 px of it is left)."""
     ref_sl, mov_sl = [], []
-    for n, size in zip(shift_vu, shape, strict=True):
+    for k, (n, size) in enumerate(zip(shift_vu, shape, strict=True)):
         n = int(n)
         if abs(n) >= size:
             raise InvalidInputError(f"shift {n} px leaves no overlap with a {size}-px image")
-        ref_sl.append(slice(max(0, -n), size - max(0, n)))
-        mov_sl.append(slice(max(0, n), size + min(0, n)))
+        lo, hi = max(0, -n), size - max(0, n)
+        if region is not None:
+            lo, hi = max(region[k].start, lo), min(region[k].stop, hi)
+            if hi - lo < 4:
+                return overlap_slices(shape, shift_vu)
+        ref_sl.append(slice(lo, hi))
+        mov_sl.append(slice(lo + n, hi + n))
     return (ref_sl[0], ref_sl[1]), (mov_sl[0], mov_sl[1])
 
 
@@ -174,10 +180,9 @@ class ShiftRegistrar:
         self.fine_reference = bin_image(reference, self.fine_factor)
         self.coarse_factor = binning_factor(self.fine_reference.shape, coarse_size)
         coarse = bin_image(self.fine_reference, self.coarse_factor)
-        self._coarse_shape = coarse.shape
-        canvas = np.zeros((2 * coarse.shape[0], 2 * coarse.shape[1]))
-        canvas[:coarse.shape[0], :coarse.shape[1]] = coarse
-        self._coarse_reference = np.conj(sfft.fft2(canvas, workers=-1))
+        # zero-filled to twice the size: a linear correlation, no wrap-around
+        self._coarse_canvas = (2 * coarse.shape[0], 2 * coarse.shape[1])
+        self._coarse_reference = np.conj(sfft.fft2(coarse, s=self._coarse_canvas, workers=-1))
 
     def register(self, moving: np.ndarray) -> tuple[float, float]:
         """Shift ``(du, dv)`` of ``moving`` relative to the reference, in pixels."""
@@ -187,9 +192,7 @@ class ShiftRegistrar:
         fine = _prepared(moving) if self.fine_factor == 1 else \
             _prepared_binned(moving, self.fine_factor)
         coarse = bin_image(fine, self.coarse_factor)
-        canvas = np.zeros((2 * self._coarse_shape[0], 2 * self._coarse_shape[1]))
-        canvas[:coarse.shape[0], :coarse.shape[1]] = coarse
-        spectrum = sfft.fft2(canvas, workers=-1) * self._coarse_reference
+        spectrum = sfft.fft2(coarse, s=self._coarse_canvas, workers=-1) * self._coarse_reference
         if self.region is None:
             estimate = _refine_peak(spectrum, _integer_peak(spectrum), 10) * self.coarse_factor
         else:   # the refinement's window around the PSF finds its integer peak itself
@@ -197,8 +200,7 @@ class ShiftRegistrar:
         h, w = fine.shape
         for _ in range(3):
             integer = np.round(estimate).astype(int)
-            ref_sl, mov_sl = _region_slices(self.region, (h, w), tuple(integer)) \
-                if self.region is not None else overlap_slices((h, w), tuple(integer))
+            ref_sl, mov_sl = overlap_slices((h, w), tuple(integer), self.region)
             ref_crop, mov_crop = self.fine_reference[ref_sl], fine[mov_sl]
             window = tukey_window(ref_crop.shape[0], 0.25)[:, None] \
                 * tukey_window(ref_crop.shape[1], 0.25)[None]
@@ -230,30 +232,11 @@ def psf_region(support: np.ndarray) -> tuple[slice, slice] | None:
     return None if whole else (slices[0], slices[1])
 
 
-def _region_slices(region: tuple[slice, slice], shape: tuple[int, int],
-                   shift_vu: tuple[int, int]
-                   ) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
-    """Slices ``(reference_part, moving_part)``: ``region`` of the reference and the same
-    region of the moving image displaced by the integer ``shift_vu``, both clipped to the
-    frame (the whole overlap where nothing of the region is left)."""
-    ref_sl, mov_sl = [], []
-    for sl, n, size in zip(region, shift_vu, shape, strict=True):
-        lo, hi = max(sl.start, -int(n)), min(sl.stop, size - int(n))
-        if hi - lo < 4:
-            return overlap_slices(shape, shift_vu)
-        ref_sl.append(slice(lo, hi))
-        mov_sl.append(slice(lo + int(n), hi + int(n)))
-    return (ref_sl[0], ref_sl[1]), (mov_sl[0], mov_sl[1])
-
-
 def register_shift(reference: np.ndarray, moving: np.ndarray, upsample: int = 100,
                    coarse_size: int = 256, fine_limit: int = 1024,
                    allow_binning: bool | None = None) -> tuple[float, float]:
     """Sub-pixel shift ``(du, dv)`` of ``moving`` relative to ``reference`` (2-D images): a
     one-off :class:`ShiftRegistrar` (make one to register many images to one reference)."""
-    if reference.shape != moving.shape or reference.ndim != 2:
-        raise InvalidInputError(f"register_shift needs two 2-D images of one shape, got "
-                                f"{reference.shape} and {moving.shape}")
     return ShiftRegistrar(reference, upsample, coarse_size, fine_limit,
                           allow_binning).register(moving)
 
@@ -319,11 +302,16 @@ def shift_image(image: np.ndarray, shift: tuple[float, float], margin: int = 8
     return (moved[0] if squeeze else moved), valid
 
 
-def normalized_cross_correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    """Pearson correlation of two images over ``mask`` (1 for identical patterns)."""
-    x = a[mask].astype(np.float64)
-    y = b[mask].astype(np.float64)
+def normalized_cross_correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray,
+                                 degenerate: float = 0.0, min_values: int = 1) -> float:
+    """Pearson correlation of ``a`` and ``b`` (``(..., H, W)``) over the ``(H, W)`` bool
+    ``mask``, all leading components pooled (1 for identical patterns); ``degenerate`` when
+    either is constant there or fewer than ``min_values`` values are compared."""
+    x = a[..., mask].astype(np.float64).ravel()
+    y = b[..., mask].astype(np.float64).ravel()
+    if x.size < min_values:
+        return degenerate
     x -= x.mean()
     y -= y.mean()
-    denom = np.sqrt(np.sum(x * x) * np.sum(y * y))
-    return float(np.sum(x * y) / denom) if denom > 0 else 0.0
+    denom = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
+    return float(np.sum(x * y) / denom) if denom > 0 else degenerate

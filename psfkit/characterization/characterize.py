@@ -5,6 +5,7 @@ result keeps the per-position numbers and small images for the figures.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Any
 
@@ -13,13 +14,12 @@ import numpy as np
 
 from psfkit.calibration.alignment import (
     RELIABLE_OVERLAP,
-    AlignedPsf,
     ExcludedPosition,
     GridAligner,
 )
 from psfkit.calibration.gain import fit_gain, overlap_gain
 from psfkit.calibration.mae import mean_absolute_error
-from psfkit.calibration.nominal_shifts import nominal_shifts
+from psfkit.calibration.nominal_shifts import field_units, nominal_shifts
 from psfkit.calibration.shift_map import ShiftMapFit, fit_shift_map
 from psfkit.calibration.support import crop_window, support_box
 from psfkit.calibration.warp import (
@@ -46,14 +46,6 @@ from psfkit.numerics.resample import bin_image, binning_factor
 from psfkit.numerics.significance import Estimate, checked, t_test, undetermined
 
 THUMBNAIL_SIZE = 160     # longest side of montage thumbnails, px
-
-
-def _field_units(grid: PsfGrid) -> str:
-    if grid.monitor_px() is not None:
-        return "monitor px"
-    if grid.field_deg() is not None:
-        return "tan(field angle)"
-    return "grid steps"
 
 
 def _fig2_positions(grid: PsfGrid, center: tuple[int, int]) -> list[tuple[int, int]]:
@@ -91,13 +83,11 @@ def _thumbnail(image: np.ndarray) -> np.ndarray:
 
 
 def _coarse_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Block-average a ``(2, H, W)`` flow over the masked pixels to ``(3, h, w)``:
-    ``(d_u, d_v, fraction of masked pixels)`` for quiver plots."""
+    """``(3, h, w)`` ``(d_u, d_v, masked fraction)``: a ``(2, H, W)`` flow's block averages."""
     factor = binning_factor(flow.shape[1:], QUIVER_CELLS)
     weight = bin_image(mask.astype(np.float64), factor)
-    du = bin_image(np.where(mask, flow[0], 0.0), factor) / np.maximum(weight, 1)
-    dv = bin_image(np.where(mask, flow[1], 0.0), factor) / np.maximum(weight, 1)
-    return np.stack([du, dv, weight / factor**2]).astype(np.float32)
+    mean = bin_image(np.where(mask, flow, 0.0), factor) / np.maximum(weight, 1)
+    return np.concatenate([mean, (weight / factor**2)[None]]).astype(np.float32)
 
 
 def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
@@ -120,7 +110,11 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     center = aligner.center
     ref_lum = aligner.reference_luminance
     steps = set(options.steps)
-    working = _WorkingCopy(grid, aligner, enabled="verdict" in steps)
+    stack = None    # the working copy the verdict is judged on, chosen as fit-eigen does
+    if "verdict" in steps:
+        region, factor, _ = working_region(aligner.reference_support, ref_lum,
+                                           VERDICT_WORKING_SIZE)
+        stack = WorkingStack.empty(len(grid.positions), grid.image_shape, factor, region)
     fig2 = set(_fig2_positions(grid, center))
     box = support_box(ref_lum)      # the figures show the PSF, not the frame
     thumbnails = np.zeros((*grid.grid_shape, *_thumbnail(crop_window(ref_lum, box)).shape),
@@ -129,10 +123,10 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
     result = GridCharacterization(
         grid_root=str(grid.root), grid_shape=grid.grid_shape, image_shape=grid.image_shape,
         channels=grid.channels, center=center, options=options, positions=[],
-        field_units=_field_units(grid), reference=aligner.reference, layout=grid.layout,
+        field_units=field_units(grid.positions), reference=aligner.reference, layout=grid.layout,
         missing=grid.missing(), psf_box=box)
 
-    measure = _PositionMeasurement(grid, options, aligner, steps, working, fig2, box)
+    measure = _PositionMeasurement(grid, options, aligner, steps, stack, fig2, box)
 
     records: list[PositionResult | ExcludedPosition | None] = [None] * len(grid.positions)
     bar: Any = None
@@ -141,23 +135,19 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
 
         bar = tqdm(total=len(grid.positions), desc="characterizing PSFs", unit="psf")
 
-    def collect(index: int, record: PositionResult | ExcludedPosition,
-                extras: dict[str, Any]) -> None:
-        records[index] = record
-        if bar is not None:
-            bar.update()
-        if isinstance(record, ExcludedPosition):
-            return
-        here = (record.row, record.col)
-        thumbnails[here] = extras["thumbnail"]
-        if "example" in extras:
-            result.examples[here] = extras["example"]
-        if "flow" in extras:
-            result.flows[here] = extras["flow"]
-
     try:
         for index, (record, extras) in bounded_map(measure, grid.positions, workers):
-            collect(index, record, extras)
+            records[index] = record
+            if bar is not None:
+                bar.update()
+            if isinstance(record, ExcludedPosition):
+                continue
+            here = (record.row, record.col)
+            thumbnails[here] = extras["thumbnail"]
+            if "example" in extras:
+                result.examples[here] = extras["example"]
+            if "flow" in extras:
+                result.flows[here] = extras["flow"]
     finally:
         if bar is not None:
             bar.close()
@@ -173,7 +163,9 @@ def characterize_grid(grid: PsfGrid, options: CharacterizeOptions | None = None,
                                    weights=overlaps)
     if "warp" in steps:
         _summarise_warp(result)
-    result.verdict = working.verdict(grid, result, records, progress)
+    if stack is not None:
+        kept = np.array([isinstance(r, PositionResult) for r in records])
+        result.verdict = judge_grid(grid, result, stack.subset(kept), progress)
     return result
 
 
@@ -183,10 +175,12 @@ class _PositionMeasurement:
     ``example`` at the Fig. 2 positions, ``flow``)."""
 
     def __init__(self, grid: PsfGrid, options: CharacterizeOptions, aligner: GridAligner,
-                 steps: set[str], working: _WorkingCopy, fig2: set[tuple[int, int]],
+                 steps: set[str], stack: WorkingStack | None, fig2: set[tuple[int, int]],
                  box: Any) -> None:
         self.grid, self.options, self.aligner, self.steps = grid, options, aligner, steps
-        self.working, self.fig2, self.box = working, fig2, box
+        self.stack, self.fig2, self.box = stack, fig2, box
+        # one stack row per position, so threads never share one
+        self.rows = {(p.row, p.col): i for i, p in enumerate(grid.positions)}
         self.ref_total = aligner.reference.sum(axis=0)
         self.ref_smooth = _smooth(aligner.reference, options.mae_smoothing_px)
 
@@ -210,7 +204,8 @@ class _PositionMeasurement:
         if options.per_channel and aligned.shape[0] > 1:
             record.channel_shifts = self._channel_shifts(here, prep.image)
         gain = overlap_gain(self.ref_total, aligned.sum(axis=0), aligner.gain_region(item))
-        self.working.put(item, aligned, gain)
+        if self.stack is not None:
+            self.stack.put(self.rows[here], item, aligned, gain)
         if "gain" in steps:
             record.gain = gain
         if "mae" in steps:
@@ -218,10 +213,12 @@ class _PositionMeasurement:
         if here in self.fig2:
             extras["example"] = (aligned, valid)
         if "warp" in steps and here != aligner.center:
-            measured = _try_warp(aligner.reference_luminance, item.luminance / np.float32(gain),
-                                 valid, shift, options.flow_method, str(self.grid.path(*here)))
-            if measured is not None:
-                record.warp, extras["flow"] = measured
+            # too few PSF pixels overlapping for a dense flow: no warp there, the report goes on
+            with contextlib.suppress(InvalidInputError):
+                record.warp, (residual, mask) = _warp_position(
+                    aligner.reference_luminance, item.luminance / np.float32(gain), valid, shift,
+                    options.flow_method, str(self.grid.path(*here)))
+                extras["flow"] = _coarse_flow(residual, mask)
         return record, extras
 
     def _channel_shifts(self, here: tuple[int, int], image: np.ndarray
@@ -243,22 +240,9 @@ class _PositionMeasurement:
                                                           gain)
 
 
-def _try_warp(ref_lum: np.ndarray, lum: np.ndarray, valid: np.ndarray,
-              shift: tuple[float, float], method: str, where: str
-              ) -> tuple[dict[str, Any], Any] | None:
-    """One position's warp statistics and coarse flow (:func:`_warp_position`), or ``None``
-    when too few PSF pixels overlap for a dense flow (no warp there, the report goes on)."""
-    try:
-        warp, (residual, mask) = _warp_position(ref_lum, lum, valid, shift, method, where)
-    except InvalidInputError:
-        return None
-    return warp, _coarse_flow(residual, mask)
-
-
 def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
                weights: np.ndarray, upsample: int) -> ShiftMapFit | None:
-    """The field → shift map over the measured positions; ``None`` for a one-row lattice or
-    positions that do not span two directions."""
+    """The field → shift map; ``None`` for positions that do not span two directions."""
     if grid.layout != IRREGULAR and min(grid.grid_shape) == 1:
         return None
     try:
@@ -266,34 +250,6 @@ def _shift_map(result: GridCharacterization, grid: PsfGrid, coords: np.ndarray,
                              weights=weights, resolution_px=1.0 / upsample)
     except InvalidInputError:
         return None
-
-
-class _WorkingCopy:
-    """The working copy of the aligned PSFs the verdict is judged on (when ``enabled``), chosen
-    as ``psfkit fit-eigen`` chooses its own; one row per position, so threads never share one."""
-
-    def __init__(self, grid: PsfGrid, aligner: GridAligner, enabled: bool) -> None:
-        self.stack = None
-        if enabled:
-            region, factor, _ = working_region(aligner.reference_support,
-                                               aligner.reference_luminance,
-                                               VERDICT_WORKING_SIZE)
-            self.stack = WorkingStack.empty(len(grid.positions), grid.image_shape, factor,
-                                            region)
-        self.rows = {(pos.row, pos.col): i for i, pos in enumerate(grid.positions)}
-
-    def put(self, item: AlignedPsf, image: np.ndarray, gain: float) -> None:
-        if self.stack is not None:
-            self.stack.put(self.rows[(item.position.row, item.position.col)], item, image,
-                           gain)
-
-    def verdict(self, grid: PsfGrid, result: GridCharacterization, records: list[Any],
-                progress: bool) -> Verdict | None:
-        """:func:`judge_grid` on the measured positions (``None`` when not enabled)."""
-        if self.stack is None:
-            return None
-        kept = np.array([isinstance(r, PositionResult) for r in records])
-        return judge_grid(grid, result, self.stack.subset(kept), progress)
 
 
 def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
@@ -313,8 +269,7 @@ def judge_grid(grid: PsfGrid, result: GridCharacterization, stack: WorkingStack,
 
 
 def _summarise_warp(result: GridCharacterization) -> None:
-    """Warp growth with field angle and tangential/sagittal anisotropy vs geometric optics,
-    over the reliable positions."""
+    """Warp growth and tangential/sagittal anisotropy over the reliable positions."""
     theta = result.field_angle_deg()
     if theta is None:
         return
@@ -358,8 +313,7 @@ def astigmatism_estimate(anisotropy: np.ndarray) -> Estimate:
 def _warp_position(ref_lum: np.ndarray, al_lum: np.ndarray, valid: np.ndarray,
                    shift: tuple[float, float], method: str, where: str = "PSF"
                    ) -> tuple[dict[str, Any], tuple[np.ndarray, np.ndarray]]:
-    """Warp statistics of one position, plus ``(residual flow, mask)`` for the figures
-    (``where`` names the position's file in an error)."""
+    """One position's warp statistics and ``(residual flow, mask)``; ``where``: its file."""
     try:
         warp = warp_field(ref_lum, al_lum, valid, method)
     except InvalidInputError as exc:

@@ -98,7 +98,7 @@ class PositionResult:
     warp: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        out = {k: v for k, v in self.__dict__.items()}
+        out = dict(self.__dict__)
         out["shift_px"] = list(out.pop("shift"))
         return out
 
@@ -206,11 +206,6 @@ class GridCharacterization:
         t = np.tan(np.deg2rad(self._lattice(items, [p.field_deg for p in items])))
         return np.rad2deg(np.arctan(np.hypot(t[..., 0], t[..., 1])))
 
-    @property
-    def is_complete(self) -> bool:
-        """A full lattice with every position measured."""
-        return self.layout == FULL_LATTICE and not self.excluded
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary and per-position numbers."""
         opts = self.options
@@ -262,7 +257,8 @@ class GridCharacterization:
     def coverage(self) -> dict[str, Any]:
         """Layout, missing cells and excluded positions with reasons (empty for a complete
         full lattice at the default NCC threshold)."""
-        if self.is_complete and self.options.min_quality == MIN_QUALITY:
+        complete = self.layout == FULL_LATTICE and not self.excluded
+        if complete and self.options.min_quality == MIN_QUALITY:
             return {}
         return {"layout": self.layout,
                 "positions_measured": len(self.positions),

@@ -1,17 +1,13 @@
 """Learned versus measured eigen-kernels: did the network learn the physics? (paper, Sec. 5.6)
 
 The difference kernels ``Kv − Kbase``, ``Kh − Kbase`` of a trained EK-DUN look like sub-pixel
-displacements of the caustic spots (Fig. 7). This package measures those displacements and
-compares them with what the camera's PSF grid says (:func:`measure_modes`: eigen-kernels fitted
-to the grid, its top PCA modes, warp-predicted displacements, :mod:`~psfkit.compare.warps`) or
-another kernel file (:func:`modes_from_kernel_file`; no warps or PCA modes then). The learned
-kernels are padded to the sensor and registered to the measured ``Kbase`` by one global shift.
-
-Metrics per correction kernel: Pearson correlation of the displacement maps over the caustic
-mask (``D_u``, ``D_v``, both; NaN when a map has no displacement), end-point error, RMS, slope,
-the normalised correlation of ``K_k − Kbase``, and principal angles (degrees) between the
-learned span and the measured eigen-kernels' / top PCA modes'. Conventions:
-:mod:`~psfkit.compare.displacement`. Figures, JSON and HTML: :mod:`psfkit.report.comparison`.
+displacements of the caustic spots (Fig. 7). :func:`compare_kernels` measures them and compares
+them with the camera's PSF grid (:func:`measure_modes`: fitted eigen-kernels, top PCA modes,
+warp-predicted displacements) or another kernel file (:func:`modes_from_kernel_file`): Pearson
+correlation, end-point error, RMS and slope of the displacement maps (:func:`map_agreement`),
+the normalised correlation of ``K_k − Kbase`` and principal angles between the spans.
+Conventions: :mod:`~psfkit.compare.displacement`; figures, JSON and HTML:
+:mod:`psfkit.report.comparison`.
 """
 
 from psfkit.compare.comparison import check_learned, compare_kernels, compare_model
@@ -38,6 +34,5 @@ __all__ = [
     "KernelComparison", "KernelSetComparison", "MeasuredModes", "check_learned",
     "check_shapes", "compare_kernels", "compare_model", "comparison_mask", "displacement_map",
     "load_grid", "map_agreement", "masked_smooth", "measure_modes", "modes_from_kernel_file",
-    "normalized_correlation",
-    "pad_kernels", "pearson", "resample",
+    "normalized_correlation", "pad_kernels", "pearson", "resample",
 ]

@@ -65,10 +65,20 @@ def _angles(kernels: np.ndarray, measured: MeasuredModes, n_pca: int
     return eigen, pca
 
 
+def _measured_maps(modes: MeasuredModes, options: CompareOptions
+                   ) -> tuple[np.ndarray, np.ndarray, dict[str, DisplacementMap]]:
+    """The measured kernels' ``(K, H, W)`` luminance, caustic mask and displacement maps."""
+    lum = np.stack([luminance(k) for k in modes.model.kernels])
+    mask = comparison_mask(lum[0], options)
+    return lum, mask, _kernel_displacements(lum, modes.model.kernel_names, mask, options)
+
+
 def compare_model(model: KernelModel, measured: MeasuredModes, label: str = "learned",
-                  options: CompareOptions | None = None, where: str = "learned kernels"
+                  options: CompareOptions | None = None, where: str = "learned kernels",
+                  maps: tuple[np.ndarray, np.ndarray, dict[str, DisplacementMap]] | None = None
                   ) -> KernelSetComparison:
-    """Compare one kernel model with measured modes (see the module docstring).
+    """Compare one kernel model with measured modes (see the module docstring); ``maps``: the
+    measured side's :func:`_measured_maps` when already computed.
 
     Raises
     ------
@@ -79,14 +89,10 @@ def compare_model(model: KernelModel, measured: MeasuredModes, label: str = "lea
     kernels, shift = _prepare_learned(model, measured, options, where)
     names = measured.model.kernel_names
     lum = np.stack([luminance(k) for k in kernels])
-    meas_lum = np.stack([luminance(k) for k in measured.model.kernels])
-    mask = comparison_mask(meas_lum[0], options)
+    meas_lum, mask, meas_disp = maps or _measured_maps(measured, options)
     disp = _kernel_displacements(lum, names, mask, options)
-    meas_disp = _kernel_displacements(meas_lum, names, mask, options)
     metrics = {}
-    for k, name in enumerate(names):
-        if k == 0:
-            continue
+    for k, name in enumerate(names[1:], 1):
         warp = measured.warps.get(name)
         metrics[name] = {
             "vs_measured_kernels": map_agreement(disp[name], meas_disp[name],
@@ -165,12 +171,11 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
     else:
         modes = measure_modes(measured, learned_model.basis, learned_model.convention,
                               tuple(learned_model.sensor_shape), options, progress)
-    result_learned = compare_model(learned_model, modes, "learned", options, where)
+    maps = _measured_maps(modes, options)
+    _, mask, meas_disp = maps
+    result_learned = compare_model(learned_model, modes, "learned", options, where, maps)
     result_initial = None if initial_model is None else compare_model(
-        initial_model, modes, "initial", options, "initial kernels")
-    meas_lum = np.stack([luminance(k) for k in modes.model.kernels])
-    mask = comparison_mask(meas_lum[0], options)
-    meas_disp = _kernel_displacements(meas_lum, modes.model.kernel_names, mask, options)
+        initial_model, modes, "initial", options, "initial kernels", maps)
     vs_warp = {name: map_agreement(meas_disp[name], warp, options.min_displacement_px)
                for name, warp in modes.warps.items() if name in meas_disp}
     notes = list(modes.notes)

@@ -33,10 +33,6 @@ class DisplacementMap:
             return float("nan")
         return float(np.sqrt(np.mean(np.sum(self.field[:, self.mask] ** 2, axis=0))))
 
-    def scaled(self, factor: float) -> DisplacementMap:
-        return DisplacementMap(field=(self.field * np.float32(factor)).astype(np.float32),
-                               mask=self.mask)
-
 
 def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of ``values`` ``(..., H, W)`` using only the pixels in ``mask``

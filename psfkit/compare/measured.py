@@ -64,26 +64,22 @@ class MeasuredModes:
     source: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        if self.fit is None:   # a kernel file: its kernels only
-            return {"kernels": self.source, "comparison_shape": list(self.sensor_shape),
-                    "basis": self.model.basis, "convention": self.model.convention,
-                    "warp_positions": {}, "warp_rms_px": {}, "pca_modes": None, "fit": None,
-                    "notes": self.notes}
-        return {"grid": self.fit.grid_root, "grid_shape": list(self.fit.grid_shape),
-                "image_shape": list(self.fit.image_shape),
-                "comparison_shape": list(self.sensor_shape),
+        # a kernel file: its kernels only (no warps, PCA modes or fit)
+        source = {"kernels": self.source} if self.fit is None else {
+            "grid": self.fit.grid_root, "grid_shape": list(self.fit.grid_shape),
+            "image_shape": list(self.fit.image_shape)}
+        return {**source, "comparison_shape": list(self.sensor_shape),
                 "basis": self.model.basis, "convention": self.model.convention,
                 "warp_positions": self.warp_positions,
                 "warp_rms_px": {k: w.rms() for k, w in self.warps.items()},
                 "pca_modes": None if self.pca_components is None
                 else len(self.pca_components),
-                "fit": self.fit.summary(), "notes": self.notes}
+                "fit": None if self.fit is None else self.fit.summary(), "notes": self.notes}
 
 
 def _on_grid(model: KernelModel, kernels: np.ndarray, sensor_shape: tuple[int, int]
              ) -> KernelModel:
-    """``kernels`` on the comparison grid with ``model``'s basis, convention, channels,
-    normalization and provenance."""
+    """``kernels`` on the comparison grid with ``model``'s basis, convention and metadata."""
     return KernelModel(kernels=kernels, basis=model.basis, convention=model.convention,
                        sensor_shape=tuple(sensor_shape), channels=model.channels,
                        normalization=model.normalization, provenance=model.provenance)

@@ -137,9 +137,7 @@ class KernelComparison:
                                              for k, d in self.measured_displacements.items()},
             "measured_kernels_vs_warp": self.measured_kernels_vs_warp,
             "kernel_change": self.kernel_change,
-            "options": {"flow_method": self.options.flow_method,
-                        "smooth_px": self.options.smooth_px,
-                        "min_displacement_px": self.options.min_displacement_px,
-                        "warp_positions": self.options.warp_positions,
-                        "mask_level": self.options.mask_level, "align": self.options.align},
+            "options": {k: getattr(self.options, k) for k in (
+                "flow_method", "smooth_px", "min_displacement_px", "warp_positions",
+                "mask_level", "align")},
             "notes": self.notes})

@@ -5,20 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from psfkit.calibration.registration import normalized_cross_correlation
 from psfkit.compare.displacement import DisplacementMap
 
 
 def pearson(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     """Pearson correlation of ``a`` and ``b`` (``(..., H, W)``) over ``mask`` (all leading
-    components pooled); NaN when either is constant there."""
-    x = a[..., mask].astype(np.float64).ravel()
-    y = b[..., mask].astype(np.float64).ravel()
-    if x.size < 3:
-        return float("nan")
-    x -= x.mean()
-    y -= y.mean()
-    denom = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
-    return float(np.sum(x * y) / denom) if denom > 0 else float("nan")
+    components pooled); NaN when either is constant there or fewer than 3 values."""
+    return normalized_cross_correlation(a, b, mask, float("nan"), 3)
 
 
 def normalized_correlation(a: np.ndarray, b: np.ndarray) -> float:
