@@ -4,6 +4,7 @@ the cropped, binned stack of aligned PSFs (:class:`WorkingStack`) the fits, CV a
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -127,13 +128,11 @@ class WorkingStack:
         """The stack of the ``members`` (bool ``(P,)``) only (the same arrays when all)."""
         if members.all():
             return self
-        return WorkingStack(factor=self.factor, images=self.images[members],
-                            valid=self.valid[members], shifts=self.shifts[members],
-                            index=self.index[members], overlap=self.overlap[members],
-                            gains=self.gains[members], region=self.region,
-                            sensor_shape=self.sensor_shape,
-                            light_in_region=None if self.light_in_region is None
-                            else self.light_in_region[members])
+        per_position = ("images", "valid", "shifts", "index", "overlap", "gains",
+                        "light_in_region")
+        return dataclasses.replace(self, **{name: getattr(self, name)[members]
+                                            for name in per_position
+                                            if getattr(self, name) is not None})
 
     def row_of(self, index: tuple[int, int]) -> int:
         """The stack entry of grid index ``(row, col)``."""

@@ -21,8 +21,6 @@ from psfkit.errors import InvalidInputError
 from psfkit.forward.zones import ZONE_NAMES, FieldZones
 from psfkit.io.pairs import parse_names
 
-__all__ = ["FITTED", "HELD_OUT", "pair_roles", "residual_map", "zone_errors"]
-
 FITTED, HELD_OUT = "fitted", "held out"
 
 

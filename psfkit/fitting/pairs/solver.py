@@ -38,9 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from psfkit.fitting.grid.eigen import difference_matrix
 from psfkit.fitting.pairs.batches import MeasurementSource, PairBatches
-from psfkit.fitting.pairs.gram import difference_matrix
-from psfkit.forward.convolution import embed_kernel
 
 
 def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
@@ -173,12 +172,3 @@ def solve_kernels(batches: PairBatches,
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
                            "normal": normal, "rhs": rhs, "precondition": precondition,
                            "batches": batches, "gram": gram}
-
-
-__all__ = [
-    "SolveInfo",
-    "embed_kernel",
-    "regularised_normal",
-    "solve_kernels",
-    "solve_normal_equations",
-]
