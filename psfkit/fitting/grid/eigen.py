@@ -192,9 +192,8 @@ class NormalEquations:
                     dtype: np.dtype) -> None:
         """Per-pixel products over cache-sized blocks of rows."""
         if self._gram is None:
-            k = self.basis.n_kernels
             self._gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
-            self._rhs = np.zeros((self.channels, k, self.h, self.w), dtype)
+            self._rhs = np.zeros((self.channels, self.basis.n_kernels, self.h, self.w), dtype)
         assert self._rhs is not None
         sensor = self.convention == "sensor"
         if sensor:
@@ -239,15 +238,11 @@ class NormalEquations:
             sums = self._rect_rhs
             base = sums[:, 0].astype(np.float64) - sums[:, 1:].astype(np.float64).sum(axis=1)
             sums[:, 0] = base
-            if self._rhs is None:
-                self._rhs = sums
-            else:
-                self._rhs = self._rhs + sums
+            self._rhs = sums if self._rhs is None else self._rhs + sums
             self._rect_rhs = None
         if self._gram is None:      # nothing added
-            k = self.basis.n_kernels
             self._gram = np.zeros((len(self._iu[0]), self.h, self.w))
-            self._rhs = np.zeros((self.channels, k, self.h, self.w))
+            self._rhs = np.zeros((self.channels, self.basis.n_kernels, self.h, self.w))
 
     def minus(self, other: NormalEquations) -> NormalEquations:
         """The equations of this set of PSFs without those of ``other`` (a subset)."""

@@ -172,9 +172,8 @@ def _accumulate(grid: PsfGrid, aligner: GridAligner,
                 progress: bool, workers: int | None, description: str,
                 working: tuple[tuple[slice, slice] | None, int], keep_stack: bool = True
                 ) -> tuple[WorkingStack, list[ExcludedPosition]]:
-    """One pass over the grid: every usable PSF aligned by ``place`` and added to ``equations`` and
-    (``keep_stack``) to the working copy (``working``: region and binning). Returns the working
-    copy of the measured positions and the excluded ones."""
+    """One pass adding every usable PSF to ``equations`` and (``keep_stack``) to the working copy
+    of region and binning ``working``; returns that copy and the excluded positions."""
     region, factor = working
     stack = WorkingStack.empty(len(grid.positions) if keep_stack else 0, grid.image_shape,
                                factor, region)
@@ -202,8 +201,7 @@ def _accumulate(grid: PsfGrid, aligner: GridAligner,
 def _aligned(grid: PsfGrid, place: Callable[[GridPosition], AlignedPsf | ExcludedPosition],
              workers: int | None, progress: bool, description: str
              ) -> Iterator[tuple[int, AlignedPsf | ExcludedPosition]]:
-    """Every position's index and ``place(position)``, run in worker threads, with a progress
-    bar."""
+    """``(index, place(position))`` of every position, run in worker threads."""
     from tqdm.auto import tqdm
 
     with tqdm(total=len(grid.positions), desc=description, unit="psf",

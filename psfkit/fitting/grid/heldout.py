@@ -16,6 +16,7 @@ import dataclasses
 import math
 
 import numpy as np
+from scipy import ndimage
 
 from psfkit.calibration.registration import shift_image
 from psfkit.fitting.grid.design import source_weights
@@ -158,15 +159,8 @@ def moved_to(stack: WorkingStack, shifts_px: np.ndarray) -> WorkingStack:
 def _moved_mask(mask: np.ndarray, step: tuple[float, float]) -> np.ndarray:
     """``mask`` moved by ``step`` ``(du, dv)``, keeping pixels whose floor/ceiling neighbours around
     ``x + s`` are all in ``mask``."""
-    h, w = mask.shape
     out = np.ones_like(mask)
     for dv in {math.floor(step[1]), math.ceil(step[1])}:
         for du in {math.floor(step[0]), math.ceil(step[0])}:
-            moved = np.zeros_like(mask)
-            src_v = slice(max(dv, 0), h + min(dv, 0))
-            src_u = slice(max(du, 0), w + min(du, 0))
-            dst_v = slice(max(-dv, 0), h - max(dv, 0))
-            dst_u = slice(max(-du, 0), w - max(du, 0))
-            moved[dst_v, dst_u] = mask[src_v, src_u]
-            out &= moved
+            out &= ndimage.shift(mask, (-dv, -du), order=0, cval=False)   # integer: exact
     return out

@@ -50,9 +50,8 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     extent = [box[0].stop - box[0].start, box[1].stop - box[1].start]
     grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
                   for sl, size, n in zip(box, extent, (h, w), strict=True))
-    crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
-    region = None if crop == (h, w) else (grown[0], grown[1])
-    shape = (h, w) if region is None else crop
+    shape = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
+    region = None if shape == (h, w) else (grown[0], grown[1])
     factor = binning_factor(shape, working_size)
     record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else
               "the centre PSF's support",

@@ -130,8 +130,7 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
 
 @dataclasses.dataclass
 class _Trial:
-    """One convention's set-up of a fit: pairs, options, weights, warm start, the weights' choice
-    records and held-out errors (``None``: nothing held out)."""
+    """One convention's set-up of a fit (``held_out``: ``None`` when nothing was held out)."""
 
     batches: PairBatches
     options: PairFitOptions
@@ -304,9 +303,8 @@ def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptio
 def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
                        options: PairFitOptions, support_mask: np.ndarray | None,
                        progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
-    """The final solve under ``options``' constraints on ``system``, warm-started from the
-    unconstrained kernels (whose base kernel gives the automatic support): projected Newton-CG
-    for non-negativity, else CG restricted to the support."""
+    """The final solve under ``options``' constraints, from the unconstrained kernels (whose base
+    kernel gives the automatic support)."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)

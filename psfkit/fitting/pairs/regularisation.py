@@ -290,9 +290,7 @@ class _FoldPath:
                  absolute: Any) -> None:
         self.batches, self.measurements = batches, measurements
         self.best_gain, self.bar, self.absolute = best_gain, bar, absolute
-        self.train = [np.ones(batches.n, bool) for _ in folds]
-        for mask, held in zip(self.train, folds, strict=True):
-            mask[held] = False
+        self.train = [~np.isin(np.arange(batches.n), held) for held in folds]
         # a fold's right-hand side and Gram blocks do not depend on the weight: one pass each
         self.rhs: list[Tensor] = []
         self.grams: list[FrequencyGram] = []

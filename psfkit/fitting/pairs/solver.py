@@ -132,7 +132,7 @@ def regularised_normal(batches: PairBatches, tikhonov: float = 0.0, difference: 
 
 def solve_kernels(batches: PairBatches,
                   measurements: np.ndarray | Tensor | MeasurementSource,
-                  tikhonov: float = 0.0, difference: float = 0.0, relative: bool = True,
+                  tikhonov: float = 0.0, difference: float = 0.0,
                   start: Tensor | None = None, tolerance: float = 1e-6,
                   max_iterations: int = 500, bar: Any = None
                   ) -> tuple[Tensor, SolveInfo, dict[str, Any]]:
@@ -147,7 +147,7 @@ def solve_kernels(batches: PairBatches,
     measurements : array or callable
         ``(N, C, H', W')``, or ``(start, stop) → measurements``.
     tikhonov, difference : float
-        ``λ`` and ``μ``; with ``relative`` multiples of the mean per-frequency scene power.
+        ``λ`` and ``μ``, multiples of the mean per-frequency scene power.
     start : Tensor, optional
         Warm start ``(K, C, Hk, Wk)``.
     tolerance, max_iterations
@@ -162,8 +162,8 @@ def solve_kernels(batches: PairBatches,
     """
     gram = batches.gram()
     reference = gram.reference_power()
-    lam = tikhonov * reference if relative else tikhonov
-    mu = difference * reference if relative else difference
+    lam = tikhonov * reference
+    mu = difference * reference
     rhs = batches.rhs(measurements)
     normal = regularised_normal(batches, lam, mu)
     precondition = gram.preconditioner(lam, mu)
