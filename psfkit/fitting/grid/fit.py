@@ -136,12 +136,9 @@ def _placement(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
                options: EigenFitOptions, progress: bool, workers: int | None
                ) -> tuple[NominalShifts | None, Callable[[GridPosition],
                                                          AlignedPsf | ExcludedPosition]]:
-    """Where each PSF is aligned for the fit, and the function that aligns it there.
-
-    With ``shifts="affine"`` a registration pass finds the usable positions and the affine map of
-    their registered shifts; each is then aligned at its nominal shift (its quality there is
-    measured, not checked again).
-    """
+    """Where each PSF is aligned for the fit, and the function aligning it there: with
+    ``shifts="affine"``, after a registration pass, at the affine map's nominal shift (its quality
+    there measured, not checked again)."""
     if options.shifts != "affine":
         return None, aligner.try_align
     rejected: dict[tuple[int, int], ExcludedPosition] = {}
@@ -229,8 +226,7 @@ def _choose(options: EigenFitOptions, validation: CrossValidation | None,
 
 
 def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
-    """The PCA of the reliable positions and the principal angles between its top subspace and the
-    fitted kernels (on the working grid)."""
+    """The PCA of the reliable positions and its principal angles to the kernels (working grid)."""
     stack = result.stack
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() < 2:

@@ -250,8 +250,7 @@ def _newton_start(batches: PairBatches, measurements: np.ndarray, options: PairF
                   weights: dict[str, float], kernels: Tensor | None,
                   history: list[dict[str, Any]], bar: Any) -> tuple[Tensor, dict[str, Any]]:
     """The non-negative solve's start: unconstrained kernels and per-pair scales solved in float32
-    to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system projected Newton converges
-    on."""
+    to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system."""
     twin = batches.astype(torch.float32)
     start, _ = _solve(twin, measurements, options, weights,
                       None if kernels is None else kernels.to(torch.float32), history, bar,
