@@ -198,10 +198,8 @@ def decide(candidates: HeldOutErrors | None, field_models: HeldOutErrors | None,
 
 def _recommend(candidates: HeldOutErrors | None) -> tuple[str, str]:
     """The eigen-kernel candidate with the lowest held-out error if it beats ``"si"``."""
-    if candidates is None:
-        return SI, "no eigen-kernel basis was cross-validated"
-    models = [name for name in candidates.squared if name != SI]
-    if not models:
+    models = [] if candidates is None else [name for name in candidates.squared if name != SI]
+    if candidates is None or not models:
         return SI, "no eigen-kernel basis was cross-validated"
     best = min(models, key=candidates.error)
     if SI in candidates.squared and candidates.error(best) >= candidates.error(SI):

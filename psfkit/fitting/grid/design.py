@@ -31,13 +31,11 @@ class PixelFrame:
     origin: tuple[float, float]
 
     @classmethod
-    def of(cls, sensor_shape: tuple[int, int],
-           optical_center: tuple[float, float] | None = None) -> PixelFrame:
-        """The sensor's own pixel grid (optical centre: the middle, unless given)."""
+    def of(cls, sensor_shape: tuple[int, int]) -> PixelFrame:
+        """The sensor's own pixel grid (optical centre: the middle)."""
         h, w = sensor_shape
-        center = optical_center if optical_center is not None else ((h - 1) / 2, (w - 1) / 2)
         origin = kernel_origin(sensor_shape)
-        return cls((h, w), (center[0], center[1]), (h / 2.0, w / 2.0),
+        return cls((h, w), ((h - 1) / 2, (w - 1) / 2), (h / 2.0, w / 2.0),
                    (float(origin[0]), float(origin[1])))
 
     @classmethod
@@ -76,14 +74,13 @@ class PixelFrame:
 
 def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
                      shift: tuple[float, float], convention: str,
-                     optical_center: tuple[float, float] | None = None,
                      frame: PixelFrame | None = None) -> np.ndarray:
     """Weights of the K kernels for the PSF displaced by ``shift``, in its aligned frame.
 
     Returns ``(K, H, W)`` (sensor-side: :math:`W_k(v + s)`) or ``(K, 1, 1)`` (source-side:
     :math:`W_k(s)`); ``frame`` places a cropped or binned grid on the sensor.
     """
-    frame = frame if frame is not None else PixelFrame.of(sensor_shape, optical_center)
+    frame = frame if frame is not None else PixelFrame.of(sensor_shape)
     if convention == "sensor":
         u_n, v_n = frame.axes(shift)
         return basis.evaluate(u_n, v_n)
@@ -94,13 +91,18 @@ def position_weights(basis: WeightBasis, sensor_shape: tuple[int, int],
 
 
 def predict_aligned(kernels: np.ndarray, basis: WeightBasis, shift: tuple[float, float],
-                    convention: str, optical_center: tuple[float, float] | None = None,
-                    frame: PixelFrame | None = None) -> np.ndarray:
+                    convention: str, frame: PixelFrame | None = None) -> np.ndarray:
     """The model's ``(C, H, W)`` PSF for a source displaced by ``shift``, in the aligned frame."""
-    weights = position_weights(basis, kernels.shape[-2:], shift, convention, optical_center,
-                               frame)
+    weights = position_weights(basis, kernels.shape[-2:], shift, convention, frame)
     return np.einsum("khw,kchw->chw", np.broadcast_to(weights, (len(kernels), *kernels.shape[-2:])),
                      kernels)
+
+
+def source_weights(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int, int]
+                   ) -> np.ndarray:
+    """``(P, K)`` source-side weights of the kernels at each of ``(P, 2)`` shifts (px)."""
+    return np.array([position_weights(basis, sensor_shape, tuple(s), "source")[:, 0, 0]
+                     for s in shifts])
 
 
 def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int, int],
@@ -122,8 +124,7 @@ def check_design(basis: WeightBasis, shifts: np.ndarray, sensor_shape: tuple[int
                                 f"{basis.n_kernels} positions ({basis.n_kernels} kernels) but "
                                 f"only {len(shifts)} {'remain' if len(shifts) != 1 else 'remains'}"
                                 f"{left_out}; use a smaller basis (--basis)")
-    design = np.concatenate([position_weights(basis, sensor_shape, tuple(s), "source")[:, 0, 0][
-        None] for s in shifts])
+    design = source_weights(basis, shifts, sensor_shape)
     for k, name in enumerate(basis.kernel_names[1:], start=1):
         column = design[:, k]
         if np.ptp(column) <= 1e-9 * (1.0 + np.abs(column).max()):

@@ -39,7 +39,9 @@ SOLVE_BLOCK = 65536         # pixels per block of NormalEquations.solve
 DEFAULT_RIDGE = 1e-4
 
 
-def _difference_prior(n_kernels: int) -> np.ndarray:
+def difference_matrix(n_kernels: int) -> np.ndarray:
+    r"""``D`` of :math:`\tfrac12\sum_{k\ge1}\lVert K_k - K_0\rVert^2 = \tfrac12 K^\top D K`,
+    ``(K, K)`` (the ridge ``R`` above; fit-pairs' difference prior too)."""
     r = np.zeros((n_kernels, n_kernels))
     for k in range(1, n_kernels):
         e = np.zeros(n_kernels)
@@ -63,22 +65,18 @@ class NormalEquations:
     convention : {"sensor", "source"}
     image_shape : (int, int, int)
         ``(C, H, W)`` of the PSFs.
-    optical_center : (float, float), optional
     frame : PixelFrame, optional
         Where the ``(H, W)`` pixels lie on the sensor; default: they are the sensor.
     """
 
     def __init__(self, basis: WeightBasis, convention: str, image_shape: tuple[int, int, int],
-                 optical_center: tuple[float, float] | None = None,
                  frame: PixelFrame | None = None) -> None:
         if convention not in CONVENTIONS:
             raise ConfigurationError(f"convention must be one of {CONVENTIONS}, "
                                      f"got {convention!r}")
         self.basis, self.convention = basis, convention
         self.channels, self.h, self.w = image_shape
-        self.optical_center = optical_center
-        self.frame = frame if frame is not None else PixelFrame.of((self.h, self.w),
-                                                                   optical_center)
+        self.frame = frame if frame is not None else PixelFrame.of((self.h, self.w))
         self._iu = np.triu_indices(basis.n_kernels)
         # per-pixel sums (upper triangle of the Gram matrices; right-hand sides), allocated
         # when first needed, in the first image's precision
@@ -194,9 +192,8 @@ class NormalEquations:
                     dtype: np.dtype) -> None:
         """Per-pixel products over cache-sized blocks of rows."""
         if self._gram is None:
-            k = self.basis.n_kernels
             self._gram = np.zeros((len(self._iu[0]), self.h, self.w), dtype)
-            self._rhs = np.zeros((self.channels, k, self.h, self.w), dtype)
+            self._rhs = np.zeros((self.channels, self.basis.n_kernels, self.h, self.w), dtype)
         assert self._rhs is not None
         sensor = self.convention == "sensor"
         if sensor:
@@ -241,26 +238,19 @@ class NormalEquations:
             sums = self._rect_rhs
             base = sums[:, 0].astype(np.float64) - sums[:, 1:].astype(np.float64).sum(axis=1)
             sums[:, 0] = base
-            if self._rhs is None:
-                self._rhs = sums
-            else:
-                self._rhs = self._rhs + sums
+            self._rhs = sums if self._rhs is None else self._rhs + sums
             self._rect_rhs = None
         if self._gram is None:      # nothing added
-            k = self.basis.n_kernels
             self._gram = np.zeros((len(self._iu[0]), self.h, self.w))
-            self._rhs = np.zeros((self.channels, k, self.h, self.w))
-
-    def _from_arrays(self, gram: np.ndarray, rhs: np.ndarray, count: int) -> NormalEquations:
-        out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
-                              self.optical_center, self.frame)
-        out._gram, out._rhs, out.count = gram, rhs, count
-        return out
+            self._rhs = np.zeros((self.channels, self.basis.n_kernels, self.h, self.w))
 
     def minus(self, other: NormalEquations) -> NormalEquations:
         """The equations of this set of PSFs without those of ``other`` (a subset)."""
-        return self._from_arrays(self.gram - other.gram, self.rhs - other.rhs,
-                                 self.count - other.count)
+        out = NormalEquations(self.basis, self.convention, (self.channels, self.h, self.w),
+                              self.frame)
+        out._gram, out._rhs = self.gram - other.gram, self.rhs - other.rhs
+        out.count = self.count - other.count
+        return out
 
     def __iadd__(self, other: NormalEquations) -> NormalEquations:
         self._gram = self.gram + other.gram     # may change precision: not in place
@@ -276,7 +266,7 @@ class NormalEquations:
         n = self.h * self.w
         gram = self.gram.reshape(len(self._iu[0]), n)
         rhs = self.rhs.reshape(self.channels, k, n)
-        prior = (ridge * _difference_prior(k) + 1e-12 * np.eye(k))[:, :, None]
+        prior = (ridge * difference_matrix(k) + 1e-12 * np.eye(k))[:, :, None]
         solution = np.empty((k, self.channels, n))
         smallest = np.empty(n) if conditioning else None
 

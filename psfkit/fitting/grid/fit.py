@@ -9,9 +9,8 @@ whole sensor binned to at most ``working_size`` px) for residuals, cross-validat
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
 
 import numpy as np
 
@@ -137,14 +136,26 @@ def _placement(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
                options: EigenFitOptions, progress: bool, workers: int | None
                ) -> tuple[NominalShifts | None, Callable[[GridPosition],
                                                          AlignedPsf | ExcludedPosition]]:
-    """Where each PSF is aligned for the fit, and the function that aligns it there."""
+    """Where each PSF is aligned for the fit, and the function aligning it there: with
+    ``shifts="affine"``, after a registration pass, at the affine map's nominal shift (its quality
+    there measured, not checked again)."""
     if options.shifts != "affine":
         return None, aligner.try_align
-    placement, rejected = _place_by_shift_map(grid, aligner, center, progress, workers)
+    rejected: dict[tuple[int, int], ExcludedPosition] = {}
+    accepted: list[GridPosition] = []
+    shifts: list[tuple[float, float]] = []
+    overlaps: list[float] = []
+    for _, aligned in _aligned(grid, aligner.try_align, workers, progress, "registering"):
+        if isinstance(aligned, ExcludedPosition):
+            rejected[(aligned.row, aligned.col)] = aligned
+        else:
+            accepted.append(aligned.position)
+            shifts.append(aligned.shift)
+            overlaps.append(aligned.support_overlap)
+        del aligned
+    placement = nominal_shifts(accepted, np.array(shifts), np.array(overlaps), center)
 
     def place(pos: GridPosition) -> AlignedPsf | ExcludedPosition:
-        """The registration pass decided which positions are usable; each is aligned at
-        its nominal shift (its quality there is measured, not checked again)."""
         if (pos.row, pos.col) in rejected:
             return rejected[(pos.row, pos.col)]
         return aligner.align(pos, shift=placement.shifts[(pos.row, pos.col)],
@@ -158,43 +169,44 @@ def _accumulate(grid: PsfGrid, aligner: GridAligner,
                 progress: bool, workers: int | None, description: str,
                 working: tuple[tuple[slice, slice] | None, int], keep_stack: bool = True
                 ) -> tuple[WorkingStack, list[ExcludedPosition]]:
-    """One pass over the grid: every usable PSF aligned by ``place`` and added to ``equations`` and
-    (``keep_stack``) to the working copy (``working``: region and binning). Returns the working
-    copy of the measured positions and the excluded ones."""
-    c, h, w = grid.image_shape
+    """One pass adding every usable PSF to ``equations`` and (``keep_stack``) to the working copy
+    of region and binning ``working``; returns that copy and the excluded positions."""
     region, factor = working
-    stack = WorkingStack.empty(len(grid.positions) if keep_stack else 0, (c, h, w), factor,
-                               region)
+    stack = WorkingStack.empty(len(grid.positions) if keep_stack else 0, grid.image_shape,
+                               factor, region)
     reference_total = aligner.reference.sum(axis=0)
-    bar: Any = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(grid.positions), desc=description, unit="psf")
-    # registration and alignment in worker threads; the accumulation (not thread-safe) here
     excluded: list[ExcludedPosition] = []
     kept = np.ones(len(grid.positions), bool)
-    try:
-        for p, aligned in bounded_map(place, grid.positions, workers):
-            if isinstance(aligned, ExcludedPosition):
-                excluded.append(aligned)
-                kept[p] = False
-            else:
-                gain = overlap_gain(reference_total, aligned.image.sum(axis=0),
-                                    aligner.gain_region(aligned))
-                image = aligned.image / np.float32(gain) if options.gain_compensate \
-                    else aligned.image
-                for eq in equations.values():
-                    eq.add(image, aligned.valid, aligned.shift)
-                if keep_stack:
-                    stack.put(p, aligned, image, gain)
-                del aligned, image
-            if bar is not None:
-                bar.update()
-    finally:
-        if bar is not None:
-            bar.close()
+    # the accumulation (not thread-safe) here
+    for p, aligned in _aligned(grid, place, workers, progress, description):
+        if isinstance(aligned, ExcludedPosition):
+            excluded.append(aligned)
+            kept[p] = False
+        else:
+            gain = overlap_gain(reference_total, aligned.image.sum(axis=0),
+                                aligner.gain_region(aligned))
+            image = aligned.image / np.float32(gain) if options.gain_compensate \
+                else aligned.image
+            for eq in equations.values():
+                eq.add(image, aligned.valid, aligned.shift)
+            if keep_stack:
+                stack.put(p, aligned, image, gain)
+            del aligned, image
     return (stack.subset(kept) if keep_stack else stack), excluded
+
+
+def _aligned(grid: PsfGrid, place: Callable[[GridPosition], AlignedPsf | ExcludedPosition],
+             workers: int | None, progress: bool, description: str
+             ) -> Iterator[tuple[int, AlignedPsf | ExcludedPosition]]:
+    """``(index, place(position))`` of every position, run in worker threads."""
+    from tqdm.auto import tqdm
+
+    with tqdm(total=len(grid.positions), desc=description, unit="psf",
+              disable=not progress) as bar:
+        for item in bounded_map(place, grid.positions, workers):
+            yield item
+            del item                 # the caller dropped its PSF: hold none while waiting
+            bar.update()
 
 
 def _choose(options: EigenFitOptions, validation: CrossValidation | None,
@@ -214,8 +226,7 @@ def _choose(options: EigenFitOptions, validation: CrossValidation | None,
 
 
 def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
-    """The PCA of the reliable positions and the principal angles between its top subspace and the
-    fitted kernels (on the working grid)."""
+    """The PCA of the reliable positions and its principal angles to the kernels (working grid)."""
     stack = result.stack
     reliable = stack.overlap >= RELIABLE_OVERLAP
     if reliable.sum() < 2:
@@ -226,37 +237,6 @@ def _principal_angles(result: GridEigenResult, n_kernels: int) -> None:
     binned_kernels = np.stack([stack.reduce(k) for k in result.full_kernels[result.convention]])
     result.angles_deg = principal_angles_deg(binned_kernels[:, :, region],
                                              result.pca.components[:n_kernels][:, :, region])
-
-
-def _place_by_shift_map(grid: PsfGrid, aligner: GridAligner, center: tuple[int, int],
-                        progress: bool, workers: int | None
-                        ) -> tuple[NominalShifts, dict[tuple[int, int], ExcludedPosition]]:
-    """The registration pass of ``shifts="affine"``: the registered shifts and overlaps, their
-    affine map, and the rejected positions."""
-    rejected: dict[tuple[int, int], ExcludedPosition] = {}
-    accepted: list[GridPosition] = []
-    shifts: list[tuple[float, float]] = []
-    overlaps: list[float] = []
-    bar: Any = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(grid.positions), desc="registering", unit="psf")
-    try:
-        for _, aligned in bounded_map(aligner.try_align, grid.positions, workers):
-            if isinstance(aligned, ExcludedPosition):
-                rejected[(aligned.row, aligned.col)] = aligned
-            else:
-                accepted.append(aligned.position)
-                shifts.append(aligned.shift)
-                overlaps.append(aligned.support_overlap)
-            del aligned
-            if bar is not None:
-                bar.update()
-    finally:
-        if bar is not None:
-            bar.close()
-    return nominal_shifts(accepted, np.array(shifts), np.array(overlaps), center), rejected
 
 
 def _proxy_shifts(grid: PsfGrid, center: tuple[int, int]) -> np.ndarray:

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from psfkit.calibration.registration import shift_image
-from psfkit.fitting.grid.design import position_weights
+from psfkit.fitting.grid.design import source_weights
 from psfkit.fitting.grid.eigen import _solve_spd
 from psfkit.fitting.grid.stack_fit import (
     CENTRE_ONLY,
@@ -48,14 +48,6 @@ def sampling_weights(shifts_px: np.ndarray) -> np.ndarray:
     """``(P, 4)`` first harmonics of each shift's sub-pixel phase (full-resolution px)."""
     phase = 2 * np.pi * (shifts_px - np.round(shifts_px))
     return np.column_stack([np.sin(phase), np.cos(phase) - 1.0])
-
-
-def field_weights(basis_name: str, shifts_px: np.ndarray, sensor_shape: tuple[int, int]
-                  ) -> np.ndarray:
-    """``(P, K − 1)`` correction weights of ``basis_name`` at each position (source side)."""
-    basis = get_basis(basis_name)
-    return np.array([position_weights(basis, sensor_shape, (float(s[0]), float(s[1])),
-                                      "source")[1:, 0, 0] for s in shifts_px])
 
 
 def _sums(mask: np.ndarray, images: np.ndarray, design: np.ndarray
@@ -96,7 +88,7 @@ def held_out_models(stack: WorkingStack, center_row: int, sensor_shape: tuple[in
     columns = {NULL_MODEL: list(range(null.shape[1]))}
     blocks = [null]
     for name in bases:
-        extra = field_weights(name, shifts, sensor_shape)
+        extra = source_weights(get_basis(name), shifts, sensor_shape)[:, 1:]   # corrections
         start = sum(b.shape[1] for b in blocks)
         if training >= 2 * (null.shape[1] + extra.shape[1]):
             columns[f"{NULL_MODEL}+{name}"] = columns[NULL_MODEL] + list(
@@ -127,38 +119,16 @@ def judge(stack: WorkingStack, center_row: int, sensor_shape: tuple[int, int],
           progress: bool = False) -> tuple[CrossValidation, Verdict]:
     """Cross-validate the eigen-kernel ``bases`` (both conventions, plus ``"si"``) and the field
     models on a working stack, and decide (:func:`psfkit.fitting.verdict.decide`)."""
+    from tqdm.auto import tqdm
+
     bases = list(dict.fromkeys(["si", *bases]))
-    bar: Any = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(bases) + 1, desc="cross-validating models", unit="basis")
-    try:
-        parts = []
-        for name in bases:
-            parts.append(cross_validate_positions(stack, [name], CONVENTIONS, center_row,
-                                                  folds))
-            if bar is not None:
-                bar.update()
-        validation = merge_validations(parts)
+    with tqdm(total=len(bases) + 1, desc="cross-validating models", unit="basis",
+              disable=not progress) as bar:
+        validation = cross_validate_positions(stack, bases, CONVENTIONS, center_row, folds,
+                                              bar=bar)
         field_models = held_out_models(stack, center_row, sensor_shape, folds)
-        if bar is not None:
-            bar.update()
-    finally:
-        if bar is not None:
-            bar.close()
+        bar.update()
     return validation, decide(candidate_models(validation), field_models, NULL_MODEL, effects)
-
-
-def merge_validations(parts: list[CrossValidation]) -> CrossValidation:
-    """One :class:`CrossValidation` of several run on the same stack and folds."""
-    squared: dict[str, np.ndarray] = {}
-    differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for part in parts:
-        squared.update(part.held_out.squared)
-        differences.update(part.kernel_differences)
-    return CrossValidation(HeldOutErrors(squared, parts[0].held_out.norms), parts[0].folds,
-                           differences)
 
 
 def candidate_models(validation: CrossValidation) -> HeldOutErrors:
@@ -189,15 +159,8 @@ def moved_to(stack: WorkingStack, shifts_px: np.ndarray) -> WorkingStack:
 def _moved_mask(mask: np.ndarray, step: tuple[float, float]) -> np.ndarray:
     """``mask`` moved by ``step`` ``(du, dv)``, keeping pixels whose floor/ceiling neighbours around
     ``x + s`` are all in ``mask``."""
-    h, w = mask.shape
     out = np.ones_like(mask)
     for dv in {math.floor(step[1]), math.ceil(step[1])}:
         for du in {math.floor(step[0]), math.ceil(step[0])}:
-            moved = np.zeros_like(mask)
-            src_v = slice(max(dv, 0), h + min(dv, 0))
-            src_u = slice(max(du, 0), w + min(du, 0))
-            dst_v = slice(max(-dv, 0), h - max(dv, 0))
-            dst_u = slice(max(-du, 0), w - max(du, 0))
-            moved[dst_v, dst_u] = mask[src_v, src_u]
-            out &= moved
+            out &= ndimage.shift(mask, (-dv, -du), order=0, cval=False)   # integer: exact
     return out

@@ -65,10 +65,9 @@ class EigenFitOptions:
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-eigen, never a Python field
-        for flag_name, names in (("--basis", (self.basis,)), ("--cv-bases", self.cv_bases)):
+        basis = () if self.basis == AUTO else (self.basis,)
+        for flag_name, names in (("--basis", basis), ("--cv-bases", self.cv_bases)):
             for name in names:
-                if flag_name == "--basis" and name == AUTO:
-                    continue
                 try:
                     get_basis(name)
                 except ConfigurationError as exc:

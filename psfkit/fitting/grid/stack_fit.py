@@ -19,32 +19,32 @@ from psfkit.forward.weights import WeightBasis, get_basis
 from psfkit.numerics.significance import Estimate, checked, undetermined
 
 
-def relative_error(prediction: np.ndarray, data: np.ndarray, valid: np.ndarray) -> float:
-    """``‖pred − data‖ / ‖data‖`` over the valid pixels of all channels."""
-    diff = np.sum((prediction - data) ** 2, axis=0)[valid].sum()
-    norm = np.sum(data**2, axis=0)[valid].sum()
-    return float(math.sqrt(diff / norm)) if norm > 0 else float("nan")
+def _squared(image: np.ndarray, valid: np.ndarray) -> float:
+    """``Σ image²`` over the channels and the ``valid`` pixels of a ``(C, h, w)`` image."""
+    return float(np.sum(image**2, axis=0)[valid].sum())
 
 
 def fit_stack(stack: WorkingStack, basis: WeightBasis, convention: str,
-              members: np.ndarray | None = None, ridge: float = DEFAULT_RIDGE
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """Kernels ``(K, C, h, w)`` fitted on the ``members`` (bool ``(P,)``) of a working stack, and
-    the per-pixel conditioning of the design."""
-    members = np.ones(len(stack.images), bool) if members is None else members
+              ridge: float = DEFAULT_RIDGE) -> tuple[np.ndarray, np.ndarray]:
+    """Kernels ``(K, C, h, w)`` fitted on a working stack, and the per-pixel conditioning of the
+    design ``(h, w)``."""
     kernels, conditioning = _equations(stack, basis, convention,
-                                       np.flatnonzero(members)).solve(ridge)
+                                       range(len(stack.images))).solve(ridge)
     assert conditioning is not None
     return kernels, conditioning
 
 
 def stack_residuals(stack: WorkingStack, kernels: np.ndarray, basis: WeightBasis,
                     convention: str) -> np.ndarray:
-    """In-sample relative error ``(P,)`` of a model on every position of a working stack."""
-    return np.array([relative_error(predict_aligned(kernels, basis, tuple(stack.shifts[p]),
-                                                    convention, frame=stack.frame),
-                                    stack.images[p], stack.valid[p])
-                     for p in range(len(stack.images))])
+    """In-sample relative error ``‖pred − data‖ / ‖data‖`` ``(P,)`` of a model on every position
+    of a working stack (valid pixels, all channels)."""
+    out = []
+    for p in range(len(stack.images)):
+        norm = _squared(stack.images[p], stack.valid[p])
+        error = _squared_error(stack, p, predict_aligned(kernels, basis, tuple(stack.shifts[p]),
+                                                         convention, frame=stack.frame))
+        out.append(math.sqrt(error / norm) if norm > 0 else float("nan"))
+    return np.array(out)
 
 
 def fold_groups(n: int, center_row: int, folds: int = 9, seed: int = 0) -> list[np.ndarray]:
@@ -116,26 +116,25 @@ CENTRE_ONLY = "centre PSF only"
 
 def cross_validate_positions(stack: WorkingStack, bases: list[str],
                              conventions: tuple[str, ...], center_row: int, folds: int = 9,
-                             seed: int = 0) -> CrossValidation:
+                             seed: int = 0, bar: Any = None) -> CrossValidation:
     """Leave-positions-out cross-validation of eigen-kernel models, per position.
 
     Each model is fitted without one group of :func:`fold_groups` (the centre, which defines the
     frame, is always kept) and predicts it; a fold's normal equations are the total minus its
-    group's. The centre PSF alone is scored too.
+    group's. The centre PSF alone is scored too. ``bar`` (tqdm) advances by one per basis.
     """
     n = len(stack.images)
     groups = fold_groups(n, center_row, folds, seed)
     held = np.concatenate(groups) if groups else np.zeros(0, int)
     training_size = n - max((len(g) for g in groups), default=0)
-    norms = np.array([_squared_norm(stack, p) for p in held])
+    norms = np.array([_squared(stack.images[p], stack.valid[p]) for p in held])
     centre = stack.images[center_row]
     squared = {CENTRE_ONLY: np.array([_squared_error(stack, p, centre) for p in held])}
     differences: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name in bases:
         basis = get_basis(name)
-        if training_size < basis.n_kernels:
-            continue                       # too few training positions for this basis
-        for convention in conventions:
+        usable = training_size >= basis.n_kernels     # else too few training positions
+        for convention in conventions if usable else ():
             per_group = [_equations(stack, basis, convention, group) for group in groups]
             total = _equations(stack, basis, convention, [center_row])
             for eq in per_group:
@@ -153,6 +152,8 @@ def cross_validate_positions(stack: WorkingStack, bases: list[str],
             if basis.n_kernels > 1:
                 full = squared_relative_differences(total.solve(conditioning=False)[0])
                 differences[key] = (full, np.array(fold_differences))
+        if bar is not None:
+            bar.update()
     return CrossValidation(HeldOutErrors(squared, norms), len(groups), differences)
 
 
@@ -165,9 +166,5 @@ def _equations(stack: WorkingStack, basis: WeightBasis, convention: str,
     return equations
 
 
-def _squared_norm(stack: WorkingStack, p: int) -> float:
-    return float(np.sum(stack.images[p] ** 2, axis=0)[stack.valid[p]].sum())
-
-
 def _squared_error(stack: WorkingStack, p: int, prediction: np.ndarray) -> float:
-    return float(np.sum((prediction - stack.images[p]) ** 2, axis=0)[stack.valid[p]].sum())
+    return _squared(prediction - stack.images[p], stack.valid[p])

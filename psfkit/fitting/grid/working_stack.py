@@ -4,6 +4,7 @@ the cropped, binned stack of aligned PSFs (:class:`WorkingStack`) the fits, CV a
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,9 +50,8 @@ def working_region(support: np.ndarray, reference: np.ndarray, working_size: int
     extent = [box[0].stop - box[0].start, box[1].stop - box[1].start]
     grown = tuple(slice(max(0, sl.start - size - 8), min(n, sl.stop + size + 8))
                   for sl, size, n in zip(box, extent, (h, w), strict=True))
-    crop = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
-    region = None if crop == (h, w) else (grown[0], grown[1])
-    shape = (h, w) if region is None else crop
+    shape = (grown[0].stop - grown[0].start, grown[1].stop - grown[1].start)
+    region = None if shape == (h, w) else (grown[0], grown[1])
     factor = binning_factor(shape, working_size)
     record = {"chosen_from": "the whole sensor (the PSF fills it)" if region is None else
               "the centre PSF's support",
@@ -127,13 +127,11 @@ class WorkingStack:
         """The stack of the ``members`` (bool ``(P,)``) only (the same arrays when all)."""
         if members.all():
             return self
-        return WorkingStack(factor=self.factor, images=self.images[members],
-                            valid=self.valid[members], shifts=self.shifts[members],
-                            index=self.index[members], overlap=self.overlap[members],
-                            gains=self.gains[members], region=self.region,
-                            sensor_shape=self.sensor_shape,
-                            light_in_region=None if self.light_in_region is None
-                            else self.light_in_region[members])
+        per_position = ("images", "valid", "shifts", "index", "overlap", "gains",
+                        "light_in_region")
+        return dataclasses.replace(self, **{name: getattr(self, name)[members]
+                                            for name in per_position
+                                            if getattr(self, name) is not None})
 
     def row_of(self, index: tuple[int, int]) -> int:
         """The stack entry of grid index ``(row, col)``."""

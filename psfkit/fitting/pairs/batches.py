@@ -205,23 +205,5 @@ class PairBatches:
 
 def _runs(active: list[bool]) -> list[tuple[int, int]]:
     """``(start, stop)`` of every run of consecutive ``True``."""
-    runs, begin = [], None
-    for i, on in enumerate([*active, False]):
-        if on and begin is None:
-            begin = i
-        elif not on and begin is not None:
-            runs.append((begin, i))
-            begin = None
-    return runs
-
-
-
-
-__all__ = [
-    "BATCH_BYTES",
-    "DEFAULT_BATCH",
-    "DEFAULT_CACHE_BYTES",
-    "MeasurementSource",
-    "PairBatches",
-    "auto_batch_size",
-]
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(active, int), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]

@@ -43,6 +43,3 @@ def upsampled_kernels(coarse: Tensor, factor: int, shape: tuple[int, int]) -> Te
     shifts = tuple(n // 2 - factor * (c // 2) - factor // 2
                    for n, c in zip(shape, coarse.shape[-2:], strict=True))
     return torch.roll(out, shifts, dims=(-2, -1))
-
-
-__all__ = ["downsample_pairs", "upsampled_kernels"]

@@ -268,11 +268,8 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
     the coupled blocks restricted to it stopped converging on DLMD. Returns the kernels and the
     record (``kkt_history``).
     """
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    from tqdm.auto import tqdm
 
-        bar = tqdm(total=steps, unit="it", leave=False, desc="projected Newton")
     batches = system["batches"]
     twin = system.get("twin")
     if twin is None and batches.dtype == torch.float64:
@@ -282,11 +279,11 @@ def newton_fit(system: dict[str, Any], start: Tensor, mask: Tensor | None, steps
     # in the float32 products' precision, not the working one (a preconditioner needs no more)
     precondition = system["gram"].preconditioner(system["lambda"], system["mu"], coupled=False,
                                                  dtype=None if twin is None else twin.dtype)
-    kernels, info = projected_newton(system["normal"], system["rhs"], start,
-                                     precondition, steps, cg_iterations, tolerance,
-                                     bar=bar, support=mask, hessian=hessian)
-    if bar is not None:
-        bar.close()
+    with tqdm(total=steps, unit="it", leave=False, desc="projected Newton",
+              disable=not progress) as bar:
+        kernels, info = projected_newton(system["normal"], system["rhs"], start,
+                                         precondition, steps, cg_iterations, tolerance,
+                                         bar=bar, support=mask, hessian=hessian)
     info = {k: v for k, v in info.items() if k != "history"} | {
         "kkt_history": info["history"], "cg_iterations": cg_iterations,
         "float32_passes": 0 if twin is None else twin.passes}

@@ -97,31 +97,23 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
         raise InvalidInputError(f"the support mask is {support_mask.shape[0]}x"
                                 f"{support_mask.shape[1]}, the kernels "
                                 f"{scenes.shape[-2]}x{scenes.shape[-1]}")
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    from tqdm.auto import tqdm
 
-        bar = tqdm(unit="it", leave=False, desc=f"fit {options.basis}")
-    trial = _set_up(scenes, measurements, options, initial, batch_size, cache_bytes, dtype,
-                    device, progress, bar)
-    batches, options, weights, kernels = (trial.batches, trial.options, trial.weights,
-                                          trial.kernels)
-    history, choices = trial.history, trial.choices
-    if options.solver == "newton":                     # non-negative (a constrained fit)
-        kernels, system = _newton_start(batches, measurements, options, weights, kernels,
-                                        history, bar)
-    else:
-        kernels, system = _solve(batches, measurements, options, weights, kernels, history,
-                                 bar)
-    support = None
-    if options.constrained:
-        t0 = time.perf_counter()
-        kernels, support, info_c = _constrained_solve(system, kernels, options, support_mask,
-                                                      progress)
-        info_c.update(passes=batches.passes, seconds=round(time.perf_counter() - t0, 3))
-        history.append(info_c)
-    if bar is not None:
-        bar.close()
+    with tqdm(unit="it", leave=False, desc=f"fit {options.basis}", disable=not progress) as bar:
+        trial = _set_up(scenes, measurements, options, initial, batch_size, cache_bytes, dtype,
+                        device, progress, bar)
+        batches, options = trial.batches, trial.options
+        # non-negative kernels (a constrained fit) start from float32 unconstrained ones
+        unconstrained = _newton_start if options.solver == "newton" else _solve
+        kernels, system = unconstrained(batches, measurements, options, trial.weights,
+                                        trial.kernels, trial.history, bar)
+        support = None
+        if options.constrained:
+            t0 = time.perf_counter()
+            kernels, support, info_c = _constrained_solve(system, kernels, options,
+                                                          support_mask, progress)
+            info_c.update(passes=batches.passes, seconds=round(time.perf_counter() - t0, 3))
+            trial.history.append(info_c)
     err, norm, _num, _den = batches.residual_norms(kernels, measurements)
     errors = err / norm.clamp_min(1e-300)
     # solved in ``dtype`` (float64 by default); handed over as psfkit's float32 arrays
@@ -130,15 +122,15 @@ def fit_pairs(scenes: np.ndarray, measurements: np.ndarray,
     return PairFit(kernels=kernels.to(torch.float32).cpu().numpy(), basis=options.basis,
                    convention=options.convention,
                    scales=batches.scales.to(torch.float32).cpu().numpy(),
-                   training_error=errors.to(torch.float32).cpu().numpy(), history=history,
-                   options=options, support=support, weights=weights,
-                   regularisation=choices, convention_choice=trial.convention_choice)
+                   training_error=errors.to(torch.float32).cpu().numpy(),
+                   history=trial.history, options=options, support=support,
+                   weights=trial.weights, regularisation=trial.choices,
+                   convention_choice=trial.convention_choice)
 
 
 @dataclasses.dataclass
 class _Trial:
-    """One convention's set-up of a fit: pairs, options, weights, warm start, the weights' choice
-    records and held-out errors (``None``: nothing held out)."""
+    """One convention's set-up of a fit (``held_out``: ``None`` when nothing was held out)."""
 
     batches: PairBatches
     options: PairFitOptions
@@ -161,8 +153,16 @@ def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOption
                    CONVENTIONS if n_kernels > 1 and len(scenes) >= 2 else ("sensor",))
     seed = None                     # (kernels, scales): one SI fit serves every convention
     if initial is None and n_kernels > 1 and options.seed_with_si:
-        seed = _si_seed(scenes, measurements, options, batch_size, cache_bytes, dtype, device,
-                        progress)
+        # every kernel at the shift-invariant fit, with that fit's per-pair scales
+        si = fit_pairs(scenes, measurements,
+                       dataclasses.replace(options, basis="si", convention="sensor",
+                                           nonneg=False, support="none",
+                                           tikhonov=options.weights()["tikhonov"]),
+                       dtype=dtype, device=device, progress=progress,
+                       batch_size=batch_size, cache_bytes=cache_bytes)
+        seed = (torch.as_tensor(np.repeat(si.kernels, n_kernels, axis=0), dtype=dtype,
+                                device=device),
+                torch.as_tensor(si.scales, dtype=dtype, device=device))
     trials = []
     for convention in conventions:
         opts = dataclasses.replace(options, convention=convention)
@@ -187,22 +187,6 @@ def _set_up(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOption
     chosen = next(t for t in trials if t.options.convention == record["chosen"])
     chosen.convention_choice = record
     return chosen
-
-
-def _si_seed(scenes: np.ndarray, measurements: np.ndarray, options: PairFitOptions,
-             batch_size: int | None, cache_bytes: int, dtype: torch.dtype, device: str,
-             progress: bool) -> tuple[Tensor, Tensor]:
-    """Every kernel at the shift-invariant fit, and that fit's per-pair scales."""
-    seed = fit_pairs(scenes, measurements,
-                     dataclasses.replace(options, basis="si", convention="sensor",
-                                         nonneg=False, support="none",
-                                         tikhonov=options.weights()["tikhonov"]),
-                     dtype=dtype, device=device, progress=progress,
-                     batch_size=batch_size, cache_bytes=cache_bytes)
-    n_kernels = get_basis(options.basis).n_kernels
-    return (torch.as_tensor(np.repeat(seed.kernels, n_kernels, axis=0), dtype=dtype,
-                            device=device),
-            torch.as_tensor(seed.scales, dtype=dtype, device=device))
 
 
 def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: PairFitOptions,
@@ -230,8 +214,7 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
     # a pair's scale is its gain, whatever the pixel pitch
     batches.scales = twin.scales.to(dtype=batches.dtype, device=batches.device)
     for parameter in options.automatic:
-        if bar is not None:
-            bar.set_description(f"choose --{parameter} ({options.basis})")
+        bar.set_description(f"choose --{parameter} ({options.basis})")
         choice, start = choose_regularisation(
             twin, measured, parameter,
             {p: w for p, w in weights.items() if p != parameter}, options.fit_scale,
@@ -245,8 +228,7 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
     else:
         held_out = held_out_score(twin, measured, weights, options.fit_scale,
                                   system["reference"], start, bar)
-    if bar is not None:
-        bar.set_description(f"fit {options.basis}")
+    bar.set_description(f"fit {options.basis}")
     if factor > 1:
         # the binned fit's corrections on the unbinned grid, added to the given start's
         # detail: a closer start for the first full-resolution solve (DLMD: 276 CG iterations
@@ -268,8 +250,7 @@ def _newton_start(batches: PairBatches, measurements: np.ndarray, options: PairF
                   weights: dict[str, float], kernels: Tensor | None,
                   history: list[dict[str, Any]], bar: Any) -> tuple[Tensor, dict[str, Any]]:
     """The non-negative solve's start: unconstrained kernels and per-pair scales solved in float32
-    to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system projected Newton converges
-    on."""
+    to ``START_TOLERANCE`` (stage ``"start"``), and the float64 system."""
     twin = batches.astype(torch.float32)
     start, _ = _solve(twin, measurements, options, weights,
                       None if kernels is None else kernels.to(torch.float32), history, bar,
@@ -321,9 +302,8 @@ def _solve(batches: PairBatches, measurements: np.ndarray, options: PairFitOptio
 def _constrained_solve(system: dict[str, Any], unconstrained: Tensor,
                        options: PairFitOptions, support_mask: np.ndarray | None,
                        progress: bool) -> tuple[Tensor, np.ndarray | None, dict[str, Any]]:
-    """The final solve under ``options``' constraints on ``system``, warm-started from the
-    unconstrained kernels (whose base kernel gives the automatic support): projected Newton-CG
-    for non-negativity, else CG restricted to the support."""
+    """The final solve under ``options``' constraints, from the unconstrained kernels (whose base
+    kernel gives the automatic support)."""
     support = None
     if options.support == "auto":
         support = auto_support(unconstrained[0].cpu().numpy(), options.support_threshold)
@@ -380,13 +360,11 @@ def leave_one_out(scenes: np.ndarray, measurements: np.ndarray, options: PairFit
     n = len(scenes)
     if n < 2:
         raise InvalidInputError("leave-one-out needs at least two pairs")
-    raw, scaled = np.zeros(n), np.zeros(n)
-    indices: Any = range(n)
-    if progress:
-        from tqdm.auto import tqdm
+    from tqdm.auto import tqdm
 
-        indices = tqdm(indices, desc=f"leave-one-out ({options.basis})", unit="fit")
-    for i in indices:
+    raw, scaled = np.zeros(n), np.zeros(n)
+    for i in tqdm(range(n), desc=f"leave-one-out ({options.basis})", unit="fit",
+                  disable=not progress):
         keep = np.arange(n) != i
         fit = fit_pairs(scenes[keep], measurements[keep], options,
                         support_mask=support_mask)

@@ -1,5 +1,5 @@
 """The per-frequency ``K × K`` Gram blocks of the scenes of a pairs fit (:class:`FrequencyGram`),
-the preconditioner of :mod:`psfkit.fitting.pairs.solver`, and the difference prior's ``D``.
+and the preconditioner of :mod:`psfkit.fitting.pairs.solver`.
 """
 
 from __future__ import annotations
@@ -11,17 +11,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from psfkit.fitting.grid.eigen import difference_matrix
 from psfkit.forward.convolution import kernel_spectra, kernels_from_spectra
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.weights import get_basis
-
-
-def difference_matrix(n_kernels: int) -> np.ndarray:
-    r"""``D`` of :math:`\tfrac12\sum_{k\ge1}\lVert K_k - K_0\rVert^2 = \tfrac12 K^\top D K`,
-    ``(K, K)``."""
-    from psfkit.fitting.grid.eigen import _difference_prior
-
-    return _difference_prior(n_kernels)
 
 
 class PairLayout(Protocol):
@@ -32,7 +25,6 @@ class PairLayout(Protocol):
     sensor: tuple[int, int]
     kernel_shape: tuple[int, int]
     n_kernels: int
-    convention: str
     basis: str
     channels: int
     device: str
@@ -47,21 +39,16 @@ class FrequencyGram:
     """
 
     def __init__(self, batches: PairLayout) -> None:
-        self.grid, self.sensor = batches.grid, batches.sensor
-        self.kernel_shape = batches.kernel_shape
-        self.n_kernels = batches.n_kernels
-        self.convention = batches.convention
-        self.basis = batches.basis
-        self.channels = batches.channels
-        self.device = batches.device
+        self.grid, self.kernel_shape = batches.grid, batches.kernel_shape
+        self.n_kernels, self.device = batches.n_kernels, batches.device
         freq = (self.grid[0], self.grid[1] // 2 + 1)
         k = self.n_kernels
-        self.blocks = torch.zeros((self.channels, *freq, k, k), dtype=torch.complex128,
+        self.blocks = torch.zeros((batches.channels, *freq, k, k), dtype=torch.complex128,
                                   device=self.device)
         self._power: Tensor | None = None
         self.mean_products = np.ones((1, 1))
-        if self.basis != "si":
-            w = get_basis(self.basis).maps(self.sensor).astype(np.float64)     # (K, H, W)
+        if batches.basis != "si":
+            w = get_basis(batches.basis).maps(batches.sensor).astype(np.float64)  # (K, H, W)
             self.mean_products = np.einsum("khw,lhw->kl", w, w) / (w.shape[1] * w.shape[2])
 
     def add(self, op: KernelSpaceOperator, scales: Tensor) -> None:
@@ -134,7 +121,3 @@ class FrequencyGram:
             return kernels_from_spectra(solved, self.grid, self.kernel_shape).to(r.dtype)
 
         return apply
-
-
-
-__all__ = ["FrequencyGram", "PairLayout", "difference_matrix"]

@@ -1,11 +1,6 @@
-"""Where, and on which pairs, a forward model fails (``psfkit eval-model``).
-
-``eval-model`` predicts ``p_i = A x_i`` and reports ``‖y_i − s_i p_i‖/‖y_i‖`` raw (``s_i = 1``)
-and scaled (the best per-pair ``s_i``). This module resolves those errors over the sensor:
-:func:`zone_errors` (per equal-area zone of :mod:`psfkit.forward.zones`, with the pair's
-whole-sensor scale), :func:`residual_map` (per-pixel RMS of the scaled residual relative to the
-measurements' overall RMS) and :func:`pair_roles` (fitted or held out, from the kernel file's
-``provenance["pairs"]``/``["names"]`` or ``--holdout``).
+"""Where, and on which pairs, a forward model fails (``psfkit eval-model``): its relative errors
+``‖y_i − s_i p_i‖/‖y_i‖`` (``s_i`` 1 or the best per pair) per field zone and per pixel, and
+which pairs it was fitted on.
 """
 
 from __future__ import annotations
@@ -20,8 +15,6 @@ import numpy as np
 from psfkit.errors import InvalidInputError
 from psfkit.forward.zones import ZONE_NAMES, FieldZones
 from psfkit.io.pairs import parse_names
-
-__all__ = ["FITTED", "HELD_OUT", "pair_roles", "residual_map", "zone_errors"]
 
 FITTED, HELD_OUT = "fitted", "held out"
 

@@ -111,9 +111,7 @@ class PairFitOptions:
 
     @property
     def final_projected_iterations(self) -> int:
-        if self.projected_iterations is not None:
-            return self.projected_iterations
-        return NEWTON_ITERATIONS
+        return NEWTON_ITERATIONS if self.projected_iterations is None else self.projected_iterations
 
     def __post_init__(self) -> None:
         # every message names the flag of psfkit fit-pairs (the ranges of FLAGS in

@@ -106,7 +106,6 @@ class RegularisationChoice:
 
     def summary(self) -> str:
         """One line: the choice, its held-out error and the path."""
-        flag = "--tikhonov" if self.parameter == "tikhonov" else "--difference"
         best = self.weights.index(self.chosen)
         how = (f"leave-one-out over {self.held_out_pairs} pairs"
                if self.held_out_pairs == self.folds == self.scored_folds else
@@ -116,8 +115,8 @@ class RegularisationChoice:
             how += f", binned {self.binning}x to {self.sensor[0]}x{self.sensor[1]}"
         path = ", ".join(f"{w:g}: {e:.4f}" for w, e in zip(self.weights, self.held_out,
                                                          strict=True))
-        return (f"regularisation: {flag} {self.chosen:g} chosen by {how}: held-out error "
-                f"{self.held_out[best]:.4f} ± {self.spread[best]:.4f} ({self.metric}; "
+        return (f"regularisation: --{self.parameter} {self.chosen:g} chosen by {how}: held-out "
+                f"error {self.held_out[best]:.4f} ± {self.spread[best]:.4f} ({self.metric}; "
                 f"path {path})")
 
 
@@ -153,7 +152,7 @@ def held_out_errors(batches: PairBatches, kernels: Tensor,
                     best_gain: bool) -> dict[int, float]:
     """``{pair: relative error}`` of the active pairs of ``batches`` predicted by ``kernels``
     (unscaled), with the best gain per pair when ``best_gain``."""
-    out = {}
+    out: dict[int, float] = {}
     for start, stop, _op, _s, p in batches.predictions(kernels.to(batches.dtype)):
         p = p.to(torch.float64)
         y = batches.measurement(measurements, start, stop).to(torch.float64)
@@ -162,8 +161,7 @@ def held_out_errors(batches: PairBatches, kernels: Tensor,
             p = p * gain[:, None, None, None]
         err = (p - y).pow(2).sum(dim=(1, 2, 3)).sqrt() / \
             y.pow(2).sum(dim=(1, 2, 3)).sqrt().clamp_min(1e-300)
-        for i, e in enumerate(err.tolist(), start=start):
-            out[i] = e
+        out.update(enumerate(err.tolist(), start=start))
     return out
 
 
@@ -207,11 +205,6 @@ def choose_regularisation(batches: PairBatches,
     t0, passes = time.perf_counter(), batches.passes
     folds = folds_of(batches.n)
     fixed = {"tikhonov": 0.0, "difference": 0.0, **fixed}
-    choice = RegularisationChoice(parameter=parameter, chosen=0.0, sensor=batches.sensor,
-                                  fixed={k: v for k, v in fixed.items() if k != parameter},
-                                  folds=min(batches.n, MAX_FOLDS), scored_folds=len(folds),
-                                  held_out_pairs=int(sum(len(f) for f in folds)),
-                                  metric=held_out_metric(best_gain))
     path = _FoldPath(batches, measurements, folds, start, best_gain, bar,
                      lambda w: _absolute(parameter, w, fixed, reference))
     for weight in (*PATHS[parameter], 0.0):
@@ -225,19 +218,18 @@ def choose_regularisation(batches: PairBatches,
         path.restart_from(strongest)
         if path.worse(path.evaluate(round(strongest * math.sqrt(10), 6))):
             break
-    choice.chosen = path.chosen()
-    for weight in sorted(path.scores, reverse=True):
-        score, per_pair, iterations = path.scores[weight]
-        choice.weights.append(weight)
-        choice.held_out.append(score)
-        choice.spread.append(float(np.std(per_pair, ddof=1) / math.sqrt(len(per_pair)))
-                             if len(per_pair) > 1 else float("nan"))
-        choice.per_pair.append(per_pair)
-        choice.iterations.append(iterations)
-    warm = torch.stack(path.at_weight[choice.chosen]).mean(dim=0)
-    choice.seconds = time.perf_counter() - t0
-    choice.passes = batches.passes - passes
-    return choice, warm
+    chosen = path.chosen()
+    warm = torch.stack(path.at_weight[chosen]).mean(dim=0)
+    weights = sorted(path.scores, reverse=True)
+    scores, per_pair, iterations = zip(*(path.scores[w] for w in weights), strict=True)
+    return RegularisationChoice(
+        parameter=parameter, chosen=chosen, sensor=batches.sensor,
+        fixed={k: v for k, v in fixed.items() if k != parameter},
+        folds=min(batches.n, MAX_FOLDS), scored_folds=len(folds),
+        held_out_pairs=int(sum(len(f) for f in folds)), metric=held_out_metric(best_gain),
+        weights=weights, held_out=list(scores), spread=[_standard_error(e) for e in per_pair],
+        per_pair=list(per_pair), iterations=list(iterations),
+        seconds=time.perf_counter() - t0, passes=batches.passes - passes), warm
 
 
 def held_out_metric(best_gain: bool) -> str:
@@ -265,16 +257,18 @@ def convention_record(per_pair: dict[str, list[float]], metric: str) -> dict[str
     sensor, source = (np.asarray(per_pair[c]) for c in ("sensor", "source"))
     chosen = "source" if source.mean() < sensor.mean() * (1 - TIE) else "sensor"
     diff = source - sensor
-
-    def spread(v: np.ndarray) -> float:
-        return float(np.std(v, ddof=1) / math.sqrt(len(v))) if len(v) > 1 else float("nan")
-
     return {"method": "cross-validation over pairs, each convention at its own chosen "
                       "regularisation", "metric": metric, "chosen": chosen,
             "held_out": {c: float(np.mean(v)) for c, v in per_pair.items()},
-            "spread": {c: spread(np.asarray(v)) for c, v in per_pair.items()},
-            "source_minus_sensor": float(diff.mean()), "difference_spread": spread(diff),
+            "spread": {c: _standard_error(v) for c, v in per_pair.items()},
+            "source_minus_sensor": float(diff.mean()), "difference_spread": _standard_error(diff),
             "per_pair": {c: list(map(float, v)) for c, v in per_pair.items()}}
+
+
+def _standard_error(values: list[float] | np.ndarray) -> float:
+    """The standard error of the mean of ``values`` (NaN for fewer than two)."""
+    n = len(values)
+    return float(np.std(values, ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
 
 
 def convention_summary(record: dict[str, Any]) -> str:
@@ -296,9 +290,7 @@ class _FoldPath:
                  absolute: Any) -> None:
         self.batches, self.measurements = batches, measurements
         self.best_gain, self.bar, self.absolute = best_gain, bar, absolute
-        self.train = [np.ones(batches.n, bool) for _ in folds]
-        for mask, held in zip(self.train, folds, strict=True):
-            mask[held] = False
+        self.train = [~np.isin(np.arange(batches.n), held) for held in folds]
         # a fold's right-hand side and Gram blocks do not depend on the weight: one pass each
         self.rhs: list[Tensor] = []
         self.grams: list[FrequencyGram] = []
@@ -349,9 +341,3 @@ class _FoldPath:
     def restart_from(self, weight: float) -> None:
         """Warm-start the next weight from the folds' kernels at ``weight``."""
         self.kernels = [k.clone() for k in self.at_weight[weight]]
-
-
-__all__ = ["FOLD_TOLERANCE", "MAX_FOLDS", "MIN_FOLDS", "MIN_HELD_OUT", "PATHS",
-           "SELECTION_PIXELS", "STRONGER_STEPS", "TIE", "RegularisationChoice",
-           "choose_regularisation", "convention_record", "convention_summary", "folds_of",
-           "held_out_errors", "held_out_metric", "held_out_score", "selection_binning"]

@@ -38,9 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from psfkit.fitting.grid.eigen import difference_matrix
 from psfkit.fitting.pairs.batches import MeasurementSource, PairBatches
-from psfkit.fitting.pairs.gram import difference_matrix
-from psfkit.forward.convolution import embed_kernel
 
 
 def _per_channel_dot(a: Tensor, b: Tensor) -> Tensor:
@@ -133,7 +132,7 @@ def regularised_normal(batches: PairBatches, tikhonov: float = 0.0, difference: 
 
 def solve_kernels(batches: PairBatches,
                   measurements: np.ndarray | Tensor | MeasurementSource,
-                  tikhonov: float = 0.0, difference: float = 0.0, relative: bool = True,
+                  tikhonov: float = 0.0, difference: float = 0.0,
                   start: Tensor | None = None, tolerance: float = 1e-6,
                   max_iterations: int = 500, bar: Any = None
                   ) -> tuple[Tensor, SolveInfo, dict[str, Any]]:
@@ -148,7 +147,7 @@ def solve_kernels(batches: PairBatches,
     measurements : array or callable
         ``(N, C, H', W')``, or ``(start, stop) → measurements``.
     tikhonov, difference : float
-        ``λ`` and ``μ``; with ``relative`` multiples of the mean per-frequency scene power.
+        ``λ`` and ``μ``, multiples of the mean per-frequency scene power.
     start : Tensor, optional
         Warm start ``(K, C, Hk, Wk)``.
     tolerance, max_iterations
@@ -163,8 +162,8 @@ def solve_kernels(batches: PairBatches,
     """
     gram = batches.gram()
     reference = gram.reference_power()
-    lam = tikhonov * reference if relative else tikhonov
-    mu = difference * reference if relative else difference
+    lam = tikhonov * reference
+    mu = difference * reference
     rhs = batches.rhs(measurements)
     normal = regularised_normal(batches, lam, mu)
     precondition = gram.preconditioner(lam, mu)
@@ -173,12 +172,3 @@ def solve_kernels(batches: PairBatches,
     return kernels, info, {"lambda": lam, "mu": mu, "reference": reference,
                            "normal": normal, "rhs": rhs, "precondition": precondition,
                            "batches": batches, "gram": gram}
-
-
-__all__ = [
-    "SolveInfo",
-    "embed_kernel",
-    "regularised_normal",
-    "solve_kernels",
-    "solve_normal_equations",
-]
