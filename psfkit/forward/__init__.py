@@ -25,7 +25,7 @@ from psfkit.forward.geometry import CONVENTIONS, centre_offset, kernel_origin, p
 _LAZY = {
     "FFTCount": "fft", "count_ffts": "fft", "rfft2": "fft", "irfft2": "fft",
     "pad": "convolution", "crop": "convolution", "embed_kernel": "convolution",
-    "extract_kernel": "convolution", "kernel_spectra": "convolution",
+    "kernel_spectra": "convolution",
     "eigen_kernel_forward": "convolution", "eigen_kernel_adjoint": "convolution",
     "padded_scene_forward": "padded_scene", "padded_scene_adjoint": "padded_scene",
     "padded_scene_adjoint_spectrum": "padded_scene", "kernel_images": "padded_scene",
