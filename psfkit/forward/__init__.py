@@ -30,7 +30,7 @@ _LAZY = {
     "padded_scene_forward": "padded_scene", "padded_scene_adjoint": "padded_scene",
     "padded_scene_adjoint_spectrum": "padded_scene", "kernel_images": "padded_scene",
     "sum_of_kernel_products": "convolution",
-    "zero_workspace": "convolution", "PaddingWorkspace": "operator",
+    "zero_workspace": "convolution",
     "SpectralOperator": "operator", "PaddedSceneOperator": "operator",
     "kernel_model_tensors": "operator", "LinearOperator": "base",
     "records_graph": "convolution",

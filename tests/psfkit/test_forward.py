@@ -126,13 +126,15 @@ class _TinyOperator:
     def __init__(self, convention: str, seed: int = 7) -> None:
         rng = np.random.default_rng(seed)
         self.channels, self.dtype = 2, torch.float64
-        self.sensor_shape, self.scene_shape = SENSOR, GRID
         kernels = torch.as_tensor(rng.random((3, 2, 3, 4)))
         self.spectra = kernel_spectra(kernels, GRID)
         self.weights = torch.as_tensor(rng.random((3, *(SENSOR if convention == "sensor"
                                                          else GRID))))
         self.convention = convention
         self.calls = 0
+
+    def domain_shape(self):
+        return (1, self.channels, *GRID)
 
     def A(self, x):
         self.calls += 1

@@ -37,16 +37,6 @@ ONE_ROW_KERNELS = 4
 WRAP = 6
 
 
-def _crop_box(image: np.ndarray, level: float = 0.02, margin: int = 4) -> tuple[slice, slice]:
-    """Bounding box of the pixels above ``level`` × the maximum of a mask or noiseless map, with
-    ``margin`` px."""
-    rows, cols = np.nonzero(image > level * image.max())
-    if rows.size == 0:
-        return slice(None), slice(None)
-    return (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
-            slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
-
-
 def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
     """The central ``zoom`` fraction of ``box``."""
     (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)

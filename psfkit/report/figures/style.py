@@ -10,7 +10,7 @@ import base64
 import contextlib
 import io
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -149,6 +149,18 @@ def save_figure(fig: Figure, stem: str | Path, formats: tuple[str, ...] = ("png"
             fig.savefig(tmp, format=fmt)
         paths.append(path)
     return paths
+
+
+def write_figures(folder: Path, figures: Iterable[tuple[str, str, Figure]], dpi: int
+                  ) -> list[tuple[str, str, str]]:
+    """Save each ``(stem, caption, figure)`` in a new ``folder`` (:func:`save_figure`); returns
+    ``(stem, caption, base64 PNG at dpi)`` of each for the HTML page."""
+    folder.mkdir()
+    embedded = []
+    for stem, caption, fig in figures:
+        save_figure(fig, folder / stem)
+        embedded.append((stem, caption, png_base64(fig, dpi)))
+    return embedded
 
 
 def no_ticks(ax: Axes) -> None:
