@@ -26,8 +26,7 @@ from psfkit.report.figures.style import (
     fitted,
     new_figure,
     no_ticks,
-    psf_cmap,
-    psf_norm,
+    psf_image,
     publication_style,
 )
 
@@ -70,7 +69,7 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
     limit = limit or difference_limit(lum)
     for i in range(k):
         ax = kernel_axes[i]
-        ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
+        psf_image(ax, lum[i] / peak)
         ax.set_title(f"K_{names[i]}" if titles else "")
         no_ticks(ax)           # (the axis stays: a row label may be set on it)
     cmap = matplotlib.colormaps["RdBu_r"]
