@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,17 +51,14 @@ def grid_monitor_positions(config: BenchConfig, grid_shape: tuple[int, int],
     return np.stack([xx, yy], axis=-1)
 
 
-@contextmanager
-def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
+def _optics_threads(camera: VirtualCamera) -> AbstractContextManager[None]:
     """One torch thread for a torch-backend CPU camera during a grid: the FFTs run in scipy on all
     cores, and a second OpenMP thread costs far more than it gains next to the writer thread."""
     if camera.backend == "torch" and camera.device_type == "cpu":
         from psfkit.simulate.propagation_torch import cpu_threads
 
-        with cpu_threads(1):
-            yield
-    else:
-        yield
+        return cpu_threads(1)
+    return nullcontext()
 
 
 def exposure_scale(camera: VirtualCamera, on_axis_psf: np.ndarray) -> float:

@@ -171,18 +171,13 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
     return fig
 
 
-def _cv_sigma(cv: dict[str, Any]) -> dict[str, float] | None:
-    """1σ of each candidate's held-out error, where the cross-validation provides it."""
-    for key in ("held_out_relative_error_sigma", "held_out_relative_error_std"):
-        if isinstance(cv.get(key), dict):
-            return cv[key]
-    return None
-
-
 def _cv_panel(ax: Axes, cv: dict[str, Any]) -> None:
     errors = cv["held_out_relative_error"]
     names = list(errors)
-    sigma = _cv_sigma(cv)
+    # 1σ of each candidate's held-out error, where the cross-validation provides it
+    sigma = next((cv[key] for key in ("held_out_relative_error_sigma",
+                                      "held_out_relative_error_std")
+                  if isinstance(cv.get(key), dict)), None)
     bar_colours = ["0.6" if n == "centre PSF only" else
                    ("C0" if n.endswith("/sensor") else "C1") for n in names]
     xerr = [sigma.get(n, 0.0) for n in names] if sigma else None
