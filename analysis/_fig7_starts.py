@@ -14,8 +14,8 @@ from matplotlib.figure import Figure
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
 from psfkit.compare.results import KernelComparison, KernelSetComparison
-from psfkit.report.figures.compare import draw_kernel_row, quiver_panel
-from psfkit.report.figures.eigen import _crop_box, difference_limit
+from psfkit.report.figures.compare import arrow_grid, draw_kernel_row, quiver_panel
+from psfkit.report.figures.eigen import difference_limit
 from psfkit.report.figures.style import PAGE_IN, new_figure, publication_style
 
 
@@ -94,9 +94,7 @@ def figure_starts(comparisons: dict[str, KernelComparison],
              for label, c in comparisons.items()]
     k = len(names)
     box = support_box(luminance(first.measured.model.kernels[0]))
-    mask_box = _crop_box(np.where(first.mask, 1.0, 0.0), level=0.5, margin=2)
-    span = max(mask_box[0].stop - mask_box[0].start, mask_box[1].stop - mask_box[1].start)
-    step = max(2, span // 12)
+    mask_box, step = arrow_grid(first.mask, 12)
     values = [np.hypot(*d.field[:, d.mask]) for _, _, disp in rows for d in disp.values()
               if d.mask.any()]
     vmax = max((float(np.percentile(v, 95)) for v in values if v.size), default=1.0) or 1.0

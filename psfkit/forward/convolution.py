@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from psfkit.forward.fft import irfft2, rfft2, wrapped_slice
+from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.geometry import centre_offset, kernel_origin
 
 
@@ -65,17 +65,9 @@ def embed_kernel(kernels: Tensor, grid_shape: tuple[int, int]) -> Tensor:
     return out
 
 
-def extract_kernel(full: Tensor, kernel_shape: tuple[int, int]) -> Tensor:
-    """Adjoint of :func:`embed_kernel`: the centred ``(..., Hk, Wk)`` window of ``full``."""
-    row, col = kernel_origin(kernel_shape)
-    # the window's wrapped rows, then columns (a roll of the whole grid copied all of it)
-    rows = wrapped_slice(full, -row, kernel_shape[0], -2)
-    return wrapped_slice(rows, -col, kernel_shape[1], -1)
-
-
 def kernels_from_spectra(spectra: Tensor, grid_shape: tuple[int, int],
                          kernel_shape: tuple[int, int]) -> Tensor:
-    """``extract_kernel(irfft2(spectra), kernel_shape)``, inverting only the window's rows and
+    """The centred ``(..., Hk, Wk)`` window of ``irfft2(spectra)``, inverting only its rows and
     columns (:func:`irfft2` with a wrapped block)."""
     row, col = kernel_origin(kernel_shape)
     return irfft2(spectra, grid_shape, kernel_shape, start=(-row, -col))
@@ -202,14 +194,8 @@ def eigen_kernel_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
     Tensor
         Measurement ``(B, C, H', W')``.
     """
-    sensor = (x.shape[-2], x.shape[-1])
-    graph = records_model_graph(x, spectra, weights)
-    ws = None if graph else workspace
-    if convention == "sensor" or weights is None:
-        return fan_out(_spectrum_of_corner(x, grid_shape, ws), spectra, weights, grid_shape,
-                        sensor, graph)
-    return fan_in(lambda k: _spectrum_of_corner(x, grid_shape, ws, weights[k]), spectra,
-                   grid_shape, sensor, graph)
+    return _eigen_kernels(x, spectra, weights, grid_shape, workspace,
+                          weighted_input=convention != "sensor")
 
 
 def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None,
@@ -227,14 +213,22 @@ def eigen_kernel_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
     Shapes as in :func:`eigen_kernel_forward`, but ``conj_spectra`` are the conjugated spectra,
     materialised (``spectra.conj().resolve_conj()``, once per forward pass).
     """
-    sensor = (y.shape[-2], y.shape[-1])
-    graph = records_model_graph(y, conj_spectra, weights)
+    return _eigen_kernels(y, conj_spectra, weights, grid_shape, workspace,
+                          weighted_input=convention == "sensor")
+
+
+def _eigen_kernels(t: Tensor, spectra: Tensor, weights: Tensor | None,
+                   grid_shape: tuple[int, int], workspace: Tensor | None,
+                   weighted_input: bool) -> Tensor:
+    """``A`` or ``Aᵀ``: K weighted inputs and 1 inverse FFT, or 1 input and K inverse FFTs."""
+    sensor = (t.shape[-2], t.shape[-1])
+    graph = records_model_graph(t, spectra, weights)
     ws = None if graph else workspace
-    if convention == "sensor" and weights is not None:
-        return fan_in(lambda k: _spectrum_of_corner(y, grid_shape, ws, weights[k]),
-                       conj_spectra, grid_shape, sensor, graph)
-    return fan_out(_spectrum_of_corner(y, grid_shape, ws), conj_spectra, weights,
-                    grid_shape, sensor, graph)
+    if weighted_input and weights is not None:
+        return fan_in(lambda k: _spectrum_of_corner(t, grid_shape, ws, weights[k]), spectra,
+                      grid_shape, sensor, graph)
+    return fan_out(_spectrum_of_corner(t, grid_shape, ws), spectra, weights, grid_shape,
+                   sensor, graph)
 
 
 def records_model_graph(t: Tensor, spectra: Tensor, weights: Tensor | None) -> bool:

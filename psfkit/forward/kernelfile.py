@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from psfkit.errors import ModelFileError, PsfkitError
-from psfkit.forward.geometry import CONVENTIONS, padded_shape
+from psfkit.forward.geometry import CONVENTIONS
 from psfkit.forward.kernel_checks import (
     KERNEL_ORIGIN,
     check_declared_members,
@@ -248,11 +248,6 @@ class KernelModel:
     @property
     def kernel_names(self) -> tuple[str, ...]:
         return self.weight_basis.kernel_names
-
-    @property
-    def padded_shape(self) -> tuple[int, int]:
-        """Size of the convolution grid (:func:`psfkit.forward.geometry.padded_shape`)."""
-        return padded_shape(self.sensor_shape, self.scene_padding)
 
     def weight_maps(self, extent: tuple[int, int] | None = None) -> np.ndarray:
         """``(K, H', W')`` float64 weights (of sensor or scene pixels, per ``convention``), or on a

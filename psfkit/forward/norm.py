@@ -22,7 +22,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -36,9 +36,11 @@ NORM_MAX_ITERATIONS = 300
 
 
 class OperatorLike(Protocol):
-    """Anything with ``A`` and its exact adjoint ``A_adjoint``."""
+    """Anything with ``A``, its exact adjoint ``A_adjoint`` and ``A``'s input shape."""
 
     def A(self, x: Tensor) -> Tensor: ...
+
+    def domain_shape(self) -> tuple[int, ...]: ...
 
     def A_adjoint(self, y: Tensor) -> Tensor: ...
 
@@ -119,14 +121,6 @@ def _settled(changes: list[float], tol: float) -> bool:
     return rho < 1 and changes[-1] * rho / (1 - rho) < tol and changes[-1] < tol
 
 
-def _scene_shape(op: Any) -> tuple[int, ...]:
-    """``(1, C, H, W)`` of ``op``'s scene: its ``scene_shape`` if it has one, else the sensor."""
-    grid = getattr(op, "scene_shape", None)
-    if grid is not None:
-        return (1, int(op.channels), *grid)
-    return (1, int(op.channels), *op.sensor_shape)
-
-
 def operator_norm(op: OperatorLike, shape: tuple[int, ...] | None = None,
                   dtype: torch.dtype | None = None, tol: float = NORM_TOLERANCE,
                   max_iterations: int = NORM_MAX_ITERATIONS, seed: int = 0) -> float:
@@ -136,8 +130,7 @@ def operator_norm(op: OperatorLike, shape: tuple[int, ...] | None = None,
     ----------
     op : object with ``A`` and ``A_adjoint``
     shape : tuple of int, optional
-        Scene shape ``(B, C, H, W)``; default ``(1, op.channels, *op.scene_shape)`` or
-        ``op.sensor_shape``.
+        Scene shape ``(B, C, H, W)``; default ``op.domain_shape()``.
     dtype : torch.dtype, optional
         Default ``op.dtype``.
     tol, max_iterations, seed
@@ -148,7 +141,7 @@ def operator_norm(op: OperatorLike, shape: tuple[int, ...] | None = None,
     float
         The estimate of ``‖A‖`` (within about ``tol``, from below).
     """
-    shape = tuple(shape) if shape is not None else _scene_shape(op)
+    shape = tuple(shape) if shape is not None else op.domain_shape()
     dtype = dtype or op.dtype
     key = (shape, dtype, tol, max_iterations, seed)
     cache: dict = op.__dict__.setdefault("_operator_norm_cache", {})

@@ -53,29 +53,6 @@ def kernel_model_tensors(model: KernelFileModel, dtype: torch.dtype = torch.floa
 _REAL_DTYPE = {torch.complex64: torch.float32, torch.complex128: torch.float64}
 
 
-class PaddingWorkspace:
-    """A zero-padded FFT input array ``(..., PH, PW)`` reused across calls outside autograd.
-
-    Inputs are written into its top-left block (zero elsewhere) instead of every FFT allocating a
-    padded copy; :meth:`for_input` returns ``None`` under autograd.
-    """
-
-    def __init__(self, grid_shape: tuple[int, int]) -> None:
-        self.grid_shape = (int(grid_shape[0]), int(grid_shape[1]))
-        self._array: Tensor | None = None
-
-    def for_input(self, t: Tensor, spectra: Tensor) -> Tensor | None:
-        """The workspace for inputs shaped like ``t`` (reallocated on a new leading shape, dtype or
-        device), or ``None`` when autograd records ``t`` or ``spectra``."""
-        if records_graph(t, spectra):
-            return None
-        ws = self._array
-        if ws is None or ws.shape[:-2] != t.shape[:-2] or ws.dtype != t.dtype \
-                or ws.device != t.device:
-            ws = self._array = zero_workspace(t, self.grid_shape)
-        return ws
-
-
 class SpectralOperator(LinearOperator):
     """An eigen-kernel operator (Eq. 7, either convention) bound to kernel spectra.
 
@@ -107,7 +84,7 @@ class SpectralOperator(LinearOperator):
         self.convention = convention
         self.channels = int(spectra.shape[1])
         self.dtype = _REAL_DTYPE[spectra.dtype]
-        self._workspace = PaddingWorkspace(self.grid_shape)
+        self._workspace: Tensor | None = None
 
     @property
     def device(self) -> torch.device:
@@ -138,40 +115,36 @@ class SpectralOperator(LinearOperator):
         return cls(spectra, weights, sensor, grid, model.convention,
                    spectra.conj().resolve_conj())
 
+    def _workspace_for(self, t: Tensor) -> Tensor | None:
+        """A zero-padded FFT input ``(..., PH, PW)`` reused across calls (reallocated on a new
+        leading shape, dtype or device); ``None`` when autograd records ``t`` or the spectra."""
+        if records_graph(t, self.spectra):
+            return None
+        ws = self._workspace
+        if ws is None or ws.shape[:-2] != t.shape[:-2] or ws.dtype != t.dtype \
+                or ws.device != t.device:
+            ws = self._workspace = zero_workspace(t, self.grid_shape)
+        return ws
+
     def forward(self, x: Tensor) -> Tensor:
         """``y = A x``, ``(B, C, H', W')`` → ``(B, C, H', W')``."""
         return eigen_kernel_forward(x, self.spectra, self.weights, self.grid_shape,
-                                    self.convention, self._workspace.for_input(x, self.spectra))
+                                    self.convention, self._workspace_for(x))
 
     def adjoint(self, y: Tensor) -> Tensor:
         """``x = Aᵀ y``, ``(B, C, H', W')`` → ``(B, C, H', W')``."""
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
-                                    self.convention, self._workspace.for_input(y, self.spectra))
+                                    self.convention, self._workspace_for(y))
 
-    def A(self, x: Tensor) -> Tensor:
-        """Same as :meth:`forward` (subclasses check their input first)."""
-        return self.forward(x)
-
-    def A_adjoint(self, y: Tensor) -> Tensor:
-        """Same as :meth:`adjoint`."""
-        return self.adjoint(y)
+    A = forward                 # (ekdun's subclass checks its input first)
+    A_adjoint = adjoint
 
 
 class PaddedSceneOperator(LinearOperator):
-    r"""``A`` and ``Aᵀ`` of an eigen-kernel model with the scene on the whole padded grid.
-
-    A measurement also records light from outside the ``H' × W'`` view, so the classical solvers
-    solve on the padded grid:
-
-    .. math::
-
-        \text{sensor:}\quad A x = \sum_k W_k \odot \mathrm{crop}(K_k \circledast x),
-        \qquad
-        \text{source:}\quad A x = \mathrm{crop}\Big(\sum_k K_k \circledast
-        (V_k \odot x)\Big)
-
-    with ``V_k`` the source-side weights on the whole grid, edge-continued outside the view. For a
-    scene zero outside the view ``A pad(x)`` equals :class:`SpectralOperator`'s ``A x``.
+    """``A`` and ``Aᵀ`` of an eigen-kernel model with the scene on the whole padded grid
+    (:func:`~psfkit.forward.padded_scene.padded_scene_forward`: a measurement also records
+    light from outside the view, so the classical solvers solve on the padded grid). For a scene
+    zero outside the view ``A pad(x)`` equals :class:`SpectralOperator`'s ``A x``.
 
     Parameters
     ----------
@@ -198,7 +171,6 @@ class PaddedSceneOperator(LinearOperator):
         self.base = base
         self.sensor_shape = base.sensor_shape
         self.grid_shape = base.grid_shape
-        self.scene_shape = base.grid_shape          # the scene lives on the whole padded grid
         self.device = base.device
         self.channels = base.channels
         self.dtype = base.dtype

@@ -22,16 +22,11 @@ from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.geometry import centre_offset
 
 
-def _to_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
-    """Circularly shift a padded-grid array so that its centred view block is top-left."""
+def _to_corner(z: Tensor, sensor_shape: tuple[int, int], back: bool = False) -> Tensor:
+    """Circularly shift a padded-grid array so that its centred view block is top-left (with
+    ``back``: the inverse and adjoint shift)."""
     top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
-    return torch.roll(z, shifts=(-top, -left), dims=(-2, -1))
-
-
-def _from_corner(z: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
-    """Inverse (and adjoint) of :func:`_to_corner`."""
-    top, left = centre_offset(sensor_shape, tuple(z.shape[-2:]))
-    return torch.roll(z, shifts=(top, left), dims=(-2, -1))
+    return torch.roll(z, shifts=(top, left) if back else (-top, -left), dims=(-2, -1))
 
 
 def padded_scene_forward(x: Tensor, spectra: Tensor, weights: Tensor | None,
@@ -98,7 +93,7 @@ def padded_scene_adjoint(y: Tensor, conj_spectra: Tensor, weights: Tensor | None
         scene_weights = None if weights is None else _to_corner(weights, sensor)
         corner = fan_out(rfft2(y, grid_shape), conj_spectra, scene_weights, grid_shape,
                           grid_shape, graph)
-    return _from_corner(corner, sensor)
+    return _to_corner(corner, sensor, back=True)
 
 
 def kernel_images(scene_spectrum: Tensor, spectra: Tensor, grid_shape: tuple[int, int],

@@ -23,7 +23,7 @@ from psfkit import __version__
 from psfkit.compare import KernelComparison
 from psfkit.io.atomic import atomic_directory
 from psfkit.report.figures.compare import figure_displacements, figure_learned_vs_measured
-from psfkit.report.figures.style import png_base64, save_figure
+from psfkit.report.figures.style import save_figure, write_figures
 from psfkit.report.html import figures_html, grid_table, html_page, html_table
 
 FIGURES = (
@@ -133,11 +133,7 @@ def write_comparison(comparison: KernelComparison, out_dir: str | os.PathLike,
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         fig_dir = tmp / "figures"
-        fig_dir.mkdir()
-        embedded = []
-        for stem, caption, fig in comparison_figures(comparison):
-            save_figure(fig, fig_dir / stem)
-            embedded.append((stem, caption, png_base64(fig, dpi=120)))
+        embedded = write_figures(fig_dir, comparison_figures(comparison), dpi=120)
         for stem, fig in extra_figures:
             save_figure(fig, fig_dir / stem)
         doc = comparison.to_dict()

@@ -171,18 +171,14 @@ def write_report(result: GridCharacterization, out_dir: str | os.PathLike,
     """Write figures, JSON, CSV and the HTML report into ``out_dir`` (atomically)."""
     # matplotlib loads only when a report is drawn (not for `psfkit characterize --help`)
     from psfkit.report import figures as fig_module
+    from psfkit.report.figures.style import write_figures
 
     out_dir = Path(out_dir)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
-        fig_dir = tmp / "figures"
-        fig_dir.mkdir()
-        embedded = []
-        for stem, caption, fn_name in FIGURES:
-            if fn_name in ("figure_warp", "figure_warp_summary") and not result.flows:
-                continue
-            fig = getattr(fig_module, fn_name)(result)
-            fig_module.save_figure(fig, fig_dir / stem)
-            embedded.append((stem, caption, fig_module.png_base64(fig, dpi=150)))
+        figures = ((stem, caption, getattr(fig_module, fn_name)(result))
+                   for stem, caption, fn_name in FIGURES
+                   if result.flows or fn_name not in ("figure_warp", "figure_warp_summary"))
+        embedded = write_figures(tmp / "figures", figures, dpi=150)
         doc = results_document(result)
         (tmp / "results.json").write_text(
             dumps_finite(doc, str(Path(out_dir) / "results.json"), indent=1) + "\n",

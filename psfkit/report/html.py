@@ -71,18 +71,16 @@ def figures_html(figures: list[tuple[str, str, str]]) -> str:
         f"</figcaption></figure>" for stem, caption, data in figures)
 
 
-def estimate_html(estimate: dict[str, Any] | None, spec: str = ".4g", unit: str = "") -> Html:
+def estimate_html(estimate: dict[str, Any] | None, spec: str = ".4g") -> Html:
     """An ``Estimate.to_dict()`` as a table cell: ``value ± sigma`` when significant, else greyed
     ``not detected`` (number in small print, z and p as tooltip) or ``not determined`` (the
     reason as tooltip)."""
     if not estimate:
         return Html("<span class='nd'>not measured</span>")
-    unit = f" {html.escape(unit)}" if unit else ""
     if estimate.get("status") == "not determined" or estimate.get("value") is None:
         reason = html.escape(str(estimate.get("reason", "")), quote=True)
         return Html(f"<span class='nd' title='{reason}'>not determined</span>")
-    number = (f"{format(estimate['value'], spec)} ± {format(estimate['sigma'], spec)}"
-              f"{unit}")
+    number = f"{format(estimate['value'], spec)} ± {format(estimate['sigma'], spec)}"
     if estimate.get("significant"):
         return Html(html.escape(number))
     z, p = estimate.get("z"), estimate.get("p_value")

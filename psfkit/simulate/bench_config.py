@@ -4,7 +4,7 @@ ranges apply wherever a value comes from) and its dictionary form for run files.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 
 from psfkit.errors import ConfigurationError, PsfkitError
 from psfkit.io.flag_ranges import flag_range
@@ -99,9 +99,8 @@ class BenchConfig:
                 raise ConfigurationError(str(exc)) from None
 
     def _check_optics(self) -> None:
-        positive = ["diffusion_angle_deg", "gap_mm", "monitor_distance_mm",
-                    "monitor_pixel_pitch_mm", "pixel_pitch_um", "peak_fraction"]
-        for name in positive:
+        # (the flags' ranges already require a positive angle, gap and peak fraction)
+        for name in ("monitor_distance_mm", "monitor_pixel_pitch_mm", "pixel_pitch_um"):
             if not getattr(self, name) > 0:
                 raise ConfigurationError(f"{name} must be positive, got {getattr(self, name)}")
         if self.refractive_index <= 1.0:
@@ -126,13 +125,8 @@ class BenchConfig:
 
     def to_dict(self) -> dict:
         """JSON-friendly description of every parameter."""
-        out = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, SensorModel):
-                value = {g.name: getattr(value, g.name) for g in fields(value)}
-            out[f.name] = list(value) if isinstance(value, tuple) else value
-        return out
+        return {name: list(value) if isinstance(value, tuple) else value
+                for name, value in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, data: dict) -> BenchConfig:

@@ -270,9 +270,16 @@ class VirtualCamera:
         alpha, beta, _ = self.direction_cosines(field_deg)
         scale = self.gain(field_deg) / self._aperture_power
         blur_px = self.source_blur_um() / self.pixel_um
-        if self._torch is not None:
-            return self._torch_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
-        return self._numpy_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+        if self._torch is None:
+            return self._numpy_patch(field_deg, alpha, beta, residual_um, scale, blur_px)
+        from psfkit.simulate.propagation_torch import to_numpy
+
+        out = self._torch.intensity(self._source_position_um(field_deg), alpha, beta,
+                                    residual_um)
+        out *= scale
+        if blur_px > 0:
+            out = self._torch.box_blur(out, blur_px)
+        return to_numpy(out)
 
     def _numpy_patch(self, field_deg: tuple[float, float], alpha: float, beta: float,
                      residual_um: tuple[float, float], scale: float, blur_px: float
@@ -290,20 +297,6 @@ class VirtualCamera:
             intensity = bin_image(np.abs(field_at_sensor) ** 2, self.oversample, exact=True)
             out[c] = intensity * scale
         return box_blur(out, blur_px) if blur_px > 0 else out
-
-    def _torch_patch(self, field_deg: tuple[float, float], alpha: float, beta: float,
-                     residual_um: tuple[float, float], scale: float, blur_px: float
-                     ) -> np.ndarray:
-        """The block's ``(C, h, w)`` PSF with batched float32 FFTs in torch."""
-        from psfkit.simulate.propagation_torch import to_numpy
-
-        optics = self._torch
-        assert optics is not None
-        out = optics.intensity(self._source_position_um(field_deg), alpha, beta, residual_um)
-        out *= scale
-        if blur_px > 0:
-            out = optics.box_blur(out, blur_px)
-        return to_numpy(out)
 
     def psf(self, field_deg: tuple[float, float]) -> np.ndarray:
         """Noise-free PSF on the sensor, ``(C, H, W)`` float32, relative irradiance."""

@@ -41,13 +41,6 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
-def default_device() -> str:
-    """``"cuda"`` when a CUDA device is available, else ``"cpu"``."""
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 @contextmanager
 def cpu_threads(n: int) -> Iterator[None]:
     """Run torch's CPU operators on ``n`` threads, then restore the previous count (set once per
@@ -82,7 +75,7 @@ class TorchOptics:
     spherical : bool
         Spherical (True) or plane (False) incident wave.
     device : str, optional
-        Default :func:`default_device`.
+        Default CUDA where available, else the CPU.
     """
 
     def __init__(self, x_um: np.ndarray, y_um: np.ndarray, surface_opl_um: np.ndarray,
@@ -92,7 +85,7 @@ class TorchOptics:
         import torch
 
         self.torch = torch
-        self.device = torch.device(device or default_device())
+        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.gap_um, self.z_um, self.pitch_um = gap_um, z_um, pitch_um
         self.oversample, self.spherical = oversample, spherical
         self.wavelengths_um = tuple(wavelengths_um)

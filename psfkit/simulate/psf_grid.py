@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,17 +51,14 @@ def grid_monitor_positions(config: BenchConfig, grid_shape: tuple[int, int],
     return np.stack([xx, yy], axis=-1)
 
 
-@contextmanager
-def _optics_threads(camera: VirtualCamera) -> Iterator[None]:
+def _optics_threads(camera: VirtualCamera) -> AbstractContextManager[None]:
     """One torch thread for a torch-backend CPU camera during a grid: the FFTs run in scipy on all
     cores, and a second OpenMP thread costs far more than it gains next to the writer thread."""
     if camera.backend == "torch" and camera.device_type == "cpu":
         from psfkit.simulate.propagation_torch import cpu_threads
 
-        with cpu_threads(1):
-            yield
-    else:
-        yield
+        return cpu_threads(1)
+    return nullcontext()
 
 
 def exposure_scale(camera: VirtualCamera, on_axis_psf: np.ndarray) -> float:
@@ -139,25 +135,6 @@ def simulate_scan(out_dir: str | os.PathLike, monitor_px: np.ndarray,
                      progress, backend, frames)
 
 
-class _NoCleanFile:
-    """Where the clean PSFs go when ``psfs_clean.npy`` is not written: nowhere."""
-
-    def __setitem__(self, index: Any, value: np.ndarray) -> None:
-        pass
-
-    def flush(self) -> None:
-        pass
-
-
-def _clean_store(truth_dir: Path, shape: tuple[int, ...], write: bool
-                 ) -> np.ndarray | _NoCleanFile:
-    """The memory-mapped ``psfs_clean.npy``, or without ``write`` a sink."""
-    if not write:
-        return _NoCleanFile()
-    return np.lib.format.open_memmap(truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
-                                     shape=shape)
-
-
 def _checked_frames(frames: int, suffix: str) -> int:
     """The frames averaged per position: an integer >= 1, and 1 for PNG (a mean is float data)."""
     if isinstance(frames, bool) or int(frames) != frames or frames < 1:
@@ -168,17 +145,12 @@ def _checked_frames(frames: int, suffix: str) -> int:
     return int(frames)
 
 
-def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
-              scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
-              backend: str, frames: int, write_clean: bool = True,
-              run_file: dict[str, Any] | None = None) -> Path:
-    """:func:`simulate_grid` and :func:`simulate_scan` at ``(N, M, 2)`` monitor positions."""
-    frames = _checked_frames(frames, suffix)
-    n_rows, n_cols = grid_shape = monitor.shape[:2]
-    sensor = config.sensor
+def _grid_header(config: BenchConfig, frames: int, run_file: dict[str, Any] | None
+                 ) -> dict[str, Any]:
+    """The simulated grid's header fields: sensor, monitor and how it was simulated."""
     header: dict[str, Any] = {
-        "bit_depth": sensor.bit_depth,
-        "black_level": sensor.black_level,
+        "bit_depth": config.sensor.bit_depth,
+        "black_level": config.sensor.black_level,
         "monitor": {"distance_mm": config.monitor_distance_mm,
                     "pixel_pitch_mm": config.monitor_pixel_pitch_mm},
         "simulation": {"generator": "psfkit virtual bench", "seed": config.seed,
@@ -188,6 +160,18 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         header["simulation"]["frames_averaged"] = frames
     if run_file is not None:
         header["simulation"]["run_file"] = run_file
+    return header
+
+
+def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarray,
+              scan: bool, dark_frame: bool, suffix: str, overwrite: bool, progress: bool,
+              backend: str, frames: int, write_clean: bool = True,
+              run_file: dict[str, Any] | None = None) -> Path:
+    """:func:`simulate_grid` and :func:`simulate_scan` at ``(N, M, 2)`` monitor positions."""
+    frames = _checked_frames(frames, suffix)
+    n_rows, n_cols = grid_shape = monitor.shape[:2]
+    sensor = config.sensor
+    header = _grid_header(config, frames, run_file)
     truth_positions = []
     # Enter the writer first: an existing output folder is reported before any work.
     with GridWriter(out_dir, None if scan else grid_shape, suffix=suffix, overwrite=overwrite,
@@ -208,8 +192,9 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
         h, w = camera.sensor_shape
         truth_dir = writer.folder / TRUTH_DIR
         truth_dir.mkdir()
-        clean = _clean_store(truth_dir, (n_rows, n_cols, len(camera.channels), h, w),
-                             write_clean)
+        clean = np.lib.format.open_memmap(
+            truth_dir / CLEAN_FILE, mode="w+", dtype=np.float32,
+            shape=(n_rows, n_cols, len(camera.channels), h, w)) if write_clean else None
         indices = [(r, c) for r in range(n_rows) for c in range(n_cols)]
         iterator: Any = indices
         if progress:
@@ -218,10 +203,11 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
             iterator = tqdm(indices, desc="simulating PSF grid", unit="psf")
 
         def finish(r: int, c: int, field: tuple[float, float], electrons: np.ndarray,
-                   clean: np.ndarray | _NoCleanFile) -> None:
+                   clean: np.ndarray | None) -> None:
             """Capture, write and record one position (in order: the noise stream is shared)."""
             raw, saturated = capture(electrons)
-            clean[r, c] = sensor.expected_file_units(electrons)   # as CleanPsfs computes it
+            if clean is not None:
+                clean[r, c] = sensor.expected_file_units(electrons)   # as CleanPsfs computes it
             fields = {"monitor_px": tuple(monitor[r, c]), "field_deg": field,
                       "exposure_s": NOMINAL_EXPOSURE_S}
             if scan:
@@ -249,7 +235,8 @@ def _simulate(out_dir: str | os.PathLike, config: BenchConfig, monitor: np.ndarr
                 pending = pool.submit(finish, r, c, field, electrons, clean)
             if pending is not None:
                 pending.result()
-        clean.flush()
+        if clean is not None:
+            clean.flush()
         del clean
         if dark_frame:
             writer.add_dark(capture(np.zeros((len(camera.channels), h, w)))[0])

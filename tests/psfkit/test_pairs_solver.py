@@ -19,10 +19,11 @@ from psfkit.fitting.pairs.constraints import (
 from psfkit.fitting.pairs.fit import START_TOLERANCE, PairFitOptions, fit_pairs, predict
 from psfkit.fitting.pairs.gram import FrequencyGram
 from psfkit.fitting.pairs.solver import regularised_normal, solve_kernels
-from psfkit.forward.convolution import extract_kernel, kernel_spectra
+from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
+from tests.helpers.operators import extract_kernel
 from tests.helpers.pairs import kkt_residual
 
 

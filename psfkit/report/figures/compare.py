@@ -13,9 +13,10 @@ from matplotlib.image import AxesImage
 
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
+from psfkit.calibration.warp import _bounding_box
 from psfkit.compare.displacement import DisplacementMap
 from psfkit.compare.results import KernelComparison
-from psfkit.report.figures.eigen import _crop_box, _zoom, difference_limit, draw_kernels
+from psfkit.report.figures.eigen import _zoom, difference_limit, draw_kernels
 from psfkit.report.figures.style import PAGE_IN, new_figure, no_ticks, publication_style
 
 
@@ -96,13 +97,18 @@ def quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax
     return im
 
 
+def arrow_grid(mask: np.ndarray, arrows: int) -> tuple[tuple[slice, slice], int]:
+    """The box of a caustic ``(H, W)`` bool ``mask`` (2 px margin) and the spacing (px, at
+    least 2) of about ``arrows`` arrows across it."""
+    box = _bounding_box(mask, margin=2)
+    return box, max(2, max(box[0].stop - box[0].start, box[1].stop - box[1].start) // arrows)
+
+
 def figure_displacements(comparison: KernelComparison, arrows: int = 14) -> Figure:
     """Displacement maps of ``K_k`` relative to ``K_base`` (colour: length in px; arrows:
     direction), one row per correction kernel: learned, initial, measured, warp-predicted."""
     names = list(comparison.kernel_names[1:])
-    box = _crop_box(np.where(comparison.mask, 1.0, 0.0), level=0.5, margin=2)
-    span = max(box[0].stop - box[0].start, box[1].stop - box[1].start)
-    step = max(2, span // arrows)
+    box, step = arrow_grid(comparison.mask, arrows)
     rows = []
     for name in names:
         maps: dict[str, DisplacementMap | None] = {

@@ -26,8 +26,7 @@ from psfkit.report.figures.style import (
     fitted,
     new_figure,
     no_ticks,
-    psf_cmap,
-    psf_norm,
+    psf_image,
     publication_style,
 )
 
@@ -35,16 +34,6 @@ from psfkit.report.figures.style import (
 ONE_ROW_KERNELS = 4
 #: panels per row of a wrapped Fig. 7 or Fig. 3
 WRAP = 6
-
-
-def _crop_box(image: np.ndarray, level: float = 0.02, margin: int = 4) -> tuple[slice, slice]:
-    """Bounding box of the pixels above ``level`` × the maximum of a mask or noiseless map, with
-    ``margin`` px."""
-    rows, cols = np.nonzero(image > level * image.max())
-    if rows.size == 0:
-        return slice(None), slice(None)
-    return (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
-            slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
 
 
 def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
@@ -80,7 +69,7 @@ def draw_kernels(kernel_axes: Sequence[Axes], diff_axes: Sequence[Axes], lum: np
     limit = limit or difference_limit(lum)
     for i in range(k):
         ax = kernel_axes[i]
-        ax.imshow(lum[i] / peak, cmap=psf_cmap(), norm=psf_norm())
+        psf_image(ax, lum[i] / peak)
         ax.set_title(f"K_{names[i]}" if titles else "")
         no_ticks(ax)           # (the axis stays: a row label may be set on it)
     cmap = matplotlib.colormaps["RdBu_r"]
@@ -182,18 +171,13 @@ def figure_weight_maps(basis_name: str, sensor_shape: tuple[int, int]) -> Figure
     return fig
 
 
-def _cv_sigma(cv: dict[str, Any]) -> dict[str, float] | None:
-    """1σ of each candidate's held-out error, where the cross-validation provides it."""
-    for key in ("held_out_relative_error_sigma", "held_out_relative_error_std"):
-        if isinstance(cv.get(key), dict):
-            return cv[key]
-    return None
-
-
 def _cv_panel(ax: Axes, cv: dict[str, Any]) -> None:
     errors = cv["held_out_relative_error"]
     names = list(errors)
-    sigma = _cv_sigma(cv)
+    # 1σ of each candidate's held-out error, where the cross-validation provides it
+    sigma = next((cv[key] for key in ("held_out_relative_error_sigma",
+                                      "held_out_relative_error_std")
+                  if isinstance(cv.get(key), dict)), None)
     bar_colours = ["0.6" if n == "centre PSF only" else
                    ("C0" if n.endswith("/sensor") else "C1") for n in names]
     xerr = [sigma.get(n, 0.0) for n in names] if sigma else None

@@ -18,8 +18,7 @@ from psfkit.report.figures.style import (
     PAGE_IN,
     new_figure,
     no_ticks,
-    psf_cmap,
-    psf_norm,
+    psf_image,
     publication_style,
 )
 
@@ -88,7 +87,7 @@ def figure_montage(result: GridCharacterization) -> Figure:
                 ax.set_visible(False)
                 continue
             r, c = cells[i]
-            im = ax.imshow(thumbs[r, c] / peak, cmap=psf_cmap(), norm=psf_norm())
+            im = psf_image(ax, thumbs[r, c] / peak)
             if irregular:
                 ax.set_title(field_label(result, r, c).strip("()"), fontsize=7, pad=2)
             else:

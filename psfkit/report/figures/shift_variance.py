@@ -15,8 +15,7 @@ from psfkit.report.figures.style import (
     PAGE_IN,
     new_figure,
     no_ticks,
-    psf_cmap,
-    psf_norm,
+    psf_image,
     publication_style,
 )
 
@@ -45,7 +44,7 @@ def figure_shift_variance(result: GridCharacterization) -> Figure:
         fig = new_figure(PAGE_IN, 2.7)
         axes = fig.subplots(1, 2 + 2 * n_off, width_ratios=[1] * (1 + 2 * n_off) + [1.7])
         for ax, (img, title) in zip(axes[:1 + n_off], panels, strict=True):
-            im = ax.imshow(img / peak, cmap=psf_cmap(), norm=psf_norm())
+            im = psf_image(ax, img / peak)
             ax.set_title(title)
             no_ticks(ax)
         fig.colorbar(im, ax=list(axes[:1 + n_off]), location="bottom", shrink=0.8,

@@ -10,15 +10,17 @@ import base64
 import contextlib
 import io
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import matplotlib
+import numpy as np
 from matplotlib import colors
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
 from matplotlib.ticker import MaxNLocator
 
 from psfkit.io.atomic import atomic_file
@@ -49,15 +51,12 @@ COLUMN_IN, PAGE_IN = 3.5, 7.2
 OFF_SENSOR, NOT_SIGNIFICANT = "#b9c9de", "0.6"
 
 
-def psf_cmap() -> colors.Colormap:
-    """Grey scale for PSFs; NaN (off the sensor) pale blue."""
-    return matplotlib.colormaps["gray"].with_extremes(bad=OFF_SENSOR)
-
-
-def psf_norm(peak: float = 1.0) -> colors.PowerNorm:
-    """Square-root scale from 0 to ``peak`` (caustics span a large dynamic range); its colour
-    bar shows the intensities themselves."""
-    return colors.PowerNorm(0.5, vmin=0.0, vmax=peak if peak > 0 else 1.0)
+def psf_image(ax: Axes, image: np.ndarray, **imshow: Any) -> AxesImage:
+    """Draw a PSF ``image`` (fractions of a peak) in grey on a square-root scale from 0 to 1
+    (caustics span a large dynamic range; its colour bar shows the intensities themselves),
+    NaN (off the sensor) pale blue."""
+    return ax.imshow(image, cmap=matplotlib.colormaps["gray"].with_extremes(bad=OFF_SENSOR),
+                     norm=colors.PowerNorm(0.5, vmin=0.0, vmax=1.0), **imshow)
 
 
 @dataclass(frozen=True)
@@ -139,16 +138,27 @@ def new_figure(width_in: float, height_in: float) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, stem: str | Path, formats: tuple[str, ...] = ("png", "pdf")
-                ) -> list[Path]:
+def save_figure(fig: Figure, stem: str | Path) -> list[Path]:
     """Write ``stem.png`` and ``stem.pdf`` atomically; returns the paths."""
     paths = []
-    for fmt in formats:
+    for fmt in ("png", "pdf"):
         path = Path(f"{stem}.{fmt}")
         with publication_style(), atomic_file(path) as tmp:
             fig.savefig(tmp, format=fmt)
         paths.append(path)
     return paths
+
+
+def write_figures(folder: Path, figures: Iterable[tuple[str, str, Figure]], dpi: int
+                  ) -> list[tuple[str, str, str]]:
+    """Save each ``(stem, caption, figure)`` in a new ``folder`` (:func:`save_figure`); returns
+    ``(stem, caption, base64 PNG at dpi)`` of each for the HTML page."""
+    folder.mkdir()
+    embedded = []
+    for stem, caption, fig in figures:
+        save_figure(fig, folder / stem)
+        embedded.append((stem, caption, png_base64(fig, dpi)))
+    return embedded
 
 
 def no_ticks(ax: Axes) -> None:

@@ -21,8 +21,7 @@ from psfkit.report.figures.style import (
     fitted,
     new_figure,
     no_ticks,
-    psf_cmap,
-    psf_norm,
+    psf_image,
     publication_style,
 )
 
@@ -61,8 +60,7 @@ def figure_warp(result: GridCharacterization, max_panels: int = 6) -> Figure:
         for ax, p in zip(axes, picks, strict=False):
             flow = result.flows[(p.row, p.col)]
             # the flow lives in the centre PSF's frame (the off-axis PSF is aligned to it)
-            ax.imshow(ref / peak, cmap=psf_cmap(), norm=psf_norm(),
-                      extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
+            psf_image(ax, ref / peak, extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
             uu, vv = _flow_positions(result, flow)
             keep = (flow[2] > 0.2) & (uu >= c0) & (uu < c1) & (vv >= r0) & (vv < r1)
             quiver = ax.quiver(uu[keep], vv[keep], flow[0][keep], -flow[1][keep], color="C1",
