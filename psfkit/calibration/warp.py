@@ -183,7 +183,9 @@ def dense_flow(reference: np.ndarray, moving: np.ndarray, method: str = "dis") -
     return np.stack([u, v]).astype(np.float32)
 
 
-def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+def bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """``(rows, cols)`` slices around ``mask``'s nonzero pixels, ``margin`` px wider on each
+    side, clipped to the image."""
     rows, cols = np.nonzero(mask)
     return (slice(max(rows.min() - margin, 0), min(rows.max() + margin + 1, mask.shape[0])),
             slice(max(cols.min() - margin, 0), min(cols.max() + margin + 1, mask.shape[1])))
@@ -204,7 +206,7 @@ def warp_field(reference: np.ndarray, moving: np.ndarray, valid: np.ndarray | No
     mask = caustic_mask(reference, valid)
     if mask.sum() < 64:
         raise InvalidInputError("too little of the PSF overlaps the reference for a warp field")
-    box = _bounding_box(mask, margin=16)
+    box = bounding_box(mask, margin=16)
     ref = np.where(valid, reference, 0).astype(np.float32)[box]
     mov = np.where(valid, moving, 0).astype(np.float32)[box]
     local, ecc = affine_registration(ref, mov, erode(valid[box], 4))
@@ -251,7 +253,7 @@ def transport_anisotropy(reference: np.ndarray, compensated: np.ndarray, mask: n
     """
     if not mask.any():
         return float("nan")
-    box = _bounding_box(mask, margin=0)
+    box = bounding_box(mask, margin=0)
     ref, mov = reference[box].astype(np.float64), compensated[box].astype(np.float64)
     if min(ref.shape) < 32:
         return float("nan")

@@ -13,7 +13,7 @@ from matplotlib.image import AxesImage
 
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
-from psfkit.calibration.warp import _bounding_box
+from psfkit.calibration.warp import bounding_box
 from psfkit.compare.displacement import DisplacementMap
 from psfkit.compare.results import KernelComparison
 from psfkit.report.figures.eigen import _zoom, difference_limit, draw_kernels
@@ -100,7 +100,7 @@ def quiver_panel(ax: Axes, disp: DisplacementMap, box: tuple[slice, slice], vmax
 def arrow_grid(mask: np.ndarray, arrows: int) -> tuple[tuple[slice, slice], int]:
     """The box of a caustic ``(H, W)`` bool ``mask`` (2 px margin) and the spacing (px, at
     least 2) of about ``arrows`` arrows across it."""
-    box = _bounding_box(mask, margin=2)
+    box = bounding_box(mask, margin=2)
     return box, max(2, max(box[0].stop - box[0].start, box[1].stop - box[1].start) // arrows)
 
 
