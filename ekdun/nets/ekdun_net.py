@@ -58,12 +58,9 @@ class EKDUN(UnrolledNetwork):
                  config.prior.zero_init_output) for _ in range(config.iterations))
         lipschitz = max(physics.lipschitz_bound(), 1e-12)
         dtype = physics.kernels.dtype
-        self.log_eps = nn.Parameter(torch.full(
-            (config.iterations,), math.log(config.step_scale / lipschitz), dtype=dtype))
-        self.log_eta = nn.Parameter(torch.full(
-            (config.iterations,), math.log(config.penalty_scale * lipschitz), dtype=dtype))
-        self.kappa = nn.Parameter(torch.full((config.iterations,), config.kappa_init,
-                                             dtype=dtype))
+        self.log_eps = self.per_iteration(math.log(config.step_scale / lipschitz), dtype)
+        self.log_eta = self.per_iteration(math.log(config.penalty_scale * lipschitz), dtype)
+        self.kappa = self.per_iteration(config.kappa_init, dtype)
         self.kernel_param: nn.Module | None = None
 
     def use_kernel_module(self, module: nn.Module) -> None:

@@ -10,8 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from ekdun.nets.configs import LeADMMUConfig
 from ekdun.nets.tv_admm_steps import (
@@ -44,16 +43,11 @@ class LeADMMU(UnrolledNetwork):
         self.physics = physics
         lipschitz = max(physics.lipschitz_bound(), 1e-12)
         dtype = physics.kernels.dtype
-        n = config.iterations
         mu2 = config.mu2_scale * lipschitz
-
-        def log_param(value: float) -> nn.Parameter:
-            return nn.Parameter(torch.full((n,), math.log(value), dtype=dtype))
-
-        self.log_mu1 = log_param(config.mu1_init)
-        self.log_mu2 = log_param(mu2)
-        self.log_mu3 = log_param(config.mu3_scale * lipschitz)
-        self.log_tau = log_param(config.tau_scale * mu2)
+        self.log_mu1 = self.per_iteration(math.log(config.mu1_init), dtype)
+        self.log_mu2 = self.per_iteration(math.log(mu2), dtype)
+        self.log_mu3 = self.per_iteration(math.log(config.mu3_scale * lipschitz), dtype)
+        self.log_tau = self.per_iteration(math.log(config.tau_scale * mu2), dtype)
         self.register_buffer("tv_spectrum",
                              finite_difference_spectrum(physics.grid_shape, dtype),
                              persistent=False)

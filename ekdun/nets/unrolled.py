@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
@@ -39,6 +40,10 @@ class UnrolledNetwork(nn.Module):
             raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
         self.iterations = int(iterations)
         self.seed_kernels = None
+
+    def per_iteration(self, value: float, dtype: torch.dtype) -> nn.Parameter:
+        """A learned scalar per iteration ``(iterations,)``, each starting at ``value``."""
+        return nn.Parameter(torch.full((self.iterations,), value, dtype=dtype))
 
     def set_seed_kernels(self, seed: KernelModel) -> None:
         """Remember the kernel model the network was built from (validated first:

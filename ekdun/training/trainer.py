@@ -184,10 +184,9 @@ def train(run_dir: str | os.PathLike, model_name: str,
     ckpt_path = run_dir / CHECKPOINT
     overrides = encode_overrides(overrides or {})
     _check_run_folder(run_dir, dataset, resume=resume, overwrite=overwrite)
-    if ctx.distributed:
-        # every rank has checked the folder before the main one writes into it (else another
-        # rank could find the main rank's first files and refuse alone)
-        torch.distributed.barrier()
+    # every rank has checked the folder before the main one writes into it (else another
+    # rank could find the main rank's first files and refuse alone)
+    D.barrier(ctx)
     if cfg.batch_size % ctx.world_size:
         raise ConfigurationError(f"--batch-size {cfg.batch_size} is not divisible by the "
                                  f"{ctx.world_size} processes")
