@@ -176,8 +176,7 @@ def reconstruct_into_folder(args: argparse.Namespace, model: Any, inputs: list[s
 
 def _reconstruct_one(args: argparse.Namespace, out: Path,
                      build: Callable[[], tuple[Any, Any]]) -> None:
-    """Reconstruct the measurement of ``build() -> (model, y)`` into ``out`` (``.npy``) and its
-    preview: both checked first, written together."""
+    """Reconstruct ``build() -> (model, y)`` into ``out`` (.npy) and its preview, together."""
     from ekdun.reconstruction.classical import ModelReconstructor, write_reconstruction
     from psfkit.io import OutputTransaction
 
@@ -246,10 +245,4 @@ def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, fa
     psf = psf_kernel(raw_psf, background, factor, psf_path)
     y = read_classical_measurement(measurement_path, channel_order, factor, background)
     require_finite(y, measurement_path)
-    if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
-        raise InvalidInputError(f"{psf_path}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
-                                f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")
-    if psf.shape[0] not in (1, y.shape[0]):
-        raise InvalidInputError(f"{psf_path}: PSF has {psf.shape[0]} channels, the "
-                                f"measurement {y.shape[0]}")
-    return psf_model(psf, y.shape[-2:], y.shape[0]), y
+    return psf_model(psf, y.shape[-2:], y.shape[0], where=psf_path), y

@@ -118,12 +118,11 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 def _run_network(args: argparse.Namespace) -> int:
     from ekdun.cli.classical_cmd import say_all
+    from ekdun.evaluation.evaluate import checkpoint_path
     from ekdun.reconstruction import reconstruct_files
 
-    model = Path(args.model)
-    checkpoint = model / "checkpoint.pt" if model.is_dir() else model    # a run folder's
     notices: list[str] = []
-    written = reconstruct_files(checkpoint, args.measurements, args.out,
+    written = reconstruct_files(checkpoint_path(args.model), args.measurements, args.out,
                                 args.channel_order, args.device, args.overwrite,
                                 args.amp, downsample=args.downsample, notify=notices.append)
     return say_all(notices, f"{len(written)} reconstruction(s) in {args.out}")

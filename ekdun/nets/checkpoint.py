@@ -93,8 +93,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 
 
 def _check_contents(doc: dict[str, Any], path: Path) -> None:
-    """Refuse metadata sizes that would make the rebuilt network absurd and non-finite
-    weights (one NaN weight turns every reconstruction into NaN)."""
+    """Refuse absurd metadata sizes and non-finite weights (one NaN makes every output NaN)."""
     meta = doc["metadata"]
     if not isinstance(meta, dict):
         raise CheckpointError(f"{path}: checkpoint metadata is not an object")

@@ -253,8 +253,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
 
 def _check_run_folder(run_dir: Path, dataset: Dataset, *, resume: bool,
                       overwrite: bool) -> None:
-    """Refuse a run folder that cannot be resumed, would be overwritten unasked, or overlaps
-    the training data."""
+    """Refuse a folder that cannot be resumed, would be overwritten unasked or holds the data."""
     ckpt_path = run_dir / CHECKPOINT
     if resume and not ckpt_path.is_file():
         raise InvalidInputError(f"{run_dir}: nothing to resume (no {CHECKPOINT})")
