@@ -8,6 +8,7 @@ the reference code: no per-image max normalisation before the U-Net, the shared 
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from typing import Any
 
 from torch import Tensor
@@ -38,9 +39,7 @@ class LeADMMU(UnrolledNetwork):
     def __init__(self, physics: ShiftInvariantOperator,
                  config: LeADMMUConfig | None = None) -> None:
         config = config or LeADMMUConfig()
-        super().__init__(config.iterations)
-        self.config = config
-        self.physics = physics
+        super().__init__(physics, config)
         lipschitz = max(physics.lipschitz_bound(), 1e-12)
         dtype = physics.kernels.dtype
         mu2 = config.mu2_scale * lipschitz
@@ -52,8 +51,7 @@ class LeADMMU(UnrolledNetwork):
                              finite_difference_spectrum(physics.grid_shape, dtype),
                              persistent=False)
         channels = physics.channels
-        self.denoiser = UNet(channels, channels, config.denoiser.widths,
-                             config.denoiser.residual, config.denoiser.zero_init_output)
+        self.denoiser = UNet(channels, channels, **asdict(config.denoiser))
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
         op = self.physics.prepare()
