@@ -1,10 +1,5 @@
-"""``ekdun reconstruct MODEL MEASUREMENT... --out DIR``: one command for every model.
-
-MODEL (:func:`model_kind`) is a checkpoint (``.pt`` or a run folder: the trained network), a
-kernel file (``.npz``: classical ADMM-TV with the model as fitted) or a PSF image (classical
-ADMM-TV with its shift-invariant model). A flag that only acts on the other kind of model is
-refused in one line.
-"""
+"""``ekdun reconstruct MODEL MEASUREMENT... --out DIR``: one command for a checkpoint, a kernel
+file or a PSF image (:func:`model_kind`); a flag of the other kind of model is refused."""
 
 from __future__ import annotations
 
