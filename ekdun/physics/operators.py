@@ -217,9 +217,7 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
         """Exact adjoint ``Aᵀ y``."""
         return self.prepare().A_adjoint(y)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Same as :meth:`A`."""
-        return self.A(x)
+    forward = A
 
     def extra_repr(self) -> str:
         return (f"kernels={tuple(self.kernels.shape)}, sensor={self.sensor_shape}, "
