@@ -1,10 +1,6 @@
-"""Speed options of training and inference: autocast precision, channels_last, torch.compile.
-
-``amp``: ``"bf16"`` or ``"fp16"`` run the network under :func:`torch.autocast`, ``"auto"`` is
-fp16 on CUDA and off elsewhere; the physics FFTs stay float32 either way
-(``tests/ekdun/test_training_speed.py``). ``channels_last`` also stores the convolution
-weights channels-last (default on CUDA only); ``compile`` is ``torch.compile`` of the network.
-"""
+"""The torch device of ``--device`` and the speed options of training and inference:
+autocast precision (the physics FFTs stay float32, ``tests/ekdun/test_training_speed.py``) and
+channels_last."""
 
 from __future__ import annotations
 

@@ -141,7 +141,7 @@ def kernel_file_model(path: str, channel_order: str | None, downsample: int | No
 
 
 def run_with_kernels(args: argparse.Namespace) -> int:
-    from ekdun.reconstruction.classical import read_classical_measurement, reconstruct_folder
+    from ekdun.reconstruction.classical import read_classical_measurement
 
     model, order, factor, white_level, notices = kernel_file_model(
         args.kernels, args.channel_order, args.downsample)
@@ -155,23 +155,28 @@ def run_with_kernels(args: argparse.Namespace) -> int:
             return model, y
 
         _reconstruct_one(args, out, measurement)
-        say_all(notices)
-        return 0
+        return say_all(notices)
     if out.suffix:
         raise InvalidInputError(f"{out}: several measurements need an output folder, not a file")
-    written = reconstruct_folder(model, args.inputs, out, classical_options(args), order,
-                                 args.overwrite, progress=not args.quiet,
-                                 downsample=factor, background=args.background,
-                                 white_level=white_level)
-    print(f"{len(written)} reconstruction(s) in {out}", file=sys.stderr)
-    say_all(notices)
-    return 0
+    return reconstruct_into_folder(args, model, args.inputs, out, order, factor, white_level,
+                                   notices)
+
+
+def reconstruct_into_folder(args: argparse.Namespace, model: Any, inputs: list[str],
+                            out: str | Path, order: str, factor: int,
+                            white_level: float | None, notices: list[str]) -> int:
+    """The classical solver on every measurement of ``inputs``, into the folder ``out``."""
+    from ekdun.reconstruction.classical import reconstruct_folder
+
+    written = reconstruct_folder(model, inputs, out, classical_options(args), order,
+                                 args.overwrite, progress=not args.quiet, downsample=factor,
+                                 background=args.background, white_level=white_level)
+    return say_all(notices, f"{len(written)} reconstruction(s) in {out}")
 
 
 def _reconstruct_one(args: argparse.Namespace, out: Path,
                      build: Callable[[], tuple[Any, Any]]) -> None:
-    """Reconstruct the measurement of ``build() -> (model, y)`` into ``out`` (``.npy``) and its
-    preview: both checked first, written together."""
+    """Reconstruct ``build() -> (model, y)`` into ``out`` (.npy) and its preview, together."""
     from ekdun.reconstruction.classical import ModelReconstructor, write_reconstruction
     from psfkit.io import OutputTransaction
 
@@ -187,10 +192,12 @@ def _reconstruct_one(args: argparse.Namespace, out: Path,
           f"({result.iterations} it, {result.seconds:.1f} s): {out}", file=sys.stderr)
 
 
-def say_all(notices: list[str]) -> None:
-    """Notices after the work, so that an error stays the one line on stderr."""
-    for text in notices:
+def say_all(notices: list[str], done: str = "") -> int:
+    """``done`` (what was written), then the notices, after the work so that an error stays
+    the one line on stderr; the exit status 0."""
+    for text in filter(None, [done, *notices]):
         print(text, file=sys.stderr)
+    return 0
 
 
 def _iteration_bar(total: int):  # a tqdm-driven callback
@@ -238,10 +245,4 @@ def psf_image_model(psf_path: str, measurement_path: str, channel_order: str, fa
     psf = psf_kernel(raw_psf, background, factor, psf_path)
     y = read_classical_measurement(measurement_path, channel_order, factor, background)
     require_finite(y, measurement_path)
-    if psf.shape[-2] > y.shape[-2] or psf.shape[-1] > y.shape[-1]:
-        raise InvalidInputError(f"{psf_path}: PSF {psf.shape[-2]}x{psf.shape[-1]} is "
-                                f"larger than the measurement {y.shape[-2]}x{y.shape[-1]}")
-    if psf.shape[0] not in (1, y.shape[0]):
-        raise InvalidInputError(f"{psf_path}: PSF has {psf.shape[0]} channels, the "
-                                f"measurement {y.shape[0]}")
-    return psf_model(psf, y.shape[-2:], y.shape[0]), y
+    return psf_model(psf, y.shape[-2:], y.shape[0], where=psf_path), y

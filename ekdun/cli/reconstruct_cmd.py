@@ -1,15 +1,9 @@
-"""``ekdun reconstruct MODEL MEASUREMENT... --out DIR``: one command for every model.
-
-MODEL (:func:`model_kind`) is a checkpoint (``.pt`` or a run folder: the trained network), a
-kernel file (``.npz``: classical ADMM-TV with the model as fitted) or a PSF image (classical
-ADMM-TV with its shift-invariant model). A flag that only acts on the other kind of model is
-refused in one line.
-"""
+"""``ekdun reconstruct MODEL MEASUREMENT... --out DIR``: one command for a checkpoint, a kernel
+file or a PSF image (:func:`model_kind`); a flag of the other kind of model is refused."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from ekdun.cli.vocabulary import add_flag, set_threads
@@ -119,23 +113,19 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 def _run_network(args: argparse.Namespace) -> int:
     from ekdun.cli.classical_cmd import say_all
+    from ekdun.evaluation.evaluate import checkpoint_path
     from ekdun.reconstruction import reconstruct_files
 
-    model = Path(args.model)
-    checkpoint = model / "checkpoint.pt" if model.is_dir() else model    # a run folder's
     notices: list[str] = []
-    written = reconstruct_files(checkpoint, args.measurements, args.out,
+    written = reconstruct_files(checkpoint_path(args.model), args.measurements, args.out,
                                 args.channel_order, args.device, args.overwrite,
                                 args.amp, downsample=args.downsample, notify=notices.append)
-    print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
-    say_all(notices)
-    return 0
+    return say_all(notices, f"{len(written)} reconstruction(s) in {args.out}")
 
 
 def _run_classical(args: argparse.Namespace, kind: str) -> int:
     """A kernel file or PSF image: the model, then the classical solver on every measurement."""
     from ekdun.cli import classical_cmd as cc
-    from ekdun.reconstruction.classical import reconstruct_folder
     from ekdun.reconstruction.reconstruct import measurement_files
 
     cc.fill_defaults(args, kind)
@@ -149,10 +139,5 @@ def _run_classical(args: argparse.Namespace, kind: str) -> int:
             args.downsample or 1, None, []
         first = measurement_files(args.measurements)[0]
         model, _ = cc.psf_image_model(args.model, str(first), order, factor, args.background)
-    written = reconstruct_folder(model, args.measurements, args.out, cc.classical_options(args),
-                                 order, args.overwrite, progress=not args.quiet,
-                                 downsample=factor, background=args.background,
-                                 white_level=white_level)
-    print(f"{len(written)} reconstruction(s) in {args.out}", file=sys.stderr)
-    cc.say_all(notices)
-    return 0
+    return cc.reconstruct_into_folder(args, model, args.measurements, args.out, order, factor,
+                                      white_level, notices)

@@ -4,9 +4,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -174,8 +177,7 @@ def dense_model_for(spec: VirtualBenchSpec) -> DenseShiftVariantModel:
 
 @functools.cache
 def _natural_image(name: str) -> np.ndarray:
-    """``skimage.data.<name>()`` as read-only ``(H, W, 3)`` float64 in [0, 1], decoded once
-    per process."""
+    """``skimage.data.<name>()`` as read-only ``(H, W, 3)`` float64 in [0, 1], cached."""
     import skimage.data
 
     image = np.asarray(getattr(skimage.data, name)(), dtype=np.float64)
@@ -235,22 +237,14 @@ def make_scenes(spec: VirtualBenchSpec, split: str, count: int | None = None,
     from tqdm.auto import tqdm
 
     bar = tqdm(total=n, desc=f"scenes ({split})", unit="scene", disable=not progress)
-    if workers == 1:
-        for i in range(n):
-            out[i] = _scene(spec, names, split_id, i)
-            bar.update(1)
-        bar.close()
-        return out
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    # spawn, not fork: the parent may already hold torch's OpenMP threads
-    step = max(1, -(-n // (4 * workers)))
+    step = 1 if workers == 1 else max(1, -(-n // (4 * workers)))
     chunks = [range(a, min(a + step, n)) for a in range(0, n, step)]
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        n_chunks = len(chunks)
-        drawn = pool.map(_scene_chunk, [spec] * n_chunks, [names] * n_chunks,
-                         [split_id] * n_chunks, chunks)
+    draw = functools.partial(_scene_chunk, spec, names, split_id)
+    # spawn, not fork: the parent may already hold torch's OpenMP threads
+    pool = (ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+            if workers > 1 else None)
+    with pool or contextlib.nullcontext():
+        drawn = map(draw, chunks) if pool is None else pool.map(draw, chunks)
         for chunk, images in zip(chunks, drawn, strict=True):
             out[chunk.start:chunk.stop] = images
             bar.update(len(chunk))

@@ -155,21 +155,17 @@ def match_downsample(image_shape: tuple[int, ...], model: KernelModel,
     h, w = int(image_shape[-2]), int(image_shape[-1])
     sensor = (int(model.sensor_shape[0]), int(model.sensor_shape[1]))
     fitted = model.data_read_options().downsample
-    if requested is None:
-        candidates = [1] + ([fitted] if fitted and fitted > 1 else [])
-        for factor in candidates:
-            if (h // factor, w // factor) == sensor:
-                return factor
-        requested = 1
-    if (h // requested, w // requested) == sensor:
+
+    def fits(factor: int) -> bool:
+        return (h // factor, w // factor) == sensor
+
+    if requested is None:   # 1 if the sizes agree, else the kernel file's factor
+        requested = fitted if fitted and not fits(1) and fits(fitted) else 1
+    if fits(requested):
         return int(requested)
-    hint = ""
-    for factor in range(1, 33):
-        if (h // factor, w // factor) == sensor:
-            hint = f"; --downsample {factor} matches it"
-            break
-    else:
-        hint = "; fit the kernels on these images (psfkit fit-pairs, with --downsample)"
+    match = next((factor for factor in range(1, 33) if fits(factor)), None)
+    hint = (f"; --downsample {match} matches it" if match else
+            "; fit the kernels on these images (psfkit fit-pairs, with --downsample)")
     raise InvalidInputError(
         f"{where} are {h}x{w}" + (f" (binned by {requested}: {h // requested}x{w // requested})"
                                   if requested > 1 else "")

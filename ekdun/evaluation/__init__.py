@@ -10,6 +10,5 @@ from ekdun.evaluation.tables import (
     write_tables,
 )
 
-__all__ = ["LPIPSMetric", "evaluate_checkpoints", "evaluate_model", "evaluation_pairs",
-           "psnr", "read_results",
-           "render_table", "ssim", "write_results", "write_table", "write_tables"]
+__all__ = ["LPIPSMetric", "evaluate_checkpoints", "evaluate_model", "evaluation_pairs", "psnr",
+           "read_results", "render_table", "ssim", "write_results", "write_table", "write_tables"]

@@ -176,18 +176,18 @@ def evaluation_pairs(data: str | os.PathLike, trained: dict[str, Any],
     factor = recorded.downsample or 1
     same = bool(trained.get("root")) and Path(trained["root"]).resolve() == root.resolve()
     held = list(trained.get("holdout") or [])
+    only: list[str] = []
     if same and not include_training:
         if not held:
             raise InvalidInputError(
                 f"{data}: the checkpoint was trained on every pair of this folder, so its "
                 "scores would be training scores; hold pairs out (ekdun train --holdout NAME), "
                 "evaluate on another folder, or pass --include-training")
-        return (PairsDataset(root, channel_order, downsample=factor, only=held,
-                             recorded=recorded),
-                f"the {len(held)} pair(s) training held out: {', '.join(held)}")
-    note = ("every pair, training pairs included" if same
-            else f"every pair of {root}")
-    return PairsDataset(root, channel_order, downsample=factor, recorded=recorded), note
+        only, note = held, f"the {len(held)} pair(s) training held out: {', '.join(held)}"
+    else:
+        note = "every pair, training pairs included" if same else f"every pair of {root}"
+    return PairsDataset(root, channel_order, downsample=factor, only=only,
+                        recorded=recorded), note
 
 
 def seed_kernels_identity(doc: dict[str, Any]) -> dict[str, Any]:

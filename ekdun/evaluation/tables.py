@@ -243,11 +243,14 @@ def render_table(results: list[dict[str, Any]], which: str,
     return f"{text}{footer}\n"
 
 
-def _write_json(path: Path, doc: dict[str, Any]) -> Path:
+def _write_text(path: Path, text: str) -> Path:
     with atomic_file(path) as tmp:
-        tmp.write_text(dumps_finite(doc, str(path), indent=1, default=float) + "\n",
-                       encoding="utf-8")
+        tmp.write_text(text, encoding="utf-8")
     return path
+
+
+def _write_json(path: Path, doc: dict[str, Any]) -> Path:
+    return _write_text(path, dumps_finite(doc, str(path), indent=1, default=float) + "\n")
 
 
 def write_table(out_dir: str | os.PathLike, results: list[dict[str, Any]], which: str,
@@ -261,11 +264,8 @@ def write_table(out_dir: str | os.PathLike, results: list[dict[str, Any]], which
     doc: dict[str, Any] = {"title": TABLES[which][0], "rows": rows, "notes": notes or []}
     if which == "table2" or len(rows) > len({r["label"] for r in rows}):
         doc["over_seeds"] = seed_summary(rows, REFERENCE[which])
-    written = {f"{which}.json": _write_json(out_dir / f"{which}.json", doc)}
-    with atomic_file(out_dir / f"{which}.md") as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    written[f"{which}.md"] = out_dir / f"{which}.md"
-    return written
+    return {f"{which}.json": _write_json(out_dir / f"{which}.json", doc),
+            f"{which}.md": _write_text(out_dir / f"{which}.md", text)}
 
 
 def write_results(out_dir: str | os.PathLike, results: list[dict[str, Any]],

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import fields, replace
+from dataclasses import asdict, fields, replace
 from typing import Any
 
 import numpy as np
@@ -59,8 +59,7 @@ def encode_overrides(overrides: dict[str, Any]) -> dict[str, Any]:
     out = {}
     for key, value in overrides.items():
         if isinstance(value, UNetConfig):
-            value = {f.name: (list(getattr(value, f.name)) if f.name == "widths"
-                              else getattr(value, f.name)) for f in fields(UNetConfig)}
+            value = {**asdict(value), "widths": list(value.widths)}
         out[key] = value
     return out
 

@@ -82,17 +82,18 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
     if not isinstance(doc["metadata"], str):
         raise CheckpointError(f"{path}: checkpoint metadata is not a JSON string")
-    try:
+    try:   # psfkit's input errors (JSON, sizes) as checkpoint errors
         doc["metadata"] = load_json_document(doc["metadata"], f"{path}: metadata")
+        _check_contents(doc, path)
+    except CheckpointError:
+        raise
     except PsfkitError as exc:
         raise CheckpointError(str(exc)) from None
-    _check_contents(doc, path)
     return doc
 
 
 def _check_contents(doc: dict[str, Any], path: Path) -> None:
-    """Refuse metadata sizes that would make the rebuilt network absurd and non-finite
-    weights (one NaN weight turns every reconstruction into NaN)."""
+    """Refuse absurd metadata sizes and non-finite weights (one NaN makes every output NaN)."""
     meta = doc["metadata"]
     if not isinstance(meta, dict):
         raise CheckpointError(f"{path}: checkpoint metadata is not an object")
@@ -100,11 +101,8 @@ def _check_contents(doc: dict[str, Any], path: Path) -> None:
     if not isinstance(overrides, dict):
         raise CheckpointError(f"{path}: metadata 'overrides' must be an object")
     if "iterations" in overrides:
-        try:
-            exact_int(overrides["iterations"], f"{path}: metadata 'iterations'", 1,
-                      MAX_UNROLLED_ITERATIONS)
-        except PsfkitError as exc:
-            raise CheckpointError(str(exc)) from None
+        exact_int(overrides["iterations"], f"{path}: metadata 'iterations'", 1,
+                  MAX_UNROLLED_ITERATIONS)
     _check_declared_network(meta, doc["model"], path)
     for key in ("model", "initial_kernels"):
         tensors = doc.get(key)
@@ -134,31 +132,26 @@ def _check_declared_network(meta: dict[str, Any], state: Any, path: Path) -> Non
         raise CheckpointError(f"{path}: checkpoint 'model' is not a dict of tensors")
     sizes = [t.numel() for t in state.values() if isinstance(t, torch.Tensor)]
     largest = max(sizes, default=0)
-    try:
-        for key, widths in _declared_widths(meta.get("overrides", {})):
-            what = f"{path}: metadata '{key}'"
-            if not isinstance(widths, list) or not 1 <= len(widths) <= 8:
-                raise CheckpointError(f"{what} must be a list of 1 to 8 integers")
-            values = [exact_int(w, what, 1, 4096) for w in widths]
-            # a 3 x 3 convolution between consecutive widths (and within one width)
-            layer = max(9 * a * b for a, b in zip(values, values[1:] + values[-1:], strict=True))
-            if layer > largest:
-                raise CheckpointError(f"{what} {values} declares a layer of {layer} weights, "
-                                      f"but the file's largest tensor has {largest}")
-        sensor = bounded_size(meta.get("sensor_shape", ()), f"{path}: metadata 'sensor_shape'")
-        kernel_meta = meta.get("kernel_metadata")
-        if not isinstance(kernel_meta, dict) or \
-                list(kernel_meta.get("sensor_shape") or ()) != list(sensor):
-            raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} is not its "
-                                  "kernel metadata's")
-        maps = state.get("physics.weights")   # EK-DUN's weight maps have the sensor's size
-        if isinstance(maps, torch.Tensor) and tuple(maps.shape[-2:]) != tuple(sensor):
-            raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} differs from "
-                                  f"the stored weight maps {list(maps.shape[-2:])}")
-    except CheckpointError:
-        raise
-    except PsfkitError as exc:
-        raise CheckpointError(str(exc)) from None
+    for key, widths in _declared_widths(meta.get("overrides", {})):
+        what = f"{path}: metadata '{key}'"
+        if not isinstance(widths, list) or not 1 <= len(widths) <= 8:
+            raise CheckpointError(f"{what} must be a list of 1 to 8 integers")
+        values = [exact_int(w, what, 1, 4096) for w in widths]
+        # a 3 x 3 convolution between consecutive widths (and within one width)
+        layer = max(9 * a * b for a, b in zip(values, values[1:] + values[-1:], strict=True))
+        if layer > largest:
+            raise CheckpointError(f"{what} {values} declares a layer of {layer} weights, "
+                                  f"but the file's largest tensor has {largest}")
+    sensor = bounded_size(meta.get("sensor_shape", ()), f"{path}: metadata 'sensor_shape'")
+    kernel_meta = meta.get("kernel_metadata")
+    if not isinstance(kernel_meta, dict) or \
+            list(kernel_meta.get("sensor_shape") or ()) != list(sensor):
+        raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} is not its "
+                              "kernel metadata's")
+    maps = state.get("physics.weights")   # EK-DUN's weight maps have the sensor's size
+    if isinstance(maps, torch.Tensor) and tuple(maps.shape[-2:]) != tuple(sensor):
+        raise CheckpointError(f"{path}: metadata 'sensor_shape' {list(sensor)} differs from "
+                              f"the stored weight maps {list(maps.shape[-2:])}")
 
 
 def checkpoint_sensor(doc: dict[str, Any]) -> tuple[int, int, int]:

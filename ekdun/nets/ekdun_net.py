@@ -23,6 +23,7 @@ gradient steps of size ``1/L`` on ``½‖Af − y‖²``: stable.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -47,23 +48,17 @@ class EKDUN(UnrolledNetwork):
 
     def __init__(self, physics: EigenKernelOperator, config: EKDUNConfig | None = None) -> None:
         config = config or EKDUNConfig()
-        super().__init__(config.iterations)
-        self.config = config
-        self.physics = physics
+        super().__init__(physics, config)
         self.eigen_initial, self.eigen_schedule = parse_schedule(
             config.schedule, config.iterations, config.eigen_last)
         channels = physics.channels
         self.priors = nn.ModuleList(
-            UNet(channels, channels, config.prior.widths, config.prior.residual,
-                 config.prior.zero_init_output) for _ in range(config.iterations))
+            UNet(channels, channels, **asdict(config.prior)) for _ in range(config.iterations))
         lipschitz = max(physics.lipschitz_bound(), 1e-12)
         dtype = physics.kernels.dtype
-        self.log_eps = nn.Parameter(torch.full(
-            (config.iterations,), math.log(config.step_scale / lipschitz), dtype=dtype))
-        self.log_eta = nn.Parameter(torch.full(
-            (config.iterations,), math.log(config.penalty_scale * lipschitz), dtype=dtype))
-        self.kappa = nn.Parameter(torch.full((config.iterations,), config.kappa_init,
-                                             dtype=dtype))
+        self.log_eps = self.per_iteration(math.log(config.step_scale / lipschitz), dtype)
+        self.log_eta = self.per_iteration(math.log(config.penalty_scale * lipschitz), dtype)
+        self.kappa = self.per_iteration(config.kappa_init, dtype)
         self.kernel_param: nn.Module | None = None
 
     def use_kernel_module(self, module: nn.Module) -> None:

@@ -60,8 +60,8 @@ def build_model(name: str, source: Source, preset: str | Preset = "tiny", *,
     key = name.lower().replace("_", "-")
     if key not in MODEL_NAMES:
         raise ConfigurationError(f"unknown model {name!r} (use {', '.join(MODEL_NAMES)})")
-    defaults = {"ekdun": chosen.ekdun, "le-admm-u": chosen.le_admm_u, "updn": chosen.updn}
-    cfg = config if config is not None else defaults[key]
+    # the preset's configuration of the model: Preset.ekdun, .le_admm_u or .updn
+    cfg = config if config is not None else getattr(chosen, key.replace("-", "_"))
     try:
         cfg = dataclasses.replace(cfg, **overrides)
     except TypeError as exc:

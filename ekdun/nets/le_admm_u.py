@@ -8,10 +8,10 @@ the reference code: no per-image max normalisation before the U-Net, the shared 
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from typing import Any
 
-import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from ekdun.nets.configs import LeADMMUConfig
 from ekdun.nets.tv_admm_steps import (
@@ -39,27 +39,19 @@ class LeADMMU(UnrolledNetwork):
     def __init__(self, physics: ShiftInvariantOperator,
                  config: LeADMMUConfig | None = None) -> None:
         config = config or LeADMMUConfig()
-        super().__init__(config.iterations)
-        self.config = config
-        self.physics = physics
+        super().__init__(physics, config)
         lipschitz = max(physics.lipschitz_bound(), 1e-12)
         dtype = physics.kernels.dtype
-        n = config.iterations
         mu2 = config.mu2_scale * lipschitz
-
-        def log_param(value: float) -> nn.Parameter:
-            return nn.Parameter(torch.full((n,), math.log(value), dtype=dtype))
-
-        self.log_mu1 = log_param(config.mu1_init)
-        self.log_mu2 = log_param(mu2)
-        self.log_mu3 = log_param(config.mu3_scale * lipschitz)
-        self.log_tau = log_param(config.tau_scale * mu2)
+        self.log_mu1 = self.per_iteration(math.log(config.mu1_init), dtype)
+        self.log_mu2 = self.per_iteration(math.log(mu2), dtype)
+        self.log_mu3 = self.per_iteration(math.log(config.mu3_scale * lipschitz), dtype)
+        self.log_tau = self.per_iteration(math.log(config.tau_scale * mu2), dtype)
         self.register_buffer("tv_spectrum",
                              finite_difference_spectrum(physics.grid_shape, dtype),
                              persistent=False)
         channels = physics.channels
-        self.denoiser = UNet(channels, channels, config.denoiser.widths,
-                             config.denoiser.residual, config.denoiser.zero_init_output)
+        self.denoiser = UNet(channels, channels, **asdict(config.denoiser))
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
         op = self.physics.prepare()

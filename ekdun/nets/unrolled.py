@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor, nn
 
 from ekdun.errors import ConfigurationError
@@ -26,6 +27,10 @@ class UnrolledNetwork(nn.Module):
 
     Attributes
     ----------
+    physics : nn.Module
+        The forward operator.
+    config : dataclass
+        The network's configuration; ``config.iterations`` unrolled iterations.
     seed_kernels : KernelModel or None
         The kernel model the network was built from (:meth:`set_seed_kernels`); ``None`` for
         a network built directly. Training writes it as ``kernels_initial.npz``.
@@ -33,12 +38,18 @@ class UnrolledNetwork(nn.Module):
 
     seed_kernels: KernelModel | None
 
-    def __init__(self, iterations: int) -> None:
+    def __init__(self, physics: nn.Module, config: Any) -> None:
         super().__init__()
-        if iterations < 1:
-            raise ConfigurationError(f"iterations must be >= 1, got {iterations}")
-        self.iterations = int(iterations)
+        if config.iterations < 1:
+            raise ConfigurationError(f"iterations must be >= 1, got {config.iterations}")
+        self.iterations = int(config.iterations)
         self.seed_kernels = None
+        self.config = config
+        self.physics = physics
+
+    def per_iteration(self, value: float, dtype: torch.dtype) -> nn.Parameter:
+        """A learned scalar per iteration ``(iterations,)``, each starting at ``value``."""
+        return nn.Parameter(torch.full((self.iterations,), value, dtype=dtype))
 
     def set_seed_kernels(self, seed: KernelModel) -> None:
         """Remember the kernel model the network was built from (validated first:

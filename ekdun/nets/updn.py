@@ -19,6 +19,7 @@ sigmoid.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -66,9 +67,7 @@ class UPDN(UnrolledNetwork):
         if config.primal_grid not in PRIMAL_GRIDS:
             raise ConfigurationError(f"UPDN primal_grid must be one of "
                                      f"{', '.join(PRIMAL_GRIDS)}, got {config.primal_grid!r}")
-        super().__init__(config.iterations)
-        self.config = config
-        self.physics = physics
+        super().__init__(physics, config)
         n, width = physics.copies, physics.channels
         self.dual_updates = nn.ModuleList(
             update_block(n, 3 * width, width, config.hidden_factor)
@@ -76,8 +75,7 @@ class UPDN(UnrolledNetwork):
         self.primal_updates = nn.ModuleList(
             update_block(n, 2 * width, width, config.hidden_factor)
             for _ in range(config.iterations))
-        self.denoiser = UNet(width, physics.colours, config.denoiser.widths,
-                             config.denoiser.residual, config.denoiser.zero_init_output)
+        self.denoiser = UNet(width, physics.colours, **asdict(config.denoiser))
 
     def prepare(self, y: Tensor) -> dict[str, Any]:
         op = self.physics.prepare()

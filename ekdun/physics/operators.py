@@ -31,14 +31,8 @@ from psfkit.forward.weights import get_basis
 
 class PreparedOperator(SpectralOperator):
     """A :class:`psfkit.forward.operator.SpectralOperator` (precomputed kernel spectra) whose
-    ``A`` and ``A_adjoint`` check their input (:meth:`check`)."""
-
-    def __init__(self, spectra: Tensor, weights: Tensor | None, sensor_shape: tuple[int, int],
-                 grid_shape: tuple[int, int], convention: str = "sensor",
-                 conj_spectra: Tensor | None = None) -> None:
-        if weights is None and spectra.shape[0] != 1:
-            raise KernelShapeError(f"{spectra.shape[0]} kernels need weight maps")
-        super().__init__(spectra, weights, sensor_shape, grid_shape, convention, conj_spectra)
+    ``A`` and ``A_adjoint`` check their input (:meth:`check`); built by
+    :meth:`FFTConvolutionOperator.prepare`, which checked the kernels and weights."""
 
     def check(self, t: Tensor, what: str) -> None:
         """Raise :class:`~ekdun.errors.TensorShapeError` unless ``t`` fits this operator."""
@@ -189,25 +183,23 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
     def spectra(self, first: int | None = None) -> Tensor:
         """Kernel spectra ``(K, C, PH, PW//2 + 1)`` (the first ``first`` kernels); cached for
         fixed kernels, one FFT per kernel per call for trainable ones."""
-        n = self.n_kernels if first is None else first
         cache = self._spectra_cache
         if cache is not None and not self.kernels.requires_grad:
-            return cache[:n]
-        return kernel_spectra(self.kernels[:n], self.grid_shape)
+            return cache[:first]
+        return kernel_spectra(self.kernels[:first], self.grid_shape)
 
     def _cached_conj(self, first: int | None = None) -> Tensor | None:
         cache = self._conj_spectra_cache
         if cache is None or self.kernels.requires_grad:
             return None
-        return cache if first is None else cache[:first]
+        return cache[:first]
 
     def prepare(self, spectra: Tensor | None = None,
                 conj_spectra: Tensor | None = None) -> PreparedOperator:
         """This operator bound to ``spectra`` (default :meth:`spectra`) and optionally their
         materialised conjugates (else taken once, when the adjoint first needs them)."""
         if spectra is None:
-            return PreparedOperator(self.spectra(), self.weights, self.sensor_shape,
-                                    self.grid_shape, self.convention, self._cached_conj())
+            spectra, conj_spectra = self.spectra(), self._cached_conj()
         return PreparedOperator(spectra, self.weights, self.sensor_shape, self.grid_shape,
                                 self.convention, conj_spectra)
 
@@ -225,9 +217,7 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
         """Exact adjoint ``Aᵀ y``."""
         return self.prepare().A_adjoint(y)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Same as :meth:`A`."""
-        return self.A(x)
+    forward = A
 
     def extra_repr(self) -> str:
         return (f"kernels={tuple(self.kernels.shape)}, sensor={self.sensor_shape}, "
@@ -334,8 +324,7 @@ class EigenKernelOperator(FFTConvolutionOperator):
         """The shift-invariant model of the base kernel alone; ``spectra`` (and
         ``conj_spectra``) may hold all kernels' (only the first is used)."""
         if spectra is None:
-            return PreparedOperator(self.spectra(first=1), None, self.sensor_shape,
-                                    self.grid_shape, conj_spectra=self._cached_conj(first=1))
+            spectra, conj_spectra = self.spectra(first=1), self._cached_conj(first=1)
         return PreparedOperator(spectra[:1], None, self.sensor_shape, self.grid_shape,
                                 conj_spectra=None if conj_spectra is None else conj_spectra[:1])
 

@@ -66,12 +66,10 @@ class ClassicalOptions:
             raise ConfigurationError(f"--dtype must be one of {', '.join(DTYPES)}, got "
                                      f"{self.dtype!r}")
         # named as the flags of ekdun reconstruct, never as the fields
-        if self.tv < 0:
-            raise ConfigurationError(f"--tv must be >= 0, got {self.tv}")
-        if self.tol < 0:
-            raise ConfigurationError(f"--tol must be >= 0, got {self.tol}")
-        if self.iterations < 1:
-            raise ConfigurationError(f"--iterations must be >= 1, got {self.iterations}")
+        for option, value, low in (("--tv", self.tv, 0), ("--tol", self.tol, 0),
+                                   ("--iterations", self.iterations, 1)):
+            if value < low:
+                raise ConfigurationError(f"{option} must be >= {low}, got {value}")
 
 
 @dataclass
@@ -127,21 +125,23 @@ class ModelReconstructor:
 
 
 def psf_model(psf: np.ndarray, sensor_shape: tuple[int, int], channels: int | None = None,
-              scene_padding: int = 2) -> KernelModel:
+              scene_padding: int = 2, where: str = "") -> KernelModel:
     """The shift-invariant kernel model of a PSF ``(C, Hk, Wk)`` or ``(Hk, Wk)`` (centred,
     used as given) for measurements of ``sensor_shape`` with ``channels`` (a mono PSF serves
-    each); :class:`TensorShapeError` when it does not fit them."""
+    each); :class:`TensorShapeError` (naming the file ``where``) when it does not fit them."""
     kernel = np.asarray(psf, dtype=np.float32)
     kernel = kernel[None] if kernel.ndim == 2 else kernel
+    name = f"{where}: " if where else ""
     if kernel.ndim != 3:
-        raise TensorShapeError(f"a PSF must be (C, H, W) or (H, W), got {kernel.shape}")
+        raise TensorShapeError(f"{name}a PSF must be (C, H, W) or (H, W), got {kernel.shape}")
+    if kernel.shape[-2] > sensor_shape[0] or kernel.shape[-1] > sensor_shape[1]:
+        raise TensorShapeError(f"{name}PSF {kernel.shape[-2]}x{kernel.shape[-1]} is larger "
+                               f"than the measurement {sensor_shape[0]}x{sensor_shape[1]}")
     if channels is not None and kernel.shape[0] != channels:
         if kernel.shape[0] != 1:
-            raise TensorShapeError(f"PSF has {kernel.shape[0]} channels, measurement {channels}")
+            raise TensorShapeError(f"{name}PSF has {kernel.shape[0]} channels, the "
+                                   f"measurement {channels}")
         kernel = np.repeat(kernel, channels, axis=0)
-    if kernel.shape[-2] > sensor_shape[0] or kernel.shape[-1] > sensor_shape[1]:
-        raise TensorShapeError(f"PSF {kernel.shape[-2]}x{kernel.shape[-1]} is larger than the "
-                               f"measurement {sensor_shape[0]}x{sensor_shape[1]}")
     return KernelModel.shift_invariant(kernel, sensor_shape=tuple(sensor_shape),
                                        scene_padding=scene_padding,
                                        normalization="as given (PSF image)")
@@ -226,6 +226,8 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
     """Reconstruct measurement files and folders into ``out_dir``, atomically, every input
     read and checked first: ``NAME.npy`` (``H × W × C`` float32 RGB) and an 8-bit
     ``NAME.png`` preview scaled to its maximum."""
+    from tqdm.auto import tqdm
+
     from ekdun.reconstruction.reconstruct import measurement_files
     from psfkit.io.atomic import atomic_directory
 
@@ -237,16 +239,14 @@ def reconstruct_folder(model: KernelModel, inputs: Sequence[str | os.PathLike],
         recon.check(y, str(f))
         images.append(y)
     written = []
-    bar = _progress(len(files), progress)
+    bar = tqdm(total=len(files), desc="reconstruct", unit="image", disable=not progress)
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         for f, y in zip(files, images, strict=True):
-            image = recon(y, callback=_iteration_callback(bar, f.stem)).image
+            image = recon(y, callback=_iteration_callback(bar, f.stem) if progress else None).image
             write_reconstruction(tmp / f"{f.stem}.npy", image)
             written.append(Path(out_dir) / f"{f.stem}.npy")
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
     return written
 
 
@@ -263,18 +263,7 @@ def write_reconstruction(path: Path, image: np.ndarray, preview: Path | None = N
                 to_preview(image / max(float(image.max()), 1e-12)))
 
 
-def _progress(total: int, enabled: bool):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc="reconstruct", unit="image")
-
-
-def _iteration_callback(bar, name: str) -> Callable[[int, float], None] | None:
-    if bar is None:
-        return None
-
+def _iteration_callback(bar, name: str) -> Callable[[int, float], None]:
     def show(iteration: int, change: float) -> None:
         if iteration % 10 == 0:
             bar.set_postfix_str(f"{name} it {iteration} Δ {change:.1e}")

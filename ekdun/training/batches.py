@@ -18,15 +18,11 @@ CUDA_FREE_FRACTION = 0.25
 CPU_BUDGET_BYTES = 4 * 2**30
 
 
-def dataset_bytes(dataset: Dataset) -> int:
-    """Bytes of all ``(scene, measurement)`` pairs as float32 tensors (from the first pair)."""
-    x, y = dataset[0]
-    return len(dataset) * (x.numel() + y.numel()) * 4  # type: ignore[arg-type]
-
-
 def fits_on_device(dataset: Dataset, device: torch.device) -> bool:
-    """Whether the whole dataset may be kept on ``device`` (see the budgets above)."""
-    need = dataset_bytes(dataset)
+    """Whether all ``(scene, measurement)`` pairs as float32 tensors (sized from the first)
+    may be kept on ``device`` (see the budgets above)."""
+    x, y = dataset[0]
+    need = len(dataset) * (x.numel() + y.numel()) * 4  # type: ignore[arg-type]
     if device.type == "cuda":
         free, _total = torch.cuda.mem_get_info(device)
         return need <= CUDA_FREE_FRACTION * free

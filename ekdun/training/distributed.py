@@ -58,9 +58,7 @@ def setup(device: str = "auto") -> DistContext:
 
 def global_batches(n_items: int, global_batch: int, seed: int, epoch: int) -> list[list[int]]:
     """The epoch's global batches: a permutation seeded by ``(seed, epoch)`` cut into full
-    batches of ``global_batch`` (an incomplete last batch is dropped)."""
-    if global_batch < 1:
-        raise ConfigurationError(f"--batch-size must be >= 1, got {global_batch}")
+    batches of ``global_batch`` >= 1 (an incomplete last batch is dropped)."""
     if n_items < global_batch:
         raise ConfigurationError(f"the dataset has {n_items} pairs, fewer than one batch "
                                  f"(--batch-size {global_batch})")
@@ -71,10 +69,7 @@ def global_batches(n_items: int, global_batch: int, seed: int, epoch: int) -> li
 
 
 def local_share(batch: list[int], rank: int, world_size: int) -> list[int]:
-    """This rank's contiguous share of a global batch."""
-    if len(batch) % world_size:
-        raise ConfigurationError(f"global batch {len(batch)} is not divisible by the "
-                                 f"{world_size} processes")
+    """This rank's contiguous share of a global batch (``train`` checked that it splits)."""
     per = len(batch) // world_size
     return batch[rank * per:(rank + 1) * per]
 

@@ -80,18 +80,10 @@ def train_epoch(loop: Loop, source: BatchSource, epoch: int, batch_size: int,
 def _step(loop: Loop, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor | None]:
     """One optimizer step; the batch's MSE and extra loss (if any), detached."""
     loop.optimizer.zero_grad(set_to_none=True)
-    extra = None
     with acc.autocast(loop.amp, loop.ctx.device):
-        if loop.extra_loss:
-            out, extra = loop.net(y, x)
-        else:
-            out = loop.net(y)
+        out, extra = loop.net(y, x) if loop.extra_loss else (loop.net(y), None)
     loss = nn.functional.mse_loss(out.float(), x)
-    if extra is not None:
-        loop.scaler.scale(loss + extra).backward()
-        extra = extra.detach()
-    else:
-        loop.scaler.scale(loss).backward()
+    loop.scaler.scale(loss if extra is None else loss + extra).backward()
     loop.scaler.step(loop.optimizer)
     loop.scaler.update()
-    return loss.detach(), extra
+    return loss.detach(), None if extra is None else extra.detach()

@@ -184,10 +184,9 @@ def train(run_dir: str | os.PathLike, model_name: str,
     ckpt_path = run_dir / CHECKPOINT
     overrides = encode_overrides(overrides or {})
     _check_run_folder(run_dir, dataset, resume=resume, overwrite=overwrite)
-    if ctx.distributed:
-        # every rank has checked the folder before the main one writes into it (else another
-        # rank could find the main rank's first files and refuse alone)
-        torch.distributed.barrier()
+    # every rank has checked the folder before the main one writes into it (else another
+    # rank could find the main rank's first files and refuse alone)
+    D.barrier(ctx)
     if cfg.batch_size % ctx.world_size:
         raise ConfigurationError(f"--batch-size {cfg.batch_size} is not divisible by the "
                                  f"{ctx.world_size} processes")
@@ -254,8 +253,7 @@ def train(run_dir: str | os.PathLike, model_name: str,
 
 def _check_run_folder(run_dir: Path, dataset: Dataset, *, resume: bool,
                       overwrite: bool) -> None:
-    """Refuse a run folder that cannot be resumed, would be overwritten unasked, or overlaps
-    the training data."""
+    """Refuse a folder that cannot be resumed, would be overwritten unasked or holds the data."""
     ckpt_path = run_dir / CHECKPOINT
     if resume and not ckpt_path.is_file():
         raise InvalidInputError(f"{run_dir}: nothing to resume (no {CHECKPOINT})")
