@@ -217,7 +217,9 @@ class FFTConvolutionOperator(nn.Module, LinearOperator):
         """Exact adjoint ``Aᵀ y``."""
         return self.prepare().A_adjoint(y)
 
-    forward = A
+    def forward(self, x: Tensor) -> Tensor:
+        """Same as :meth:`A` (what ``op(x)`` calls, so a subclass's ``A`` is followed)."""
+        return self.A(x)
 
     def extra_repr(self) -> str:
         return (f"kernels={tuple(self.kernels.shape)}, sensor={self.sensor_shape}, "

@@ -136,8 +136,13 @@ class SpectralOperator(LinearOperator):
         return eigen_kernel_adjoint(y, self.conj_spectra, self.weights, self.grid_shape,
                                     self.convention, self._workspace_for(y))
 
-    A = forward                 # (ekdun's subclass checks its input first)
-    A_adjoint = adjoint
+    def A(self, x: Tensor) -> Tensor:
+        """Same as :meth:`forward` (subclasses check their input first)."""
+        return self.forward(x)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:
+        """Same as :meth:`adjoint`."""
+        return self.adjoint(y)
 
 
 class PaddedSceneOperator(LinearOperator):
