@@ -70,6 +70,10 @@ measured EK 0.0520 / SI 0.0636 scaled (0.82) and 0.0767 / 0.0864 raw (0.89), and
 ``tests/psfkit/test_pairs_fit.py`` of their commits; no EK/SI ratio below 0.82 is recorded in
 the repository's history. SI's raw error has been 0.0864 to 0.0866 throughout (an earlier
 version of this note misread issue 23's EK raw 0.0748 as SI's).
+At the other resolutions, with the same defaults (``psfkit fit-pairs ... --downsample N
+--leave-one-out``, stop 64): 1/2 resolution SI 0.0870 / 0.0642, EK 0.0742 / 0.0557 (0.854 raw,
+0.867 scaled); full resolution, the default, SI 0.0885 / 0.0661, EK 0.0757 / 0.0580 (0.856
+raw, **0.877** scaled; research/notes/forward-model-studies.md).
 
 ``--scaling DATA`` (issue 23) instead times ``psfkit fit-pairs DATA/train --basis ek
 --convention source`` (defaults otherwise) against pairs × size, on the first N pairs of a
