@@ -82,8 +82,7 @@ def _help(root: Path, *args: str) -> str:
 def commands_of(top_help: str) -> list[str]:
     """The commands a top-level ``--help`` lists under ``commands:``."""
     section = top_help.split("commands:", 1)[-1]
-    return [m.group(1) for line in section.splitlines() if (m := COMMAND.match(line))
-            and m.group(1) != "command"]
+    return [m.group(1) for line in section.splitlines() if (m := COMMAND.match(line))]
 
 
 def visible_flags(command_help: str) -> list[str]:

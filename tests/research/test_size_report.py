@@ -4,8 +4,10 @@ is, the raw count is ``wc -l``'s, and the CLI surface is read from real argparse
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 from research.size_report import PACKAGES, commands_of, file_lines, line_counts, visible_flags
 
@@ -72,9 +74,27 @@ def test_commands_and_visible_flags_from_argparse_help() -> None:
     assert visible_flags(run) == ["--out", "--quiet"]
 
 
-def test_the_repository_report_runs(tmp_path) -> None:
+def _listed_commands() -> set[str]:
+    """The subcommands each CLI's parser lists in its help (hidden deprecated ones are not)."""
+    from ekdun.cli import build_parser as ekdun_parser
+    from psfkit.cli.main import build_parser as psfkit_parser
+
+    listed = set()
+    for package, build in (("psfkit", psfkit_parser), ("ekdun", ekdun_parser)):
+        sub = next(a for a in build()._actions if isinstance(a, argparse._SubParsersAction))
+        listed |= {f"{package} {choice.dest}" for choice in sub._choices_actions}
+    return listed
+
+
+def test_the_repository_report(tmp_path) -> None:
+    """On this checkout: the raw count is wc's, the commands are the parsers' listed ones."""
     out = tmp_path / "size.json"
-    done = subprocess.run([sys.executable, "-m", "research.size_report", "--json", str(out)],
-                          capture_output=True, text=True, check=True)
-    assert "issue 44's metric" in done.stdout
-    assert out.read_text().count('"raw"') == 1
+    subprocess.run([sys.executable, "-m", "research.size_report", "--json", str(out)],
+                   capture_output=True, text=True, check=True)
+    report = json.loads(out.read_text())
+    root = Path(__file__).resolve().parents[2]
+    files = [str(p) for package in PACKAGES for p in (root / package).rglob("*.py")]
+    wc = subprocess.run(["wc", "-l", *files], capture_output=True, text=True, check=True)
+    assert report["lines"]["raw"] == int(wc.stdout.split()[-2])
+    assert set(report["cli"]["flags_per_command"]) == _listed_commands()
+    assert report["cli"]["visible_flags"] == sum(report["cli"]["flags_per_command"].values())
