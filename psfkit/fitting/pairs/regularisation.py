@@ -62,7 +62,8 @@ TIE = 1e-3
 #: used at full resolution (the weights are relative to the scenes' mean per-frequency power):
 #: the folds at full resolution cost minutes. Binned 2x or 3x, the choice is the
 #: full-resolution one or half a decade below it, where the path is flat within its standard
-#: error (research/notes/forward-model-studies.md).
+#: error; paired over the DLMD pairs at 1/2 resolution, though, the binned choice predicts
+#: held-out pairs 2.5-3.5 % worse (research/notes/forward-model-studies.md, stop 64).
 SELECTION_PIXELS = 128 * 128
 
 
