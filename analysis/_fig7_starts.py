@@ -13,10 +13,10 @@ from matplotlib.figure import Figure
 
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
-from psfkit.compare.results import KernelComparison, KernelSetComparison
-from psfkit.report.figures.compare import arrow_grid, draw_kernel_row, quiver_panel
 from psfkit.report.figures.eigen import difference_limit
 from psfkit.report.figures.style import PAGE_IN, new_figure, publication_style
+from research.compare.figures import arrow_grid, draw_kernel_row, quiver_panel
+from research.compare.results import KernelComparison, KernelSetComparison
 
 
 def start_numbers(comparison: KernelComparison) -> dict[str, Any]:
@@ -71,7 +71,7 @@ def _numbers_text(n: dict[str, Any]) -> str:
 def oracle_caption(oracle: str, numbers: dict[str, dict[str, Any]]) -> str:
     """One sentence: each model (learned starts, the measured fit) against the oracle.
 
-    ``numbers``: label → :meth:`~psfkit.compare.results.KernelSetComparison.numbers` of that
+    ``numbers``: label → :meth:`~research.compare.results.KernelSetComparison.numbers` of that
     model compared with the oracle (the oracle the reference)."""
     parts = [f"{label}: {_numbers_text(n)}" for label, n in numbers.items()]
     return f"Against the operator oracle ({oracle}): " + "; ".join(parts) + "."

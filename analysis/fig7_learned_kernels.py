@@ -15,7 +15,8 @@ the central part of the caustic), ``fig7_starts`` (measured modes and the learne
 by side, displacement fields as arrows, for this start and, with ``--one-psf RUN``, a second
 model trained from one PSF), ``DIR/fig7_caption.md`` (the numbers: displacement correlation,
 difference NCC, pedestal share of the kernel change, principal angles), and the comparison of
-:func:`psfkit.compare.compare_kernels` (as ``psfkit compare``, with the kernel-change split):
+:func:`research.compare.compare_kernels` (as ``python -m research.compare``, with the
+kernel-change split):
 ``DIR/compare.json``, ``DIR/compare.html``, ``DIR/figures/``.
 
 The oracle (virtual bench): ``--oracle ORACLE.npz`` names the best eigen-kernel model of the
@@ -41,16 +42,18 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the comparison and the oracles are research studies (research/, not installed): this checkout's
+sys.path.append(str(Path(__file__).resolve().parents[1]))
 
 from _common import run
 from _fig7_starts import caption, figure_starts, oracle_caption, start_numbers
 
-from psfkit.compare import check_learned, compare_kernels, compare_model, load_grid
 from psfkit.errors import ModelFileError
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.io.jsonable import jsonable
-from psfkit.report.comparison import write_comparison
 from psfkit.report.figures import figure_kernels
+from research.compare import check_learned, compare_kernels, compare_model, load_grid
+from research.compare.report import write_comparison
 
 
 def load_learned(path: str) -> tuple[KernelModel, KernelModel | None]:
@@ -95,16 +98,8 @@ def find_oracle(args: argparse.Namespace, learned: KernelModel
     root = grid.resolve().parent
     if read_manifest(root) is None or (root / "grid").resolve() != grid.resolve():
         return None, None                       # not a virtual-bench dataset's grid
-    # the oracles are a research instrument (research/, not installed): from this checkout
-    repo = str(Path(__file__).resolve().parents[1])
-    if repo not in sys.path:
-        sys.path.append(repo)
-    try:
-        from research.oracles import oracle_file
-    except ImportError:
-        print("no oracle: research/ (the oracles' library) is not beside analysis/; give "
-              "--oracle FILE.npz; measured rows only")
-        return None, None
+    from research.oracles import oracle_file
+
     path = oracle_file(root, learned.convention)
     if path is None:
         print(f"no oracle: the dataset {root} lists no {learned.convention}-side oracle "

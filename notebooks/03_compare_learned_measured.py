@@ -16,7 +16,8 @@
 #
 # The paper (Sec. 5.6, Fig. 7) shows that the difference kernels `Kv − Kbase` and
 # `Kh − Kbase` of a trained EK-DUN look like sub-pixel displacements of the caustic spots.
-# `psfkit.compare` measures those displacements (dense optical flow, on the caustic) and
+# `research.compare` (a study, not installed: this notebook runs from a source checkout)
+# measures those displacements (dense optical flow, on the caustic) and
 # compares them with what the PSF grid of the same camera says: the eigen-kernels fitted to
 # the grid, the warps between the centre and the edge PSFs, and the grid's PCA modes.
 #
@@ -27,7 +28,7 @@
 # 2. `psfkit` fits the eigen-kernels `Kbase, Kv, Kh` to the grid (the seed of EK-DUN);
 # 3. `ekdun` trains EK-DUN (eigen-kernel model in the last 2 iterations) for a few epochs and
 #    exports the learned kernels as a psfkit kernel file;
-# 4. `psfkit.compare` compares learned and initial kernels with the grid (Fig. 7 and numbers),
+# 4. `research.compare` compares learned and initial kernels with the grid (Fig. 7 and numbers),
 #    and the learned kernels and the grid's fit with the dataset's operator oracle.
 #
 # > **Illustrative numbers.** 64 × 64 pixels, 16 training pairs and 3 epochs on a CPU (well
@@ -41,11 +42,13 @@
 # > `python analysis/fig7_learned_kernels.py RUN_DIR/checkpoint.pt GRID --out DIR`.
 #
 # Command-line equivalent of the last step:
-# `psfkit compare RUN/kernels_learned.npz GRID --out DIR --initial RUN/kernels_initial.npz`;
-# see `docs/compare.md` for what each number means.
+# `python -m research.compare RUN/kernels_learned.npz GRID --out DIR --initial
+# RUN/kernels_initial.npz` (from a source checkout); see `research/compare/README.md` for what
+# each number means.
 
 # %%
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -53,19 +56,30 @@ import numpy as np
 import torch
 from IPython.display import display
 
+import ekdun
+
+# research/ (the comparison, the oracles) is not installed: the checkout this notebook runs
+# from (its folder, the repository root, or that of an editable install of ekdun)
+checkout = next((root for root in (Path.cwd(), Path.cwd().parent,
+                                   Path(ekdun.__file__).resolve().parents[1])
+                 if (root / "research" / "compare").is_dir()), None)
+if checkout is None:
+    raise SystemExit("this walkthrough needs a source checkout: research/ is not installed")
+sys.path.append(str(checkout))
+
 from ekdun.data.pairs import PairsDataset
 from ekdun.data.virtual_bench import VirtualBenchSpec, make_virtual_bench
 from ekdun.evaluation import evaluate_model
 from ekdun.nets.builder import network_from_checkpoint
 from ekdun.training import TrainOptions, export_kernels, initial_kernels, train
-from psfkit.compare import compare_kernels
 from psfkit.fitting.grid.fit import fit_eigen_grid
 from psfkit.fitting.grid.options import EigenFitOptions
 from psfkit.forward.kernelfile import save_kernels
 from psfkit.io import read_grid
-from psfkit.report.comparison import write_comparison
 from psfkit.report.figures import figure_kernels
-from psfkit.report.figures.compare import figure_displacements, figure_learned_vs_measured
+from research.compare import compare_kernels
+from research.compare.figures import figure_displacements, figure_learned_vs_measured
+from research.compare.report import write_comparison
 
 torch.set_num_threads(1)     # small shared CPUs: more threads are much slower, not faster
 OUT = Path(os.environ.get("EKDUN_NB_OUT", "notebook_outputs")) / "03_compare"
@@ -157,48 +171,32 @@ print("principal angles learned vs top-3 PCA modes (deg):",
 # `research/notes/compare-studies.md`). It is a research instrument, not part of the installed
 # toolkit: `python -m research.oracle DATASET --write-dataset` (from the repository root)
 # writes it into the dataset (`DATASET/oracle/paper_<convention>.npz`, once), and the cell
-# below does the same through `research/oracles.py` when this notebook runs from a source
-# checkout (otherwise it says so and the oracle rows are left out).
+# below does the same through `research/oracles.py`.
 # Below, the learned kernels and the measured fit are each compared with it (the oracle is the
 # reference), and its kernels get a row in Fig. 7.
 
 # %%
-import sys
-
-import ekdun
-from psfkit.compare import compare_model
 from psfkit.forward.kernelfile import load_kernels
+from research.compare import compare_model
+from research.oracles import oracle_file, write_dataset_oracles
 
-# research/ is not installed: the checkout this notebook runs from (its folder, the
-# repository root, or that of an editable install of ekdun)
-checkout = next((root for root in (Path.cwd(), Path.cwd().parent,
-                                   Path(ekdun.__file__).resolve().parents[1])
-                 if (root / "research" / "oracles.py").is_file()), None)
-extra_rows = []
-if checkout is None:
-    print("no oracle: research/ (the oracles' library) is not in a source checkout here; "
-          "the oracle rows are left out")
-else:
-    sys.path.append(str(checkout))
-    from research.oracles import oracle_file, write_dataset_oracles
-
-    # once: kept in the dataset afterwards (`EKDUN_NB_ORACLE_SCENES`: fewer scenes, for CI)
-    write_dataset_oracles(data, n_scenes=int(os.environ.get("EKDUN_NB_ORACLE_SCENES", "0"))
-                          or None)
-    oracle_path = oracle_file(data, learned.convention)
-    print(f"operator oracle ({learned.convention} side): {oracle_path.name}")
-    oracle = load_kernels(oracle_path)
-    vs_oracle = {"learned": compare_kernels(learned, oracle).learned.numbers(),
-                 "measured fit": compare_kernels(comparison.measured.model,
-                                                 oracle).learned.numbers()}
-    for label, n in vs_oracle.items():
-        print(f"{label} vs operator oracle: difference NCC Kv / Kh {n['v_diff_ncc']:.3f} / "
-              f"{n['h_diff_ncc']:.3f}, displacement corr. {n['v_disp_corr']:+.2f} / "
-              f"{n['h_disp_corr']:+.2f}, principal angles "
-              + ", ".join(f"{a:.1f}" for a in n["angles_deg"]) + " deg")
-    # the oracle's kernels on the comparison grid, registered to the measured Kbase (figure)
-    extra_rows = [("operator oracle",
-                   compare_model(oracle, comparison.measured, "oracle").kernels)]
+# once: kept in the dataset afterwards (`EKDUN_NB_ORACLE_SCENES`: fewer scenes, for CI)
+write_dataset_oracles(data, n_scenes=int(os.environ.get("EKDUN_NB_ORACLE_SCENES", "0"))
+                      or None)
+oracle_path = oracle_file(data, learned.convention)
+print(f"operator oracle ({learned.convention} side): {oracle_path.name}")
+oracle = load_kernels(oracle_path)
+vs_oracle = {"learned": compare_kernels(learned, oracle).learned.numbers(),
+             "measured fit": compare_kernels(comparison.measured.model,
+                                             oracle).learned.numbers()}
+for label, n in vs_oracle.items():
+    print(f"{label} vs operator oracle: difference NCC Kv / Kh {n['v_diff_ncc']:.3f} / "
+          f"{n['h_diff_ncc']:.3f}, displacement corr. {n['v_disp_corr']:+.2f} / "
+          f"{n['h_disp_corr']:+.2f}, principal angles "
+          + ", ".join(f"{a:.1f}" for a in n["angles_deg"]) + " deg")
+# the oracle's kernels on the comparison grid, registered to the measured Kbase (figure)
+extra_rows = [("operator oracle",
+               compare_model(oracle, comparison.measured, "oracle").kernels)]
 
 # %% [markdown]
 # ## Fig. 7: the learned kernels (paper layout), then learned / initial / measured / oracle
@@ -214,7 +212,7 @@ display(figure_displacements(comparison))
 # `compare_kernels` also splits the kernel change (learned − initial, and learned − measured)
 # into a gain on the caustic, a **pedestal** outside the dilated caustic support of the
 # measured kernels, the part an optical flow explains (a **displacement**) and the rest
-# (light fractions, summing to 1; `psfkit.compare.kernel_change`). With free pixels, Adam moves
+# (light fractions, summing to 1; `research.compare.kernel_change`). With free pixels, Adam moves
 # every pixel by about the kernel learning rate per step, near-zero ones included, so much of
 # the change is pedestal.
 

@@ -20,7 +20,7 @@ the kernels alone descend ``L_phys`` on the training pairs with nothing else in 
 At each of ``--report-at`` (passes over the training pairs: an Adam epoch is one, an L-BFGS
 function evaluation one), the row records ``L_phys`` on the training and on the test pairs and
 the kernels against the dataset's operator oracle (difference NCC, displacement correlation
-and end-point error of ``Kv`` / ``Kh``, principal angles: ``psfkit.compare``). Reference rows
+and end-point error of ``Kv`` / ``Kh``, principal angles: ``research.compare``). Reference rows
 give the same for the seed, the oracle itself and any ``--reference NAME=FILE`` (for example
 ``fit-pairs --no-nonneg`` of ``DATA/train``, the minimiser of the same term).
 

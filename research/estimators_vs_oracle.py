@@ -9,7 +9,7 @@ by :func:`research.oracles.write_dataset_oracles` where absent, ``--oracle-scene
   constrained (the default: non-negative, per-pair scale) and unconstrained (``--no-nonneg``);
 - optionally learned kernel files (``--learned RUN/kernels_learned.npz ...``, EK-DUN),
 
-each compared (``psfkit.compare.compare_kernels(A, B)``, B the reference) with the operator
+each compared (``research.compare.compare_kernels(A, B)``, B the reference) with the operator
 oracle of its convention (``oracle/paper_{c}.npz``) and the PSF oracle
 (``oracle/psf_paper_{c}.npz``), and the grid fit with the pairs fits. Metrics per correction
 kernel ``v`` / ``h``: difference-kernel NCC, displacement-map correlation and mean end-point
@@ -87,9 +87,9 @@ def main() -> None:
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
     from ekdun.data.virtual_bench import make_virtual_bench, read_manifest
-    from psfkit.compare import compare_kernels
     from psfkit.fitting.pairs.fit import predict, relative_errors
     from psfkit.forward.kernelfile import load_kernels, save_kernels
+    from research.compare import compare_kernels
     from research.oracles import operator_oracle, white_scenes, write_dataset_oracles
 
     data = Path(args.data)

@@ -26,7 +26,7 @@ forward operator), several noise draws at photon level ``P``, the exact unconstr
 least-squares fit of each (:func:`psfkit.fitting.pairs.fit.fit_pairs`: no ridge, no prior, no scale,
 no constraint, solved to convergence, so the estimator is linear and its mean is the
 noise-free fit), and the spread over the draws of the difference kernels and of their
-displacement maps (:func:`psfkit.compare.displacement_map`, on the reference model's caustic
+displacement maps (:func:`research.compare.displacement_map`, on the reference model's caustic
 mask). Spreads are standard deviations over the draws (``ddof = 1``): kernels relative to the
 reference difference kernels' norm, displacement maps as the RMS over the mask in pixels.
 """
@@ -40,14 +40,14 @@ import numpy as np
 import torch
 
 from psfkit.calibration.preprocess import luminance
-from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
-from psfkit.compare.options import CompareOptions
-from psfkit.compare.statistics import normalized_correlation, pearson
 from psfkit.errors import InvalidInputError
 from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import fit_pairs
 from psfkit.fitting.pairs.options import PairFitOptions
 from psfkit.forward.weights import get_basis
+from research.compare.displacement import DisplacementMap, comparison_mask, displacement_map
+from research.compare.options import CompareOptions
+from research.compare.statistics import normalized_correlation, pearson
 
 
 def poisson_gaussian(clean: np.ndarray, photons: float, read_noise_e: float,

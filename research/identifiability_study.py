@@ -18,7 +18,7 @@ the truth the spreads are measured against). Per (N, S, P):
   draws of the difference kernels relative to the oracle's (``spread``), their mean NCC with
   the oracle's, the noise-free fit's own distance from the oracle (``bias``: model mismatch
   and the finite scenes, no noise), and the std over draws of the displacement maps
-  (``psfkit.compare.displacement_map``, on the oracle's caustic mask; px, RMS over the mask),
+  (``research.compare.displacement_map``, on the oracle's caustic mask; px, RMS over the mask),
   the mean correlation of one draw's map with the oracle's, and the noise-free fit's mean
   end-point error against the oracle's map.
 

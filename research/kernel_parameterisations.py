@@ -12,7 +12,7 @@ and from one PSF (``Kv = Kh = Kbase`` = the fit's ``Kbase``); on request also fr
 pairs fits and from the operator oracle itself (``--seeds oracle``). For each run: test
 PSNR/SSIM, the kernel-change split (pedestal fraction, gain, displacement) against the initial
 kernels, the displacement-map correlation and difference NCC against the measured modes, the
-principal angles to the top PCA modes (``psfkit.compare``), and the same numbers against the
+principal angles to the top PCA modes (``research.compare``), and the same numbers against the
 dataset's **operator oracle** of the run's convention (``DATA/oracle/paper_<c>.npz``, the best
 eigen-kernel model of the simulator; difference NCC, displacement correlation and end-point
 error of Kv / Kh, principal angles). Every run, seed and the oracle also get their prediction
@@ -77,8 +77,6 @@ from ekdun.nets.checkpoint import load_checkpoint
 from ekdun.training import TrainOptions
 from ekdun.training.trainer import CHECKPOINT, _param_groups
 from psfkit.cli.main import run_cli
-from psfkit.compare import compare_kernels, measure_modes
-from psfkit.compare.options import CompareOptions
 from psfkit.errors import InvalidInputError
 from psfkit.fitting.pairs.fit import fit_pairs, predict, relative_errors
 from psfkit.fitting.pairs.options import PairFitOptions
@@ -87,6 +85,8 @@ from psfkit.io import read_grid, read_pairs
 from psfkit.io.jsonable import write_json
 from research._kparam_table import as_document, format_number, markdown_table, run_key
 from research.benchmark_tiny import fit_seed_kernels
+from research.compare import compare_kernels, measure_modes
+from research.compare.options import CompareOptions
 from research.kernel_models import (
     LR_MULTIPLIER,
     build_network,
@@ -299,7 +299,7 @@ def test_scores(model: torch.nn.Module, data: Path, device: torch.device | str =
 
 
 def kernel_numbers(run: Path, modes: Any) -> dict[str, Any]:
-    """psfkit compare of a run's learned kernels (with its initial kernels)."""
+    """research.compare of a run's learned kernels (with its initial kernels)."""
     cmp = compare_kernels(run / "kernels_learned.npz", modes,
                           initial=run / "kernels_initial.npz")
     doc = cmp.to_dict()

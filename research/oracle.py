@@ -33,10 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineArgumentParser(
         prog="python -m research.oracle",
         description="Compute the best eigen-kernel model of a virtual-bench dataset's "
-                    "simulator (docs/compare.md): the operator oracle (least squares over the "
-                    "dataset's scene distribution, noise-free; --nonneg: over non-negative "
-                    "kernels, the estimand of psfkit fit-pairs' default) or the PSF oracle "
-                    "(grid fit of the noise-free node PSFs).")
+                    "simulator (research/compare/README.md): the operator oracle (least "
+                    "squares over the dataset's scene distribution, noise-free; --nonneg: "
+                    "over non-negative kernels, the estimand of psfkit fit-pairs' default) or "
+                    "the PSF oracle (grid fit of the noise-free node PSFs).")
     p.add_argument("data", help="virtual-bench dataset folder (ekdun make-dataset)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--out", help="kernel file to write (.npz)")

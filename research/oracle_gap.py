@@ -50,8 +50,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from ekdun.data.bench_spec import VirtualBenchSpec, dense_model_for, make_scenes
-    from psfkit.compare import compare_kernels
     from psfkit.fitting.pairs.fit import predict, relative_errors
+    from research.compare import compare_kernels
     from research.oracles import (
         dense_psf_oracle,
         operator_oracle,

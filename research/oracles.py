@@ -27,9 +27,9 @@ For a weight basis and convention it defines two "best" eigen-kernel models:
     (:func:`~ekdun.data.virtual_bench.node_psfs`): no registration, no noise, no normalisation.
 
 Both are kernel files (:class:`psfkit.forward.kernelfile.KernelModel`) in the dense model's units
-(measurement per unit scene radiance), readable by ``psfkit compare``, ``psfkit eval-model``
-and ``ekdun train --kernels``. :func:`compare_oracles` says how much two models differ
-(difference-kernel NCC, kernel error, prediction error on noise-free test pairs).
+(measurement per unit scene radiance), readable by ``python -m research.compare``,
+``psfkit eval-model`` and ``ekdun train --kernels``. :func:`compare_oracles` says how much two
+models differ (difference-kernel NCC, kernel error, prediction error on noise-free test pairs).
 
 ``python -m research.oracle DATASET --write-dataset`` (:func:`write_dataset_oracles`) writes the
 unconstrained oracles of both conventions into an existing dataset, ``DATASET/oracle/``, and
@@ -59,7 +59,6 @@ from ekdun.data.bench_spec import (
 from ekdun.data.dense_model import hat_weights
 from ekdun.data.virtual_bench import MANIFEST, _data_files, content_hash, read_manifest
 from ekdun.errors import ConfigurationError, InvalidInputError
-from psfkit.compare.statistics import normalized_correlation
 from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.constraints import projected_newton
 from psfkit.fitting.pairs.fit import predict
@@ -69,6 +68,7 @@ from psfkit.forward.geometry import CONVENTIONS
 from psfkit.forward.kernelfile import KernelModel, save_kernels
 from psfkit.forward.weights import get_basis
 from psfkit.io.atomic import atomic_directory, atomic_file
+from research.compare.statistics import normalized_correlation
 
 #: Random stream of the oracle's scenes (train 0, test 1): same distribution, new scenes.
 ORACLE_STREAM = 2

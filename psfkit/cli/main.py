@@ -19,7 +19,7 @@ from psfkit.cli.allocator import reuse_freed_memory
 from psfkit.cli.parser import OneLineArgumentParser
 from psfkit.cli.run_file import parse_args
 from psfkit.cli.vocabulary import deprecation_notices
-from psfkit.errors import PsfkitError
+from psfkit.errors import InvalidInputError, PsfkitError
 from psfkit.io.atomic import protected_inputs
 from psfkit.io.images import collected_log
 from psfkit.io.temps import public_name
@@ -259,10 +259,27 @@ def add_debug_option(parser: argparse.ArgumentParser) -> None:
                              "command)")
 
 
+#: Commands that left the product for the source repository's research/ folder
+#: (docs/migration.md), kept hidden for one release to say where they went.
+MOVED = {"compare": "python -m research.compare"}
+
+
+def _register_moved(sub: argparse._SubParsersAction, name: str) -> None:
+    # no help=: hidden; every argument is taken as it comes and ignored
+    p = sub.add_parser(name, add_help=False, prefix_chars="\0")
+    p.add_argument("rest", nargs="*", type=str)
+    p.set_defaults(func=_run_moved, moved=name)
+
+
+def _run_moved(args: argparse.Namespace) -> int:
+    raise InvalidInputError(
+        f"`psfkit {args.moved}` is no longer a user command: it is a research study, run "
+        f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from psfkit.cli import (
         characterize_cmd,
-        compare_cmd,
         eval_cmd,
         fit_cmd,
         inspect_cmd,
@@ -276,9 +293,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psfkit {__version__}")
     add_debug_option(parser)
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for module in (simulate_cmd, inspect_cmd, characterize_cmd, fit_cmd, pairs_cmd, eval_cmd,
-                   compare_cmd):   # the order of ``psfkit --help``
+    # the order of ``psfkit --help``
+    for module in (simulate_cmd, inspect_cmd, characterize_cmd, fit_cmd, pairs_cmd, eval_cmd):
         module.register(sub)
+    for name in MOVED:
+        _register_moved(sub, name)
     return parser
 
 

@@ -95,7 +95,6 @@ FLAGS: dict[str, FlagRange] = {
     "--hot-pixel-sigma": FlagRange(float, 0, 1e6, low_open=True),
     "--upsample": FlagRange(int, 1, 1000),
     "--mae-smoothing": _SIGMA_PX,
-    "--smooth": _SIGMA_PX,
     "--folds": FlagRange(int, 2, MAX_GRID_SIDE ** 2),
     "--min-ncc": FlagRange(float, 0, 1),
     "--tikhonov": _WEIGHT,

@@ -242,7 +242,7 @@ def test_fig7_takes_an_ekdun_checkpoint(tmp_path):
 
     # the dataset lists an operator oracle of the learned convention: used by default
     from ekdun.training import export_kernels
-    from psfkit.compare import compare_kernels
+    from research.compare import compare_kernels
 
     convention = seed.convention
     oracle = data / "oracle" / f"paper_{convention}.npz"

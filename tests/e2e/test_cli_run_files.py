@@ -49,7 +49,7 @@ def _flags(help_text: str) -> list[str]:
 
 def test_every_command_shows_at_most_12_flags_and_help_all_every_one(capsys):
     commands = _commands()
-    assert len(commands) == 8
+    assert len(commands) == 7              # psfkit's (compare left for research/, issue 44)
     total = 0
     for name, parser in commands.items():
         short = _help(capsys, name, "--help")

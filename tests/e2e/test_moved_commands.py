@@ -1,4 +1,4 @@
-"""Commands that left the user CLI for research/ (issue 44, item 3): hidden from ``--help``,
+"""Commands that left the user CLI for research/ (issue 44): hidden from ``--help``,
 their old spelling is one line naming the replacement, status 2, nothing written; the
 replacement runs from the repository root."""
 
@@ -66,3 +66,23 @@ def test_the_replacements_run_from_the_repository(tmp_path):
             assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
             assert "not a virtual-bench dataset" in done.stderr
     assert not (tmp_path / "o.npz").exists()
+
+
+def test_psfkit_compare_says_where_it_went(tmp_path, capsys, monkeypatch):
+    """``psfkit compare`` (the paper's Fig. 7 study) moved to ``python -m research.compare``."""
+    from psfkit.cli import main as psfkit_main
+
+    monkeypatch.chdir(tmp_path)
+    assert psfkit_main(["compare", "learned.npz", "GRID", "--out", "cmp"]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "python -m research.compare" in lines[0], captured.err
+    assert lines[0].startswith("psfkit: error: `psfkit compare`")
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+    assert psfkit_main(["--help"]) == 0
+    assert "compare" not in capsys.readouterr().out
+    done = subprocess.run([sys.executable, "-m", "research.compare", str(tmp_path / "a.npz"),
+                           str(tmp_path / "b.npz"), "--out", str(tmp_path / "cmp")], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "a.npz" in done.stderr and not (tmp_path / "cmp").exists()

@@ -35,7 +35,7 @@ def test_replaced_commands_are_not_listed(capsys):
     listed = _listed_commands(capsys.readouterr().out)
     assert "report" in listed and "fit-eigen" in listed
     assert not set(REPLACED) & set(listed), listed
-    assert len(listed) == 8
+    assert len(listed) == 7
 
 
 def _flag_lines(help_text: str) -> list[str]:

@@ -400,9 +400,10 @@ def test_fitted_text_never_prints_nan(value, sigma, flag, text):
 
 
 def test_comparison_figures_are_legible(fitted):
-    """``psfkit compare``'s Fig. 7 layout and displacement maps (a model against itself)."""
-    from psfkit.compare import compare_kernels
-    from psfkit.report.figures import figure_displacements, figure_learned_vs_measured
+    """``research.compare``'s Fig. 7 layout and displacement maps (a model against itself),
+    by the same legibility checks as the product's figures."""
+    from research.compare import compare_kernels
+    from research.compare.figures import figure_displacements, figure_learned_vs_measured
 
     model = fitted["lattice"].kernel_model()
     comparison = compare_kernels(model, model)

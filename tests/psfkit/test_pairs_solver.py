@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from psfkit.compare.statistics import normalized_correlation as ncc
 from psfkit.fitting.pairs.batches import BATCH_BYTES, DEFAULT_BATCH, PairBatches, auto_batch_size
 from psfkit.fitting.pairs.constraints import (
     STALL_STEPS,
@@ -23,6 +22,7 @@ from psfkit.forward.convolution import kernel_spectra
 from psfkit.forward.fft import irfft2, rfft2
 from psfkit.forward.kernel_space import KernelSpaceOperator
 from psfkit.forward.kernelfile import KernelModel
+from research.compare.statistics import normalized_correlation as ncc
 from tests.helpers.operators import extract_kernel
 from tests.helpers.pairs import kkt_residual
 

@@ -30,10 +30,10 @@ def _bench(*args: str) -> subprocess.CompletedProcess:
 
 def test_benchmark_scores_every_run_against_the_oracle(tmp_path):
     from psfkit.cli import main as psfkit_main
-    from psfkit.compare import compare_kernels
     from psfkit.fitting.pairs.fit import predict, relative_errors
     from psfkit.forward.kernelfile import load_kernels
     from psfkit.io import read_pairs
+    from research.compare import compare_kernels
 
     out = tmp_path / "kp"
     done = _bench("--out", str(out), "--sensor", "32", "32", "--n-train", "8", "--n-test", "2",

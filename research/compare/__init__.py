@@ -6,28 +6,28 @@ them with the camera's PSF grid (:func:`measure_modes`: fitted eigen-kernels, to
 warp-predicted displacements) or another kernel file (:func:`modes_from_kernel_file`): Pearson
 correlation, end-point error, RMS and slope of the displacement maps (:func:`map_agreement`),
 the normalised correlation of ``K_k − Kbase`` and principal angles between the spans.
-Conventions: :mod:`~psfkit.compare.displacement`; figures, JSON and HTML:
-:mod:`psfkit.report.comparison`.
+Conventions: :mod:`~research.compare.displacement`; figures, JSON and HTML:
+:mod:`research.compare.report`.
 """
 
-from psfkit.compare.comparison import check_learned, compare_kernels, compare_model
-from psfkit.compare.displacement import (
+from research.compare.comparison import check_learned, compare_kernels, compare_model
+from research.compare.displacement import (
     DisplacementMap,
     comparison_mask,
     displacement_map,
     masked_smooth,
 )
-from psfkit.compare.measured import (
+from research.compare.measured import (
     MeasuredModes,
     load_grid,
     measure_modes,
     modes_from_kernel_file,
 )
-from psfkit.compare.options import CompareOptions
-from psfkit.compare.resampling import ASPECT_TOLERANCE, check_shapes, pad_kernels, resample
-from psfkit.compare.results import KernelComparison, KernelSetComparison
-from psfkit.compare.statistics import map_agreement, normalized_correlation, pearson
-from psfkit.compare.warps import MIN_WEIGHT_CHANGE, WARP_AXES
+from research.compare.options import CompareOptions
+from research.compare.resampling import ASPECT_TOLERANCE, check_shapes, pad_kernels, resample
+from research.compare.results import KernelComparison, KernelSetComparison
+from research.compare.statistics import map_agreement, normalized_correlation, pearson
+from research.compare.warps import MIN_WEIGHT_CHANGE, WARP_AXES
 
 __all__ = [
     "ASPECT_TOLERANCE", "MIN_WEIGHT_CHANGE", "WARP_AXES", "CompareOptions", "DisplacementMap",

@@ -19,12 +19,12 @@ import numpy as np
 from scipy import ndimage
 
 from psfkit.calibration.alignment import RELIABLE_OVERLAP, AlignedPsf, GridAligner
-from psfkit.compare.displacement import DisplacementMap, displacement_map
-from psfkit.compare.options import CompareOptions
-from psfkit.compare.resampling import resample
 from psfkit.fitting.grid.design import position_weights
 from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid
+from research.compare.displacement import DisplacementMap, displacement_map
+from research.compare.options import CompareOptions
+from research.compare.resampling import resample
 
 #: kernel names whose displacement a warp along one sensor axis predicts
 WARP_AXES = {"v": "v", "h": "u"}

@@ -1,4 +1,4 @@
-"""Figures of a learned-vs-measured kernel comparison (:mod:`psfkit.compare`): Fig. 7 for the
+"""Figures of a learned-vs-measured kernel comparison (:mod:`research.compare`): Fig. 7 for the
 learned kernels next to the measured ones, and the displacement maps."""
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from matplotlib.image import AxesImage
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
 from psfkit.calibration.warp import bounding_box
-from psfkit.compare.displacement import DisplacementMap
-from psfkit.compare.results import KernelComparison
 from psfkit.report.figures.eigen import _zoom, difference_limit, draw_kernels
 from psfkit.report.figures.style import PAGE_IN, new_figure, no_ticks, publication_style
+from research.compare.displacement import DisplacementMap
+from research.compare.results import KernelComparison
 
 
 def _rows(comparison: KernelComparison) -> list[tuple[str, np.ndarray]]:

@@ -20,11 +20,11 @@ from typing import Any
 from matplotlib.figure import Figure
 
 from psfkit import __version__
-from psfkit.compare import KernelComparison
 from psfkit.io.atomic import atomic_directory
-from psfkit.report.figures.compare import figure_displacements, figure_learned_vs_measured
 from psfkit.report.figures.style import save_figure, write_figures
 from psfkit.report.html import figures_html, grid_table, html_page, html_table
+from research.compare import KernelComparison
+from research.compare.figures import figure_displacements, figure_learned_vs_measured
 
 FIGURES = (
     ("fig7_learned_vs_measured", "Fig. 7 layout: learned kernels, their differences, and the "
@@ -71,8 +71,9 @@ def _change_rows(comparison: KernelComparison) -> str:
                          part["outside_mass_fraction"]))
     if not body:
         return ""
-    return ("<p>Kernel change split (light fractions, docs/compare.md): gain on the caustic, "
-            "pedestal outside its dilated support, displacement (optical flow), other.</p>"
+    return ("<p>Kernel change split (light fractions, research/compare/README.md): gain on "
+            "the caustic, pedestal outside its dilated support, displacement (optical flow), "
+            "other.</p>"
             + grid_table(head, body, ".3f"))
 
 
@@ -99,7 +100,7 @@ v = row), K_k(x + D(x)) ≈ K_base(x), on the caustic mask of the measured K_bas
 ({doc['mask_pixels']} px). "Measured warp" is the displacement predicted from the dense flow
 between the centre PSF and the outermost reliable PSFs on the kernel's axis (both sides),
 divided by the change of the kernel's weight. Correlations are Pearson over the mask;
-"–" means undefined (a map without displacement). See docs/compare.md.</p>
+"–" means undefined (a map without displacement). See research/compare/README.md.</p>
 {html_table([(k, v) for k, v in angles] + ceiling)}
 {_metric_rows(comparison)}
 {_change_rows(comparison)}

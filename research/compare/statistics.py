@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from psfkit.calibration.registration import normalized_cross_correlation
-from psfkit.compare.displacement import DisplacementMap
+from research.compare.displacement import DisplacementMap
 
 
 def pearson(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:

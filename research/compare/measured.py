@@ -1,6 +1,6 @@
 """The measured side of a comparison, on the comparison grid: from a PSF grid
 (:func:`measure_modes`: eigen-kernels fitted with the learned file's basis and convention, top
-PCA modes, warps of :mod:`psfkit.compare.warps`) or from another kernel file
+PCA modes, warps of :mod:`research.compare.warps`) or from another kernel file
 (:func:`modes_from_kernel_file`: its kernels only; no warps or PCA modes, ``null`` in
 ``compare.json``)."""
 
@@ -15,10 +15,6 @@ import numpy as np
 
 from psfkit.calibration.alignment import GridAligner
 from psfkit.calibration.preprocess import luminance
-from psfkit.compare.displacement import DisplacementMap, comparison_mask
-from psfkit.compare.options import CompareOptions
-from psfkit.compare.resampling import check_shapes, pad_kernels, resample
-from psfkit.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
 from psfkit.errors import InvalidInputError, ModelFileError
 from psfkit.fitting.grid.fit import fit_eigen_grid
 from psfkit.fitting.grid.options import EigenFitOptions
@@ -27,6 +23,10 @@ from psfkit.forward.kernelfile import KernelModel
 from psfkit.forward.weights import get_basis
 from psfkit.io.grid import PsfGrid
 from psfkit.io.grid_validation import read_grid
+from research.compare.displacement import DisplacementMap, comparison_mask
+from research.compare.options import CompareOptions
+from research.compare.resampling import check_shapes, pad_kernels, resample
+from research.compare.warps import WARP_AXES, measured_warp, measured_warps_joint
 
 
 @dataclass

@@ -30,7 +30,7 @@ class CompareOptions:
         Measured PCA modes compared with (0: the number of kernels).
     warp_positions : {"axes", "all"}
         Warps from the outermost reliable positions on each kernel's axis, or from every
-        reliable position solved jointly (docs/compare.md).
+        reliable position solved jointly (research/compare/README.md).
     align : bool
         Register the learned ``Kbase`` to the measured one by a global sub-pixel shift first.
     fit : EigenFitOptions or None

@@ -1,4 +1,4 @@
-"""psfkit.compare: learned vs measured eigen-kernels, against known ground truths."""
+"""research.compare: learned vs measured eigen-kernels, against known ground truths."""
 
 from __future__ import annotations
 
@@ -11,7 +11,11 @@ import pytest
 from scipy import ndimage
 
 from psfkit.calibration.preprocess import luminance
-from psfkit.compare import (
+from psfkit.errors import InvalidInputError, ModelFileError
+from psfkit.forward.kernelfile import KernelModel
+from psfkit.io import read_grid
+from psfkit.simulate import BenchConfig, simulate_grid
+from research.compare import (
     CompareOptions,
     DisplacementMap,
     compare_kernels,
@@ -22,10 +26,6 @@ from psfkit.compare import (
     pearson,
     resample,
 )
-from psfkit.errors import InvalidInputError, ModelFileError
-from psfkit.forward.kernelfile import KernelModel
-from psfkit.io import read_grid
-from psfkit.simulate import BenchConfig, simulate_grid
 
 
 @pytest.fixture(scope="module")
@@ -232,8 +232,8 @@ def test_numbers_are_the_metrics_flat(modes):
 def test_written_comparison_holds_extra_files_and_rows(modes, tmp_path):
     """``write_comparison(extra_files=)`` writes them in the folder's transaction (a bad name
     leaves nothing behind); ``figure_learned_vs_measured(extra_rows=)`` adds rows."""
-    from psfkit.report.comparison import write_comparison
-    from psfkit.report.figures.compare import figure_learned_vs_measured
+    from research.compare.figures import figure_learned_vs_measured
+    from research.compare.report import write_comparison
 
     result = compare_kernels(modes.model, modes)
     out = write_comparison(result, tmp_path / "c", extra_files=[("note.md", "hello\n")])
@@ -251,7 +251,7 @@ def test_figure_names_a_kernel_file_reference_by_its_file(modes, tmp_path):
     """Fig. 7's last row is "measured (grid fit)" only when the measured side is a grid; a
     kernel file given as B (a pairs fit, an oracle) is named by its file."""
     from psfkit.forward.kernelfile import save_kernels
-    from psfkit.report.figures.compare import reference_label
+    from research.compare.figures import reference_label
 
     assert reference_label(compare_kernels(modes.model, modes)) == "measured (grid fit)"
     path = tmp_path / "pairs_fit.npz"

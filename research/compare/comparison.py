@@ -11,17 +11,17 @@ import numpy as np
 from psfkit.calibration.caustic import caustic_support
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.registration import register_shift, shift_image
-from psfkit.compare.displacement import DisplacementMap, comparison_mask, displacement_map
-from psfkit.compare.kernel_change import split_kernel_changes
-from psfkit.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
-from psfkit.compare.options import CompareOptions
-from psfkit.compare.resampling import pad_kernels, resample
-from psfkit.compare.results import KernelComparison, KernelSetComparison
-from psfkit.compare.statistics import map_agreement, normalized_correlation
 from psfkit.errors import ModelFileError
 from psfkit.fitting.grid.pca import principal_angles_deg
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.io.grid import PsfGrid
+from research.compare.displacement import DisplacementMap, comparison_mask, displacement_map
+from research.compare.kernel_change import split_kernel_changes
+from research.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
+from research.compare.options import CompareOptions
+from research.compare.resampling import pad_kernels, resample
+from research.compare.results import KernelComparison, KernelSetComparison
+from research.compare.statistics import map_agreement, normalized_correlation
 
 
 def _kernel_displacements(lum: np.ndarray, names: tuple[str, ...], mask: np.ndarray,
@@ -191,7 +191,7 @@ def compare_kernels(learned: KernelModel | str | os.PathLike,
 
 def kernel_change_report(learned: KernelSetComparison, initial: KernelSetComparison | None,
                          modes: MeasuredModes, options: CompareOptions) -> dict:
-    """:func:`~psfkit.compare.kernel_change.split_kernel_changes` of the learned kernels vs the
+    """:func:`~research.compare.kernel_change.split_kernel_changes` of the learned kernels vs the
     measured (and initial) ones on the measured kernels' dilated caustic support."""
     names = modes.model.kernel_names
     support = caustic_support(modes.model.kernels, options.mask_level, options.mask_dilate)

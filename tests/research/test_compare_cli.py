@@ -1,4 +1,4 @@
-"""psfkit compare from the command line."""
+"""``python -m research.compare`` (was ``psfkit compare``) from the command line."""
 
 from __future__ import annotations
 
@@ -10,6 +10,9 @@ import pytest
 from psfkit.cli import main
 from psfkit.forward.kernelfile import KernelModel, load_kernels, save_kernels
 from psfkit.simulate import BenchConfig, simulate_grid
+from research.compare.__main__ import main as compare
+
+pytestmark = pytest.mark.e2e
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +35,7 @@ def setup(tmp_path_factory):
 def test_compare_writes_figures_json_and_html(setup, tmp_path, capsys):
     grid, fitted, initial, _ = setup
     out = tmp_path / "cmp"
-    assert main(["compare", str(fitted), str(grid), "--out", str(out), "--initial",
+    assert compare([str(fitted), str(grid), "--out", str(out), "--initial",
                  str(initial), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "v_vs_kernels +1.000" in text and "initial" in text and "n/a" in text
@@ -68,7 +71,7 @@ def test_compare_sees_a_known_difference(setup, tmp_path, capsys):
     grid, _, _, model = setup
     negated = _negated_corrections(model, tmp_path / "negated.npz")
     out = tmp_path / "cmp"
-    assert main(["compare", str(negated), str(grid), "--out", str(out), "--quiet"]) == 0
+    assert compare([str(negated), str(grid), "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
     doc = json.loads((out / "compare.json").read_text())
     headline = doc["headline"]["learned"]
@@ -84,7 +87,7 @@ def test_compare_two_kernel_files(setup, tmp_path, capsys):
     are refused in one line."""
     _, fitted, _, model = setup
     out = tmp_path / "self"
-    assert main(["compare", str(fitted), str(fitted), "--out", str(out), "--quiet"]) == 0
+    assert compare([str(fitted), str(fitted), "--out", str(out), "--quiet"]) == 0
     assert f"with kernel file {fitted}" in capsys.readouterr().out
     doc = json.loads((out / "compare.json").read_text())
     headline = doc["headline"]["learned"]
@@ -99,7 +102,7 @@ def test_compare_two_kernel_files(setup, tmp_path, capsys):
 
     negated = _negated_corrections(model, tmp_path / "negated.npz")
     out = tmp_path / "negated"
-    assert main(["compare", str(negated), str(fitted), "--out", str(out), "--quiet"]) == 0
+    assert compare([str(negated), str(fitted), "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
     headline = json.loads((out / "compare.json").read_text())["headline"]["learned"]
     assert headline["v_difference_ncc"] == pytest.approx(-1.0, abs=1e-6)
@@ -114,7 +117,7 @@ def test_compare_two_kernel_files(setup, tmp_path, capsys):
     for measured, message in ((source_side, "basis/convention paper/source differ"),
                               (single, "single kernel")):
         target = tmp_path / f"bad-{measured.stem}"
-        assert main(["compare", str(fitted), str(measured), "--out", str(target),
+        assert compare([str(fitted), str(measured), "--out", str(target),
                      "--quiet"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0] and str(measured) in err[0], err
@@ -151,7 +154,7 @@ def test_compare_refusals(setup, tmp_path, capsys, case, message):
     else:
         learned = tmp_path / "absent.npz"
     out = tmp_path / "cmp"
-    assert main(["compare", str(learned), grid_arg, "--out", str(out), "--quiet"]) == 2
+    assert compare([str(learned), grid_arg, "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()
@@ -162,7 +165,7 @@ def test_compare_refuses_a_non_empty_output_folder(setup, tmp_path, capsys):
     out = tmp_path / "cmp"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    assert main(["compare", str(fitted), str(grid), "--out", str(out), "--quiet"]) == 2
+    assert compare([str(fitted), str(grid), "--out", str(out), "--quiet"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
 
@@ -178,7 +181,7 @@ def test_grid_without_reliable_edge_positions_is_reported_not_fatal(tmp_path, ca
     assert main(["fit-eigen", str(grid), "--out", str(fitted), "--cv-bases", "none",
                  "--quiet"]) == 0
     out = tmp_path / "cmp"
-    assert main(["compare", str(fitted), str(grid), "--out", str(out), "--quiet"]) == 0
+    assert compare([str(fitted), str(grid), "--out", str(out), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "no measured warp" in text and "too few reliable positions" in text
     doc = json.loads((out / "compare.json").read_text())

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from psfkit.compare.displacement import DisplacementMap
-from psfkit.compare.measured import MeasuredModes
-from psfkit.compare.options import CompareOptions
 from psfkit.io.jsonable import jsonable
+from research.compare.displacement import DisplacementMap
+from research.compare.measured import MeasuredModes
+from research.compare.options import CompareOptions
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Kernel-change split (psfkit.compare.kernel_change): synthetic changes of known composition."""
+"""Kernel-change split (research.compare.kernel_change): synthetic changes of known composition."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from psfkit.calibration.caustic import caustic_support
 from psfkit.calibration.registration import shift_image
-from psfkit.compare.kernel_change import split_change, split_kernel_changes
 from psfkit.errors import InvalidInputError
+from research.compare.kernel_change import split_change, split_kernel_changes
 
 
 def _caustic(shape: tuple[int, int] = (64, 64), seed: int = 3) -> np.ndarray:

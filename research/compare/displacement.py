@@ -15,8 +15,8 @@ from scipy import ndimage
 
 from psfkit.calibration.caustic import caustic_mask
 from psfkit.calibration.warp import dense_flow
-from psfkit.compare.options import CompareOptions
 from psfkit.errors import InvalidInputError
+from research.compare.options import CompareOptions
 
 
 @dataclass(frozen=True)

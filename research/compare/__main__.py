@@ -1,36 +1,35 @@
-"""``psfkit compare``: learned eigen-kernels (a trained EK-DUN's) vs the measured PSF grid, or
-any kernel file against another (``psfkit compare A.npz B.npz``, B as the measured side)."""
+"""``python -m research.compare``: learned eigen-kernels (a trained EK-DUN's) vs the measured PSF
+grid, or any kernel file against another (``python -m research.compare A.npz B.npz``, B as the
+measured side). Was ``psfkit compare`` (a study of the paper's Fig. 7, not a product command)."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from psfkit.choices import FLOW_METHODS
-from psfkit.cli.help_all import add_command, mark_advanced
+from psfkit.cli.main import OneLineArgumentParser, run_cli
 from psfkit.cli.options import add_preprocess_options, preprocess_options
 from psfkit.forward.kernelfile import load_kernels
 from psfkit.io import OutputTransaction
-from psfkit.io.flag_ranges import flag
+from psfkit.io.flag_ranges import FLAGS, flag
 
-#: Flags that only ``--help-all`` lists: how the displacement maps are measured
-#: and how a grid given as the measured side is preprocessed.
-COMPARE_ADVANCED = ("--method", "--smooth", "--warp-positions", "--no-align",
-                    "--normalization", "--saturation-level", "--allow-saturated",
-                    "--hot-pixel-sigma")
+#: ``--smooth`` takes the range of psfkit's other smoothing sigma.
+SMOOTH = {"--smooth": FLAGS["--mae-smoothing"]}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_command(sub, "compare", "compare learned eigen-kernels with the measured PSF grid or "
-                                    "another kernel file (Fig. 7)", """
+def build_parser() -> argparse.ArgumentParser:
+    p = OneLineArgumentParser(prog="python -m research.compare", description="""
         Did the network learn the physics? Measures the local sub-pixel displacement of the
         caustic in each learned correction kernel (Kv, Kh) relative to Kbase and compares it
         with the eigen-kernels fitted to the grid, with the warps between the centre and edge
         PSFs, and with the grid's PCA modes; or, given a second kernel file instead of a grid,
         with that file's kernels (no warps or PCA then). Writes figures, compare.json and
-        compare.html.""")
+        compare.html (Fig. 7).""")
     p.add_argument("learned", help="kernel file of the trained model (.npz)")
     p.add_argument("grid", metavar="MEASURED",
                    help="PSF-grid folder of the same camera, or a kernel file (.npz: a grid "
@@ -42,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "learned ones")
     p.add_argument("--method", choices=FLOW_METHODS, default="dis",
                    help="dense-flow method of the displacement maps (default dis)")
-    p.add_argument("--smooth", type=flag("--smooth"), default=3.0, metavar="PX",
+    p.add_argument("--smooth", type=flag("--smooth", table=SMOOTH), default=3.0, metavar="PX",
                    help="sigma of the masked Gaussian smoothing of displacement maps (px, "
                         "default 3)")
     p.add_argument("--warp-positions", choices=("axes", "all"), default="axes",
@@ -53,8 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     add_preprocess_options(p, "preprocessing of the grid")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    mark_advanced(p, COMPARE_ADVANCED)
     p.set_defaults(func=run_compare)
+    return p
 
 
 def _fmt(value: float | None) -> str:
@@ -63,7 +62,7 @@ def _fmt(value: float | None) -> str:
 
 def run_compare(args: argparse.Namespace) -> int:
     # imported here, not when the parser is built (scipy, OpenCV, matplotlib)
-    from psfkit.report.comparison import write_comparison
+    from research.compare.report import write_comparison
 
     out = Path(args.out)
     # refuse every bad input before any work (and before anything is written)
@@ -76,7 +75,7 @@ def run_compare(args: argparse.Namespace) -> int:
 
 
 def _compare(args: argparse.Namespace) -> tuple[Any, Any]:
-    from psfkit.compare import CompareOptions, check_learned, compare_kernels, load_grid
+    from research.compare import CompareOptions, check_learned, compare_kernels, load_grid
 
     learned = load_kernels(args.learned)
     check_learned(learned, args.learned)
@@ -120,3 +119,12 @@ def _print_comparison(args: argparse.Namespace, comparison: Any, learned: Any, o
                 f"{k} {f[k]:.3f}" for k in ("gain", "pedestal", "displacement", "other")))
     for note in comparison.notes:
         print(f"  note: {note}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the comparison with ``argv`` (default: the process arguments); returns the exit code."""
+    return run_cli("python -m research.compare", build_parser(), argv)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
