@@ -39,8 +39,8 @@ from ekdun.nets.ekdun_net import EKDUN
 from ekdun.nets.unrolled import UnrolledNetwork
 from ekdun.training import TrainOptions
 from ekdun.training import train as product_train
-from psfkit.calibration.caustic import caustic_support
 from psfkit.forward.kernelfile import KernelModel
+from research.compare.displacement import caustic_support
 from research.physics_loss import PhysicsObjective
 
 #: Parameterisations ``EKDUNConfig.kernel_param`` accepts.
@@ -55,7 +55,7 @@ LR_MULTIPLIER = {"free": 1.0, "physical": 100.0, "flow": 100.0}
 
 def seed_support(kernels: Tensor, level: float = 0.02, dilate: int = 3) -> Tensor:
     """Dilated caustic support of kernels ``(K, C, H, W)``: ``(H, W)`` bool, the union over
-    kernels (:func:`psfkit.calibration.caustic.caustic_support`)."""
+    kernels (:func:`research.compare.displacement.caustic_support`)."""
     k = kernels.detach().cpu().numpy().astype(np.float32)
     return torch.as_tensor(caustic_support(k, level, dilate))
 

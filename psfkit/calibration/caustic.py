@@ -6,9 +6,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from psfkit.calibration.preprocess import luminance
-from psfkit.errors import InvalidInputError
-
 
 def caustic_mask(reference: np.ndarray, valid: np.ndarray, level: float = 0.02,
                  border: int = 8, dilate: int = 3) -> np.ndarray:
@@ -31,19 +28,3 @@ def erode(mask: np.ndarray, pixels: int) -> np.ndarray:
     kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
     return cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)[
         1:-1, 1:-1] > 0
-
-
-def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -> np.ndarray:
-    """``(H, W)`` bool union of the caustic masks (:func:`caustic_mask` without a border) of
-    ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance)."""
-    k = np.asarray(kernels, np.float32)
-    if k.ndim == 4:
-        k = np.stack([luminance(x) for x in k])
-    if k.ndim != 3:
-        raise InvalidInputError("caustic_support needs (K, C, H, W) or (K, H, W) kernels")
-    valid = np.ones(k.shape[-2:], bool)
-    out = np.zeros(k.shape[-2:], bool)
-    for img in k:
-        if float(np.abs(img).max()) > 0:
-            out |= caustic_mask(np.clip(img, 0, None), valid, level, border=0, dilate=dilate)
-    return out

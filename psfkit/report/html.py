@@ -1,5 +1,5 @@
-"""HTML building blocks shared by psfkit's self-contained report pages (grid report,
-learned-vs-measured comparison): the stylesheet, table cells and embedded figures."""
+"""HTML building blocks of self-contained report pages (psfkit's grid report, and the
+research comparison's page): the stylesheet, table cells and embedded figures."""
 
 from __future__ import annotations
 

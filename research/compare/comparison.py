@@ -8,14 +8,18 @@ from pathlib import Path
 
 import numpy as np
 
-from psfkit.calibration.caustic import caustic_support
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.registration import register_shift, shift_image
 from psfkit.errors import ModelFileError
 from psfkit.fitting.grid.pca import principal_angles_deg
 from psfkit.forward.kernelfile import KernelModel, load_kernels
 from psfkit.io.grid import PsfGrid
-from research.compare.displacement import DisplacementMap, comparison_mask, displacement_map
+from research.compare.displacement import (
+    DisplacementMap,
+    caustic_support,
+    comparison_mask,
+    displacement_map,
+)
 from research.compare.kernel_change import split_kernel_changes
 from research.compare.measured import MeasuredModes, measure_modes, modes_from_kernel_file
 from research.compare.options import CompareOptions

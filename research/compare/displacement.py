@@ -14,6 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from psfkit.calibration.caustic import caustic_mask
+from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.warp import dense_flow
 from psfkit.errors import InvalidInputError
 from research.compare.options import CompareOptions
@@ -75,3 +76,19 @@ def comparison_mask(base_luminance: np.ndarray, options: CompareOptions) -> np.n
     :func:`psfkit.calibration.caustic.caustic_mask`)."""
     return caustic_mask(base_luminance, np.ones(base_luminance.shape, bool), options.mask_level,
                         options.mask_border, options.mask_dilate)
+
+
+def caustic_support(kernels: np.ndarray, level: float = 0.02, dilate: int = 3) -> np.ndarray:
+    """``(H, W)`` bool union of the caustic masks (:func:`~psfkit.calibration.caustic.caustic_mask`
+    without a border) of ``kernels`` ``(K, C, H, W)`` or ``(K, H, W)`` (luminance)."""
+    k = np.asarray(kernels, np.float32)
+    if k.ndim == 4:
+        k = np.stack([luminance(x) for x in k])
+    if k.ndim != 3:
+        raise InvalidInputError("caustic_support needs (K, C, H, W) or (K, H, W) kernels")
+    valid = np.ones(k.shape[-2:], bool)
+    out = np.zeros(k.shape[-2:], bool)
+    for img in k:
+        if float(np.abs(img).max()) > 0:
+            out |= caustic_mask(np.clip(img, 0, None), valid, level, border=0, dilate=dilate)
+    return out

@@ -14,7 +14,7 @@ from matplotlib.image import AxesImage
 from psfkit.calibration.preprocess import luminance
 from psfkit.calibration.support import support_box
 from psfkit.calibration.warp import bounding_box
-from psfkit.report.figures.eigen import _zoom, difference_limit, draw_kernels
+from psfkit.report.figures.eigen import difference_limit, draw_kernels, zoom_box
 from psfkit.report.figures.style import PAGE_IN, new_figure, no_ticks, publication_style
 from research.compare.displacement import DisplacementMap
 from research.compare.results import KernelComparison
@@ -58,7 +58,7 @@ def figure_learned_vs_measured(comparison: KernelComparison, zoom: float | None 
     box = support_box(rows[-1][1][0])           # the measured kernels' crop
     rows += [(label, np.stack([luminance(k) for k in kernels])) for label, kernels in extra_rows]
     if zoom is not None:
-        box = _zoom(box, zoom)
+        box = zoom_box(box, zoom)
     k = len(names)
     cols = 2 * k - 1
     lums = [lum[:, box[0], box[1]] for _, lum in rows]

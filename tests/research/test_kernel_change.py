@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from psfkit.calibration.caustic import caustic_support
 from psfkit.calibration.registration import shift_image
 from psfkit.errors import InvalidInputError
+from research.compare.displacement import caustic_support
 from research.compare.kernel_change import split_change, split_kernel_changes
 
 

@@ -36,7 +36,7 @@ ONE_ROW_KERNELS = 4
 WRAP = 6
 
 
-def _zoom(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
+def zoom_box(box: tuple[slice, slice], zoom: float) -> tuple[slice, slice]:
     """The central ``zoom`` fraction of ``box``."""
     (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
     hr, hc = max(1, int((r1 - r0) * zoom / 2)), max(1, int((c1 - c0) * zoom / 2))
@@ -118,7 +118,7 @@ def figure_kernels(kernels: np.ndarray, names: Sequence[str], title: str = "",
     lum = np.stack([luminance(k.astype(np.float32)) for k in kernels])
     box = support_box(lum[0])
     if zoom is not None:
-        box = _zoom(box, zoom)
+        box = zoom_box(box, zoom)
     lum = lum[:, box[0], box[1]]
     k = len(kernels)
     rows = 1 if k <= ONE_ROW_KERNELS else math.ceil(k / WRAP) + math.ceil((k - 1) / WRAP)
