@@ -12,6 +12,7 @@ from ekdun.cli.vocabulary import add_flag, set_threads
 from ekdun.errors import InvalidInputError
 from ekdun.flag_ranges import flag
 from psfkit.cli.help_all import add_help_all, mark_advanced
+from psfkit.cli.main import register_moved
 from psfkit.cli.run_file import add_config_option, run_file_record
 from psfkit.cli.vocabulary import NOTICES, add_retired
 from psfkit.io.validation import MAX_GRID_SIDE, bounded_size
@@ -27,21 +28,6 @@ def _say(args: argparse.Namespace, text: str) -> None:
 #: release: it cannot run the study (research/ is not installed), so it says where it went.
 MOVED = {"oracle": "python -m research.oracle",
          "benchmark-tiny": "python -m research.benchmark_tiny"}
-
-
-def _register_moved(sub: argparse._SubParsersAction, name: str) -> None:
-    # no help=: hidden from `ekdun --help`; every argument is taken as it comes and ignored
-    # (type=str: not a path for the checks of free-text inputs, which would name it first)
-    p = sub.add_parser(name, add_help=False, prefix_chars="\0")
-    p.add_argument("rest", nargs="*", type=str)
-    p.set_defaults(func=run_moved, moved=name)
-
-
-def run_moved(args: argparse.Namespace) -> int:
-    """A removed command: one line saying where it went, status 2."""
-    raise InvalidInputError(
-        f"`ekdun {args.moved}` is no longer a user command: it is a research study, run "
-        f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
 
 
 #: The note of ``ekdun export-kernels`` (deprecated, hidden; docs/migration.md).
@@ -227,8 +213,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_export_kernels, **{NOTICES: [EXPORT_KERNELS_NOTE]})
 
     # ---------------------------------------------------------------- moved to research
-    for name in MOVED:
-        _register_moved(sub, name)
+    register_moved(sub, "ekdun", MOVED)
 
 
 def run_make_dataset(args: argparse.Namespace) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import gc
 import json
 import logging
@@ -264,17 +265,21 @@ def add_debug_option(parser: argparse.ArgumentParser) -> None:
 MOVED = {"compare": "python -m research.compare"}
 
 
-def _register_moved(sub: argparse._SubParsersAction, name: str) -> None:
-    # no help=: hidden; every argument is taken as it comes and ignored
-    p = sub.add_parser(name, add_help=False, prefix_chars="\0")
-    p.add_argument("rest", nargs="*", type=str)
-    p.set_defaults(func=_run_moved, moved=name)
+def register_moved(sub: argparse._SubParsersAction, prog: str, moved: dict[str, str]) -> None:
+    """Add the commands ``moved`` (``name: replacement``) to ``sub``, hidden: each stops with one
+    line naming its replacement, status 2 (research/ is not installed, so it cannot run it)."""
+    for name, replacement in moved.items():
+        # no help=: hidden; every argument is taken as it comes and ignored (type=str: not a
+        # path for the checks of free-text inputs, which would name it first)
+        p = sub.add_parser(name, add_help=False, prefix_chars="\0")
+        p.add_argument("rest", nargs="*", type=str)
+        p.set_defaults(func=functools.partial(_run_moved, f"{prog} {name}", replacement))
 
 
-def _run_moved(args: argparse.Namespace) -> int:
+def _run_moved(command: str, replacement: str, _args: argparse.Namespace) -> int:
     raise InvalidInputError(
-        f"`psfkit {args.moved}` is no longer a user command: it is a research study, run "
-        f"`{MOVED[args.moved]} ...` from a source checkout (docs/migration.md)")
+        f"`{command}` is no longer a user command: it is a research study, run "
+        f"`{replacement} ...` from a source checkout (docs/migration.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -296,8 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     # the order of ``psfkit --help``
     for module in (simulate_cmd, inspect_cmd, characterize_cmd, fit_cmd, pairs_cmd, eval_cmd):
         module.register(sub)
-    for name in MOVED:
-        _register_moved(sub, name)
+    register_moved(sub, "psfkit", MOVED)
     return parser
 
 
