@@ -163,6 +163,9 @@ def main() -> None:
     parser.add_argument("--ek-difference", type=float, default=None,
                         help="fit-pairs --difference of the EK fit (default: chosen by "
                              "held-out error, as fit-pairs does)")
+    parser.add_argument("--ek-tikhonov", type=float, default=None,
+                        help="fit-pairs --tikhonov of the EK fit (default: 0, as fit-pairs "
+                             "does for eigen-kernels)")
     parser.add_argument("--ek-convention", default="auto", choices=("auto", "source", "sensor"),
                         help="where the eigen-kernel model's weights act (default: chosen by "
                              "held-out error, as fit-pairs does)")
@@ -208,12 +211,12 @@ def main() -> None:
         keep = [j for j in range(n) if j != i]
         tune = keep[:args.tune_pairs]
         models, fit_s = {}, {}
-        for name, basis, convention, difference in (
-                ("SI", "si", "auto", None),
-                ("EK", args.ek_basis, args.ek_convention, args.ek_difference)):
+        for name, basis, convention, difference, tikhonov in (
+                ("SI", "si", "auto", None, None),
+                ("EK", args.ek_basis, args.ek_convention, args.ek_difference, args.ek_tikhonov)):
             t0 = time.perf_counter()
             fit = fit_pairs(scenes[keep], meas[keep], PairFitOptions(
-                basis=basis, convention=convention, difference=difference))
+                basis=basis, convention=convention, difference=difference, tikhonov=tikhonov))
             models[name] = fit.kernel_model()
             fit_s[name] = time.perf_counter() - t0
             weights = fit.regularisation_record()["weights"]
