@@ -41,6 +41,12 @@ the Newton preconditioner in float32): ``--basis si`` 38.6 / 39.7 s; ``--basis e
 (86 Newton steps, before the float32 preconditioner) and 291.3 s (78 steps), 1.33 GiB, both
 converged; a ``/usr/bin/time`` run of the CLI 4 min 7 s (78 steps). EK ≤ 4 min not met
 reliably.
+Seventh (stop 67: eigen-kernels choose a conditioning ridge, ``--tikhonov 0.01`` on DLMD;
+``/usr/bin/time -v psfkit fit-pairs ... --basis ek``, idle): 1 min 55 s wall, 1.29 GiB,
+34 Newton steps (KKT residual 3.9e-7, converged). **EK ≤ 4 min met.**
+The 384 bench pairs then (``--skip-dlmd``, beside another job for 20 of its 26 minutes):
+1559.8 s wall, 1859 s CPU, peak RSS 2.48 GiB, ``--difference 0`` and ``--tikhonov 0.001``
+chosen, 46 Newton steps (KKT residual 8.5e-07, converged).
 The 384 bench pairs of 128² (``--skip-dlmd``, one thread on the shared machine, between the
 two passes: Newton to 1e-6, float64 start): 1943 s wall, 1880 s CPU, peak RSS 1.36 GiB,
 ``--difference 0`` chosen (8 folds, 10 weights, 124 s), 49 Newton steps (KKT residual

@@ -164,8 +164,8 @@ def main() -> None:
                         help="fit-pairs --difference of the EK fit (default: chosen by "
                              "held-out error, as fit-pairs does)")
     parser.add_argument("--ek-tikhonov", type=float, default=None,
-                        help="fit-pairs --tikhonov of the EK fit (default: 0, as fit-pairs "
-                             "does for eigen-kernels)")
+                        help="fit-pairs --tikhonov of the EK fit (default: chosen by held-out "
+                             "error, as fit-pairs does)")
     parser.add_argument("--ek-convention", default="auto", choices=("auto", "source", "sensor"),
                         help="where the eigen-kernel model's weights act (default: chosen by "
                              "held-out error, as fit-pairs does)")

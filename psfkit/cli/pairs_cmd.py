@@ -78,7 +78,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
                    help="bin scenes and measurements N x N before fitting (default 1)")
     g.add_argument("--tikhonov", type=flag("--tikhonov"), default=d.tikhonov,
                    help="ridge weight relative to the mean scene power (default: chosen by "
-                        "held-out error for --basis si, 0 for eigen-kernels)")
+                        "held-out error; for eigen-kernels at most 0.01, after --difference)")
     g.add_argument("--difference", type=flag("--difference"), default=d.difference,
                    help="pull of the correction kernels towards the base kernel, relative "
                         "likewise (default: chosen by held-out error; eigen-kernels only)")

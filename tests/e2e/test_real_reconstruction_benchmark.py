@@ -26,7 +26,9 @@ def test_benchmark_reports_both_models_with_iterations_chosen_from_the_grid(real
          "--json", str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "EK = paper basis, auto side" in proc.stdout      # fit-pairs' defaults
-    assert re.search(r"EK [\d.]+ s \((source|sensor), difference ", proc.stdout)  # its choice
+    # its choice: the difference prior, and the ridge where it chose one
+    assert re.search(r"EK [\d.]+ s \((source|sensor), (tikhonov [\d.e-]+, )?difference ",
+                     proc.stdout)
     assert "LenslessPiCam not available" in proc.stdout      # an empty folder: no peer
     rows = json.loads(out.read_text())
     assert set(rows) == {"SI admm", "EK admm", "SI admm_tv f64"}

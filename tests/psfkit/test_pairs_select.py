@@ -11,6 +11,7 @@ import pytest
 import torch
 from test_pairs_solver import bench_scenes, known_eigen_kernels
 
+from psfkit.fitting.pairs import fit as pairs_fit
 from psfkit.fitting.pairs import regularisation as pairs_select
 from psfkit.fitting.pairs.batches import PairBatches
 from psfkit.fitting.pairs.fit import (
@@ -21,6 +22,7 @@ from psfkit.fitting.pairs.fit import (
     relative_errors,
 )
 from psfkit.fitting.pairs.regularisation import (
+    CONDITIONING_PATH,
     MAX_FOLDS,
     MIN_HELD_OUT,
     PATHS,
@@ -74,16 +76,23 @@ def test_few_noisy_pairs_get_a_prior_that_predicts_unseen_pairs_better(camera) -
     rng = np.random.default_rng(0)
     noisy = clean[:6] + 0.05 * clean[:6].std() * rng.standard_normal(clean[:6].shape)
     fit = fit_pairs(scenes[:6], noisy, PairFitOptions(basis="paper", convention="source"))
-    (choice,) = fit.regularisation
+    choice, ridge = fit.regularisation                  # the difference prior, then the ridge
     assert choice.parameter == "difference" and choice.chosen > 0
-    assert fit.weights == {"tikhonov": 0.0, "difference": choice.chosen}
+    assert ridge.parameter == "tikhonov" and ridge.fixed == {"difference": choice.chosen}
+    assert fit.weights == {"tikhonov": ridge.chosen, "difference": choice.chosen}
+    # the ridge conditions: its path starts at the cap and the strongest weight within TIE of
+    # the lowest held-out error wins
+    assert ridge.weights[0] == CONDITIONING_PATH[0]
+    tied = [w for w, e in zip(ridge.weights, ridge.held_out, strict=True)
+            if e <= min(ridge.held_out) * (1 + TIE)]
+    assert ridge.chosen == max(tied), ridge.summary()
     assert choice.folds == 6 and choice.held_out_pairs == 6          # leave-one-out
     # the path ran from the strongest weight down, and the choice scored lowest (or tied)
     assert choice.weights[:2] == list(PATHS["difference"][:2])
     assert choice.held_out[choice.weights.index(choice.chosen)] <= \
         min(choice.held_out) * (1 + TIE)
     unbiased = fit_pairs(scenes[:6], noisy, PairFitOptions(basis="paper", convention="source",
-                                                           difference=0.0))
+                                                           difference=0.0, tikhonov=0.0))
     assert unbiased.regularisation == []
     auto_error = _held_out(fit, scenes[40:], clean[40:])
     unbiased_error = _held_out(unbiased, scenes[40:], clean[40:])
@@ -116,15 +125,15 @@ def test_large_pairs_choose_on_binned_pairs_and_fit_at_full_resolution(camera, m
     noisy = clean[:6] + 0.05 * clean[:6].std() * rng.standard_normal(clean[:6].shape)
     options = PairFitOptions(basis="paper", convention="source")
     fit = fit_pairs(scenes[:6], noisy, options)
-    (choice,) = fit.regularisation
-    assert (choice.binning, choice.sensor) == (2, (12, 12))
+    choice, ridge = fit.regularisation
+    assert (choice.binning, choice.sensor) == (ridge.binning, ridge.sensor) == (2, (12, 12))
     assert choice.chosen in choice.weights and choice.chosen > 0
     assert "leave-one-out over 6 pairs, binned 2x to 12x12:" in choice.summary()
     assert choice.as_dict()["binning"] == 2
     assert fit.kernels.shape[-2:] == (24, 24)
-    assert fit.weights == {"tikhonov": 0.0, "difference": choice.chosen}
+    assert fit.weights == {"tikhonov": ridge.chosen, "difference": choice.chosen}
     unbiased = fit_pairs(scenes[:6], noisy, PairFitOptions(basis="paper", convention="source",
-                                                           difference=0.0))
+                                                           difference=0.0, tikhonov=0.0))
     auto_error = _held_out(fit, scenes[40:], clean[40:])
     unbiased_error = _held_out(unbiased, scenes[40:], clean[40:])
     assert auto_error < 0.9 * unbiased_error, (auto_error, unbiased_error)
@@ -142,7 +151,7 @@ def test_a_winning_strongest_weight_extends_the_path() -> None:
     clean = predict(flat, scenes.astype(np.float32), dtype=torch.float64)
     noisy = clean + 0.3 * clean.std() * np.random.default_rng(3).standard_normal(clean.shape)
     fit = fit_pairs(scenes, noisy, PairFitOptions(basis="paper", nonneg=False))
-    (choice,) = fit.regularisation
+    choice = fit.regularisation[0]
     assert max(choice.weights) > PATHS["difference"][0], choice.summary()
     assert choice.chosen < max(choice.weights), choice.summary()     # the extension stopped
     assert choice.weights == sorted(choice.weights, reverse=True)
@@ -154,8 +163,11 @@ def test_many_clean_pairs_keep_the_unbiased_fit(camera) -> None:
     camera's kernels come back."""
     model, scenes, clean = camera
     fit = fit_pairs(scenes[:40], clean[:40], PairFitOptions(basis="paper", convention="source"))
-    (choice,) = fit.regularisation
+    choice, ridge = fit.regularisation
     assert choice.chosen <= PATHS["difference"][-1], choice.summary()
+    # the conditioning ridge: these pairs pull it below its cap (0.001: the kernels 1.5 % from
+    # the camera's, against 0.6 % with none and 7 % at the cap)
+    assert ridge.chosen < CONDITIONING_PATH[0], ridge.summary()
     assert choice.folds == MAX_FOLDS and choice.held_out_pairs >= MIN_HELD_OUT
     truth = model.kernels.astype(np.float64)
     assert np.linalg.norm(fit.kernels - truth) / np.linalg.norm(truth) < 0.02
@@ -177,7 +189,8 @@ def test_one_psf_from_many_clean_pairs_keeps_the_unbiased_fit(camera) -> None:
 
 def test_explicit_weights_are_kept(camera) -> None:
     _, scenes, clean = camera
-    fit = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="paper", difference=0.5))
+    fit = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="paper", difference=0.5,
+                                                          tikhonov=0.0))
     assert fit.regularisation == [] and fit.weights == {"tikhonov": 0.0, "difference": 0.5}
     record = fit.regularisation_record()
     assert record["chosen_by"] == {"tikhonov": "given", "difference": "given"}
@@ -201,6 +214,11 @@ def test_the_choice_is_recorded_in_the_kernel_file(camera, tmp_path) -> None:
     chosen = [p for p in auto["path"] if p["weight"] == auto["chosen"]]
     assert chosen and chosen[0]["held_out"] <= best * (1 + TIE)
     assert all(len(p["per_pair"]) == 5 for p in auto["path"])
+    # then the ridge, on the same folds at the chosen difference prior
+    assert record["chosen_by"]["tikhonov"] == "held-out error"
+    ridge = record["automatic"]["tikhonov"]
+    assert ridge["fixed"] == {"difference": pytest.approx(fit.weights["difference"])}
+    assert ridge["chosen"] == pytest.approx(fit.weights["tikhonov"]) and ridge["folds"] == 5
 
 
 @pytest.mark.parametrize("truth", ["sensor", "source"])
@@ -221,9 +239,11 @@ def test_the_convention_is_chosen_by_held_out_error(camera, truth, tmp_path) -> 
     other = "source" if truth == "sensor" else "sensor"
     assert record["held_out"][truth] < record["held_out"][other]
     assert all(len(v) == 12 for v in record["per_pair"].values())       # the same folds
+    # compared at the chosen difference prior: the ridge, chosen after it, only conditions
+    first = fit.regularisation[0]
+    assert first.parameter == "difference"
     assert record["held_out"][truth] == pytest.approx(
-        np.mean(fit.regularisation[0].per_pair[fit.regularisation[0].weights.index(
-            fit.regularisation[0].chosen)]))
+        np.mean(first.per_pair[first.weights.index(first.chosen)]))
     kept = load_kernels(save_kernels(tmp_path / "k.npz", fit.kernel_model()))
     assert kept.convention == truth and kept.provenance["convention_choice"]["chosen"] == truth
 
@@ -240,9 +260,33 @@ def test_the_convention_choice_ties_go_to_the_paper_and_auto_is_the_default() ->
     assert one.convention == "auto"
 
 
+def test_a_given_difference_prior_still_chooses_the_ridge(camera, monkeypatch) -> None:
+    """Each weight is chosen unless given: with ``--difference`` alone the ridge is chosen at it;
+    the conventions are still scored without it (it only conditions the solve)."""
+    _, scenes, clean = camera
+    rng = np.random.default_rng(1)
+    noisy = clean[:5] + 0.05 * clean[:5].std() * rng.standard_normal(clean[:5].shape)
+    scored = []
+
+    def spy(batches, measurements, weights, *args, **kwargs):
+        scored.append(dict(weights))
+        return pairs_select.held_out_score(batches, measurements, weights, *args, **kwargs)
+
+    monkeypatch.setattr(pairs_fit, "held_out_score", spy)
+    fit = fit_pairs(scenes[:5], noisy, PairFitOptions(basis="paper", convention="auto",
+                                                      difference=0.5))
+    (ridge,) = fit.regularisation
+    assert ridge.parameter == "tikhonov" and ridge.fixed == {"difference": 0.5}
+    assert ridge.chosen > 0 and fit.weights == {"tikhonov": ridge.chosen, "difference": 0.5}
+    # one score per convention, each at the given prior and no ridge
+    assert scored == [{"tikhonov": 0.0, "difference": 0.5}] * 2
+    assert set(fit.convention_choice["held_out"]) == {"sensor", "source"}
+
+
 def test_given_weights_still_choose_the_convention(camera) -> None:
     _, scenes, clean = camera
-    fit = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="paper", difference=0.0))
+    fit = fit_pairs(scenes[:6], clean[:6], PairFitOptions(basis="paper", difference=0.0,
+                                                          tikhonov=0.0))
     assert fit.regularisation == [] and fit.convention == "source"      # the camera's
     held = fit.convention_choice["held_out"]
     # noise-free pairs: source/sensor 0.64 on these six, 0.39 and 0.52 on the next two sixes
@@ -258,7 +302,7 @@ def test_the_si_seed_is_only_a_warm_start_for_every_convention(camera) -> None:
     solves stop at ``FOLD_TOLERANCE``, so their held-out errors move with the start: by up to
     3 % on the sensor side here)."""
     _, scenes, clean = camera
-    common = dict(basis="paper", nonneg=False, difference=0.1, tolerance=1e-8)
+    common = dict(basis="paper", nonneg=False, difference=0.1, tikhonov=0.0, tolerance=1e-8)
     plain = fit_pairs(scenes[:8], clean[:8], PairFitOptions(**common))
     seeded = fit_pairs(scenes[:8], clean[:8], PairFitOptions(seed_with_si=True, **common))
     assert seeded.convention == plain.convention == "source"
@@ -284,7 +328,8 @@ def test_non_negative_solve_stops_at_a_kkt_point(camera) -> None:
     batches.scales = torch.as_tensor(fit.scales, dtype=torch.float64)
     gram = batches.gram()
     reference = gram.reference_power()
-    normal = regularised_normal(batches, 0.0, fit.weights["difference"] * reference)
+    normal = regularised_normal(batches, fit.weights["tikhonov"] * reference,
+                                fit.weights["difference"] * reference)
     rhs = batches.rhs(noisy)
     k = torch.as_tensor(fit.kernels, dtype=torch.float64)
     gradient = normal(k) - rhs

@@ -35,8 +35,9 @@ class PairFitOptions:
         (:func:`~psfkit.fitting.pairs.regularisation.convention_record`; sensor unless source wins
         by more than ``TIE``).
     tikhonov : float or None
-        ``λ`` relative to the mean scene power; ``None``: chosen by held-out error for ``si``, 0
-        for eigen-kernels (a ridge biases the kernels where the scenes carry little power).
+        ``λ`` relative to the mean scene power; ``None``: chosen by held-out error (for
+        eigen-kernels after ``difference``, a conditioning ridge of at most 0.01:
+        :data:`~psfkit.fitting.pairs.regularisation.CONDITIONING_PATH`).
     difference : float or None
         ``μ`` (pull of the corrections towards the base kernel), relative likewise; ``None``:
         chosen by held-out error for eigen-kernels.
@@ -90,10 +91,13 @@ class PairFitOptions:
 
     @property
     def automatic(self) -> tuple[str, ...]:
-        """The weights chosen by held-out error: eigen-kernels' difference prior, one PSF's ridge,
-        each unless given."""
+        """The weights chosen by held-out error, in order, each unless given: one PSF's ridge;
+        eigen-kernels' difference prior, then their ridge (without one, the kernel directions
+        the pairs barely see are left to where the non-negative solve stops, and it spends
+        most of its steps on them: research/notes/forward-model-studies.md)."""
         if get_basis(self.basis).n_kernels > 1:
-            return ("difference",) if self.difference is None else ()
+            return tuple(p for p, w in (("difference", self.difference),
+                                        ("tikhonov", self.tikhonov)) if w is None)
         return ("tikhonov",) if self.tikhonov is None else ()
 
     def weights(self) -> dict[str, float]:

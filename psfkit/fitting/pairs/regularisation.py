@@ -1,8 +1,9 @@
 """The regularisation of a pairs fit, chosen by held-out error (``fit-pairs``' default).
 
 A few pairs do not determine every kernel pixel, while hundreds do and any prior only biases
-them; so the one weight that matters (the ridge ``λ`` of ``si``, the difference prior ``μ`` of
-eigen-kernels, relative to the mean scene power) is chosen by **cross-validation over pairs**:
+them; so the weights (the ridge ``λ`` of ``si``; the difference prior ``μ`` of eigen-kernels,
+then their ridge; relative to the mean scene power) are chosen by **cross-validation over
+pairs**, one after the other:
 
 * ``k = min(N, MAX_FOLDS)`` folds of consecutive pairs, scored until ``MIN_HELD_OUT`` pairs and
   ``MIN_FOLDS`` folds are held out;
@@ -14,6 +15,9 @@ eigen-kernels, relative to the mean scene power) is chosen by **cross-validation
 * the path stops at the first weight worse than the best by more than ``TIE``; the chosen
   weight is the smallest within ``TIE`` of the lowest; if the strongest scores best, up to
   ``STRONGER_STEPS`` stronger ones are tried;
+* the eigen-kernel ridge conditions the solve rather than regularising it: its path is
+  :data:`CONDITIONING_PATH` and the *strongest* weight within ``TIE`` of the lowest wins (so
+  pairs that determine the kernels keep the unbiased fit, and the others a faster one);
 * pairs above :data:`SELECTION_PIXELS` pixels are binned for the choice.
 
 The per-frequency Gram blocks would give exact leave-one-out only without the crop, so the
@@ -42,6 +46,11 @@ PATHS: dict[str, tuple[float, ...]] = {
     "tikhonov": tuple(round(10 ** (-j / 2), 6) for j in range(0, 9)),        # 1 … 1e-4
     "difference": tuple(round(10 ** (1 - j / 2), 6) for j in range(0, 9)),   # 10 … 1e-3
 }
+#: The eigen-kernel ridge's path: for conditioning only, so capped where it costs the DLMD
+#: reconstruction nothing measurable (0.01: 0.05 ± 0.04 dB; the lowest held-out error there
+#: lies at 0.316, which costs 0.18 dB: research/notes/forward-model-studies.md). Without a
+#: ridge the directions the pairs barely see leave the non-negative solve 3x longer.
+CONDITIONING_PATH = (0.01, 0.003162, 0.001, 0.000316, 0.0001)
 #: When the path's strongest weight scores best, up to this many stronger weights (half a
 #: decade apart) are tried until one scores worse (DLMD at full resolution chooses 10).
 STRONGER_STEPS = 4
@@ -54,6 +63,9 @@ MIN_FOLDS = 1
 #: Relative residual of the fold solves (float32): the held-out errors then agree with those
 #: of fits solved to 1e-6 in float64 to ~1e-5 (measured on DLMD at 1/4 resolution).
 FOLD_TOLERANCE = 1e-4
+#: The conditioning path's fold solves: the ridge moves the solution by less than
+#: ``FOLD_TOLERANCE`` (DLMD: no CG iteration at all below 0.01), so they are solved closer.
+CONDITIONING_TOLERANCE = 1e-6
 #: Most CG iterations of one fold solve at one weight.
 FOLD_ITERATIONS = 500
 #: Scores within this relative distance of the lowest count as equal (the smaller weight wins).
@@ -177,8 +189,8 @@ def _absolute(parameter: str, weight: float, fixed: dict[str, float], reference:
 def choose_regularisation(batches: PairBatches,
                           measurements: np.ndarray | Tensor | MeasurementSource,
                           parameter: str, fixed: dict[str, float], best_gain: bool,
-                          reference: float, start: Tensor | None = None, bar: Any = None
-                          ) -> tuple[RegularisationChoice, Tensor]:
+                          reference: float, start: Tensor | None = None, bar: Any = None,
+                          conditioning: bool = False) -> tuple[RegularisationChoice, Tensor]:
     """Choose ``parameter`` (``"tikhonov"`` or ``"difference"``) by held-out error.
 
     Parameters
@@ -197,6 +209,9 @@ def choose_regularisation(batches: PairBatches,
         Warm start of every fold at the path's first weight.
     bar : tqdm, optional
         Advanced by one per CG iteration.
+    conditioning : bool
+        A ridge for conditioning (eigen-kernels): the path :data:`CONDITIONING_PATH`, the
+        strongest weight within ``TIE`` of the lowest chosen.
 
     Returns
     -------
@@ -207,19 +222,20 @@ def choose_regularisation(batches: PairBatches,
     folds = folds_of(batches.n)
     fixed = {"tikhonov": 0.0, "difference": 0.0, **fixed}
     path = _FoldPath(batches, measurements, folds, start, best_gain, bar,
-                     lambda w: _absolute(parameter, w, fixed, reference))
-    for weight in (*PATHS[parameter], 0.0):
+                     lambda w: _absolute(parameter, w, fixed, reference),
+                     CONDITIONING_TOLERANCE if conditioning else FOLD_TOLERANCE)
+    for weight in (*(CONDITIONING_PATH if conditioning else PATHS[parameter]), 0.0):
         if path.worse(path.evaluate(weight)):
             break
     # the strongest weight won: the best may lie beyond the path's start
-    for _ in range(STRONGER_STEPS):
+    for _ in range(0 if conditioning else STRONGER_STEPS):
         strongest = max(path.scores)
         if path.chosen() != strongest or len(path.scores) < 2:
             break
         path.restart_from(strongest)
         if path.worse(path.evaluate(round(strongest * math.sqrt(10), 6))):
             break
-    chosen = path.chosen()
+    chosen = path.chosen(strongest=conditioning)
     warm = torch.stack(path.at_weight[chosen]).mean(dim=0)
     weights = sorted(path.scores, reverse=True)
     scores, per_pair, iterations = zip(*(path.scores[w] for w in weights), strict=True)
@@ -288,8 +304,8 @@ class _FoldPath:
     def __init__(self, batches: PairBatches,
                  measurements: np.ndarray | Tensor | MeasurementSource,
                  folds: list[np.ndarray], start: Tensor | None, best_gain: bool, bar: Any,
-                 absolute: Any) -> None:
-        self.batches, self.measurements = batches, measurements
+                 absolute: Any, tolerance: float = FOLD_TOLERANCE) -> None:
+        self.batches, self.measurements, self.tolerance = batches, measurements, tolerance
         self.best_gain, self.bar, self.absolute = best_gain, bar, absolute
         self.train = [~np.isin(np.arange(batches.n), held) for held in folds]
         # a fold's right-hand side and Gram blocks do not depend on the weight: one pass each
@@ -316,7 +332,7 @@ class _FoldPath:
             with b.only(mask):
                 self.kernels[f], info = solve_normal_equations(
                     regularised_normal(b, lam, mu), self.rhs[f],
-                    self.grams[f].preconditioner(lam, mu), self.kernels[f], FOLD_TOLERANCE,
+                    self.grams[f].preconditioner(lam, mu), self.kernels[f], self.tolerance,
                     FOLD_ITERATIONS, self.bar)
             iterations += info.iterations
             with b.only(~mask):
@@ -335,9 +351,10 @@ class _FoldPath:
         """Worse than the lowest score so far by more than ``TIE``."""
         return score > min(v[0] for v in self.scores.values()) * (1 + TIE)
 
-    def chosen(self) -> float:
-        """The smallest weight within ``TIE`` of the lowest score."""
-        return min(w for w, v in self.scores.items() if not self.worse(v[0]))
+    def chosen(self, strongest: bool = False) -> float:
+        """The smallest (or ``strongest``) weight within ``TIE`` of the lowest score."""
+        pick = max if strongest else min
+        return pick(w for w, v in self.scores.items() if not self.worse(v[0]))
 
     def restart_from(self, weight: float) -> None:
         """Warm-start the next weight from the folds' kernels at ``weight``."""
