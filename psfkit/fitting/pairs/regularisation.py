@@ -68,7 +68,8 @@ FOLD_TOLERANCE = 1e-4
 CONDITIONING_TOLERANCE = 1e-6
 #: Most CG iterations of one fold solve at one weight.
 FOLD_ITERATIONS = 500
-#: Scores within this relative distance of the lowest count as equal (the smaller weight wins).
+#: Scores within this relative distance of the lowest count as equal (the smaller weight wins;
+#: on :data:`CONDITIONING_PATH` the larger).
 TIE = 1e-3
 #: The weight is chosen on the pairs binned (block means) to at most this many pixels and
 #: used at full resolution (the weights are relative to the scenes' mean per-frequency power):
