@@ -49,8 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
              note=f"si; one of ek, {', '.join(BASIS_NAMES)}")
     add_flag(p, "--convention", "fit-pairs",
              note="auto: each convention at its own chosen regularisation on the same folds, "
-                  "the sensor side unless the source side predicts the held-out pairs "
-                  "better; the kernel file records the choice")
+                  "the source side unless the sensor side predicts the held-out pairs "
+                  "better by more than a standard error; the kernel file records the "
+                  "choice")
     p.add_argument("--out", required=True, help="kernel file to write (.npz)")
     add_flag(p, "--channel-order", "fit-pairs",
              note="the folder's (pairs.json; BGR for the DLMD layout lensed/ + diffuser/), "

@@ -216,8 +216,7 @@ def _choose_weights(batches: PairBatches, measurements: np.ndarray, options: Pai
                            stage="scales", tolerance=FOLD_TOLERANCE)
     # a pair's scale is its gain, whatever the pixel pitch
     batches.scales = twin.scales.to(dtype=batches.dtype, device=batches.device)
-    # eigen-kernels' ridge only conditions the solve (CONDITIONING_PATH)
-    ridge = "tikhonov" if twin.n_kernels > 1 else None
+    ridge = options.conditioning_ridge
     for parameter in options.automatic:
         bar.set_description(f"choose --{parameter} ({options.basis})")
         choice, start = choose_regularisation(

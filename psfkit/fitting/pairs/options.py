@@ -95,10 +95,16 @@ class PairFitOptions:
         eigen-kernels' difference prior, then their ridge (without one, the kernel directions
         the pairs barely see are left to where the non-negative solve stops, and it spends
         most of its steps on them: research/notes/forward-model-studies.md)."""
-        if get_basis(self.basis).n_kernels > 1:
+        if self.conditioning_ridge:
             return tuple(p for p, w in (("difference", self.difference),
                                         ("tikhonov", self.tikhonov)) if w is None)
         return ("tikhonov",) if self.tikhonov is None else ()
+
+    @property
+    def conditioning_ridge(self) -> str | None:
+        """The weight that only conditions the solve, chosen on ``CONDITIONING_PATH``:
+        eigen-kernels' ridge (one PSF's ridge is its prior)."""
+        return "tikhonov" if get_basis(self.basis).n_kernels > 1 else None
 
     def weights(self) -> dict[str, float]:
         """The relative weights as given (0 where neither given nor chosen automatically)."""

@@ -230,11 +230,11 @@ def choose_regularisation(batches: PairBatches,
             break
     # the strongest weight won: the best may lie beyond the path's start
     for _ in range(0 if conditioning else STRONGER_STEPS):
-        strongest = max(path.scores)
-        if path.chosen() != strongest or len(path.scores) < 2:
+        top = max(path.scores)
+        if path.chosen() != top or len(path.scores) < 2:
             break
-        path.restart_from(strongest)
-        if path.worse(path.evaluate(round(strongest * math.sqrt(10), 6))):
+        path.restart_from(top)
+        if path.worse(path.evaluate(round(top * math.sqrt(10), 6))):
             break
     chosen = path.chosen(strongest=conditioning)
     warm = torch.stack(path.at_weight[chosen]).mean(dim=0)
@@ -270,11 +270,17 @@ def held_out_score(batches: PairBatches,
 
 def convention_record(per_pair: dict[str, list[float]], metric: str) -> dict[str, Any]:
     """Choose an eigen-kernel model's convention by held-out error (``per_pair``: each convention's
-    errors on the same pairs): source only when its mean is lower by more than ``TIE``, else
-    sensor. Returns the kernel file's record (choice, means, standard errors, paired difference)."""
+    errors on the same pairs). The source side (each scene point's PSF blended: what a grid of
+    point sources measures, and the better fit on the virtual bench and on DLMD) is kept unless
+    the sensor side (Eq. 7) predicts better by more than ``TIE`` and by more than one standard
+    error of the paired difference: the one-standard-error rule, so that a difference the folds
+    cannot resolve does not choose (on DLMD two folds of seven went to the sensor side on ties,
+    and their reconstructions lost; research/notes/forward-model-studies.md). Returns the kernel
+    file's record (choice, means, standard errors, paired difference)."""
     sensor, source = (np.asarray(per_pair[c]) for c in ("sensor", "source"))
-    chosen = "source" if source.mean() < sensor.mean() * (1 - TIE) else "sensor"
     diff = source - sensor
+    spread = _standard_error(diff) if len(diff) > 1 else 0.0
+    chosen = "sensor" if diff.mean() > max(TIE * sensor.mean(), spread) else "source"
     return {"method": "cross-validation over pairs, each convention at its own chosen "
                       "regularisation", "metric": metric, "chosen": chosen,
             "held_out": {c: float(np.mean(v)) for c, v in per_pair.items()},
