@@ -32,8 +32,8 @@ class PairFitOptions:
         ``"si"`` (one shift-invariant PSF) or an eigen-kernel basis.
     convention : {"auto", "sensor", "source"}
         Where the weights live; ``"auto"``: the one predicting held-out pairs better
-        (:func:`~psfkit.fitting.pairs.regularisation.convention_record`; sensor unless source wins
-        by more than ``TIE``).
+        (:func:`~psfkit.fitting.pairs.regularisation.convention_record`; source unless sensor
+        wins by more than ``TIE`` and one standard error).
     tikhonov : float or None
         ``λ`` relative to the mean scene power; ``None``: chosen by held-out error (for
         eigen-kernels after ``difference``, a conditioning ridge of at most 0.01:
